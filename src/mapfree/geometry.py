@@ -1,0 +1,278 @@
+"""Rigid poses, rotations, intrinsics and pinhole projection, vectorised over numpy arrays.
+
+Conventions (SPEC §1): OpenCV camera axes, metres, world-to-camera poses ``X_cam = R X_world + t``,
+quaternions in ``w x y z`` order. Nothing here imports anything else from mapfree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+
+__all__ = [
+    "quat_to_rotmat",
+    "rotmat_to_quat",
+    "normalize_quat",
+    "rotation_angle_deg",
+    "Pose",
+    "Poses",
+    "Intrinsics",
+    "project",
+    "backproject",
+    "backproject_depth",
+    "sample_depth",
+]
+
+
+# --------------------------------------------------------------------------- rotations
+
+
+def normalize_quat(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion(s); raises on a zero-norm quaternion."""
+    q = np.asarray(q, dtype=np.float64)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(n == 0) or not np.all(np.isfinite(n)):
+        raise ValueError("quaternion has zero or non-finite norm")
+    return q / n
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """(…,4) wxyz quaternions (normalised here) -> (…,3,3) rotation matrices."""
+    q = normalize_quat(q)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - w * z)
+    R[..., 0, 2] = 2 * (x * z + w * y)
+    R[..., 1, 0] = 2 * (x * y + w * z)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - w * x)
+    R[..., 2, 0] = 2 * (x * z - w * y)
+    R[..., 2, 1] = 2 * (y * z + w * x)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """(…,3,3) rotations -> (…,4) unit wxyz quaternions with w >= 0 (Shepperd's method, stable)."""
+    R = np.asarray(R, dtype=np.float64)
+    m = R.reshape(-1, 3, 3)
+    tr = np.trace(m, axis1=1, axis2=2)
+    # Candidate 4*q_i^2 for each component; pick the largest to avoid dividing by a small number.
+    d = np.stack(
+        [1 + tr, 1 + 2 * m[:, 0, 0] - tr, 1 + 2 * m[:, 1, 1] - tr, 1 + 2 * m[:, 2, 2] - tr], axis=1
+    )
+    k = np.argmax(d, axis=1)
+    a = m
+    # Scaled by 4|q_k|: the chosen component is d_k = 4 q_k^2, the others are sums/differences of entries.
+    dk = d[np.arange(len(m)), k]
+    cases = [
+        (dk, a[:, 2, 1] - a[:, 1, 2], a[:, 0, 2] - a[:, 2, 0], a[:, 1, 0] - a[:, 0, 1]),
+        (a[:, 2, 1] - a[:, 1, 2], dk, a[:, 0, 1] + a[:, 1, 0], a[:, 0, 2] + a[:, 2, 0]),
+        (a[:, 0, 2] - a[:, 2, 0], a[:, 0, 1] + a[:, 1, 0], dk, a[:, 1, 2] + a[:, 2, 1]),
+        (a[:, 1, 0] - a[:, 0, 1], a[:, 0, 2] + a[:, 2, 0], a[:, 1, 2] + a[:, 2, 1], dk),
+    ]
+    q = np.empty((len(m), 4))
+    for i, c in enumerate(cases):
+        sel = k == i
+        q[sel] = np.stack([comp[sel] for comp in c], axis=1)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 0] < 0] *= -1
+    return q.reshape(R.shape[:-2] + (4,))
+
+
+def rotation_angle_deg(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
+    """Geodesic angle in degrees between rotation(s) R1 and R2 (broadcast over leading axes)."""
+    R = np.einsum("...ji,...jk->...ik", R1, R2)  # R1^T R2
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1) / 2
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+# --------------------------------------------------------------------------- poses
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A world-to-camera rigid transform: ``X_cam = R @ X_world + t``."""
+
+    R: np.ndarray
+    t: np.ndarray
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "R", np.asarray(self.R, dtype=np.float64).reshape(3, 3))
+        object.__setattr__(self, "t", np.asarray(self.t, dtype=np.float64).reshape(3))
+
+    @classmethod
+    def identity(cls) -> "Pose":
+        return cls(np.eye(3), np.zeros(3))
+
+    @classmethod
+    def from_qt(cls, q_wxyz: Iterable[float], t: Iterable[float]) -> "Pose":
+        return cls(quat_to_rotmat(np.asarray(q_wxyz, dtype=np.float64)), np.asarray(t, dtype=np.float64))
+
+    @classmethod
+    def from_matrix(cls, T: np.ndarray) -> "Pose":
+        T = np.asarray(T, dtype=np.float64)
+        return cls(T[:3, :3], T[:3, 3])
+
+    def qt(self) -> tuple[np.ndarray, np.ndarray]:
+        return rotmat_to_quat(self.R), self.t.copy()
+
+    @property
+    def matrix(self) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = self.t
+        return T
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates, ``-R^T t``."""
+        return -self.R.T @ self.t
+
+    def inverse(self) -> "Pose":
+        return Pose(self.R.T, -self.R.T @ self.t)
+
+    def __matmul__(self, other: "Pose") -> "Pose":
+        """Composition: ``(a @ b)(X) = a(b(X))``."""
+        return Pose(self.R @ other.R, self.R @ other.t + self.t)
+
+    def transform(self, X: np.ndarray) -> np.ndarray:
+        """Apply to (N,3) points."""
+        return np.asarray(X) @ self.R.T + self.t
+
+    def relative_to(self, first: "Pose") -> "Pose":
+        """Pose of this camera relative to ``first`` (SPEC: q12 = q2 q1^-1, t12 = t2 - R12 t1)."""
+        return self @ first.inverse()
+
+    def is_finite(self) -> bool:
+        return bool(np.all(np.isfinite(self.R)) and np.all(np.isfinite(self.t)))
+
+
+@dataclass(frozen=True)
+class Poses:
+    """N world-to-camera poses as stacked arrays (R: (N,3,3), t: (N,3))."""
+
+    R: np.ndarray
+    t: np.ndarray
+
+    @classmethod
+    def from_qt(cls, q_wxyz: np.ndarray, t: np.ndarray) -> "Poses":
+        return cls(quat_to_rotmat(np.asarray(q_wxyz, dtype=np.float64)), np.asarray(t, dtype=np.float64))
+
+    @classmethod
+    def stack(cls, poses: Iterable[Pose]) -> "Poses":
+        poses = list(poses)
+        return cls(np.stack([p.R for p in poses]), np.stack([p.t for p in poses]))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def __getitem__(self, i: int) -> Pose:
+        return Pose(self.R[i], self.t[i])
+
+    def qt(self) -> tuple[np.ndarray, np.ndarray]:
+        return rotmat_to_quat(self.R), self.t.copy()
+
+    @property
+    def centers(self) -> np.ndarray:
+        return -np.einsum("nji,nj->ni", self.R, self.t)
+
+    def inverse(self) -> "Poses":
+        Rt = np.swapaxes(self.R, 1, 2)
+        return Poses(Rt, -np.einsum("nij,nj->ni", Rt, self.t))
+
+    def __matmul__(self, other: "Poses") -> "Poses":
+        return Poses(self.R @ other.R, np.einsum("nij,nj->ni", self.R, other.t) + self.t)
+
+    def relative_to(self, first: "Poses") -> "Poses":
+        return self @ first.inverse()
+
+
+# --------------------------------------------------------------------------- intrinsics and projection
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics of one frame, with the image size in pixels."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
+
+    @classmethod
+    def from_K(cls, K: np.ndarray, width: int, height: int) -> "Intrinsics":
+        K = np.asarray(K, dtype=np.float64)
+        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
+
+    @property
+    def mean_focal(self) -> float:
+        return 0.5 * (self.fx + self.fy)
+
+    @property
+    def diagonal(self) -> float:
+        return float(np.hypot(self.width, self.height))
+
+    def scaled(self, sx: float, sy: float | None = None) -> "Intrinsics":
+        """Intrinsics after resizing the image by (sx, sy), half-pixel-centre convention (SPEC §1)."""
+        sy = sx if sy is None else sy
+        return Intrinsics(
+            self.fx * sx,
+            self.fy * sy,
+            sx * (self.cx + 0.5) - 0.5,
+            sy * (self.cy + 0.5) - 0.5,
+            int(round(self.width * sx)),
+            int(round(self.height * sy)),
+        )
+
+    def resized(self, width: int, height: int) -> "Intrinsics":
+        """Intrinsics of the image resized to exactly ``width × height``."""
+        out = self.scaled(width / self.width, height / self.height)
+        return Intrinsics(out.fx, out.fy, out.cx, out.cy, int(width), int(height))
+
+
+def project(X: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(…,3) camera-frame points -> (…,2) pixels. Points at z <= 0 give inf/nan; callers mask them."""
+    X = np.asarray(X, dtype=np.float64)
+    uvw = X @ np.asarray(K, dtype=np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return uvw[..., :2] / uvw[..., 2:3]
+
+
+def backproject(uv: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(N,2) pixels with (N,) depths (z, metres) -> (N,3) camera-frame points."""
+    uv = np.asarray(uv, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    z = np.asarray(depth, dtype=np.float64)
+    x = (uv[..., 0] - K[0, 2]) / K[0, 0]
+    y = (uv[..., 1] - K[1, 2]) / K[1, 1]
+    return np.stack([x * z, y * z, z], axis=-1)
+
+
+def backproject_depth(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(H,W) depth map -> (H,W,3) camera-frame points (pixel centres at integer coordinates)."""
+    H, W = depth.shape
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    return backproject(np.stack([u, v], axis=-1), depth, K)
+
+
+def sample_depth(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Depth at (N,2) pixel positions, nearest pixel; 0 (invalid) outside the map."""
+    uv = np.asarray(uv, dtype=np.float64)
+    H, W = depth.shape[:2]
+    u = np.rint(uv[:, 0]).astype(np.int64)
+    v = np.rint(uv[:, 1]).astype(np.int64)
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    out = np.zeros(len(uv), dtype=np.float64)
+    out[inside] = depth[v[inside], u[inside]]
+    out[~np.isfinite(out)] = 0.0
+    return out
