@@ -48,7 +48,8 @@ def read_overlaps(path: os.PathLike | str) -> Overlaps:
         raise FormatError(path, None, f"cannot read npz ({e})") from None
     if idxs.ndim != 2 or idxs.shape[1] != 4 or len(idxs) != len(ov):
         raise FormatError(path, None, f"idxs must be (M,4) matching overlaps (M,), got {idxs.shape}, {ov.shape}")
-    return Overlaps(idxs.astype(np.int64), ov.astype(np.float64))
+    # Overlaps keep their stored dtype (float32 in the release): bounds then compare as the reference code does.
+    return Overlaps(idxs.astype(np.int64), ov if np.issubdtype(ov.dtype, np.floating) else ov.astype(np.float64))
 
 
 def write_overlaps(path: os.PathLike | str, overlaps: Overlaps) -> None:

@@ -1,0 +1,29 @@
+"""Shared fixtures. Engineers: only ADD fixtures here."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+def _find_realmini() -> Path | None:
+    here = Path(__file__).resolve()
+    for cand in (here.parents[2] / "shared/data/realmini-dev", Path("/work/shared/data/realmini-dev")):
+        if (cand / "val").is_dir():
+            return cand
+    return None
+
+
+REALMINI = _find_realmini()
+
+
+@pytest.fixture(scope="session")
+def realmini() -> Path:
+    """Root of the real-image sample split (val/s00000..s00003, depth suffix ``sensor``)."""
+    if REALMINI is None:
+        pytest.fail("shared/data/realmini-dev not found beside the checkout")
+    return REALMINI
