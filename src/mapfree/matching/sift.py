@@ -1,0 +1,83 @@
+"""OpenCV SIFT with RootSIFT descriptors and Lowe's ratio test (the paper's SIFT baseline)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from .base import Features, Matches
+from .utils import check_image, resize_for_matching, to_original
+
+__all__ = ["SIFTOptions", "SIFTMatcher", "root_sift"]
+
+
+@dataclass
+class SIFTOptions:
+    """Defaults = the paper's SIFT row (SPEC §4): 2048 features, RootSIFT, ratio 0.8, at 540x720."""
+
+    max_features: int = 2048
+    ratio: float = 0.8
+    root_sift: bool = True
+    mutual: bool = False  # also require the match to be the best in the other direction
+    max_size: int | None = None  # long-side cap for extraction; None = native resolution
+    device: str | None = None  # accepted for a uniform API; OpenCV SIFT runs on the CPU
+
+
+def root_sift(desc: np.ndarray, eps: float = 1e-7) -> np.ndarray:
+    """RootSIFT (Arandjelović & Zisserman 2012): L1-normalise, then square-root, so L2 = Hellinger."""
+    desc = desc.astype(np.float32)
+    desc /= desc.sum(axis=1, keepdims=True) + eps
+    return np.sqrt(desc)
+
+
+class SIFTMatcher:
+    """``sift``: CPU only (OpenCV); ``extract`` is separable so reference features are computed once."""
+
+    name = "sift"
+
+    def __init__(self, options: SIFTOptions | None = None, **overrides: object) -> None:
+        self.options = options or SIFTOptions(**overrides)  # type: ignore[arg-type]
+        self._sift = cv2.SIFT_create(nfeatures=self.options.max_features)
+        self._bf = cv2.BFMatcher(cv2.NORM_L2)
+
+    def extract(self, image: np.ndarray) -> Features:
+        image = check_image(image)
+        small, scale = resize_for_matching(image, self.options.max_size)
+        gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+        kps, desc = self._sift.detectAndCompute(gray, None)
+        if desc is None or len(kps) == 0:
+            desc, xy = np.zeros((0, 128), np.float32), np.zeros((0, 2))
+        else:
+            xy = np.array([k.pt for k in kps], dtype=np.float64)
+            # OpenCV may return more than nfeatures when responses tie at the cut.
+            desc, xy = desc[: self.options.max_features], xy[: self.options.max_features]
+        if self.options.root_sift:
+            desc = root_sift(desc)
+        size = (image.shape[1], image.shape[0])
+        return Features(to_original(xy, scale), size, {"descriptors": np.ascontiguousarray(desc, np.float32)})
+
+    def match(self, f0: Features, f1: Features) -> Matches:
+        d0, d1 = f0.data["descriptors"], f1.data["descriptors"]
+        if len(d0) < 2 or len(d1) < 2:
+            return Matches.empty()
+        knn = self._bf.knnMatch(d0, d1, k=2)
+        pairs = [(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance) for m in knn if len(m) == 2]
+        if not pairs:
+            return Matches.empty()
+        i0, i1, dist1, dist2 = (np.array(c) for c in zip(*pairs))
+        ratio = dist1 / np.maximum(dist2, 1e-12)
+        keep = ratio < self.options.ratio
+        if self.options.mutual:
+            back = {m[0].queryIdx: m[0].trainIdx for m in self._bf.knnMatch(d1, d0, k=1) if m}
+            keep &= np.array([back.get(b, -1) == a for a, b in zip(i0, i1)])
+        i0, i1 = i0[keep].astype(int), i1[keep].astype(int)
+        return Matches(f0.kpts[i0], f1.kpts[i1], 1.0 - ratio[keep])
+
+    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
+        return [self.extract(im) for im in images]
+
+    def match_many(self, f0: Features, f1s: Sequence[Features]) -> list[Matches]:
+        return [self.match(f0, f1) for f1 in f1s]

