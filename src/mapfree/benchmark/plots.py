@@ -1,0 +1,143 @@
+"""The paper's evaluation figures for a ``Report`` (matplotlib, Agg canvas, PNG and PDF).
+
+- ``precision_ratio``: precision against the ratio of confident estimates kept, for the pose and VCRE
+  thresholds (the area under each curve is its AUC);
+- ``vcre_cdf``: cumulative distribution of VCRE over every evaluated frame, with lines at 1, 5 and 10 %
+  of the image diagonal;
+- ``scenes``: per scene, median rotation vs median translation error, coloured by VCRE precision.
+No pyplot: figures draw on their own Agg canvas, so nothing global changes.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter
+
+from .metrics import Thresholds, precision_ratio_curve
+from .report import Report
+
+__all__ = ["save_plots", "precision_ratio_figure", "vcre_cdf_figure", "scene_scatter_figure"]
+
+
+def _figure(size=(5.5, 4.2)) -> Figure:
+    fig = Figure(figsize=size, dpi=120, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _failures(report: Report) -> int:
+    return int((~report.estimated).sum() + report.extra_failures)
+
+
+def precision_ratio_figure(report: Report) -> Figure:
+    """Precision vs ratio of confident estimates for each pose and VCRE threshold."""
+    fig = _figure()
+    ax = fig.add_subplot()
+    est = report.estimated
+    conf = report.confidence[est]
+    th = report.thresholds
+    curves = [(f"VCRE < {px:g} px", report.vcre[est] < px) for px in th.vcre]
+    curves += [
+        (f"pose < {tm * 100:g} cm, {rd:g}°", (report.trans_err[est] < tm) & (report.rot_err[est] < rd))
+        for tm, rd in th.pose
+    ]
+    colors = {"VCRE": "tab:blue", "pose": "tab:orange"}
+    seen: set[str] = set()
+    for label, ok in curves:
+        kind = label.split()[0]
+        style = "-" if kind not in seen else "--"
+        seen.add(kind)
+        ratio, prec = precision_ratio_curve(conf, ok, _failures(report))
+        if len(ratio) == 0:
+            ax.plot([], [], style, color=colors[kind], label=f"{label} (no estimates)")
+            continue
+        area = float(np.sum(np.diff(np.r_[np.float32(0), ratio]) * prec))
+        ax.step(np.r_[0.0, ratio], np.r_[prec[0], prec], where="pre", ls=style, color=colors[kind],
+                label=f"{label}  (AUC {area:.3f})")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("ratio of confident estimates (frames kept / all frames)")
+    ax.set_ylabel("precision")
+    ax.set_title("Precision as the confidence threshold is lowered")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower left", fontsize=8)
+    return fig
+
+
+def vcre_cdf_figure(report: Report) -> Figure:
+    """Fraction of all evaluated frames (failures included) with VCRE below each value."""
+    fig = _figure()
+    ax = fig.add_subplot()
+    total = len(report.estimated) + report.extra_failures
+    v = np.sort(report.vcre[report.estimated])
+    diag = float(np.median(report.diagonal)) if len(report.diagonal) else 900.0
+    xmax = max(1.5 * 0.1 * diag, float(np.percentile(v, 90)) if len(v) else 0.0)
+    if len(v) and total:
+        ax.step(np.r_[0.0, v], np.r_[0.0, np.arange(1, len(v) + 1) / total], where="post", color="tab:blue",
+                label="VCRE")
+    for frac, style in ((0.01, ":"), (0.05, "--"), (0.10, "-")):
+        ax.axvline(frac * diag, color="0.3", ls=style, lw=1, label=f"{frac:.0%} of diagonal ({frac * diag:.0f} px)")
+    if abs(report.thresholds.vcre[0] - 0.1 * diag) > 0.5:  # images other than 540x720
+        ax.axvline(report.thresholds.vcre[0], color="tab:red", lw=1, alpha=0.6,
+                   label=f"benchmark threshold ({report.thresholds.vcre[0]:g} px)")
+    ax.set_xlim(0, xmax)
+    ax.set_ylim(0, 1.0)
+    ax.set_xlabel("VCRE (px)")
+    ax.set_ylabel("fraction of evaluated frames")
+    ax.set_title("Cumulative distribution of VCRE")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    return fig
+
+
+def scene_scatter_figure(report: Report) -> Figure:
+    """Per scene: median rotation vs median translation error, coloured by VCRE precision."""
+    fig = _figure((5.8, 4.4))
+    ax = fig.add_subplot()
+    key_p = f"Precision @ {Thresholds.vcre_name(report.thresholds.vcre[0])}"
+    rows = [
+        (m["Average Median Rotation Error"], m["Average Median Translation Error"], m.get(key_p) or 0.0)
+        for m in report.per_scene.values()
+        if m.get("Average Median Rotation Error") is not None
+    ]
+    if rows:
+        r, t, p = (np.array(c, dtype=float) for c in zip(*rows))
+        sc = ax.scatter(np.maximum(r, 1e-2), np.maximum(t, 1e-3), c=p, cmap="viridis", vmin=0, vmax=1,
+                        s=28, edgecolors="k", linewidths=0.4)
+        fig.colorbar(sc, ax=ax, label=f"precision (VCRE < {report.thresholds.vcre[0]:g} px)")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        plain = FuncFormatter(lambda v, _: f"{v:g}")
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_major_formatter(plain)
+            axis.set_minor_formatter(plain)
+    else:
+        ax.text(0.5, 0.5, "no estimates", ha="center", va="center", transform=ax.transAxes)
+    tm, rd = report.thresholds.pose[0]
+    ax.axvline(rd, color="0.4", ls="--", lw=1)
+    ax.axhline(tm, color="0.4", ls="--", lw=1)
+    ax.set_xlabel("median rotation error (°)")
+    ax.set_ylabel("median translation error (m)")
+    ax.set_title(f"Per-scene median errors ({len(rows)} scenes)")
+    ax.grid(alpha=0.3, which="both")
+    return fig
+
+
+def save_plots(report: Report, outdir: os.PathLike | str, formats=("png", "pdf")) -> list[Path]:
+    """Write the three figures as ``outdir/{precision_ratio,vcre_cdf,scenes}.{png,pdf}``."""
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, make in (("precision_ratio", precision_ratio_figure), ("vcre_cdf", vcre_cdf_figure),
+                       ("scenes", scene_scatter_figure)):
+        fig = make(report)
+        for fmt in formats:
+            p = outdir / f"{name}.{fmt}"
+            fig.savefig(p)
+            paths.append(p)
+    return paths

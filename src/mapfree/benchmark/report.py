@@ -1,0 +1,146 @@
+"""The result of an evaluation: headline metrics, per-scene metrics, per-frame errors and problems."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .metrics import Thresholds
+from .submission import Problem
+
+__all__ = ["Report", "format_table", "METRIC_KEYS"]
+
+# The public evaluator's output keys, in its order.
+METRIC_KEYS = (
+    "Average Median Translation Error",
+    "Average Median Rotation Error",
+    "Average Median Reprojection Error",
+    "Precision @ Pose Error < (25.0cm, 5deg)",
+    "AUC @ Pose Error < (25.0cm, 5deg)",
+    "Precision @ VCRE < 90px",
+    "AUC @ VCRE < 90px",
+    "Estimates for % of frames",
+)
+
+
+def _clean(v):
+    """JSON-safe value: NaN/inf -> None, numpy scalars -> Python."""
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+@dataclass
+class Report:
+    """Scores of one submission. Per-frame arrays cover every evaluated frame (NaN where no estimate)."""
+
+    metrics: dict[str, float | None]
+    per_scene: dict[str, dict[str, float | None]]
+    scene: np.ndarray  # (M,) scene of each evaluated frame
+    frame: np.ndarray  # (M,) frame name
+    trans_err: np.ndarray  # (M,) metres
+    rot_err: np.ndarray  # (M,) degrees
+    vcre: np.ndarray  # (M,) pixels
+    confidence: np.ndarray  # (M,)
+    estimated: np.ndarray  # (M,) bool
+    diagonal: np.ndarray  # (M,) image diagonal in pixels
+    problems: list[Problem] = field(default_factory=list)
+    split: str = "val"
+    compat: str = "default"
+    thresholds: Thresholds = field(default_factory=Thresholds)
+    extra_failures: int = 0  # failures beyond the evaluated frames (compat="official": missing scenes)
+
+    @property
+    def fatal(self) -> bool:
+        return any(p.fatal for p in self.problems)
+
+    def to_dict(self, frames: bool = False) -> dict:
+        out = {
+            "split": self.split,
+            "compat": self.compat,
+            "metrics": {k: _clean(v) for k, v in self.metrics.items()},
+            "per_scene": {s: {k: _clean(v) for k, v in m.items()} for s, m in self.per_scene.items()},
+            "problems": [
+                {"scene": p.scene, "line": p.line, "reason": p.reason, "fatal": p.fatal} for p in self.problems
+            ],
+        }
+        if frames:
+            out["frames"] = [
+                {
+                    "scene": str(s), "frame": str(f), "estimated": bool(e), "trans_err": _clean(te),
+                    "rot_err": _clean(re), "vcre": _clean(v), "confidence": _clean(c),
+                }
+                for s, f, e, te, re, v, c in zip(
+                    self.scene, self.frame, self.estimated, self.trans_err, self.rot_err, self.vcre, self.confidence
+                )
+            ]
+        return out
+
+    def to_json(self, indent: int | None = 2, frames: bool = False) -> str:
+        return json.dumps(self.to_dict(frames), indent=indent, allow_nan=False)
+
+
+def _fmt(key: str, v) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "—"
+    if key.endswith("Translation Error"):
+        return f"{v:.3f} m"
+    if key.endswith("Rotation Error"):
+        return f"{v:.2f}°"
+    if key.endswith("Reprojection Error"):
+        return f"{v:.1f} px"
+    if key.startswith("Estimates"):
+        return f"{100 * v:.1f} %"
+    return f"{v:.4f}"
+
+
+def format_table(report: Report, per_scene: bool = False, width: int = 100, max_problems: int = 50) -> str:
+    """A readable text rendering (rich tables) of the metrics, optionally per scene, and the problems
+    (the first ``max_problems``; ``Report.problems`` / ``to_json`` hold them all)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(file=io.StringIO(), width=width, force_terminal=False, color_system=None)
+    n = len(report.estimated)
+    title = (
+        f"Map-free benchmark — {report.split}, {len(report.per_scene)} scenes, "
+        f"{n} evaluated frames, {int(report.estimated.sum())} estimated"
+    )
+    console.print(title, markup=False, highlight=False)
+    table = Table()
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for k, v in report.metrics.items():
+        table.add_row(k, _fmt(k, v))
+    console.print(table)
+    if report.compat != "default":
+        console.print(f"compatibility mode: {report.compat} (public evaluator's quirks reproduced)")
+    if per_scene and report.per_scene:
+        keys = [
+            ("Estimates for % of frames", "est."),
+            ("Average Median Translation Error", "med. t"),
+            ("Average Median Rotation Error", "med. R"),
+            ("Average Median Reprojection Error", "med. VCRE"),
+            (METRIC_KEYS[3], "prec. pose"),
+            (METRIC_KEYS[5], "prec. VCRE"),
+            (METRIC_KEYS[6], "AUC VCRE"),
+        ]
+        st = Table(title="per scene", title_justify="left")
+        st.add_column("scene")
+        for _, label in keys:
+            st.add_column(label, justify="right")
+        for s, m in report.per_scene.items():
+            st.add_row(s, *[_fmt(k, m.get(k)) for k, _ in keys])
+        console.print(st)
+    if report.problems:
+        console.print(f"{len(report.problems)} problem(s):")
+        for p in report.problems[:max_problems]:
+            console.print(f"  {'FATAL ' if p.fatal else ''}{p}", markup=False, highlight=False)
+        if len(report.problems) > max_problems:
+            console.print(f"  … {len(report.problems) - max_problems} more (see --json)")
+    return console.file.getvalue()

@@ -1,0 +1,438 @@
+"""Submission ZIPs: writing them, and reading them defensively with every problem reported.
+
+A submission is a ZIP whose root holds ``pose_sNNNNN.txt``, one per scene, with lines
+``seq1/frame_00000.jpg qw qx qy qz tx ty tz confidence`` (world-to-camera, SPEC §3).
+Reading never crashes and never extracts anything to disk: each bad line, file or entry becomes a
+``Problem(scene, line, reason)`` and reading goes on; only an unreadable archive is fatal.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+import struct
+import tempfile
+import zipfile
+import zlib
+from dataclasses import dataclass, field
+from itertools import repeat
+from pathlib import Path
+from typing import BinaryIO, Collection, Iterable, Mapping
+
+import numpy as np
+
+from ..geometry import Pose, rotmat_to_quat
+from .tables import parse_numbers, scan_table
+
+__all__ = [
+    "Problem",
+    "SceneEstimates",
+    "SubmissionLimits",
+    "read_submission",
+    "write_submission",
+    "from_estimates",
+    "COMPAT_MODES",
+]
+
+COMPAT_MODES = ("default", "official")
+_ENTRY_RE = re.compile(r"^pose_(s\d{5})\.txt$")
+_FIELDS = ("name", "qw", "qx", "qy", "qz", "tx", "ty", "tz", "confidence")
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing wrong with a submission: scene (None: the whole archive), 1-based line (None: the file)."""
+
+    scene: str | None
+    line: int | None
+    reason: str
+    fatal: bool = False
+
+    def __str__(self) -> str:
+        where = self.scene or "submission"
+        if self.line is not None:
+            where += f":{self.line}"
+        return f"{where}: {self.reason}"
+
+
+@dataclass(frozen=True)
+class SubmissionLimits:
+    """Bounds that keep a hostile ZIP harmless (sizes in bytes, uncompressed where it matters)."""
+
+    max_zip_bytes: int = 1 << 30
+    max_entries: int = 10_000
+    max_file_bytes: int = 64 << 20
+    max_total_bytes: int = 512 << 20
+    max_problems: int = 1_000
+
+
+@dataclass
+class SceneEstimates:
+    """The estimates of one scene as arrays; ``lines`` are 1-based line numbers (0 when not from a file)."""
+
+    names: list[str]
+    q: np.ndarray  # (n,4) world-to-camera wxyz, as written
+    t: np.ndarray  # (n,3)
+    confidence: np.ndarray  # (n,)
+    lines: np.ndarray  # (n,)
+    keys: np.ndarray = field(default=None)  # (n,) frame numbers, int(name[-9:-4])
+
+    def __post_init__(self) -> None:
+        if self.keys is None:
+            self.keys = np.array([_frame_key(n) for n in self.names], dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def take(self, idx: np.ndarray) -> "SceneEstimates":
+        idx = np.asarray(idx, dtype=np.int64)
+        return SceneEstimates(
+            [self.names[i] for i in idx.tolist()], self.q[idx], self.t[idx], self.confidence[idx],
+            self.lines[idx], self.keys[idx],
+        )
+
+    def to_list(self) -> list[tuple[str, Pose, float]]:
+        return [(n, Pose.from_qt(q, t), float(c)) for n, q, t, c in zip(self.names, self.q, self.t, self.confidence)]
+
+
+def _frame_key(name: str) -> int:
+    try:
+        return int(name[-9:-4])
+    except ValueError:
+        return -1
+
+
+class _Problems(list):
+    """A problem list that stops growing at a limit and counts what it dropped."""
+
+    def __init__(self, limit: int):
+        super().__init__()
+        self.limit, self.dropped = limit, 0
+
+    def add(self, scene, line, reason, fatal=False) -> None:
+        if len(self) < self.limit or fatal:
+            self.append(Problem(scene, line, reason, fatal))
+        else:
+            self.dropped += 1
+
+    def finish(self) -> list[Problem]:
+        out = sorted(self, key=lambda p: (p.scene or "", p.line or 0))
+        if self.dropped:
+            out.append(Problem(None, None, f"{self.dropped} more problems not listed"))
+        return out
+
+
+# --------------------------------------------------------------------------- one pose file
+
+
+def _split_lines(text: str) -> list[str]:
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    if lines and lines[-1] == "":
+        lines.pop()
+    return lines
+
+
+def _parse_file_slow(scene: str, data: bytes, compat: str, problems: _Problems):
+    """Line-by-line parse of a file that is not clean: (names, vals, bad, lines)."""
+    text = data.decode("utf-8", errors="surrogateescape")
+    names, tokens, lines = [], [], []
+    for lineno, line in enumerate(_split_lines(text), 1):
+        try:
+            line.encode("utf-8")
+        except UnicodeEncodeError:
+            problems.add(scene, lineno, "not UTF-8 text; line skipped", fatal=compat == "official")
+            continue
+        fields = line.strip().split(" ") if compat == "official" else line.split()
+        if not fields or fields == [""]:
+            continue
+        if "#" in fields[0]:
+            continue  # comment
+        if len(fields) != 9:
+            problems.add(scene, lineno, f"expected 9 fields (name qw qx qy qz tx ty tz confidence), found {len(fields)}")
+            continue
+        if _frame_key(fields[0]) < 0:
+            problems.add(scene, lineno, f"frame name {fields[0]!r} does not end in a 5-digit number (like seq1/frame_00012.jpg)")
+            continue
+        names.append(fields[0])
+        tokens.extend(f.encode("utf-8") for f in fields[1:])
+        lines.append(lineno)
+    vals, bad = parse_numbers(tokens)
+    keys = np.array([_frame_key(n) for n in names], dtype=np.int64)
+    return names, keys, vals.reshape(-1, 8), bad.reshape(-1, 8), np.array(lines, dtype=np.int64)
+
+
+def _parse_file(scene: str, data: bytes, compat: str, problems: _Problems):
+    """(names, frame numbers, (n,8) values, (n,8) rejected-token mask, line numbers) of one pose file."""
+    table = scan_table(data, 8)
+    if table is None:
+        return _parse_file_slow(scene, data, compat, problems)
+    vals, bad = table.values()
+    return table.names(), table.keys, vals, bad, table.line_numbers
+
+
+def _check_rows(
+    scene: str,
+    est: SceneEstimates,
+    bad: np.ndarray | None,
+    compat: str,
+    known: Collection[str] | None,
+    problems: _Problems,
+) -> SceneEstimates:
+    """Drop (and report) rows a scorer must not use; resolve duplicates as the mode says."""
+    n = len(est)
+    keep = np.ones(n, dtype=bool)
+
+    def report(mask: np.ndarray, reason, drop: bool = True) -> None:
+        for i in np.flatnonzero(mask & keep).tolist():
+            problems.add(scene, int(est.lines[i]) or None, reason(i) if callable(reason) else reason)
+        if drop:
+            keep[mask] = False
+
+    if bad is not None and bad.any():
+        report(bad.any(axis=1), lambda i: f"unparseable number in field {_FIELDS[1 + int(np.argmax(bad[i]))]}")
+    vals = np.concatenate([est.q, est.t, est.confidence[:, None]], axis=1)
+    report(~np.all(np.isfinite(vals), axis=1), "non-finite number (NaN or inf)")
+    report(~(np.linalg.norm(np.nan_to_num(est.q), axis=1) > 1e-8), "zero quaternion")  # np.isclose(norm, 0)
+    if compat == "official":
+        report(est.confidence < 0, "negative confidence (the public evaluator aborts if this frame is scored)", drop=False)
+    else:
+        report(est.confidence < 0, "negative confidence; line skipped")
+    if known is not None:
+        known = known if hasattr(known, "issuperset") else set(known)
+        if not known.issuperset(est.names):
+            unknown = np.array([n not in known for n in est.names], dtype=bool)
+            if compat == "official":
+                reason = lambda i: f"unknown frame {est.names[i]!r} (kept: the public evaluator keys frames by number)"  # noqa: E731
+                report(unknown, reason, drop=False)
+            else:
+                report(unknown, lambda i: f"unknown frame {est.names[i]!r}")
+        if compat != "official" and not all(map(str.startswith, est.names, repeat("seq1/"))):
+            report(
+                np.array([not n.startswith("seq1/") for n in est.names]),
+                lambda i: f"{est.names[i]!r} is not a query frame",
+            )
+    if not keep.all():
+        est = est.take(np.flatnonzero(keep))
+    # Duplicates: the first estimate wins (default); the public evaluator keys by number, the last wins.
+    ids = est.keys.tolist() if compat == "official" else est.names
+    if len(set(ids)) == len(ids):
+        return est
+    order = range(len(est) - 1, -1, -1) if compat == "official" else range(len(est))
+    first_of: dict = {}
+    dup = np.zeros(len(est), dtype=bool)
+    for i in order:
+        k = ids[i]
+        if k in first_of:
+            dup[i] = True
+            j = first_of[k]
+            problems.add(scene, int(est.lines[i]) or None, f"duplicate frame {est.names[i]!r} (line {int(est.lines[j]) or '?'} is used)")
+        else:
+            first_of[k] = i
+    return est.take(np.flatnonzero(~dup)) if dup.any() else est
+
+
+# --------------------------------------------------------------------------- the archive
+
+
+def _zip_entry_count(f: BinaryIO) -> int | None:
+    """Entry count from the end-of-central-directory record, read before zipfile parses the directory."""
+    f.seek(0, os.SEEK_END)
+    size = f.tell()
+    f.seek(max(0, size - (1 << 16) - 22))
+    tail = f.read()
+    at = tail.rfind(b"PK\x05\x06")
+    if at < 0 or at + 22 > len(tail):
+        return None
+    return struct.unpack("<H", tail[at + 10 : at + 12])[0]
+
+
+def _unsafe(name: str) -> bool:
+    parts = name.replace("\\", "/").split("/")
+    return name.startswith(("/", "\\")) or re.match(r"^[A-Za-z]:", name) is not None or ".." in parts
+
+
+def read_submission(
+    source: os.PathLike | str | bytes | BinaryIO,
+    expected: Mapping[str, Collection[str]] | None = None,
+    compat: str = "default",
+    limits: SubmissionLimits | None = None,
+) -> tuple[dict[str, SceneEstimates], list[Problem]]:
+    """Read and validate a submission ZIP -> ({scene: SceneEstimates}, problems).
+
+    ``expected`` (scene -> frame names of that scene) enables the unknown-frame and outside-the-split
+    checks. ``compat="official"`` keeps what the public evaluator keeps (frames keyed by number, the last
+    duplicate wins, negative confidences kept for the scorer to reject).
+    """
+    if compat not in COMPAT_MODES:
+        raise ValueError(f"compat must be one of {COMPAT_MODES}, got {compat!r}")
+    limits = limits or SubmissionLimits()
+    problems = _Problems(limits.max_problems)
+    out: dict[str, SceneEstimates] = {}
+    try:
+        f: BinaryIO
+        if isinstance(source, (bytes, bytearray)):
+            f = io.BytesIO(source)
+        elif hasattr(source, "read"):
+            f = source  # type: ignore[assignment]
+        else:
+            f = open(source, "rb")
+    except OSError as e:
+        problems.add(None, None, f"cannot open submission: {e.strerror or e}", fatal=True)
+        return out, problems.finish()
+    try:
+        f.seek(0, os.SEEK_END)
+        if f.tell() > limits.max_zip_bytes:
+            problems.add(None, None, f"submission is {f.tell()} bytes, over the {limits.max_zip_bytes}-byte limit", fatal=True)
+            return out, problems.finish()
+        count = _zip_entry_count(f)
+        if count is None:
+            problems.add(None, None, "not a ZIP file", fatal=True)
+            return out, problems.finish()
+        if count > limits.max_entries:
+            problems.add(None, None, f"ZIP has {count} entries, over the limit of {limits.max_entries}", fatal=True)
+            return out, problems.finish()
+        f.seek(0)
+        try:
+            zf = zipfile.ZipFile(f)
+        except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError, struct.error) as e:
+            problems.add(None, None, f"not a readable ZIP file ({e})", fatal=True)
+            return out, problems.finish()
+        with zf:
+            _read_entries(zf, expected, compat, limits, problems, out)
+    finally:
+        if not isinstance(source, (bytes, bytearray)) and not hasattr(source, "read"):
+            f.close()
+    return out, problems.finish()
+
+
+def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) -> None:
+    infos = zf.infolist()
+    if len(infos) > limits.max_entries:
+        problems.add(None, None, f"ZIP has {len(infos)} entries, over the limit of {limits.max_entries}", fatal=True)
+        return
+    seen: set[str] = set()
+    budget = limits.max_total_bytes
+    for info in infos:
+        name = info.filename
+        if info.is_dir():
+            continue
+        if _unsafe(name):
+            problems.add(None, None, f"entry {name!r} has an absolute or '..' path; ignored")
+            continue
+        base = name.replace("\\", "/").rsplit("/", 1)[-1]
+        m = _ENTRY_RE.match(base)
+        if "/" in name.replace("\\", "/"):
+            if m and not name.startswith("__MACOSX/"):
+                problems.add(m.group(1), None, f"{name!r} is inside a folder: pose files must be at the ZIP root; ignored")
+            else:
+                problems.add(None, None, f"unexpected entry {name!r} in a folder; ignored")
+            continue
+        if not m:
+            problems.add(None, None, f"unexpected file {name!r} (expected pose_sNNNNN.txt); ignored")
+            continue
+        scene = m.group(1)
+        if name in seen:
+            problems.add(scene, None, f"duplicate ZIP entry {name!r}; the first is used")
+            continue
+        seen.add(name)
+        if expected is not None and scene not in expected:
+            problems.add(scene, None, "scene is not part of the evaluated split; ignored")
+            continue
+        if info.file_size > min(limits.max_file_bytes, budget):
+            problems.add(scene, None, f"{name} unpacks to {info.file_size} bytes, over the limit; ignored")
+            continue
+        cap = min(limits.max_file_bytes, budget)
+        try:
+            with zf.open(info) as member:
+                data = member.read(cap + 1)
+        except (zipfile.BadZipFile, zlib.error, RuntimeError, NotImplementedError, OSError, EOFError, ValueError) as e:
+            problems.add(scene, None, f"cannot read {name} ({e}); ignored")
+            continue
+        if len(data) > cap:
+            problems.add(scene, None, f"{name} unpacks to more than {cap} bytes (size in the ZIP directory is wrong); ignored")
+            continue
+        budget -= len(data)
+        names, keys, vals, bad, lines = _parse_file(scene, data, compat, problems)
+        est = SceneEstimates(names, vals[:, :4], vals[:, 4:7], vals[:, 7], lines, keys)
+        known = expected.get(scene) if expected is not None else None
+        out[scene] = _check_rows(scene, est, bad, compat, known, problems)
+
+
+def from_estimates(
+    estimates: Mapping[str, Iterable | SceneEstimates],
+    expected: Mapping[str, Collection[str]] | None = None,
+    compat: str = "default",
+) -> tuple[dict[str, SceneEstimates], list[Problem]]:
+    """In-memory estimates ``{scene: [(frame_name, Pose | None, confidence), ...]}`` -> validated arrays.
+
+    A ``None`` pose means "no estimate" and is dropped silently; everything else is checked like a file.
+    """
+    problems = _Problems(SubmissionLimits().max_problems)
+    out: dict[str, SceneEstimates] = {}
+    for scene, items in estimates.items():
+        if expected is not None and scene not in expected:
+            problems.add(scene, None, "scene is not part of the evaluated split; ignored")
+            continue
+        if isinstance(items, SceneEstimates):
+            est = items
+        else:
+            rows = [(str(n), p, c) for n, p, c in items if p is not None]
+            if rows:
+                R = np.stack([p.R for _, p, _ in rows])
+                t = np.stack([p.t for _, p, _ in rows])
+                finite = np.all(np.isfinite(R), axis=(1, 2))
+                q = np.full((len(rows), 4), np.nan)
+                if finite.any():
+                    q[finite] = rotmat_to_quat(R[finite])
+            else:
+                q, t = np.zeros((0, 4)), np.zeros((0, 3))
+            conf = np.array([float(c) for _, _, c in rows], dtype=np.float64)
+            est = SceneEstimates([n for n, _, _ in rows], q, t, conf, np.zeros(len(rows), dtype=np.int64))
+        known = expected.get(scene) if expected is not None else None
+        out[scene] = _check_rows(scene, est, None, compat, known, problems)
+    return out, problems.finish()
+
+
+def write_submission(
+    path: os.PathLike | str, estimates: Mapping[str, Iterable[tuple[str, Pose | None, float]]]
+) -> list[Problem]:
+    """Write ``{scene: [(frame_name, Pose | None, confidence), ...]}`` as a submission ZIP (atomically).
+
+    Frames without a pose are left out (they count as failures); non-finite poses or confidences and
+    negative confidences are never written: they are skipped and returned as problems.
+    """
+    path = Path(path)
+    skipped: list[Problem] = []
+    files: dict[str, str] = {}
+    for scene in sorted(estimates):
+        if not re.fullmatch(r"s\d{5}", scene):
+            raise ValueError(f"scene name {scene!r} is not sNNNNN")
+        lines = []
+        for name, pose, conf in estimates[scene]:
+            if pose is None:
+                continue
+            if any(c.isspace() for c in name) or not name:
+                skipped.append(Problem(scene, None, f"{name!r}: frame names cannot be empty or contain spaces"))
+                continue
+            conf = float(conf)
+            if not pose.is_finite() or not np.isfinite(conf):
+                skipped.append(Problem(scene, None, f"{name}: non-finite pose or confidence, not written"))
+                continue
+            if conf < 0:
+                skipped.append(Problem(scene, None, f"{name}: negative confidence {conf}, not written"))
+                continue
+            q, t = pose.qt()
+            lines.append(name + " " + " ".join(repr(float(v)) for v in (*q, *t, conf)) + "\n")
+        files[f"pose_{scene}.txt"] = "".join(lines)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".part", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh, zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            for name, text in files.items():
+                zf.writestr(name, text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return skipped
