@@ -1,0 +1,63 @@
+"""Pose solvers: matches + intrinsics + depth -> metric relative pose (``Estimate``).
+
+    solver = mapfree.solvers.create("essential", ransac_threshold_px=2.0)   # or "emat", "pnp", "procrustes"
+    est = solver.solve(matches, K_ref, K_query, depth_ref, depth_query)
+
+Options default to the paper's values (preset ``paper``); preset ``best`` switches to our ranking
+confidence (``confidence="score"``). Explicit options override the preset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+
+from .base import Solver
+from .confidence import CONFIDENCE_MODES
+from .essential import EssentialOptions, EssentialSolver
+from .pnp import PnPOptions, PnPSolver
+from .procrustes import ProcrustesOptions, ProcrustesSolver
+from .scale import scale_vote, scale_vote_bruteforce
+
+__all__ = [
+    "Solver", "create", "available", "options_for", "PRESETS", "CONFIDENCE_MODES",
+    "EssentialOptions", "EssentialSolver", "PnPOptions", "PnPSolver", "ProcrustesOptions", "ProcrustesSolver",
+    "scale_vote", "scale_vote_bruteforce",
+]
+
+SOLVERS: dict[str, tuple[type, type]] = {
+    "essential": (EssentialSolver, EssentialOptions),
+    "pnp": (PnPSolver, PnPOptions),
+    "procrustes": (ProcrustesSolver, ProcrustesOptions),
+}
+ALIASES = {"emat": "essential", "ess": "essential", "essential-matrix": "essential", "3d3d": "procrustes"}
+PRESETS: dict[str, dict] = {"paper": {}, "best": {"confidence": "score"}}
+
+
+def _canonical(name: str) -> str:
+    key = name.strip().lower().replace("_", "-")
+    key = ALIASES.get(key, key)
+    if key not in SOLVERS:
+        raise KeyError(f"unknown solver {name!r}; available: {', '.join(available())}")
+    return key
+
+
+def available() -> list[str]:
+    """Solver names a user can type (aliases included)."""
+    return sorted(SOLVERS) + sorted(ALIASES)
+
+
+def options_for(name: str, preset: str = "paper", **options):
+    """The options dataclass of solver ``name`` for a preset, with explicit overrides applied."""
+    if preset not in PRESETS:
+        raise KeyError(f"unknown preset {preset!r}; available: {', '.join(PRESETS)}")
+    cls = SOLVERS[_canonical(name)][1]
+    known = {f.name for f in fields(cls)}
+    unknown = set(options) - known
+    if unknown:
+        raise TypeError(f"unknown option(s) for {name!r}: {', '.join(sorted(unknown))}; known: {', '.join(sorted(known))}")
+    return cls(**{**PRESETS[preset], **options})
+
+
+def create(name: str, preset: str = "paper", **options) -> Solver:
+    """A solver by name (``essential``/``emat``, ``pnp``, ``procrustes``), paper defaults unless overridden."""
+    return SOLVERS[_canonical(name)][0](options_for(name, preset, **options))

@@ -1,0 +1,150 @@
+"""Helpers every solver shares: input cleaning, depth look-up at keypoints, normalisation, Kabsch."""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from typing import Iterator
+
+import numpy as np
+
+from ..geometry import Intrinsics, backproject
+
+__all__ = [
+    "DEPTH_SAMPLING",
+    "MAX_DEPTH",
+    "SolverError",
+    "Timer",
+    "finite_matches",
+    "normalize_points",
+    "sample_depth_at",
+    "valid_depth_map",
+    "backproject_keypoints",
+    "kabsch",
+    "rotation_is_valid",
+]
+
+DEPTH_SAMPLING = ("nearest", "floor", "bilinear")
+MAX_DEPTH = 1e4  # metres; larger values are "at infinity" and treated as invalid (no sensor or network gives them)
+
+
+class SolverError(Exception):
+    """Raised inside a solver to turn into ``Estimate.failure(str(error))`` at its boundary."""
+
+
+class Timer:
+    """Accumulates named wall-clock durations (seconds) for ``Estimate.timings``."""
+
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+
+
+def finite_matches(kpts0: np.ndarray, kpts1: np.ndarray) -> np.ndarray:
+    """Mask of matches whose four coordinates are finite (NaN/inf keypoints are dropped, not fatal)."""
+    return np.all(np.isfinite(kpts0), axis=1) & np.all(np.isfinite(kpts1), axis=1)
+
+
+def normalize_points(uv: np.ndarray, K: Intrinsics) -> np.ndarray:
+    """Pixels -> normalised image coordinates with this frame's own intrinsics."""
+    return np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy], axis=1)
+
+
+def valid_depth_map(depth: np.ndarray | None) -> bool:
+    """A usable depth map: a 2-D array with at least one finite positive value."""
+    if depth is None:
+        return False
+    d = np.asarray(depth)
+    if d.ndim != 2 or d.size == 0:
+        return False
+    with np.errstate(invalid="ignore"):
+        return bool(np.any(np.isfinite(d) & (d > 0) & (d < MAX_DEPTH)))
+
+
+def _to_depth_pixels(uv: np.ndarray, K: Intrinsics, shape: tuple[int, int]) -> np.ndarray:
+    """Map image pixels to depth-map pixels when the map is not at the image size (half-pixel rule)."""
+    H, W = shape
+    if (W, H) == (K.width, K.height) or K.width <= 0 or K.height <= 0:
+        return uv
+    sx, sy = W / K.width, H / K.height
+    return np.stack([sx * (uv[:, 0] + 0.5) - 0.5, sy * (uv[:, 1] + 0.5) - 0.5], axis=1)
+
+
+def sample_depth_at(depth: np.ndarray, uv: np.ndarray, K: Intrinsics, mode: str = "nearest") -> np.ndarray:
+    """Depth (metres) at (N,2) image pixels; 0 where invalid (outside, non-finite, <= 0, >= ``MAX_DEPTH``).
+
+    ``nearest`` rounds to the closest pixel centre, ``floor`` truncates like the public Map-free code,
+    ``bilinear`` interpolates only where all four neighbours are valid (no blending across holes).
+    """
+    if mode not in DEPTH_SAMPLING:
+        raise ValueError(f"depth sampling must be one of {DEPTH_SAMPLING}, got {mode!r}")
+    d = np.asarray(depth, dtype=np.float64)
+    H, W = d.shape
+    out = np.zeros(len(uv))
+    if len(uv) == 0:
+        return out
+    p = _to_depth_pixels(np.asarray(uv, dtype=np.float64), K, (H, W))
+    # Keep coordinates in a safe range before integer conversion (huge/inf pixels are simply outside).
+    p = np.where(np.isfinite(p), np.clip(p, -2.0, float(max(H, W)) + 2.0), -2.0)
+    if mode == "bilinear":
+        u0, v0 = np.floor(p[:, 0]).astype(np.int64), np.floor(p[:, 1]).astype(np.int64)
+        fu, fv = p[:, 0] - u0, p[:, 1] - v0
+        inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 < W) & (v0 + 1 < H)
+        u0, v0, fu, fv = u0[inside], v0[inside], fu[inside], fv[inside]
+        q = np.stack([d[v0, u0], d[v0, u0 + 1], d[v0 + 1, u0], d[v0 + 1, u0 + 1]], axis=1)
+        with np.errstate(invalid="ignore"):
+            ok = np.all(np.isfinite(q) & (q > 0) & (q < MAX_DEPTH), axis=1)
+        w = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], axis=1)
+        vals = np.where(ok, np.sum(np.where(ok[:, None], q, 0.0) * w, axis=1), 0.0)
+        out[inside] = vals
+        return out
+    r = np.floor(p) if mode == "floor" else np.rint(p)
+    u, v = r[:, 0].astype(np.int64), r[:, 1].astype(np.int64)
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    out[inside] = d[v[inside], u[inside]]
+    with np.errstate(invalid="ignore"):
+        out[~(np.isfinite(out) & (out > 0) & (out < MAX_DEPTH))] = 0.0
+    return out
+
+
+def backproject_keypoints(uv: np.ndarray, depth: np.ndarray, K: Intrinsics, mode: str) -> np.ndarray:
+    """Camera-frame 3D points of keypoints; ``floor`` back-projects the truncated pixel (public code)."""
+    if mode == "floor":
+        uv = np.floor(uv)
+    return backproject(uv, depth, K.K)
+
+
+def kabsch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid (R, t) minimising sum w |R P + t - Q|^2, batched over leading axes: P, Q (...,N,3)."""
+    if w is None:
+        w = np.ones(P.shape[:-1])
+    w = w / np.sum(w, axis=-1, keepdims=True)
+    mp = np.einsum("...n,...nk->...k", w, P)
+    mq = np.einsum("...n,...nk->...k", w, Q)
+    H = np.einsum("...n,...ni,...nj->...ij", w, P - mp[..., None, :], Q - mq[..., None, :])
+    U, _, Vt = np.linalg.svd(H)
+    V = np.swapaxes(Vt, -1, -2)
+    d = np.sign(np.linalg.det(V @ np.swapaxes(U, -1, -2)))
+    d = np.where(d == 0, 1.0, d)
+    D = np.zeros(H.shape)
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = d
+    R = V @ D @ np.swapaxes(U, -1, -2)
+    t = mq - np.einsum("...ij,...j->...i", R, mp)
+    return R, t
+
+
+def rotation_is_valid(R: np.ndarray, tol: float = 1e-6) -> bool:
+    """Finite, orthonormal, det +1."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        return False
+    return bool(np.allclose(R.T @ R, np.eye(3), atol=tol * 100) and abs(np.linalg.det(R) - 1) < tol * 100)

@@ -1,0 +1,188 @@
+"""Procrustes (SPEC §4): both sides lifted to 3D, rigid Kabsch alignment in RANSAC, optional ICP.
+
+The RANSAC draws batches of 3-point samples and scores them all at once (numpy), stops adaptively at
+the paper's confidence, then refits on the inliers until the inlier set stops growing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..estimate import Estimate
+from ..geometry import Intrinsics, Pose, backproject_depth
+from ..matching.base import Matches
+from .common import (
+    DEPTH_SAMPLING,
+    MAX_DEPTH,
+    SolverError,
+    Timer,
+    backproject_keypoints,
+    finite_matches,
+    kabsch,
+    rotation_is_valid,
+    sample_depth_at,
+    valid_depth_map,
+)
+from .confidence import CONFIDENCE_MODES, choose, confidences
+from .icp import ICP_METHODS, icp
+
+__all__ = ["ProcrustesOptions", "ProcrustesSolver", "ransac_rigid"]
+
+
+@dataclass
+class ProcrustesOptions:
+    """Defaults follow the public code (Open3D's RANSAC on correspondences: 3-point samples, 0.05 m,
+    at most 100000 iterations, confidence 0.999); ICP off."""
+
+    inlier_threshold: float = 0.05  # metres
+    max_iterations: int = 100_000
+    ransac_confidence: float = 0.999
+    refine_steps: int = 3  # refits on the inliers (local optimisation)
+    icp: bool = False
+    icp_max_iterations: int = 30
+    icp_max_points: int = 20_000  # per cloud, regular subsampling of the back-projected depth maps
+    icp_method: str = "point_to_point"  # the public code's (Open3D default) | "point_to_plane" (more accurate)
+    depth_sampling: str = "nearest"
+    min_matches: int = 5
+    confidence: str = "inliers"
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.confidence not in CONFIDENCE_MODES:
+            raise ValueError(f"confidence must be one of {CONFIDENCE_MODES}, got {self.confidence!r}")
+        if self.depth_sampling not in DEPTH_SAMPLING:
+            raise ValueError(f"depth_sampling must be one of {DEPTH_SAMPLING}, got {self.depth_sampling!r}")
+        if not self.inlier_threshold > 0:
+            raise ValueError("inlier_threshold must be positive")
+        if self.icp_method not in ICP_METHODS:
+            raise ValueError(f"icp_method must be one of {ICP_METHODS}, got {self.icp_method!r}")
+
+
+def _count(P: np.ndarray, Q: np.ndarray, R: np.ndarray, t: np.ndarray, thr: float) -> np.ndarray:
+    return np.linalg.norm(P @ R.T + t - Q, axis=1) < thr
+
+
+def ransac_rigid(P: np.ndarray, Q: np.ndarray, threshold: float, max_iterations: int = 100_000,
+                 confidence: float = 0.999, refine_steps: int = 3, seed: int = 0):
+    """Robust rigid (R, t) with ``Q ≈ R P + t`` from (N,3) correspondences; returns (R, t, inlier mask)."""
+    n = len(P)
+    rng = np.random.default_rng(seed)
+    batch = int(np.clip(2_000_000 // max(n, 1), 16, 512))
+    best, best_R, best_t = 0, None, None
+    needed, done = max_iterations, 0
+    while done < min(needed, max_iterations):
+        b = min(batch, max_iterations - done)
+        idx = np.argsort(rng.random((b, n)), axis=1)[:, :3] if n <= 64 else rng.integers(0, n, (b, 3))
+        S, T = P[idx], Q[idx]
+        area = np.linalg.norm(np.cross(S[:, 1] - S[:, 0], S[:, 2] - S[:, 0]), axis=1)
+        good = (area > 1e-8) & (idx[:, 0] != idx[:, 1]) & (idx[:, 0] != idx[:, 2]) & (idx[:, 1] != idx[:, 2])
+        done += b
+        if not good.any():
+            continue
+        R, t = kabsch(S[good], T[good])
+        res = np.linalg.norm(np.einsum("bij,nj->bni", R, P) + t[:, None] - Q[None], axis=2)
+        counts = np.sum(res < threshold, axis=1)
+        j = int(np.argmax(counts))
+        if counts[j] > best:
+            best, best_R, best_t = int(counts[j]), R[j], t[j]
+            w = best / n
+            p_fail = 1.0 - w ** 3
+            needed = 0 if p_fail <= 0 else int(np.ceil(np.log(1 - confidence) / np.log(p_fail)))
+    if best_R is None or best < 3:
+        raise SolverError("rigid RANSAC found no consistent triplet")
+    mask = _count(P, Q, best_R, best_t, threshold)
+    for _ in range(refine_steps):
+        R, t = kabsch(P[mask], Q[mask])
+        m2 = _count(P, Q, R, t, threshold)
+        if m2.sum() < mask.sum() or m2.sum() < 3:
+            break
+        best_R, best_t, grew, mask = R, t, m2.sum() > mask.sum(), m2
+        if not grew:
+            break
+    return best_R, best_t, mask
+
+
+def _collinear(X: np.ndarray) -> bool:
+    """True when the points span (numerically) at most a line: rotation about it is undetermined."""
+    sv = np.linalg.svd(X - X.mean(0), compute_uv=False)
+    return not sv[1] > 1e-6 * max(sv[0], 1e-12)
+
+
+def _cloud(depth: np.ndarray, K: Intrinsics, max_points: int) -> np.ndarray:
+    """Back-projected valid pixels of a depth map on a regular 2-D pixel grid of at most ``max_points``."""
+    d = np.asarray(depth, dtype=np.float64)
+    if d.shape != (K.height, K.width):
+        K = K.resized(d.shape[1], d.shape[0])
+    X = backproject_depth(d, K.K)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(d) & (d > 0) & (d < MAX_DEPTH)
+    step = max(1, int(np.ceil(np.sqrt(ok.sum() / max(max_points, 1)))))
+    return X[::step, ::step][ok[::step, ::step]]
+
+
+class ProcrustesSolver:
+    """3D–3D rigid alignment of the matched, back-projected keypoints. Never raises on bad input."""
+
+    name = "procrustes"
+
+    def __init__(self, options: ProcrustesOptions | None = None, **overrides) -> None:
+        base = options or ProcrustesOptions()
+        self.options = ProcrustesOptions(**{**base.__dict__, **overrides})
+
+    def solve(self, matches: Matches, K_ref: Intrinsics, K_query: Intrinsics,
+              depth_ref: np.ndarray | None, depth_query: np.ndarray | None) -> Estimate:
+        timer = Timer()
+        try:
+            with timer("solve"):
+                est = self._solve(matches, K_ref, K_query, depth_ref, depth_query, timer)
+        except SolverError as e:
+            est = Estimate.failure(str(e))
+        except (np.linalg.LinAlgError, ValueError, RuntimeError, MemoryError) as e:
+            est = Estimate.failure(f"solver error: {type(e).__name__}: {str(e).strip()[:200]}")
+        est.timings = {**est.timings, **timer.timings}
+        return est
+
+    def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
+        opt = self.options
+        ok = finite_matches(matches.kpts0, matches.kpts1)
+        k0, k1 = matches.kpts0[ok], matches.kpts1[ok]
+        n = len(k0)
+        if n < max(opt.min_matches, 3):
+            raise SolverError(f"too few matches ({n} < {max(opt.min_matches, 3)})")
+        missing = [s for s, d in (("reference", depth_ref), ("query", depth_query)) if not valid_depth_map(d)]
+        if missing:
+            raise SolverError(f"no valid depth for the {' and '.join(missing)} image")
+        d0 = sample_depth_at(depth_ref, k0, K_ref, opt.depth_sampling)
+        d1 = sample_depth_at(depth_query, k1, K_query, opt.depth_sampling)
+        valid = (d0 > 0) & (d1 > 0)
+        n_valid = int(valid.sum())
+        if n_valid < 3:
+            raise SolverError(f"too few matches with valid depth in both images ({n_valid} < 3)")
+        P = backproject_keypoints(k0[valid], d0[valid], K_ref, opt.depth_sampling)
+        Q = backproject_keypoints(k1[valid], d1[valid], K_query, opt.depth_sampling)
+        if _collinear(P) or _collinear(Q):
+            raise SolverError("degenerate geometry: the points are collinear")
+        with timer("ransac"):
+            R, t, mask = ransac_rigid(P, Q, opt.inlier_threshold, opt.max_iterations, opt.ransac_confidence,
+                                      opt.refine_steps, opt.seed)
+        if _collinear(P[mask]):
+            raise SolverError("degenerate geometry: the inlier points are collinear")
+        extras: dict = {"n_matches": n, "n_depth_valid": n_valid, "icp": bool(opt.icp), "metric": True}
+        if opt.icp:
+            with timer("icp"):
+                src, dst = _cloud(depth_ref, K_ref, opt.icp_max_points), _cloud(depth_query, K_query, opt.icp_max_points)
+                R, t, fitness, rmse = icp(src, dst, R, t, opt.inlier_threshold, opt.icp_max_iterations,
+                                          method=opt.icp_method)
+            extras.update(icp_fitness=fitness, icp_rmse=rmse)
+            mask = _count(P, Q, R, t, opt.inlier_threshold)
+        if not rotation_is_valid(R) or not np.all(np.isfinite(t)):
+            raise SolverError("degenerate rigid alignment")
+        n_in = int(mask.sum())
+        res = np.linalg.norm(P[mask] @ R.T + t - Q[mask], axis=1)
+        ratio = n_in / n_valid
+        values = confidences(n_in, ratio)
+        extras.update(values, n_inliers=n_in, inlier_ratio=ratio,
+                      rmse=float(np.sqrt(np.mean(res ** 2))) if n_in else -1.0)
+        return Estimate(Pose(R, t), choose(opt.confidence, values), n_in, extras=extras)
