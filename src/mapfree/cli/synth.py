@@ -1,0 +1,77 @@
+"""``mapfree synth``: write a synthetic split in the Map-free layout."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+DESCRIPTION = """\
+Render synthetic Map-free scenes: a textured sculpture or mural (real photos from scikit-image) on textured
+ground among building facades, seen by phone cameras walking 1-10 m away under changing light.
+
+Writes ROOT/SPLIT/sNNNNN/ with intrinsics.txt, poses.txt, seq0/ and seq1/ JPEGs, metric ground-truth depth
+(frame.sensor.png) and a simulated monocular estimate (frame.mono.png). Train scenes hold two scans and
+overlaps.npz; val/test scenes a reference (seq0/frame_00000.jpg, identity pose) and queries, some of which
+see nothing of the reference. Test poses.txt holds zeros; --private-gt writes the true poses elsewhere.
+The same --seed always writes byte-identical files."""
+
+EPILOG = """\
+examples:
+  mapfree synth data/synth --split val --scenes 10 --queries 40
+  mapfree synth data/synth --split train --scenes 20 --train-frames 80
+  mapfree synth data/synth --split test --scenes 5 --private-gt data/synth-gt
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "synth", help="generate synthetic scenes in the Map-free layout", description=DESCRIPTION,
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("root", metavar="ROOT", help="dataset root; scenes go to ROOT/SPLIT/sNNNNN")
+    p.add_argument("--split", choices=("train", "val", "test"), default="val", help="split to write (default: val)")
+    p.add_argument("--scenes", type=int, default=10, help="number of scenes (default: 10)")
+    p.add_argument("--queries", type=int, default=40, help="queries per val/test scene (default: 40)")
+    p.add_argument("--train-frames", type=int, default=50, help="frames per train scan, two scans a scene (default: 50)")
+    p.add_argument("--seed", type=int, default=0, help="random seed; same seed, same files (default: 0)")
+    p.add_argument("--first-scene", type=int, default=0, help="number of the first scene id (default: 0 -> s00000)")
+    p.add_argument("--size", default="540x720", metavar="WxH", help="image size, width x height (default: 540x720)")
+    p.add_argument("--no-overlap", type=float, default=0.2, metavar="FRAC",
+                   help="fraction of val/test queries that see nothing of the reference (default: 0.2)")
+    p.add_argument("--private-gt", metavar="DIR", help="test split: write true poses/intrinsics to DIR/test/sNNNNN/")
+    p.add_argument("--no-mono", action="store_true", help="skip the simulated monocular depth (frame.mono.png)")
+    p.add_argument("--workers", type=int, default=1, help="scenes rendered in parallel processes (default: 1)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..data.synth import SynthOptions, generate
+
+    try:
+        w, h = (int(x) for x in args.size.lower().split("x"))
+    except ValueError:
+        print(f"mapfree synth: --size must look like 540x720, got {args.size!r}", file=sys.stderr)
+        return 2
+    if args.private_gt and args.split != "test":
+        print("mapfree synth: --private-gt only applies to --split test", file=sys.stderr)
+        return 2
+    if w < 32 or h < 32 or args.scenes < 0 or args.queries < 1 or args.train_frames < 1 \
+            or not 0 <= args.no_overlap < 1 or args.workers < 1:
+        print("mapfree synth: sizes must be >= 32 px, --queries/--train-frames/--workers >= 1, "
+              "--scenes >= 0 and 0 <= --no-overlap < 1", file=sys.stderr)
+        return 2
+    opts = SynthOptions(
+        queries=args.queries, train_frames=args.train_frames, width=w, height=h,
+        no_overlap_fraction=args.no_overlap, first_scene=args.first_scene, write_mono=not args.no_mono,
+        workers=args.workers,
+    )
+    t0 = time.perf_counter()
+    dirs = generate(args.root, args.split, args.scenes, args.queries, args.seed, args.private_gt, opts,
+                    progress=not args.quiet)
+    dt = time.perf_counter() - t0
+    print(f"wrote {len(dirs)} {args.split} scene(s) under {args.root}/{args.split} in {dt:.1f} s")
+    if args.private_gt:
+        print(f"private ground truth under {args.private_gt}/test")
+    return 0
