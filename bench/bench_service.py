@@ -1,0 +1,262 @@
+"""Load test of `mapfree serve` on loopback (bounded): 200 submissions from 20 concurrent clients with 4
+evaluation workers, one worker SIGKILLed mid-run (every submission must end evaluated exactly once, none lost);
+then `localize` latency and throughput under 8 concurrent clients, against in-process localization as the
+baseline. Prints a table.
+
+    python bench/bench_service.py [--db postgresql://...] [--submissions 200] [--clients 20] [--workers 4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import zipfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def realmini() -> Path:
+    for c in (ROOT.parent / "shared/data/realmini-dev", Path("/work/shared/data/realmini-dev")):
+        if (c / "val").is_dir():
+            return c
+    raise SystemExit("shared/data/realmini-dev not found")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def submission(split_dir: Path, rng: np.random.Generator) -> bytes:
+    """GT poses plus noise: a valid, varied submission."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for scene in sorted(p for p in split_dir.iterdir() if p.is_dir()):
+            lines = []
+            for line in (scene / "poses.txt").read_text().splitlines():
+                p = line.split()
+                if len(p) == 8 and p[0].startswith("seq1/"):
+                    t = np.array(p[5:], float) + rng.normal(scale=0.2, size=3)
+                    lines.append(f"{p[0]} {' '.join(p[1:5])} {' '.join(f'{x:.6f}' for x in t)} {rng.uniform(1, 9):.3f}")
+            z.writestr(f"pose_{scene.name}.txt", "\n".join(lines) + "\n")
+    return buf.getvalue()
+
+
+def pct(xs, q) -> float:
+    return float(np.percentile(np.asarray(xs) * 1000, q)) if xs else float("nan")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--db", default="", help="database URL (default: a fresh SQLite file)")
+    ap.add_argument("--submissions", type=int, default=200)
+    ap.add_argument("--clients", type=int, default=20)
+    ap.add_argument("--workers", type=int, default=4)
+    ap.add_argument("--localize-clients", type=int, default=8)
+    ap.add_argument("--localize-requests", type=int, default=48)
+    ap.add_argument("--timeout", type=float, default=420.0, help="give up after this many seconds")
+    a = ap.parse_args()
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    from sqlalchemy import func, select
+    from sqlalchemy.exc import OperationalError
+
+    from mapfree.data import Dataset
+    from mapfree.data.synth import SynthOptions, generate
+    from mapfree.service import auth
+    from mapfree.service.db import Base, Result, Submission, WorkerRow, init_db, make_engine, session_factory
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench-service-"))
+    generate(tmp / "data", "val", 2, 20, seed=3, options=SynthOptions(first_scene=460, width=135, height=180,
+                                                                      texture_size=128, write_mono=False),
+             progress=False)
+    db_url = a.db or f"sqlite:///{tmp / 'bench.db'}"
+    engine = make_engine(db_url)
+    if a.db:
+        Base.metadata.drop_all(engine)
+    init_db(engine)
+    S = session_factory(engine)
+    tokens = []
+    with S.begin() as db:
+        for i in range(a.clients):
+            tokens.append(auth.create_user(db, f"client{i}")[1])
+    port = free_port()
+    log = open(tmp / "serve.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "mapfree", "serve", "--db", db_url, "--data", str(tmp / "data"),
+                             "--workers", str(a.workers), "--port", str(port), "--lease-seconds", "3",
+                             "--log-level", "warning"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.time() + a.timeout
+    try:
+        while True:
+            try:
+                if len(httpx.get(url + "/health", timeout=2).json()["workers"]) >= a.workers:
+                    break
+            except (httpx.HTTPError, ValueError, KeyError):
+                pass
+            if time.time() > deadline or proc.poll() is not None:
+                raise SystemExit("server did not start:\n" + (tmp / "serve.log").read_text()[-2000:])
+            time.sleep(0.3)
+
+        # ---------------------------------------------------------------- 200 submissions, 20 clients
+        rng = np.random.default_rng(0)
+        payloads = [submission(tmp / "data" / "val", rng) for _ in range(8)]
+        upload_lat: list[float] = []
+        ids: list[str] = []
+        lock = threading.Lock()
+
+        def client(k: int) -> None:
+            with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[k]}"}, timeout=60) as c:
+                for j in range(k, a.submissions, a.clients):
+                    t0 = time.perf_counter()
+                    r = c.post("/api/submissions", files={"file": ("s.zip", payloads[j % len(payloads)])},
+                               data={"split": "val", "name": f"b{j}", "public": "true"})
+                    dt = time.perf_counter() - t0
+                    assert r.status_code == 202, r.text
+                    with lock:
+                        upload_lat.append(dt)
+                        ids.append(r.json()["id"])
+
+        killed: dict = {}
+
+        def killer() -> None:
+            """SIGKILL a worker while it evaluates a job."""
+            while time.time() < deadline and not killed:
+                try:
+                    with S() as db:
+                        row = db.execute(select(WorkerRow.pid, Submission.id).join(
+                            Submission, Submission.worker_id == WorkerRow.id).where(Submission.status == "running")
+                        ).first()
+                except OperationalError:  # busy database: look again
+                    continue
+                if row is not None:
+                    try:
+                        os.kill(row[0], signal.SIGKILL)
+                        killed.update(pid=row[0], job=row[1])
+                    except ProcessLookupError:
+                        pass
+                    return
+                time.sleep(0.05)
+
+        t_start = time.perf_counter()
+        kt = threading.Thread(target=killer)
+        with ThreadPoolExecutor(a.clients) as ex:
+            futs = [ex.submit(client, k) for k in range(a.clients)]
+            time.sleep(0.5)
+            kt.start()
+            for f in futs:
+                f.result()
+        kt.join()
+        t_uploaded = time.perf_counter()
+        while time.time() < deadline:
+            try:
+                with S() as db:
+                    pending = db.scalar(select(func.count()).select_from(Submission).where(
+                        Submission.status.in_(("queued", "running"))))
+            except OperationalError:
+                continue
+            if pending == 0:
+                break
+            time.sleep(0.25)
+        t_done = time.perf_counter()
+        with S() as db:
+            statuses = dict(db.execute(select(Submission.status, func.count()).group_by(Submission.status)).all())
+            n_results = db.scalar(select(func.count()).select_from(Result))
+            n_distinct = db.scalar(select(func.count(func.distinct(Result.submission_id))))
+            retried = db.scalar(select(func.count()).select_from(Submission).where(Submission.attempts > 1))
+            killed_job = db.get(Submission, killed["job"]) if killed else None
+        ok = (len(ids) == a.submissions and statuses.get("done", 0) == a.submissions
+              and n_results == n_distinct == a.submissions)
+
+        # ---------------------------------------------------------------- localize, 8 clients
+        scene = Dataset(realmini()).scene("val", "s00000")
+        ref = scene.reference
+        queries = [q for q in scene.queries][:8]
+        form = lambda K: {"fx": str(K.fx), "fy": str(K.fy), "cx": str(K.cx), "cy": str(K.cy)}  # noqa: E731
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[0]}"}, timeout=120) as c:
+            anchor = c.post("/anchors", files={"image": ("r.jpg", ref.image_path.read_bytes()),
+                                               "depth": ("d.png", ref.depth_path("sensor").read_bytes())},
+                            data={**form(ref.intrinsics), "method": "sift_pnp_sensor"}).json()["id"]
+            c.post(f"/anchors/{anchor}/localize", files={"image": ("q.jpg", queries[0].image_path.read_bytes())},
+                   data=form(queries[0].intrinsics))  # warm-up: builds the relocalizer, prepares the anchor
+        loc_lat: list[float] = []
+        loc_ok = [0]
+
+        def loc_client(k: int) -> None:
+            with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[k]}"}, timeout=120) as c:
+                for j in range(k, a.localize_requests, a.localize_clients):
+                    q = queries[j % len(queries)]
+                    t0 = time.perf_counter()
+                    r = c.post(f"/anchors/{anchor}/localize", files={"image": ("q.jpg", q.image_path.read_bytes())},
+                               data=form(q.intrinsics))
+                    dt = time.perf_counter() - t0
+                    assert r.status_code == 200, r.text
+                    with lock:
+                        loc_lat.append(dt)
+                        loc_ok[0] += bool(r.json()["ok"])
+
+        t0 = time.perf_counter()
+        with ThreadPoolExecutor(a.localize_clients) as ex:
+            list(ex.map(loc_client, range(a.localize_clients)))
+        loc_wall = time.perf_counter() - t0
+
+        # baseline: the same localizations in this process, one at a time, no HTTP
+        from mapfree.relocalize import Relocalizer, View
+
+        r = Relocalizer.from_method("sift_pnp_sensor")
+        prepared = r.prepare(View(ref.image(), ref.intrinsics, ref.depth("sensor")))
+        base_lat = []
+        for j in range(min(16, a.localize_requests)):
+            q = queries[j % len(queries)]
+            t1 = time.perf_counter()
+            r.localize(View(q.image(), q.intrinsics), prepared)
+            base_lat.append(time.perf_counter() - t1)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+        engine.dispose()
+
+    sub_wall = t_done - t_start
+    rows = [
+        ("submissions uploaded / evaluated (done)", f"{len(ids)} / {statuses.get('done', 0)}", ""),
+        ("result rows (distinct submissions)", f"{n_results} ({n_distinct})", "exactly once" if ok else "MISMATCH"),
+        ("worker killed mid-job (pid, job attempts)",
+         f"{killed.get('pid', '-')}, {killed_job.attempts if killed_job else '-'}", f"{retried} job(s) retried"),
+        ("upload latency p50 / p99 (ms)", f"{pct(upload_lat, 50):.0f} / {pct(upload_lat, 99):.0f}", ""),
+        ("evaluation throughput (submissions/s)", f"{a.submissions / sub_wall:.1f}",
+         f"{sub_wall:.1f} s wall, uploads done at {t_uploaded - t_start:.1f} s"),
+        (f"localize latency p50 / p99 (ms), {a.localize_clients} clients",
+         f"{pct(loc_lat, 50):.0f} / {pct(loc_lat, 99):.0f}", f"{loc_ok[0]}/{len(loc_lat)} with a pose"),
+        ("localize throughput (req/s)", f"{len(loc_lat) / loc_wall:.2f}",
+         f"{(len(loc_lat) / loc_wall) * np.mean(base_lat):.2f}x in-process serial"),
+        ("in-process localize p50 (ms), baseline", f"{pct(base_lat, 50):.0f}",
+         f"HTTP p50 / baseline = {pct(loc_lat, 50) / pct(base_lat, 50):.1f}x"),
+    ]
+    db_name = db_url.split(":")[0]
+    print(f"\nmapfree serve on loopback ({db_name}, {a.workers} workers, {a.clients} clients, "
+          f"{os.cpu_count()} CPUs)")
+    w = max(len(r[0]) for r in rows)
+    for name, val, note in rows:
+        print(f"  {name:<{w}}  {val:>14}  {note}")
+    print("PASS: every submission evaluated exactly once, none lost" if ok else "FAIL: lost or duplicated results")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,121 @@
+"""The FastAPI application: ``create_app(settings)``. Every request error is a 4xx JSON (API) or HTML page
+(browser) naming the problem; unexpected errors are logged and answered with a generic 500."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from .. import __version__
+from .config import Settings
+from .db import init_db, make_engine, session_factory
+from .reloc import Localizers
+from .uploads import UploadError
+
+log = logging.getLogger("mapfree.http")
+_API_PREFIXES = ("/api/", "/anchors", "/health", "/openapi.json")
+CSP = "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; frame-ancestors 'none'"
+
+
+def _wants_html(request: Request) -> bool:
+    p = request.url.path
+    return not p.startswith(_API_PREFIXES) and "text/html" in request.headers.get("accept", "")
+
+
+def _error(request: Request, status: int, message: str, headers: dict | None = None):
+    if _wants_html(request):
+        from .web import templates
+
+        return templates.TemplateResponse(request, "error.html", {"status": status, "message": message,
+                                                                  "user": None, "csrf": "", "splits": ()},
+                                          status_code=status, headers=headers)
+    return JSONResponse({"detail": message, "status": status}, status_code=status, headers=headers)
+
+
+def _validation_message(exc: RequestValidationError) -> str:
+    parts = []
+    for e in exc.errors():
+        loc = ".".join(str(x) for x in e.get("loc", ()) if x not in ("body", "query", "path"))
+        parts.append(f"{loc or 'request'}: {e.get('msg', 'invalid')}")
+    return "; ".join(parts) or "invalid request"
+
+
+def create_app(settings: Settings) -> FastAPI:
+    engine = make_engine(settings.db_url)
+    init_db(engine)
+    app = FastAPI(title="mapfree service", version=__version__, max_body_size=settings.limits.max_request_bytes,
+                  description="Map-free benchmark evaluation server and metric relocalization API.")
+    app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
+    app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)))
+
+    @app.exception_handler(UploadError)
+    async def _upload_error(request: Request, exc: UploadError):
+        return _error(request, exc.status, exc.message)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException):
+        msg = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        if exc.status_code == 413 and "too large" in msg.lower():
+            msg = f"request body larger than {settings.limits.max_request_bytes} bytes"
+        return _error(request, exc.status_code, msg, getattr(exc, "headers", None))
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError):
+        return _error(request, 422, _validation_message(exc))
+
+    @app.exception_handler(Exception)
+    async def _crash(request: Request, exc: Exception):
+        log.error("unhandled error", exc_info=exc, extra={"path": request.url.path})
+        return _error(request, 500, "internal server error")
+
+    @app.middleware("http")
+    async def _access_log(request: Request, call_next):
+        t0 = time.perf_counter()
+        response = await call_next(request)
+        route = request.scope.get("route")
+        response.headers.setdefault("X-Content-Type-Options", "nosniff")
+        response.headers.setdefault("Referrer-Policy", "same-origin")
+        if not request.url.path.startswith(("/docs", "/redoc")):
+            response.headers.setdefault("Content-Security-Policy", CSP)
+        log.info("request", extra={"method": request.method, "route": getattr(route, "path", "?"),
+                                   "status": response.status_code,
+                                   "ms": round((time.perf_counter() - t0) * 1000, 2),
+                                   "user_id": getattr(request.state, "user_id", None)})
+        return response
+
+    from . import api, web
+
+    app.include_router(api.router)
+    app.include_router(web.router)
+    app.mount("/static", StaticFiles(directory=str(Path(__file__).parent / "static")), name="static")
+    return app
+
+
+def app_from_env() -> FastAPI:
+    """Factory for ``uvicorn --factory mapfree.service.app:app_from_env`` (settings from MAPFREE_* variables)."""
+    from .logs import setup_logging
+
+    setup_logging(os.environ.get("MAPFREE_LOG_LEVEL", "info"))
+    raw = os.environ.get("MAPFREE_SETTINGS")
+    if raw:  # written by `mapfree serve --api-processes N`
+        from .config import Limits
+
+        d = json.loads(raw)
+        d["limits"] = Limits(**d.get("limits", {}))
+        d["splits"] = tuple(d.get("splits", ("val", "test")))
+        return create_app(Settings(**d))
+    s = Settings(db_url=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
+                 data_root=os.environ.get("MAPFREE_DATA") or None, gt_root=os.environ.get("MAPFREE_GT") or None,
+                 default_method=os.environ.get("MAPFREE_METHOD", ""),
+                 test_daily_limit=int(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
+                 secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1")
+    return create_app(s)

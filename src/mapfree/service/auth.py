@@ -1,0 +1,83 @@
+"""Accounts, API tokens (only their SHA-256 is stored) and browser sessions with CSRF tokens.
+
+Tokens are 256-bit random strings, so a plain SHA-256 is enough (no password stretching needed): a stolen
+database does not reveal usable tokens, and lookups stay one indexed equality.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import secrets
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from .db import ApiToken, User, WebSession, now
+
+TOKEN_PREFIX = "mf_"
+
+
+def hash_secret(secret: str) -> str:
+    return hashlib.sha256(secret.encode("utf-8", "surrogatepass")).hexdigest()
+
+
+def new_token() -> str:
+    return TOKEN_PREFIX + secrets.token_urlsafe(32)
+
+
+def create_user(db: Session, name: str, admin: bool = False) -> tuple[User, str]:
+    """A new account and its first token (the only time the plain token is seen)."""
+    name = name.strip()
+    if not name or len(name) > 64 or not name.replace("-", "").replace("_", "").replace(".", "").isalnum():
+        raise ValueError("user name must be 1-64 letters, digits, '-', '_' or '.'")
+    if db.scalar(select(User).where(User.name == name)) is not None:
+        raise ValueError(f"user {name!r} already exists")
+    user = User(name=name, is_admin=admin)
+    db.add(user)
+    db.flush()
+    return user, issue_token(db, user)
+
+
+def issue_token(db: Session, user: User) -> str:
+    token = new_token()
+    db.add(ApiToken(user_id=user.id, token_hash=hash_secret(token), prefix=token[:10]))
+    return token
+
+
+def user_for_token(db: Session, token: str) -> User | None:
+    if not token or len(token) > 200:
+        return None
+    row = db.scalar(select(ApiToken).where(ApiToken.token_hash == hash_secret(token), ApiToken.revoked.is_(False)))
+    return db.get(User, row.user_id) if row else None
+
+
+def revoke_tokens(db: Session, user: User) -> int:
+    rows = db.scalars(select(ApiToken).where(ApiToken.user_id == user.id, ApiToken.revoked.is_(False))).all()
+    for r in rows:
+        r.revoked = True
+    return len(rows)
+
+
+def open_session(db: Session, user: User, hours: float) -> tuple[str, str]:
+    """A new browser session -> (session id for the cookie, its CSRF token)."""
+    sid, csrf = secrets.token_urlsafe(32), secrets.token_urlsafe(24)
+    db.add(WebSession(sid_hash=hash_secret(sid), user_id=user.id, csrf=csrf, expires_at=now() + hours * 3600))
+    return sid, csrf
+
+
+def session_for(db: Session, sid: str | None) -> WebSession | None:
+    if not sid or len(sid) > 200:
+        return None
+    row = db.scalar(select(WebSession).where(WebSession.sid_hash == hash_secret(sid)))
+    return row if row is not None and row.expires_at > now() else None
+
+
+def close_session(db: Session, sid: str | None) -> None:
+    row = session_for(db, sid)
+    if row is not None:
+        db.delete(row)
+
+
+def same_secret(a: str | None, b: str | None) -> bool:
+    return bool(a) and bool(b) and hmac.compare_digest(str(a), str(b))

@@ -1,0 +1,43 @@
+"""Service settings: one dataclass, filled from ``mapfree serve`` flags (defaults suit a small deployment)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+@dataclass
+class Limits:
+    """Hostile-input limits. Sizes in bytes."""
+
+    max_request_bytes: int = 64 << 20  # whole HTTP body
+    max_submission_bytes: int = 50 << 20  # compressed ZIP
+    max_zip_entries: int = 2000
+    max_zip_uncompressed_bytes: int = 256 << 20
+    max_zip_ratio: float = 200.0  # per entry, uncompressed / compressed (zip bombs)
+    max_image_bytes: int = 16 << 20
+    max_image_pixels: int = 4096 * 4096
+    max_name_chars: int = 120
+
+
+@dataclass
+class Settings:
+    """Everything the app and its workers need. ``data_root`` holds the public splits; ``gt_root`` the private
+    test ground truth (``gt_root/test/sNNNNN/poses.txt``), read only by workers, never served."""
+
+    db_url: str = "sqlite:///mapfree.db"
+    data_root: Path | None = None
+    gt_root: Path | None = None
+    splits: tuple[str, ...] = ("val", "test")
+    test_daily_limit: int = 5
+    lease_seconds: float = 60.0
+    max_attempts: int = 3
+    poll_seconds: float = 0.5
+    default_method: str = ""  # empty: the registry's best offline feature-matching preset
+    secure_cookies: bool = False
+    session_hours: float = 12.0
+    limits: Limits = field(default_factory=Limits)
+
+    def __post_init__(self) -> None:
+        self.data_root = Path(self.data_root) if self.data_root else None
+        self.gt_root = Path(self.gt_root) if self.gt_root else None

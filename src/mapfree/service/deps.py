@@ -1,0 +1,67 @@
+"""Request-scoped helpers: the database session, the signed-in user, and CSRF checks.
+
+Writes need a user: either ``Authorization: Bearer <token>`` (API clients; no cookies, so no CSRF risk) or a
+browser session cookie plus that session's CSRF token (form field ``csrf_token`` or header ``X-CSRF-Token``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from fastapi import HTTPException, Request
+from sqlalchemy.orm import Session
+
+from . import auth
+from .db import User, WebSession
+
+SESSION_COOKIE = "mapfree_session"
+LOGIN_CSRF_COOKIE = "mapfree_login_csrf"
+
+
+@dataclass
+class Caller:
+    user: User | None
+    session: WebSession | None = None  # set when authenticated by cookie
+    via_token: bool = False
+
+    @property
+    def csrf(self) -> str:
+        return self.session.csrf if self.session else ""
+
+
+def db_session(request: Request):
+    with request.app.state.sessions() as db:
+        yield db
+
+
+def identify(request: Request, db: Session) -> Caller:
+    """Who is calling (possibly nobody). A malformed or unknown bearer token is a 401, not anonymous."""
+    header = request.headers.get("authorization")
+    if header is not None:
+        scheme, _, token = header.partition(" ")
+        user = auth.user_for_token(db, token.strip()) if scheme.lower() == "bearer" else None
+        if user is None:
+            raise HTTPException(401, "invalid or revoked API token", headers={"WWW-Authenticate": "Bearer"})
+        request.state.user_id = user.id
+        db.commit()  # end the read transaction (on SQLite it holds the write lock)
+        return Caller(user, None, True)
+    sess = auth.session_for(db, request.cookies.get(SESSION_COOKIE))
+    user = db.get(User, sess.user_id) if sess is not None else None
+    db.commit()
+    if user is not None:
+        request.state.user_id = user.id
+        return Caller(user, sess)
+    return Caller(None)
+
+
+def require_writer(request: Request, db: Session, form_csrf: str | None = None) -> Caller:
+    """A signed-in caller allowed to write: token callers, or cookie callers with the right CSRF token."""
+    caller = identify(request, db)
+    if caller.user is None:
+        raise HTTPException(401, "authentication required: send 'Authorization: Bearer <token>' or sign in",
+                            headers={"WWW-Authenticate": "Bearer"})
+    if not caller.via_token:
+        given = form_csrf or request.headers.get("x-csrf-token")
+        if not auth.same_secret(given, caller.csrf):
+            raise HTTPException(403, "CSRF check failed: reload the page and submit the form again")
+    return caller

@@ -1,0 +1,155 @@
+"""Relocalization for the service: a per-process pool of ``Relocalizer`` objects per method and an LRU of
+prepared anchors (reference features and depth are computed once per anchor and method)."""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections import OrderedDict
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..estimate import Estimate
+from ..geometry import Intrinsics
+from .uploads import UploadError
+
+FALLBACK_METHOD = "sift_pnp_sensor"  # reference depth only: what an anchor with a depth map can always use
+
+
+def default_method(configured: str = "") -> str:
+    """The configured method, else the registry's best offline preset, else SIFT + PnP on the anchor's depth."""
+    from .. import methods
+
+    for name in (configured, getattr(methods, "BEST_OFFLINE", ""), FALLBACK_METHOD):
+        if not name:
+            continue
+        try:
+            methods.get(name)
+            return name
+        except (KeyError, ValueError, FileNotFoundError):
+            continue
+    return FALLBACK_METHOD
+
+
+def check_method(name: str) -> str:
+    from .. import methods
+
+    try:
+        m = methods.get(name)
+    except (KeyError, ValueError, FileNotFoundError) as e:
+        raise UploadError(422, f"method: {e}") from None
+    return m.name if "/" not in name else name
+
+
+#: Solvers that need a depth map of the query too; without one the service swaps in PnP (reference depth only).
+_QUERY_DEPTH_SOLVERS = ("essential", "procrustes")
+
+
+def effective_method(name: str, has_query_depth: bool):
+    """The ``Method`` to run: ``name``, or its PnP twin when the query has no depth map but the method's solver
+    would need one (so that the default preset answers for a plain photo, at the anchor's metric scale)."""
+    from dataclasses import replace
+
+    from .. import methods
+
+    m = methods.get(name)
+    if m.kind == "matching" and m.depth != "none" and not has_query_depth and m.solver in _QUERY_DEPTH_SOLVERS:
+        m = replace(m, solver="pnp", solver_opts={}, name=f"{m.name}+pnp")
+    return m
+
+
+def intrinsics_of(d: dict) -> Intrinsics:
+    return Intrinsics(d["fx"], d["fy"], d["cx"], d["cy"], int(d["width"]), int(d["height"]))
+
+
+class Localizers:
+    """Thread-safe access to relocalizers: at most ``per_method`` concurrent computations per method."""
+
+    def __init__(self, per_method: int = 2, max_anchors: int = 32):
+        self.per_method, self.max_anchors = per_method, max_anchors
+        self._pools: dict[str, queue.Queue] = {}
+        self._made: dict[str, int] = {}
+        self._anchors: OrderedDict[tuple[str, str], Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def _take(self, method):
+        from ..relocalize import Relocalizer
+
+        key = method.name
+        with self._lock:
+            pool = self._pools.setdefault(key, queue.Queue())
+            make = pool.empty() and self._made.get(key, 0) < self.per_method
+            if make:
+                self._made[key] = self._made.get(key, 0) + 1
+        if make:
+            try:
+                return Relocalizer.from_method(method)
+            except Exception:
+                with self._lock:
+                    self._made[key] -= 1
+                raise
+        return pool.get()
+
+    def _give(self, method, loc) -> None:
+        self._pools[method.name].put(loc)
+
+    def forget(self, anchor_id: str) -> None:
+        with self._lock:
+            for k in [k for k in self._anchors if k[0] == anchor_id]:
+                del self._anchors[k]
+
+    def localize(self, anchor_id: str, method: str, ref_image: np.ndarray, ref_K: Intrinsics,
+                 ref_depth: np.ndarray | None, query_image: np.ndarray, query_K: Intrinsics,
+                 query_depth: np.ndarray | None = None) -> Estimate:
+        """Pose of the query relative to the anchor; ``est.extras["method"]`` names what actually ran."""
+        from ..relocalize import View
+
+        method = effective_method(method, query_depth is not None)
+        loc = self._take(method)
+        try:
+            key = (anchor_id, method.name)
+            with self._lock:
+                prepared = self._anchors.get(key)
+                if prepared is not None:
+                    self._anchors.move_to_end(key)
+            if prepared is None and hasattr(loc, "prepare"):
+                prepared = loc.prepare(View(ref_image, ref_K, ref_depth))
+                with self._lock:
+                    self._anchors[key] = prepared
+                    while len(self._anchors) > self.max_anchors:
+                        self._anchors.popitem(last=False)
+            query = View(query_image, query_K, query_depth)
+            if prepared is not None:
+                est = loc.localize(query, prepared)
+            else:
+                loc.set_reference(View(ref_image, ref_K, ref_depth))
+                est = loc.localize(query)
+            est.extras["method"] = method.name
+            return est
+        finally:
+            self._give(method, loc)
+
+
+def estimate_json(est: Estimate, method: str) -> dict:
+    d = est.to_dict()
+    d["method"] = est.extras.get("method", method)
+    d["num_matches"] = int(est.extras.get("num_matches", 0) or 0)
+    d["scale_free"] = bool(est.extras.get("scale_free", False))
+    return d
+
+
+def figure_png(ref_image: np.ndarray, query_image: np.ndarray, ref_K: Intrinsics, query_K: Intrinsics,
+               est: Estimate, title: str = "") -> bytes:
+    """Matches on top and the virtual grid rendered into the query at the estimated pose below, as PNG bytes."""
+    from .. import viz
+
+    m = est.extras.get("matches")
+    k0 = np.asarray(getattr(m, "kpts0", np.zeros((0, 2))), float).reshape(-1, 2)
+    k1 = np.asarray(getattr(m, "kpts1", np.zeros((0, 2))), float).reshape(-1, 2)
+    fig = viz.relocalization_figure(ref_image, query_image, ref_K, query_K, k0, k1, est.pose, title=title)
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(fig, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise RuntimeError("could not encode the figure")
+    return buf.tobytes()

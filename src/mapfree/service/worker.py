@@ -1,0 +1,143 @@
+"""Evaluation worker: claim a job, score it with the benchmark, write the result once; repeat.
+
+Run as ``python -m mapfree.service.worker --db URL --data ROOT [--gt ROOT]`` (``mapfree serve`` starts N of
+them). SIGTERM finishes the current job first; SIGKILL loses nothing (the lease expires and another worker
+retries the job).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import socket
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from sqlalchemy import update
+
+from . import jobs
+from .config import Settings
+from .db import SubmissionFile, WorkerRow, init_db, make_engine, new_id, now, session_factory
+from .evaluation import SubmissionRejected, score
+
+log = logging.getLogger("mapfree.worker")
+
+
+class _Heartbeat(threading.Thread):
+    """Renews a claim's lease every third of its length until stopped."""
+
+    def __init__(self, sessions, claim: jobs.Claim, worker_id: str, lease: float):
+        super().__init__(daemon=True)
+        self.args, self.stopped, self.lost = (sessions, claim, worker_id, lease), threading.Event(), False
+
+    def run(self) -> None:
+        sessions, claim, worker_id, lease = self.args
+        while not self.stopped.wait(lease / 3):
+            try:
+                if not jobs.heartbeat(sessions, claim, worker_id, lease):
+                    self.lost = True
+                    return
+            except Exception:  # a DB hiccup: try again next beat
+                log.warning("heartbeat failed", exc_info=True)
+
+
+def process(sessions, settings: Settings, claim: jobs.Claim, worker_id: str) -> str:
+    """Evaluate one claimed job -> final status ('done', 'failed' or 'lost')."""
+    with sessions() as db:
+        row = db.get(SubmissionFile, claim.submission_id)
+        data = row.data if row else None
+    beat = _Heartbeat(sessions, claim, worker_id, settings.lease_seconds)
+    beat.start()
+    t0 = time.perf_counter()
+    try:
+        if data is None:
+            raise SubmissionRejected("submission file is missing")
+        with tempfile.TemporaryDirectory(prefix="mapfree-job-") as d:
+            path = Path(d) / "submission.zip"
+            path.write_bytes(data)
+            result, plot_data = score(settings, claim.split, path)
+        ok = jobs.finish(sessions, claim, worker_id, result, plot_data, time.perf_counter() - t0)
+        status = "done" if ok else "lost"
+    except SubmissionRejected as e:
+        status = "failed" if jobs.fail(sessions, claim, worker_id, f"cannot score submission: {e}") else "lost"
+    except Exception as e:
+        log.exception("evaluation crashed", extra={"submission": claim.submission_id})
+        status = "failed" if jobs.fail(sessions, claim, worker_id, f"internal error while scoring: "
+                                       f"{type(e).__name__}") else "lost"
+    finally:
+        beat.stopped.set()
+    log.info("job finished", extra={"submission": claim.submission_id, "status": status, "attempt": claim.attempt,
+                                    "seconds": round(time.perf_counter() - t0, 3), "worker": worker_id})
+    return status
+
+
+def run(settings: Settings, worker_id: str | None = None, stop: threading.Event | None = None,
+        max_jobs: int | None = None, parent_pid: int | None = None) -> int:
+    """Work until ``stop`` is set (or ``max_jobs`` are done, or process ``parent_pid`` is gone); returns the
+    number of jobs processed."""
+    engine = make_engine(settings.db_url)
+    init_db(engine)
+    sessions = session_factory(engine)
+    worker_id = worker_id or f"{socket.gethostname()[:40]}-{os.getpid()}-{new_id()[:6]}"
+    stop = stop or threading.Event()
+    with sessions.begin() as db:
+        db.merge(WorkerRow(id=worker_id, host=socket.gethostname()[:128], pid=os.getpid(), started_at=now(),
+                           last_seen=now(), jobs_done=0))
+    log.info("worker started", extra={"worker": worker_id, "pid": os.getpid()})
+    done, last_seen = 0, 0.0
+    while not stop.is_set() and (max_jobs is None or done < max_jobs):
+        if parent_pid is not None and os.getppid() != parent_pid:
+            log.warning("parent process is gone; stopping", extra={"worker": worker_id})
+            break
+        try:
+            claim = jobs.claim(sessions, worker_id, settings.lease_seconds, settings.max_attempts)
+        except Exception:
+            log.warning("claim failed; retrying", exc_info=True)
+            stop.wait(settings.poll_seconds * 4)
+            continue
+        if claim is None:
+            if time.time() - last_seen > 5:
+                last_seen = time.time()
+                try:
+                    with sessions.begin() as db:
+                        db.execute(update(WorkerRow).where(WorkerRow.id == worker_id).values(last_seen=now()))
+                except Exception:
+                    log.warning("worker heartbeat failed", exc_info=True)
+            stop.wait(settings.poll_seconds)
+            continue
+        process(sessions, settings, claim, worker_id)
+        done += 1
+    log.info("worker stopped", extra={"worker": worker_id, "jobs": done})
+    engine.dispose()
+    return done
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .logs import setup_logging
+
+    p = argparse.ArgumentParser(prog="python -m mapfree.service.worker", description=__doc__)
+    p.add_argument("--db", required=True)
+    p.add_argument("--data", type=Path)
+    p.add_argument("--gt", type=Path)
+    p.add_argument("--lease-seconds", type=float, default=60.0)
+    p.add_argument("--max-attempts", type=int, default=3)
+    p.add_argument("--poll-seconds", type=float, default=0.5)
+    p.add_argument("--log-level", default="info")
+    p.add_argument("--exit-with-parent", action="store_true", help="stop when the launching process dies")
+    a = p.parse_args(argv)
+    setup_logging(a.log_level)
+    settings = Settings(db_url=a.db, data_root=a.data, gt_root=a.gt, lease_seconds=a.lease_seconds,
+                        max_attempts=a.max_attempts, poll_seconds=a.poll_seconds)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    run(settings, stop=stop, parent_pid=os.getppid() if a.exit_with_parent else None)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
