@@ -1,0 +1,176 @@
+"""``mapfree relocalize REF QUERY``: metric pose of one photo relative to another, as JSON."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+DESCRIPTION = """\
+Estimate the metric 6-DoF pose of QUERY relative to REF (X_query = R X_ref + t) and print it as JSON
+(pose, confidence, inliers, per-stage timings, or the reason there is no estimate).
+
+Intrinsics come from --K-ref/--K-query, from --intrinsics (a Map-free intrinsics.txt), or, for images
+inside a Map-free scene folder, from that scene's intrinsics.txt. Depth comes from --depth-ref/--depth-query
+(uint16 PNG, millimetres) or from the method's depth source (e.g. files:sensor reads FRAME.sensor.png).
+"""
+
+EPILOG = """\
+examples:
+  mapfree relocalize scene/seq0/frame_00000.jpg scene/seq1/frame_00010.jpg --method sift_emat_sensor --gt-pose auto
+  mapfree relocalize a.jpg b.jpg --K-ref 500,500,270,180 --K-query 500,500,270,180 \\
+      --depth-ref a_depth.png --depth-query b_depth.png --viz out.png
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from ..methods import BEST_OFFLINE
+
+    p = subparsers.add_parser("relocalize", help="relative metric pose between two photos (JSON)",
+                              description=DESCRIPTION, epilog=EPILOG,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("reference", type=Path, help="reference image")
+    p.add_argument("query", type=Path, help="query image")
+    p.add_argument("--method", default=BEST_OFFLINE,
+                   help=f"preset name, YAML config or path (default: {BEST_OFFLINE}); see `mapfree run --list-methods`")
+    p.add_argument("--depth", default=None, help="override the method's depth: files:SUFFIX, none, hf:MODEL")
+    p.add_argument("--intrinsics", type=Path, help="Map-free intrinsics.txt holding lines for both images")
+    p.add_argument("--K-ref", help="reference intrinsics fx,fy,cx,cy (pixels)")
+    p.add_argument("--K-query", help="query intrinsics fx,fy,cx,cy (pixels)")
+    p.add_argument("--depth-ref", type=Path, help="reference depth map (uint16 PNG, mm)")
+    p.add_argument("--depth-query", type=Path, help="query depth map (uint16 PNG, mm)")
+    p.add_argument("--gt-pose", help="ground truth: 'qw,qx,qy,qz,tx,ty,tz' (query w.r.t. reference), "
+                                      "a poses.txt holding both frames, or 'auto' (the scene's poses.txt)")
+    p.add_argument("--viz", type=Path, help="write a PNG with the matches and the AR check")
+    p.set_defaults(func=run)
+
+
+class InputError(Exception):
+    pass
+
+
+def _floats(text: str, n: int, what: str) -> list[float]:
+    try:
+        vals = [float(v) for v in text.replace(" ", "").split(",")]
+    except ValueError:
+        raise InputError(f"{what}: expected {n} comma-separated numbers, got {text!r}") from None
+    if len(vals) != n or not all(np.isfinite(vals)):
+        raise InputError(f"{what}: expected {n} finite comma-separated numbers, got {text!r}")
+    return vals
+
+
+def _scene_dir(image: Path) -> Path:
+    """``scene/seqN/frame.jpg`` -> ``scene``."""
+    return image.resolve().parent.parent
+
+
+def _frame_name(image: Path) -> str:
+    p = image.resolve()
+    return f"{p.parent.name}/{p.name}"
+
+
+def _lookup(table: dict, image: Path, source: Path):
+    """A per-frame entry for ``image``: by ``seqN/frame`` name, else by a unique base name."""
+    name = _frame_name(image)
+    if name in table:
+        return table[name]
+    hits = [v for k, v in table.items() if Path(k).name == image.name]
+    if len(hits) == 1:
+        return hits[0]
+    raise InputError(f"{source}: no unique entry for {name}")
+
+
+def _intrinsics(args, image: Path, flag: str | None):
+    from ..data import read_image, read_intrinsics
+    from ..geometry import Intrinsics
+
+    if flag:
+        h, w = read_image(image).shape[:2]
+        fx, fy, cx, cy = _floats(flag, 4, "intrinsics")
+        if fx <= 0 or fy <= 0:
+            raise InputError("intrinsics: focal lengths must be positive")
+        return Intrinsics(fx, fy, cx, cy, w, h)
+    source = args.intrinsics or _scene_dir(image) / "intrinsics.txt"
+    if not source.is_file():
+        raise InputError(f"no intrinsics for {image}: pass --K-ref/--K-query or --intrinsics FILE")
+    return _lookup(read_intrinsics(source), image, source)
+
+
+def _gt_pose(args):
+    from ..data import read_poses
+    from ..geometry import Pose
+
+    if not args.gt_pose:
+        return None
+    if args.gt_pose == "auto" or Path(args.gt_pose).is_file():
+        source = _scene_dir(args.query) / "poses.txt" if args.gt_pose == "auto" else Path(args.gt_pose)
+        if not source.is_file():
+            raise InputError(f"--gt-pose auto: {source} not found")
+        table = read_poses(source).as_dict()
+        p_ref, p_q = _lookup(table, args.reference, source), _lookup(table, args.query, source)
+        if p_ref is None or p_q is None:
+            raise InputError(f"{source}: no ground truth for these frames (all-zero lines)")
+        return p_q.relative_to(p_ref)
+    v = _floats(args.gt_pose, 7, "--gt-pose")
+    try:
+        return Pose.from_qt(v[:4], v[4:])
+    except ValueError as e:
+        raise InputError(f"--gt-pose: {e}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..data import FormatError, read_depth
+    from ..methods import get
+    from ..relocalize import Relocalizer, as_view
+
+    try:
+        method = get(args.method)
+        if args.depth:
+            method = method.with_depth(args.depth)
+        for p in (args.reference, args.query):
+            if not p.is_file():
+                raise InputError(f"{p}: image not found")
+        views = []
+        for image, kflag, dpath in ((args.reference, args.K_ref, args.depth_ref),
+                                    (args.query, args.K_query, args.depth_query)):
+            K = _intrinsics(args, image, kflag)
+            depth = read_depth(dpath) if dpath else None
+            v = as_view((image, K, depth))
+            if v.image.shape[:2] != (K.height, K.width):
+                raise InputError(f"{image}: image is {v.image.shape[1]}x{v.image.shape[0]} but its intrinsics "
+                                 f"say {K.width}x{K.height}")
+            views.append(v)
+        gt = _gt_pose(args)
+        loc = Relocalizer.from_method(method)
+    except (InputError, FormatError, FileNotFoundError, KeyError, ValueError) as e:
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+        print(f"mapfree relocalize: error: {msg}", file=sys.stderr)
+        return 2
+
+    ref, query = views
+    est = loc.relocalize(ref, query)
+    out = {"method": method.name, "reference": str(args.reference), "query": str(args.query), **est.to_dict()}
+    from ..relocalize.run import estimate_scores
+
+    out["scores"] = estimate_scores(est)
+    if gt is not None and est.pose is not None:
+        from ..geometry import rotation_angle_deg
+        from ..viz import vcre_px
+
+        out["error"] = {"translation_m": float(np.linalg.norm(est.pose.center - gt.center)),
+                        "rotation_deg": float(rotation_angle_deg(est.pose.R, gt.R)),
+                        "vcre_px": vcre_px(est.pose, gt, query.intrinsics)}
+    if args.viz:
+        from ..matching.base import Matches
+        from ..viz import relocalization_figure, save_png
+
+        m = est.extras.get("matches", Matches.empty())
+        thr = float(method.solver_opts.get("ransac_threshold_px", 3.0))
+        fig = relocalization_figure(ref.image, query.image, ref.intrinsics, query.intrinsics, m.kpts0, m.kpts1,
+                                    est.pose, gt, threshold_px=thr, title=method.name)
+        out["viz"] = str(save_png(args.viz, fig))
+    print(json.dumps(out, indent=2, allow_nan=False))
+    return 0

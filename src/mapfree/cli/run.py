@@ -1,0 +1,79 @@
+"""``mapfree run ROOT --split val --method NAME -o submission.zip``: relocalize a whole split."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+DESCRIPTION = """\
+Relocalize every query the benchmark scores (every 5th; --all-frames for all) of every scene of a split
+against the scene's reference image and write a submission ZIP.
+
+Reference features and depth are computed once per scene; scenes run in parallel worker processes.
+Every finished frame is appended to OUTPUT's journal (submission.journal.jsonl): after a crash or
+Ctrl-C, run the same command with --resume and only the missing frames are computed. Frames without an
+estimate are listed with their reason in submission.failures.jsonl. Nothing non-finite is ever written.
+"""
+
+EPILOG = """\
+examples:
+  mapfree run data/ --split val --method sift_emat_dptkitti -o sift.zip --workers 2
+  mapfree run data/ --split val --method configs/methods/best-offline.yaml -o best.zip --resume --evaluate
+  mapfree run --list-methods
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("run", help="relocalize a whole split into a submission ZIP (resumable)",
+                              description=DESCRIPTION, epilog=EPILOG,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("root", nargs="?", type=Path, help="Map-free dataset root (holding val/, test/ …)")
+    p.add_argument("--split", default="val", help="split to run (default: val)")
+    p.add_argument("--method", help="preset name ({matcher}_{solver}_{depth}), YAML config name or path")
+    p.add_argument("-o", "--output", type=Path, default=Path("submission.zip"), help="submission ZIP to write")
+    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (over scenes)")
+    p.add_argument("--all-frames", action="store_true", help="every query, not only the scored ones")
+    p.add_argument("--resume", action="store_true", help="continue the run journaled beside OUTPUT")
+    p.add_argument("--overwrite", action="store_true", help="discard an existing journal and start again")
+    p.add_argument("--scenes", help="comma-separated scene names (default: all)")
+    p.add_argument("--confidence", help="extra score to use as the submission confidence "
+                                        "(e.g. confidence_inliers, confidence_score)")
+    p.add_argument("--evaluate", action="store_true", help="score the submission against the split's poses")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--list-methods", action="store_true", help="print the method names and exit")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..data import FormatError
+    from ..methods import list_methods
+
+    if args.list_methods:
+        print("\n".join(list_methods()))
+        return 0
+    if args.root is None or not args.method:
+        print("mapfree run: error: ROOT and --method are required (or --list-methods)", file=sys.stderr)
+        return 2
+    if args.workers < 1:
+        print("mapfree run: error: --workers must be >= 1", file=sys.stderr)
+        return 2
+    from ..relocalize import run_split
+
+    try:
+        res = run_split(args.root, args.split, args.method, args.output, workers=args.workers,
+                        all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
+                        confidence=args.confidence, progress=not args.no_progress,
+                        scenes=args.scenes.split(",") if args.scenes else None)
+    except (FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
+        print(f"mapfree run: error: {msg}", file=sys.stderr)
+        return 2
+    out = res.to_dict()
+    if args.evaluate:
+        from ..benchmark import evaluate
+
+        out["metrics"] = evaluate(res.submission, args.root, args.split).metrics
+    print(json.dumps(out, indent=2, allow_nan=False))
+    return 0

@@ -1,0 +1,323 @@
+"""``Relocalizer``: matcher x depth x solver for one reference-query pair, with the reference cached.
+
+The reference's features and depth are computed once (``set_reference`` or ``prepare``) and reused for
+every query, which is what makes a whole scene (or a service anchor) cheap.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from itertools import islice
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Protocol, Union
+
+import cv2
+import numpy as np
+
+from ..data import Frame, read_image
+from ..estimate import Estimate
+from ..geometry import Intrinsics
+from ..matching.base import Features, Matcher, Matches
+
+log = logging.getLogger(__name__)
+
+__all__ = ["View", "Anchor", "Localizer", "Relocalizer", "as_view", "ViewLike", "MIN_PARALLAX_PX"]
+
+#: Median keypoint displacement (px) below which the query is taken for the reference image itself.
+MIN_PARALLAX_PX = 0.5
+#: Which depth maps each solver needs (anything else: both).
+_DEPTH_NEEDS = {"essential": ("ref", "query"), "pnp": ("ref",), "procrustes": ("ref", "query")}
+
+
+@dataclass
+class View:
+    """One image ready for relocalization: pixels, intrinsics, and optionally a depth map or a Frame."""
+
+    image: np.ndarray
+    intrinsics: Intrinsics
+    depth: np.ndarray | None = None
+    frame: Frame | None = None
+    name: str = ""
+
+
+ViewLike = Union[View, Frame, tuple]
+
+
+def _read_image_any(image: Any) -> tuple[np.ndarray, Path | None]:
+    if isinstance(image, (str, os.PathLike)):
+        return read_image(image), Path(image)
+    arr = np.asarray(image)
+    if arr.ndim == 2:
+        arr = np.repeat(arr[..., None], 3, axis=2)
+    return arr, None
+
+
+def _as_intrinsics(K: Any, image: np.ndarray) -> Intrinsics:
+    if isinstance(K, Intrinsics):
+        return K
+    K = np.asarray(K, dtype=np.float64)
+    h, w = image.shape[:2]
+    if K.shape == (3, 3):
+        return Intrinsics.from_K(K, w, h)
+    if K.shape == (4,):
+        return Intrinsics(*map(float, K), w, h)
+    raise ValueError(f"intrinsics must be an Intrinsics, a 3x3 K or (fx, fy, cx, cy), got shape {K.shape}")
+
+
+def as_view(x: ViewLike) -> View:
+    """A ``View`` from a ``Frame`` or ``(image | path, Intrinsics | K | (fx,fy,cx,cy)[, depth])``."""
+    if isinstance(x, View):
+        return x
+    if isinstance(x, Frame):
+        return View(x.image(), x.intrinsics, None, x, x.name)
+    if isinstance(x, tuple) and len(x) in (2, 3):
+        image, path = _read_image_any(x[0])
+        K = _as_intrinsics(x[1], image)
+        depth = None if len(x) == 2 or x[2] is None else np.asarray(x[2], dtype=np.float32)
+        frame = Frame(path.name, path, K) if path is not None else None
+        return View(image, K, depth, frame, path.name if path is not None else "")
+    raise TypeError(f"expected a Frame, a View or (image, intrinsics[, depth]); got {type(x).__name__}")
+
+
+def _fit_depth(depth: np.ndarray | None, K: Intrinsics) -> np.ndarray | None:
+    """Depth at the image size (nearest-neighbour resize keeps holes as holes); NaN/inf/negative -> 0."""
+    if depth is None:
+        return None
+    d = np.asarray(depth, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"depth map must be 2-D, got shape {d.shape}")
+    if d.shape != (K.height, K.width):
+        d = cv2.resize(d, (K.width, K.height), interpolation=cv2.INTER_NEAREST)
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    return d
+
+
+@dataclass
+class _Prepared:
+    """A query after the reference-independent stage (or the error that stopped it)."""
+
+    view: View | None
+    features: Features | None
+    depth: np.ndarray | None
+    timings: dict[str, float]
+    error: str | None = None
+
+
+def _error(e: Exception) -> str:
+    log.warning("relocalization failed: %s", e, exc_info=log.isEnabledFor(logging.DEBUG))
+    return f"error: {type(e).__name__}: {e}"
+
+
+@dataclass
+class Anchor:
+    """A prepared reference: its view, features and depth, and what preparing it cost."""
+
+    view: View
+    features: Features
+    depth: np.ndarray | None
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class Localizer(Protocol):
+    """What every method kind builds (``Method.build()``): matching pipelines and regression models alike."""
+
+    def set_reference(self, reference: ViewLike) -> Any: ...
+
+    def localize(self, query: ViewLike) -> Estimate: ...
+
+    def relocalize(self, reference: ViewLike, query: ViewLike) -> Estimate: ...
+
+
+class Relocalizer:
+    """Matcher x depth x solver. Components are names (built through their registries) or objects.
+
+    ``relocalize(ref, query)`` for one pair; ``set_reference(ref)`` then ``localize(query)`` for many
+    queries against one reference (its features and depth are computed once).
+    """
+
+    def __init__(
+        self,
+        matcher: str | Matcher = "sift",
+        depth: str | Any = "none",
+        solver: str | Any = "essential",
+        *,
+        matcher_opts: dict | None = None,
+        solver_opts: dict | None = None,
+        name: str = "",
+    ) -> None:
+        if isinstance(matcher, str):
+            from .. import matching
+
+            matcher = matching.create(matcher, **(matcher_opts or {}))
+        if isinstance(depth, str):
+            from .. import depth as depth_mod
+
+            depth = depth_mod.create(depth)
+        if isinstance(solver, str):
+            from .. import solvers
+
+            solver = solvers.create(solver, **(solver_opts or {}))
+        self.matcher, self.depth_source, self.solver = matcher, depth, solver
+        self.name = name or f"{matcher.name}+{getattr(depth, 'name', 'depth')}+{solver.name}"
+        self.anchor: Anchor | None = None
+
+    @classmethod
+    def from_method(cls, method: Any) -> "Localizer":
+        """Build a method by name, YAML path or ``Method`` (regression methods build their own kind)."""
+        from .. import methods
+
+        m = method if isinstance(method, methods.Method) else methods.get(method)
+        return m.build()
+
+    # ------------------------------------------------------------------ stages
+
+    @property
+    def metric(self) -> bool:
+        return bool(getattr(self.depth_source, "metric", True))
+
+    def _depth(self, view: View) -> np.ndarray | None:
+        if view.depth is not None:
+            return _fit_depth(view.depth, view.intrinsics)
+        if not self.metric:
+            return None
+        if view.frame is not None:
+            return _fit_depth(self.depth_source.depth(view.frame), view.intrinsics)
+        if hasattr(self.depth_source, "predict"):  # a network: predict from the pixels themselves
+            return _fit_depth(self.depth_source.predict([view.image], [view.intrinsics.fx])[0], view.intrinsics)
+        return None
+
+    def prepare(self, reference: ViewLike) -> Anchor:
+        """Features and depth of a reference, without making it the current one (services keep many)."""
+        view = as_view(reference)
+        t0 = time.perf_counter()
+        feats = self.matcher.extract(view.image)
+        t1 = time.perf_counter()
+        depth = self._depth(view)
+        t2 = time.perf_counter()
+        return Anchor(view, feats, depth, {"extract_ref": t1 - t0, "depth_ref": t2 - t1})
+
+    def set_reference(self, reference: ViewLike | Anchor) -> Anchor:
+        self.anchor = reference if isinstance(reference, Anchor) else self.prepare(reference)
+        return self.anchor
+
+    def relocalize(self, reference: ViewLike, query: ViewLike) -> Estimate:
+        """Pose of ``query`` relative to ``reference``; timings include preparing the reference."""
+        try:
+            anchor = self.prepare(reference)
+        except Exception as e:  # an unreadable or unusable reference is a "no estimate", like a bad query
+            return Estimate.failure(f"reference: {_error(e)}")
+        est = self.localize(query, anchor)
+        est.timings["match"] = est.timings.get("match", 0.0) + anchor.timings["extract_ref"]
+        est.timings["depth"] = est.timings.get("depth", 0.0) + anchor.timings["depth_ref"]
+        est.timings["total"] = est.timings.get("total", 0.0) + sum(anchor.timings.values())
+        return est
+
+    def _anchor(self, anchor: Anchor | None) -> Anchor:
+        anchor = anchor or self.anchor
+        if anchor is None:
+            raise RuntimeError("no reference: call set_reference(...) first or use relocalize(ref, query)")
+        return anchor
+
+    def _prepare_query(self, query: ViewLike) -> _Prepared:
+        """Stage 1 (independent of the reference): read the query, extract features, get its depth."""
+        t0 = time.perf_counter()
+        try:
+            view = as_view(query)
+            t1 = time.perf_counter()
+            feats = self.matcher.extract(view.image)
+            t2 = time.perf_counter()
+            depth = self._depth(view)
+            t3 = time.perf_counter()
+        except Exception as e:  # a bad frame must not stop a run; the reason says what happened
+            return _Prepared(None, None, None, {"read": time.perf_counter() - t0}, _error(e))
+        return _Prepared(view, feats, depth, {"read": t1 - t0, "extract": t2 - t1, "depth": t3 - t2})
+
+    def _finish(self, anchor: Anchor, prep: _Prepared) -> Estimate:
+        """Stage 2: match against the anchor and solve."""
+        timings = dict(prep.timings)
+        matches = Matches.empty()
+        if prep.error is not None:
+            est = Estimate.failure(prep.error)
+        else:
+            try:
+                t0 = time.perf_counter()
+                matches = self.matcher.match(anchor.features, prep.features)
+                t1 = time.perf_counter()
+                est = self._solve(anchor, prep.view, matches, prep.depth)
+                timings["solve"] = time.perf_counter() - t1
+                timings["match"] = timings.pop("extract") + t1 - t0  # extraction counts as matching time
+            except Exception as e:
+                est = Estimate.failure(_error(e))
+        timings["total"] = sum(v for k, v in timings.items() if k in ("read", "match", "extract", "depth", "solve"))
+        est.timings = {**est.timings, **timings}
+        est.extras.setdefault("matches", matches)
+        est.extras.setdefault("num_matches", len(matches))
+        return est
+
+    def localize(self, query: ViewLike, anchor: Anchor | None = None) -> Estimate:
+        """Pose of ``query`` relative to the anchor (default: the one given to ``set_reference``).
+
+        Never raises for bad pixels or geometry: the answer is then an ``Estimate`` with ``pose=None``.
+        """
+        anchor = self._anchor(anchor)
+        early = self._precheck(anchor)
+        return early if early is not None else self._finish(anchor, self._prepare_query(query))
+
+    def localize_many(self, queries: Iterable[ViewLike], anchor: Anchor | None = None,
+                      prefetch: int = 1) -> Iterator[Estimate]:
+        """``localize`` over many queries, in order; with ``prefetch`` > 0 the next queries are read and their
+        features extracted in a background thread while the current one is matched and solved."""
+        anchor = self._anchor(anchor)
+        if self._precheck(anchor) is not None:  # nothing to extract: every query fails the same way
+            for _ in queries:
+                yield self._precheck(anchor)
+            return
+        if prefetch <= 0:
+            for q in queries:
+                yield self._finish(anchor, self._prepare_query(q))
+            return
+        it = iter(queries)
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapfree-prefetch") as pool:
+            pending: deque = deque(pool.submit(self._prepare_query, q) for q in islice(it, prefetch))
+            while pending:
+                prep = pending.popleft().result()
+                nxt = next(it, None)
+                if nxt is not None:
+                    pending.append(pool.submit(self._prepare_query, nxt))
+                yield self._finish(anchor, prep)
+
+    def _needs(self) -> tuple[str, ...]:
+        if not self.metric:
+            return ()
+        return _DEPTH_NEEDS.get(getattr(self.solver, "name", ""), ("ref", "query"))
+
+    def _precheck(self, anchor: Anchor) -> Estimate | None:
+        """The failure every query of this anchor gets (a metric method without reference depth), else None."""
+        if "ref" in self._needs() and anchor.depth is None:
+            return Estimate.failure("no depth for the reference image", total=0.0)
+        return None
+
+    def _solve(self, anchor: Anchor, view: View, matches: Matches, depth_q: np.ndarray | None) -> Estimate:
+        flow = np.linalg.norm(matches.kpts1 - matches.kpts0, axis=1)
+        if len(matches) and float(np.median(flow)) <= MIN_PARALLAX_PX:
+            return Estimate.failure("no parallax: the query is the reference image")
+        needs = self._needs()
+        if "ref" in needs and anchor.depth is None:
+            return Estimate.failure("no depth for the reference image")
+        if "query" in needs and depth_q is None:
+            return Estimate.failure("no depth for the query image")
+        est = self.solver.solve(matches, anchor.view.intrinsics, view.intrinsics, anchor.depth, depth_q)
+        if est.pose is not None and not self.metric:
+            est.extras.setdefault("scale_free", True)
+        return est
+
+
+def build_matching(method: Any) -> Relocalizer:
+    """Factory of the ``matching`` method kind (registered with ``mapfree.methods``)."""
+    return Relocalizer(method.matcher, method.depth, method.solver, matcher_opts=method.matcher_opts,
+                       solver_opts=method.solver_opts, name=method.name)

@@ -1,0 +1,331 @@
+"""Relocalize a whole split into a submission: parallel over scenes, resumable, with a failure log.
+
+Every finished frame is appended at once to a JSON-lines journal beside the output
+(``submission.journal.jsonl``), so a killed run loses nothing: ``resume=True`` skips the frames already
+there. The submission ZIP and the failure log (``submission.failures.jsonl``) are rebuilt from the journal.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+import numpy as np
+
+from ..data import Dataset, Scene
+from ..estimate import Estimate
+from ..geometry import Pose
+
+__all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
+
+JOURNAL_VERSION = 1
+
+
+def journal_path(output: os.PathLike | str) -> Path:
+    """``out/submission.zip`` -> ``out/submission.journal.jsonl``."""
+    p = Path(output)
+    return p.with_name(f"{p.stem}.journal.jsonl")
+
+
+def failures_path(output: os.PathLike | str) -> Path:
+    p = Path(output)
+    return p.with_name(f"{p.stem}.failures.jsonl")
+
+
+@dataclass
+class RunResult:
+    """What a run did: paths it wrote and frame counts (``computed`` this time, ``skipped`` from the journal)."""
+
+    submission: Path
+    journal: Path
+    failures: Path
+    computed: int = 0
+    skipped: int = 0
+    estimated: int = 0
+    failed: int = 0
+    seconds: float = 0.0
+    scenes: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: (str(v) if isinstance(v, Path) else v) for k, v in self.__dict__.items()}
+
+
+# --------------------------------------------------------------------------- journal
+
+
+def estimate_scores(est: Estimate) -> dict[str, float]:
+    """The finite scalar numbers of ``est.extras`` (alternative confidences, ratios) for the journal."""
+    out: dict[str, float] = {}
+    for k, v in est.extras.items():
+        if isinstance(v, (bool, np.bool_)):
+            continue
+        if isinstance(v, (int, float, np.integer, np.floating)) and np.isfinite(v):
+            out[k] = float(v)
+    return out
+
+
+def _record(scene: str, frame: str, est: Estimate, world_pose: Pose | None) -> dict[str, Any]:
+    rec: dict[str, Any] = {"kind": "frame", "scene": scene, "frame": frame, "ok": world_pose is not None,
+                           "confidence": est.confidence, "inliers": int(est.inliers), "reason": est.reason,
+                           "timings": {k: round(float(v), 6) for k, v in est.timings.items()},
+                           "scores": estimate_scores(est)}
+    if world_pose is not None:
+        q, t = world_pose.qt()
+        rec["q"], rec["t"] = q.tolist(), t.tolist()
+    return rec
+
+
+def _append(path: Path, records: Sequence[dict]) -> None:
+    """Append whole lines with one ``write`` on an O_APPEND descriptor (safe across worker processes)."""
+    data = "".join(json.dumps(r, allow_nan=False) + "\n" for r in records).encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(fd, data)
+    finally:
+        os.close(fd)
+
+
+def read_journal(path: os.PathLike | str) -> tuple[dict | None, list[dict]]:
+    """(header, frame records) of a journal; a torn last line (killed mid-write) is ignored."""
+    path = Path(path)
+    if not path.is_file():
+        return None, []
+    header, recs = None, []
+    for line in path.read_text().splitlines():
+        try:
+            r = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if r.get("kind") == "header":
+            header = header or r
+        elif r.get("kind") == "frame":
+            recs.append(r)
+    return header, recs
+
+
+def _repair_tail(path: Path) -> None:
+    """Drop a partial last line so appended records start on a line of their own."""
+    data = path.read_bytes()
+    if data and not data.endswith(b"\n"):
+        with open(path, "r+b") as f:
+            f.truncate(data.rfind(b"\n") + 1)
+
+
+def _same_method(a: dict, b: dict) -> bool:
+    keys = ("kind", "matcher", "matcher_opts", "depth", "solver", "solver_opts", "options")
+    return all(a.get(k) == b.get(k) for k in keys)
+
+
+# --------------------------------------------------------------------------- work
+
+
+def frames_to_run(scene: Scene, all_frames: bool) -> list[str]:
+    """The query frames of a scene: the benchmark's scored ones, or every query."""
+    frames = scene.queries if all_frames else scene.scored_queries()
+    return [f.name for f in frames]
+
+
+_LOCALIZERS: dict[str, Any] = {}
+
+
+def _localizer(method_dict: dict) -> Any:
+    """One built method per worker process (matchers load weights once)."""
+    key = json.dumps(method_dict, sort_keys=True)
+    if key not in _LOCALIZERS:
+        from ..methods import Method
+
+        _LOCALIZERS[key] = Method(**method_dict).build()
+    return _LOCALIZERS[key]
+
+
+def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: str,
+               on_frame: Callable[[dict], None] | None = None) -> int:
+    """Relocalize ``frames`` of one scene against its reference, appending each result to the journal."""
+    scene = Scene(Path(scene_path))
+    journal_p = Path(journal)
+    try:
+        loc = _localizer(method_dict)
+        ref = scene.reference
+        ref_pose = ref.pose if ref.pose is not None else Pose.identity()
+        loc.set_reference(ref)
+    except Exception as e:  # the whole scene fails cleanly; each frame says why
+        reason = f"reference failed: {type(e).__name__}: {e}"
+        recs = [_record(scene.name, f, Estimate.failure(reason), None) for f in frames]
+        _append(journal_p, recs)
+        for r in recs:
+            on_frame and on_frame(r)
+        return len(recs)
+    for name, est in zip(frames, _estimates(loc, scene, frames)):
+        # Relative pose (query w.r.t. reference) -> world-to-camera in the scene's frame.
+        world = est.pose @ ref_pose if est.pose is not None else None
+        rec = _record(scene.name, name, est, world)
+        _append(journal_p, [rec])
+        on_frame and on_frame(rec)
+    return len(frames)
+
+
+def _estimates(loc: Any, scene: Scene, frames: list[str]) -> Iterator[Estimate]:
+    """Estimates in frame order; the next query is prefetched when the method supports it."""
+    if hasattr(loc, "localize_many"):
+        yield from loc.localize_many([scene.frame(n) for n in frames])
+        return
+    for name in frames:
+        try:
+            yield loc.localize(scene.frame(name))
+        except Exception as e:  # other method kinds: a bad frame is a failure, not the end of the run
+            yield Estimate.failure(f"error: {type(e).__name__}: {e}")
+
+
+def _init_worker(threads: int) -> None:
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(threads)
+    import cv2
+
+    cv2.setNumThreads(threads)
+    try:
+        import torch
+
+        torch.set_num_threads(threads)
+    except ImportError:
+        pass
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def _write_outputs(output: Path, scenes: list[str], recs: list[dict], confidence: str | None) -> tuple[int, int]:
+    from ..benchmark import write_submission
+
+    by_scene: dict[str, list] = {s: [] for s in scenes}
+    failures = []
+    for r in recs:
+        if r["scene"] not in by_scene:
+            continue
+        if r["ok"]:
+            conf = r["scores"].get(confidence, r["confidence"]) if confidence else r["confidence"]
+            conf = float(conf) if np.isfinite(conf) and conf > 0 else 0.0
+            by_scene[r["scene"]].append((r["frame"], Pose.from_qt(r["q"], r["t"]), conf))
+        else:
+            failures.append({"scene": r["scene"], "frame": r["frame"], "reason": r["reason"]})
+    write_submission(output, by_scene)
+    fp = failures_path(output)
+    fp.write_text("".join(json.dumps(f) + "\n" for f in failures))
+    return sum(len(v) for v in by_scene.values()), len(failures)
+
+
+def run_split(
+    root: os.PathLike | str,
+    split: str,
+    method: Any,
+    output: os.PathLike | str,
+    *,
+    workers: int = 1,
+    all_frames: bool = False,
+    resume: bool = False,
+    overwrite: bool = False,
+    confidence: str | None = None,
+    scenes: Sequence[str] | None = None,
+    progress: bool = True,
+) -> RunResult:
+    """Relocalize every (scored) query of ``split`` and write a submission ZIP at ``output``.
+
+    ``method``: a name, YAML path or ``Method``. ``confidence``: a key of the solver's extra scores to use
+    as the submission confidence instead of the method's own. With ``resume`` the journal's frames are kept.
+    """
+    from ..methods import Method, get
+
+    t_start = time.perf_counter()
+    m = method if isinstance(method, Method) else get(method)
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    jpath = journal_path(output)
+    header, recs = read_journal(jpath)
+    if recs and not resume and not overwrite:
+        raise FileExistsError(f"{jpath} already holds {len(recs)} results: pass resume=True (--resume) to "
+                              f"continue that run or overwrite=True (--overwrite) to start again")
+    if resume and header is not None and not _same_method(header["method"], m.to_dict()):
+        raise ValueError(f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
+                         f"use another output path or --overwrite")
+    if overwrite or not resume or header is None:
+        jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
+                                     "root": str(root), "split": split, "all_frames": all_frames}) + "\n")
+        recs = []
+    else:
+        _repair_tail(jpath)
+
+    ds = Dataset(root)
+    scene_list = ds.scenes(split)
+    if scenes:
+        wanted = set(scenes)
+        scene_list = [s for s in scene_list if s.name in wanted]
+    done = {(r["scene"], r["frame"]) for r in recs}
+    todo: list[tuple[Scene, list[str]]] = []
+    for s in scene_list:
+        names = [f for f in frames_to_run(s, all_frames) if (s.name, f) not in done]
+        if names:
+            todo.append((s, names))
+    total = sum(len(f) for _, f in todo)
+    bar = _progress(total, len(done), progress, m.name)
+    md = m.to_dict()
+    try:
+        if workers <= 1 or len(todo) <= 1:
+            for s, names in todo:
+                _run_scene(md, str(s.path), names, str(jpath), on_frame=lambda r: bar.update(1))
+        else:
+            _run_parallel(md, todo, jpath, workers, bar)
+    finally:
+        bar.close()
+    _, recs = read_journal(jpath)
+    estimated, failed = _write_outputs(output, [s.name for s in scene_list], recs, confidence)
+    timing_sums: dict[str, float] = {}
+    for r in recs:
+        for k, v in r.get("timings", {}).items():
+            timing_sums[k] = timing_sums.get(k, 0.0) + v
+    return RunResult(output, jpath, failures_path(output), computed=total, skipped=len(done), estimated=estimated,
+                     failed=failed, seconds=time.perf_counter() - t_start, scenes=len(scene_list),
+                     timings=timing_sums)
+
+
+def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any) -> None:
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    offset = jpath.stat().st_size
+    ctx = mp.get_context("spawn")  # torch and OpenCV threads do not survive fork reliably
+    with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_init_worker,
+                             initargs=(threads,)) as pool:
+        # Largest scenes first so that the last worker to finish is not left with a big one.
+        futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath))
+                   for s, names in sorted(todo, key=lambda x: -len(x[1]))]
+        pending = set(futures)
+        while pending:
+            finished, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
+            with open(jpath, "rb") as f:  # progress = new complete lines in the journal
+                f.seek(offset)
+                chunk = f.read()
+            n = chunk.rfind(b"\n") + 1
+            bar.update(chunk[:n].count(b"\n"))
+            offset += n
+            for fut in finished:
+                fut.result()  # re-raise a worker crash
+
+
+class _NoBar:
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _progress(total: int, initial: int, enabled: bool, desc: str) -> Any:
+    if not enabled:
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(total=total + initial, initial=initial, desc=desc, unit="frame", dynamic_ncols=True)

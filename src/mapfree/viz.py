@@ -1,0 +1,161 @@
+"""Pictures of one relocalization: the matches (inliers coloured) and the paper's AR check.
+
+The AR check places a grid of virtual 3D points in front of the reference camera and renders it into the
+query with the estimated pose (and with the ground truth when known): where the two renderings disagree,
+a virtual object would visibly jump. With a ground truth the grid is the benchmark's VCRE grid, so the
+drawn displacement is exactly what the VCRE metric averages. Drawing is OpenCV; images are RGB uint8.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .geometry import Intrinsics, Pose, project
+
+__all__ = [
+    "vcre_grid", "epipolar_inliers", "draw_matches", "draw_grid", "ar_panels", "relocalization_figure", "save_png",
+    "vcre_px",
+]
+
+GREEN, RED, ORANGE, CYAN, WHITE = (40, 200, 60), (230, 40, 40), (255, 150, 0), (0, 200, 255), (255, 255, 255)
+
+
+def vcre_grid() -> np.ndarray:
+    """(196,3) virtual points of the VCRE metric (SPEC §3): 7 x 4 x 7 in front of a camera, metres."""
+    x = np.linspace(-0.9, 0.9, 7)
+    y = np.array([-0.45, -0.15, 0.15, 0.45])
+    z = np.linspace(1.8, 3.6, 7)
+    X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
+    return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+
+
+def vcre_px(pose_est: Pose, pose_gt: Pose, K: Intrinsics) -> float:
+    """Virtual correspondence reprojection error (px) of a relative pose, clipped to the image (SPEC §3)."""
+    X_q = vcre_grid()  # in the ground-truth query camera
+    X_ref = pose_gt.inverse().transform(X_q)
+    size = np.array([K.width, K.height], dtype=np.float64)
+    uv_gt = np.clip(project(X_q, K.K), 0, size)
+    uv_est = project(pose_est.transform(X_ref), K.K)
+    uv_est = np.clip(np.nan_to_num(uv_est, nan=0.0, posinf=1e9, neginf=-1e9), 0, size)
+    return float(np.mean(np.linalg.norm(uv_gt - uv_est, axis=1)))
+
+
+def epipolar_inliers(kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, K1: Intrinsics, pose: Pose,
+                     threshold_px: float = 3.0) -> np.ndarray:
+    """Matches consistent with a relative pose: Sampson distance below ``threshold_px`` (any solver)."""
+    if len(kpts0) == 0:
+        return np.zeros(0, dtype=bool)
+    t = pose.t / max(np.linalg.norm(pose.t), 1e-12)
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(K1.K).T @ tx @ pose.R @ np.linalg.inv(K0.K)
+    x0 = np.c_[kpts0, np.ones(len(kpts0))]
+    x1 = np.c_[kpts1, np.ones(len(kpts1))]
+    Fx0, Ftx1 = x0 @ F.T, x1 @ F
+    num = np.sum(x1 * Fx0, axis=1) ** 2
+    den = Fx0[:, 0] ** 2 + Fx0[:, 1] ** 2 + Ftx1[:, 0] ** 2 + Ftx1[:, 1] ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.sqrt(num / den)
+    return np.nan_to_num(d, nan=np.inf) < threshold_px
+
+
+def _side_by_side(img0: np.ndarray, img1: np.ndarray) -> tuple[np.ndarray, int]:
+    h = max(img0.shape[0], img1.shape[0])
+    canvas = np.zeros((h, img0.shape[1] + img1.shape[1], 3), np.uint8)
+    canvas[: img0.shape[0], : img0.shape[1]] = img0
+    canvas[: img1.shape[0], img0.shape[1]:] = img1
+    return canvas, img0.shape[1]
+
+
+def _label(img: np.ndarray, text: str, row: int = 0) -> None:
+    """White text on a dark box, top-left, one row per call."""
+    (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+    y = 6 + (h + base + 6) * row
+    cv2.rectangle(img, (4, y), (12 + w, y + h + base + 4), (20, 20, 20), -1)
+    cv2.putText(img, text, (8, y + h + 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5, WHITE, 1, cv2.LINE_AA)
+
+
+def draw_matches(img0: np.ndarray, img1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray,
+                 inliers: np.ndarray | None = None, max_lines: int = 400, seed: int = 0) -> np.ndarray:
+    """Reference | query side by side; inlier matches green, the others red (a random subset if many)."""
+    canvas, off = _side_by_side(img0, img1)
+    n = len(kpts0)
+    inl = np.ones(n, bool) if inliers is None else np.asarray(inliers, bool)
+    idx = np.arange(n)
+    if n > max_lines:
+        idx = np.sort(np.random.default_rng(seed).choice(n, max_lines, replace=False))
+    for i in sorted(idx, key=lambda i: inl[i]):  # inliers drawn last, on top
+        a = tuple(int(round(v)) for v in kpts0[i])
+        b = (int(round(kpts1[i][0])) + off, int(round(kpts1[i][1])))
+        colour = GREEN if inl[i] else RED
+        cv2.line(canvas, a, b, colour, 1, cv2.LINE_AA)
+        cv2.circle(canvas, a, 2, colour, -1, cv2.LINE_AA)
+        cv2.circle(canvas, b, 2, colour, -1, cv2.LINE_AA)
+    _label(canvas, f"{n} matches, {int(inl.sum())} consistent with the pose" if inliers is not None
+           else f"{n} matches")
+    return canvas
+
+
+def draw_grid(img: np.ndarray, X_cam: np.ndarray, K: Intrinsics, colour: tuple, radius: int = 3) -> np.ndarray:
+    """Draw camera-frame points (in front of the camera and inside the image) as filled dots."""
+    out = img.copy()
+    uv = project(X_cam, K.K)
+    ok = (X_cam[:, 2] > 1e-6) & np.all(np.isfinite(uv), axis=1)
+    ok &= (uv[:, 0] >= -50) & (uv[:, 0] <= K.width + 50) & (uv[:, 1] >= -50) & (uv[:, 1] <= K.height + 50)
+    for u, v in uv[ok]:
+        cv2.circle(out, (int(round(u)), int(round(v))), radius, colour, -1, cv2.LINE_AA)
+    return out
+
+
+def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
+              pose: Pose | None, gt_pose: Pose | None = None) -> np.ndarray:
+    """Reference with the virtual grid | query with the grid rendered by the estimate (orange) and GT (cyan)."""
+    # The grid lives in the reference camera frame; with a ground truth it is the VCRE grid of the query.
+    X_ref = gt_pose.inverse().transform(vcre_grid()) if gt_pose is not None else vcre_grid()
+    left = draw_grid(ref_img, X_ref, K_ref, CYAN if gt_pose is not None else ORANGE)
+    right = query_img.copy()
+    if gt_pose is not None:
+        right = draw_grid(right, gt_pose.transform(X_ref), K_query, CYAN, radius=4)
+        if pose is not None:  # each virtual point's displacement: what VCRE averages
+            a, b = project(gt_pose.transform(X_ref), K_query.K), project(pose.transform(X_ref), K_query.K)
+            ok = np.all(np.isfinite(a) & np.isfinite(b) & (np.abs(a) < 1e5) & (np.abs(b) < 1e5), axis=1)
+            for p, q in zip(a[ok], b[ok]):
+                cv2.line(right, tuple(int(round(v)) for v in p), tuple(int(round(v)) for v in q), WHITE, 1,
+                         cv2.LINE_AA)
+    if pose is not None:
+        right = draw_grid(right, pose.transform(X_ref), K_query, ORANGE, radius=2)
+    canvas, _ = _side_by_side(left, right)
+    _label(canvas, "AR check: virtual grid, estimate = orange" + (", ground truth = cyan" if gt_pose else ""))
+    if pose is None:
+        _label(canvas, "no estimate", row=1)
+    elif gt_pose is not None:
+        terr = float(np.linalg.norm(pose.center - gt_pose.center))
+        rerr = float(np.degrees(np.arccos(np.clip((np.trace(pose.R.T @ gt_pose.R) - 1) / 2, -1, 1))))
+        _label(canvas, f"error {terr:.2f} m, {rerr:.1f} deg, VCRE {vcre_px(pose, gt_pose, K_query):.0f} px", row=1)
+    return canvas
+
+
+def relocalization_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
+                          kpts0: np.ndarray, kpts1: np.ndarray, pose: Pose | None, gt_pose: Pose | None = None,
+                          threshold_px: float = 3.0, title: str = "") -> np.ndarray:
+    """Matches on top, AR check below, one RGB image."""
+    inl = epipolar_inliers(kpts0, kpts1, K_ref, K_query, pose, threshold_px) if pose is not None else None
+    top = draw_matches(ref_img, query_img, kpts0, kpts1, inl)
+    bottom = ar_panels(ref_img, query_img, K_ref, K_query, pose, gt_pose)
+    if title:
+        _label(top, title, row=1)
+    w = max(top.shape[1], bottom.shape[1])
+    pad = lambda im: np.pad(im, ((0, 0), (0, w - im.shape[1]), (0, 0)))  # noqa: E731
+    return np.concatenate([pad(top), np.full((6, w, 3), 255, np.uint8), pad(bottom)], axis=0)
+
+
+def save_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:
+    """Write an RGB image as PNG (parent folders created); raises OSError naming the file on failure."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+        raise OSError(f"{path}: could not write PNG")
+    return path

@@ -1,0 +1,96 @@
+"""The method registry: preset names, YAML configs, depth swaps, and that every name builds valid options."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from mapfree import depth, matching, methods, solvers
+
+
+def test_every_listed_method_parses_into_valid_components():
+    names = methods.list_methods()
+    assert "sift_emat_dptkitti" in names and "aliked-lightglue_procrustes_sensor" in names
+    known_matchers = set(matching.names())
+    for name in names:
+        m = methods.get(name)
+        if m.kind != "matching":
+            continue
+        assert m.matcher in known_matchers, name
+        # The options must be ones the solver really has (raises TypeError otherwise).
+        solvers.options_for(m.solver, **m.solver_opts)
+        assert m.depth == "none" or m.depth.startswith(("files:", "hf:")) or m.depth in depth.HUB_MODELS, name
+
+
+@pytest.mark.parametrize("matcher", methods.MATCHERS)
+def test_paper_rows(matcher):
+    emat = methods.get(f"{matcher}_emat_dptkitti")
+    assert (emat.matcher, emat.solver, emat.depth) == (matcher, "essential", "files:dptkitti")
+    assert emat.solver_opts["ransac_threshold_px"] == (3.0 if matcher == "sift" else 2.0)
+    assert methods.get(f"{matcher}_pnp_sensor").solver == "pnp"
+    assert methods.get(f"{matcher}_procrustes_mono").depth == "files:mono"
+    assert methods.get(f"{matcher}_emat_none").depth == "none"
+    assert methods.get(f"{matcher}_pnp_dav2-indoor").depth == "dav2-indoor"  # a depth network's short name
+
+
+def test_unknown_names_say_what_exists():
+    for bad in ("sift_emat", "surf_emat_sensor", "sift_ransac_sensor", "nonsense"):
+        with pytest.raises(KeyError, match="unknown method"):
+            methods.get(bad)
+
+
+def test_depth_swap_keeps_everything_else():
+    base = methods.get("xfeat_emat_sensor")
+    swapped = methods.get("xfeat_emat_sensor@dptnyu")
+    assert swapped.depth == "files:dptnyu" and swapped.solver_opts == base.solver_opts
+    assert methods.get("xfeat_emat_sensor@none").depth == "none"
+
+
+def test_yaml_config_loading(tmp_path: Path):
+    cfg = tmp_path / "mine.yaml"
+    cfg.write_text("extends: sift_emat_sensor\nsolver_opts:\n  confidence: score\nmatcher_opts:\n  ratio: 0.9\n"
+                   "description: test config\n")
+    m = methods.get(str(cfg))
+    assert m.name == "mine" and m.matcher == "sift" and m.depth == "files:sensor"
+    assert m.solver_opts == {"ransac_threshold_px": 3.0, "confidence": "score"}
+    assert m.matcher_opts == {"ratio": 0.9}
+    solvers.options_for(m.solver, **m.solver_opts)
+
+    plain = tmp_path / "plain.yml"
+    plain.write_text("matcher: xfeat\nsolver: pnp\ndepth: sensor\n")
+    p = methods.load_yaml(plain)
+    assert (p.name, p.matcher, p.solver, p.depth) == ("plain", "xfeat", "pnp", "files:sensor")
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("matcher: sift\nsolverr: pnp\n")
+    with pytest.raises(ValueError, match="bad.yaml.*solverr"):
+        methods.get(str(bad))
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("matcher: sift\nsolver: [pnp\n")
+    with pytest.raises(ValueError, match=r"broken.yaml:\d+"):
+        methods.get(str(broken))
+    with pytest.raises(FileNotFoundError):
+        methods.get(str(tmp_path / "missing.yaml"))
+
+
+def test_shipped_configs_and_best_preset_load():
+    for d in methods.config_dirs():
+        for path in d.glob("*.yaml"):
+            m = methods.load_yaml(path)
+            if m.kind == "matching":
+                assert m.matcher in matching.names()
+                solvers.options_for(m.solver, **m.solver_opts)
+    best = methods.get(methods.BEST_OFFLINE)
+    assert best.matcher in methods.OFFLINE_MATCHERS and best.depth.startswith("files:")
+
+
+def test_register_and_kind_hook():
+    m = methods.Method(name="test-registered-sift", matcher="sift", depth="files:sensor")
+    methods.register(m, overwrite=True)
+    assert methods.get("test-registered-sift") is m
+    with pytest.raises(ValueError):
+        methods.register(m)
+    assert type(m.build()).__name__ == "Relocalizer"
+    with pytest.raises(KeyError, match="unknown method kind"):
+        methods.factory("no-such-kind")

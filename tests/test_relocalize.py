@@ -1,0 +1,125 @@
+"""Relocalizer end to end on real images, its no-estimate cases, and the pictures it draws."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from mapfree.data import Dataset
+from mapfree.geometry import Intrinsics, Pose, project, rotation_angle_deg
+from mapfree.relocalize import Relocalizer, View
+from mapfree.viz import epipolar_inliers, relocalization_figure, save_png, vcre_grid, vcre_px
+
+EASY_QUERY = "seq1/frame_00010.jpg"  # 0.2 m from the reference in val/s00000
+
+
+@pytest.fixture(scope="module")
+def scene(realmini):
+    return Dataset(realmini).scene("val", "s00000")
+
+
+@pytest.fixture(scope="module")
+def sift_sensor():
+    return Relocalizer("sift", "files:sensor", "essential")
+
+
+def test_real_pair_within_benchmark_threshold(scene, sift_sensor):
+    est = sift_sensor.relocalize(scene.reference, scene.frame(EASY_QUERY))
+    gt = scene.frame(EASY_QUERY).pose  # the reference is the world frame in val scenes
+    assert est.ok, est.reason
+    assert np.linalg.norm(est.pose.center - gt.center) < 0.25
+    assert rotation_angle_deg(est.pose.R, gt.R) < 5.0
+    assert est.confidence > 0 and est.inliers >= 5
+    assert {"match", "depth", "solve", "total"} <= set(est.timings)
+    assert all(np.isfinite(v) and v >= 0 for v in est.timings.values())
+    assert est.timings["total"] >= est.timings["match"] + est.timings["solve"] - 1e-9
+
+
+def test_cached_reference_gives_the_same_pose(scene, sift_sensor):
+    query = scene.frame(EASY_QUERY)
+    once = sift_sensor.relocalize(scene.reference, query)
+    anchor = sift_sensor.set_reference(scene.reference)
+    cached = sift_sensor.localize(query)
+    assert sift_sensor.anchor is anchor and len(anchor.features) > 100
+    assert np.allclose(once.pose.R, cached.pose.R) and np.allclose(once.pose.t, cached.pose.t)
+    # The cached call does not pay for the reference: its timings hold no reference stage.
+    assert cached.timings["match"] < once.timings["match"]
+
+
+def test_tuple_inputs_with_explicit_depth(scene, sift_sensor):
+    ref, q = scene.reference, scene.frame(EASY_QUERY)
+    est = sift_sensor.relocalize((ref.image_path, ref.intrinsics.K, ref.depth("sensor")),
+                                 (q.image(), q.intrinsics, q.depth("sensor")))
+    assert est.ok and np.linalg.norm(est.pose.center - q.pose.center) < 0.25
+
+
+def test_identical_and_blank_images_give_no_estimate(scene, sift_sensor):
+    ref = scene.reference
+    same = sift_sensor.relocalize(ref, ref)
+    assert not same.ok and same.reason and same.confidence == 0.0
+    K = ref.intrinsics
+    blank = View(np.full((K.height, K.width, 3), 127, np.uint8), K, np.ones((K.height, K.width), np.float32))
+    tiny = View(np.zeros((4, 4, 3), np.uint8), Intrinsics(4, 4, 2, 2, 4, 4))  # the matcher rejects it
+    for pair in ((blank, blank), (ref, blank), (blank, ref), (tiny, ref), (ref, tiny)):
+        est = sift_sensor.relocalize(*pair)
+        assert not est.ok and est.reason and est.pose is None
+
+
+def test_missing_depth_is_no_estimate(realmini, sift_sensor):
+    s3 = Dataset(realmini).scene("val", "s00003")  # this scene has no depth files
+    est = sift_sensor.relocalize(s3.reference, s3.queries[3])
+    assert not est.ok and "depth" in est.reason
+
+
+def test_scale_free_method_flags_its_output(scene):
+    loc = Relocalizer("sift", "none", "essential", solver_opts={"allow_unscaled": True})
+    est = loc.relocalize(scene.reference, scene.frame(EASY_QUERY))
+    assert est.ok and est.extras.get("scale_free") is True
+    assert abs(np.linalg.norm(est.pose.t) - 1.0) < 1e-6
+
+
+def test_epipolar_inliers_and_vcre_on_exact_geometry():
+    K = Intrinsics(500, 500, 320, 240, 640, 480)
+    rng = np.random.default_rng(1)
+    X0 = np.c_[rng.uniform(-1, 1, (50, 2)), rng.uniform(2, 5, 50)]
+    pose = Pose.from_qt([0.99, 0.05, -0.1, 0.02], [0.3, -0.05, 0.1])
+    k0, k1 = project(X0, K.K), project(pose.transform(X0), K.K)
+    k1_bad = k1.copy()
+    k1_bad[:10] += 25.0
+    inl = epipolar_inliers(k0, k1_bad, K, K, pose, 2.0)
+    assert inl[10:].all() and inl[:10].sum() <= 1
+    assert vcre_px(pose, pose, K) == pytest.approx(0.0, abs=1e-9)
+    moved = Pose(pose.R, pose.t + [0.1, 0, 0])
+    assert 5 < vcre_px(moved, pose, K) < 60
+    assert vcre_grid().shape == (196, 3)
+
+
+def test_viz_writes_png(tmp_path, scene, sift_sensor):
+    q = scene.frame(EASY_QUERY)
+    est = sift_sensor.relocalize(scene.reference, q)
+    m = est.extras["matches"]
+    fig = relocalization_figure(scene.reference.image(), q.image(), scene.reference.intrinsics, q.intrinsics,
+                                m.kpts0, m.kpts1, est.pose, q.pose, title="sift")
+    path = save_png(tmp_path / "out" / "viz.png", fig)
+    back = cv2.imread(str(path))
+    assert back is not None and back.shape == fig.shape and back.shape[0] > 2 * q.intrinsics.height
+    # Orange estimate dots and cyan ground-truth dots were drawn in the AR panel (bottom right).
+    ar = fig[-q.intrinsics.height:, scene.reference.intrinsics.width:]
+    assert np.any(np.all(ar == (255, 150, 0), axis=2)) and np.any(np.all(ar == (0, 200, 255), axis=2))
+    failed = relocalization_figure(scene.reference.image(), q.image(), scene.reference.intrinsics,
+                                   q.intrinsics, np.zeros((0, 2)), np.zeros((0, 2)), None)
+    assert save_png(tmp_path / "none.png", failed).is_file()
+
+
+def test_localize_many_equals_localize(scene, sift_sensor):
+    queries = scene.queries[8:11] + [scene.reference]
+    anchor = sift_sensor.prepare(scene.reference)
+    one = [sift_sensor.localize(q, anchor) for q in queries]
+    many = list(sift_sensor.localize_many(queries, anchor, prefetch=2))
+    assert len(many) == len(queries)
+    for a, b in zip(one, many):
+        assert a.ok == b.ok and a.reason == b.reason
+        if a.ok:
+            assert np.allclose(a.pose.R, b.pose.R) and np.allclose(a.pose.t, b.pose.t)
+    assert not many[-1].ok  # the reference itself

@@ -1,0 +1,128 @@
+"""``mapfree run`` on a tiny real split: a valid submission, a failure log, and resume after a kill."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapfree.cli import main
+from mapfree.data import Dataset, read_intrinsics, read_poses, write_intrinsics, write_poses
+from mapfree.relocalize import read_journal, run_split
+
+METHOD = "sift_emat_sensor"
+
+
+def _tiny_split(src_root: Path, dst_root: Path, keep: dict[str, int]) -> Path:
+    """A val split with the reference and the first ``n`` queries of each scene (images linked, not copied)."""
+    for name, n in keep.items():
+        src, dst = src_root / "val" / name, dst_root / "val" / name
+        poses = read_poses(src / "poses.txt")
+        names = poses.names[: n + 1]
+        intr = read_intrinsics(src / "intrinsics.txt")
+        dst.mkdir(parents=True)
+        write_intrinsics(dst / "intrinsics.txt", {k: intr[k] for k in names})
+        write_poses(dst / "poses.txt", names, [poses.pose(i) for i in range(len(names))])
+        for k in names:
+            (dst / k).parent.mkdir(exist_ok=True)
+            for f in (src / k).parent.glob(Path(k).stem + ".*"):
+                os.symlink(f, (dst / k).parent / f.name)
+    return dst_root
+
+
+@pytest.fixture(scope="module")
+def tiny(realmini, tmp_path_factory) -> Path:
+    return _tiny_split(realmini, tmp_path_factory.mktemp("tiny"), {"s00000": 11, "s00003": 6})
+
+
+def _read_zip(path: Path) -> dict[str, list[list[str]]]:
+    with zipfile.ZipFile(path) as z:
+        return {n: [ln.split() for ln in z.read(n).decode().splitlines() if ln.strip()] for n in z.namelist()}
+
+
+def test_run_writes_valid_submission_and_failure_log(tiny, tmp_path):
+    out = tmp_path / "sub.zip"
+    res = run_split(tiny, "val", METHOD, out, progress=False)
+    assert res.computed == 3 + 2 and res.skipped == 0  # scored = every 5th of 12 and of 7 lines
+    files = _read_zip(out)
+    assert set(files) == {"pose_s00000.txt", "pose_s00003.txt"}
+    assert len(files["pose_s00000.txt"]) >= 2 and files["pose_s00003.txt"] == []  # s00003 has no depth
+    for line in files["pose_s00000.txt"]:
+        assert len(line) == 9 and all(np.isfinite(float(v)) for v in line[1:]) and float(line[8]) >= 0
+    failures = [json.loads(x) for x in res.failures.read_text().splitlines()]
+    scored3 = [f.name for f in Dataset(tiny).scene("val", "s00003").scored_queries()]
+    assert len(scored3) == 2
+    assert [f["frame"] for f in failures if f["scene"] == "s00003"] == scored3
+    assert all("depth" in f["reason"] for f in failures if f["scene"] == "s00003")
+    assert res.estimated + res.failed == 5
+    from mapfree.benchmark import evaluate
+
+    metrics = evaluate(out, tiny, "val").metrics
+    assert 0 <= metrics["AUC @ VCRE < 90px"] <= 1 and metrics["Estimates for % of frames"] < 100
+    # Same output again without --resume: refused rather than silently discarding results.
+    with pytest.raises(FileExistsError, match="resume"):
+        run_split(tiny, "val", METHOD, out, progress=False)
+    with pytest.raises(ValueError, match="method"):
+        run_split(tiny, "val", "sift_pnp_sensor", out, progress=False, resume=True)
+    # Resuming a finished run recomputes nothing and can re-rank with another confidence.
+    again = run_split(tiny, "val", METHOD, out, progress=False, resume=True, confidence="confidence_score")
+    assert again.computed == 0 and again.skipped == 5 and again.estimated == res.estimated
+
+
+def test_resume_after_kill_loses_and_recomputes_nothing(tiny, tmp_path):
+    out = tmp_path / "killed" / "sub.zip"
+    journal = out.with_name("sub.journal.jsonl")
+    cmd = [sys.executable, "-m", "mapfree", "run", str(tiny), "--split", "val", "--method", METHOD, "-o", str(out),
+           "--all-frames", "--workers", "2", "--no-progress"]
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + 90
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if journal.is_file() and len(read_journal(journal)[1]) >= 4:
+                break
+            time.sleep(0.05)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)  # the whole run, workers included
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL, f"run finished before it could be killed: {proc.stderr.read()}"
+    before = read_journal(journal)[1]
+    total = 11 + 6
+    assert 4 <= len(before) < total and not out.exists()
+
+    res = run_split(tiny, "val", METHOD, out, all_frames=True, resume=True, progress=False)
+    after = read_journal(journal)[1]
+    keys = [(r["scene"], r["frame"]) for r in after]
+    assert len(keys) == len(set(keys)) == total  # every frame once: nothing lost, nothing done twice
+    assert res.skipped == len(before) and res.computed == total - len(before)
+    assert after[: len(before)] == before  # the results written before the kill are kept as they were
+    sub = _read_zip(out)
+    assert len(sub["pose_s00000.txt"]) == sum(r["ok"] for r in after if r["scene"] == "s00000")
+
+
+def test_cli_relocalize_json_and_viz(realmini, tmp_path, capsys):
+    scene = realmini / "val" / "s00000"
+    png = tmp_path / "viz.png"
+    rc = main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(scene / "seq1/frame_00010.jpg"),
+               "--method", METHOD, "--gt-pose", "auto", "--viz", str(png)])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0 and out["ok"] and png.is_file()
+    assert out["error"]["translation_m"] < 0.25 and out["error"]["rotation_deg"] < 5
+    assert set(out["timings"]) >= {"match", "depth", "solve"} and len(out["q_wxyz"]) == 4
+
+    K = "495.57,495.48,269.5,169.19"
+    rc = main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(scene / "seq0/frame_00000.jpg"),
+               "--method", METHOD, "--K-ref", K, "--K-query", K])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0 and out["ok"] is False and out["reason"]
+
+    rc = main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(tmp_path / "missing.jpg"), "--method", METHOD])
+    assert rc == 2 and "missing.jpg" in capsys.readouterr().err
