@@ -283,3 +283,18 @@ def test_per_scene_figures_equal_scoring_each_scene_alone(tmp_path):
                     assert alone.metrics[k] is None, k
                 else:
                     assert alone.metrics[k] == pytest.approx(v, abs=1e-12), (scene, k)
+
+
+def test_scene_with_no_estimates_counts_as_failures_not_an_error(tmp_path):
+    """`mapfree run` writes an empty pose file for a scene whose frames all failed."""
+    make_scene(tmp_path, "s00000", [Pose.identity()] * 10)
+    make_scene(tmp_path, "s00001", [Pose.identity()] * 10)
+    est = gt_estimates(tmp_path)
+    est["s00001"] = []
+    rep = evaluate(est, tmp_path, "val")
+    assert rep.metrics["Estimates for % of frames"] == pytest.approx(2 / 4)
+    zpath = tmp_path / "sub.zip"
+    write_submission(zpath, est)
+    with zipfile.ZipFile(zpath) as z:
+        assert z.read("pose_s00001.txt") == b""
+    assert evaluate(zpath, tmp_path, "val").metrics == rep.metrics
