@@ -207,3 +207,15 @@ def test_superpoint_lightglue_loader_with_random_weights(tmp_path, monkeypatch, 
     assert np.all((f0.kpts >= 0) & (f0.kpts < [im0.shape[1], im0.shape[0]]))
     m = mt.match(f0, f1)
     assert isinstance(m, Matches) and np.all(np.isfinite(m.scores))
+
+
+def test_sift_ratio_test_equals_opencv_brute_force(pair):
+    """The BLAS nearest-neighbour search gives exactly OpenCV's knnMatch(k=2) + ratio test match set."""
+    f0, f1 = features("sift", pair, 0), features("sift", pair, 1)
+    d0, d1 = f0.data["descriptors"], f1.data["descriptors"]
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d0, d1, k=2)
+    expected = {(a.queryIdx, a.trainIdx) for a, b in knn if a.distance < 0.8 * b.distance}
+    m = matcher("sift").match(f0, f1)
+    got_pts = {(tuple(a), tuple(b)) for a, b in zip(m.kpts0.tolist(), m.kpts1.tolist())}
+    want_pts = {(tuple(f0.kpts[i]), tuple(f1.kpts[j])) for i, j in expected}
+    assert len(expected) > 50 and got_pts == want_pts and len(m) == len(expected)
