@@ -8,7 +8,7 @@ from .files import FileDepth, NoDepth
 
 __all__ = ["DepthSource", "FileDepth", "NoDepth", "create", "names", "HUB_MODELS"]
 
-from .hf import HUB_MODELS  # noqa: E402  (transformers itself is imported only when a model loads)
+from .hub import HUB_MODELS  # noqa: E402  (torch and transformers load only with a network source)
 
 
 def names() -> list[str]:
