@@ -1,0 +1,79 @@
+"""``mapfree train CONFIG``: train a relative pose regression network with PyTorch Lightning."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _devices(v: str):
+    return v if v == "auto" or "," in v else int(v)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "train",
+        help="train a relative pose regression (RPR) network",
+        description="Train an RPR network on a Map-free root (train/ with overlaps.npz, val/ for validation). "
+        "CONFIG is a YAML file or a name in configs/rpr (e.g. R6D_t, 3d3d). Writes OUT/checkpoints/"
+        "{best,last}.ckpt, OUT/logs/metrics.csv and OUT/tensorboard/. Multi-GPU / multi-node: "
+        "--devices N --num-nodes M --strategy ddp (on a cluster, launch one process per device, e.g. with srun).",
+    )
+    p.add_argument("config", help="YAML config path or name in configs/rpr")
+    p.add_argument("--data", type=Path, help="dataset root (overrides data.root)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: runs/rpr/<config name>)")
+    p.add_argument("--devices", type=_devices, default="auto", help="devices per node: N, 'auto' or a list '0,1'")
+    p.add_argument("--num-nodes", type=int, default=1, help="number of nodes (DDP)")
+    p.add_argument("--strategy", default="auto", help="Lightning strategy: auto, ddp, ddp_spawn, fsdp, …")
+    p.add_argument("--accelerator", default="auto", help="auto, cpu, gpu, mps, …")
+    p.add_argument("--precision", default=None, help="32-true, bf16-mixed, 16-mixed (default: the config's)")
+    p.add_argument("--max-epochs", type=int, default=None, help="override train.max_epochs")
+    p.add_argument("--max-steps", type=int, default=None, help="stop after this many optimizer steps")
+    p.add_argument("--resume", type=Path, default=None, help="checkpoint to resume (e.g. OUT/checkpoints/last.ckpt)")
+    p.add_argument("--channels-last", action="store_true", help="NHWC memory format (train.channels_last)")
+    p.add_argument("--sync-batchnorm", action="store_true", help="synchronise BatchNorm statistics across devices")
+    p.add_argument("--limit-val-batches", type=float, default=None, help="fraction (<=1) or number of val batches")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config value, e.g. --set data.batch_size=4 --set model.warping=false")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        from ..regression.config import apply_overrides, load_config
+        from ..regression.train import TrainerOptions, fit, resolve_config
+    except ImportError as e:
+        print(f"mapfree train needs the training extra (pip install 'mapfree[train]'): {e}", file=sys.stderr)
+        return 2
+    try:
+        path = resolve_config(args.config)
+        cfg = load_config(path)
+        overrides = list(args.overrides)
+        if args.data is not None:
+            overrides.append(f"data.root={args.data}")
+        if args.channels_last:
+            overrides.append("train.channels_last=true")
+        cfg = apply_overrides(cfg, overrides) if overrides else cfg
+    except (FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    lvb = args.limit_val_batches
+    opts = TrainerOptions(
+        accelerator=args.accelerator, devices=args.devices, num_nodes=args.num_nodes, strategy=args.strategy,
+        precision=args.precision, max_epochs=args.max_epochs, max_steps=args.max_steps,
+        sync_batchnorm=args.sync_batchnorm, progress=not args.no_progress,
+        limit_val_batches=int(lvb) if lvb is not None and lvb > 1 else lvb,
+    )
+    out = args.out or Path("runs") / "rpr" / path.stem
+    try:
+        trainer, _ = fit(cfg, out, opts, resume=args.resume)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    ck = trainer.checkpoint_callback
+    if trainer.is_global_zero:
+        print(f"checkpoints: {out / 'checkpoints'} (best: {getattr(ck, 'best_model_path', '') or 'n/a'}); "
+              f"logs: {out / 'logs' / 'metrics.csv'}")
+    return 0

@@ -1,0 +1,191 @@
+"""Options of an RPR experiment as dataclasses (defaults = the paper's values), loaded from YAML."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+__all__ = ["ModelConfig", "LossConfig", "DataConfig", "TrainConfig", "RPRConfig", "load_config", "apply_overrides"]
+
+ROTATIONS = ("quat", "6d", "euler_bins", "3d3d")
+TRANSLATIONS = ("t", "s_tdir", "s_tbins")
+
+
+@dataclass
+class ModelConfig:
+    """Network shape and output parameterisation (SPEC §4)."""
+
+    rotation: str = "6d"  # quat | 6d | euler_bins | 3d3d (joint: predicted point pairs + Procrustes)
+    translation: str = "t"  # t | s_tdir | s_tbins (ignored for 3d3d)
+    encoder_channels: tuple[int, ...] = (64, 128, 256)  # ResUNet stages (3 pre-activation bottlenecks each)
+    encoder_blocks: int = 3
+    feature_dim: int = 32  # encoder output channels at 1/4 resolution
+    head_channels: tuple[int, ...] = (64, 128, 256, 512)  # stride-2 residual blocks before global pooling
+    mlp: tuple[int, ...] = (256, 128)
+    warping: bool = True  # False: plain concatenation of both feature maps (paper ablation)
+    position: bool = True  # soft-argmax position channels (paper ablation switch)
+    max_score: bool = True
+    n_points: int = 3  # 3d3d: point pairs per image
+    basis: bool = True  # 3d3d: add a fixed non-degenerate triplet to the predicted points
+    uncertainty: bool = True  # beyond the paper: predicted log-scales of rotation/translation error
+
+
+@dataclass
+class LossConfig:
+    """Pose loss: L_R + lam L_t, or learned homoscedastic weighting; plus the uncertainty NLL."""
+
+    rotation: str = "geodesic"  # geodesic | frobenius | l1 | quat_l1 | ce (bins)
+    translation: str = "l1"  # l1 | l2 | angle | scale_dir | ce (spherical bins + scale L1)
+    weighting: str = "fixed"  # fixed | learned
+    lam: float = 1.0
+    init_s_rot: float = 0.0
+    init_s_trans: float = 0.0
+    uncertainty_weight: float = 1.0
+
+
+@dataclass
+class DataConfig:
+    """Pairs from the Map-free layout: scene-balanced, inside overlap bounds, resized to 360×270."""
+
+    root: str = ""
+    pairs_per_scene: int = 700
+    min_overlap: float = 0.4
+    max_overlap: float = 0.8
+    image_size: tuple[int, int] | None = None  # (W, H); None: 360×270 in the orientation of the frames
+    long_side: int = 360
+    short_side: int = 270
+    augment: bool = True
+    batch_size: int = 10
+    val_batch_size: int = 10
+    num_workers: int = 0
+    val_split: str = "val"
+    val_every_query: int = 5  # 5: the benchmark's scored queries; 1: all queries
+    max_val_pairs: int = 0  # 0 = all
+    seed: int = 0
+
+
+@dataclass
+class TrainConfig:
+    lr: float = 1e-4
+    max_epochs: int = 50
+    max_steps: int = -1
+    gradient_clip_val: float = 1.0
+    precision: str = "32-true"
+    channels_last: bool = False  # NHWC tensors: faster convolutions on CPUs and tensor cores (bench_train.py)
+    monitor: str = "val/loss"
+    monitor_mode: str = "min"
+    log_every_n_steps: int = 10
+    check_val_every_n_epoch: int = 1
+    seed: int = 0
+
+
+@dataclass
+class RPRConfig:
+    name: str = "R(6D)+t"
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], source: str = "<dict>") -> "RPRConfig":
+        return _build(cls, d or {}, source)
+
+    def validate(self) -> "RPRConfig":
+        m, l = self.model, self.loss
+        if m.rotation not in ROTATIONS:
+            raise ValueError(f"model.rotation must be one of {ROTATIONS}, got {m.rotation!r}")
+        if m.translation not in TRANSLATIONS:
+            raise ValueError(f"model.translation must be one of {TRANSLATIONS}, got {m.translation!r}")
+        if (m.rotation == "euler_bins") != (l.rotation == "ce"):
+            raise ValueError("rotation bins need loss.rotation: ce (and ce needs model.rotation: euler_bins)")
+        if m.rotation != "3d3d" and (m.translation == "s_tbins") != (l.translation == "ce"):
+            raise ValueError("translation bins need loss.translation: ce (and ce needs model.translation: s_tbins)")
+        if l.rotation == "quat_l1" and m.rotation != "quat":
+            raise ValueError("loss.rotation quat_l1 needs model.rotation: quat")
+        if m.rotation == "3d3d" and (l.rotation in ("ce", "quat_l1") or l.translation == "ce"):
+            raise ValueError("3d3d is supervised through its decoded pose: use a matrix rotation loss")
+        if l.weighting not in ("fixed", "learned"):
+            raise ValueError(f"loss.weighting must be fixed or learned, got {l.weighting!r}")
+        return self
+
+
+def _build(cls: type, d: dict[str, Any], source: str) -> Any:
+    if not isinstance(d, dict):
+        raise ValueError(f"{source}: expected a mapping for {cls.__name__}, got {type(d).__name__}")
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(d) - set(known))
+    if unknown:
+        raise ValueError(f"{source}: unknown key(s) {', '.join(unknown)} in {cls.__name__} "
+                         f"(allowed: {', '.join(known)})")
+    kwargs = {}
+    defaults = cls()
+    for k, v in d.items():
+        sub = getattr(defaults, k)
+        if is_dataclass(sub):
+            kwargs[k] = _build(type(sub), v or {}, f"{source}:{k}")
+        else:
+            kwargs[k] = _coerce(v, sub, f"{source}:{k}")
+    return cls(**kwargs)
+
+
+def _coerce(value: Any, default: Any, where: str) -> Any:
+    """A YAML value in the type of the field's default (YAML 1.1 reads ``1e-4`` as a string)."""
+    if isinstance(value, list):
+        return tuple(value)
+    try:
+        if isinstance(default, bool) or value is None:
+            if isinstance(default, bool) and not isinstance(value, bool):
+                raise ValueError
+            return value
+        if isinstance(default, float) and isinstance(value, (int, float, str)):
+            return float(value)
+        if isinstance(default, int) and isinstance(value, (int, str)) and not isinstance(value, bool):
+            return int(value)
+    except ValueError:
+        raise ValueError(f"{where}: expected {type(default).__name__}, got {value!r}") from None
+    return value
+
+
+def load_config(path: os.PathLike | str) -> RPRConfig:
+    """An ``RPRConfig`` from a YAML file; unknown keys and bad values raise naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"config {path} not found")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        line = f":{mark.line + 1}" if mark is not None else ""
+        raise ValueError(f"{path}{line}: invalid YAML ({getattr(e, 'problem', e)})") from None
+    try:
+        return RPRConfig.from_dict(data, str(path)).validate()
+    except ValueError as e:
+        msg = str(e)
+        raise ValueError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+
+
+def apply_overrides(cfg: RPRConfig, overrides: list[str]) -> RPRConfig:
+    """``["data.batch_size=4", "model.warping=false"]`` -> a new config (values parsed as YAML)."""
+    d = cfg.to_dict()
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"override {item!r} is not KEY=VALUE")
+        node = d
+        *parents, leaf = key.split(".")
+        for p in parents:
+            if p not in node or not isinstance(node[p], dict):
+                raise ValueError(f"override {item!r}: no section {p!r}")
+            node = node[p]
+        if leaf not in node:
+            raise ValueError(f"override {item!r}: unknown key {leaf!r}")
+        node[leaf] = yaml.safe_load(value)
+    return RPRConfig.from_dict(d, "overrides").validate()

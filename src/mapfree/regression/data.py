@@ -1,0 +1,192 @@
+"""Training and validation pairs over the Map-free layout, and a Lightning data module.
+
+Train: ``pairs_per_scene`` pairs per scene per epoch (scene-balanced), drawn from ``overlaps.npz`` strictly
+inside the overlap bounds, resampled every epoch. Val: every (scored) query against its scene's reference.
+Images are resized to 360×270 (in the frames' orientation) and the intrinsics follow via ``Intrinsics.resized``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from torch.utils.data import DataLoader
+from torch.utils.data import Dataset as TorchDataset
+
+from ..data import Dataset, Frame, Scene
+from ..geometry import Intrinsics
+from .config import DataConfig
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Pair", "sample_pairs", "val_pairs", "PairDataset", "RPRDataModule", "resolve_size", "load_pair_image"]
+
+
+@dataclass(frozen=True)
+class Pair:
+    """Image 0 (reference) and image 1 (query) of one scene; the target is image 1's pose relative to image 0."""
+
+    scene: str  # scene folder path
+    name0: str
+    name1: str
+
+
+def sample_pairs(scenes: list[Scene], per_scene: int, rng: np.random.Generator,
+                 min_overlap: float = 0.4, max_overlap: float = 0.8) -> list[Pair]:
+    """``per_scene`` pairs from each scene's overlaps with ``min < overlap < max`` (with replacement)."""
+    pairs: list[Pair] = []
+    for scene in scenes:
+        ov = scene.overlaps
+        if ov is None:
+            log.warning("%s: no overlaps.npz, scene skipped for training", scene.path)
+            continue
+        rows = ov.sample(per_scene, rng, min_overlap, max_overlap)
+        if len(rows) == 0:
+            log.warning("%s: no pair with %g < overlap < %g, scene skipped", scene.path, min_overlap, max_overlap)
+            continue
+        for sa, fa, sb, fb in rows:
+            pairs.append(Pair(str(scene.path), f"seq{sa}/frame_{fa:05d}.jpg", f"seq{sb}/frame_{fb:05d}.jpg"))
+    return pairs
+
+
+def val_pairs(scenes: list[Scene], every_query: int = 5) -> list[Pair]:
+    """Reference–query pairs of val scenes: the benchmark's scored queries (5) or all of them (1)."""
+    pairs = []
+    for scene in scenes:
+        queries = scene.scored_queries() if every_query == 5 else scene.queries[::max(every_query, 1)]
+        pairs += [Pair(str(scene.path), scene.reference.name, q.name) for q in queries if q.pose is not None]
+    return pairs
+
+
+def resolve_size(frame_size: tuple[int, int], cfg: DataConfig) -> tuple[int, int]:
+    """Network input (W, H): the configured size, or long×short side in the frames' orientation."""
+    if cfg.image_size:
+        return int(cfg.image_size[0]), int(cfg.image_size[1])
+    w, h = frame_size
+    return (cfg.long_side, cfg.short_side) if w >= h else (cfg.short_side, cfg.long_side)
+
+
+def load_pair_image(frame: Frame, size: tuple[int, int]) -> tuple[np.ndarray, Intrinsics]:
+    """(H,W,3) float32 RGB in [0,1] resized to ``size`` = (W,H), with the matching intrinsics."""
+    img = frame.image()
+    h, w = img.shape[:2]
+    if (w, h) != (frame.intrinsics.width, frame.intrinsics.height):
+        log.debug("%s: image is %dx%d but intrinsics say %dx%d", frame.image_path, w, h,
+                  frame.intrinsics.width, frame.intrinsics.height)
+    if (w, h) != size:
+        interp = cv2.INTER_AREA if size[0] < w else cv2.INTER_LINEAR
+        img = cv2.resize(img, size, interpolation=interp)
+    return img.astype(np.float32) / 255.0, frame.intrinsics.resized(*size)
+
+
+def _photometric(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Brightness, contrast, saturation and per-channel gain jitter; geometry untouched."""
+    img = img * rng.uniform(0.7, 1.3) + rng.uniform(-0.1, 0.1)
+    mean = img.mean()
+    img = (img - mean) * rng.uniform(0.7, 1.3) + mean
+    grey = img.mean(-1, keepdims=True)
+    img = (img - grey) * rng.uniform(0.6, 1.4) + grey
+    img = img * rng.uniform(0.9, 1.1, size=3).astype(np.float32)
+    return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+
+class PairDataset(TorchDataset):
+    """Map-style dataset of ``Pair`` -> dict of tensors (images, R, t, q, resized and original K)."""
+
+    def __init__(self, pairs: list[Pair], size: tuple[int, int], augment: bool = False, seed: int = 0):
+        self.pairs, self.size, self.augment, self.seed = pairs, size, augment, seed
+        self._scenes: dict[str, Scene] = {}
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def scene(self, path: str) -> Scene:
+        if path not in self._scenes:
+            self._scenes[path] = Scene(Path(path))
+        return self._scenes[path]
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        p = self.pairs[i]
+        scene = self.scene(p.scene)
+        f0, f1 = scene.frame(p.name0), scene.frame(p.name1)
+        if f0.pose is None or f1.pose is None:
+            raise ValueError(f"{scene.path}/poses.txt: no pose for {p.name0 if f0.pose is None else p.name1}")
+        (im0, k0), (im1, k1) = load_pair_image(f0, self.size), load_pair_image(f1, self.size)
+        rel = f1.pose.relative_to(f0.pose)
+        if self.augment:
+            rng = np.random.default_rng([self.seed, i, torch.initial_seed() % (2**32)])
+            im0, im1 = _photometric(im0, rng), _photometric(im1, rng)
+            if rng.random() < 0.5:  # swap the pair: the target becomes the inverse pose
+                im0, im1, k0, k1, f0, f1, rel = im1, im0, k1, k0, f1, f0, rel.inverse()
+        q, t = rel.qt()
+        return {
+            "img0": torch.from_numpy(np.ascontiguousarray(im0.transpose(2, 0, 1))),
+            "img1": torch.from_numpy(np.ascontiguousarray(im1.transpose(2, 0, 1))),
+            "R": torch.from_numpy(rel.R).float(),
+            "t": torch.from_numpy(t).float(),
+            "q": torch.from_numpy(q).float(),
+            "K0": torch.from_numpy(k0.K).float(),
+            "K1": torch.from_numpy(k1.K).float(),
+            # Original query intrinsics and size: VCRE is measured on the full-resolution image.
+            "K1_orig": torch.from_numpy(f1.intrinsics.K).float(),
+            "size1_orig": torch.tensor([f1.intrinsics.width, f1.intrinsics.height], dtype=torch.float32),
+        }
+
+
+class RPRDataModule(pl.LightningDataModule):
+    """Lightning data module; ``train_dataloader`` resamples the pairs each epoch (reload every epoch)."""
+
+    def __init__(self, cfg: DataConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.train_scenes: list[Scene] = []
+        self.val_scenes: list[Scene] = []
+        self.size: tuple[int, int] | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.size is not None:
+            return
+        if not self.cfg.root:
+            raise ValueError("data.root is not set: pass --data ROOT or set data.root in the config")
+        ds = Dataset(self.cfg.root)
+        self.train_scenes = ds.scenes("train") if "train" in ds.splits() else []
+        self.val_scenes = ds.scenes(self.cfg.val_split) if self.cfg.val_split in ds.splits() else []
+        first = next(iter((self.train_scenes or self.val_scenes)[0].frames.values()), None) if (
+            self.train_scenes or self.val_scenes) else None
+        if first is None:
+            raise ValueError(f"{self.cfg.root}: no train or {self.cfg.val_split} scenes with frames")
+        self.size = resolve_size((first.intrinsics.width, first.intrinsics.height), self.cfg)
+
+    def _epoch(self) -> int:
+        trainer = getattr(self, "trainer", None)
+        return int(trainer.current_epoch) if trainer is not None else 0
+
+    def train_pairs(self, epoch: int | None = None) -> list[Pair]:
+        epoch = self._epoch() if epoch is None else epoch
+        rng = np.random.default_rng([self.cfg.seed, epoch])
+        return sample_pairs(self.train_scenes, self.cfg.pairs_per_scene, rng, self.cfg.min_overlap, self.cfg.max_overlap)
+
+    def train_dataloader(self) -> DataLoader:
+        pairs = self.train_pairs()
+        if not pairs:
+            raise ValueError(f"{self.cfg.root}/train: no training pairs inside the overlap bounds "
+                             f"({self.cfg.min_overlap} < overlap < {self.cfg.max_overlap})")
+        ds = PairDataset(pairs, self.size, self.cfg.augment, seed=self.cfg.seed * 100003 + self._epoch())
+        return DataLoader(ds, batch_size=self.cfg.batch_size, shuffle=True, num_workers=self.cfg.num_workers,
+                          drop_last=len(ds) > self.cfg.batch_size, persistent_workers=False)
+
+    def val_pairs(self) -> list[Pair]:
+        pairs = val_pairs(self.val_scenes, self.cfg.val_every_query)
+        return pairs[: self.cfg.max_val_pairs] if self.cfg.max_val_pairs > 0 else pairs
+
+    def val_dataloader(self) -> DataLoader | list:
+        pairs = self.val_pairs()
+        if not pairs:
+            return []
+        return DataLoader(PairDataset(pairs, self.size, augment=False), batch_size=self.cfg.val_batch_size,
+                          shuffle=False, num_workers=self.cfg.num_workers)

@@ -1,0 +1,145 @@
+"""A trained RPR checkpoint as a relocalization method: one pair, a cached reference, or a batch.
+
+Ignores depth and intrinsics (the network regresses the metric pose from pixels); the confidence is the
+predicted-uncertainty score (0 for models trained without it, as in the paper).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from ..data import read_image
+from ..estimate import Estimate
+from ..geometry import Pose
+from .config import RPRConfig
+from .data import resolve_size
+from .metrics import confidence_from_log_sigma
+from .module import RPRModule
+
+__all__ = ["RPRMethod", "load_method", "image_of"]
+
+
+def image_of(x: Any) -> np.ndarray:
+    """(H,W,3) uint8 RGB from an array, a path, a ``Frame`` (``.image()``), a ``View`` (``.image``) or a tuple."""
+    if isinstance(x, tuple):
+        x = x[0]
+    if isinstance(x, (str, os.PathLike)):
+        return read_image(x)
+    img = getattr(x, "image", x)
+    img = img() if callable(img) else img
+    img = np.asarray(img)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"expected an RGB image (H,W,3), got shape {img.shape}")
+    return img
+
+
+def _default_device() -> torch.device:
+    if torch.cuda.is_available():
+        return torch.device("cuda")
+    if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
+        return torch.device("mps")
+    return torch.device("cpu")
+
+
+class RPRMethod:
+    """``relocalize(ref, query) -> Estimate``; ``set_reference`` + ``localize`` reuse the reference;
+    ``predict(batch)`` runs a batch of tensors on the model's device."""
+
+    def __init__(self, module: RPRModule, device: str | torch.device | None = None):
+        self.device = torch.device(device) if device is not None else _default_device()
+        self.module = module.to(self.device).eval()
+        self.cfg: RPRConfig = module.cfg
+        self._ref: tuple[np.ndarray, torch.Tensor] | None = None
+
+    @property
+    def name(self) -> str:
+        return f"rpr {self.cfg.name}"
+
+    def _tensor(self, img: np.ndarray, size: tuple[int, int]) -> torch.Tensor:
+        h, w = img.shape[:2]
+        if (w, h) != size:
+            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA if size[0] < w else cv2.INTER_LINEAR)
+        t = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float().div_(255.0)
+        return t.unsqueeze(0).to(self.device)
+
+    def input_size(self, img: np.ndarray) -> tuple[int, int]:
+        return resolve_size((img.shape[1], img.shape[0]), self.cfg.data)
+
+    @torch.inference_mode()
+    def predict(self, batch: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+        """``img0``, ``img1`` (B,3,H,W) in [0,1] -> R (B,3,3), t (B,3), confidence (B,), log_sigma (B,2)|absent."""
+        out = self.module.net(batch["img0"].to(self.device), batch["img1"].to(self.device))
+        res = {"R": out.R.float().cpu().numpy().astype(np.float64), "t": out.t.float().cpu().numpy().astype(np.float64)}
+        if out.log_sigma is not None:
+            res["log_sigma"] = out.log_sigma.float().cpu().numpy()
+            res["confidence"] = confidence_from_log_sigma(res["log_sigma"])
+        else:
+            res["confidence"] = np.zeros(len(res["t"]))
+        return res
+
+    def relocalize_images(self, img_ref: np.ndarray, img_query: np.ndarray) -> Estimate:
+        """Two RGB images -> metric pose of the query camera relative to the reference camera."""
+        t0 = time.perf_counter()
+        img_ref, img_query = image_of(img_ref), image_of(img_query)
+        size = self.input_size(img_ref)
+        res = self.predict({"img0": self._tensor(img_ref, size), "img1": self._tensor(img_query, size)})
+        return self._estimate(res, 0, time.perf_counter() - t0)
+
+    def _estimate(self, res: dict[str, np.ndarray], i: int, seconds: float) -> Estimate:
+        extras = {"method": self.name}
+        if "log_sigma" in res:
+            extras["sigma_rot_deg"] = float(np.degrees(np.exp(res["log_sigma"][i, 0])))
+            extras["sigma_trans_m"] = float(np.exp(res["log_sigma"][i, 1]))
+        return Estimate(Pose(res["R"][i], res["t"][i]), float(res["confidence"][i]), 0, "",
+                        {"regression": seconds}, extras)
+
+    # The Localizer protocol of mapfree.relocalize: set_reference / localize / relocalize.
+    def set_reference(self, reference: Any) -> Any:
+        img = image_of(reference)
+        self._ref = (img, self._tensor(img, self.input_size(img)))
+        return self._ref
+
+    def localize(self, query: Any) -> Estimate:
+        if self._ref is None:
+            raise RuntimeError("call set_reference(reference) before localize(query)")
+        t0 = time.perf_counter()
+        img_ref, ref_t = self._ref
+        q = self._tensor(image_of(query), (ref_t.shape[-1], ref_t.shape[-2]))
+        res = self.predict({"img0": ref_t, "img1": q})
+        return self._estimate(res, 0, time.perf_counter() - t0)
+
+    def relocalize(self, reference: Any, query: Any) -> Estimate:
+        return self.relocalize_images(reference, query)
+
+    def localize_many(self, queries: list[Any], batch_size: int = 16) -> list[Estimate]:
+        """Batched ``localize`` over many queries of the current reference (GPU-friendly)."""
+        if self._ref is None:
+            raise RuntimeError("call set_reference(reference) before localize_many(queries)")
+        _, ref_t = self._ref
+        size = (ref_t.shape[-1], ref_t.shape[-2])
+        out: list[Estimate] = []
+        for s in range(0, len(queries), batch_size):
+            t0 = time.perf_counter()
+            q = torch.cat([self._tensor(image_of(x), size) for x in queries[s:s + batch_size]])
+            res = self.predict({"img0": ref_t.expand(len(q), -1, -1, -1), "img1": q})
+            dt = (time.perf_counter() - t0) / len(q)
+            out += [self._estimate(res, i, dt) for i in range(len(q))]
+        return out
+
+
+def load_method(checkpoint: os.PathLike | str, device: str | torch.device | None = None) -> RPRMethod:
+    """A Lightning checkpoint written by ``mapfree train`` -> an ``RPRMethod`` (CPU/GPU picked automatically)."""
+    path = Path(checkpoint)
+    if not path.is_file():
+        raise FileNotFoundError(f"RPR checkpoint {path} not found")
+    module = RPRModule.load_from_checkpoint(str(path), map_location="cpu", weights_only=False)
+    return RPRMethod(module, device)

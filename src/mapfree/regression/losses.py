@@ -1,0 +1,104 @@
+"""Pose losses of SPEC §4 (per sample), their weighting, and the uncertainty NLL (beyond the paper)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from .params import PoseOutput
+from .rotations import EULER_BINS, SPHERICAL_BINS, angle_between, bin_index, direction_to_spherical, euler_from_matrix, geodesic_angle, _safe_norm
+
+__all__ = ["rotation_loss", "translation_loss", "PoseLoss", "ROTATION_LOSSES", "TRANSLATION_LOSSES"]
+
+ROTATION_LOSSES = ("geodesic", "frobenius", "l1", "quat_l1", "ce")
+TRANSLATION_LOSSES = ("l1", "l2", "angle", "scale_dir", "ce")
+
+
+def _bins_ce(logits: list[torch.Tensor], values: torch.Tensor, bins) -> torch.Tensor:
+    """Sum over bin groups of the cross-entropy against the bin holding each target value: (B,)."""
+    out = 0
+    for i, (l, (lo, hi, n)) in enumerate(zip(logits, bins)):
+        out = out + F.cross_entropy(l.float(), bin_index(values[..., i], lo, hi, n), reduction="none")
+    return out
+
+
+def rotation_loss(kind: str, out: PoseOutput, R_gt: torch.Tensor, q_gt: torch.Tensor | None = None) -> torch.Tensor:
+    """(B,) rotation loss; 0 exactly at the ground truth."""
+    if kind == "geodesic":
+        return geodesic_angle(out.R, R_gt)
+    if kind == "frobenius":
+        return ((out.R - R_gt) ** 2).sum((-1, -2))
+    if kind == "l1":
+        return (out.R - R_gt).abs().sum((-1, -2))
+    if kind == "quat_l1":
+        if "quat" not in out.raw or q_gt is None:
+            raise ValueError("quat_l1 needs a quaternion output and a ground-truth quaternion")
+        q = out.raw["quat"]
+        return torch.minimum((q - q_gt).abs().sum(-1), (q + q_gt).abs().sum(-1))  # q and -q are one rotation
+    if kind == "ce":
+        return _bins_ce(out.raw["euler_logits"], euler_from_matrix(R_gt), EULER_BINS)
+    raise ValueError(f"unknown rotation loss {kind!r} (known: {', '.join(ROTATION_LOSSES)})")
+
+
+def translation_loss(kind: str, out: PoseOutput, t_gt: torch.Tensor) -> torch.Tensor:
+    """(B,) translation loss; 0 exactly at the ground truth."""
+    if kind == "l1":
+        return (out.t - t_gt).abs().sum(-1)
+    if kind == "l2":
+        return _safe_norm(out.t - t_gt)
+    if kind == "angle":
+        return angle_between(out.t, t_gt)
+    scale = out.raw.get("scale")
+    scale = _safe_norm(out.t) if scale is None else scale
+    scale_err = (scale - _safe_norm(t_gt)).abs()
+    if kind == "scale_dir":
+        return scale_err + angle_between(out.raw.get("direction", out.t), t_gt)
+    if kind == "ce":
+        return scale_err + _bins_ce(out.raw["spherical_logits"], direction_to_spherical(t_gt), SPHERICAL_BINS)
+    raise ValueError(f"unknown translation loss {kind!r} (known: {', '.join(TRANSLATION_LOSSES)})")
+
+
+class PoseLoss(nn.Module):
+    """``L_R + λ L_t`` or ``L_R e^{-s_R} + L_t e^{-s_t} + s_R + s_t`` (learned s), plus the uncertainty NLL.
+
+    The NLL is a Laplace likelihood of the (detached) rotation angle and translation error given the
+    predicted log-scales, so it teaches the confidence without pulling on the pose itself.
+    """
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.cfg = cfg
+        if cfg.weighting == "learned":
+            self.s_rot = nn.Parameter(torch.tensor(float(cfg.init_s_rot)))
+            self.s_trans = nn.Parameter(torch.tensor(float(cfg.init_s_trans)))
+
+    def forward(self, out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor,
+                q_gt: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        l_rot = rotation_loss(self.cfg.rotation, out, R_gt, q_gt).mean()
+        l_trans = translation_loss(self.cfg.translation, out, t_gt).mean()
+        if self.cfg.weighting == "learned":
+            pose = l_rot * torch.exp(-self.s_rot) + l_trans * torch.exp(-self.s_trans) + self.s_rot + self.s_trans
+        else:
+            pose = l_rot + self.cfg.lam * l_trans
+        terms = {"loss_rot": l_rot.detach(), "loss_trans": l_trans.detach(), "loss_pose": pose}
+        total = pose
+        if out.log_sigma is not None:
+            nll = uncertainty_nll(out, R_gt, t_gt)
+            terms["loss_nll"] = nll.detach()
+            total = total + self.cfg.uncertainty_weight * nll
+        terms["loss"] = total
+        return terms
+
+
+def pose_errors(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torch.Tensor:
+    """(B,2) rotation angle (rad) and translation error (m, ‖t − t_gt‖), detached."""
+    with torch.no_grad():
+        return torch.stack([geodesic_angle(out.R.float(), R_gt.float()), (out.t.float() - t_gt.float()).norm(dim=-1)], -1)
+
+
+def uncertainty_nll(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torch.Tensor:
+    """Laplace NLL ``e / b + log b`` of each error e with predicted b = exp(log_sigma); minimised at b = e."""
+    err = pose_errors(out, R_gt, t_gt)
+    s = out.log_sigma.float().clamp(-12.0, 12.0)
+    return (err * torch.exp(-s) + s).sum(-1).mean()

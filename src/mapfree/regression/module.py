@@ -1,0 +1,88 @@
+"""Lightning module: the RPR network, its loss, Adam, and validation metrics (VCRE precision and AUC)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+
+from .config import RPRConfig
+from .losses import PoseLoss
+from .metrics import confidence_from_log_sigma, pose_errors, summarize, vcre_px
+from .model import RPRNet
+from .params import PoseOutput
+
+__all__ = ["RPRModule"]
+
+
+class RPRModule(pl.LightningModule):
+    """Trains ``RPRNet``; the full ``RPRConfig`` is saved in the checkpoint's hyper-parameters."""
+
+    def __init__(self, config: dict[str, Any] | RPRConfig | None = None):
+        super().__init__()
+        cfg = config if isinstance(config, RPRConfig) else RPRConfig.from_dict(config or {}).validate()
+        self.save_hyperparameters({"config": cfg.to_dict()})
+        self.cfg = cfg
+        self.net = RPRNet(cfg.model)
+        self.criterion = PoseLoss(cfg.loss)
+        self._val: list[dict[str, np.ndarray]] = []
+
+    def forward(self, img0: torch.Tensor, img1: torch.Tensor) -> PoseOutput:
+        return self.net(img0, img1)
+
+    def on_fit_start(self) -> None:
+        if self.cfg.train.channels_last:
+            self.net.to(memory_format=torch.channels_last)
+
+    def _step(self, batch: dict[str, torch.Tensor]) -> tuple[PoseOutput, dict[str, torch.Tensor]]:
+        img0, img1 = batch["img0"], batch["img1"]
+        if self.cfg.train.channels_last:
+            img0 = img0.contiguous(memory_format=torch.channels_last)
+            img1 = img1.contiguous(memory_format=torch.channels_last)
+        out = self.net(img0, img1)
+        return out, self.criterion(out, batch["R"], batch["t"], batch.get("q"))
+
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        _, terms = self._step(batch)
+        bs = batch["img0"].shape[0]
+        self.log("train/loss", terms["loss"], prog_bar=True, batch_size=bs, sync_dist=False)
+        for k in ("loss_rot", "loss_trans", "loss_nll"):
+            if k in terms:
+                self.log(f"train/{k}", terms[k], batch_size=bs)
+        if self.cfg.loss.weighting == "learned":
+            self.log("train/s_rot", self.criterion.s_rot.detach(), batch_size=bs)
+            self.log("train/s_trans", self.criterion.s_trans.detach(), batch_size=bs)
+        return terms["loss"]
+
+    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        out, terms = self._step(batch)
+        bs = batch["img0"].shape[0]
+        self.log("val/loss", terms["loss"], prog_bar=True, batch_size=bs, sync_dist=True)
+        self.log("val/loss_pose", terms["loss_pose"], batch_size=bs, sync_dist=True)
+        R, t = out.R.detach().float().cpu().numpy(), out.t.detach().float().cpu().numpy()
+        Rg, tg = batch["R"].cpu().numpy(), batch["t"].cpu().numpy()
+        te, re = pose_errors(R, t, Rg, tg)
+        ls = out.log_sigma.detach().float().cpu().numpy() if out.log_sigma is not None else None
+        conf = confidence_from_log_sigma(ls) if ls is not None else np.zeros(bs)
+        vc = vcre_px(R, t, Rg, tg, batch["K1_orig"].cpu().numpy(), batch["size1_orig"].cpu().numpy())
+        self._val.append({"trans_err": te, "rot_err": re, "vcre": vc, "confidence": conf})
+
+    def on_validation_epoch_start(self) -> None:
+        self._val = []
+
+    def on_validation_epoch_end(self) -> None:
+        if not self._val:
+            return
+        cols = {k: np.concatenate([v[k] for v in self._val]) for k in self._val[0]}
+        distributed = self.trainer is not None and self.trainer.world_size > 1
+        if distributed:  # every rank holds a shard of the pairs: score them all, identically on every rank
+            gathered = self.all_gather({k: torch.as_tensor(v, device=self.device) for k, v in cols.items()})
+            cols = {k: v.reshape(-1).cpu().numpy() for k, v in gathered.items()}
+        for k, v in summarize(cols["trans_err"], cols["rot_err"], cols["vcre"], cols["confidence"]).items():
+            self.log(f"val/{k}", float(v), prog_bar=k in ("vcre_prec", "vcre_auc"), sync_dist=distributed)
+        self._val = []
+
+    def configure_optimizers(self):
+        return torch.optim.Adam(self.parameters(), lr=self.cfg.train.lr)

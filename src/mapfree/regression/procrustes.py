@@ -1,0 +1,28 @@
+"""Differentiable weighted Procrustes (Kabsch): the rigid (R, t) with ``Y ≈ R X + t``, batched via SVD."""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["procrustes"]
+
+
+def procrustes(X: torch.Tensor, Y: torch.Tensor, weights: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B,N,3) source and target points (N >= 3, not collinear) -> R (B,3,3) with det +1, t (B,3).
+
+    Gradients flow through ``torch.linalg.svd``; they are well defined while the cross-covariance has
+    distinct singular values (generic point sets), which the 3D–3D head keeps by adding a fixed basis.
+    """
+    w = torch.ones(X.shape[:-1], dtype=X.dtype, device=X.device) if weights is None else weights
+    w = (w / w.sum(-1, keepdim=True)).unsqueeze(-1)
+    mx, my = (w * X).sum(-2, keepdim=True), (w * Y).sum(-2, keepdim=True)
+    H = ((X - mx) * w).transpose(-1, -2) @ (Y - my)  # (B,3,3) cross-covariance
+    U, _, Vh = torch.linalg.svd(H)
+    V = Vh.transpose(-1, -2)
+    # Flip the last singular direction when the best orthogonal map is a reflection.
+    d = torch.sign(torch.linalg.det(V @ U.transpose(-1, -2)))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    R = V @ D @ U.transpose(-1, -2)
+    t = my.squeeze(-2) - (R @ mx.transpose(-1, -2)).squeeze(-1)
+    return R, t

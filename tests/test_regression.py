@@ -1,0 +1,290 @@
+"""Relative pose regression: parameterisations, rotations, bins, Procrustes, losses, network shapes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from mapfree.geometry import quat_to_rotmat, rotation_angle_deg  # noqa: E402
+from mapfree.regression.config import LossConfig, ModelConfig  # noqa: E402
+from mapfree.regression.losses import PoseLoss, rotation_loss, translation_loss  # noqa: E402
+from mapfree.regression.metrics import auc, pose_errors, vcre_px  # noqa: E402
+from mapfree.regression.model import RPRNet  # noqa: E402
+from mapfree.regression.params import Parameterisation, PoseOutput  # noqa: E402
+from mapfree.regression.procrustes import procrustes  # noqa: E402
+from mapfree.regression.rotations import (  # noqa: E402
+    EULER_BINS, SPHERICAL_BINS, bin_center, bin_index, direction_to_spherical, euler_from_matrix, geodesic_angle,
+    matrix_from_euler, rot6d_to_matrix, spherical_to_direction,
+)
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """One intra-op thread: the CI machine's cores are shared, and spinning thread pools slow tiny nets 50x."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+TINY = dict(encoder_channels=(8, 16, 32), encoder_blocks=1, feature_dim=8, head_channels=(8, 16, 32, 32), mlp=(32, 16))
+VARIANTS = [("quat", "t"), ("quat", "s_tdir"), ("6d", "t"), ("6d", "s_tdir"), ("euler_bins", "t"),
+            ("euler_bins", "s_tbins"), ("6d", "s_tbins"), ("3d3d", "t")]
+
+
+def random_rotations(n: int, seed: int = 0) -> np.ndarray:
+    q = np.random.default_rng(seed).normal(size=(n, 4))
+    return quat_to_rotmat(q)
+
+
+@pytest.mark.parametrize("rotation,translation", VARIANTS)
+def test_output_shapes_per_parameterisation(rotation, translation):
+    torch.manual_seed(0)
+    net = RPRNet(ModelConfig(rotation=rotation, translation=translation, **TINY)).eval()
+    B = 3
+    with torch.no_grad():
+        out = net(torch.rand(B, 3, 48, 64), torch.rand(B, 3, 48, 64))
+    assert out.R.shape == (B, 3, 3) and out.t.shape == (B, 3) and out.log_sigma.shape == (B, 2)
+    assert net.out.out_features == net.param.dim + 2
+    expected = {"quat": 4, "6d": 6, "euler_bins": 900}.get(rotation, 0) + (
+        {"t": 3, "s_tdir": 4, "s_tbins": 541}[translation] if rotation != "3d3d" else 18)
+    assert net.param.dim == expected
+    assert torch.isfinite(out.R).all() and torch.isfinite(out.t).all()
+    det = torch.linalg.det(out.R.double())
+    assert torch.allclose(det, torch.ones_like(det), atol=1e-5)
+    if rotation == "euler_bins":
+        assert [l.shape[-1] for l in out.raw["euler_logits"]] == [360, 180, 360]
+    if translation == "s_tbins" and rotation != "3d3d":
+        assert [l.shape[-1] for l in out.raw["spherical_logits"]] == [360, 180]
+
+
+def test_ablations_change_aggregated_channels():
+    full = RPRNet(ModelConfig(**TINY))
+    nowarp = RPRNet(ModelConfig(warping=False, **TINY))
+    nopos = RPRNet(ModelConfig(position=False, **TINY))
+    assert full.aggregator.out_channels == 2 * 8 + 2 + 1
+    assert nopos.aggregator.out_channels == 2 * 8 + 1
+    assert nowarp.aggregator.out_channels == 2 * 8
+    assert RPRNet(ModelConfig()).aggregator.out_channels == 67  # the paper's 32 + 32 + 2 + 1
+    with torch.no_grad():
+        x = torch.rand(2, 3, 48, 64)
+        assert nowarp.eval()(x, x).t.shape == (2, 3)
+
+
+def test_6d_gives_orthonormal_matrices_with_det_plus_one():
+    x = torch.randn(500, 6, dtype=torch.float64)
+    R = rot6d_to_matrix(x)
+    eye = torch.eye(3, dtype=torch.float64).expand(500, 3, 3)
+    assert torch.allclose(R.transpose(1, 2) @ R, eye, atol=1e-12)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(500, dtype=torch.float64), atol=1e-12)
+    # The first column is the normalised first vector; the second lies in the plane of both.
+    assert torch.allclose(R[:, :, 0], x[:, :3] / x[:, :3].norm(dim=1, keepdim=True), atol=1e-12)
+    normal = torch.linalg.cross(x[:, :3], x[:, 3:])
+    assert (R[:, :, 1] * normal).sum(1).abs().max() < 1e-9
+
+
+def _wrap(d: torch.Tensor) -> torch.Tensor:
+    return (d + 180.0) % 360.0 - 180.0
+
+
+def test_euler_bins_round_trip_within_half_a_bin():
+    R = torch.from_numpy(random_rotations(2000, seed=1))
+    e = euler_from_matrix(R)
+    assert torch.allclose(matrix_from_euler(e), R, atol=1e-9)  # exact decomposition
+    decoded = torch.stack([bin_center(bin_index(e[:, i], *b), *b).double() for i, b in enumerate(EULER_BINS)], 1)
+    assert _wrap(decoded - e).abs().max() <= 0.5 + 1e-9
+    # Through the rotation: at most 3 x 0.5 degrees away (triangle inequality over the three axes).
+    err = rotation_angle_deg(matrix_from_euler(decoded).numpy(), R.numpy())
+    assert err.max() <= 1.5 + 1e-9
+
+
+def test_spherical_bins_round_trip_within_half_a_bin():
+    d = torch.randn(2000, 3, dtype=torch.float64)
+    ang = direction_to_spherical(d)
+    assert torch.allclose(spherical_to_direction(ang), d / d.norm(dim=1, keepdim=True), atol=1e-9)
+    decoded = torch.stack([bin_center(bin_index(ang[:, i], *b), *b).double() for i, b in enumerate(SPHERICAL_BINS)], 1)
+    assert _wrap(decoded[:, 0] - ang[:, 0]).abs().max() <= 0.5 + 1e-9
+    assert (decoded[:, 1] - ang[:, 1]).abs().max() <= 0.5 + 1e-9
+
+
+def _kabsch_numpy(X: np.ndarray, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    mx, my = X.mean(0), Y.mean(0)
+    U, _, Vt = np.linalg.svd((X - mx).T @ (Y - my))
+    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ S @ U.T
+    return R, my - R @ mx
+
+
+def test_procrustes_matches_closed_form_and_recovers_pose():
+    rng = np.random.default_rng(3)
+    R_true = random_rotations(4, seed=3)
+    X = rng.normal(size=(4, 6, 3))
+    Y = np.einsum("bij,bnj->bni", R_true, X) + rng.normal(size=(4, 1, 3))
+    Y_noisy = Y + 0.05 * rng.normal(size=Y.shape)
+    R, t = procrustes(torch.from_numpy(X), torch.from_numpy(Y_noisy))
+    for b in range(4):
+        Rk, tk = _kabsch_numpy(X[b], Y_noisy[b])
+        np.testing.assert_allclose(R[b].numpy(), Rk, atol=1e-10)
+        np.testing.assert_allclose(t[b].numpy(), tk, atol=1e-10)
+    R0, t0 = procrustes(torch.from_numpy(X), torch.from_numpy(Y))  # noise-free: exact
+    np.testing.assert_allclose(R0.numpy(), R_true, atol=1e-10)
+    # A reflected target still yields a proper rotation.
+    Rr, _ = procrustes(torch.from_numpy(X), torch.from_numpy(X * np.array([1, 1, -1])))
+    assert torch.allclose(torch.linalg.det(Rr), torch.ones(4, dtype=torch.float64))
+
+
+def test_procrustes_gradcheck():
+    rng = np.random.default_rng(4)
+    X = torch.from_numpy(rng.normal(size=(1, 4, 3))).requires_grad_(True)
+    Y = torch.from_numpy(rng.normal(size=(1, 4, 3))).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda a, b: procrustes(a, b), (X, Y), eps=1e-6, atol=1e-5)
+    # The 3D-3D head's 3-point case with the fixed basis.
+    p = Parameterisation("3d3d", n_points=3, basis=True)
+    raw = torch.from_numpy(0.3 * rng.normal(size=(1, 18))).requires_grad_(True)
+
+    def decode(r):
+        out = p.decode(r)
+        return out.R, out.t
+
+    assert torch.autograd.gradcheck(decode, (raw,), eps=1e-6, atol=1e-5)
+
+
+def _gt_output(kind_rot: str, kind_trans: str, R: torch.Tensor, t: torch.Tensor) -> PoseOutput:
+    """The network output that decodes exactly to the ground truth (bins as huge one-hot logits)."""
+    raw: dict = {}
+    if kind_rot == "quat_l1":
+        from mapfree.geometry import rotmat_to_quat
+
+        raw["quat"] = torch.from_numpy(rotmat_to_quat(R.numpy()))
+    if kind_rot == "ce":
+        e = euler_from_matrix(R)
+        raw["euler_logits"] = [1e4 * torch.nn.functional.one_hot(bin_index(e[:, i], *b), b[2]).double()
+                               for i, b in enumerate(EULER_BINS)]
+    if kind_trans == "ce":
+        a = direction_to_spherical(t)
+        raw["spherical_logits"] = [1e4 * torch.nn.functional.one_hot(bin_index(a[:, i], *b), b[2]).double()
+                                   for i, b in enumerate(SPHERICAL_BINS)]
+        raw["scale"] = t.norm(dim=-1)
+    return PoseOutput(R.clone(), t.clone(), raw)
+
+
+@pytest.mark.parametrize("kind", ["geodesic", "frobenius", "l1", "quat_l1", "ce"])
+def test_rotation_losses_zero_at_gt_positive_elsewhere(kind):
+    R = torch.from_numpy(random_rotations(16, seed=5))
+    t = torch.randn(16, 3, dtype=torch.float64)
+    from mapfree.geometry import rotmat_to_quat
+
+    q = torch.from_numpy(rotmat_to_quat(R.numpy()))
+    at_gt = _gt_output(kind, "l1", R, t)
+    if kind == "quat_l1":
+        at_gt.raw["quat"] = -at_gt.raw["quat"]  # the antipodal quaternion is the same rotation
+    assert rotation_loss(kind, at_gt, R, q).abs().max() == 0
+    R_off = R @ torch.from_numpy(matrix_from_euler(torch.tensor([[7.0, -3.0, 11.0]])).numpy()).double()
+    off = _gt_output(kind, "l1", R_off, t)
+    assert (rotation_loss(kind, off, R, q) > 1e-3).all()
+
+
+@pytest.mark.parametrize("kind", ["l1", "l2", "angle", "scale_dir", "ce"])
+def test_translation_losses_zero_at_gt_positive_elsewhere(kind):
+    R = torch.from_numpy(random_rotations(16, seed=6))
+    t = torch.randn(16, 3, dtype=torch.float64)
+    assert translation_loss(kind, _gt_output("geodesic", kind, R, t), t).abs().max() < 1e-12
+    # Elsewhere: a direction 20 degrees away and 30 % longer.
+    turn = torch.from_numpy(quat_to_rotmat(np.array([np.cos(np.radians(10)), 0, np.sin(np.radians(10)), 0])))
+    t_off = 1.3 * (t @ turn.T)
+    assert (translation_loss(kind, _gt_output("geodesic", kind, R, t_off), t) > 1e-3).all()
+
+
+def test_geodesic_angle_matches_numpy_and_has_finite_gradient_at_zero():
+    R1, R2 = random_rotations(50, seed=7), random_rotations(50, seed=8)
+    ang = geodesic_angle(torch.from_numpy(R1), torch.from_numpy(R2)).numpy()
+    np.testing.assert_allclose(np.degrees(ang), rotation_angle_deg(R1, R2), atol=1e-6)
+    x = torch.tensor([[1.0, 0, 0, 0, 1, 0]], dtype=torch.float64, requires_grad=True)
+    geodesic_angle(rot6d_to_matrix(x), torch.eye(3, dtype=torch.float64)[None]).sum().backward()
+    assert torch.isfinite(x.grad).all()
+
+
+def test_pose_loss_weighting_and_uncertainty():
+    R = torch.from_numpy(random_rotations(8, seed=9)).float()
+    t = torch.randn(8, 3)
+    out = PoseOutput(R @ torch.from_numpy(random_rotations(1, 10)).float(), t + 0.5, {}, torch.zeros(8, 2))
+    fixed = PoseLoss(LossConfig(lam=2.0))(out, R, t)
+    assert torch.allclose(fixed["loss_pose"], fixed["loss_rot"] + 2.0 * fixed["loss_trans"])
+    learned = PoseLoss(LossConfig(weighting="learned", init_s_rot=0.5, init_s_trans=-1.0))
+    terms = learned(out, R, t)
+    expect = terms["loss_rot"] * np.exp(-0.5) + terms["loss_trans"] * np.exp(1.0) + 0.5 - 1.0
+    assert torch.allclose(terms["loss_pose"], expect)
+    terms["loss"].backward()
+    assert learned.s_rot.grad is not None and learned.s_trans.grad is not None
+    # The Laplace NLL is smallest when the predicted scale equals the error.
+    err = torch.stack([geodesic_angle(out.R, R), (out.t - t).norm(dim=-1)], -1)
+    nll = [PoseLoss(LossConfig())(PoseOutput(out.R, out.t, {}, torch.log(err) + d), R, t)["loss_nll"]
+           for d in (-0.5, 0.0, 0.5)]
+    assert nll[1] < nll[0] and nll[1] < nll[2]
+
+
+def test_vcre_and_errors_follow_the_benchmark_definition():
+    R_gt = random_rotations(5, seed=11)
+    t_gt = np.random.default_rng(11).normal(size=(5, 3))
+    # A large image so that no virtual point is clipped at the border.
+    K = np.broadcast_to(np.array([[600.0, 0, 2000], [0, 600, 2000], [0, 0, 1]]), (5, 3, 3))
+    size = np.broadcast_to(np.array([4000.0, 4000.0]), (5, 2))
+    assert np.allclose(vcre_px(R_gt, t_gt, R_gt, t_gt, K, size), 0)
+    te, re = pose_errors(R_gt, t_gt + np.array([0, 0, 0.1]), R_gt, t_gt)
+    np.testing.assert_allclose(te, 0.1, atol=1e-12)
+    np.testing.assert_allclose(re, 0, atol=1e-5)
+    # A pure 0.1 m shift of the camera along x moves every virtual point by fx*0.1/z pixels.
+    t_est = t_gt + np.array([0.1, 0, 0])
+    expected = (600 * 0.1 / np.arange(1.8, 3.61, 0.3)).mean()
+    np.testing.assert_allclose(vcre_px(R_gt, t_est, R_gt, t_gt, K, size), expected, rtol=1e-9)
+
+
+def test_vcre_agrees_with_the_benchmark_scorer():
+    bench = pytest.importorskip("mapfree.benchmark.metrics")
+    rng = np.random.default_rng(12)
+    n = 40
+    from mapfree.geometry import rotmat_to_quat
+
+    R_gt, t_gt = random_rotations(n, seed=12), rng.normal(size=(n, 3))
+    # Estimates from near the truth to far off (exercises the clipping at the image border).
+    noise = quat_to_rotmat(np.c_[np.ones(n), rng.normal(scale=np.linspace(0.01, 0.5, n))[:, None] * rng.normal(size=(n, 3))])
+    R_est, t_est = noise @ R_gt, t_gt + rng.normal(scale=0.5, size=(n, 3))
+    fx = rng.uniform(500, 700, n)
+    K4 = np.c_[fx, fx, np.full(n, 269.5), np.full(n, 359.5)]
+    K = np.zeros((n, 3, 3))
+    K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = K4[:, 0], K4[:, 1], K4[:, 2], K4[:, 3], 1
+    W, H = np.full(n, 540.0), np.full(n, 720.0)
+    ours = vcre_px(R_est, t_est, R_gt, t_gt, K, np.c_[W, H])
+    ref = bench.vcre(rotmat_to_quat(R_gt), t_gt, rotmat_to_quat(R_est), t_est, K4, W, H)
+    np.testing.assert_allclose(ours, ref, rtol=1e-9, atol=1e-9)
+    assert ours.min() < 90 < ours.max()
+
+
+def test_auc_equals_precision_with_constant_confidence_and_rewards_good_ranking():
+    ok = np.array([1, 0, 1, 1, 0, 0, 1, 0], dtype=bool)
+    assert auc(np.zeros(8), ok) == pytest.approx(ok.mean())
+    good = auc(ok.astype(float) + 0.01 * np.arange(8), ok)
+    bad = auc((~ok).astype(float), ok)
+    assert good > ok.mean() > bad
+
+
+def test_every_shipped_config_loads_and_builds():
+    from pathlib import Path
+
+    from mapfree.regression.config import apply_overrides, load_config
+
+    configs = sorted((Path(__file__).resolve().parents[1] / "configs" / "rpr").glob("*.yaml"))
+    names = {load_config(p).name for p in configs}
+    for paper_name in ("R(q)+t", "R(q)+s·t̂", "R(6D)+t", "R(6D)+s·t̂", "R(α,β,γ)+s·t̂(φ,θ)", "[3D-3D]"):
+        assert paper_name in names
+    for p in configs:
+        cfg = load_config(p)
+        assert Parameterisation(cfg.model.rotation, cfg.model.translation).name.split(",")[0] in cfg.name or \
+            "CPU" in cfg.name
+    cfg = apply_overrides(load_config(configs[0]), ["train.lr=1e-3", "model.warping=false"])
+    assert cfg.train.lr == 1e-3 and isinstance(cfg.train.lr, float) and cfg.model.warping is False
+    with pytest.raises(ValueError, match="batch_size"):
+        apply_overrides(cfg, ["data.batch_size=many"])
+    with pytest.raises(ValueError, match="bins need"):
+        apply_overrides(cfg, ["model.rotation=euler_bins"])

@@ -1,0 +1,249 @@
+"""RPR training: data module, overfitting, checkpoint round trip, the ``mapfree train`` CLI and the method hook."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("pytorch_lightning")
+
+from mapfree.data import Dataset, Overlaps, write_intrinsics, write_overlaps, write_poses  # noqa: E402
+from mapfree.geometry import Intrinsics, Pose, quat_to_rotmat  # noqa: E402
+from mapfree.regression.config import DataConfig, LossConfig, ModelConfig, RPRConfig  # noqa: E402
+from mapfree.regression.data import PairDataset, RPRDataModule, sample_pairs  # noqa: E402
+from mapfree.regression.model import RPRNet  # noqa: E402
+from mapfree.regression.losses import PoseLoss  # noqa: E402
+
+TINY = dict(encoder_channels=(8, 16, 32), encoder_blocks=1, feature_dim=8, head_channels=(8, 16, 32, 32), mlp=(32, 16))
+W, H = 80, 60  # written image size; the network sees 64×48
+#: Overlap values written for the pairs of a train scene: bounds and outside values included on purpose.
+OVERLAP_VALUES = (0.4, 0.8, 0.41, 0.79, 0.6, 0.2, 0.95, 0.5, 0.39999, 0.80001)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _pose(rng: np.random.Generator, angle: float = 0.3, dist: float = 1.0) -> Pose:
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    a = rng.uniform(-angle, angle)
+    q = np.r_[np.cos(a / 2), np.sin(a / 2) * axis]
+    return Pose(quat_to_rotmat(q), rng.normal(scale=dist, size=3))
+
+
+def _image(rng: np.random.Generator) -> np.ndarray:
+    img = rng.integers(0, 255, size=(H // 4, W // 4, 3), dtype=np.uint8)
+    return cv2.resize(img, (W, H), interpolation=cv2.INTER_CUBIC)
+
+
+def _write_scene(path: Path, names: list[str], poses: list[Pose], rng: np.random.Generator) -> None:
+    for n in names:
+        (path / n).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path / n), _image(rng))
+    ks = {n: Intrinsics(70.0 + i, 70.0 + i, 39.5, 29.5, W, H) for i, n in enumerate(names)}
+    write_intrinsics(path / "intrinsics.txt", ks)
+    write_poses(path / "poses.txt", names, poses)
+
+
+def make_tiny_root(root: Path, n_train: int = 2, n_val: int = 1, frames: int = 5, seed: int = 0) -> Path:
+    """Train scenes (two scans + overlaps.npz) and val scenes (reference + queries) written with the data writers."""
+    rng = np.random.default_rng(seed)
+    for s in range(n_train):
+        path = root / "train" / f"s{s:05d}"
+        names = [f"seq{q}/frame_{f:05d}.jpg" for q in (0, 1) for f in range(frames)]
+        _write_scene(path, names, [_pose(rng) for _ in names], rng)
+        rows = [(sa, fa, sb, fb) for sa in (0, 1) for fa in range(frames) for sb in (0, 1) for fb in range(frames)
+                if (sa, fa) < (sb, fb)]
+        ov = np.array([OVERLAP_VALUES[i % len(OVERLAP_VALUES)] for i in range(len(rows))])
+        write_overlaps(path / "overlaps.npz", Overlaps(np.array(rows), ov))
+    for s in range(n_val):
+        path = root / "val" / f"s{100 + s:05d}"
+        names = ["seq0/frame_00000.jpg"] + [f"seq1/frame_{f:05d}.jpg" for f in range(10)]
+        _write_scene(path, names, [Pose.identity()] + [_pose(rng) for _ in names[1:]], rng)
+    return root
+
+
+@pytest.fixture(scope="module")
+def tiny_root(tmp_path_factory) -> Path:
+    return make_tiny_root(tmp_path_factory.mktemp("rpr_tiny"))
+
+
+def tiny_config(root: Path, **data) -> RPRConfig:
+    d = dict(root=str(root), pairs_per_scene=4, image_size=(64, 48), batch_size=4, val_batch_size=4, augment=False)
+    d.update(data)
+    cfg = RPRConfig(name="tiny", model=ModelConfig(**TINY), loss=LossConfig(), data=DataConfig(**d))
+    cfg.train.max_epochs, cfg.train.log_every_n_steps = 1, 1
+    return cfg.validate()
+
+
+def test_data_module_samples_only_pairs_inside_the_overlap_bounds(tiny_root):
+    dm = RPRDataModule(tiny_config(tiny_root, pairs_per_scene=50).data)
+    dm.setup("fit")
+    per_scene: dict[str, int] = {}
+    seen = set()
+    for epoch in range(3):
+        for p in dm.train_pairs(epoch):
+            scene = Dataset(tiny_root).scene("train", Path(p.scene).name)
+            ov = scene.overlaps
+            key = (int(p.name0[3]), int(p.name0[-9:-4]), int(p.name1[3]), int(p.name1[-9:-4]))
+            i = [tuple(r) for r in ov.idxs.tolist()].index(key)
+            assert 0.4 < ov.overlaps[i] < 0.8, (p, ov.overlaps[i])
+            per_scene[p.scene] = per_scene.get(p.scene, 0) + 1
+            seen.add((p.scene, key))
+    assert sorted(per_scene.values()) == [150, 150]  # scene-balanced: 50 per scene per epoch
+    assert dm.train_pairs(0) != dm.train_pairs(1)  # resampled every epoch
+    # Every in-bounds value of OVERLAP_VALUES (0.41, 0.79, 0.6, 0.5) occurs; bounds themselves never.
+    assert len(seen) >= 8
+    # A tighter window keeps only the 0.5 and 0.6 pairs.
+    rows = sample_pairs(Dataset(tiny_root).scenes("train"), 40, np.random.default_rng(0), 0.45, 0.65)
+    assert len(rows) == 80
+
+
+def test_pair_items_have_resized_intrinsics_and_relative_pose(tiny_root):
+    dm = RPRDataModule(tiny_config(tiny_root).data)
+    dm.setup("fit")
+    pair = dm.train_pairs(0)[0]
+    item = PairDataset([pair], dm.size)[0]
+    assert item["img0"].shape == (3, 48, 64) and 0 <= item["img0"].min() and item["img0"].max() <= 1
+    scene = Dataset(tiny_root).scene("train", Path(pair.scene).name)
+    f0, f1 = scene.frame(pair.name0), scene.frame(pair.name1)
+    np.testing.assert_allclose(item["K0"].numpy(), f0.intrinsics.resized(64, 48).K, rtol=1e-6)
+    np.testing.assert_allclose(item["K1_orig"].numpy(), f1.intrinsics.K, rtol=1e-6)
+    assert item["K0"][0, 2] == pytest.approx((39.5 + 0.5) * 64 / 80 - 0.5)  # the half-pixel rule
+    rel = f1.pose.relative_to(f0.pose)
+    np.testing.assert_allclose(item["R"].numpy(), rel.R, atol=1e-6)
+    np.testing.assert_allclose(item["t"].numpy(), rel.t, atol=1e-6)
+    # Validation pairs: the reference against the scored queries (every 5th line of poses.txt).
+    vp = dm.val_pairs()
+    assert [p.name1 for p in vp] == ["seq1/frame_00000.jpg", "seq1/frame_00005.jpg"]  # key 0 shared with the reference
+    assert all(p.name0 == "seq0/frame_00000.jpg" for p in vp)
+    # Augmentation swaps pairs and jitters colour but keeps the geometry consistent.
+    aug = PairDataset([pair] * 8, dm.size, augment=True)
+    swapped = 0
+    for i in range(8):
+        it = aug[i]
+        if not torch.allclose(it["R"], item["R"], atol=1e-6):
+            swapped += 1
+            np.testing.assert_allclose(it["R"].numpy(), rel.R.T, atol=1e-6)
+    assert 0 < swapped < 8
+
+
+def test_model_overfits_eight_pairs():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(1)
+    # Low-frequency random images (i.i.d. noise looks the same to every sample after global pooling); 32×24 for speed.
+    img0, img1 = (torch.nn.functional.interpolate(torch.rand(8, 3, 3, 4), size=(24, 32), mode="bilinear")
+                  for _ in range(2))
+    poses = [_pose(rng, angle=0.6) for _ in range(8)]
+    R = torch.tensor(np.stack([p.R for p in poses]), dtype=torch.float32)
+    t = torch.tensor(np.stack([p.t for p in poses]), dtype=torch.float32)
+    net = RPRNet(ModelConfig(uncertainty=False, **TINY))
+    loss_fn = PoseLoss(LossConfig())
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(100):
+        opt.zero_grad()
+        loss = loss_fn(net(img0, img1), R, t)["loss"]
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert np.mean(losses[-5:]) < np.mean(losses[:3]) / 10, (losses[:3], losses[-5:])
+
+
+def test_train_checkpoint_load_predict_is_identical(tiny_root, tmp_path):
+    from mapfree.regression import load_method
+    from mapfree.regression.train import TrainerOptions, fit
+
+    cfg = tiny_config(tiny_root)
+    trainer, module = fit(cfg, tmp_path / "run", TrainerOptions(accelerator="cpu", devices=1, max_steps=2,
+                                                                 progress=False))
+    ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert ckpt.is_file() and (tmp_path / "run" / "checkpoints" / "best.ckpt").is_file()
+    assert torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"] == 2  # the final weights
+    method = load_method(ckpt, device="cpu")
+    assert method.cfg.to_dict() == cfg.to_dict()
+    module.eval()
+    x0, x1 = torch.rand(3, 3, 48, 64), torch.rand(3, 3, 48, 64)
+    with torch.no_grad():
+        ref = module.net(x0, x1)
+    got = method.predict({"img0": x0, "img1": x1})
+    assert np.array_equal(got["R"], ref.R.numpy().astype(np.float64))
+    assert np.array_equal(got["t"], ref.t.numpy().astype(np.float64))
+    assert np.array_equal(got["log_sigma"], ref.log_sigma.numpy())
+    # The state dicts are bit-identical too.
+    sd = module.state_dict()
+    for k, v in method.module.state_dict().items():
+        assert torch.equal(v, sd[k]), k
+    # One pair through the Estimate API, and many queries batched against a cached reference.
+    scene = Dataset(tiny_root).scenes("val")[0]
+    est = method.relocalize_images(scene.reference.image(), scene.queries[0].image())
+    assert est.ok and 0 < est.confidence <= 1 and est.pose.is_finite()
+    method.set_reference(scene.reference)
+    single = method.localize(scene.queries[0])
+    batch = method.localize_many(scene.queries[:3], batch_size=2)
+    np.testing.assert_allclose(batch[0].pose.R, single.pose.R, atol=1e-5)
+    np.testing.assert_allclose(single.pose.t, est.pose.t, atol=1e-6)
+    # Resume continues from the checkpoint's step.
+    trainer2, _ = fit(cfg, tmp_path / "run", TrainerOptions(accelerator="cpu", devices=1, max_steps=3, max_epochs=5,
+                                                           progress=False),
+                      resume=ckpt)
+    assert trainer2.global_step == 3
+
+
+def test_cli_train_two_steps(tiny_root, tmp_path):
+    import yaml
+
+    from mapfree.cli import main
+
+    cfg = tiny_config(tiny_root).to_dict()
+    cfg["data"]["root"] = ""
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(_lists(cfg)))
+    out = tmp_path / "out"
+    rc = main(["train", str(path), "--devices", "1", "--strategy", "auto", "--accelerator", "cpu", "--max-steps", "2",
+               "--data", str(tiny_root), "--out", str(out), "--no-progress", "--set", "data.pairs_per_scene=4",
+               "--precision", "bf16-mixed", "--channels-last"])
+    assert rc == 0
+    assert (out / "checkpoints" / "last.ckpt").is_file()
+    rows = list(csv.DictReader(open(out / "logs" / "metrics.csv")))
+    assert any(r.get("train/loss") for r in rows) and any(r.get("val/vcre_prec") for r in rows)
+    assert any((out / "tensorboard").glob("events.*"))
+    assert (out / "curves.png").stat().st_size > 1000
+    assert main(["train", str(tmp_path / "missing.yaml")]) == 2
+    assert main(["train", str(path), "--set", "model.rotation=euler"]) == 2
+
+
+def test_registry_builds_rpr_from_a_checkpoint(tiny_root, tmp_path):
+    methods = pytest.importorskip("mapfree.methods")
+    from mapfree.regression.train import TrainerOptions, fit
+
+    fit(tiny_config(tiny_root), tmp_path / "r", TrainerOptions(accelerator="cpu", devices=1, max_steps=1, progress=False))
+    m = methods.get("rpr")
+    assert m.kind == "regression"
+    with pytest.raises(ValueError, match="checkpoint"):
+        m.build()
+    from dataclasses import replace
+
+    loc = replace(m, options={"checkpoint": str(tmp_path / "r" / "checkpoints" / "last.ckpt"), "device": "cpu"}).build()
+    scene = Dataset(tiny_root).scenes("val")[0]
+    loc.set_reference(scene.reference)
+    est = loc.localize(scene.queries[1])
+    assert est.ok and est.confidence > 0
+
+
+def _lists(x):
+    if isinstance(x, dict):
+        return {k: _lists(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_lists(v) for v in x]
+    return x
