@@ -7,7 +7,9 @@ import json
 import time
 from pathlib import Path
 
-DEFAULT_METHOD = "best-offline@mono"
+# On monocular depth (the realistic case) PnP, which needs the depth of the reference only, ranks best on
+# synthetic val: AUC @ VCRE < 90px 0.952 against 0.864 for best-offline (Procrustes) and 0.769 for Ess.Mat.
+DEFAULT_METHOD = "best-offline-pnp@mono"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
