@@ -40,16 +40,18 @@ def squared_distances(d0: np.ndarray, d1: np.ndarray) -> np.ndarray:
 
 
 def two_nearest(sq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (N,2) and L2 distances (N,2) of the two nearest columns of each row, nearest first.
+    """Index of the nearest column of each row and the L2 distances (N,2) to the nearest and second nearest.
 
-    Exact, like OpenCV's brute-force ``knnMatch(k=2)``, but ~5x faster on CPU (BLAS instead of a scan).
+    Exact, like OpenCV's brute-force ``knnMatch(k=2)``, but several times faster on CPU (BLAS product, then two
+    row scans instead of a per-row selection). ``sq`` is left unchanged.
     """
-    idx = np.argpartition(sq, 1, axis=1)[:, :2]
-    d = np.take_along_axis(sq, idx, axis=1)
-    swap = d[:, 1] < d[:, 0]
-    idx[swap] = idx[swap][:, ::-1]
-    d[swap] = d[swap][:, ::-1]
-    return idx, np.sqrt(d)
+    rows = np.arange(len(sq))
+    nearest = sq.argmin(axis=1)
+    d1 = sq[rows, nearest]
+    sq[rows, nearest] = np.inf
+    d2 = sq.min(axis=1)
+    sq[rows, nearest] = d1
+    return nearest, np.sqrt(np.stack([d1, d2], axis=1))
 
 
 class SIFTMatcher:
@@ -86,9 +88,9 @@ class SIFTMatcher:
         ratio = dist[:, 0] / np.maximum(dist[:, 1], 1e-12)
         keep = ratio < self.options.ratio
         if self.options.mutual:
-            keep &= np.argmin(sq, axis=0)[i1[:, 0]] == np.arange(len(d0))
+            keep &= np.argmin(sq, axis=0)[i1] == np.arange(len(d0))
         i0 = np.flatnonzero(keep)
-        return Matches(f0.kpts[i0], f1.kpts[i1[i0, 0]], 1.0 - ratio[keep])
+        return Matches(f0.kpts[i0], f1.kpts[i1[i0]], 1.0 - ratio[keep])
 
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
         return [self.extract(im) for im in images]
