@@ -6,8 +6,10 @@ import time
 from contextlib import contextmanager
 from typing import Iterator
 
+import cv2
 import numpy as np
 
+from ..estimate import Estimate
 from ..geometry import Intrinsics, backproject
 
 __all__ = [
@@ -148,3 +150,34 @@ def rotation_is_valid(R: np.ndarray, tol: float = 1e-6) -> bool:
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         return False
     return bool(np.allclose(R.T @ R, np.eye(3), atol=tol * 100) and abs(np.linalg.det(R) - 1) < tol * 100)
+
+
+class GuardedSolver:
+    """Shared shell of the solvers: options dataclass + overrides, and a ``solve`` that never raises.
+
+    Subclasses set ``Options`` and implement ``_solve(matches, K_ref, K_query, depth_ref, depth_query, timer)``,
+    raising ``SolverError`` for expected failures; library errors become "no estimate" with their message too.
+    """
+
+    Options: type
+    _errors: tuple[type[BaseException], ...] = (cv2.error, np.linalg.LinAlgError, ValueError, RuntimeError, MemoryError)
+
+    def __init__(self, options=None, **overrides) -> None:
+        base = options or self.Options()
+        self.options = self.Options(**{**base.__dict__, **overrides})
+
+    def solve(self, matches, K_ref: Intrinsics, K_query: Intrinsics,
+              depth_ref: np.ndarray | None, depth_query: np.ndarray | None = None) -> Estimate:
+        timer = Timer()
+        try:
+            with timer("solve"):
+                est = self._solve(matches, K_ref, K_query, depth_ref, depth_query, timer)
+        except SolverError as e:
+            est = Estimate.failure(str(e))
+        except self._errors as e:
+            est = Estimate.failure(f"solver error: {type(e).__name__}: {str(e).strip()[:200]}")
+        est.timings = {**est.timings, **timer.timings}
+        return est
+
+    def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
+        raise NotImplementedError

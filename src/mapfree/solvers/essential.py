@@ -14,8 +14,8 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose
-from ..matching.base import Matches
 from .common import (
+    GuardedSolver,
     DEPTH_SAMPLING,
     SolverError,
     Timer,
@@ -140,27 +140,11 @@ def relative_pose_poselib(kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, 
     return R, t, ransac_mask, pose_mask
 
 
-class EssentialSolver:
+class EssentialSolver(GuardedSolver):
     """Ess.Mat + D.Scale. ``solve`` never raises on bad input: it returns ``Estimate.failure(reason)``."""
 
     name = "essential"
-
-    def __init__(self, options: EssentialOptions | None = None, **overrides) -> None:
-        base = options or EssentialOptions()
-        self.options = EssentialOptions(**{**base.__dict__, **overrides})
-
-    def solve(self, matches: Matches, K_ref: Intrinsics, K_query: Intrinsics,
-              depth_ref: np.ndarray | None, depth_query: np.ndarray | None) -> Estimate:
-        timer = Timer()
-        try:
-            with timer("solve"):
-                est = self._solve(matches, K_ref, K_query, depth_ref, depth_query, timer)
-        except SolverError as e:
-            est = Estimate.failure(str(e))
-        except (cv2.error, np.linalg.LinAlgError, ValueError, RuntimeError) as e:
-            est = Estimate.failure(f"solver error: {type(e).__name__}: {str(e).strip()[:200]}")
-        est.timings = {**est.timings, **timer.timings}
-        return est
+    Options = EssentialOptions
 
     def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
         opt = self.options

@@ -9,8 +9,8 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose, project
-from ..matching.base import Matches
 from .common import (
+    GuardedSolver,
     DEPTH_SAMPLING,
     SolverError,
     Timer,
@@ -83,29 +83,13 @@ def _pnp_poselib(X: np.ndarray, uv: np.ndarray, K: Intrinsics, opt: PnPOptions):
     return np.asarray(pose.R, dtype=np.float64), np.asarray(pose.t, dtype=np.float64).reshape(3), mask
 
 
-class PnPSolver:
+class PnPSolver(GuardedSolver):
     """2D–3D PnP; uses only the reference depth. Never raises on bad input."""
 
     name = "pnp"
+    Options = PnPOptions
 
-    def __init__(self, options: PnPOptions | None = None, **overrides) -> None:
-        base = options or PnPOptions()
-        self.options = PnPOptions(**{**base.__dict__, **overrides})
-
-    def solve(self, matches: Matches, K_ref: Intrinsics, K_query: Intrinsics,
-              depth_ref: np.ndarray | None, depth_query: np.ndarray | None = None) -> Estimate:
-        timer = Timer()
-        try:
-            with timer("solve"):
-                est = self._solve(matches, K_ref, K_query, depth_ref, timer)
-        except SolverError as e:
-            est = Estimate.failure(str(e))
-        except (cv2.error, np.linalg.LinAlgError, ValueError, RuntimeError) as e:
-            est = Estimate.failure(f"solver error: {type(e).__name__}: {str(e).strip()[:200]}")
-        est.timings = {**est.timings, **timer.timings}
-        return est
-
-    def _solve(self, matches, K_ref, K_query, depth_ref, timer: Timer) -> Estimate:
+    def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
         opt = self.options
         ok = finite_matches(matches.kpts0, matches.kpts1)
         k0, k1 = matches.kpts0[ok], matches.kpts1[ok]

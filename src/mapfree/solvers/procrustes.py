@@ -12,8 +12,8 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose, backproject_depth
-from ..matching.base import Matches
 from .common import (
+    GuardedSolver,
     DEPTH_SAMPLING,
     MAX_DEPTH,
     SolverError,
@@ -122,27 +122,11 @@ def _cloud(depth: np.ndarray, K: Intrinsics, max_points: int) -> np.ndarray:
     return X[::step, ::step][ok[::step, ::step]]
 
 
-class ProcrustesSolver:
+class ProcrustesSolver(GuardedSolver):
     """3D–3D rigid alignment of the matched, back-projected keypoints. Never raises on bad input."""
 
     name = "procrustes"
-
-    def __init__(self, options: ProcrustesOptions | None = None, **overrides) -> None:
-        base = options or ProcrustesOptions()
-        self.options = ProcrustesOptions(**{**base.__dict__, **overrides})
-
-    def solve(self, matches: Matches, K_ref: Intrinsics, K_query: Intrinsics,
-              depth_ref: np.ndarray | None, depth_query: np.ndarray | None) -> Estimate:
-        timer = Timer()
-        try:
-            with timer("solve"):
-                est = self._solve(matches, K_ref, K_query, depth_ref, depth_query, timer)
-        except SolverError as e:
-            est = Estimate.failure(str(e))
-        except (np.linalg.LinAlgError, ValueError, RuntimeError, MemoryError) as e:
-            est = Estimate.failure(f"solver error: {type(e).__name__}: {str(e).strip()[:200]}")
-        est.timings = {**est.timings, **timer.timings}
-        return est
+    Options = ProcrustesOptions
 
     def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
         opt = self.options
