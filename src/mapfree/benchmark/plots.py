@@ -113,9 +113,11 @@ def scene_scatter_figure(report: Report) -> Figure:
         ax.set_xscale("log")
         ax.set_yscale("log")
         plain = FuncFormatter(lambda v, _: f"{v:g}")
+        # Label only the 2x and 5x minor ticks of each decade: every one of them overlaps its neighbours.
+        sparse = FuncFormatter(lambda v, _: f"{v:g}" if v > 0 and round(v / 10 ** np.floor(np.log10(v))) in (2, 5) else "")
         for axis in (ax.xaxis, ax.yaxis):
             axis.set_major_formatter(plain)
-            axis.set_minor_formatter(plain)
+            axis.set_minor_formatter(sparse)
     else:
         ax.text(0.5, 0.5, "no estimates", ha="center", va="center", transform=ax.transAxes)
     tm, rd = report.thresholds.pose[0]
