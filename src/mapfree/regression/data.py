@@ -24,7 +24,7 @@ from .config import DataConfig
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Pair", "sample_pairs", "val_pairs", "PairDataset", "RPRDataModule", "resolve_size", "load_pair_image"]
+__all__ = ["Pair", "pose_statistics", "sample_pairs", "val_pairs", "PairDataset", "RPRDataModule", "resolve_size", "load_pair_image"]
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,28 @@ def sample_pairs(scenes: list[Scene], per_scene: int, rng: np.random.Generator,
     return pairs
 
 
+def pose_statistics(pairs: list[Pair]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Chordal mean rotation (3,3), mean translation (3,) and its per-axis std (3,) of the pairs' targets."""
+    if not pairs:
+        raise ValueError("no pairs to take pose statistics from")
+    scenes: dict[str, Scene] = {}
+    Rs, ts = [], []
+    for p in pairs:
+        scene = scenes.setdefault(p.scene, Scene(Path(p.scene)))
+        f0, f1 = scene.frame(p.name0), scene.frame(p.name1)
+        if f0.pose is None or f1.pose is None:
+            continue
+        rel = f1.pose.relative_to(f0.pose)
+        Rs.append(rel.R)
+        ts.append(rel.t)
+    if not Rs:
+        raise ValueError("no pair with both poses to take statistics from")
+    U, _, Vt = np.linalg.svd(np.mean(Rs, 0))
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    t = np.asarray(ts)
+    return R, t.mean(0), np.maximum(t.std(0), 1e-3)
+
+
 def val_pairs(scenes: list[Scene], every_query: int = 5) -> list[Pair]:
     """Reference–query pairs of val scenes: the benchmark's scored queries (5) or all of them (1)."""
     pairs = []
@@ -71,8 +93,15 @@ def resolve_size(frame_size: tuple[int, int], cfg: DataConfig) -> tuple[int, int
     return (cfg.long_side, cfg.short_side) if w >= h else (cfg.short_side, cfg.long_side)
 
 
-def load_pair_image(frame: Frame, size: tuple[int, int]) -> tuple[np.ndarray, Intrinsics]:
+#: Resized uint8 images kept by ``PairDataset(cache=True)``: small CPU runs revisit the same frames every epoch.
+_IMAGE_CACHE: dict[tuple[str, tuple[int, int]], np.ndarray] = {}
+
+
+def load_pair_image(frame: Frame, size: tuple[int, int], cache: bool = False) -> tuple[np.ndarray, Intrinsics]:
     """(H,W,3) float32 RGB in [0,1] resized to ``size`` = (W,H), with the matching intrinsics."""
+    key = (str(frame.image_path), tuple(size))
+    if cache and key in _IMAGE_CACHE:
+        return _IMAGE_CACHE[key].astype(np.float32) / 255.0, frame.intrinsics.resized(*size)
     img = frame.image()
     h, w = img.shape[:2]
     if (w, h) != (frame.intrinsics.width, frame.intrinsics.height):
@@ -81,6 +110,8 @@ def load_pair_image(frame: Frame, size: tuple[int, int]) -> tuple[np.ndarray, In
     if (w, h) != size:
         interp = cv2.INTER_AREA if size[0] < w else cv2.INTER_LINEAR
         img = cv2.resize(img, size, interpolation=interp)
+    if cache:
+        _IMAGE_CACHE[key] = img
     return img.astype(np.float32) / 255.0, frame.intrinsics.resized(*size)
 
 
@@ -98,9 +129,10 @@ def _photometric(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 class PairDataset(TorchDataset):
     """Map-style dataset of ``Pair`` -> dict of tensors (images, R, t, q, resized and original K)."""
 
-    def __init__(self, pairs: list[Pair], size: tuple[int, int], augment: bool = False, seed: int = 0):
-        self.pairs, self.size, self.augment, self.seed = pairs, size, augment, seed
-        self._scenes: dict[str, Scene] = {}
+    def __init__(self, pairs: list[Pair], size: tuple[int, int], augment: bool = False, seed: int = 0,
+                 cache: bool = False, scenes: dict[str, Scene] | None = None):
+        self.pairs, self.size, self.augment, self.seed, self.cache = pairs, size, augment, seed, cache
+        self._scenes: dict[str, Scene] = {} if scenes is None else scenes
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -116,7 +148,7 @@ class PairDataset(TorchDataset):
         f0, f1 = scene.frame(p.name0), scene.frame(p.name1)
         if f0.pose is None or f1.pose is None:
             raise ValueError(f"{scene.path}/poses.txt: no pose for {p.name0 if f0.pose is None else p.name1}")
-        (im0, k0), (im1, k1) = load_pair_image(f0, self.size), load_pair_image(f1, self.size)
+        (im0, k0), (im1, k1) = load_pair_image(f0, self.size, self.cache), load_pair_image(f1, self.size, self.cache)
         rel = f1.pose.relative_to(f0.pose)
         if self.augment:
             rng = np.random.default_rng([self.seed, i, torch.initial_seed() % (2**32)])
@@ -147,6 +179,7 @@ class RPRDataModule(pl.LightningDataModule):
         self.train_scenes: list[Scene] = []
         self.val_scenes: list[Scene] = []
         self.size: tuple[int, int] | None = None
+        self._scene_cache: dict[str, Scene] = {}  # parsed poses/intrinsics, shared by every epoch's dataset
 
     def setup(self, stage: str | None = None) -> None:
         if self.size is not None:
@@ -176,7 +209,8 @@ class RPRDataModule(pl.LightningDataModule):
         if not pairs:
             raise ValueError(f"{self.cfg.root}/train: no training pairs inside the overlap bounds "
                              f"({self.cfg.min_overlap} < overlap < {self.cfg.max_overlap})")
-        ds = PairDataset(pairs, self.size, self.cfg.augment, seed=self.cfg.seed * 100003 + self._epoch())
+        ds = PairDataset(pairs, self.size, self.cfg.augment, seed=self.cfg.seed * 100003 + self._epoch(),
+                         cache=self.cfg.cache_images, scenes=self._scene_cache)
         return DataLoader(ds, batch_size=self.cfg.batch_size, shuffle=True, num_workers=self.cfg.num_workers,
                           drop_last=len(ds) > self.cfg.batch_size, persistent_workers=False)
 
@@ -188,5 +222,6 @@ class RPRDataModule(pl.LightningDataModule):
         pairs = self.val_pairs()
         if not pairs:
             return []
-        return DataLoader(PairDataset(pairs, self.size, augment=False), batch_size=self.cfg.val_batch_size,
+        return DataLoader(PairDataset(pairs, self.size, augment=False, cache=self.cfg.cache_images,
+                                      scenes=self._scene_cache), batch_size=self.cfg.val_batch_size,
                           shuffle=False, num_workers=self.cfg.num_workers)

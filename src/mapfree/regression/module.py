@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -14,7 +15,7 @@ from .metrics import confidence_from_log_sigma, pose_errors, summarize, vcre_px
 from .model import RPRNet
 from .params import PoseOutput
 
-__all__ = ["RPRModule"]
+__all__ = ["RPRModule", "warmup_cosine"]
 
 
 class RPRModule(pl.LightningModule):
@@ -85,4 +86,19 @@ class RPRModule(pl.LightningModule):
         self._val = []
 
     def configure_optimizers(self):
-        return torch.optim.Adam(self.parameters(), lr=self.cfg.train.lr)
+        tc = self.cfg.train
+        opt = (torch.optim.AdamW(self.parameters(), lr=tc.lr, weight_decay=tc.weight_decay) if tc.weight_decay
+               else torch.optim.Adam(self.parameters(), lr=tc.lr))
+        if tc.scheduler == "none":
+            return opt
+        total = max(int(self.trainer.estimated_stepping_batches), 1) if self.trainer is not None else 1
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda step: warmup_cosine(step, total, tc.warmup_steps))
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+
+def warmup_cosine(step: int, total: int, warmup: int) -> float:
+    """Learning-rate factor: linear warmup over ``warmup`` steps, then cosine decay to 0 at ``total``."""
+    if warmup > 0 and step < warmup:
+        return (step + 1) / warmup
+    progress = min(max(step - warmup, 0) / max(total - warmup, 1), 1.0)
+    return 0.5 * (1.0 + math.cos(math.pi * progress))

@@ -9,8 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+
+from ..geometry import rotmat_to_quat
 
 from .procrustes import procrustes
 from .rotations import (
@@ -82,8 +85,13 @@ class _EulerBins(_Part):
 class _T(_Part):
     dim = 3
 
+    def __init__(self, mean=(0.0, 0.0, 0.0), std=(1.0, 1.0, 1.0)):
+        self.mean, self.std = tuple(float(v) for v in mean), tuple(float(v) for v in std)
+
     def decode(self, x: torch.Tensor, raw: dict) -> torch.Tensor:
-        return x
+        if self.mean == (0.0, 0.0, 0.0) and self.std == (1.0, 1.0, 1.0):
+            return x
+        return x * x.new_tensor(self.std) + x.new_tensor(self.mean)  # normalised output -> metres
 
 
 class _ScaleDir(_Part):
@@ -113,9 +121,11 @@ class _ScaleBins(_Part):
 class Parameterisation:
     """Splits the MLP output into a rotation and a translation part, or [3D-3D] point pairs."""
 
-    def __init__(self, rotation: str = "6d", translation: str = "t", n_points: int = 3, basis: bool = True):
+    def __init__(self, rotation: str = "6d", translation: str = "t", n_points: int = 3, basis: bool = True,
+                 t_mean=(0.0, 0.0, 0.0), t_std=(1.0, 1.0, 1.0), R_mean=None):
         self.rotation, self.translation = rotation, translation
         self.n_points, self.basis = n_points, basis
+        self.R_mean = None if R_mean is None else np.asarray(R_mean, dtype=np.float64).reshape(3, 3)
         if rotation == "3d3d":
             if n_points < 3:
                 raise ValueError("3d3d needs at least 3 point pairs")
@@ -123,7 +133,7 @@ class Parameterisation:
             self._rot = self._trans = None
         else:
             self._rot = {"quat": _Quat, "6d": _SixD, "euler_bins": _EulerBins}[rotation]()
-            self._trans = {"t": _T, "s_tdir": _ScaleDir, "s_tbins": _ScaleBins}[translation]()
+            self._trans = _T(t_mean, t_std) if translation == "t" else {"s_tdir": _ScaleDir, "s_tbins": _ScaleBins}[translation]()
             self.dim = self._rot.dim + self._trans.dim
 
     @property
@@ -137,7 +147,12 @@ class Parameterisation:
     def prior(self) -> list[float]:
         if self._rot is None:
             return [0.0] * self.dim
-        return self._rot.prior() + self._trans.prior()
+        rot = self._rot.prior()
+        if self.R_mean is not None and self.rotation == "6d":  # start at the mean training rotation
+            rot = [*self.R_mean[:, 0], *self.R_mean[:, 1]]
+        elif self.R_mean is not None and self.rotation == "quat":
+            rot = list(rotmat_to_quat(self.R_mean))
+        return [float(v) for v in rot] + self._trans.prior()
 
     def basis_points(self, like: torch.Tensor) -> torch.Tensor:
         """(n,3) fixed points: the scalene triangle, then further generic points for n > 3."""
@@ -164,4 +179,4 @@ class Parameterisation:
 
 def build_parameterisation(cfg) -> Parameterisation:
     """From a ``ModelConfig``."""
-    return Parameterisation(cfg.rotation, cfg.translation, cfg.n_points, cfg.basis)
+    return Parameterisation(cfg.rotation, cfg.translation, cfg.n_points, cfg.basis, cfg.t_mean, cfg.t_std, cfg.R_mean)

@@ -4,23 +4,24 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytorch_lightning as pl
 import yaml
 from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
 from pytorch_lightning.loggers import CSVLogger
 
 from .config import RPRConfig
-from .data import RPRDataModule
+from .data import RPRDataModule, pose_statistics
 from .module import RPRModule
 from .report import plot_curves
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TrainerOptions", "build_trainer", "fit", "config_dir", "resolve_config"]
+__all__ = ["TrainerOptions", "build_trainer", "fit", "with_target_statistics", "config_dir", "resolve_config"]
 
 
 def config_dir() -> Path:
@@ -113,6 +114,8 @@ def fit(cfg: RPRConfig, out: os.PathLike | str, opts: TrainerOptions | None = No
     pl.seed_everything(cfg.train.seed, workers=True, verbose=False)
     dm = RPRDataModule(cfg.data)
     dm.setup("fit")
+    if cfg.data.normalize_targets and resume is None:
+        cfg = with_target_statistics(cfg, dm)
     has_val = bool(dm.val_pairs())
     (out / "config.yaml").write_text(yaml.safe_dump(_plain(cfg.to_dict()), sort_keys=False))
     module = RPRModule(cfg)
@@ -127,6 +130,20 @@ def fit(cfg: RPRConfig, out: os.PathLike | str, opts: TrainerOptions | None = No
         except Exception as e:  # a plot must never lose a finished training run
             log.warning("could not plot %s: %s", csv_path, e)
     return trainer, module
+
+
+def with_target_statistics(cfg: RPRConfig, dm: RPRDataModule, epochs: int = 3) -> RPRConfig:
+    """``cfg`` with ``model.{t_mean,t_std,R_mean}`` from the training pairs of the first ``epochs`` samplings."""
+    pairs = [p for e in range(epochs) for p in dm.train_pairs(e)]
+    if not pairs:
+        return cfg
+    R, t, s = pose_statistics(pairs)
+    if cfg.data.augment:  # swapped pairs have the inverse pose: centre on no motion, widen the scale
+        R, t, s = np.eye(3), np.zeros(3), np.sqrt(s**2 + t**2)
+    log.info("target statistics over %d pairs: t mean %s std %s", len(pairs), np.round(t, 3), np.round(s, 3))
+    model = replace(cfg.model, t_mean=tuple(float(v) for v in t), t_std=tuple(float(v) for v in s),
+                    R_mean=tuple(float(v) for v in R.reshape(-1)))
+    return replace(cfg, model=model).validate()
 
 
 def _plain(x: Any) -> Any:
