@@ -181,3 +181,11 @@ class GuardedSolver:
 
     def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
         raise NotImplementedError
+
+    @staticmethod
+    def _finite_matches(matches, minimum: int) -> tuple[np.ndarray, np.ndarray]:
+        """The matches with finite coordinates; ``SolverError`` when fewer than ``minimum`` remain."""
+        ok = finite_matches(matches.kpts0, matches.kpts1)
+        if ok.sum() < minimum:
+            raise SolverError(f"too few matches ({int(ok.sum())} < {minimum})")
+        return matches.kpts0[ok], matches.kpts1[ok]

@@ -20,7 +20,6 @@ from .common import (
     SolverError,
     Timer,
     backproject_keypoints,
-    finite_matches,
     normalize_points,
     rotation_is_valid,
     sample_depth_at,
@@ -148,11 +147,8 @@ class EssentialSolver(GuardedSolver):
 
     def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
         opt = self.options
-        ok = finite_matches(matches.kpts0, matches.kpts1)
-        k0, k1 = matches.kpts0[ok], matches.kpts1[ok]
+        k0, k1 = self._finite_matches(matches, max(opt.min_matches, 5))
         n = len(k0)
-        if n < max(opt.min_matches, 5):
-            raise SolverError(f"too few matches ({n} < {max(opt.min_matches, 5)})")
         metric = valid_depth_map(depth_ref) and valid_depth_map(depth_query)
         if not metric and not opt.allow_unscaled:
             which = [s for s, d in (("reference", depth_ref), ("query", depth_query)) if not valid_depth_map(d)]

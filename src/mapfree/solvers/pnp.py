@@ -15,7 +15,6 @@ from .common import (
     SolverError,
     Timer,
     backproject_keypoints,
-    finite_matches,
     rotation_is_valid,
     sample_depth_at,
     valid_depth_map,
@@ -91,11 +90,8 @@ class PnPSolver(GuardedSolver):
 
     def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
         opt = self.options
-        ok = finite_matches(matches.kpts0, matches.kpts1)
-        k0, k1 = matches.kpts0[ok], matches.kpts1[ok]
+        k0, k1 = self._finite_matches(matches, max(opt.min_matches, 5))
         n = len(k0)
-        if n < max(opt.min_matches, 5):
-            raise SolverError(f"too few matches ({n} < {max(opt.min_matches, 5)})")
         if not valid_depth_map(depth_ref):
             raise SolverError("no valid depth for the reference image")
         d0 = sample_depth_at(depth_ref, k0, K_ref, opt.depth_sampling)

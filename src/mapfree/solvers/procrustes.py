@@ -19,7 +19,6 @@ from .common import (
     SolverError,
     Timer,
     backproject_keypoints,
-    finite_matches,
     kabsch,
     rotation_is_valid,
     sample_depth_at,
@@ -130,11 +129,8 @@ class ProcrustesSolver(GuardedSolver):
 
     def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
         opt = self.options
-        ok = finite_matches(matches.kpts0, matches.kpts1)
-        k0, k1 = matches.kpts0[ok], matches.kpts1[ok]
+        k0, k1 = self._finite_matches(matches, max(opt.min_matches, 3))
         n = len(k0)
-        if n < max(opt.min_matches, 3):
-            raise SolverError(f"too few matches ({n} < {max(opt.min_matches, 3)})")
         missing = [s for s, d in (("reference", depth_ref), ("query", depth_query)) if not valid_depth_map(d)]
         if missing:
             raise SolverError(f"no valid depth for the {' and '.join(missing)} image")
