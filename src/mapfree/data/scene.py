@@ -15,7 +15,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from ..geometry import Intrinsics, Pose
+from ..geometry import Intrinsics, Pose, quat_to_rotmat
 from .io import FormatError, PoseTable, depth_path_for, read_depth, read_image, read_intrinsics, read_poses
 from .overlaps import Overlaps, read_overlaps
 
@@ -112,9 +112,12 @@ class Scene:
     def frames(self) -> dict[str, Frame]:
         """All frames, in ``intrinsics.txt`` order, with their poses where ``poses.txt`` has them."""
         pose_of: dict[str, Pose | None] = {}
-        if self.poses is not None:
-            idx = self.poses.index()
-            pose_of = {n: self.poses.pose(i) for n, i in idx.items()}
+        table = self.poses
+        if table is not None:
+            valid = np.linalg.norm(table.q, axis=1) > 0  # all-zero lines: private ground truth
+            R = np.zeros((len(table), 3, 3))
+            R[valid] = quat_to_rotmat(table.q[valid])  # one vectorised call, not one per frame
+            pose_of = {n: Pose(R[i], table.t[i]) if valid[i] else None for i, n in enumerate(table.names)}
         return {
             n: Frame(n, self.path / n, k, pose_of.get(n)) for n, k in self.intrinsics.items()
         }
