@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
-import yaml
+from .yamlio import read_yaml
 
 __all__ = [
     "Method", "MATCHERS", "OFFLINE_MATCHERS", "SOLVERS", "DEPTH_ALIASES", "BEST_OFFLINE", "BEST_OFFLINE_REFERENCE_DEPTH",
@@ -153,12 +153,7 @@ def config_dirs() -> list[Path]:
 def load_yaml(path: os.PathLike | str) -> Method:
     """A method from a YAML file. Keys: those of ``Method``; ``extends: NAME`` starts from another method."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        line = f":{mark.line + 1}" if mark is not None else ""
-        raise ValueError(f"{path}{line}: invalid YAML ({getattr(e, 'problem', e)})") from None
+    data = read_yaml(path)
     if not isinstance(data, dict):
         raise ValueError(f"{path}: a method config must be a mapping")
     known = set(Method.__dataclass_fields__) | {"extends"}

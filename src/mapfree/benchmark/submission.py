@@ -184,7 +184,6 @@ def _check_rows(
     keep = np.ones(n, dtype=bool)
 
     def report(mask: np.ndarray, reason, drop: bool = True) -> None:
-        mask = np.asarray(mask, dtype=bool)  # an empty list comprehension would give float64
         for i in np.flatnonzero(mask & keep).tolist():
             problems.add(scene, int(est.lines[i]) or None, reason(i) if callable(reason) else reason)
         if drop:

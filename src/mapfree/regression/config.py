@@ -9,6 +9,8 @@ from typing import Any
 
 import yaml
 
+from ..yamlio import read_yaml
+
 __all__ = ["ModelConfig", "LossConfig", "DataConfig", "TrainConfig", "RPRConfig", "load_config", "apply_overrides"]
 
 ROTATIONS = ("quat", "6d", "euler_bins", "3d3d")
@@ -180,12 +182,7 @@ def load_config(path: os.PathLike | str) -> RPRConfig:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"config {path} not found")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        line = f":{mark.line + 1}" if mark is not None else ""
-        raise ValueError(f"{path}{line}: invalid YAML ({getattr(e, 'problem', e)})") from None
+    data = read_yaml(path)
     try:
         return RPRConfig.from_dict(data, str(path)).validate()
     except ValueError as e:
