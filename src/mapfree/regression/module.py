@@ -29,6 +29,7 @@ class RPRModule(pl.LightningModule):
         self.net = RPRNet(cfg.model)
         self.criterion = PoseLoss(cfg.loss)
         self._val: list[dict[str, np.ndarray]] = []
+        self._features: dict[str, torch.Tensor] = {}  # train.cache_features: image key -> frozen features
 
     def forward(self, img0: torch.Tensor, img1: torch.Tensor) -> PoseOutput:
         return self.net(img0, img1)
@@ -42,14 +43,30 @@ class RPRModule(pl.LightningModule):
         if self.cfg.train.channels_last:
             img0 = img0.contiguous(memory_format=torch.channels_last)
             img1 = img1.contiguous(memory_format=torch.channels_last)
-        out = self.net(img0, img1)
+        if self.cfg.train.cache_features and "key0" in batch:
+            out = self.net.from_features(self._cached(batch["key0"], img0), self._cached(batch["key1"], img1))
+        else:
+            out = self.net(img0, img1)
         return out, self.criterion(out, batch["R"], batch["t"], batch.get("q"))
+
+    def _cached(self, keys: list[str], images: torch.Tensor) -> torch.Tensor:
+        """Frozen-encoder features of ``images`` (B,3,H,W), computed once per distinct key and kept in float16."""
+        todo: dict[str, int] = {}
+        for i, k in enumerate(keys):
+            if k not in self._features:
+                todo.setdefault(k, i)
+        if todo:
+            with torch.no_grad():
+                feats = self.net.encode(images[list(todo.values())])
+            for k, f in zip(todo, feats):
+                self._features[k] = f.to(torch.float16)
+        return torch.stack([self._features[k] for k in keys]).float()
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         _, terms = self._step(batch)
         bs = batch["img0"].shape[0]
         self.log("train/loss", terms["loss"], prog_bar=True, batch_size=bs, sync_dist=False)
-        for k in ("loss_rot", "loss_trans", "loss_nll"):
+        for k in ("loss_rot", "loss_trans", "loss_vp", "loss_nll"):
             if k in terms:
                 self.log(f"train/{k}", terms[k], batch_size=bs)
         if self.cfg.loss.weighting == "learned":

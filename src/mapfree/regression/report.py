@@ -77,8 +77,13 @@ def _read_csv(path: Path) -> dict[str, list[tuple[float, float]]]:
     return series
 
 
-def plot_curves(metrics_csv: os.PathLike | str, out_png: os.PathLike | str, title: str = "") -> Path:
-    """Loss curves (train per step, val per epoch) and validation VCRE precision/AUC from Lightning's CSV log."""
+def plot_curves(metrics_csv: os.PathLike | str, out_png: os.PathLike | str, title: str = "",
+                baselines: dict[str, float] | None = None) -> Path:
+    """Loss curves (train per step, val per epoch) and validation VCRE precision/AUC from Lightning's CSV log.
+
+    ``baselines``: label -> value drawn as dashed horizontal lines on the validation panel (e.g. the
+    mean training pose's precision on the same pairs).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -86,7 +91,7 @@ def plot_curves(metrics_csv: os.PathLike | str, out_png: os.PathLike | str, titl
 
     s = _read_csv(Path(metrics_csv))
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4))
-    for key, style in (("train/loss", "-"), ("train/loss_rot", ":"), ("train/loss_trans", ":"),
+    for key, style in (("train/loss", "-"), ("train/loss_rot", ":"), ("train/loss_trans", ":"), ("train/loss_vp", ":"),
                        ("val/loss", "o-"), ("val/loss_pose", "s-")):
         if key in s:
             x, y = zip(*s[key])
@@ -99,6 +104,8 @@ def plot_curves(metrics_csv: os.PathLike | str, out_png: os.PathLike | str, titl
         if key in s:
             x, y = zip(*s[key])
             ax1.plot(x, y, "o-", label=key, ms=4)
+    for i, (label, value) in enumerate((baselines or {}).items()):
+        ax1.axhline(value, ls="--", lw=1, color=f"C{i + 3}", label=label)
     ax1.set_xlabel("step")
     ax1.set_ylim(0, 1)
     ax1.set_title("validation (VCRE < 90 px)")
