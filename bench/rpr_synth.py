@@ -84,7 +84,7 @@ def main() -> None:
     for name, m in res.items():
         table.add_row(name, f"{m['vcre_prec']:.3f}", f"{m['vcre_auc']:.3f}", f"{m['vcre_med']:.0f}",
                       f"{m['trans_err_med']:.2f}", f"{m['rot_err_med']:.1f}")
-    Console().print(table)
+    Console(width=120).print(table)
     base, model = res["mean training pose"]["vcre_prec"], res["model (last.ckpt)"]["vcre_prec"]
     print(f"model / mean pose precision: {model / max(base, 1e-9):.2f}x; curves: {png}; "
           f"total {time.perf_counter() - t0:.0f} s")

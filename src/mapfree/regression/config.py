@@ -93,7 +93,9 @@ class TrainConfig:
     precision: str = "32-true"
     channels_last: bool = False  # NHWC tensors: faster convolutions on CPUs and tensor cores (bench_train.py)
     # Frozen encoder only: keep each image's features (float16, ~100 kB at 256×192) and run the encoder once
-    # per image instead of once per pair; ~10× faster training on CPU (bench_train.py). Needs data.augment: false.
+    # per image instead of once per pair: 3.5× the training pairs/s on CPU (bench_train.py). Needs
+    # data.augment: false. Memory grows with the distinct images seen: 2 GB for 20k frames, too much for the
+    # full Map-free train split (~0.5M frames).
     cache_features: bool = False
     monitor: str = "val/loss"
     monitor_mode: str = "min"
