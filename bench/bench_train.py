@@ -56,7 +56,7 @@ def measure(cfg, device: torch.device, batch: int, steps: int, warmup: int, amp:
     dtype = torch.bfloat16 if device.type == "cpu" or torch.cuda.is_bf16_supported() else torch.float16
     if cached:
         with torch.no_grad():
-            f0, f1 = net.encode(data["img0"]), net.encode(data["img1"])
+            f0, f1 = net.encoder(data["img0"]), net.encoder(data["img1"])
 
     def step() -> None:
         with torch.autocast(device_type=device.type, dtype=dtype, enabled=amp):

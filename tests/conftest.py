@@ -27,3 +27,14 @@ def realmini() -> Path:
     if REALMINI is None:
         pytest.fail("shared/data/realmini-dev not found beside the checkout")
     return REALMINI
+
+
+@pytest.fixture
+def one_torch_thread():
+    """One intra-op thread: the CI machine's cores are shared, and spinning thread pools slow tiny nets 50x."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -25,12 +25,7 @@ W, H = 80, 60  # written image size; the network sees 64×48
 OVERLAP_VALUES = (0.4, 0.8, 0.41, 0.79, 0.6, 0.2, 0.95, 0.5, 0.39999, 0.80001)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _pose(rng: np.random.Generator, angle: float = 0.3, dist: float = 1.0) -> Pose:

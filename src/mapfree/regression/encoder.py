@@ -9,7 +9,21 @@ import torch.nn.functional as F
 __all__ = ["PreActBottleneck", "PreActBlock", "ResUNet"]
 
 
-class PreActBottleneck(nn.Module):
+class _PreActResidual(nn.Module):
+    """Shared shell: BN-ReLU first, then ``residual`` plus an identity or projection (of the activated input) skip."""
+
+    bn1: nn.BatchNorm2d
+    skip: nn.Module | None
+
+    def residual(self, y: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = F.relu(self.bn1(x))
+        return self.residual(y) + (x if self.skip is None else self.skip(y))
+
+
+class PreActBottleneck(_PreActResidual):
     """BN-ReLU-conv1×1 → BN-ReLU-conv3×3 (stride) → BN-ReLU-conv1×1, with an identity or projection skip."""
 
     def __init__(self, cin: int, cout: int, stride: int = 1):
@@ -20,16 +34,11 @@ class PreActBottleneck(nn.Module):
         self.bn3, self.conv3 = nn.BatchNorm2d(mid), nn.Conv2d(mid, cout, 1, bias=False)
         self.skip = nn.Conv2d(cin, cout, 1, stride, bias=False) if stride != 1 or cin != cout else None
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = F.relu(self.bn1(x))
-        skip = x if self.skip is None else self.skip(y)
-        y = self.conv1(y)
-        y = self.conv2(F.relu(self.bn2(y)))
-        y = self.conv3(F.relu(self.bn3(y)))
-        return y + skip
+    def residual(self, y: torch.Tensor) -> torch.Tensor:
+        return self.conv3(F.relu(self.bn3(self.conv2(F.relu(self.bn2(self.conv1(y)))))))
 
 
-class PreActBlock(nn.Module):
+class PreActBlock(_PreActResidual):
     """Basic pre-activation residual block (two 3×3 convs), used by the decoder and the pose head."""
 
     def __init__(self, cin: int, cout: int, stride: int = 1):
@@ -38,12 +47,8 @@ class PreActBlock(nn.Module):
         self.bn2, self.conv2 = nn.BatchNorm2d(cout), nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
         self.skip = nn.Conv2d(cin, cout, 1, stride, bias=False) if stride != 1 or cin != cout else None
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = F.relu(self.bn1(x))
-        skip = x if self.skip is None else self.skip(y)
-        y = self.conv1(y)
-        y = self.conv2(F.relu(self.bn2(y)))
-        return y + skip
+    def residual(self, y: torch.Tensor) -> torch.Tensor:
+        return self.conv2(F.relu(self.bn2(self.conv1(y))))
 
 
 def _stage(cin: int, cout: int, blocks: int, stride: int) -> nn.Sequential:

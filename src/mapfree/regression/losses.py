@@ -6,6 +6,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from .metrics import virtual_points
 from .params import PoseOutput
 from .rotations import EULER_BINS, SPHERICAL_BINS, angle_between, bin_index, direction_to_spherical, euler_from_matrix, geodesic_angle, _safe_norm
 
@@ -59,14 +60,6 @@ def translation_loss(kind: str, out: PoseOutput, t_gt: torch.Tensor) -> torch.Te
     raise ValueError(f"unknown translation loss {kind!r} (known: {', '.join(TRANSLATION_LOSSES)})")
 
 
-def _vcre_grid(device: torch.device, dtype: torch.dtype) -> torch.Tensor:
-    """The VCRE's 196 virtual points (7 x 4 x 7 grid, 1.8-3.6 m deep) in the query camera, (196, 3)."""
-    x = torch.linspace(-0.9, 0.9, 7, device=device, dtype=dtype)
-    y = torch.tensor([-0.45, -0.15, 0.15, 0.45], device=device, dtype=dtype)
-    z = torch.linspace(1.8, 3.6, 7, device=device, dtype=dtype)
-    return torch.stack(torch.meshgrid(x, y, z, indexing="ij"), -1).reshape(-1, 3)
-
-
 def virtual_point_loss(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torch.Tensor:
     """(B,) mean 3D distance (m) by which the estimate moves the VCRE's virtual points: the metric's 3D analogue.
 
@@ -74,7 +67,7 @@ def virtual_point_loss(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) 
     displaces points metres away), where ``L_R + λ L_t`` weighs them by a hand-picked λ.
     """
     dt = torch.promote_types(out.R.dtype, torch.float32)  # float32 at least, also under mixed precision
-    X = _vcre_grid(R_gt.device, dt)  # in the true query camera
+    X = torch.as_tensor(virtual_points(), device=R_gt.device, dtype=dt)  # in the true query camera
     R_rel = out.R.to(dt) @ R_gt.to(dt).transpose(1, 2)  # true query camera -> estimated query camera
     Xe = torch.einsum("bij,nj->bni", R_rel, X) - (R_rel @ t_gt.to(dt).unsqueeze(-1)).transpose(1, 2) \
         + out.t.to(dt).unsqueeze(1)

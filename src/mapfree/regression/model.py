@@ -50,12 +50,9 @@ class RPRNet(nn.Module):
         """True when no encoder weight trains (XFeat): its features of an image never change."""
         return not any(p.requires_grad for p in self.encoder.parameters())
 
-    def encode(self, images: torch.Tensor) -> torch.Tensor:
-        return self.encoder(images)
-
     def forward(self, img0: torch.Tensor, img1: torch.Tensor) -> PoseOutput:
         B = img0.shape[0]
-        feats = self.encode(torch.cat([img0, img1], 0))  # shared weights: one pass over both images
+        feats = self.encoder(torch.cat([img0, img1], 0))  # shared weights: one pass over both images
         return self.from_features(feats[:B], feats[B:])
 
     def from_features(self, f0: torch.Tensor, f1: torch.Tensor) -> PoseOutput:

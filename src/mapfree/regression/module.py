@@ -57,7 +57,7 @@ class RPRModule(pl.LightningModule):
                 todo.setdefault(k, i)
         if todo:
             with torch.no_grad():
-                feats = self.net.encode(images[list(todo.values())])
+                feats = self.net.encoder(images[list(todo.values())])
             for k, f in zip(todo, feats):
                 self._features[k] = f.to(torch.float16)
         return torch.stack([self._features[k] for k in keys]).float()
