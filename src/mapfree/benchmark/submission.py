@@ -37,6 +37,7 @@ __all__ = [
 
 COMPAT_MODES = ("default", "official")
 _ENTRY_RE = re.compile(r"^pose_(s\d{5})\.txt$")
+_BOM = b"\xef\xbb\xbf"
 _FIELDS = ("name", "qw", "qx", "qy", "qz", "tx", "ty", "tz", "confidence")
 
 
@@ -163,7 +164,10 @@ def _parse_file_slow(scene: str, data: bytes, compat: str, problems: _Problems):
 
 
 def _parse_file(scene: str, data: bytes, compat: str, problems: _Problems):
-    """(names, frame numbers, (n,8) values, (n,8) rejected-token mask, line numbers) of one pose file."""
+    """(names, frame numbers, (n,8) values, (n,8) rejected-token mask, line numbers) of one pose file.
+    A UTF-8 byte-order mark (Windows editors write one) is not part of the first frame's name."""
+    if data.startswith(_BOM):
+        data = data[len(_BOM):]
     table = scan_table(data, 8)
     if table is None:
         return _parse_file_slow(scene, data, compat, problems)
