@@ -77,7 +77,8 @@ def test_val_split_reads_back_in_mapfree_layout(val_root):
     scenes = Dataset(val_root).scenes("val")
     assert [s.name for s in scenes] == ["s00000", "s00001"]
     for scene in scenes:
-        assert set(p.name for p in scene.path.iterdir()) == {"intrinsics.txt", "poses.txt", "seq0", "seq1"}
+        assert set(p.name for p in scene.path.iterdir()) == {"intrinsics.txt", "poses.txt", "poses_device.txt",
+                                                             "seq0", "seq1"}
         assert scene.poses.names == list(scene.intrinsics) and len(scene.queries) == 10
         ref = scene.reference
         assert np.allclose(ref.pose.R, np.eye(3)) and np.allclose(ref.pose.t, 0)

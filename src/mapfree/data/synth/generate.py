@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from ...geometry import Intrinsics, Pose
+from ..device import DEVICE_FILE, DriftModel, multiframe_bursts, rebase_bursts, simulate_device_trajectory, write_device_poses
 from ..io import depth_path_for, write_depth, write_intrinsics, write_poses
 from ..overlaps import Overlaps, write_overlaps
 from ..scene import SPLITS
@@ -51,6 +52,7 @@ class SynthOptions:
     points_per_frame: int = 300  # "SfM" points each train frame contributes to the set behind overlaps.npz
     ref_distance: tuple[float, float] = (1.5, 5.0)  # reference camera distance from the object's side (m)
     mono: MonoDepthModel = field(default_factory=MonoDepthModel)
+    drift: DriftModel = field(default_factory=DriftModel)  # device tracking of val/test queries (poses_device.txt)
     write_mono: bool = True
     texture_size: int = 512
     workers: int = 1  # scenes rendered in parallel processes (output is identical for any value)
@@ -71,9 +73,11 @@ class _Scan:
 
 
 def _streams(seed: int, split: str, number: int) -> list[np.random.Generator]:
-    """Independent generators for world, cameras, lighting, noise and depth of one scene."""
+    """Independent generators for world, cameras, lighting, noise, depth and device tracking of one scene.
+
+    ``spawn`` children depend only on their index, so adding a stream leaves the others' draws unchanged."""
     ss = np.random.SeedSequence([int(seed), SPLITS.index(split), int(number)])
-    return [np.random.default_rng(s) for s in ss.spawn(5)]
+    return [np.random.default_rng(s) for s in ss.spawn(6)]
 
 
 class _FrameWriter:
@@ -116,7 +120,7 @@ def _name(seq: int, i: int) -> str:
 
 
 def _train_scene(out: Path, world: World, opts: SynthOptions, rngs: list[np.random.Generator]) -> None:
-    _, cam, lit, noise, drng = rngs
+    _, cam, lit, noise, drng, _ = rngs
     n = opts.train_frames
     theta0 = cam.uniform(0, 2 * np.pi)
     scans = []
@@ -164,7 +168,7 @@ def _look_away(cam: np.random.Generator, world: World, center: np.ndarray, ref: 
 
 def _pair_scene(out: Path, world: World, opts: SynthOptions, rngs: list[np.random.Generator], n_queries: int,
                 hide_poses: bool, private_dir: Path | None) -> None:
-    _, cam, lit, noise, drng = rngs
+    _, cam, lit, noise, drng, device_rng = rngs
     o = world.object_radius
     # The reference photographs the place of interest: a mural from its painted side, a sculpture from anywhere.
     theta = cam.uniform(0, 2 * np.pi)
@@ -205,6 +209,12 @@ def _pair_scene(out: Path, world: World, opts: SynthOptions, rngs: list[np.rando
     rel[0] = Pose.identity()
     write_intrinsics(out / "intrinsics.txt", intr)
     write_poses(out / "poses.txt", names, [None] * len(names) if hide_poses else rel)
+    # The phone's own tracking of the query scan (public in test too): drifting, re-based per burst;
+    # no file when the scene has too few queries for a multi-frame burst.
+    device = simulate_device_trajectory(poses[1:], np.array([0.0, 0.0, 1.0]), device_rng, opts.drift)
+    bursts = multiframe_bursts(names)
+    if bursts:
+        write_device_poses(out / DEVICE_FILE, rebase_bursts(dict(zip(names[1:], device)), bursts))
     if private_dir is not None:
         private_dir.mkdir(parents=True, exist_ok=True)
         write_intrinsics(private_dir / "intrinsics.txt", intr)
