@@ -44,15 +44,17 @@ def evaluate(
     truth: Mapping[str, SceneTruth] | None = None,
     limits: SubmissionLimits | None = None,
     thresholds: Thresholds = Thresholds(),
+    track: str = "single",
 ) -> Report:
     """Score a submission (ZIP path/bytes/file, or ``{scene: [(frame_name, Pose, confidence), ...]}``).
 
     Ground truth comes from ``gt_root/SPLIT`` when given (private test poses), else ``dataset_root/SPLIT``;
     pass ``truth`` (from ``load_truth``) to score many submissions against one loaded split.
+    ``track="multi"`` scores the frames of the multi-frame leaderboard (queries 9, 19, 29, …) instead.
     """
     if compat not in COMPAT_MODES:
         raise ValueError(f"compat must be one of {COMPAT_MODES}, got {compat!r}")
-    truth = truth if truth is not None else load_truth(dataset_root, split, gt_root)
+    truth = truth if truth is not None else load_truth(dataset_root, split, gt_root, track=track)
     expected = {s: t.frame_names for s, t in truth.items()}
     if isinstance(submission, Mapping):
         estimates, problems = from_estimates(submission, expected, compat)

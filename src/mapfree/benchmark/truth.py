@@ -5,6 +5,9 @@ number replaces the value but keeps the first line's position, so the reference 
 gives its slot to ``seq1/frame_00000.jpg``; lines with a zero quaternion (private test poses) are
 skipped; every 5th position is evaluated. Intrinsics are keyed the same way (the last line wins), held
 in float32, and the image size comes from the last line of ``intrinsics.txt`` (SPEC §3).
+
+The multi-frame track (``track="multi"``) evaluates instead the queries its leaderboard scores: linear
+index 9, 19, 29, … of the ``seq1`` frames sorted by number (``mapfree.data.multiframe_bursts``).
 """
 
 from __future__ import annotations
@@ -16,13 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import Dataset, FormatError, frame_number
+from ..data import Dataset, FormatError, frame_number, multiframe_bursts
 from ..data.io import iter_records
 from .tables import scan_table
 
-__all__ = ["SceneTruth", "load_scene_truth", "load_truth", "EVERY"]
+__all__ = ["SceneTruth", "load_scene_truth", "load_truth", "EVERY", "TRACKS"]
 
 EVERY = 5  # 1-in-5 subsampling of the query list
+TRACKS = ("single", "multi")  # the leaderboards: one query frame, or a burst of 9 with device poses
 _ZERO = 1e-8  # a quaternion this short is "zero" (the public evaluator's np.isclose(norm, 0))
 
 
@@ -138,6 +142,16 @@ def _load_poses(path: Path, every: int):
     return evaluated, ukeys[::every], vals[rows, :4], vals[rows, 4:], len(ukeys), FrameNames(evaluated, lambda: names)
 
 
+def _load_poses_multi(path: Path):
+    """(names, keys, q, t, n_keys, all names) of the queries the multi-frame track scores."""
+    names, keys, vals = _poses_slow(path)
+    last = {n: i for i, n in enumerate(names)}  # the public loader keys poses by name: the last line wins
+    rows = np.array([last[q] for q, _ in multiframe_bursts(names)], dtype=np.int64)
+    evaluated = [names[i] for i in rows]
+    n_keys = len(np.unique(keys))
+    return evaluated, keys[rows], vals[rows, :4], vals[rows, 4:], n_keys, FrameNames(evaluated, lambda: names)
+
+
 def _load_intrinsics(path: Path, keys: np.ndarray) -> tuple[np.ndarray, float, float]:
     """float32 (fx fy cx cy) for each key (last line with that number wins) and W, H of the last line."""
     table = scan_table(_read(path), 6)
@@ -161,11 +175,15 @@ def _load_intrinsics(path: Path, keys: np.ndarray) -> tuple[np.ndarray, float, f
 
 
 def load_scene_truth(
-    poses_path: os.PathLike | str, intrinsics_path: os.PathLike | str, scene: str | None = None, every: int = EVERY
+    poses_path: os.PathLike | str, intrinsics_path: os.PathLike | str, scene: str | None = None, every: int = EVERY,
+    track: str = "single",
 ) -> SceneTruth:
-    """Read one scene's ground truth (``poses.txt`` + ``intrinsics.txt``)."""
+    """Read one scene's ground truth (``poses.txt`` + ``intrinsics.txt``) for the single- or multi-frame track."""
+    if track not in TRACKS:
+        raise ValueError(f"track must be one of {TRACKS}, got {track!r}")
     poses_path, intrinsics_path = Path(poses_path), Path(intrinsics_path)
-    names, keys, q, t, n_keys, all_names = _load_poses(poses_path, every)
+    load = _load_poses(poses_path, every) if track == "single" else _load_poses_multi(poses_path)
+    names, keys, q, t, n_keys, all_names = load
     K, W, H = _load_intrinsics(intrinsics_path, keys)
     if not (W > 0 and H > 0):
         raise FormatError(intrinsics_path, None, "image size must be positive")
@@ -173,12 +191,14 @@ def load_scene_truth(
 
 
 def load_truth(
-    dataset_root: os.PathLike | str | None, split: str = "val", gt_root: os.PathLike | str | None = None
+    dataset_root: os.PathLike | str | None, split: str = "val", gt_root: os.PathLike | str | None = None,
+    track: str = "single",
 ) -> dict[str, SceneTruth]:
     """Ground truth of every scene of a split, by scene name.
 
     ``gt_root`` (optional) holds ``SPLIT/sNNNNN/poses.txt`` (+ ``intrinsics.txt``) with private poses;
     its scenes define the split, and intrinsics missing there are read from ``dataset_root``.
+    ``track``: "single" (every 5th query) or "multi" (the multi-frame leaderboard's queries 9, 19, …).
     """
     if gt_root is None and dataset_root is None:
         raise ValueError("need a dataset root or a ground-truth root")
@@ -192,7 +212,7 @@ def load_truth(
         intr = d / "intrinsics.txt"
         if not intr.is_file() and dataset_root is not None:
             intr = Path(dataset_root) / split / name / "intrinsics.txt"
-        truth = load_scene_truth(d / "poses.txt", intr, name)
+        truth = load_scene_truth(d / "poses.txt", intr, name, track=track)
         out[name] = truth
     if all(t.n_keys == 0 for t in out.values()):
         raise FormatError(

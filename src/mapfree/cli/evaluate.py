@@ -21,6 +21,9 @@ def register(subparsers) -> None:
     p.add_argument("--dataset", required=False, default=None, help="dataset root holding SPLIT/sNNNNN/")
     p.add_argument("--split", default="val", choices=("train", "val", "test"), help="split to score (default val)")
     p.add_argument("--gt-root", default=None, help="root with private ground truth SPLIT/sNNNNN/poses.txt")
+    p.add_argument("--track", default="single", choices=("single", "multi"),
+                   help="leaderboard whose frames are scored: 'single' (every 5th query, default) or 'multi' "
+                        "(the multi-frame track: queries 9, 19, 29, … of each scene)")
     p.add_argument("--compat", default="default", choices=("default", "official"),
                    help="'official' reproduces the public evaluator's quirks, for leaderboard-comparable numbers")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -38,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
         print("error: give --dataset (and/or --gt-root)", file=sys.stderr)
         return 2
     try:
-        report = evaluate(args.submission, args.dataset, args.split, compat=args.compat, gt_root=args.gt_root)
+        report = evaluate(args.submission, args.dataset, args.split, compat=args.compat, gt_root=args.gt_root,
+                          track=args.track)
     except (EvaluationError, FormatError, FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

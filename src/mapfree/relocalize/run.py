@@ -233,11 +233,13 @@ def run_split(
     confidence: str | None = None,
     scenes: Sequence[str] | None = None,
     progress: bool = True,
+    select: Callable[[Scene], list[str]] | None = None,
 ) -> RunResult:
     """Relocalize every (scored) query of ``split`` and write a submission ZIP at ``output``.
 
     ``method``: a name, YAML path or ``Method``. ``confidence``: a key of the solver's extra scores to use
     as the submission confidence instead of the method's own. With ``resume`` the journal's frames are kept.
+    ``select`` (optional) names the frames to run in a scene instead (the multi-frame track's bursts).
     """
     from ..methods import Method, get
 
@@ -268,7 +270,8 @@ def run_split(
     done = {(r["scene"], r["frame"]) for r in recs}
     todo: list[tuple[Scene, list[str]]] = []
     for s in scene_list:
-        names = [f for f in frames_to_run(s, all_frames) if (s.name, f) not in done]
+        wanted_frames = select(s) if select is not None else frames_to_run(s, all_frames)
+        names = [f for f in wanted_frames if (s.name, f) not in done]
         if names:
             todo.append((s, names))
     total = sum(len(f) for _, f in todo)
