@@ -35,6 +35,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, default=Path("submission.zip"), help="submission ZIP to write")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes (over scenes)")
     p.add_argument("--all-frames", action="store_true", help="every query, not only the scored ones")
+    p.add_argument("--track", default="single", choices=("single", "multi"),
+                   help="'multi': the multi-frame track — relocalize each scored query's 9-frame burst, fuse "
+                        "them through poses_device.txt (derived from ground truth with simulated drift when a "
+                        "scene has none); per-frame results go to OUTPUT.frames.zip")
     p.add_argument("--resume", action="store_true", help="continue the run journaled beside OUTPUT")
     p.add_argument("--overwrite", action="store_true", help="discard an existing journal and start again")
     p.add_argument("--scenes", help="comma-separated scene names (default: all)")
@@ -67,10 +71,13 @@ def run(args: argparse.Namespace) -> int:
         method = args.method
         if getattr(args, "checkpoint", None) is not None:
             method = _with_checkpoint(method, args.checkpoint)
-        res = run_split(args.root, args.split, method, args.output, workers=args.workers,
-                        all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
-                        confidence=args.confidence, progress=not args.no_progress,
-                        scenes=args.scenes.split(",") if args.scenes else None)
+        run = run_split
+        if args.track == "multi":
+            from ..relocalize.multiframe import run_multi as run
+        res = run(args.root, args.split, method, args.output, workers=args.workers,
+                  all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
+                  confidence=args.confidence, progress=not args.no_progress,
+                  scenes=args.scenes.split(",") if args.scenes else None)
     except (FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree run: error: {msg}", file=sys.stderr)
@@ -79,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     if args.evaluate:
         from ..benchmark import evaluate
 
-        out["metrics"] = evaluate(res.submission, args.root, args.split).metrics
+        out["metrics"] = evaluate(res.submission, args.root, args.split, track=args.track).metrics
     print(json.dumps(out, indent=2, allow_nan=False))
     return 0
 

@@ -1,0 +1,223 @@
+"""The multi-frame track: relocalize every frame of a query's burst, move them to the query, fuse robustly.
+
+Each of the 9 frames of a burst (the scored query and the 8 before it) is relocalized against the reference
+on its own. The phone's tracking (``poses_device.txt``) carries each estimate to the scored query:
+``T_query = (D_query · D_frame⁻¹) · T_frame``. The hypotheses are then fused:
+
+1. consensus: every hypothesis proposes itself; the others agree with it when their rotation is within
+   ``rotation_deg`` and their camera centre within ``translation_m`` (+ ``translation_rel`` of the distance
+   to the reference, so far queries tolerate proportionally more); the proposal with the most
+   confidence-weighted agreement wins (RANSAC over at most 9 hypotheses: exhaustive);
+2. the agreeing set is averaged (weighted chordal rotation mean, weighted centre) and re-selected around
+   the average until stable;
+3. the fused confidence is the agreeing confidence times the fraction of the burst that agrees, so a pose
+   nine frames confirm outranks one a single frame proposes.
+
+Frames without an estimate or a device pose are skipped; a burst with no hypothesis is "no estimate".
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..data import Dataset, DevicePoses, Scene, load_device_poses, scene_bursts
+from ..estimate import Estimate
+from ..geometry import Pose
+from .run import RunResult, failures_path, read_journal, run_split
+
+__all__ = ["FusionOptions", "Hypothesis", "hypotheses", "fuse", "frames_path", "MultiRunResult", "run_multi"]
+
+
+@dataclass(frozen=True)
+class FusionOptions:
+    """Consensus thresholds of the burst fusion."""
+
+    rotation_deg: float = 10.0  # hypotheses this close in rotation …
+    translation_m: float = 0.3  # … and this close in camera centre (metres) …
+    translation_rel: float = 0.1  # … plus this fraction of their distance to the reference agree
+    iterations: int = 3  # re-average and re-select around the average at most this often
+
+
+@dataclass
+class Hypothesis:
+    """The scored query's world-to-camera pose implied by one frame of its burst."""
+
+    frame: str
+    pose: Pose
+    confidence: float
+
+
+def hypotheses(query: str, burst: Sequence[str], estimates: Mapping[str, tuple[Pose, float]],
+               device: DevicePoses) -> list[Hypothesis]:
+    """Bring each burst frame's estimate (world-to-camera, confidence) to ``query`` through the device poses."""
+    out = []
+    for name in burst:
+        if name not in estimates:
+            continue
+        pose, conf = estimates[name]
+        if name == query:
+            out.append(Hypothesis(name, pose, conf))
+            continue
+        to_query = device.relative(name, query)
+        if to_query is not None:
+            out.append(Hypothesis(name, to_query @ pose, conf))
+    return out
+
+
+def _agree(R: np.ndarray, C: np.ndarray, R0: np.ndarray, c0: np.ndarray, opts: FusionOptions) -> np.ndarray:
+    """(n, m) whether hypothesis i agrees with candidate j (rotations R0[j], centres c0[j])."""
+    cos = (np.einsum("iab,jab->ij", R, R0) - 1.0) / 2.0
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    dist = np.linalg.norm(C[:, None] - c0[None], axis=2)
+    tol = opts.translation_m + opts.translation_rel * 0.5 * (np.linalg.norm(C, axis=1)[:, None]
+                                                             + np.linalg.norm(c0, axis=1)[None])
+    return (angle < opts.rotation_deg) & (dist < tol)
+
+
+def _mean(R: np.ndarray, C: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return Rotation.from_matrix(R).mean(weights=w).as_matrix(), (w[:, None] * C).sum(0) / w.sum()
+
+
+def fuse(hyps: Sequence[Hypothesis], n_frames: int | None = None, options: FusionOptions = FusionOptions()) -> Estimate:
+    """One pose for the scored query from its burst's hypotheses (robust, confidence-weighted; see module doc).
+
+    ``n_frames``: the burst's size (frames without a hypothesis count against the agreement); default len(hyps).
+    """
+    hyps = [h for h in hyps if h.pose.is_finite()]
+    n_frames = max(n_frames or len(hyps), len(hyps))
+    if not hyps:
+        return Estimate.failure("no frame of the burst has an estimate")
+    R = np.stack([h.pose.R for h in hyps])
+    C = np.stack([h.pose.center for h in hyps])
+    conf = np.array([max(float(h.confidence), 0.0) for h in hyps])
+    top = conf.max()
+    w = np.maximum(conf, 1e-3 * top) if top > 0 else np.ones(len(hyps))  # all-zero confidences: equal votes
+    agree = _agree(R, C, R, C, options)
+    support = w @ agree  # confidence-weighted agreement with each proposal
+    inl = agree[:, int(np.argmax(support + 1e-9 * w))]
+    for _ in range(options.iterations):
+        R_m, c_m = _mean(R[inl], C[inl], w[inl])
+        again = _agree(R, C, R_m[None], c_m[None], options)[:, 0]
+        if not again.any() or np.array_equal(again, inl):
+            break
+        inl = again
+    R_m, c_m = _mean(R[inl], C[inl], w[inl])
+    k = int(inl.sum())
+    fused_conf = float(w[inl].sum()) * k / n_frames
+    pose = Pose(R_m, -R_m @ c_m)
+    spread_deg = float(np.degrees(Rotation.from_matrix(R[inl] @ R_m.T).magnitude()).max())
+    extras = {"support": k, "hypotheses": len(hyps), "frames": n_frames, "spread_deg": spread_deg,
+              "spread_m": float(np.linalg.norm(C[inl] - c_m, axis=1).max()),
+              "frames_used": [h.frame for h, used in zip(hyps, inl) if used]}
+    return Estimate(pose, fused_conf, k, "", {}, extras)
+
+
+# --------------------------------------------------------------------------- a whole split
+
+
+def _beside(output: os.PathLike | str, suffix: str) -> Path:
+    p = Path(output)
+    return p.with_name(f"{p.stem}.{suffix}")
+
+
+def frames_path(output: os.PathLike | str) -> Path:
+    """``out/multi.zip`` -> ``out/multi.frames.zip``: the single-frame estimates of every burst frame."""
+    return _beside(output, "frames.zip")
+
+
+def fusion_path(output: os.PathLike | str) -> Path:
+    """``out/multi.zip`` -> ``out/multi.fusion.jsonl``: per scored query, which frames agreed."""
+    return _beside(output, "fusion.jsonl")
+
+
+@dataclass
+class MultiRunResult:
+    """A multi-frame run: the fused submission, the per-frame run behind it, and where device poses came from."""
+
+    submission: Path
+    fusion: Path
+    failures: Path
+    frames: RunResult
+    estimated: int = 0
+    failed: int = 0
+    derived_device_poses: list[str] = field(default_factory=list)  # scenes whose device poses were simulated
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {k: (str(v) if isinstance(v, Path) else v) for k, v in self.__dict__.items() if k != "frames"}
+        d["frames"] = self.frames.to_dict()
+        return d
+
+
+def _frame_estimates(recs: Sequence[dict], confidence: str | None) -> dict[str, dict[str, tuple[Pose, float]]]:
+    """{scene: {frame: (world-to-camera pose, confidence)}} of the journal's successful frames."""
+    out: dict[str, dict[str, tuple[Pose, float]]] = {}
+    for r in recs:
+        if not r["ok"]:
+            continue
+        conf = r["scores"].get(confidence, r["confidence"]) if confidence else r["confidence"]
+        conf = float(conf) if np.isfinite(conf) and conf > 0 else 0.0
+        out.setdefault(r["scene"], {})[r["frame"]] = (Pose.from_qt(r["q"], r["t"]), conf)
+    return out
+
+
+def run_multi(
+    root: os.PathLike | str,
+    split: str,
+    method: Any,
+    output: os.PathLike | str,
+    *,
+    options: FusionOptions = FusionOptions(),
+    derive_device_poses: bool = True,
+    scenes: Sequence[str] | None = None,
+    confidence: str | None = None,
+    **run_kwargs: Any,
+) -> MultiRunResult:
+    """The multi-frame track of ``split``: relocalize every burst frame (``run_split``, resumable, journal
+    beside ``frames_path(output)``), fuse each burst into its scored query, write the submission ``output``.
+
+    Scenes without ``poses_device.txt`` get device poses derived from their ground truth when
+    ``derive_device_poses`` (listed in the result); otherwise, or without ground truth, a ``FormatError``.
+    """
+    output = Path(output)
+    wanted = set(scenes) if scenes else None
+    plan: dict[str, tuple[list, DevicePoses]] = {}
+    for s in Dataset(root).scenes(split):
+        if wanted is None or s.name in wanted:
+            bursts = scene_bursts(s)
+            plan[s.name] = (bursts, load_device_poses(s, derive=derive_device_poses) if bursts else
+                            DevicePoses({}, False, "no bursts"))
+
+    def select(scene: Scene) -> list[str]:
+        return [n for _, burst in plan[scene.name][0] for n in burst if n in scene.intrinsics]
+
+    frames = run_split(root, split, method, frames_path(output), scenes=sorted(plan), confidence=confidence,
+                       select=select, **run_kwargs)
+    _, recs = read_journal(frames.journal)
+    est = _frame_estimates(recs, confidence)
+    by_scene: dict[str, list] = {name: [] for name in plan}
+    failures, log = [], []
+    for name, (bursts, device) in plan.items():
+        for query, burst in bursts:
+            fused = fuse(hypotheses(query, burst, est.get(name, {}), device), len(burst), options)
+            entry = {"scene": name, "frame": query, "ok": fused.ok, "confidence": fused.confidence,
+                     "reason": fused.reason, **{k: v for k, v in fused.extras.items()}}
+            log.append(entry)
+            if fused.ok:
+                by_scene[name].append((query, fused.pose, fused.confidence))
+            else:
+                failures.append({"scene": name, "frame": query, "reason": fused.reason})
+    from ..benchmark import write_submission
+
+    write_submission(output, by_scene)
+    failures_path(output).write_text("".join(json.dumps(f) + "\n" for f in failures))
+    fusion_path(output).write_text("".join(json.dumps(e, allow_nan=False) + "\n" for e in log))
+    derived = sorted(n for n, (_, d) in plan.items() if d.derived)
+    return MultiRunResult(output, fusion_path(output), failures_path(output), frames,
+                          sum(len(v) for v in by_scene.values()), len(failures), derived)
