@@ -34,6 +34,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", help="preset name ({matcher}_{solver}_{depth}), YAML config name or path")
     p.add_argument("-o", "--output", type=Path, default=Path("submission.zip"), help="submission ZIP to write")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes (over scenes)")
+    p.add_argument("--batch", type=int, default=None, metavar="N",
+                   help="queries per GPU pass of the batched pipeline (background decoding, batched features and "
+                        "matching, solvers in a thread pool); 0: one pair at a time (default: 16 on a GPU, else 0)")
     p.add_argument("--all-frames", action="store_true", help="every query, not only the scored ones")
     p.add_argument("--track", default="single", choices=("single", "multi"),
                    help="'multi': the multi-frame track — relocalize each scored query's 9-frame burst, fuse "
@@ -65,6 +68,9 @@ def run(args: argparse.Namespace) -> int:
     if args.workers < 1:
         print("mapfree run: error: --workers must be >= 1", file=sys.stderr)
         return 2
+    if getattr(args, "batch", None) is not None and args.batch < 0:
+        print("mapfree run: error: --batch must be >= 0", file=sys.stderr)
+        return 2
     from ..relocalize import run_split
 
     try:
@@ -72,12 +78,13 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, "checkpoint", None) is not None:
             method = _with_checkpoint(method, args.checkpoint)
         run = run_split
+        extra = {"batch_size": args.batch} if getattr(args, "batch", None) is not None else {}
         if args.track == "multi":
             from ..relocalize.multiframe import run_multi as run
         res = run(args.root, args.split, method, args.output, workers=args.workers,
                   all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
                   confidence=args.confidence, progress=not args.no_progress,
-                  scenes=args.scenes.split(",") if args.scenes else None)
+                  scenes=args.scenes.split(",") if args.scenes else None, **extra)
     except (FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree run: error: {msg}", file=sys.stderr)

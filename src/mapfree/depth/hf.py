@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from ..data import Frame
+from ..matching.attention import steady_kernels
 from .cache import DepthCache
 from .hub import HUB_MODELS
 
@@ -116,7 +117,8 @@ class HFDepth:
         proc, net = self._processor, self._model
         inputs = proc(images=list(images), return_tensors="pt")
         pix = inputs["pixel_values"].to(self.device, dtype=next(net.parameters()).dtype)
-        out = net(pixel_values=pix)
+        with steady_kernels():  # no per-shape cuDNN attention graphs or conv autotuning on a never-seen size
+            out = net(pixel_values=pix)
         sizes = [(h, w)] * len(images)
         post = proc.post_process_depth_estimation
         params = inspect.signature(post).parameters

@@ -13,7 +13,9 @@ import numpy as np
 import torch
 from kornia.feature import ALIKED, DISK, LightGlue
 
+from .attention import steady_kernels
 from .base import Features, Matches
+from .glue import glue_input, run_glue
 from .superpoint import SuperPoint
 from .utils import autocast, check_image, image_tensor, is_textureless, resize_for_matching, resolve_device, to_original
 from .weights import MissingWeightsError, WeightFile, find_local, load_checkpoint, package_file, resolve_weights
@@ -158,10 +160,12 @@ class LightGlueMatcher:
             return [(f.keypoints, f.descriptors) for f in self.extractor(x)]
         return [(f["keypoints"], f["descriptors"]) for f in self.extractor(x)]
 
-    def _features(self, image: np.ndarray, small: np.ndarray, scale, kp: torch.Tensor, desc: torch.Tensor) -> Features:
+    def _features(self, image: np.ndarray, small: np.ndarray, scale, kp: torch.Tensor, desc: torch.Tensor,
+                  kp_host: np.ndarray | None = None) -> Features:
         resized = (small.shape[1], small.shape[0])
         data = {"keypoints": kp.float(), "descriptors": desc, "scale": scale, "resized": resized}
-        return Features(to_original(kp.float().cpu().numpy(), scale), (image.shape[1], image.shape[0]), data)
+        host = kp.float().cpu().numpy() if kp_host is None else kp_host
+        return Features(to_original(host, scale), (image.shape[1], image.shape[0]), data)
 
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> Features:
@@ -184,45 +188,30 @@ class LightGlueMatcher:
         gray = self.features == "superpoint"
         for idx in groups.values():
             x = torch.cat([image_tensor(prepared[i][0], self.device, gray=gray) for i in idx])
-            with autocast(self.device, self.options.mixed_precision):
+            with autocast(self.device, self.options.mixed_precision), steady_kernels():
                 res = self._run_extractor(x)
-            for i, (kp, desc) in zip(idx, res):
-                out[i] = self._features(images[i], prepared[i][0], prepared[i][1], kp, desc.float())
+            # One device-to-host copy for the whole group's keypoints.
+            host = np.split(torch.cat([kp.float() for kp, _ in res]).cpu().numpy(),
+                            np.cumsum([len(kp) for kp, _ in res])[:-1])
+            for i, (kp, desc), kh in zip(idx, res, host):
+                out[i] = self._features(images[i], prepared[i][0], prepared[i][1], kp, desc.float(), kh)
         return out  # type: ignore[return-value]
 
     # ------------------------------------------------------------------ matching
-    @staticmethod
-    def _side(fs: Sequence[Features], device: torch.device) -> dict:
-        return {
-            "keypoints": torch.stack([f.data["keypoints"] for f in fs]),
-            "descriptors": torch.stack([f.data["descriptors"] for f in fs]),
-            "image_size": torch.tensor([f.data["resized"] for f in fs], device=device, dtype=torch.float32),
-        }
-
-    def _to_matches(self, f0: Features, f1: Features, idx: torch.Tensor, s: torch.Tensor) -> Matches:
-        idx = idx.cpu().numpy()
-        return Matches(f0.kpts[idx[:, 0]], f1.kpts[idx[:, 1]], s.float().cpu().numpy())
-
     def match(self, f0: Features, f1: Features) -> Matches:
         return self.match_many(f0, [f1])[0]
 
-    @torch.inference_mode()
-    def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int = 16) -> list[Matches]:
-        """Match the reference ``f0`` against many queries; queries with equal keypoint counts are batched."""
-        out: list[Matches] = [Matches.empty()] * len(f1s)
-        if len(f0) == 0:
-            return out
-        groups: dict[int, list[int]] = {}
-        for i, f1 in enumerate(f1s):
-            if len(f1):
-                groups.setdefault(len(f1), []).append(i)
-        for idx in groups.values():
-            for start in range(0, len(idx), batch_size):
-                chunk = idx[start : start + batch_size]
-                side0 = self._side([f0] * len(chunk), self.device)
-                res = self.glue({"image0": side0, "image1": self._side([f1s[i] for i in chunk], self.device)})
-                for j, i in enumerate(chunk):
-                    out[i] = self._to_matches(f0, f1s[i], res["matches"][j], res["scores"][j])
+    def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
+        """Match the reference ``f0`` against many queries, ``batch_size`` pairs per network pass (padded with
+        masks, adaptive depth and width per pair: a pair's matches do not depend on its batch). Default: 16 on
+        a GPU, 1 on the CPU (where padding costs more than batching saves)."""
+        batch_size = batch_size or (16 if self.device.type == "cuda" else 1)
+        out: list[Matches] = []
+        ref = glue_input(f0)
+        for start in range(0, len(f1s), batch_size):
+            chunk = f1s[start : start + batch_size]
+            res = run_glue(self.glue, ref, [glue_input(f) for f in chunk], mixed_precision=self.options.mixed_precision)
+            out += [Matches(f0.kpts[i[:, 0]], f1.kpts[i[:, 1]], s) for f1, (i, s) in zip(chunk, res)]
         return out
 
 

@@ -13,6 +13,7 @@ import torch
 from kornia.feature import LoFTR
 from kornia.feature.loftr import loftr as _kloftr
 
+from .attention import steady_kernels
 from .base import Features, Matches
 from .utils import (
     autocast,
@@ -92,7 +93,7 @@ class LoFTRMatcher:
             return Features(np.zeros((0, 2)), size, {"empty": True})
         small, scale = resize_for_matching(image, self.options.max_size, multiple=8)
         x = image_tensor(small, self.device, gray=True)
-        with autocast(self.device, self.options.mixed_precision):
+        with autocast(self.device, self.options.mixed_precision), steady_kernels():
             feats = self.net.extract_features(x)
         # Dense: the candidate keypoints are the coarse cells at (8 col, 8 row) in LoFTR's frame, where pixel
         # centres sit at +0.5; ours (and kornia's) put them at integers, hence the -0.5 here and in ``match``.
@@ -104,7 +105,7 @@ class LoFTRMatcher:
     def match(self, f0: Features, f1: Features) -> Matches:
         if len(f0) == 0 or len(f1) == 0:
             return Matches.empty()
-        with autocast(self.device, self.options.mixed_precision):
+        with autocast(self.device, self.options.mixed_precision), steady_kernels():
             out = self.net({"features0": f0.data["features"], "features1": f1.data["features"]})
         k0 = to_original(out["keypoints0"].float().cpu().numpy() - 0.5, f0.data["scale"])
         k1 = to_original(out["keypoints1"].float().cpu().numpy() - 0.5, f1.data["scale"])

@@ -13,9 +13,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from .attention import steady_kernels
 from .base import Features, Matches
+from .glue import glue_input, run_glue
 from .utils import (
-    autocast,
     check_image,
     image_tensor,
     inside,
@@ -101,26 +102,38 @@ class XFeatMatcher:
     def _empty(self, image: np.ndarray) -> Features:
         return Features(np.zeros((0, 2)), (image.shape[1], image.shape[0]), {"empty": True})
 
-    @torch.inference_mode()
     def extract(self, image: np.ndarray) -> Features:
-        image = check_image(image)
-        if is_textureless(image):
-            return self._empty(image)
-        small, scale = resize_for_matching(image, self.options.max_size, multiple=32)
-        x = image_tensor(small, self.device)
-        size = (image.shape[1], image.shape[0])
-        resized = (small.shape[1], small.shape[0])
-        if self.mode == "star":
-            out = self.net.detectAndComputeDense(x, top_k=self.top_k, multiscale=True)
-            k = out["keypoints"][0]
-            data = {"keypoints": k, "descriptors": out["descriptors"][0], "scales": out["scales"][0]}
-        else:
-            th = self.options.detection_threshold
-            out = self.net.detectAndCompute(x, top_k=self.top_k, detection_threshold=th)[0]
-            k = out["keypoints"]
-            data = {"keypoints": k, "descriptors": out["descriptors"], "scores": out["scores"]}
-        data.update(scale=scale, resized=resized)
-        return Features(to_original(k.float().cpu().numpy(), scale), size, data)
+        return self.extract_many([image])[0]
+
+    @torch.inference_mode()
+    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
+        """Extract several images; same-size images go through the network as one batch, and their keypoints
+        come to the host in one copy."""
+        images = [check_image(im) for im in images]
+        out: list[Features | None] = [None] * len(images)
+        groups: dict[tuple[int, ...], list[tuple[int, np.ndarray, tuple[float, float]]]] = {}
+        for i, im in enumerate(images):
+            if is_textureless(im):
+                out[i] = self._empty(im)
+                continue
+            small, scale = resize_for_matching(im, self.options.max_size, multiple=32)
+            groups.setdefault(small.shape, []).append((i, small, scale))
+        for group in groups.values():
+            x = torch.cat([image_tensor(small, self.device) for _, small, _ in group])
+            with steady_kernels():
+                if self.mode == "star":
+                    dense = self.net.detectAndComputeDense(x, top_k=self.top_k, multiscale=True)
+                    datas = [{"keypoints": dense["keypoints"][b], "descriptors": dense["descriptors"][b],
+                              "scales": dense["scales"][b]} for b in range(len(group))]
+                else:
+                    th = self.options.detection_threshold
+                    datas = [dict(o) for o in self.net.detectAndCompute(x, top_k=self.top_k, detection_threshold=th)]
+            counts = np.cumsum([len(d["keypoints"]) for d in datas])[:-1]
+            host = np.split(torch.cat([d["keypoints"].float() for d in datas]).cpu().numpy(), counts)
+            for (i, small, scale), data, kp in zip(group, datas, host):
+                data.update(scale=scale, resized=(small.shape[1], small.shape[0]))
+                out[i] = Features(to_original(kp, scale), (images[i].shape[1], images[i].shape[0]), data)
+        return out  # type: ignore[return-value]
 
     # ------------------------------------------------------------------ matching
     def _result(self, f0: Features, f1: Features, k0: torch.Tensor, k1: torch.Tensor, s: torch.Tensor) -> Matches:
@@ -144,12 +157,22 @@ class XFeatMatcher:
             return self._match_star(f0, f1)
         return self._match_glue(f0, f1)
 
-    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        return [self.extract(im) for im in images]
-
-    def match_many(self, f0: Features, f1s: Sequence[Features]) -> list[Matches]:
-        """Match one (reference) feature set against many; reuses ``f0`` as is."""
-        return [self.match(f0, f1) for f1 in f1s]
+    def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
+        """Match one (reference) feature set against many; LighterGlue runs ``batch_size`` pairs per pass
+        (default 16 on a GPU, 1 on the CPU), the other modes pair by pair."""
+        if self.mode != "lighterglue":
+            return [self.match(f0, f1) for f1 in f1s]
+        if len(f0) == 0:
+            return [Matches.empty() for _ in f1s]
+        batch_size = batch_size or (16 if self.device.type == "cuda" else 1)
+        self.glue.conf.filter_threshold = self.options.min_conf
+        ref, out = glue_input(f0), []
+        for start in range(0, len(f1s), batch_size):
+            chunk = f1s[start : start + batch_size]
+            res = run_glue(self.glue, ref, [glue_input(f) for f in chunk],
+                           mixed_precision=self.options.mixed_precision)
+            out += [Matches(f0.kpts[i[:, 0]], f1.kpts[i[:, 1]], s) for f1, (i, s) in zip(chunk, res)]
+        return out
 
     def _match_star(self, f0: Features, f1: Features) -> Matches:
         d0, d1 = f0.data, f1.data
@@ -165,17 +188,4 @@ class XFeatMatcher:
         return self._result(f0, f1, k0[keep], d1["keypoints"][i1][keep], conf[keep])
 
     def _match_glue(self, f0: Features, f1: Features) -> Matches:
-        d0, d1 = f0.data, f1.data
-        self.glue.conf.filter_threshold = self.options.min_conf
-
-        def side(d: dict) -> dict:
-            return {
-                "keypoints": d["keypoints"][None].float(),
-                "descriptors": d["descriptors"][None],
-                "image_size": torch.tensor([d["resized"]], device=self.device, dtype=torch.float32),
-            }
-
-        with autocast(self.device, self.options.mixed_precision):
-            out = self.glue({"image0": side(d0), "image1": side(d1)})
-        idx, s = out["matches"][0], out["scores"][0]
-        return self._result(f0, f1, d0["keypoints"][idx[:, 0]], d1["keypoints"][idx[:, 1]], s)
+        return self.match_many(f0, [f1])[0]

@@ -14,7 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Protocol, Union
+from typing import TYPE_CHECKING, Any, Iterable, Iterator, Protocol, Union
 
 import cv2
 import numpy as np
@@ -23,6 +23,9 @@ from ..data import Frame, read_image
 from ..estimate import Estimate
 from ..geometry import Intrinsics
 from ..matching.base import Features, Matcher, Matches
+
+if TYPE_CHECKING:
+    from .batched import BatchOptions
 
 log = logging.getLogger(__name__)
 
@@ -239,20 +242,29 @@ class Relocalizer:
 
     def _finish(self, anchor: Anchor, prep: _Prepared) -> Estimate:
         """Stage 2: match against the anchor and solve."""
-        timings = dict(prep.timings)
-        matches = Matches.empty()
         if prep.error is not None:
-            est = Estimate.failure(prep.error)
-        else:
+            return self.conclude(anchor, prep, None, 0.0)
+        t0 = time.perf_counter()
+        try:
+            matches = self.matcher.match(anchor.features, prep.features)
+        except Exception as e:
+            prep = _Prepared(prep.view, prep.features, prep.depth, prep.timings, _error(e))
+            matches = None
+        return self.conclude(anchor, prep, matches, time.perf_counter() - t0)
+
+    def conclude(self, anchor: Anchor, prep: _Prepared, matches: Matches | None, match_s: float) -> Estimate:
+        """Stage 3: solve a matched query (thread-safe: the batched path runs it in a pool of solver threads)."""
+        timings = dict(prep.timings)
+        est = Estimate.failure(prep.error or "")
+        if prep.error is None and matches is not None:
             try:
-                t0 = time.perf_counter()
-                matches = self.matcher.match(anchor.features, prep.features)
                 t1 = time.perf_counter()
                 est = self._solve(anchor, prep.view, matches, prep.depth)
                 timings["solve"] = time.perf_counter() - t1
-                timings["match"] = timings.pop("extract") + t1 - t0  # extraction counts as matching time
+                timings["match"] = timings.pop("extract", 0.0) + match_s  # extraction counts as matching time
             except Exception as e:
                 est = Estimate.failure(_error(e))
+        matches = matches if matches is not None else Matches.empty()
         timings["total"] = sum(v for k, v in timings.items() if k in ("read", "match", "extract", "depth", "solve"))
         est.timings = {**est.timings, **timings}
         est.extras.setdefault("matches", matches)
@@ -290,6 +302,22 @@ class Relocalizer:
                 if nxt is not None:
                     pending.append(pool.submit(self._prepare_query, nxt))
                 yield self._finish(anchor, prep)
+
+    def localize_batched(self, queries: Iterable[ViewLike], anchor: Anchor | None = None,
+                         options: "BatchOptions | None" = None) -> Iterator[Estimate]:
+        """``localize`` over many queries, in order, through the batched pipeline (``batched.py``): decoding
+        in background threads, features and matches in batches on the device, solvers in a thread pool."""
+        from .batched import localize_batched
+
+        if anchor is None and getattr(self, "references", None) is not None:  # several references: per query
+            yield from (self.localize(q) for q in queries)
+            return
+        anchor = self._anchor(anchor)
+        if self._precheck(anchor) is not None:
+            for _ in queries:
+                yield self._precheck(anchor)
+            return
+        yield from localize_batched(self, anchor, queries, options)
 
     def _needs(self) -> tuple[str, ...]:
         if not self.metric:

@@ -146,7 +146,7 @@ def _localizer(method_dict: dict) -> Any:
 
 
 def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: str,
-               on_frame: Callable[[dict], None] | None = None) -> int:
+               on_frame: Callable[[dict], None] | None = None, batch_size: int | None = None) -> int:
     """Relocalize ``frames`` of one scene against its reference, appending each result to the journal."""
     scene = Scene(Path(scene_path))
     journal_p = Path(journal)
@@ -162,7 +162,7 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
         for r in recs:
             on_frame and on_frame(r)
         return len(recs)
-    for name, est in zip(frames, _estimates(loc, scene, frames)):
+    for name, est in zip(frames, _estimates(loc, scene, frames, batch_size)):
         # Relative pose (query w.r.t. reference) -> world-to-camera in the scene's frame.
         world = est.pose @ ref_pose if est.pose is not None else None
         rec = _record(scene.name, name, est, world)
@@ -171,8 +171,16 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
     return len(frames)
 
 
-def _estimates(loc: Any, scene: Scene, frames: list[str]) -> Iterator[Estimate]:
-    """Estimates in frame order; the next query is prefetched when the method supports it."""
+def _estimates(loc: Any, scene: Scene, frames: list[str], batch_size: int | None = None) -> Iterator[Estimate]:
+    """Estimates in frame order: through the batched pipeline when ``batch_size`` > 0 (``None``: 16 on a GPU,
+    off on the CPU) and the method has one, else with the next query prefetched where supported."""
+    if hasattr(loc, "localize_batched"):
+        from .batched import BatchOptions, default_batch_size
+
+        size = default_batch_size(getattr(loc, "matcher", None)) if batch_size is None else batch_size
+        if size > 0:
+            yield from loc.localize_batched([scene.frame(n) for n in frames], options=BatchOptions(batch_size=size))
+            return
     if hasattr(loc, "localize_many"):
         yield from loc.localize_many([scene.frame(n) for n in frames])
         return
@@ -234,12 +242,15 @@ def run_split(
     scenes: Sequence[str] | None = None,
     progress: bool = True,
     select: Callable[[Scene], list[str]] | None = None,
+    batch_size: int | None = None,
 ) -> RunResult:
     """Relocalize every (scored) query of ``split`` and write a submission ZIP at ``output``.
 
     ``method``: a name, YAML path or ``Method``. ``confidence``: a key of the solver's extra scores to use
     as the submission confidence instead of the method's own. With ``resume`` the journal's frames are kept.
     ``select`` (optional) names the frames to run in a scene instead (the multi-frame track's bursts).
+    ``batch_size``: queries per device pass of the batched pipeline (0: one pair at a time; ``None``: 16 when
+    the matcher runs on a GPU, else 0).
     """
     from ..methods import Method, get
 
@@ -280,9 +291,10 @@ def run_split(
     try:
         if workers <= 1 or len(todo) <= 1:
             for s, names in todo:
-                _run_scene(md, str(s.path), names, str(jpath), on_frame=lambda r: bar.update(1))
+                _run_scene(md, str(s.path), names, str(jpath), on_frame=lambda r: bar.update(1),
+                           batch_size=batch_size)
         else:
-            _run_parallel(md, todo, jpath, workers, bar)
+            _run_parallel(md, todo, jpath, workers, bar, batch_size)
     finally:
         bar.close()
     _, recs = read_journal(jpath)
@@ -296,14 +308,14 @@ def run_split(
                      timings=timing_sums)
 
 
-def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any) -> None:
+def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, batch_size: int | None = None) -> None:
     threads = max(1, (os.cpu_count() or 1) // workers)
     offset = jpath.stat().st_size
     ctx = mp.get_context("spawn")  # torch and OpenCV threads do not survive fork reliably
     with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_init_worker,
                              initargs=(threads,)) as pool:
         # Largest scenes first so that the last worker to finish is not left with a big one.
-        futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath))
+        futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size)
                    for s, names in sorted(todo, key=lambda x: -len(x[1]))]
         pending = set(futures)
         while pending:
