@@ -1,0 +1,248 @@
+"""K reference images of a place (paper §5.1, Fig. 4b): chosen among mapping images, retrieved per query.
+
+``ReferenceSet.build(mapping_frames, k=10)`` describes every mapping image with a global descriptor
+(DenseVLAD, vocabulary learned on those images), keeps the K most representative by K-means, and answers
+``localize(localizer, query)``: retrieve the most similar reference(s), relocalize against it with the
+method, and return the query pose in the frame of the references' poses. ``mode="triangulation"`` is the
+paper's depth-free baseline: up-to-scale relative poses to the two most similar references, whose known
+poses fix the metric scale (``mapfree.solvers.triangulation``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any, Iterable, Iterator, Sequence
+
+import numpy as np
+
+from ..data import Frame, Scene
+from ..estimate import Estimate
+from ..geometry import Pose
+from .pipeline import View, ViewLike, as_view
+
+log = logging.getLogger(__name__)
+
+__all__ = ["MODES", "ReferenceOptions", "ReferenceSet", "ReferencedLocalizer", "mapping_frames",
+           "scene_references"]
+
+MODES = ("retrieval", "triangulation")
+
+
+@dataclass
+class ReferenceOptions:
+    """How references are chosen and used. ``top``: references tried per query (the most confident wins)."""
+
+    k: int = 1
+    mode: str = "retrieval"
+    top: int = 1
+    descriptor: str = "densevlad"
+    descriptor_opts: dict = field(default_factory=dict)
+    max_fit_images: int = 200  # the vocabulary is learned on at most this many (evenly spaced) mapping images
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.k < 1:
+            raise ValueError(f"the number of references must be >= 1, got {self.k}")
+        if self.mode not in MODES:
+            raise ValueError(f"reference mode must be one of {MODES}, got {self.mode!r}")
+        if self.mode == "triangulation" and self.k < 2:
+            raise ValueError("pose triangulation needs K >= 2 references")
+        if self.top < 1:
+            raise ValueError(f"top must be >= 1, got {self.top}")
+
+
+def _pose_of(item: ViewLike, pose: Pose | None) -> Pose:
+    p = pose if pose is not None else getattr(item, "pose", None)
+    if p is None:
+        frame = getattr(item, "frame", None)
+        p = getattr(frame, "pose", None)
+    if p is None:
+        raise ValueError(f"mapping image {getattr(item, 'name', item)!r} has no pose: every reference needs one")
+    return p
+
+
+class ReferenceSet:
+    """The chosen references of one place: views, world-to-camera poses, global descriptors."""
+
+    def __init__(self, views: list[View], poses: list[Pose], descriptors: np.ndarray | None, describer: Any,
+                 options: ReferenceOptions, mapping_size: int, indices: np.ndarray) -> None:
+        self.views, self.poses, self.descriptors, self.describer = views, poses, descriptors, describer
+        self.options, self.mapping_size, self.indices = options, mapping_size, indices
+        self._anchors: dict[tuple[int, int], Any] = {}
+        self.timings: dict[str, float] = {}
+
+    def __len__(self) -> int:
+        return len(self.views)
+
+    @property
+    def names(self) -> list[str]:
+        return [v.name for v in self.views]
+
+    @classmethod
+    def build(cls, mapping: Sequence[ViewLike], poses: Sequence[Pose | None] | None = None,
+              options: ReferenceOptions | None = None, **overrides: Any) -> "ReferenceSet":
+        """Choose ``k`` references among ``mapping`` (Frames with poses, Views, or (image, K[, depth]) with
+        ``poses``). Every image is read once to describe it; only the chosen ones are kept in memory."""
+        from .. import retrieval
+
+        o = replace(options or ReferenceOptions(), **overrides) if overrides else (options or ReferenceOptions())
+        mapping = list(mapping)
+        if not mapping:
+            raise ValueError("no mapping images to choose references from")
+        pose_list = [_pose_of(m, poses[i] if poses is not None else None) for i, m in enumerate(mapping)]
+        t0 = time.perf_counter()
+        if len(mapping) == 1 or o.k >= len(mapping) and o.mode == "retrieval" and o.top >= len(mapping):
+            chosen, G, describer = np.arange(len(mapping)), None, None  # nothing to choose or retrieve
+        else:
+            describer = retrieval.create(o.descriptor, **o.descriptor_opts)
+            fit_idx = np.unique(np.linspace(0, len(mapping) - 1, min(len(mapping), o.max_fit_images)).round().astype(int))
+            describer.fit(as_view(mapping[i]).image for i in fit_idx)
+            G = np.stack([describer.describe(as_view(m).image) for m in mapping])
+            chosen = retrieval.select_references(G, o.k, seed=o.seed)
+            G = G[chosen]
+        views = [as_view(mapping[i]) for i in chosen]
+        out = cls(views, [pose_list[i] for i in chosen], G, describer, o, len(mapping), chosen)
+        out.timings["choose"] = time.perf_counter() - t0
+        return out
+
+    # ------------------------------------------------------------------ per query
+
+    def ranked(self, view: View) -> tuple[np.ndarray, np.ndarray]:
+        """Reference indices, most similar first, with their similarities (all 1 when nothing to retrieve)."""
+        if self.descriptors is None:
+            return np.arange(len(self)), np.ones(len(self))
+        from ..retrieval import retrieve
+
+        return retrieve(self.describer.describe(view.image), self.descriptors, top=len(self))
+
+    def _anchor(self, loc: Any, i: int) -> Any:
+        key = (id(loc), i)
+        if key not in self._anchors:
+            self._anchors[key] = loc.prepare(self.views[i])
+        return self._anchors[key]
+
+    def _relative(self, loc: Any, view: View, i: int) -> Estimate:
+        """Pose of the query relative to reference ``i`` with the localizer's own method."""
+        if hasattr(loc, "prepare"):
+            return loc.localize(view, self._anchor(loc, i))
+        loc.set_reference(self.views[i])  # other method kinds: no reusable anchor
+        return loc.localize(view)
+
+    def localize(self, loc: Any, query: ViewLike) -> Estimate:
+        """World-to-camera pose of ``query`` in the frame of the references' poses (never raises on bad input)."""
+        t0 = time.perf_counter()
+        try:
+            view = as_view(query)
+            order, sims = self.ranked(view)
+        except Exception as e:
+            log.warning("query failed: %s", e)
+            return Estimate.failure(f"error: {type(e).__name__}: {e}")
+        t_retrieve = time.perf_counter() - t0
+        if self.options.mode == "triangulation":
+            est = self._triangulate(loc, view, order[:2], sims[:2])
+        else:
+            est = self._retrieve(loc, view, order[: self.options.top], sims)
+        est.timings["retrieve"] = t_retrieve
+        est.timings["total"] = est.timings.get("total", 0.0) + t_retrieve
+        return est
+
+    def _retrieve(self, loc: Any, view: View, order: np.ndarray, sims: np.ndarray) -> Estimate:
+        best: Estimate | None = None
+        for rank, i in enumerate(order):
+            est = self._relative(loc, view, int(i))
+            est.extras.update(reference=self.views[i].name, reference_rank=rank, retrieval_similarity=float(sims[rank]))
+            if est.pose is not None:
+                est.pose = est.pose @ self.poses[i]
+            if best is None or (est.ok and (not best.ok or est.confidence > best.confidence)):
+                best = est
+        assert best is not None
+        return best
+
+    def _triangulate(self, loc: Any, view: View, order: np.ndarray, sims: np.ndarray) -> Estimate:
+        from ..solvers import EssentialSolver
+        from ..solvers.triangulation import triangulate_pose
+
+        matcher = getattr(loc, "matcher", None)
+        if matcher is None:
+            return Estimate.failure("pose triangulation needs a matching method (matcher + essential matrix)")
+        base = getattr(getattr(loc, "solver", None), "options", None)
+        px = getattr(base, "ransac_threshold_px", 3.0)
+        solver = EssentialSolver(ransac_threshold_px=px, allow_unscaled=True)
+        t0 = time.perf_counter()
+        qf = matcher.extract(view.image)
+        rel, refs, weights, names = [], [], [], []
+        for i in order:
+            anchor = self._anchor(loc, int(i))
+            est = solver.solve(matcher.match(anchor.features, qf), anchor.view.intrinsics, view.intrinsics, None, None)
+            names.append(self.views[i].name)
+            if est.pose is None:
+                return Estimate.failure(f"pose triangulation: no relative pose to {self.views[i].name}: {est.reason}",
+                                        total=time.perf_counter() - t0)
+            rel.append(est.pose)
+            refs.append(self.poses[i])
+            weights.append(max(est.inliers, 1))
+        out = triangulate_pose(refs, rel, weights)
+        out.extras.update(reference=names[0], references=",".join(names), retrieval_similarity=float(sims[0]))
+        out.timings["total"] = time.perf_counter() - t0
+        return out
+
+
+class ReferencedLocalizer:
+    """Any method's localizer bound to a ``ReferenceSet``: ``localize(query)`` retrieves, then relocalizes."""
+
+    def __init__(self, localizer: Any, references: ReferenceSet) -> None:
+        self.localizer, self.references = localizer, references
+
+    def localize(self, query: ViewLike) -> Estimate:
+        return self.references.localize(self.localizer, query)
+
+    def localize_many(self, queries: Iterable[ViewLike]) -> Iterator[Estimate]:
+        for q in queries:
+            yield self.localize(q)
+
+
+def mapping_frames(scene: Scene, seq: str = "seq0") -> list[Frame]:
+    """The frames of a Map-free scene's mapping scan that have a pose (val/test: the reference and any
+    other ``seq0`` frames; the world frame is the reference camera)."""
+    return [f for n, f in scene.frames.items() if n.startswith(f"{seq}/") and f.pose is not None]
+
+
+def scene_references(scene: Scene, k: int, mode: str = "retrieval", **options: Any) -> ReferenceSet:
+    """``ReferenceSet`` of a Map-free scene's ``seq0`` frames; K is capped by the frames there are."""
+    frames = mapping_frames(scene)
+    if not frames:
+        raise ValueError(f"{scene.path}: no seq0 frame with a pose to use as a reference")
+    if mode == "triangulation" and len(frames) < 2:
+        raise ValueError(f"{scene.path}: pose triangulation needs >= 2 posed seq0 frames, found {len(frames)}")
+    return ReferenceSet.build(frames, options=ReferenceOptions(k=min(k, len(frames)), mode=mode, **options))
+
+
+#: Key of ``Method.options`` holding ``{"k": K, "mode": ..., "top": ...}`` for ``mapfree run --references K``.
+REFERENCES_OPTION = "references"
+
+
+def with_references(method: Any, k: int, mode: str = "retrieval", top: int = 1) -> Any:
+    """The method (name, path or ``Method``) run against K references per scene; K = 1 leaves it unchanged.
+
+    Stored in ``options`` so that a run's journal header records it and ``--resume`` checks it."""
+    from ..methods import Method, get
+
+    m = method if isinstance(method, Method) else get(method)
+    ReferenceOptions(k=k, mode=mode, top=top)  # validate early, with a clear message
+    if k == 1 and mode == "retrieval":
+        return m
+    spec = {"k": int(k), "mode": mode, "top": int(top)}
+    suffix = f"+K{k}" + ("-triangulation" if mode == "triangulation" else "")
+    return replace(m, name=m.name + suffix, options={**m.options, REFERENCES_OPTION: spec})
+
+
+def bind_scene_references(loc: Any, scene: Scene, method_dict: dict, ref_pose: Pose) -> tuple[Any, Pose]:
+    """``(localizer, pose estimates are relative to)`` for a scene: unchanged without ``options.references``,
+    else the localizer bound to the scene's K references, whose estimates are already in the world frame."""
+    spec = (method_dict.get("options") or {}).get(REFERENCES_OPTION)
+    if not spec:
+        return loc, ref_pose
+    refs = scene_references(scene, int(spec.get("k", 1)), spec.get("mode", "retrieval"), top=int(spec.get("top", 1)))
+    return ReferencedLocalizer(loc, refs), Pose.identity()
