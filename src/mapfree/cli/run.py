@@ -38,6 +38,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="queries per GPU pass of the batched pipeline (background decoding, batched features and "
                         "matching, solvers in a thread pool); 0: one pair at a time (default: 16 on a GPU, else 0)")
     p.add_argument("--all-frames", action="store_true", help="every query, not only the scored ones")
+    p.add_argument("--references", type=int, default=1, metavar="K",
+                   help="represent each scene by K posed seq0 images chosen by K-means over DenseVLAD, and "
+                        "relocalize each query against the most similar (default: 1, the reference image)")
+    p.add_argument("--reference-mode", default="retrieval", choices=("retrieval", "triangulation"),
+                   help="with --references K >= 2: 'triangulation' = the paper's depth-free baseline "
+                        "(relative directions to the two most similar references)")
     p.add_argument("--track", default="single", choices=("single", "multi"),
                    help="'multi': the multi-frame track — relocalize each scored query's 9-frame burst, fuse "
                         "them through poses_device.txt (derived from ground truth with simulated drift when a "
@@ -77,6 +83,10 @@ def run(args: argparse.Namespace) -> int:
         method = args.method
         if getattr(args, "checkpoint", None) is not None:
             method = _with_checkpoint(method, args.checkpoint)
+        if getattr(args, "references", 1) != 1 or getattr(args, "reference_mode", "retrieval") != "retrieval":
+            from ..relocalize.references import with_references
+
+            method = with_references(method, args.references, args.reference_mode)
         run = run_split
         extra = {"batch_size": args.batch} if getattr(args, "batch", None) is not None else {}
         if args.track == "multi":

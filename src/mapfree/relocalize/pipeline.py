@@ -168,6 +168,7 @@ class Relocalizer:
         self.matcher, self.depth_source, self.solver = matcher, depth, solver
         self.name = name or f"{matcher.name}+{getattr(depth, 'name', 'depth')}+{solver.name}"
         self.anchor: Anchor | None = None
+        self.references: Any = None  # a ReferenceSet after set_references (references.py)
 
     @classmethod
     def from_method(cls, method: Any) -> "Localizer":
@@ -206,7 +207,18 @@ class Relocalizer:
 
     def set_reference(self, reference: ViewLike | Anchor) -> Anchor:
         self.anchor = reference if isinstance(reference, Anchor) else self.prepare(reference)
+        self.references = None
         return self.anchor
+
+    def set_references(self, mapping: Iterable[ViewLike], k: int = 1, poses: Any = None, **options: Any) -> Any:
+        """Represent the place by ``k`` of the ``mapping`` images (Frames with poses, or views with ``poses``),
+        chosen by K-means over DenseVLAD; ``localize(query)`` then retrieves the most similar reference and
+        returns the query pose in the frame of those poses. ``mode="triangulation"``: the depth-free baseline.
+        """
+        from .references import ReferenceSet
+
+        self.references = ReferenceSet.build(list(mapping), poses, k=k, **options)
+        return self.references
 
     def relocalize(self, reference: ViewLike, query: ViewLike) -> Estimate:
         """Pose of ``query`` relative to ``reference``; timings include preparing the reference."""
@@ -276,6 +288,8 @@ class Relocalizer:
 
         Never raises for bad pixels or geometry: the answer is then an ``Estimate`` with ``pose=None``.
         """
+        if anchor is None and self.references is not None:
+            return self.references.localize(self, query)
         anchor = self._anchor(anchor)
         early = self._precheck(anchor)
         return early if early is not None else self._finish(anchor, self._prepare_query(query))
@@ -284,6 +298,9 @@ class Relocalizer:
                       prefetch: int = 1) -> Iterator[Estimate]:
         """``localize`` over many queries, in order; with ``prefetch`` > 0 the next queries are read and their
         features extracted in a background thread while the current one is matched and solved."""
+        if anchor is None and self.references is not None:
+            yield from (self.localize(q) for q in queries)
+            return
         anchor = self._anchor(anchor)
         if self._precheck(anchor) is not None:  # nothing to extract: every query fails the same way
             for _ in queries:

@@ -21,6 +21,7 @@ import numpy as np
 from ..data import Dataset, Scene
 from ..estimate import Estimate
 from ..geometry import Pose
+from .references import bind_scene_references
 
 __all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
 
@@ -155,6 +156,7 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
         ref = scene.reference
         ref_pose = ref.pose if ref.pose is not None else Pose.identity()
         loc.set_reference(ref)
+        loc, ref_pose = bind_scene_references(loc, scene, method_dict, ref_pose)  # --references K (references.py)
     except Exception as e:  # the whole scene fails cleanly; each frame says why
         reason = f"reference failed: {type(e).__name__}: {e}"
         recs = [_record(scene.name, f, Estimate.failure(reason), None) for f in frames]
