@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 
-from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel
 from sqlalchemy import select, text
@@ -14,7 +14,7 @@ from . import jobs
 from .db import Anchor, Submission, WorkerRow, now
 from .deps import db_session, identify, require_writer
 from .reloc import check_method, default_method, estimate_json, intrinsics_of
-from .submissions import accept, daily_test_limit, leaderboard, to_json, visible
+from .submissions import accept, daily_test_limit, to_json, visible
 from .submissions import plot_png as render_plot
 from .uploads import UploadError, decode_depth, decode_image, parse_intrinsics
 
@@ -128,16 +128,6 @@ def plot_png(sid: str, name: str, request: Request, db: Session = Depends(db_ses
     if png is None:
         raise HTTPException(404, "no such plot")
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
-
-
-@router.get("/api/leaderboard/{split}", tags=["submissions"])
-def leaderboard_json(split: str, request: Request, sort: str = Query("vcre_auc"),
-                     reference: bool = Query(True), db: Session = Depends(db_session)):
-    """Public results of a split, best first by ``sort`` (vcre_auc, vcre_prec, pose_auc, pose_prec, med_trans,
-    med_rot, med_vcre, estimates), with the paper's rows as reference entries."""
-    if split not in request.app.state.settings.splits:
-        raise HTTPException(404, f"no leaderboard for split {split!r}")
-    return {"split": split, "sort": sort, "entries": leaderboard(db, split, sort, reference)}
 
 
 # --------------------------------------------------------------------------------------------- anchors

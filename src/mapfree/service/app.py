@@ -13,6 +13,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .. import __version__
@@ -33,11 +34,9 @@ def _wants_html(request: Request) -> bool:
 
 def _error(request: Request, status: int, message: str, headers: dict | None = None):
     if _wants_html(request):
-        from .web import templates
+        from .web import error_page
 
-        return templates.TemplateResponse(request, "error.html", {"status": status, "message": message,
-                                                                  "user": None, "csrf": "", "splits": ()},
-                                          status_code=status, headers=headers)
+        return error_page(request, status, message, headers)
     return JSONResponse({"detail": message, "status": status}, status_code=status, headers=headers)
 
 
@@ -52,8 +51,10 @@ def _validation_message(exc: RequestValidationError) -> str:
 def create_app(settings: Settings) -> FastAPI:
     engine = make_engine(settings.db_url)
     init_db(engine)
-    app = FastAPI(title="mapfree service", version=__version__, max_body_size=settings.limits.max_request_bytes,
-                  description="Map-free benchmark evaluation server and metric relocalization API.")
+    # /docs and /redoc with their assets served from /docs-assets (fastapi-offline): no CDN, so they work offline
+    app = FastAPIOffline(title="mapfree service", version=__version__, static_url="/docs-assets",
+                         max_body_size=settings.limits.max_request_bytes,
+                         description="Map-free benchmark evaluation server and metric relocalization API.")
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
     app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)))
 
@@ -92,9 +93,11 @@ def create_app(settings: Settings) -> FastAPI:
                                    "user_id": getattr(request.state, "user_id", None)})
         return response
 
-    from . import api, web
+    from . import api, leaderboard, manage, web
 
     app.include_router(api.router)
+    app.include_router(leaderboard.router)
+    app.include_router(manage.router)
     app.include_router(web.router)
     app.mount("/static", StaticFiles(directory=str(Path(__file__).parent / "static")), name="static")
     return app

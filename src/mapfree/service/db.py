@@ -99,6 +99,19 @@ class Result(Base):
     created_at: Mapped[float] = mapped_column(Float, default=now)
 
 
+class MethodInfo(Base):
+    """What a submission's author says about the method (shown on the leaderboard); a table of its own so that
+    existing databases gain it with ``create_all``."""
+
+    __tablename__ = "method_info"
+    submission_id: Mapped[str] = mapped_column(ForeignKey("submissions.id", ondelete="CASCADE"), primary_key=True)
+    description: Mapped[str] = mapped_column(Text, default="")
+    paper_url: Mapped[str] = mapped_column(String(500), default="")
+    code_url: Mapped[str] = mapped_column(String(500), default="")
+    runtime_ms: Mapped[float | None] = mapped_column(Float, nullable=True)  # per query, as the author measured it
+    extra_data: Mapped[bool] = mapped_column(Boolean, default=False)  # trained/tuned on data beyond the train split
+
+
 class Plot(Base):
     __tablename__ = "plots"
     __table_args__ = (UniqueConstraint("submission_id", "name"),)

@@ -60,6 +60,16 @@ def effective_method(name: str, has_query_depth: bool):
     return m
 
 
+def needs_reference_depth(name: str) -> bool:
+    """Whether a method can only work with a depth map uploaded for the reference: matching methods whose depth
+    comes from files (``files:SUFFIX``). Scale-free (``none``), predicted-depth and regression methods cannot
+    use one."""
+    from .. import methods
+
+    m = methods.get(name)
+    return m.kind == "matching" and m.depth.startswith("files:")
+
+
 def intrinsics_of(d: dict) -> Intrinsics:
     return Intrinsics(d["fx"], d["fy"], d["cx"], d["cy"], int(d["width"]), int(d["height"]))
 

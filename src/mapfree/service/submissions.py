@@ -1,11 +1,10 @@
 """Submissions: accept an upload (validated, stored and queued before it is acknowledged), show results,
-and build leaderboards. Shared by the JSON API and the web pages."""
+and render plots. Shared by the JSON API and the web pages (leaderboards: ``leaderboard.py``)."""
 
 from __future__ import annotations
 
 import hashlib
 import threading
-import time
 
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
@@ -13,9 +12,7 @@ from sqlalchemy.orm import Session
 
 from .config import Settings
 from .db import Plot, Result, Submission, SubmissionFile, User, now
-from .evaluation import (LOWER_IS_BETTER, PLOT_NAMES, SHORT, SubmissionRejected, known_scenes, precheck,
-                         render_plots, unpack_report)
-from .reference import REFERENCE_ROWS
+from .evaluation import PLOT_NAMES, SubmissionRejected, known_scenes, precheck, render_plots, unpack_report
 from .uploads import UploadError, check_submission_zip
 
 
@@ -61,7 +58,7 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
 
 
 def visible(sub: Submission | None, user: User | None) -> bool:
-    if sub is None:
+    if sub is None or sub.status == "withdrawn":
         return False
     return sub.public or (user is not None and (user.id == sub.user_id or user.is_admin))
 
@@ -89,43 +86,6 @@ def to_json(db: Session, sub: Submission, owner_name: str | None = None) -> dict
     if res:
         out["eval_seconds"] = res.eval_seconds
     return out
-
-
-def sort_key(key: str) -> str:
-    if key not in SHORT:
-        raise UploadError(422, f"unknown sort key {key!r}; use one of {', '.join(SHORT)}")
-    return key
-
-
-def leaderboard(db: Session, split: str, sort: str = "vcre_auc", reference: bool = True) -> list[dict]:
-    """Public finished submissions of a split (plus the paper's rows), best first by ``sort``."""
-    sort_key(sort)
-    rows = db.execute(
-        select(Submission, Result, User.name).join(Result, Result.submission_id == Submission.id)
-        .join(User, User.id == Submission.user_id)
-        .where(Submission.split == split, Submission.public.is_(True), Submission.status == "done")
-    ).all()
-    entries = []
-    for sub, res, uname in rows:
-        m = {short: res.metrics.get(long) for short, long in SHORT.items()}
-        entries.append({"id": sub.id, "name": sub.name, "user": uname, "reference": False,
-                        "created_at": sub.created_at, "url": f"/submissions/{sub.id}", "metrics": m, "note": ""})
-    if reference:
-        for r in REFERENCE_ROWS.get(split, []):
-            m = {short: r["metrics"].get(short) for short in SHORT}
-            entries.append({"id": None, "name": r["name"], "user": "paper", "reference": True, "created_at": None,
-                            "url": None, "metrics": m, "note": r["note"]})
-    lower = sort in LOWER_IS_BETTER
-
-    def key(e):
-        v = e["metrics"].get(sort)
-        missing = v is None
-        return (missing, (v if lower else -v) if not missing else 0.0, e["created_at"] or time.time())
-
-    entries.sort(key=key)
-    for i, e in enumerate(entries, 1):
-        e["rank"] = i
-    return entries
 
 
 _PLOT_LOCK = threading.Lock()

@@ -1,25 +1,31 @@
-"""Web pages (server-rendered, Jinja2): sign-in, upload, submission pages, leaderboards, history, and a page to
-try relocalization. Every form carries a CSRF token; the session cookie is HttpOnly and SameSite=Lax."""
+"""Web pages (server-rendered, Jinja2): sign-in, upload, submission pages, leaderboards, comparisons, history,
+and a page to try relocalization. Every form carries a CSRF token; the session cookie is HttpOnly and
+SameSite=Lax. A form that fails comes back as the same form with its values and the error above it (and with
+JavaScript the page is not replaced at all, so chosen files stay chosen)."""
 
 from __future__ import annotations
 
 import base64
 import secrets
+import time
 from pathlib import Path
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, UploadFile
-from fastapi.responses import HTMLResponse, RedirectResponse
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from . import auth
 from .api import read_upload
-from .db import Submission, User
+from .db import MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
-from .evaluation import LOWER_IS_BETTER, SHORT
-from .reloc import check_method, default_method, estimate_json, figure_png, intrinsics_of
-from .submissions import accept, leaderboard, to_json, visible
+from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT
+from .leaderboard import (VIEWS, board, check_sort, compare, meta_json, parse_meta, reference_rows, save_meta,
+                          scenes_of, visible_json)
+from .manage import own_submission, test_quota, withdraw, zip_response
+from .reloc import check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
+from .submissions import accept, to_json, visible
 from .uploads import UploadError, decode_depth, decode_image, parse_intrinsics
 
 router = APIRouter(include_in_schema=False)
@@ -27,12 +33,17 @@ templates = Jinja2Templates(directory=str(Path(__file__).parent / "templates"))
 LABELS = {"vcre_auc": "VCRE AUC", "vcre_prec": "VCRE prec.", "pose_auc": "Pose AUC", "pose_prec": "Pose prec.",
           "med_trans": "Med. trans. (m)", "med_rot": "Med. rot. (°)", "med_vcre": "Med. VCRE (px)",
           "estimates": "Estimates (frac.)"}
+#: Offered on the relocalization page; the note says what each needs.
+RELOC_CHOICES = {
+    "best-offline": "XFeat + 3D-3D; needs the reference depth (the query's too, else PnP runs)",
+    "best-offline-pnp": "XFeat + PnP; needs the reference depth",
+    "sift_pnp_sensor": "SIFT + PnP; needs the reference depth",
+    "sift_emat_none": "SIFT + essential matrix; no depth, so direction only: no metric scale",
+}
 
 
-def _fmt_time(t):
-    import time
-
-    return time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(t)) if t else ""
+def _fmt_time(t, fmt: str = "%Y-%m-%d %H:%M:%S UTC"):
+    return time.strftime(fmt, time.gmtime(t)) if t else ""
 
 
 def _fmt_num(v):
@@ -41,8 +52,20 @@ def _fmt_num(v):
     return f"{v:.3f}" if isinstance(v, float) else str(v)
 
 
+def _fmt_diff(v):
+    return "–" if v is None else f"{v:+.3f}"
+
+
+def ordered_metrics(metrics: dict | None) -> list[str]:
+    """Every metric a result holds: the benchmark's eight headline keys first, then the rest (50 cm / 10°,
+    45 px, …) in a stable order."""
+    metrics = metrics or {}
+    return [k for k in METRIC_KEYS if k in metrics] + sorted(k for k in metrics if k not in METRIC_KEYS)
+
+
 templates.env.filters["time"] = _fmt_time
 templates.env.filters["num"] = _fmt_num
+templates.env.filters["diff"] = _fmt_diff
 
 
 def page(request: Request, name: str, db: Session, status: int = 200, **ctx) -> HTMLResponse:
@@ -50,6 +73,26 @@ def page(request: Request, name: str, db: Session, status: int = 200, **ctx) -> 
     return templates.TemplateResponse(request, name, {"user": caller.user, "csrf": caller.csrf,
                                                       "splits": request.app.state.settings.splits, **ctx},
                                       status_code=status)
+
+
+def error_page(request: Request, status: int, message: str, headers: dict | None = None) -> HTMLResponse:
+    """The HTML error page, with the navigation of whoever is signed in (never "sign in" to a signed-in user)."""
+    user, csrf = None, ""
+    try:
+        with request.app.state.sessions() as db:
+            caller = identify(request, db)
+            user, csrf = caller.user, caller.csrf
+    except Exception:  # a bad token, or the database is down: an anonymous header is still a useful page
+        pass
+    return templates.TemplateResponse(request, "error.html", {"status": status, "message": message, "user": user,
+                                                              "csrf": csrf, "splits": request.app.state.settings.splits},
+                                      status_code=status, headers=headers)
+
+
+def _problem(exc: UploadError | HTTPException) -> tuple[int, str]:
+    if isinstance(exc, UploadError):
+        return exc.status, exc.message
+    return exc.status_code, str(exc.detail)
 
 
 @router.get("/", response_class=HTMLResponse)
@@ -105,34 +148,67 @@ def history(request: Request, db: Session = Depends(db_session)):
     user = _signed_in(request, db)
     subs = db.scalars(select(Submission).where(Submission.user_id == user.id)
                       .order_by(Submission.created_at.desc()).limit(500)).all()
-    return page(request, "history.html", db, subs=[to_json(db, s, user.name) for s in subs], labels=LABELS)
+    return page(request, "history.html", db, subs=[to_json(db, s, user.name) for s in subs], labels=LABELS,
+                quota=test_quota(db, request.app.state.settings, user))
+
+
+# ------------------------------------------------------------------------------------------- submissions
+
+
+def _submit_page(request: Request, db: Session, user: User, status: int = 200, error: str = "",
+                 form: dict | None = None) -> HTMLResponse:
+    return page(request, "submit.html", db, status, error=error, form=form or {},
+                quota=test_quota(db, request.app.state.settings, user))
 
 
 @router.get("/submit", response_class=HTMLResponse)
 def submit_form(request: Request, db: Session = Depends(db_session)):
-    _signed_in(request, db)
-    return page(request, "submit.html", db)
+    return _submit_page(request, db, _signed_in(request, db))
 
 
 @router.post("/submit")
 def submit(request: Request, file: UploadFile = File(...), split: str = Form(...), name: str = Form(""),
-                 public: bool = Form(False), csrf_token: str = Form(""), db: Session = Depends(db_session)):
+           public: bool = Form(False), description: str = Form(""), paper_url: str = Form(""),
+           code_url: str = Form(""), runtime_ms: str = Form(""), extra_data: bool = Form(False),
+           csrf_token: str = Form(""), db: Session = Depends(db_session)):
+    """Upload from the form; on a problem the form comes back filled in, with the error above it."""
+    form = {"split": split, "name": name, "public": public, "description": description, "paper_url": paper_url,
+            "code_url": code_url, "runtime_ms": runtime_ms, "extra_data": extra_data}
     caller = require_writer(request, db, csrf_token)
     settings = request.app.state.settings
-    data = read_upload(file, settings.limits.max_submission_bytes, "submission")
-    if data is None:
-        raise UploadError(400, "submission: no file chosen")
-    sub = accept(db, settings, caller.user, split, name, public, data)
+    try:
+        meta = parse_meta(description, paper_url, code_url, runtime_ms, extra_data)
+        data = read_upload(file, settings.limits.max_submission_bytes, "submission")
+        if data is None:
+            raise UploadError(400, "submission: no file chosen")
+        sub = accept(db, settings, caller.user, split, name, public, data)
+    except (UploadError, HTTPException) as e:
+        db.rollback()
+        status, message = _problem(e)
+        return _submit_page(request, db, caller.user, status, message, form)
+    if not meta.empty():
+        save_meta(db, sub.id, meta)
+        db.commit()
     return RedirectResponse(f"/submissions/{sub.id}", status_code=303)
 
 
 @router.get("/submissions/{sid}", response_class=HTMLResponse)
 def submission_page(sid: str, request: Request, db: Session = Depends(db_session)):
+    return _submission(request, db, sid)
+
+
+def _submission(request: Request, db: Session, sid: str, status: int = 200, error: str = "") -> HTMLResponse:
+    """A submission's page: every figure of its result, per-scene table, plots; for its owner also the method
+    form, the ZIP download and withdrawing."""
     user = identify(request, db).user
     sub = db.get(Submission, sid) if len(sid) <= 32 else None
     if not visible(sub, user):
         raise HTTPException(404, "no such submission (or it is private)")
-    return page(request, "submission.html", db, sub=to_json(db, sub), labels=LABELS, short=SHORT,
+    data = to_json(db, sub)
+    first_scene = next(iter((data.get("per_scene") or {}).values()), None) or {}
+    return page(request, "submission.html", db, status, sub=data, labels=LABELS, short=SHORT,
+                metric_keys=ordered_metrics(data["metrics"]), scene_keys=ordered_metrics(first_scene),
+                method=meta_json(db.get(MethodInfo, sub.id)), error=error,
                 owner=user is not None and user.id == sub.user_id)
 
 
@@ -140,12 +216,40 @@ def submission_page(sid: str, request: Request, db: Session = Depends(db_session
 def visibility(sid: str, request: Request, public: bool = Form(False), csrf_token: str = Form(""),
                db: Session = Depends(db_session)):
     caller = require_writer(request, db, csrf_token)
-    sub = db.get(Submission, sid) if len(sid) <= 32 else None
-    if sub is None or sub.user_id != caller.user.id:
-        raise HTTPException(404, "no such submission of yours")
+    sub = own_submission(db, caller.user, sid)
     sub.public = public
     db.commit()
     return RedirectResponse(f"/submissions/{sid}", status_code=303)
+
+
+@router.post("/submissions/{sid}/method")
+def edit_method(sid: str, request: Request, description: str = Form(""), paper_url: str = Form(""),
+                code_url: str = Form(""), runtime_ms: str = Form(""), extra_data: bool = Form(False),
+                csrf_token: str = Form(""), db: Session = Depends(db_session)):
+    caller = require_writer(request, db, csrf_token)
+    sub = own_submission(db, caller.user, sid)
+    try:
+        save_meta(db, sub.id, parse_meta(description, paper_url, code_url, runtime_ms, extra_data))
+    except UploadError as e:
+        db.rollback()
+        return _submission(request, db, sid, e.status, e.message)
+    db.commit()
+    return RedirectResponse(f"/submissions/{sid}", status_code=303)
+
+
+@router.post("/submissions/{sid}/withdraw")
+def withdraw_form(sid: str, request: Request, csrf_token: str = Form(""), db: Session = Depends(db_session)):
+    caller = require_writer(request, db, csrf_token)
+    withdraw(db, own_submission(db, caller.user, sid))
+    return RedirectResponse("/me", status_code=303)
+
+
+@router.get("/submissions/{sid}/zip")
+def download(sid: str, request: Request, db: Session = Depends(db_session)) -> Response:
+    return zip_response(db, own_submission(db, _signed_in(request, db), sid))
+
+
+# ------------------------------------------------------------------------------------------ leaderboards
 
 
 @router.get("/leaderboard", response_class=HTMLResponse)
@@ -154,18 +258,39 @@ def leaderboard_default(request: Request):
 
 
 @router.get("/leaderboard/{split}", response_class=HTMLResponse)
-def leaderboard_page(split: str, request: Request, sort: str = Query("vcre_auc"),
-                     db: Session = Depends(db_session)):
+def leaderboard_page(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
+                     scene: str = Query(""), db: Session = Depends(db_session)):
     if split not in request.app.state.settings.splits:
         raise HTTPException(404, f"no leaderboard for split {split!r}")
-    entries = leaderboard(db, split, sort)
-    return page(request, "leaderboard.html", db, split=split, sort=sort, entries=entries, labels=LABELS,
-                lower=LOWER_IS_BETTER)
+    check_sort(sort)
+    entries = board(db, split, sort, view, scene or None)
+    query = f"sort={sort}&view={view}" + (f"&scene={scene}" if scene else "")
+    return page(request, "leaderboard.html", db, split=split, sort=sort, view=view, views=VIEWS, scene=scene,
+                scenes=scenes_of(db, split), entries=entries, labels=LABELS, lower=LOWER_IS_BETTER,
+                reference=reference_rows(), csv_url=f"/api/leaderboard/{split}.csv?{query}")
+
+
+@router.get("/compare", response_class=HTMLResponse)
+def compare_page(request: Request, id: list[str] = Query([]), db: Session = Depends(db_session)):
+    """Two submissions side by side (chosen with the leaderboard's check boxes)."""
+    if len(id) != 2:
+        raise HTTPException(422, f"choose exactly two submissions to compare (got {len(id)})")
+    a, b = (visible_json(request, db, x) for x in id)
+    return page(request, "compare.html", db, cmp=compare(a, b))
+
+
+# ---------------------------------------------------------------------------------------- relocalization
+
+
+def _reloc_page(request: Request, db: Session, status: int = 200, **ctx) -> HTMLResponse:
+    ctx.setdefault("form", {})
+    ctx.setdefault("method", default_method(request.app.state.settings.default_method))
+    return page(request, "relocalize.html", db, status, choices=RELOC_CHOICES, **ctx)
 
 
 @router.get("/relocalize", response_class=HTMLResponse)
 def relocalize_form(request: Request, db: Session = Depends(db_session)):
-    return page(request, "relocalize.html", db, method=default_method(request.app.state.settings.default_method))
+    return _reloc_page(request, db)
 
 
 def _guess_intrinsics(fields: dict, img, what: str) -> dict:
@@ -183,25 +308,35 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
                    ref_fx: str = Form(""), ref_fy: str = Form(""), ref_cx: str = Form(""), ref_cy: str = Form(""),
                    q_fx: str = Form(""), q_fy: str = Form(""), q_cx: str = Form(""), q_cy: str = Form(""),
                    csrf_token: str = Form(""), db: Session = Depends(db_session)):
-    """Two photos in, the matches and the virtual grid at the estimated pose out (nothing is stored)."""
+    """Two photos in, the matches and the virtual grid at the estimated pose out (nothing is stored). A method
+    that needs the reference depth is refused without one, before anything runs."""
     require_writer(request, db, csrf_token)
+    form = {"ref_fx": ref_fx, "ref_fy": ref_fy, "ref_cx": ref_cx, "ref_cy": ref_cy,
+            "q_fx": q_fx, "q_fy": q_fy, "q_cx": q_cx, "q_cy": q_cy}
     lim = request.app.state.settings.limits
-    ref_img = decode_image(reference.file.read(lim.max_image_bytes + 1), lim, "reference photo")
-    q_img = decode_image(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
-    ref_K = intrinsics_of(_guess_intrinsics({"fx": ref_fx, "fy": ref_fy, "cx": ref_cx, "cy": ref_cy}, ref_img,
-                                            "reference intrinsics"))
-    q_K = intrinsics_of(_guess_intrinsics({"fx": q_fx, "fy": q_fy, "cx": q_cx, "cy": q_cy}, q_img,
-                                          "query intrinsics"))
-    ref_depth = None
-    if reference_depth is not None and reference_depth.filename:
-        ref_depth = decode_depth(reference_depth.file.read(lim.max_image_bytes + 1), lim, ref_img.shape[:2],
-                                 "reference depth")
-    m = check_method(method) if method.strip() else default_method(request.app.state.settings.default_method)
+    m = method.strip() or default_method(request.app.state.settings.default_method)
+    try:
+        m = check_method(m)
+        ref_img = decode_image(reference.file.read(lim.max_image_bytes + 1), lim, "reference photo")
+        q_img = decode_image(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
+        ref_K = intrinsics_of(_guess_intrinsics({k[4:]: v for k, v in form.items() if k.startswith("ref_")},
+                                                ref_img, "reference intrinsics"))
+        q_K = intrinsics_of(_guess_intrinsics({k[2:]: v for k, v in form.items() if k.startswith("q_")}, q_img,
+                                              "query intrinsics"))
+        ref_depth = None
+        if reference_depth is not None and reference_depth.filename:
+            ref_depth = decode_depth(reference_depth.file.read(lim.max_image_bytes + 1), lim, ref_img.shape[:2],
+                                     "reference depth")
+        elif needs_reference_depth(m):
+            raise UploadError(422, f"method {m} needs the reference depth map (a uint16 PNG in millimetres, the "
+                                   "size of the reference photo) for a metric pose; choose one, or a method "
+                                   "without depth such as sift_emat_none (direction only, no metric scale)")
+    except UploadError as e:
+        return _reloc_page(request, db, e.status, method=m, form=form, error=e.message)
     key = "try-" + secrets.token_hex(8)
     loc = request.app.state.localizers
     est = loc.localize(key, m, ref_img, ref_K, ref_depth, q_img, q_K)
     loc.forget(key)
     png = figure_png(ref_img, q_img, ref_K, q_K, est, title=m)
-    result = estimate_json(est, m)
-    return page(request, "relocalize.html", db, method=m, result=result,
-                figure="data:image/png;base64," + base64.b64encode(png).decode())
+    return _reloc_page(request, db, method=m, form=form, result=estimate_json(est, m),
+                       figure="data:image/png;base64," + base64.b64encode(png).decode())

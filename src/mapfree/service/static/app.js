@@ -1,5 +1,14 @@
-// Submission pages: poll the JSON status until the evaluation is finished, then reload to show the scores.
+// Progressive enhancement of the server-rendered pages (everything also works without JavaScript).
 document.addEventListener("DOMContentLoaded", () => {
+  pollSubmissionStatus();
+  for (const form of document.querySelectorAll("form[data-confirm]")) {
+    form.addEventListener("submit", (ev) => { if (!window.confirm(form.dataset.confirm)) ev.preventDefault(); });
+  }
+  for (const form of document.querySelectorAll("form[data-async]")) submitInPlace(form);
+});
+
+// Submission pages: poll the JSON status until the evaluation is finished, then reload to show the scores.
+function pollSubmissionStatus() {
   const el = document.getElementById("status");
   if (!el || !el.dataset.poll) return;
   const pending = (s) => s === "queued" || s === "running";
@@ -16,4 +25,34 @@ document.addEventListener("DOMContentLoaded", () => {
     setTimeout(tick, 700);
   };
   setTimeout(tick, 700);
-});
+}
+
+// Forms with data-async post in the background: an error shows above the form, which stays as it is (chosen
+// files included); a redirect is followed; a result section in the answer replaces the page's one.
+function submitInPlace(form) {
+  const box = document.getElementById("form-error");
+  const button = form.querySelector("button[type=submit]");
+  const busy = form.querySelector(".busy");
+  form.addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    button.disabled = true;
+    if (busy) busy.hidden = false;
+    const show = (msg) => { box.textContent = msg; box.hidden = !msg; };
+    try {
+      const r = await fetch(form.action, { method: "POST", body: new FormData(form), credentials: "same-origin",
+                                           headers: { Accept: "text/html" } });
+      if (r.ok && r.redirected) { window.location.assign(r.url); return; }
+      const doc = new DOMParser().parseFromString(await r.text(), "text/html");
+      const err = doc.getElementById("form-error") || doc.getElementById("error-message");
+      show(r.ok ? "" : ((err && err.textContent.trim()) || `the server answered ${r.status}`));
+      const fresh = doc.getElementById("result-section"), here = document.getElementById("result-section");
+      if (r.ok && fresh && here) here.replaceWith(fresh);
+      if (!r.ok) box.scrollIntoView({ block: "center" });
+    } catch (e) {
+      show(`could not reach the server (${e.message}); your entries are kept, try again`);
+    } finally {
+      button.disabled = false;
+      if (busy) busy.hidden = true;
+    }
+  });
+}

@@ -1,0 +1,287 @@
+"""Leaderboards: the public finished submissions of a split ranked by one metric (equal scores share a rank),
+all of them or each account's best, on the whole split or one scene; the method each author describes; CSV
+export; two submissions side by side. Published results stay in a table of their own (``reference.py``)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import re
+import time
+from dataclasses import asdict, dataclass
+from urllib.parse import urlsplit
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi.responses import Response
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from .db import MethodInfo, Result, Submission, User
+from .deps import db_session, identify
+from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT
+from .reference import REFERENCE_ROWS
+from .uploads import UploadError
+
+VIEWS = ("all", "best")
+#: Characters refused in free text: C0/C1 controls (but tab/newline in descriptions) and bidirectional overrides.
+_BAD_TEXT = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069]")
+MAX_DESCRIPTION = 2000
+MAX_URL = 500
+
+
+# --------------------------------------------------------------------------------------- method metadata
+
+
+@dataclass
+class MethodMeta:
+    """What an author states about the method behind a submission."""
+
+    description: str = ""
+    paper_url: str = ""
+    code_url: str = ""
+    runtime_ms: float | None = None  # per query pair
+    extra_data: bool = False  # trained or tuned on data beyond the benchmark's train split
+
+    def empty(self) -> bool:
+        return self == MethodMeta()
+
+
+def _text(value: str | None, limit: int, what: str) -> str:
+    value = (value or "").strip()
+    if len(value) > limit:
+        raise UploadError(422, f"{what}: longer than {limit} characters")
+    if _BAD_TEXT.search(value):
+        raise UploadError(422, f"{what}: contains control or bidirectional-override characters")
+    return value
+
+
+def _url(value: str | None, what: str) -> str:
+    value = _text(value, MAX_URL, what)
+    if not value:
+        return ""
+    parts = urlsplit(value)
+    if parts.scheme not in ("http", "https") or not parts.netloc or any(c.isspace() for c in value):
+        raise UploadError(422, f"{what}: must be an http(s) URL such as https://arxiv.org/abs/…; got {value[:80]!r}")
+    return value
+
+
+def _runtime(value: str | float | None) -> float | None:
+    if value is None or str(value).strip() == "":
+        return None
+    try:
+        ms = float(value)
+    except ValueError:
+        raise UploadError(422, f"runtime_ms: not a number: {str(value)[:40]!r}") from None
+    if not math.isfinite(ms) or not 0 < ms < 1e7:
+        raise UploadError(422, "runtime_ms: must be a finite number of milliseconds per query, 0 < ms < 1e7")
+    return ms
+
+
+def parse_meta(description: str | None = "", paper_url: str | None = "", code_url: str | None = "",
+               runtime_ms: str | float | None = None, extra_data: bool = False) -> MethodMeta:
+    """Checked metadata (422 naming the field otherwise): plain text, http(s) links only (no ``javascript:``)."""
+    return MethodMeta(_text(description, MAX_DESCRIPTION, "description"), _url(paper_url, "paper_url"),
+                      _url(code_url, "code_url"), _runtime(runtime_ms), bool(extra_data))
+
+
+def save_meta(db: Session, submission_id: str, meta: MethodMeta) -> None:
+    """Store (or replace) a submission's metadata; the caller commits."""
+    row = db.get(MethodInfo, submission_id)
+    if row is None:
+        db.add(MethodInfo(submission_id=submission_id, **asdict(meta)))
+    else:
+        for k, v in asdict(meta).items():
+            setattr(row, k, v)
+
+
+def meta_json(row: MethodInfo | None) -> dict:
+    if row is None:
+        return asdict(MethodMeta())
+    return {k: getattr(row, k) for k in asdict(MethodMeta())}
+
+
+# ------------------------------------------------------------------------------------------------ boards
+
+
+def check_sort(key: str) -> str:
+    if key not in SHORT:
+        raise UploadError(422, f"unknown sort key {key!r}; use one of {', '.join(SHORT)}")
+    return key
+
+
+def competition_ranks(values: list[float | None]) -> list[int | None]:
+    """Ranks of already sorted values, "1224" style: equal values share the best rank; missing ones get none."""
+    ranks: list[int | None] = []
+    for i, v in enumerate(values):
+        if v is None:
+            ranks.append(None)
+        elif i > 0 and values[i - 1] == v:
+            ranks.append(ranks[-1])
+        else:
+            ranks.append(i + 1)
+    return ranks
+
+
+def _ordered(entries: list[dict], sort: str) -> list[dict]:
+    lower = sort in LOWER_IS_BETTER
+
+    def key(e):
+        v = e["metrics"].get(sort)
+        return (v is None, 0.0 if v is None else (v if lower else -v), e["created_at"], e["id"])
+
+    return sorted(entries, key=key)
+
+
+def board(db: Session, split: str, sort: str = "vcre_auc", view: str = "all", scene: str | None = None) -> list[dict]:
+    """Public finished submissions of ``split``, best first by ``sort``; ``view="best"`` keeps each account's
+    best entry; ``scene`` ranks by that scene's scores (not for ``test``: it has no per-scene results)."""
+    check_sort(sort)
+    if view not in VIEWS:
+        raise UploadError(422, f"view must be one of {', '.join(VIEWS)}; got {view!r}")
+    if scene is not None and split == "test":
+        raise UploadError(422, "the test split has no per-scene results")
+    rows = db.execute(
+        select(Submission, Result, User.name, MethodInfo).join(Result, Result.submission_id == Submission.id)
+        .join(User, User.id == Submission.user_id)
+        .outerjoin(MethodInfo, MethodInfo.submission_id == Submission.id)
+        .where(Submission.split == split, Submission.public.is_(True), Submission.status == "done")
+    ).all()
+    entries = []
+    for sub, res, uname, info in rows:
+        values = res.metrics if scene is None else (res.per_scene or {}).get(scene)
+        if values is None:
+            continue
+        entries.append({"id": sub.id, "name": sub.name, "user": uname, "created_at": sub.created_at,
+                        "url": f"/submissions/{sub.id}", "method": meta_json(info),
+                        "metrics": {short: values.get(long) for short, long in SHORT.items()}})
+    entries = _ordered(entries, sort)
+    if view == "best":
+        seen: set[str] = set()
+        entries = [e for e in entries if not (e["user"] in seen or seen.add(e["user"]))]
+    for e, r in zip(entries, competition_ranks([e["metrics"].get(sort) for e in entries])):
+        e["rank"] = r
+    return entries
+
+
+def scenes_of(db: Session, split: str) -> list[str]:
+    """Scenes with per-scene results among the public entries of a split (for the scene picker)."""
+    if split == "test":
+        return []
+    found: set[str] = set()
+    for per_scene in db.scalars(select(Result.per_scene).join(Submission, Submission.id == Result.submission_id)
+                                .where(Submission.split == split, Submission.public.is_(True))).all():
+        found.update((per_scene or {}).keys())
+    return sorted(found)
+
+
+def reference_rows() -> list[dict]:
+    """Published results, best VCRE AUC first within each dataset; never ranked with submissions."""
+    rows = [{"name": r["name"], "dataset": r["dataset"], "note": r["note"],
+             "metrics": {k: r["metrics"].get(k) for k in SHORT}} for r in REFERENCE_ROWS]
+    return sorted(rows, key=lambda r: (r["dataset"], -(r["metrics"]["vcre_auc"] or 0)))
+
+
+def to_csv(entries: list[dict]) -> str:
+    """The board as CSV (full metric names as headers). Text cells that a spreadsheet would run as a formula
+    get a leading apostrophe."""
+    def cell(v):
+        if isinstance(v, str) and v[:1] in ("=", "+", "-", "@", "\t", "\r"):
+            return "'" + v
+        return "" if v is None else v
+
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(["rank", "name", "user", "submitted_utc", *METRIC_KEYS, "runtime_ms", "extra_data", "paper_url",
+                "code_url", "url"])
+    for e in entries:
+        date = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(e["created_at"]))
+        w.writerow([cell(x) for x in (e["rank"], e["name"], e["user"], date,
+                                      *(e["metrics"][s] for s in SHORT), e["method"]["runtime_ms"],
+                                      e["method"]["extra_data"], e["method"]["paper_url"], e["method"]["code_url"],
+                                      e["url"])])
+    return out.getvalue()
+
+
+# ----------------------------------------------------------------------------------------------- compare
+
+
+def compare(a: dict, b: dict) -> dict:
+    """Two visible submissions of one split (``submissions.to_json`` dicts): every metric both have, the
+    difference b − a and which is better; per scene as well where both have per-scene results."""
+    if a["split"] != b["split"]:
+        raise UploadError(422, f"compare submissions of the same split (got {a['split']} and {b['split']})")
+    lower = {SHORT[k] for k in LOWER_IS_BETTER}
+
+    def rows(ma: dict, mb: dict) -> list[dict]:
+        keys = [k for k in METRIC_KEYS if k in ma or k in mb]
+        keys += sorted(k for k in {*ma, *mb} if k not in keys)
+        out = []
+        for k in keys:
+            va, vb = ma.get(k), mb.get(k)
+            diff = vb - va if isinstance(va, (int, float)) and isinstance(vb, (int, float)) else None
+            better = None if not diff else (("b" if diff < 0 else "a") if k in lower else ("b" if diff > 0 else "a"))
+            out.append({"metric": k, "a": va, "b": vb, "diff": diff, "better": better})
+        return out
+
+    result = {"split": a["split"], "a": {k: a[k] for k in ("id", "name", "user", "url")},
+              "b": {k: b[k] for k in ("id", "name", "user", "url")},
+              "metrics": rows(a["metrics"] or {}, b["metrics"] or {}), "per_scene": {}}
+    sa, sb = a.get("per_scene") or {}, b.get("per_scene") or {}
+    for scene in sorted({*sa, *sb}):
+        result["per_scene"][scene] = rows(sa.get(scene) or {}, sb.get(scene) or {})
+    return result
+
+
+# --------------------------------------------------------------------------------------------- JSON API
+
+router = APIRouter(tags=["leaderboard"])
+
+
+def check_split(request: Request, split: str) -> None:
+    if split not in request.app.state.settings.splits:
+        raise HTTPException(404, f"no leaderboard for split {split!r}")
+
+
+@router.get("/api/leaderboard/{split}.csv", response_class=Response)
+def leaderboard_csv(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
+                    scene: str | None = Query(None), db: Session = Depends(db_session)):
+    """The leaderboard as a CSV file (same parameters as the JSON board)."""
+    check_split(request, split)
+    body = to_csv(board(db, split, sort, view, scene))
+    fname = f"mapfree-{split}{'-' + scene if scene else ''}-{view}-{sort}.csv"
+    return Response(body, media_type="text/csv; charset=utf-8",
+                    headers={"Content-Disposition": f'attachment; filename="{re.sub("[^A-Za-z0-9_.-]", "", fname)}"'})
+
+
+@router.get("/api/leaderboard/{split}")
+def leaderboard(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
+                     scene: str | None = Query(None), reference: bool = Query(True),
+                     db: Session = Depends(db_session)):
+    """Public results of a split, best first by ``sort`` (vcre_auc, vcre_prec, pose_auc, pose_prec, med_trans,
+    med_rot, med_vcre, estimates); equal scores share a rank. ``view=best``: each account's best entry;
+    ``scene``: one scene's scores (val only). Published results on the real Map-free data come apart, under
+    ``reference``."""
+    check_split(request, split)
+    out = {"split": split, "sort": sort, "view": view, "scene": scene,
+           "entries": board(db, split, sort, view, scene)}
+    if reference:
+        out["reference"] = reference_rows()
+    return out
+
+
+def visible_json(request: Request, db: Session, sid: str) -> dict:
+    """A submission the caller may see, as ``to_json`` (404 otherwise)."""
+    from .submissions import to_json, visible
+
+    sub = db.get(Submission, sid) if len(sid) <= 32 else None
+    if not visible(sub, identify(request, db).user):
+        raise HTTPException(404, f"no such submission {sid[:40]!r} (or it is private)")
+    return to_json(db, sub)
+
+
+@router.get("/api/compare")
+def compare_submissions(request: Request, a: str = Query(..., description="submission id"),
+                 b: str = Query(..., description="submission id"), db: Session = Depends(db_session)):
+    """Two submissions side by side: each metric, b − a, and which is better (per scene too, except test)."""
+    return compare(visible_json(request, db, a), visible_json(request, db, b))

@@ -1,0 +1,114 @@
+"""What an account does with its own submissions: withdraw one (results, plots and ZIP deleted; the row stays so
+that it still counts against the quotas), download its ZIP, describe its method, and see the test quota left."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi.responses import Response
+from pydantic import BaseModel, Field
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session
+
+from .config import Settings
+from .db import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
+from .deps import db_session, identify, require_writer
+from .leaderboard import meta_json, parse_meta, save_meta
+from .storage import read_zip
+
+WITHDRAWN = "withdrawn"
+
+
+@dataclass
+class Quota:
+    """Test evaluations: used in the last 24 h (withdrawn ones included), the limit, and what is left."""
+
+    used: int
+    limit: int
+
+    @property
+    def left(self) -> int:
+        return max(0, self.limit - self.used)
+
+
+def test_quota(db: Session, settings: Settings, user: User) -> Quota:
+    limit = user.test_daily_limit if user.test_daily_limit is not None else settings.test_daily_limit
+    used = db.scalar(select(func.count()).select_from(Submission).where(
+        Submission.user_id == user.id, Submission.split == "test", Submission.created_at > now() - 86400)) or 0
+    return Quota(int(used), int(limit))
+
+
+def own_submission(db: Session, user: User, sid: str) -> Submission:
+    """One of ``user``'s submissions (admins: any), not yet withdrawn; 404 otherwise."""
+    sub = db.get(Submission, sid) if len(sid) <= 32 else None
+    if sub is None or sub.status == WITHDRAWN or (sub.user_id != user.id and not user.is_admin):
+        raise HTTPException(404, "no such submission of yours")
+    return sub
+
+
+def withdraw(db: Session, sub: Submission) -> None:
+    """Take a submission off every board for good: results, plots, metadata and ZIP deleted, status
+    ``withdrawn``. A job still queued is never run; one running is dropped (its worker no longer owns it)."""
+    for table in (Plot, Result, MethodInfo, SubmissionFile):
+        db.execute(delete(table).where(table.submission_id == sub.id))
+    sub.status, sub.public, sub.lease_until, sub.worker_id = WITHDRAWN, False, None, None
+    sub.finished_at = now()
+    db.commit()
+
+
+def zip_bytes(db: Session, sub: Submission) -> bytes:
+    data = read_zip(db, sub.id)  # stored in chunks (storage.py)
+    if data is None:
+        raise HTTPException(410, "the ZIP of this submission is no longer stored")
+    return data
+
+
+def zip_response(db: Session, sub: Submission) -> Response:
+    name = f"mapfree-{sub.split}-{sub.id}.zip"
+    return Response(zip_bytes(db, sub), media_type="application/zip",
+                    headers={"Content-Disposition": f'attachment; filename="{name}"', "Cache-Control": "private"})
+
+
+# --------------------------------------------------------------------------------------------- JSON API
+
+router = APIRouter(tags=["submissions"])
+
+
+@router.delete("/api/submissions/{sid}", status_code=204, response_class=Response)
+def withdraw_submission(sid: str, request: Request, db: Session = Depends(db_session)):
+    """Withdraw one of your submissions: off the leaderboards, results and ZIP deleted. It still counts against
+    the test quota of the day it was uploaded."""
+    caller = require_writer(request, db)
+    withdraw(db, own_submission(db, caller.user, sid))
+    return Response(status_code=204)
+
+
+@router.get("/api/submissions/{sid}/zip", response_class=Response)
+def download_zip(sid: str, request: Request, db: Session = Depends(db_session)):
+    """The ZIP you uploaded (owner or admin only)."""
+    caller = identify(request, db)
+    if caller.user is None:
+        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    return zip_response(db, own_submission(db, caller.user, sid))
+
+
+class MethodBody(BaseModel):
+    description: str = Field("", max_length=4000)
+    paper_url: str = Field("", max_length=1000)
+    code_url: str = Field("", max_length=1000)
+    runtime_ms: float | None = None
+    extra_data: bool = False
+
+
+@router.put("/api/submissions/{sid}/method")
+def describe_method(sid: str, body: MethodBody, request: Request, db: Session = Depends(db_session)):
+    """Describe the method behind one of your submissions (shown on the leaderboard): description, paper and
+    code links (http/https), runtime per query in ms, and whether it uses data beyond the train split."""
+    caller = require_writer(request, db)
+    sub = own_submission(db, caller.user, sid)
+    meta = parse_meta(body.description, body.paper_url, body.code_url, body.runtime_ms, body.extra_data)
+    save_meta(db, sub.id, meta)
+    db.commit()
+    return meta_json(db.get(MethodInfo, sub.id))
+

@@ -1,0 +1,152 @@
+"""Leaderboard features over real HTTP (SQLite, and PostgreSQL when configured): equal scores share a rank,
+each account's best, per-scene boards, CSV export, comparing two submissions, method metadata, withdrawing
+and downloading one's own submission, and the published rows kept apart."""
+
+from __future__ import annotations
+
+import csv
+import io
+import uuid
+
+import pytest
+
+from mapfree.service.leaderboard import competition_ranks
+
+from .conftest import create_users, make_submission
+from .test_api import upload
+
+VCRE_AUC = "AUC @ VCRE < 90px"
+
+
+def fresh_users(server, *names: str) -> list[str]:
+    """New accounts on the running server (unique names), so counts on the board are exact."""
+    tag = uuid.uuid4().hex[:6]
+    made = create_users(server.db_url, {f"{n}-{tag}": None for n in names})
+    server.tokens.update(made)
+    return list(made)
+
+
+def submit_done(server, user: str, data: bytes, name: str, split: str = "val", public: bool = True) -> dict:
+    with server.client(user) as c:
+        r = upload(c, data, split, name, public)
+        assert r.status_code == 202, r.text
+    d = server.wait_done(r.json()["id"], user)
+    assert d["status"] == "done", d
+    return d
+
+
+def test_competition_ranks():
+    assert competition_ranks([0.9, 0.9, 0.5, 0.5, 0.5, 0.1, None]) == [1, 1, 3, 3, 3, 6, None]
+    assert competition_ranks([]) == []
+
+
+@pytest.fixture(scope="module")
+def board_data(server):
+    """Two accounts: the same ZIP from both (a tie), and a worse one from the first."""
+    u1, u2 = fresh_users(server, "tie-a", "tie-b")
+    val = server.data.root / "val"
+    good, worse = make_submission(val, noise=0.15, seed=11), make_submission(val, noise=0.6, seed=12, drop_every=2)
+    a = submit_done(server, u1, good, f"{u1}-good")
+    b = submit_done(server, u2, good, f"{u2}-same")
+    c = submit_done(server, u1, worse, f"{u1}-worse")
+    return {"users": (u1, u2), "a": a, "b": b, "c": c}
+
+
+def test_ties_share_a_rank_and_best_per_account(server, board_data):
+    u1, u2 = board_data["users"]
+    with server.client() as anon:
+        answer = anon.get("/api/leaderboard/val").json()
+    mine = {e["id"]: e for e in answer["entries"] if e["user"] in (u1, u2)}
+    a, b, c = (mine[board_data[k]["id"]] for k in "abc")
+    assert a["metrics"] == b["metrics"] and a["rank"] == b["rank"]
+    assert c["metrics"]["vcre_auc"] < a["metrics"]["vcre_auc"] and c["rank"] > a["rank"] + 1
+    ranks = [e["rank"] for e in answer["entries"]]
+    assert ranks == competition_ranks([e["metrics"]["vcre_auc"] for e in answer["entries"]])
+    assert a["created_at"] <= c["created_at"] and a["method"]["extra_data"] is False
+    # the published rows are apart, on the real Map-free data, and MicKey's precision is a number
+    assert all("reference" not in e for e in answer["entries"])
+    mickey = next(r for r in answer["reference"] if r["name"].startswith("MicKey"))
+    assert mickey["dataset"].startswith("Map-free val") and mickey["metrics"]["vcre_prec"] == 0.45
+    with server.client() as anon:
+        best = anon.get("/api/leaderboard/val", params={"view": "best"}).json()["entries"]
+        assert anon.get("/api/leaderboard/val", params={"view": "bogus"}).status_code == 422
+    users = [e["user"] for e in best]
+    assert len(users) == len(set(users))
+    assert board_data["c"]["id"] not in {e["id"] for e in best}  # u1's worse run hides behind the better one
+
+
+def test_per_scene_board_and_csv(server, board_data):
+    scene = sorted(board_data["a"]["per_scene"])[0]
+    want = board_data["a"]["per_scene"][scene][VCRE_AUC]
+    with server.client() as anon:
+        per_scene = anon.get("/api/leaderboard/val", params={"scene": scene, "sort": "med_trans"}).json()
+        assert anon.get("/api/leaderboard/test", params={"scene": "s00525"}).status_code == 422
+        r = anon.get("/api/leaderboard/val.csv", params={"view": "best"})
+    e = next(e for e in per_scene["entries"] if e["id"] == board_data["a"]["id"])
+    assert e["metrics"]["vcre_auc"] == want
+    trans = [e["metrics"]["med_trans"] for e in per_scene["entries"] if e["metrics"]["med_trans"] is not None]
+    assert trans == sorted(trans)
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/csv")
+    assert "attachment" in r.headers["content-disposition"]
+    rows = list(csv.DictReader(io.StringIO(r.text)))
+    row = next(x for x in rows if x["name"] == board_data["a"]["name"] or x["name"] == board_data["b"]["name"])
+    assert float(row[VCRE_AUC]) == pytest.approx(board_data["a"]["metrics"][VCRE_AUC], abs=1e-12)
+    assert row["submitted_utc"].endswith("Z") and int(row["rank"]) >= 1
+
+
+def test_compare_two_submissions(server, board_data):
+    a, c = board_data["a"], board_data["c"]
+    with server.client() as anon:
+        cmp = anon.get("/api/compare", params={"a": a["id"], "b": c["id"]}).json()
+        assert anon.get("/api/compare", params={"a": a["id"], "b": "nope"}).status_code == 404
+    row = next(r for r in cmp["metrics"] if r["metric"] == VCRE_AUC)
+    assert row["diff"] == pytest.approx(c["metrics"][VCRE_AUC] - a["metrics"][VCRE_AUC])
+    assert row["better"] == "a"
+    trans = next(r for r in cmp["metrics"] if r["metric"] == "Average Median Translation Error")
+    assert trans["better"] == ("a" if a["metrics"][trans["metric"]] < c["metrics"][trans["metric"]] else "b")
+    assert len(cmp["metrics"]) == len(a["metrics"])  # every figure, the 50 cm / 45 px ones too
+    assert set(cmp["per_scene"]) == set(a["per_scene"])
+
+
+def test_method_metadata(server, board_data):
+    u1, u2 = board_data["users"]
+    sid = board_data["a"]["id"]
+    meta = {"description": "SIFT + PnP, tuned", "paper_url": "https://arxiv.org/abs/2210.05494",
+            "code_url": "https://github.com/example/reloc", "runtime_ms": 85.5, "extra_data": True}
+    with server.client(u1) as c, server.client(u2) as other:
+        assert c.put(f"/api/submissions/{sid}/method", json=meta).json() == meta
+        assert other.put(f"/api/submissions/{sid}/method", json=meta).status_code == 404
+        for bad, field in (({"paper_url": "javascript:alert(1)"}, "paper_url"),
+                           ({"code_url": "ftp://x/y"}, "code_url"),
+                           ({"description": "evil \u202e txt"}, "description"),
+                           ({"runtime_ms": -3}, "runtime_ms")):
+            r = c.put(f"/api/submissions/{sid}/method", json={**meta, **bad})
+            assert r.status_code == 422 and field in r.json()["detail"], r.text
+    with server.client() as anon:
+        e = next(e for e in anon.get("/api/leaderboard/val").json()["entries"] if e["id"] == sid)
+    assert e["method"] == meta
+
+
+def test_withdraw_and_download(server):
+    (owner,) = fresh_users(server, "withdrawer")
+    data = make_submission(server.data.gt / "test", noise=0.3, seed=21)
+    with server.client(owner) as c:
+        before = c.get("/api/me").json()["test_evaluations_left_today"]
+    d = submit_done(server, owner, data, "to-withdraw", split="test")
+    sid = d["id"]
+    with server.client(owner) as c, server.client("bob") as bob, server.client() as anon:
+        z = c.get(f"/api/submissions/{sid}/zip")
+        assert z.status_code == 200 and z.content == data and "attachment" in z.headers["content-disposition"]
+        assert bob.get(f"/api/submissions/{sid}/zip").status_code == 404
+        assert anon.get(f"/api/submissions/{sid}/zip").status_code == 401
+        assert bob.delete(f"/api/submissions/{sid}").status_code == 404
+        assert sid in str(anon.get("/api/leaderboard/test").json())
+        assert c.delete(f"/api/submissions/{sid}").status_code == 204
+        assert c.get(f"/api/submissions/{sid}").status_code == 404
+        assert c.get(f"/api/submissions/{sid}/zip").status_code == 404
+        assert c.delete(f"/api/submissions/{sid}").status_code == 404
+        assert sid not in str(anon.get("/api/leaderboard/test").json())
+        mine = {s["id"]: s for s in c.get("/api/submissions").json()}
+        assert mine[sid]["status"] == "withdrawn" and mine[sid]["metrics"] is None
+        # withdrawing does not give the test evaluation back (else the daily limit could be dodged)
+        assert c.get("/api/me").json()["test_evaluations_left_today"] == before - 1
