@@ -15,7 +15,6 @@ from .config import Settings
 from .db import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
 from .deps import db_session, identify, require_writer
 from .leaderboard import meta_json, parse_meta, save_meta
-from .storage import read_zip
 
 WITHDRAWN = "withdrawn"
 
@@ -58,7 +57,8 @@ def withdraw(db: Session, sub: Submission) -> None:
 
 
 def zip_bytes(db: Session, sub: Submission) -> bytes:
-    data = read_zip(db, sub.id)  # stored in chunks (storage.py)
+    data = db.scalar(select(SubmissionFile.data).where(SubmissionFile.submission_id == sub.id))
+    db.commit()
     if data is None:
         raise HTTPException(410, "the ZIP of this submission is no longer stored")
     return data
