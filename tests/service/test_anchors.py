@@ -56,8 +56,17 @@ def test_anchor_default_method_is_the_registry_preset(server, realmini_dir):
 
     ref = Dataset(realmini_dir).scene("val", "s00001").reference
     with server.client("carol") as c:
-        r = c.post("/anchors", files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg")},
+        r = c.post("/anchors", files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+                                      "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")},
                    data=_form(ref.intrinsics))
         assert r.status_code == 201, r.text
-        assert r.json()["method"] == default_method() and not r.json()["has_depth"]
+        assert r.json()["method"] == default_method() and r.json()["has_depth"]
+        assert c.delete(f"/anchors/{r.json()['id']}").status_code == 204
+        # the default preset takes its scale from the anchor's depth: without one it could never localize
+        r = c.post("/anchors", files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg")},
+                   data=_form(ref.intrinsics))
+        assert r.status_code == 422 and "depth" in r.json()["detail"], r.text
+        r = c.post("/anchors", files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg")},
+                   data={**_form(ref.intrinsics), "method": "sift_emat_none"})
+        assert r.status_code == 201 and not r.json()["has_depth"], r.text
         assert c.delete(f"/anchors/{r.json()['id']}").status_code == 204

@@ -37,6 +37,20 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="a job whose worker stops renewing for this long is retried (default 60)")
     p.add_argument("--test-daily-limit", type=int, default=5, help="test evaluations per account per 24 h")
     p.add_argument("--max-upload-mb", type=float, default=50.0, help="largest submission ZIP (default 50 MB)")
+    p.add_argument("--max-entry-mb", type=float, default=64.0,
+                   help="largest pose file inside a ZIP, uncompressed (default 64 MiB)")
+    p.add_argument("--max-unpacked-mb", type=float, default=256.0,
+                   help="all pose files of a ZIP together, uncompressed (default 256 MiB)")
+    p.add_argument("--val-hourly-limit", type=int, default=30,
+                   help="val submissions per account per hour (default 30; 0: unlimited)")
+    p.add_argument("--storage-quota-mb", type=float, default=1024.0,
+                   help="stored submission ZIPs per account (default 1024 MiB; 0: unlimited)")
+    p.add_argument("--zip-retention-days", type=float, default=90.0,
+                   help="delete stored ZIPs of finished submissions after this many days (default 90; 0: keep)")
+    p.add_argument("--auth-failures-per-minute", type=int, default=20,
+                   help="failed token checks per client address and minute before a 429 (default 20; 0: off)")
+    p.add_argument("--methods-dir", default=os.environ.get("MAPFREE_SERVICE_METHODS"),
+                   help="folder of method YAMLs that clients may name (by file name, never by path)")
     p.add_argument("--method", default="", help="default relocalization method of new anchors")
     p.add_argument("--secure-cookies", action="store_true", help="mark cookies Secure (behind HTTPS)")
     p.add_argument("--log-level", default="info")
@@ -46,16 +60,27 @@ def register(sub: argparse._SubParsersAction) -> None:
 def settings_from_args(a: argparse.Namespace):
     from ..service.config import Limits, Settings
 
-    limits = Limits(max_submission_bytes=int(a.max_upload_mb * (1 << 20)))
-    limits.max_request_bytes = max(limits.max_request_bytes, limits.max_submission_bytes + (1 << 20))
+    mb = 1 << 20
+    limits = Limits(max_submission_bytes=int(a.max_upload_mb * mb), max_zip_entry_bytes=int(a.max_entry_mb * mb),
+                    max_zip_uncompressed_bytes=int(a.max_unpacked_mb * mb))
+    limits.max_request_bytes = max(limits.max_request_bytes, limits.max_submission_bytes + mb)
     return Settings(db_url=a.db, data_root=a.data, gt_root=a.gt, test_daily_limit=a.test_daily_limit,
                     lease_seconds=a.lease_seconds, default_method=a.method, secure_cookies=a.secure_cookies,
-                    limits=limits)
+                    methods_dir=a.methods_dir, val_hourly_limit=a.val_hourly_limit,
+                    storage_quota_bytes=int(a.storage_quota_mb * mb), zip_retention_days=a.zip_retention_days,
+                    auth_failures_per_minute=a.auth_failures_per_minute, limits=limits)
+
+
+#: Start workers without the working directory on their module path (``-P``; ``-I`` before Python 3.11): a
+#: ``concurrent.py`` or any other stdlib-named file where ``mapfree serve`` was started must never run in them.
+ISOLATED = "-P" if sys.version_info >= (3, 11) else "-I"
 
 
 def worker_command(a: argparse.Namespace) -> list[str]:
-    cmd = [sys.executable, "-m", "mapfree.service.worker", "--db", a.db, "--lease-seconds", str(a.lease_seconds),
-           "--log-level", a.log_level, "--exit-with-parent"]
+    limits = dataclasses.asdict(settings_from_args(a).limits)
+    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.worker", "--db", a.db,
+           "--lease-seconds", str(a.lease_seconds), "--zip-retention-days", str(a.zip_retention_days),
+           "--limits", json.dumps(limits), "--log-level", a.log_level, "--exit-with-parent"]
     if a.data:
         cmd += ["--data", str(a.data)]
     if a.gt:
@@ -64,23 +89,45 @@ def worker_command(a: argparse.Namespace) -> list[str]:
 
 
 class Supervisor:
-    """Keeps ``n`` worker processes alive (a crashed or killed one is replaced) until ``stop()``."""
+    """Keeps ``n`` worker processes alive until ``stop()``. A worker that exits is replaced; one that keeps dying
+    soon after its start is replaced after a growing pause (``backoff`` doubling up to ``max_backoff`` s), so a
+    broken installation does not spin, and a worker that ran ``stable_s`` seconds starts the count afresh."""
 
-    def __init__(self, cmd: list[str], n: int):
+    def __init__(self, cmd: list[str], n: int, backoff: float = 1.0, max_backoff: float = 60.0,
+                 stable_s: float = 30.0):
         self.cmd, self.n, self.procs, self.stopping = cmd, n, [], threading.Event()
+        self.backoff, self.max_backoff, self.stable_s = backoff, max_backoff, stable_s
+        self.started: list[float] = []
+        self.failures: list[int] = []  # consecutive quick deaths per slot
+        self.restart_at: list[float] = []
+        self.spawned = 0
         self.thread = threading.Thread(target=self._watch, daemon=True)
 
+    def _spawn(self) -> subprocess.Popen:
+        self.spawned += 1
+        return subprocess.Popen(self.cmd)
+
     def start(self) -> None:
-        self.procs = [subprocess.Popen(self.cmd) for _ in range(self.n)]
+        self.procs = [self._spawn() for _ in range(self.n)]
+        self.started, self.failures, self.restart_at = [time.time()] * self.n, [0] * self.n, [0.0] * self.n
         log.info("workers started", extra={"pids": [p.pid for p in self.procs]})
         self.thread.start()
 
     def _watch(self) -> None:
-        while not self.stopping.wait(1.0):
+        while not self.stopping.wait(0.2):
             for i, p in enumerate(self.procs):
-                if p.poll() is not None and not self.stopping.is_set():
-                    log.warning("worker exited; restarting", extra={"pid": p.pid, "code": p.returncode})
-                    self.procs[i] = subprocess.Popen(self.cmd)
+                if p.poll() is None or self.stopping.is_set():
+                    continue
+                t = time.time()
+                if not self.restart_at[i]:  # just noticed: decide when to restart
+                    quick = t - self.started[i] < self.stable_s
+                    self.failures[i] = self.failures[i] + 1 if quick else 0
+                    delay = min(self.max_backoff, self.backoff * 2 ** (self.failures[i] - 1)) if quick else 0.0
+                    self.restart_at[i] = t + delay
+                    log.warning("worker exited; restarting", extra={"pid": p.pid, "code": p.returncode,
+                                                                   "in_s": round(delay, 1)})
+                if t >= self.restart_at[i]:
+                    self.procs[i], self.started[i], self.restart_at[i] = self._spawn(), t, 0.0
 
     def stop(self, timeout: float = 15.0) -> None:
         self.stopping.set()

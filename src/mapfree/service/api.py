@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import logging
+import os
+import socket
+from typing import BinaryIO
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
@@ -11,12 +14,13 @@ from sqlalchemy import select, text
 from sqlalchemy.orm import Session
 
 from . import jobs
-from .db import Anchor, Submission, WorkerRow, now
+from .db import Anchor, Submission, WorkerRow, new_id, now
 from .deps import db_session, identify, require_writer
-from .reloc import check_method, default_method, estimate_json, intrinsics_of
+from .reloc import check_method, check_runnable, default_method, estimate_json, intrinsics_of
 from .submissions import accept, daily_test_limit, to_json, visible
 from .submissions import plot_png as render_plot
-from .uploads import UploadError, decode_depth, decode_image, parse_intrinsics
+from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics
+from .worker import SEEN_SECONDS
 
 log = logging.getLogger("mapfree.api")
 router = APIRouter()
@@ -33,20 +37,43 @@ def read_upload(f: UploadFile | None, limit: int, what: str) -> bytes | None:
     return data
 
 
+def spooled_upload(f: UploadFile | None, what: str) -> BinaryIO:
+    """The spooled file of an upload (on disk past 1 MB), never read whole: the body limit bounds its size."""
+    if f is None or (not f.filename and not f.size):
+        raise UploadError(400, f"{what}: no file uploaded")
+    return f.file
+
+
 # ----------------------------------------------------------------------------------------------- health
+
+
+def _alive(w: WorkerRow) -> bool:
+    """A worker on this host is alive only if its process is (a SIGKILLed one leaves its row behind)."""
+    if w.host != socket.gethostname()[:128]:
+        return True
+    try:
+        os.kill(w.pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 @router.get("/health", tags=["operations"])
 def health(request: Request, db: Session = Depends(db_session)):
-    """Liveness and readiness: database reachable, queue length, live workers."""
+    """Liveness and readiness: database reachable, queue length, live workers. ``degraded`` when no worker is
+    alive (submissions would wait forever); workers count as alive while they report every few seconds."""
     try:
         db.execute(text("SELECT 1"))
         counts = jobs.counts(db)
-        workers = db.scalars(select(WorkerRow).where(WorkerRow.last_seen > now() - 30)).all()
+        rows = db.scalars(select(WorkerRow).where(WorkerRow.last_seen > now() - 3 * SEEN_SECONDS)).all()
+        db.commit()
     except Exception as e:
         log.warning("health check failed", extra={"error": type(e).__name__})
         return JSONResponse({"status": "error", "db": "unreachable"}, status_code=503)
-    return {"status": "ok", "db": db.get_bind().dialect.name, "jobs": counts,
+    workers = [w for w in rows if _alive(w)]
+    return {"status": "ok" if workers else "degraded", "db": db.get_bind().dialect.name, "jobs": counts,
             "workers": [{"id": w.id, "pid": w.pid, "host": w.host, "jobs_done": w.jobs_done} for w in workers]}
 
 
@@ -74,10 +101,7 @@ def create_submission(request: Request, file: UploadFile = File(..., description
     """Upload a submission ZIP. It is stored and queued before this answers 202; poll ``api_url``."""
     caller = require_writer(request, db, csrf_token)
     settings = request.app.state.settings
-    data = read_upload(file, settings.limits.max_submission_bytes, "submission")
-    if data is None:
-        raise UploadError(400, "submission: no file uploaded")
-    sub = accept(db, settings, caller.user, split, name, public, data)
+    sub = accept(db, settings, caller.user, split, name, public, spooled_upload(file, "submission"))
     log.info("submission queued", extra={"submission": sub.id, "split": split, "user_id": caller.user.id})
     return to_json(db, sub, caller.user.name)
 
@@ -158,12 +182,13 @@ def create_anchor(request: Request, image: UploadFile = File(..., description="r
     img = decode_image(img_bytes, lim, "image")
     intr = _intr(fx, fy, cx, cy, img, "intrinsics")
     depth_bytes = read_upload(depth, lim.max_image_bytes, "depth")
-    if depth_bytes is not None:
-        decode_depth(depth_bytes, lim, img.shape[:2])
-    m = check_method(method) if method else default_method(settings.default_method)
-    if len(name) > lim.max_name_chars:
-        raise UploadError(422, f"name is longer than {lim.max_name_chars} characters")
-    a = Anchor(user_id=caller.user.id, name=name.strip(), method=m, intrinsics=intr, image=img_bytes,
+    ref_depth = decode_depth(depth_bytes, lim, img.shape[:2]) if depth_bytes is not None else None
+    name = check_name(name, lim.max_name_chars)
+    m = check_method(method) if method.strip() else default_method(settings.default_method)
+    check_runnable(m, ref_depth is not None)
+    aid = new_id()
+    request.app.state.localizers.check(aid, m, img, intrinsics_of(intr), ref_depth)  # 422 if it cannot run here
+    a = Anchor(id=aid, user_id=caller.user.id, name=name, method=m, intrinsics=intr, image=img_bytes,
                depth=depth_bytes, created_at=now())
     db.add(a)
     db.commit()

@@ -19,7 +19,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from .. import __version__
 from .config import Settings
 from .db import init_db, make_engine, session_factory
-from .reloc import Localizers
+from .guard import AuthThrottle, request_id
+from .reloc import Localizers, register_methods_dir
 from .uploads import UploadError
 
 log = logging.getLogger("mapfree.http")
@@ -37,7 +38,8 @@ def _error(request: Request, status: int, message: str, headers: dict | None = N
         from .web import error_page
 
         return error_page(request, status, message, headers)
-    return JSONResponse({"detail": message, "status": status}, status_code=status, headers=headers)
+    rid = getattr(request.state, "request_id", None)
+    return JSONResponse({"detail": message, "status": status, "request_id": rid}, status_code=status, headers=headers)
 
 
 def _validation_message(exc: RequestValidationError) -> str:
@@ -57,6 +59,8 @@ def create_app(settings: Settings) -> FastAPI:
                          description="Map-free benchmark evaluation server and metric relocalization API.")
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
     app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)))
+    if settings.methods_dir is not None:
+        register_methods_dir(settings.methods_dir)
 
     @app.exception_handler(UploadError)
     async def _upload_error(request: Request, exc: UploadError):
@@ -74,22 +78,41 @@ def create_app(settings: Settings) -> FastAPI:
         return _error(request, 422, _validation_message(exc))
 
     @app.exception_handler(Exception)
-    async def _crash(request: Request, exc: Exception):
+    async def _crash(request: Request, exc: Exception):  # only reached when the middleware below did not answer
         log.error("unhandled error", exc_info=exc, extra={"path": request.url.path})
         return _error(request, 500, "internal server error")
 
+    throttle = app.state.auth_throttle = AuthThrottle(settings.auth_failures_per_minute)
+
     @app.middleware("http")
     async def _access_log(request: Request, call_next):
+        """Every request gets an id (``X-Request-ID``) and one JSON access-log line, unexpected 500s included;
+        token guessing is cut off per client address."""
         t0 = time.perf_counter()
-        response = await call_next(request)
+        rid = request.state.request_id = request_id(request)
+        client = request.client.host if request.client else "?"
+        wait = throttle.retry_after(client) if throttle.credentialed(request) else 0
+        if wait:
+            response = _error(request, 429, f"too many failed token checks from this address; try again in "
+                                            f"{wait} s", {"Retry-After": str(wait)})
+        else:
+            try:
+                response = await call_next(request)
+            except Exception as exc:
+                log.error("unhandled error", exc_info=exc, extra={"request_id": rid, "method": request.method,
+                                                                  "path": request.url.path})
+                response = _error(request, 500, f"internal server error (request id {rid})")
+            if response.status_code == 401 and throttle.credentialed(request):
+                throttle.failed(client)
         route = request.scope.get("route")
+        response.headers["X-Request-ID"] = rid
         response.headers.setdefault("X-Content-Type-Options", "nosniff")
         response.headers.setdefault("Referrer-Policy", "same-origin")
         if not request.url.path.startswith(("/docs", "/redoc")):
             response.headers.setdefault("Content-Security-Policy", CSP)
         log.info("request", extra={"method": request.method, "route": getattr(route, "path", "?"),
                                    "status": response.status_code,
-                                   "ms": round((time.perf_counter() - t0) * 1000, 2),
+                                   "ms": round((time.perf_counter() - t0) * 1000, 2), "request_id": rid,
                                    "user_id": getattr(request.state, "user_id", None)})
         return response
 

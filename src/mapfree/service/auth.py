@@ -10,7 +10,7 @@ import hashlib
 import hmac
 import secrets
 
-from sqlalchemy import select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from .db import ApiToken, User, WebSession, now
@@ -53,9 +53,11 @@ def user_for_token(db: Session, token: str) -> User | None:
 
 
 def revoke_tokens(db: Session, user: User) -> int:
+    """Revoke every token of ``user`` and end every browser session of the account (each was opened with a token)."""
     rows = db.scalars(select(ApiToken).where(ApiToken.user_id == user.id, ApiToken.revoked.is_(False))).all()
     for r in rows:
         r.revoked = True
+    db.execute(delete(WebSession).where(WebSession.user_id == user.id))
     return len(rows)
 
 

@@ -13,7 +13,8 @@ class Limits:
     max_request_bytes: int = 64 << 20  # whole HTTP body
     max_submission_bytes: int = 50 << 20  # compressed ZIP
     max_zip_entries: int = 2000
-    max_zip_uncompressed_bytes: int = 256 << 20
+    max_zip_entry_bytes: int = 64 << 20  # one pose file, uncompressed
+    max_zip_uncompressed_bytes: int = 256 << 20  # all pose files together, uncompressed
     max_zip_ratio: float = 200.0  # per entry, uncompressed / compressed (zip bombs)
     max_image_bytes: int = 16 << 20
     max_image_pixels: int = 4096 * 4096
@@ -36,8 +37,14 @@ class Settings:
     default_method: str = ""  # empty: the registry's best offline feature-matching preset
     secure_cookies: bool = False
     session_hours: float = 12.0
+    methods_dir: Path | None = None  # the operator's method YAMLs, offered to clients by name
+    val_hourly_limit: int = 30  # val submissions per account per hour (0: unlimited)
+    storage_quota_bytes: int = 1 << 30  # stored submission ZIPs per account (0: unlimited)
+    zip_retention_days: float = 90.0  # stored ZIPs of finished submissions are deleted after this (0: kept)
+    auth_failures_per_minute: int = 20  # failed token checks per client address before a 429 (0: unlimited)
     limits: Limits = field(default_factory=Limits)
 
     def __post_init__(self) -> None:
         self.data_root = Path(self.data_root) if self.data_root else None
         self.gt_root = Path(self.gt_root) if self.gt_root else None
+        self.methods_dir = Path(self.methods_dir) if self.methods_dir else None

@@ -6,6 +6,7 @@ one PostgreSQL database and nothing else. Timestamps are UNIX seconds (floats) t
 
 from __future__ import annotations
 
+import os
 import time
 import uuid
 
@@ -79,8 +80,20 @@ class Submission(Base):
 
 
 class SubmissionFile(Base):
+    """A stored ZIP: its first chunk here, the rest (if any) in ``zip_chunks``; deleting this row deletes them."""
+
     __tablename__ = "submission_files"
     submission_id: Mapped[str] = mapped_column(ForeignKey("submissions.id", ondelete="CASCADE"), primary_key=True)
+    data: Mapped[bytes] = mapped_column(LargeBinary)
+
+
+class ZipChunk(Base):
+    """Chunk ``seq`` (1, 2, ...) of a stored ZIP, so that uploads and workers stream it with bounded memory."""
+
+    __tablename__ = "zip_chunks"
+    submission_id: Mapped[str] = mapped_column(ForeignKey("submission_files.submission_id", ondelete="CASCADE"),
+                                               primary_key=True)
+    seq: Mapped[int] = mapped_column(Integer, primary_key=True)
     data: Mapped[bytes] = mapped_column(LargeBinary)
 
 
@@ -160,11 +173,20 @@ def is_sqlite(engine: Engine) -> bool:
     return engine.dialect.name == "sqlite"
 
 
+def _private_file(path: str | None) -> None:
+    """Create a new SQLite file readable by its owner only (0600; SQLite gives its -wal and -shm files the same
+    mode): it holds token hashes, sessions and the private test results."""
+    if not path or path == ":memory:" or path.startswith("file:") or os.path.exists(path):
+        return
+    os.close(os.open(path, os.O_CREAT | os.O_WRONLY, 0o600))
+
+
 def make_engine(url: str) -> Engine:
     """An engine; on SQLite every transaction is ``BEGIN IMMEDIATE`` (one writer at a time, waits up to 30 s),
     in WAL mode so that readers in other processes are not blocked."""
     url = normalize_url(url)
     if make_url(url).get_backend_name() == "sqlite":
+        _private_file(make_url(url).database)
         engine = create_engine(url, connect_args={"timeout": 30, "check_same_thread": False})
 
         @event.listens_for(engine, "connect")

@@ -1,5 +1,5 @@
 """The one place the service calls the benchmark core: score a stored ZIP, redact what ``test`` must hide,
-render plots. Workers call ``score``; the upload path calls ``precheck``."""
+render plots. Workers call ``score`` (uploads get only the cheap checks of ``uploads.check_submission_zip``)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ import math
 import tempfile
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from .config import Settings
 
@@ -85,13 +87,20 @@ def score(settings: Settings, split: str, zip_path: Path) -> tuple[dict, bytes |
         raise SubmissionRejected("the server has no dataset configured (--data)")
     if split == "test" and settings.gt_root is None:
         raise SubmissionRejected("the server has no private test ground truth configured (--gt)")
+    lim = settings.limits  # the upload check's limits, enforced on what the entries really unpack to
+    limits = benchmark.SubmissionLimits(max_zip_bytes=lim.max_submission_bytes, max_entries=lim.max_zip_entries,
+                                        max_file_bytes=lim.max_zip_entry_bytes,
+                                        max_total_bytes=lim.max_zip_uncompressed_bytes)
     try:
-        report = benchmark.evaluate(zip_path, settings.data_root, split, truth=_truth(settings, split))
+        report = benchmark.evaluate(zip_path, settings.data_root, split, truth=_truth(settings, split), limits=limits)
     except (ValueError, OSError, KeyError, benchmark.EvaluationError) as e:
         raise SubmissionRejected(str(e).replace(str(zip_path), "submission.zip")) from None
     fatal = [p for p in report.problems if getattr(p, "fatal", False)]
     if fatal:
         raise SubmissionRejected(str(fatal[0]))
+    if report.problems and not np.any(report.estimated):
+        raise SubmissionRejected("no valid pose line; expected 'seq1/frame_00000.jpg qw qx qy qz tx ty tz "
+                                 f"confidence' (first problem: {report.problems[0]})")
     result = redact(report.to_dict(), _problems(report), split)
     # Per-frame data would leak test ground truth: kept (for plots) only for public-GT splits.
     return result, (None if split == "test" else pack_report(report))
@@ -161,17 +170,3 @@ def known_scenes(settings: Settings, split: str) -> set[str] | None:
     if settings.data_root is None or not (settings.data_root / split).is_dir():
         return None
     return {p.name for p in (settings.data_root / split).iterdir() if p.is_dir()}
-
-
-def precheck(data: bytes, split: str) -> None:
-    """Parse the submission with the benchmark's reader so a malformed one is refused at upload (4xx)."""
-    from ..benchmark import read_submission
-
-    estimates, problems = read_submission(data)
-    fatal = [p for p in problems if p.fatal]
-    if fatal:
-        raise SubmissionRejected(str(fatal[0]))
-    if sum(len(e) for e in estimates.values()) == 0:
-        first = f" (first problem: {problems[0]})" if problems else ""
-        raise SubmissionRejected("no valid pose line; expected "
-                                 f"'seq1/frame_00000.jpg qw qx qy qz tx ty tz confidence'{first}")

@@ -4,8 +4,10 @@ prepared anchors (reference features and depth are computed once per anchor and 
 from __future__ import annotations
 
 import queue
+import re
 import threading
 from collections import OrderedDict
+from dataclasses import replace
 from typing import Any
 
 import cv2
@@ -33,14 +35,93 @@ def default_method(configured: str = "") -> str:
     return FALLBACK_METHOD
 
 
+#: What a method name sent over HTTP may look like: never a path, a ``NAME@DEPTH`` override or a depth spec
+#: with a colon (those would make the server read files the client chooses).
+METHOD_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
+
+
+def allowed_methods() -> str:
+    """The names a client may send, for error messages: registered names and YAML configs, and the preset pattern."""
+    from .. import matching, methods
+
+    named = ", ".join(methods.list_methods(depths=()))
+    return (f"{named}; or a preset {{matcher}}_{{emat|pnp|procrustes}}_{{depth}} with matcher in "
+            f"{', '.join(matching.available())} and depth 'none' or a depth-file suffix such as 'sensor'")
+
+
 def check_method(name: str) -> str:
+    """A method name from a client -> the registered name. Only registered names, the project's and the
+    operator's YAML configs (by name) and ``{matcher}_{solver}_{depth}`` presets: never a path, so a client
+    cannot make the server open, parse or probe files. Anything else is a 422 listing what is allowed."""
     from .. import methods
 
-    try:
-        m = methods.get(name)
-    except (KeyError, ValueError, FileNotFoundError) as e:
-        raise UploadError(422, f"method: {e}") from None
-    return m.name if "/" not in name else name
+    name = name.strip()
+    ok = METHOD_NAME_RE.fullmatch(name) is not None and not name.lower().endswith((".yaml", ".yml"))
+    if ok:
+        try:
+            return methods.get(name).name
+        except (KeyError, ValueError, FileNotFoundError, OSError):
+            pass
+    raise UploadError(422, f"method: unknown method {name[:64]!r}; allowed: {allowed_methods()}")
+
+
+def register_methods_dir(folder) -> list[str]:
+    """Register every ``*.yaml`` of the operator's methods folder by its name (``--methods-dir``)."""
+    import logging
+    from pathlib import Path
+
+    from .. import methods
+
+    names = []
+    for p in sorted(Path(folder).glob("*.y*ml")):
+        if not METHOD_NAME_RE.fullmatch(p.stem):
+            continue
+        try:
+            methods.register(replace(methods.load_yaml(p), name=p.stem), overwrite=True)
+            names.append(p.stem)
+        except (ValueError, KeyError, FileNotFoundError, OSError) as e:
+            logging.getLogger("mapfree.service").warning("method config skipped", extra={"file": str(p),
+                                                                                          "error": str(e)})
+    return names
+
+
+class MethodUnavailable(UploadError):
+    """A known method that cannot run here (weights missing, no depth where it needs one)."""
+
+    def __init__(self, message: str):
+        super().__init__(422, message)
+
+
+def _needs_reference_depth(m) -> bool:
+    """Whether a method can only ever localize against a reference that has an uploaded depth map."""
+    if m.kind != "matching":
+        return False
+    return m.depth.startswith("files:") or (m.depth == "none" and m.solver in ("pnp", "procrustes"))
+
+
+def check_runnable(name: str, has_reference_depth: bool) -> None:
+    """Refuse (422) an anchor whose method can never localize it: a reference-depth method without a depth map."""
+    from .. import methods
+
+    m = methods.get(name)
+    if not has_reference_depth and _needs_reference_depth(m):
+        raise MethodUnavailable(
+            f"method {name} takes its metric scale from the anchor's depth map, and this anchor has none: upload "
+            "'depth' (a single-channel uint16 PNG in millimetres), or choose a method that works without depth "
+            "(e.g. sift_emat_none: scale-free pose; or a monocular depth network such as xfeat_pnp_dpt-kitti)")
+
+
+def _unavailable(name: str, e: Exception) -> MethodUnavailable:
+    """Why a method cannot be built here, naming missing weights without the server's folders."""
+    from ..matching import MissingWeightsError
+
+    if isinstance(e, MissingWeightsError):
+        m = re.search(r"weights file '([^']+)'", str(e))
+        what = str(e).split(":", 1)[0]
+        return MethodUnavailable(f"method {name} cannot run on this server: the {what} weights "
+                                 f"({m.group(1) if m else 'file'}) are missing; ask the operator to install them")
+    msg = str(e).split(" (", 1)[0][:200] if isinstance(e, (ValueError, KeyError, ImportError)) else type(e).__name__
+    return MethodUnavailable(f"method {name} cannot run on this server: {msg}")
 
 
 #: Solvers that need a depth map of the query too; without one the service swaps in PnP (reference depth only).
@@ -50,8 +131,6 @@ _QUERY_DEPTH_SOLVERS = ("essential", "procrustes")
 def effective_method(name: str, has_query_depth: bool):
     """The ``Method`` to run: ``name``, or its PnP twin when the query has no depth map but the method's solver
     would need one (so that the default preset answers for a plain photo, at the anchor's metric scale)."""
-    from dataclasses import replace
-
     from .. import methods
 
     m = methods.get(name)
@@ -96,14 +175,37 @@ class Localizers:
         if make:
             try:
                 return Relocalizer.from_method(method)
-            except Exception:
+            except Exception as e:
                 with self._lock:
                     self._made[key] -= 1
-                raise
+                raise _unavailable(method.name, e) from e
         return pool.get()
 
     def _give(self, method, loc) -> None:
         self._pools[method.name].put(loc)
+
+    def check(self, anchor_id: str, method: str, ref_image: np.ndarray, ref_K: Intrinsics,
+              ref_depth: np.ndarray | None) -> None:
+        """Build the method and prepare the reference now (both kept for the first ``localize``), so that an
+        anchor whose method cannot run here is refused at creation (``MethodUnavailable``), not at use."""
+        from ..relocalize import View
+
+        plain, with_depth = effective_method(method, False), effective_method(method, True)
+        for i, m in enumerate([plain] if plain.name == with_depth.name else [plain, with_depth]):
+            loc = self._take(m)
+            try:
+                if i > 0 or not hasattr(loc, "prepare"):
+                    continue  # built (weights present); the reference is prepared once, by the usual variant
+                try:
+                    prepared = loc.prepare(View(ref_image, ref_K, ref_depth))
+                except Exception as e:
+                    raise _unavailable(m.name, e) from e
+                with self._lock:
+                    self._anchors[(anchor_id, m.name)] = prepared
+                    while len(self._anchors) > self.max_anchors:
+                        self._anchors.popitem(last=False)
+            finally:
+                self._give(m, loc)
 
     def forget(self, anchor_id: str) -> None:
         with self._lock:
@@ -125,7 +227,10 @@ class Localizers:
                 if prepared is not None:
                     self._anchors.move_to_end(key)
             if prepared is None and hasattr(loc, "prepare"):
-                prepared = loc.prepare(View(ref_image, ref_K, ref_depth))
+                try:
+                    prepared = loc.prepare(View(ref_image, ref_K, ref_depth))
+                except Exception as e:  # e.g. a depth network whose weights are gone: a 422, not a 500
+                    raise _unavailable(method.name, e) from e
                 with self._lock:
                     self._anchors[key] = prepared
                     while len(self._anchors) > self.max_anchors:

@@ -3,56 +3,74 @@ and render plots. Shared by the JSON API and the web pages (leaderboards: ``lead
 
 from __future__ import annotations
 
-import hashlib
+import io
 import threading
+from typing import BinaryIO
 
-from sqlalchemy import func, select
+from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from .config import Settings
-from .db import Plot, Result, Submission, SubmissionFile, User, now
-from .evaluation import PLOT_NAMES, SubmissionRejected, known_scenes, precheck, render_plots, unpack_report
-from .uploads import UploadError, check_submission_zip
+from .db import Plot, Result, Submission, User, now
+from .evaluation import PLOT_NAMES, known_scenes, render_plots, unpack_report
+from .storage import copy_in, stored_bytes
+from .uploads import UploadError, check_name, check_submission_zip
 
 
 def daily_test_limit(settings: Settings, user: User) -> int:
     return user.test_daily_limit if user.test_daily_limit is not None else settings.test_daily_limit
 
 
+def _limit_reached(db: Session, user: User, split: str, window_s: float, limit: int, what: str) -> None:
+    """A 429 when ``user`` already made ``limit`` submissions to ``split`` in the last ``window_s`` (0: none)."""
+    since = now() - window_s
+    used = db.scalar(select(func.count()).select_from(Submission).where(
+        Submission.user_id == user.id, Submission.split == split, Submission.created_at > since)) or 0
+    if limit > 0 and used >= limit:
+        first = db.scalar(select(func.min(Submission.created_at)).where(
+            Submission.user_id == user.id, Submission.split == split, Submission.created_at > since))
+        wait = max(1, int((first or now()) + window_s - now()) + 1)
+        raise UploadError(429, f"{what} limit reached: {limit} {split} submissions per {window_s / 3600:g} h; "
+                               f"the next one is possible in {wait} s")
+
+
 def accept(db: Session, settings: Settings, user: User, split: str, name: str, public: bool,
-           data: bytes) -> Submission:
-    """Validate and store a submission with its queued job, in one committed transaction."""
+           data: bytes | BinaryIO) -> Submission:
+    """Check a submission cheaply (ZIP directory, entry names and sizes), count it against the account's limits,
+    and store it with its queued job. ``data`` may be a file (the spooled upload): it is copied into the
+    database in chunks, never read whole. Parsing the pose lines is the workers' job."""
     if split not in settings.splits:
         raise UploadError(422, f"split must be one of {', '.join(settings.splits)}; got {split!r}")
-    name = (name or "").strip() or "unnamed"
-    if len(name) > settings.limits.max_name_chars:
-        raise UploadError(422, f"name is longer than {settings.limits.max_name_chars} characters")
-    if any(ord(c) < 32 for c in name):
-        raise UploadError(422, "name contains control characters")
-    check_submission_zip(data, settings.limits, split, known_scenes(settings, split))
-    try:
-        precheck(data, split)
-    except SubmissionRejected as e:
-        raise UploadError(422, f"malformed submission: {e}") from None
-    if split == "test":  # counted inside the write transaction (SQLite: BEGIN IMMEDIATE; PG: row lock on user)
-        if db.get_bind().dialect.name == "postgresql":
-            db.execute(select(User.id).where(User.id == user.id).with_for_update())
-        since = now() - 86400
-        used = db.scalar(select(func.count()).select_from(Submission).where(
-            Submission.user_id == user.id, Submission.split == "test", Submission.created_at > since)) or 0
-        limit = daily_test_limit(settings, user)
-        if used >= limit:
-            first = db.scalar(select(func.min(Submission.created_at)).where(
-                Submission.user_id == user.id, Submission.split == "test", Submission.created_at > since))
-            wait = int((first or now()) + 86400 - now()) + 1
-            raise UploadError(429, f"daily limit reached: {limit} test evaluations per 24 h; "
-                                   f"the next one is possible in {wait} s")
-    sub = Submission(user_id=user.id, split=split, name=name, public=bool(public), status="queued",
-                     size_bytes=len(data), sha256=hashlib.sha256(data).hexdigest(), created_at=now())
+    name = check_name(name, settings.limits.max_name_chars) or "unnamed"
+    f = io.BytesIO(data) if isinstance(data, (bytes, bytearray)) else data
+    f.seek(0, io.SEEK_END)
+    size = f.tell()
+    check_submission_zip(f, settings.limits, split, known_scenes(settings, split))
+    # counted inside the write transaction (SQLite: BEGIN IMMEDIATE; PG: row lock on user)
+    if db.get_bind().dialect.name == "postgresql":
+        db.execute(select(User.id).where(User.id == user.id).with_for_update())
+    if split == "test":
+        _limit_reached(db, user, "test", 86400, daily_test_limit(settings, user), "daily")
+    else:
+        _limit_reached(db, user, split, 3600, settings.val_hourly_limit, "hourly")
+    quota = settings.storage_quota_bytes
+    if quota > 0 and stored_bytes(db, user.id) + size > quota:
+        raise UploadError(413, f"storage quota reached: your stored submission ZIPs may total {quota} bytes "
+                               f"(this one is {size}); withdraw old submissions or wait for ZIPs older than "
+                               f"{settings.zip_retention_days:g} days to be deleted")
+    sub = Submission(user_id=user.id, split=split, name=name, public=bool(public), status="uploading",
+                     size_bytes=size, sha256="", created_at=now())
     db.add(sub)
-    db.flush()
-    db.add(SubmissionFile(submission_id=sub.id, data=data))
+    db.commit()
+    try:
+        _, sha = copy_in(db, sub.id, f)
+    except BaseException:
+        db.rollback()
+        db.execute(delete(Submission).where(Submission.id == sub.id))
+        db.commit()
+        raise
+    sub.sha256, sub.status = sha, "queued"
     db.commit()
     return sub
 

@@ -6,9 +6,11 @@ from __future__ import annotations
 import io
 import math
 import re
+import unicodedata
 import zipfile
 import zlib
 from dataclasses import dataclass
+from typing import BinaryIO
 
 import cv2
 import numpy as np
@@ -16,6 +18,8 @@ import numpy as np
 from .config import Limits
 
 ENTRY_RE = re.compile(r"^pose_(s\d{5})\.txt$")
+#: A focal length beyond this many times the image's longest side is not a camera (a ~0.6 degree field of view).
+MAX_FOCAL_FACTOR = 100
 
 
 class UploadError(Exception):
@@ -30,16 +34,26 @@ class ZipInfo:
     uncompressed_bytes: int
 
 
-def check_submission_zip(data: bytes, limits: Limits, split: str, known_scenes: set[str] | None) -> ZipInfo:
-    """Structure checks on an uploaded submission before it is stored: a real ZIP, few entries, bounded
-    uncompressed size and ratio (zip bombs), flat ``pose_sNNNNN.txt`` names only (no traversal), known scenes,
-    UTF-8 text. Reads every entry through a bounded reader, so lying headers cannot inflate memory."""
-    if len(data) > limits.max_submission_bytes:
-        raise UploadError(413, f"submission is {len(data)} bytes; the limit is {limits.max_submission_bytes}")
-    if not data:
+#: How much of each entry the upload check decompresses (the start of the file: encoding, corrupt streams).
+SNIFF_BYTES = 4096
+
+
+def check_submission_zip(data: bytes | BinaryIO, limits: Limits, split: str,
+                         known_scenes: set[str] | None) -> ZipInfo:
+    """The cheap checks an upload gets before it is stored, in bounded time and memory: a real ZIP (its central
+    directory), few entries, flat ``pose_sNNNNN.txt`` names only (no traversal), known scenes, declared sizes
+    within the per-entry and total limits and a sane ratio (zip bombs), and the first few kB of each entry
+    decompressed (UTF-8 text, a readable stream). Parsing the pose lines is left to the workers."""
+    f = io.BytesIO(data) if isinstance(data, (bytes, bytearray)) else data
+    f.seek(0, io.SEEK_END)
+    size = f.tell()
+    f.seek(0)
+    if size > limits.max_submission_bytes:
+        raise UploadError(413, f"submission is {size} bytes; the limit is {limits.max_submission_bytes}")
+    if not size:
         raise UploadError(400, "submission file is empty")
     try:
-        zf = zipfile.ZipFile(io.BytesIO(data))
+        zf = zipfile.ZipFile(f)
         infos = zf.infolist()
     except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, EOFError) as e:
         raise UploadError(400, f"submission is not a valid ZIP archive ({e})") from None
@@ -66,33 +80,37 @@ def check_submission_zip(data: bytes, limits: Limits, split: str, known_scenes: 
             raise UploadError(422, f"ZIP entry {name!r}: scene {m.group(1)} is not in the {split} split")
         ratio = info.file_size / max(info.compress_size, 1)
         if info.file_size > (1 << 20) and ratio > limits.max_zip_ratio:
-            raise UploadError(413, f"ZIP entry {name!r}: compression ratio {ratio:.0f}:1 looks like a zip bomb")
+            raise UploadError(413, f"ZIP entry {name!r}: compression ratio {ratio:.0f}:1 looks like a zip bomb "
+                                   f"(the limit is {limits.max_zip_ratio:g}:1)")
+        if info.file_size > limits.max_zip_entry_bytes:
+            raise UploadError(413, f"ZIP entry {name!r} unpacks to {info.file_size} bytes; the per-file limit is "
+                                   f"{limits.max_zip_entry_bytes} bytes")
         total += info.file_size
         if total > limits.max_zip_uncompressed_bytes:
-            raise UploadError(413, f"ZIP expands to more than {limits.max_zip_uncompressed_bytes} bytes (zip bomb?)")
+            raise UploadError(413, f"ZIP unpacks to more than the total limit of {limits.max_zip_uncompressed_bytes} "
+                                   "bytes (zip bomb?)")
         scenes.append(m.group(1))
     if not scenes:
         raise UploadError(422, "ZIP holds no pose_sNNNNN.txt files")
-    # Headers can lie: read each entry with a hard cap, which also checks CRCs and text encoding.
-    real = 0
     for info in infos:
-        try:
-            with zf.open(info) as f:
-                while chunk := f.read(1 << 16):
-                    real += len(chunk)
-                    if real > limits.max_zip_uncompressed_bytes:
-                        raise UploadError(413, f"ZIP entry {info.filename!r} expands beyond the declared size "
-                                               f"(limit {limits.max_zip_uncompressed_bytes} bytes)")
-                    try:
-                        chunk.decode("utf-8")
-                    except UnicodeDecodeError as e:
-                        if e.start < len(chunk) - 4:  # a split multi-byte char at the chunk edge is fine
-                            raise UploadError(422, f"ZIP entry {info.filename!r} is not UTF-8 text") from None
-        except UploadError:
-            raise
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, NotImplementedError) as e:
-            raise UploadError(422, f"ZIP entry {info.filename!r} is corrupt ({e})") from None
-    return ZipInfo(sorted(scenes), real)
+        _sniff(zf, info)
+    return ZipInfo(sorted(scenes), total)
+
+
+def _sniff(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> None:
+    """Decompress the start of one entry: a corrupt stream or a binary file is refused now. Headers that lie
+    about the size are caught too (the stream ends early and its CRC fails); the workers' reader enforces the
+    size limits on the whole entry."""
+    try:
+        with zf.open(info) as f:
+            head = f.read(SNIFF_BYTES)
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, NotImplementedError) as e:
+        raise UploadError(422, f"ZIP entry {info.filename!r} is corrupt ({e})") from None
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as e:
+        if e.start < len(head) - 4 or len(head) < SNIFF_BYTES:  # a multi-byte char cut at the edge is fine
+            raise UploadError(422, f"ZIP entry {info.filename!r} is not UTF-8 text") from None
 
 
 def decode_image(data: bytes, limits: Limits, what: str) -> np.ndarray:
@@ -112,25 +130,42 @@ def decode_image(data: bytes, limits: Limits, what: str) -> np.ndarray:
 
 
 def decode_depth(data: bytes, limits: Limits, shape: tuple[int, int], what: str = "depth") -> np.ndarray:
-    """A uint16 millimetre PNG of the image's size -> float32 metres."""
+    """A single-channel uint16 millimetre PNG of the image's size -> float32 metres. Anything else (a JPEG, an
+    8-bit or colour PNG) is refused: read as millimetres it would be a silently wrong metric scale."""
     if len(data) > limits.max_image_bytes:
         raise UploadError(413, f"{what}: {len(data)} bytes; the limit is {limits.max_image_bytes}")
-    w, h = _image_size(data, what)
+    w, h = _image_size(data, what, formats=("PNG",))
     if (h, w) != tuple(shape):
         raise UploadError(422, f"{what}: {w}x{h} but the image is {shape[1]}x{shape[0]}; they must match")
-    d = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_ANYDEPTH)
-    if d is None or d.ndim != 2:
-        raise UploadError(422, f"{what}: not a single-channel depth PNG (uint16 millimetres)")
+    d = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if d is None or d.shape[:2] != (h, w):
+        raise UploadError(422, f"{what}: corrupt PNG")
+    if d.ndim != 2 or d.dtype != np.uint16:
+        got = f"{8 * d.dtype.itemsize}-bit, {1 if d.ndim == 2 else d.shape[2]} channel(s)"
+        raise UploadError(422, f"{what}: must be a single-channel 16-bit PNG (uint16 millimetres); got {got}")
     return d.astype(np.float32) / 1000.0
 
 
-def _image_size(data: bytes, what: str) -> tuple[int, int]:
+def check_name(name: str | None, max_chars: int, what: str = "name") -> str:
+    """A display name: trimmed, bounded, without control or invisible formatting characters (U+202E and other
+    bidirectional overrides would let a name display as something it is not)."""
+    name = (name or "").strip()
+    if len(name) > max_chars:
+        raise UploadError(422, f"{what} is longer than {max_chars} characters")
+    bad = next((c for c in name if unicodedata.category(c) in ("Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp")), None)
+    if bad is not None:
+        raise UploadError(422, f"{what} contains a control or formatting character (U+{ord(bad):04X})")
+    return name
+
+
+def _image_size(data: bytes, what: str, formats: tuple[str, ...] = ("JPEG", "PNG")) -> tuple[int, int]:
     from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(io.BytesIO(data)) as im:
-            if im.format not in ("JPEG", "PNG"):
-                raise UploadError(422, f"{what}: {im.format} images are not accepted (JPEG or PNG expected)")
+            if im.format not in formats:
+                raise UploadError(422, f"{what}: {im.format} images are not accepted ({' or '.join(formats)} "
+                                       "expected)")
             return im.size
     except UploadError:
         raise
@@ -152,9 +187,12 @@ def parse_intrinsics(values: dict, width: int, height: int, what: str = "intrins
         if not math.isfinite(f):
             raise UploadError(422, f"{what}: {k} must be finite")
         out[k] = f
-    if out["fx"] <= 0 or out["fy"] <= 0:
-        raise UploadError(422, f"{what}: focal lengths must be positive")
-    if not (-width <= out["cx"] <= 2 * width and -height <= out["cy"] <= 2 * height):
-        raise UploadError(422, f"{what}: principal point ({out['cx']}, {out['cy']}) is far outside the image")
+    fmax = MAX_FOCAL_FACTOR * max(width, height)
+    if not (0 < out["fx"] < fmax and 0 < out["fy"] < fmax):
+        raise UploadError(422, f"{what}: focal lengths must be positive and below {fmax:g} px "
+                               f"({MAX_FOCAL_FACTOR} x the image's longest side); got fx={out['fx']:g}, fy={out['fy']:g}")
+    if not (0 <= out["cx"] <= width and 0 <= out["cy"] <= height):
+        raise UploadError(422, f"{what}: principal point ({out['cx']:g}, {out['cy']:g}) must lie inside the "
+                               f"{width}x{height} image")
     out.update(width=int(width), height=int(height))
     return out

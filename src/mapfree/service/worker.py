@@ -8,6 +8,7 @@ retries the job).
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import signal
@@ -17,14 +18,25 @@ import threading
 import time
 from pathlib import Path
 
-from sqlalchemy import update
+from sqlalchemy import delete, update
 
-from . import jobs
-from .config import Settings
-from .db import SubmissionFile, WorkerRow, init_db, make_engine, new_id, now, session_factory
+from . import jobs, storage
+from .config import Limits, Settings
+from .db import WorkerRow, init_db, make_engine, new_id, now, session_factory
 from .evaluation import SubmissionRejected, score
 
 log = logging.getLogger("mapfree.worker")
+
+
+#: How often a worker says it is alive (``workers.last_seen``), busy or idle; ``/health`` forgets it after 3 misses.
+SEEN_SECONDS = 5.0
+#: How often a worker deletes stored ZIPs past their retention.
+SWEEP_SECONDS = 600.0
+
+
+def seen(sessions, worker_id: str) -> None:
+    with sessions.begin() as db:
+        db.execute(update(WorkerRow).where(WorkerRow.id == worker_id).values(last_seen=now()))
 
 
 class _Heartbeat(threading.Thread):
@@ -36,29 +48,28 @@ class _Heartbeat(threading.Thread):
 
     def run(self) -> None:
         sessions, claim, worker_id, lease = self.args
-        while not self.stopped.wait(lease / 3):
+        while not self.stopped.wait(min(lease / 3, SEEN_SECONDS)):
             try:
                 if not jobs.heartbeat(sessions, claim, worker_id, lease):
                     self.lost = True
                     return
+                seen(sessions, worker_id)
             except Exception:  # a DB hiccup: try again next beat
                 log.warning("heartbeat failed", exc_info=True)
 
 
 def process(sessions, settings: Settings, claim: jobs.Claim, worker_id: str) -> str:
     """Evaluate one claimed job -> final status ('done', 'failed' or 'lost')."""
-    with sessions() as db:
-        row = db.get(SubmissionFile, claim.submission_id)
-        data = row.data if row else None
     beat = _Heartbeat(sessions, claim, worker_id, settings.lease_seconds)
     beat.start()
     t0 = time.perf_counter()
     try:
-        if data is None:
-            raise SubmissionRejected("submission file is missing")
         with tempfile.TemporaryDirectory(prefix="mapfree-job-") as d:
             path = Path(d) / "submission.zip"
-            path.write_bytes(data)
+            with open(path, "wb") as f, sessions() as db:
+                n = sum(f.write(chunk) for chunk in storage.chunks(db, claim.submission_id))
+            if n == 0:
+                raise SubmissionRejected("submission file is missing")
             result, plot_data = score(settings, claim.split, path)
         ok = jobs.finish(sessions, claim, worker_id, result, plot_data, time.perf_counter() - t0)
         status = "done" if ok else "lost"
@@ -88,11 +99,19 @@ def run(settings: Settings, worker_id: str | None = None, stop: threading.Event 
         db.merge(WorkerRow(id=worker_id, host=socket.gethostname()[:128], pid=os.getpid(), started_at=now(),
                            last_seen=now(), jobs_done=0))
     log.info("worker started", extra={"worker": worker_id, "pid": os.getpid()})
-    done, last_seen = 0, 0.0
+    done, last_seen, last_sweep = 0, 0.0, 0.0
     while not stop.is_set() and (max_jobs is None or done < max_jobs):
         if parent_pid is not None and os.getppid() != parent_pid:
             log.warning("parent process is gone; stopping", extra={"worker": worker_id})
             break
+        if time.time() - last_sweep > SWEEP_SECONDS:
+            last_sweep = time.time()
+            try:
+                with sessions.begin() as db:
+                    if (n := storage.sweep(db, settings.zip_retention_days)):
+                        log.info("stored ZIPs deleted (retention)", extra={"submissions": n})
+            except Exception:
+                log.warning("retention sweep failed", exc_info=True)
         try:
             claim = jobs.claim(sessions, worker_id, settings.lease_seconds, settings.max_attempts)
         except Exception:
@@ -100,17 +119,21 @@ def run(settings: Settings, worker_id: str | None = None, stop: threading.Event 
             stop.wait(settings.poll_seconds * 4)
             continue
         if claim is None:
-            if time.time() - last_seen > 5:
+            if time.time() - last_seen > SEEN_SECONDS:
                 last_seen = time.time()
                 try:
-                    with sessions.begin() as db:
-                        db.execute(update(WorkerRow).where(WorkerRow.id == worker_id).values(last_seen=now()))
+                    seen(sessions, worker_id)
                 except Exception:
                     log.warning("worker heartbeat failed", exc_info=True)
             stop.wait(settings.poll_seconds)
             continue
         process(sessions, settings, claim, worker_id)
         done += 1
+    try:  # a clean stop leaves no row behind for /health to list
+        with sessions.begin() as db:
+            db.execute(delete(WorkerRow).where(WorkerRow.id == worker_id))
+    except Exception:
+        log.warning("could not remove the worker row", exc_info=True)
     log.info("worker stopped", extra={"worker": worker_id, "jobs": done})
     engine.dispose()
     return done
@@ -126,12 +149,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lease-seconds", type=float, default=60.0)
     p.add_argument("--max-attempts", type=int, default=3)
     p.add_argument("--poll-seconds", type=float, default=0.5)
+    p.add_argument("--zip-retention-days", type=float, default=Settings.zip_retention_days)
+    p.add_argument("--limits", default="{}", help="JSON of service Limits (the upload check's, for the reader)")
     p.add_argument("--log-level", default="info")
     p.add_argument("--exit-with-parent", action="store_true", help="stop when the launching process dies")
     a = p.parse_args(argv)
     setup_logging(a.log_level)
     settings = Settings(db_url=a.db, data_root=a.data, gt_root=a.gt, lease_seconds=a.lease_seconds,
-                        max_attempts=a.max_attempts, poll_seconds=a.poll_seconds)
+                        max_attempts=a.max_attempts, poll_seconds=a.poll_seconds,
+                        zip_retention_days=a.zip_retention_days, limits=Limits(**json.loads(a.limits)))
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())

@@ -1,0 +1,56 @@
+"""Per-request guards of the HTTP layer: request ids for logs and error bodies, and a limit on token guessing."""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+import uuid
+from collections import OrderedDict, deque
+
+from fastapi import Request
+
+_RID_RE = re.compile(r"[A-Za-z0-9._-]{1,64}")
+
+
+def request_id(request: Request) -> str:
+    """The caller's ``X-Request-ID`` when it is a short plain token (a proxy's), else a fresh one."""
+    given = request.headers.get("x-request-id", "")
+    return given if _RID_RE.fullmatch(given) else uuid.uuid4().hex[:16]
+
+
+class AuthThrottle:
+    """Failed token checks per client address in a sliding minute. Over the limit, every request from that
+    address that carries credentials is a 429 until the oldest failure is a minute old (per API process)."""
+
+    def __init__(self, per_minute: int, max_clients: int = 100_000):
+        self.per_minute, self.max_clients = per_minute, max_clients
+        self._failures: OrderedDict[str, deque] = OrderedDict()
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def credentialed(request: Request) -> bool:
+        """A bearer token or the sign-in form: what a guesser sends (a stale cookie is not a guess)."""
+        return "authorization" in request.headers or (request.method == "POST" and request.url.path == "/login")
+
+    def retry_after(self, client: str) -> int:
+        """Seconds until ``client`` may try again (0: now)."""
+        if self.per_minute <= 0:
+            return 0
+        with self._lock:
+            q = self._failures.get(client)
+            if not q:
+                return 0
+            while q and q[0] < time.monotonic() - 60:
+                q.popleft()
+            return int(q[0] + 60 - time.monotonic()) + 1 if len(q) >= self.per_minute else 0
+
+    def failed(self, client: str) -> None:
+        if self.per_minute <= 0:
+            return
+        with self._lock:
+            q = self._failures.setdefault(client, deque(maxlen=self.per_minute))
+            q.append(time.monotonic())
+            self._failures.move_to_end(client)
+            while len(self._failures) > self.max_clients:  # a flood of addresses: forget the quietest
+                self._failures.popitem(last=False)

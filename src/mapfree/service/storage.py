@@ -1,0 +1,85 @@
+"""Stored submission ZIPs, streamed in chunks: an upload is copied from its spooled file into the database in
+1 MiB rows (a few per transaction, so no request waits long for SQLite's write lock), and a worker copies them
+back to a file; neither holds a whole ZIP in memory. Per-account quota and retention of the stored ZIPs."""
+
+from __future__ import annotations
+
+import hashlib
+from typing import BinaryIO, Iterator
+
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session
+
+from .db import Submission, SubmissionFile, ZipChunk, now
+
+CHUNK_BYTES = 1 << 20
+CHUNKS_PER_TRANSACTION = 4
+#: An upload still being copied after this long was cut off (its API process died): swept with its rows.
+STALE_UPLOAD_SECONDS = 3600.0
+
+
+def copy_in(db: Session, sid: str, f: BinaryIO) -> tuple[int, str]:
+    """Store the file ``f`` as submission ``sid``'s ZIP (the submission row is committed already), committing
+    every few chunks -> (bytes, sha256)."""
+    f.seek(0)
+    sha, size, seq = hashlib.sha256(), 0, 0
+    while True:
+        chunk = f.read(CHUNK_BYTES)
+        if seq > 0 and not chunk:
+            break
+        sha.update(chunk)
+        size += len(chunk)
+        db.add(SubmissionFile(submission_id=sid, data=chunk) if seq == 0 else
+               ZipChunk(submission_id=sid, seq=seq, data=chunk))
+        seq += 1
+        if seq % CHUNKS_PER_TRANSACTION == 0 or len(chunk) < CHUNK_BYTES:
+            db.commit()
+        if len(chunk) < CHUNK_BYTES:
+            break
+    db.commit()
+    return size, sha.hexdigest()
+
+
+def chunks(db: Session, sid: str) -> Iterator[bytes]:
+    """The stored ZIP of ``sid`` chunk by chunk (nothing when it is not stored), one short read transaction per
+    chunk. A ZIP stored whole in ``submission_files`` (before chunking) comes out as one chunk."""
+    first = db.scalar(select(SubmissionFile.data).where(SubmissionFile.submission_id == sid))
+    db.commit()
+    if first is None:
+        return
+    yield first
+    seq = 1
+    while (data := db.scalar(select(ZipChunk.data).where(ZipChunk.submission_id == sid, ZipChunk.seq == seq))) \
+            is not None:
+        db.commit()
+        yield data
+        seq += 1
+    db.commit()
+
+
+def read_zip(db: Session, sid: str) -> bytes | None:
+    """The whole stored ZIP (to download it), or None when it is no longer stored."""
+    parts = list(chunks(db, sid))
+    return b"".join(parts) if parts else None
+
+
+def stored_bytes(db: Session, user_id: int) -> int:
+    """Bytes of ``user_id``'s submission ZIPs still stored (what the storage quota counts)."""
+    return int(db.scalar(select(func.coalesce(func.sum(Submission.size_bytes), 0))
+                         .join(SubmissionFile, SubmissionFile.submission_id == Submission.id)
+                         .where(Submission.user_id == user_id)) or 0)
+
+
+def sweep(db: Session, retention_days: float) -> int:
+    """Delete the ZIPs of submissions finished more than ``retention_days`` ago (0: keep them), and uploads cut
+    off mid-copy; returns how many submissions lost their ZIP. Results and scores stay."""
+    t = now()
+    gone = 0
+    if retention_days > 0:
+        old = select(Submission.id).where(Submission.status.in_(("done", "failed")),
+                                          Submission.finished_at < t - retention_days * 86400)
+        gone += db.execute(delete(SubmissionFile).where(SubmissionFile.submission_id.in_(old))).rowcount or 0
+    stale = select(Submission.id).where(Submission.status == "uploading",
+                                        Submission.created_at < t - STALE_UPLOAD_SECONDS)
+    gone += db.execute(delete(Submission).where(Submission.id.in_(stale))).rowcount or 0
+    return gone
