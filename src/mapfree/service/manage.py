@@ -15,6 +15,7 @@ from .config import Settings
 from .db import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
 from .deps import db_session, identify, require_writer
 from .leaderboard import meta_json, parse_meta, save_meta
+from .storage import read_zip
 
 WITHDRAWN = "withdrawn"
 
@@ -57,8 +58,7 @@ def withdraw(db: Session, sub: Submission) -> None:
 
 
 def zip_bytes(db: Session, sub: Submission) -> bytes:
-    data = db.scalar(select(SubmissionFile.data).where(SubmissionFile.submission_id == sub.id))
-    db.commit()
+    data = read_zip(db, sub.id)  # stored in chunks (storage.py)
     if data is None:
         raise HTTPException(410, "the ZIP of this submission is no longer stored")
     return data
