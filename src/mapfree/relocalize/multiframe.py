@@ -6,10 +6,9 @@ on its own. The phone's tracking (``poses_device.txt``) carries each estimate to
 
 1. consensus: every hypothesis proposes itself; the others agree with it when their rotation is within
    ``rotation_deg`` and their camera centre within ``translation_m`` (+ ``translation_rel`` of the distance
-   to the reference, so far queries tolerate proportionally more); the proposal with the most agreeing
-   frames wins, each frame voting 1 plus its share of the burst's confidence (so confidence decides between
-   equally supported proposals, but one confident frame cannot outvote several that agree; RANSAC over at
-   most 9 hypotheses, hence exhaustive);
+   to the reference, so far queries tolerate proportionally more); the proposal with the largest vote
+   wins, each agreeing frame voting the square root of its confidence (confidence counts, but one very
+   confident frame cannot outvote several that agree); RANSAC over at most 9 hypotheses, hence exhaustive;
 2. the agreeing set is averaged (weighted chordal rotation mean, weighted centre) and re-selected around
    the average until stable;
 3. the fused confidence is the agreeing confidence times the fraction of the burst that agrees, so a pose
@@ -102,7 +101,7 @@ def fuse(hyps: Sequence[Hypothesis], n_frames: int | None = None, options: Fusio
     top = conf.max()
     w = np.maximum(conf, 1e-3 * top) if top > 0 else np.ones(len(hyps))  # all-zero confidences: equal votes
     agree = _agree(R, C, R, C, options)
-    votes = 1.0 + w / w.sum()  # one vote per frame, plus its share of the confidence
+    votes = np.sqrt(w)  # sub-linear: several agreeing frames outweigh one very confident frame
     inl = agree[:, int(np.argmax(votes @ agree + 1e-9 * w))]
     for _ in range(options.iterations):
         R_m, c_m = _mean(R[inl], C[inl], w[inl])
