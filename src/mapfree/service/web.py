@@ -9,6 +9,7 @@ import base64
 import secrets
 import time
 from pathlib import Path
+from urllib.parse import urlencode
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, UploadFile
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
@@ -264,7 +265,7 @@ def leaderboard_page(split: str, request: Request, sort: str = Query("vcre_auc")
         raise HTTPException(404, f"no leaderboard for split {split!r}")
     check_sort(sort)
     entries = board(db, split, sort, view, scene or None)
-    query = f"sort={sort}&view={view}" + (f"&scene={scene}" if scene else "")
+    query = urlencode({"sort": sort, "view": view, **({"scene": scene} if scene else {})})
     return page(request, "leaderboard.html", db, split=split, sort=sort, view=view, views=VIEWS, scene=scene,
                 scenes=scenes_of(db, split), entries=entries, labels=LABELS, lower=LOWER_IS_BETTER,
                 reference=reference_rows(), csv_url=f"/api/leaderboard/{split}.csv?{query}")
