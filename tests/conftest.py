@@ -38,3 +38,22 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def _find_official_rpr() -> Path | None:
+    here = Path(__file__).resolve()
+    for cand in (here.parents[2] / "shared/fixtures/official-rpr", Path("/work/shared/fixtures/official-rpr")):
+        if (cand / "official_rpr.json").is_file():
+            return cand
+    return None
+
+
+OFFICIAL_RPR = _find_official_rpr()
+
+
+@pytest.fixture(scope="session")
+def official_rpr() -> Path:
+    """Folder with official_rpr.json: the public RPR networks' outputs on fill-rule weights (README.md there)."""
+    if OFFICIAL_RPR is None:
+        pytest.fail("shared/fixtures/official-rpr not found beside the checkout")
+    return OFFICIAL_RPR

@@ -45,6 +45,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--gt-pose", help="ground truth: 'qw,qx,qy,qz,tx,ty,tz' (query w.r.t. reference), "
                                       "a poses.txt holding both frames, or 'auto' (the scene's poses.txt)")
     p.add_argument("--viz", type=Path, help="write a PNG with the matches and the AR check")
+    p.add_argument("--checkpoint", type=Path, default=None,
+                   help="weights of a regression method (e.g. --method rpr-3d3d --checkpoint 3d3d.ckpt)")
     p.set_defaults(func=run)
 
 
@@ -83,10 +85,13 @@ def _lookup(table: dict, image: Path, source: Path):
     raise InputError(f"{source}: no unique entry for {name}")
 
 
-def _intrinsics(args, image: Path, flag: str | None):
+def _intrinsics(args, image: Path, flag: str | None, optional: bool = False):
     from ..data import read_image, read_intrinsics
     from ..geometry import Intrinsics
 
+    if optional and not flag and not args.intrinsics and not (_scene_dir(image) / "intrinsics.txt").is_file():
+        h, w = read_image(image).shape[:2]  # regression ignores intrinsics: a nominal camera for the error report
+        return Intrinsics(float(max(w, h)), float(max(w, h)), (w - 1) / 2, (h - 1) / 2, w, h)
     if flag:
         h, w = read_image(image).shape[:2]
         fx, fy, cx, cy = _floats(flag, 4, "intrinsics")
@@ -127,7 +132,12 @@ def run(args: argparse.Namespace) -> int:
     from ..relocalize import Relocalizer, as_view
 
     try:
-        method = get(args.method)
+        if args.checkpoint is not None:
+            from .run import _with_checkpoint
+
+            method = _with_checkpoint(args.method, args.checkpoint)
+        else:
+            method = get(args.method)
         if args.depth:
             method = method.with_depth(args.depth)
         for p in (args.reference, args.query):
@@ -136,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
         views = []
         for image, kflag, dpath in ((args.reference, args.K_ref, args.depth_ref),
                                     (args.query, args.K_query, args.depth_query)):
-            K = _intrinsics(args, image, kflag)
+            K = _intrinsics(args, image, kflag, optional=method.kind == "regression")
             depth = read_depth(dpath) if dpath else None
             v = as_view((image, K, depth))
             if v.image.shape[:2] != (K.height, K.width):

@@ -16,7 +16,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "train",
         help="train a relative pose regression (RPR) network",
         description="Train an RPR network on a Map-free root (train/ with overlaps.npz, val/ for validation). "
-        "CONFIG is a YAML file or a name in configs/rpr (e.g. R6D_t, 3d3d). Writes OUT/checkpoints/"
+        "CONFIG is a YAML file or a name in configs/rpr (e.g. 3d3d, rot6d_trans: the public release's 12 "
+        "configurations, or R6D_t_cpu_synth). Writes OUT/checkpoints/"
         "{best,last}.ckpt, OUT/logs/metrics.csv and OUT/tensorboard/. Multi-GPU / multi-node: "
         "--devices N --num-nodes M --strategy ddp (on a cluster, launch one process per device, e.g. with srun).",
     )
@@ -31,6 +32,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-epochs", type=int, default=None, help="override train.max_epochs")
     p.add_argument("--max-steps", type=int, default=None, help="stop after this many optimizer steps")
     p.add_argument("--resume", type=Path, default=None, help="checkpoint to resume (e.g. OUT/checkpoints/last.ckpt)")
+    p.add_argument("--init", type=Path, default=None,
+                   help="start from these weights: a published Map-free checkpoint (e.g. 3d3d.ckpt) or one of ours "
+                        "(train.init); a fresh run, unlike --resume")
+    p.add_argument("--freeze", choices=("none", "encoder", "pose"), default=None,
+                   help="train.freeze: encoder (fixed encoder) or pose (only the uncertainty head trains: a confidence "
+                        "on top of a loaded model; needs model.uncertainty=true)")
     p.add_argument("--channels-last", action="store_true", help="NHWC memory format (train.channels_last)")
     p.add_argument("--sync-batchnorm", action="store_true", help="synchronise BatchNorm statistics across devices")
     p.add_argument("--limit-val-batches", type=float, default=None, help="fraction (<=1) or number of val batches")
@@ -55,6 +62,12 @@ def run(args: argparse.Namespace) -> int:
             overrides.append(f"data.root={args.data}")
         if args.channels_last:
             overrides.append("train.channels_last=true")
+        if args.init is not None:
+            if not args.init.is_file():
+                raise FileNotFoundError(f"--init checkpoint {args.init} not found")
+            overrides.append(f"train.init={args.init}")
+        if args.freeze is not None:
+            overrides.append(f"train.freeze={args.freeze}")
         cfg = apply_overrides(cfg, overrides) if overrides else cfg
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)

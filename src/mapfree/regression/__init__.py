@@ -1,8 +1,9 @@
 """Relative pose regression (RPR): the paper's networks, parameterisations, losses, training and inference.
 
 Importing this package is cheap (torch and Lightning load on first use) and registers the method kind
-``regression`` and the method ``rpr`` with ``mapfree.methods``; ``rpr`` needs ``options.checkpoint``
-(``mapfree run … --method rpr --checkpoint CKPT``) or ``$MAPFREE_RPR_CHECKPOINT``.
+``regression``, the method ``rpr`` (any checkpoint: ``--checkpoint CKPT`` or ``$MAPFREE_RPR_CHECKPOINT``) and
+``rpr-<config>`` for the 12 published configurations (``rpr-3d3d`` …: ``--checkpoint``, else
+``$MAPFREE_WEIGHTS_DIR/<config>.ckpt``).
 """
 
 from __future__ import annotations
@@ -30,26 +31,42 @@ def __getattr__(name: str) -> Any:
 
 
 def build_from_method(method: Any) -> Any:
-    """``Method(kind="regression", options={"checkpoint": …, "device": …})`` -> a loaded ``RPRMethod``."""
+    """``Method(kind="regression", options={"checkpoint": …, "config": …, "device": …})`` -> a loaded ``RPRMethod``."""
     opts = dict(getattr(method, "options", {}) or {})
-    ckpt = opts.get("checkpoint") or os.environ.get("MAPFREE_RPR_CHECKPOINT")
+    config = opts.get("config")
+    ckpt = opts.get("checkpoint")
+    if not ckpt and config:
+        from .official import find_weights
+
+        ckpt = find_weights(config)
+    ckpt = ckpt or os.environ.get("MAPFREE_RPR_CHECKPOINT")
     if not ckpt:
         raise ValueError(f"method {getattr(method, 'name', 'rpr')!r} needs a checkpoint: pass --checkpoint CKPT "
                          "(options.checkpoint in a method YAML, or $MAPFREE_RPR_CHECKPOINT)")
     from .inference import load_method
 
-    return load_method(ckpt, opts.get("device"))
+    return load_method(ckpt, opts.get("device"), config=config)
 
 
 def _register() -> None:
     from .. import methods
+    from .official import OFFICIAL_CONFIGS
 
     methods.register_kind("regression", build_from_method)
-    if "rpr" not in getattr(methods, "_REGISTRY", {}):
+    registry = getattr(methods, "_REGISTRY", {})
+    if "rpr" not in registry:
         methods.register(methods.Method(
             name="rpr", kind="regression", matcher="", solver="", depth="none",
             description="relative pose regression network (mapfree train); needs --checkpoint CKPT",
         ))
+    for config in OFFICIAL_CONFIGS:
+        if f"rpr-{config}" not in registry:
+            methods.register(methods.Method(
+                name=f"rpr-{config}", kind="regression", matcher="", solver="", depth="none",
+                options={"config": config},
+                description=f"published Map-free RPR model {config} (configs/rpr/{config}.yaml); "
+                            f"--checkpoint CKPT or $MAPFREE_WEIGHTS_DIR/{config}.ckpt",
+            ))
 
 
 try:

@@ -11,31 +11,35 @@ import yaml
 
 from ..yamlio import read_yaml
 
-__all__ = ["ModelConfig", "LossConfig", "DataConfig", "TrainConfig", "RPRConfig", "load_config", "apply_overrides"]
+__all__ = ["ModelConfig", "LossConfig", "DataConfig", "TrainConfig", "RPRConfig", "load_config", "apply_overrides",
+           "config_dir", "resolve_config"]
 
 ROTATIONS = ("quat", "6d", "euler_bins", "3d3d")
+AGGREGATORS = ("warp", "qkv", "concat")
+FREEZE = ("none", "encoder", "pose")
 TRANSLATIONS = ("t", "s_tdir", "s_tbins")
 
 
 @dataclass
 class ModelConfig:
-    """Network shape and output parameterisation (SPEC §4)."""
+    """Network shape and output parameterisation (SPEC §4; the public release's defaults)."""
 
-    rotation: str = "6d"  # quat | 6d | euler_bins | 3d3d (joint: predicted point pairs + Procrustes)
+    rotation: str = "6d"  # quat | 6d | euler_bins | 3d3d (joint: predicted points + Procrustes)
     translation: str = "t"  # t | s_tdir | s_tbins (ignored for 3d3d)
     encoder: str = "resunet"  # resunet (the paper's, trained) | xfeat (frozen pretrained XFeat, 64-d at 1/8; beyond the paper)
-    encoder_channels: tuple[int, ...] = (64, 128, 256)  # ResUNet stages (3 pre-activation bottlenecks each)
-    encoder_blocks: int = 3
+    encoder_channels: tuple[int, ...] = (64, 128, 256)  # ResUNet stage widths (bottleneck outputs are 4x these)
+    encoder_blocks: int = 3  # pre-activation bottlenecks per stage
     feature_dim: int = 32  # encoder output channels at 1/4 resolution
-    head_channels: tuple[int, ...] = (64, 128, 256, 512)  # stride-2 residual blocks before global pooling
-    mlp: tuple[int, ...] = (256, 128)
-    warping: bool = True  # False: plain concatenation of both feature maps (paper ablation)
+    aggregator: str = "warp"  # warp (correlation-volume warping) | qkv (learned query/key/value) | concat (no warping)
     position: bool = True  # soft-argmax position channels (paper ablation switch)
     max_score: bool = True
-    temperature: float = 0.0  # > 0: correlation = cosine / temperature (beyond the paper); 0: dot / sqrt(C)
-    own_position: bool = False  # also image 0's pixel grid (2 channels; beyond the paper)
-    n_points: int = 3  # 3d3d: point pairs per image
-    basis: bool = True  # 3d3d: add a fixed non-degenerate triplet to the predicted points
+    temperature: float = 0.0  # > 0: correlation = cosine / temperature (beyond the paper); 0: raw dot product
+    own_position: bool = False  # also image 0's pixel grid (2 channels; the public POSITION_ENCODER_IM1)
+    head_channels: tuple[int, ...] = (64, 128, 256, 512)  # stride-2 residual blocks of the pose head
+    avg_pool: bool = True  # global average pooling; False: flatten the fixed-size map (needs data.image_size)
+    mlp: tuple[int, ...] = (256, 128)  # hidden layers of the MLP; () = one linear layer (the binned heads)
+    n_points: int = 6  # 3d3d: 3 (matched to a fixed basis) or 6+ predicted points, half per image
+    basis: bool = True  # 3d3d: add the unit basis e_x, e_y, e_z to the points (n_points 3 or 6)
     uncertainty: bool = True  # beyond the paper: predicted log-scales of rotation/translation error
     # Target normalisation (beyond the paper; set by ``data.normalize_targets``): the network predicts
     # t = t_mean + t_std * output and starts at the mean training rotation, so its outputs stay O(1).
@@ -66,7 +70,8 @@ class DataConfig:
     pairs_per_scene: int = 700
     min_overlap: float = 0.4
     max_overlap: float = 0.8
-    image_size: tuple[int, int] | None = None  # (W, H); None: 360×270 in the orientation of the frames
+    image_size: tuple[int, int] | None = None  # (W, H) for every image (public: 270×360, landscape photos squashed);
+    # None: long_side × short_side in the orientation of the frames
     long_side: int = 360
     short_side: int = 270
     augment: bool = True
@@ -87,12 +92,17 @@ class TrainConfig:
     max_epochs: int = 50
     max_steps: int = -1
     gradient_clip_val: float = 1.0
+    adam_eps: float = 1e-8  # the public release trains with 1e-6
+    # none | encoder (the Siamese encoder's weights and BatchNorm statistics stay fixed) | pose (only the
+    # uncertainty head trains: a confidence on top of a loaded model whose poses stay exactly as they were)
+    freeze: str = "none"
+    init: str = ""  # checkpoint to start from: ours, or a public Map-free one (strict key match)
     scheduler: str = "none"  # none (paper: constant lr) | cosine (linear warmup, then cosine decay to 0)
     warmup_steps: int = 0
     weight_decay: float = 0.0
     precision: str = "32-true"
     channels_last: bool = False  # NHWC tensors: faster convolutions on CPUs and tensor cores (bench_train.py)
-    # Frozen encoder only: keep each image's features (float16, ~100 kB at 256×192) and run the encoder once
+    # Frozen encoder only (xfeat or train.freeze): keep each image's features (float16, ~100 kB at 256×192) and run the encoder once
     # per image instead of once per pair: 3.5× the training pairs/s on CPU (bench_train.py). Needs
     # data.augment: false. Memory grows with the distinct images seen: 2 GB for 20k frames, too much for the
     # full Map-free train split (~0.5M frames).
@@ -141,9 +151,17 @@ class RPRConfig:
             raise ValueError(f"model.R_mean needs 9 values (row-major 3×3), got {len(m.R_mean)}")
         if self.train.scheduler not in ("none", "cosine"):
             raise ValueError(f"train.scheduler must be none or cosine, got {self.train.scheduler!r}")
-        if self.train.cache_features and (m.encoder != "xfeat" or self.data.augment):
-            raise ValueError("train.cache_features needs a frozen encoder (model.encoder: xfeat) and data.augment: "
-                             "false (augmented pixels would change the features)")
+        if self.train.cache_features and ((m.encoder != "xfeat" and self.train.freeze == "none") or self.data.augment):
+            raise ValueError("train.cache_features needs a frozen encoder (model.encoder: xfeat or train.freeze) and "
+                             "data.augment: false (augmented pixels would change the features)")
+        if self.train.freeze not in FREEZE:
+            raise ValueError(f"train.freeze must be one of {FREEZE}, got {self.train.freeze!r}")
+        if self.train.freeze == "pose" and not m.uncertainty:
+            raise ValueError("train.freeze: pose trains only the uncertainty head: set model.uncertainty: true")
+        if m.aggregator not in AGGREGATORS:
+            raise ValueError(f"model.aggregator must be one of {AGGREGATORS}, got {m.aggregator!r}")
+        if not m.avg_pool and not self.data.image_size:
+            raise ValueError("model.avg_pool: false flattens a fixed-size map: set data.image_size [W, H]")
         if l.virtual_points < 0:
             raise ValueError(f"loss.virtual_points must be >= 0, got {l.virtual_points}")
         if l.weighting not in ("fixed", "learned"):
@@ -202,7 +220,7 @@ def load_config(path: os.PathLike | str) -> RPRConfig:
 
 
 def apply_overrides(cfg: RPRConfig, overrides: list[str]) -> RPRConfig:
-    """``["data.batch_size=4", "model.warping=false"]`` -> a new config (values parsed as YAML)."""
+    """``["data.batch_size=4", "model.aggregator=concat"]`` -> a new config (values parsed as YAML)."""
     d = cfg.to_dict()
     for item in overrides:
         key, sep, value = item.partition("=")
@@ -218,3 +236,20 @@ def apply_overrides(cfg: RPRConfig, overrides: list[str]) -> RPRConfig:
             raise ValueError(f"override {item!r}: unknown key {leaf!r}")
         node[leaf] = yaml.safe_load(value)
     return RPRConfig.from_dict(d, "overrides").validate()
+
+
+def config_dir() -> Path:
+    """The repository's ``configs/rpr`` (one YAML per paper variant)."""
+    return Path(__file__).resolve().parents[3] / "configs" / "rpr"
+
+
+def resolve_config(name_or_path: str | os.PathLike) -> Path:
+    """A config path, or a name in ``configs/rpr`` (``R6D_t`` or ``R6D_t.yaml``)."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    for cand in (config_dir() / p.name, config_dir() / f"{p.name}.yaml"):
+        if cand.is_file():
+            return cand
+    known = ", ".join(sorted(q.stem for q in config_dir().glob("*.yaml"))) if config_dir().is_dir() else "none"
+    raise FileNotFoundError(f"config {name_or_path} not found (configs/rpr has: {known})")

@@ -24,7 +24,8 @@ from .config import DataConfig
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Pair", "pose_statistics", "sample_pairs", "val_pairs", "PairDataset", "RPRDataModule", "resolve_size", "load_pair_image"]
+__all__ = ["Pair", "pose_statistics", "sample_pairs", "val_pairs", "PairDataset", "RPRDataModule", "resolve_size", "load_pair_image",
+           "to_input"]
 
 
 @dataclass(frozen=True)
@@ -107,12 +108,18 @@ def load_pair_image(frame: Frame, size: tuple[int, int], cache: bool = False) ->
     if (w, h) != (frame.intrinsics.width, frame.intrinsics.height):
         log.debug("%s: image is %dx%d but intrinsics say %dx%d", frame.image_path, w, h,
                   frame.intrinsics.width, frame.intrinsics.height)
-    if (w, h) != size:
-        interp = cv2.INTER_AREA if size[0] < w else cv2.INTER_LINEAR
-        img = cv2.resize(img, size, interpolation=interp)
+    img = cv2.resize(img, size) if (w, h) != size else img
     if cache:
         _IMAGE_CACHE[key] = img
-    return img.astype(np.float32) / 255.0, frame.intrinsics.resized(*size)
+    return to_input(img, size), frame.intrinsics.resized(*size)
+
+
+def to_input(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(H,W,3) uint8 RGB -> the network's input (H',W',3) float32 in [0,1] at ``size`` = (W',H'): the public
+    release's preprocessing (OpenCV bilinear resize, /255, no mean/std normalisation)."""
+    if (img.shape[1], img.shape[0]) != tuple(size):
+        img = cv2.resize(img, tuple(size))
+    return img.astype(np.float32) / 255.0
 
 
 def _photometric(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -1,4 +1,9 @@
-"""Siamese ResUNet feature encoder: pre-activation bottleneck stages, U-Net decoder to 1/4 resolution."""
+"""Siamese feature encoders: the public Map-free ResUNet (pre-activation bottlenecks + U-Net decoder to 1/4
+resolution) and, beyond the paper, a frozen pretrained XFeat.
+
+Module and parameter names follow the public release (``firstconv``, ``encoder1.0.bn1``, ``upconv4.conv1.conv``,
+``outconv.normalize`` …) so that its checkpoints load with strict key matching.
+"""
 
 from __future__ import annotations
 
@@ -6,49 +11,83 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["PreActBottleneck", "PreActBlock", "ResUNet"]
+__all__ = ["PreActBottleneck", "PreActBlock", "ResUNet", "XFeatEncoder", "conv_out"]
+
+
+def conv_out(n: int, kernel: int = 3, stride: int = 2, padding: int = 1) -> int:
+    """Output length of a convolution or pooling along one axis."""
+    return (n + 2 * padding - kernel) // stride + 1
 
 
 class _PreActResidual(nn.Module):
     """Shared shell: BN-ReLU first, then ``residual`` plus an identity or projection (of the activated input) skip."""
 
-    bn1: nn.BatchNorm2d
-    skip: nn.Module | None
+    bn1: nn.Module
+
+    def _shortcut(self, cin: int, cout: int, stride: int) -> None:
+        if stride != 1 or cin != cout:
+            self.shortcut = nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False))
 
     def residual(self, y: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = F.relu(self.bn1(x))
-        return self.residual(y) + (x if self.skip is None else self.skip(y))
+        skip = self.shortcut(y) if hasattr(self, "shortcut") else x
+        return self.residual(y) + skip
 
 
 class PreActBottleneck(_PreActResidual):
-    """BN-ReLU-conv1×1 → BN-ReLU-conv3×3 (stride) → BN-ReLU-conv1×1, with an identity or projection skip."""
+    """BN-ReLU-conv1×1 → BN-ReLU-conv3×3 (stride) → BN-ReLU-conv1×1 to ``cout`` (4× the inner width)."""
 
     def __init__(self, cin: int, cout: int, stride: int = 1):
         super().__init__()
-        mid = max(cout // 4, 8)
+        mid = cout // 4
         self.bn1, self.conv1 = nn.BatchNorm2d(cin), nn.Conv2d(cin, mid, 1, bias=False)
         self.bn2, self.conv2 = nn.BatchNorm2d(mid), nn.Conv2d(mid, mid, 3, stride, 1, bias=False)
         self.bn3, self.conv3 = nn.BatchNorm2d(mid), nn.Conv2d(mid, cout, 1, bias=False)
-        self.skip = nn.Conv2d(cin, cout, 1, stride, bias=False) if stride != 1 or cin != cout else None
+        self._shortcut(cin, cout, stride)
 
     def residual(self, y: torch.Tensor) -> torch.Tensor:
         return self.conv3(F.relu(self.bn3(self.conv2(F.relu(self.bn2(self.conv1(y)))))))
 
 
 class PreActBlock(_PreActResidual):
-    """Basic pre-activation residual block (two 3×3 convs), used by the decoder and the pose head."""
+    """Basic pre-activation residual block (two 3×3 convs), the pose head's building block."""
 
-    def __init__(self, cin: int, cout: int, stride: int = 1):
+    def __init__(self, cin: int, cout: int, stride: int = 1, bn: bool = True):
         super().__init__()
-        self.bn1, self.conv1 = nn.BatchNorm2d(cin), nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
-        self.bn2, self.conv2 = nn.BatchNorm2d(cout), nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
-        self.skip = nn.Conv2d(cin, cout, 1, stride, bias=False) if stride != 1 or cin != cout else None
+        self.bn1 = nn.BatchNorm2d(cin) if bn else nn.Identity()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(cout) if bn else nn.Identity()
+        self.conv2 = nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
+        self._shortcut(cin, cout, stride)
 
     def residual(self, y: torch.Tensor) -> torch.Tensor:
         return self.conv2(F.relu(self.bn2(self.conv1(y))))
+
+
+class _ConvBNELU(nn.Module):
+    """Decoder unit: conv (with bias) → BatchNorm → ELU."""
+
+    def __init__(self, cin: int, cout: int, kernel: int):
+        super().__init__()
+        self.conv = nn.Conv2d(cin, cout, kernel, 1, (kernel - 1) // 2)
+        self.normalize = nn.BatchNorm2d(cout)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.elu(self.normalize(self.conv(x)))
+
+
+class _UpConv(nn.Module):
+    """×2 bilinear upsampling (corners aligned) then a 3×3 decoder unit."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.conv1 = _ConvBNELU(cin, cout, 3)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.conv1(F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=True))
 
 
 def _stage(cin: int, cout: int, blocks: int, stride: int) -> nn.Sequential:
@@ -56,37 +95,53 @@ def _stage(cin: int, cout: int, blocks: int, stride: int) -> nn.Sequential:
 
 
 class ResUNet(nn.Module):
-    """Image (B,3,H,W) in [0,1] -> features (B, out_dim, ⌈H/4⌉, ⌈W/4⌉).
+    """Image (B,3,H,W), RGB in [0,1] (no mean/std normalisation) -> features (B, out_dim, h, w) at 1/4 resolution.
 
-    Stem (stride 2), then stages at 1/4, 1/8, 1/16 with ``blocks`` bottlenecks each, then a decoder that
-    upsamples and fuses the skip connections back to 1/4 resolution.
+    Stem: 7×7 conv stride 2, BN, ReLU, 3×3 max-pool stride 2. Three stages of ``blocks`` bottlenecks with inner
+    widths ``planes`` (outputs 4× that) at 1/4, 1/8, 1/16; a decoder upsamples twice, fitting each skip connection
+    to the upsampled size (zero padding or cropping) before fusing it. The paper's network: planes (64, 128, 256),
+    3 blocks, 32 output channels (92×68 for a 360×270 input).
     """
 
-    MEAN = (0.485, 0.456, 0.406)
-    STD = (0.229, 0.224, 0.225)
-
-    def __init__(self, channels: tuple[int, ...] = (64, 128, 256), blocks: int = 3, out_dim: int = 32):
+    def __init__(self, planes: tuple[int, ...] = (64, 128, 256), blocks: int = 3, out_dim: int = 32):
         super().__init__()
-        c = list(channels)
-        self.register_buffer("mean", torch.tensor(self.MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(self.STD).view(1, 3, 1, 1), persistent=False)
-        self.stem = nn.Conv2d(3, c[0] // 2, 3, 2, 1, bias=False)
-        self.stages = nn.ModuleList([_stage(c[0] // 2 if i == 0 else c[i - 1], c[i], blocks, 2) for i in range(len(c))])
-        self.fuse = nn.ModuleList([PreActBlock(c[i + 1] + c[i], c[i]) for i in reversed(range(len(c) - 1))])
-        self.out = nn.Sequential(nn.BatchNorm2d(c[0]), nn.ReLU(inplace=True), nn.Conv2d(c[0], out_dim, 1))
+        if len(planes) != 3:
+            raise ValueError(f"ResUNet has three stages: model.encoder_channels needs 3 values, got {tuple(planes)}")
+        p0, p1, p2 = (int(p) for p in planes)
+        e0, e1, e2 = 4 * p0, 4 * p1, 4 * p2
+        self.firstconv = nn.Conv2d(3, p0, 7, 2, 3, bias=False)
+        self.firstbn = nn.BatchNorm2d(p0)
+        self.encoder1 = _stage(p0, e0, blocks, 1)
+        self.encoder2 = _stage(e0, e1, blocks, 2)
+        self.encoder3 = _stage(e1, e2, blocks, 2)
+        self.upconv4, self.iconv4 = _UpConv(e2, e1), _ConvBNELU(2 * e1, e1, 3)
+        self.upconv3, self.iconv3 = _UpConv(e1, e0), _ConvBNELU(2 * e0, e0, 3)
+        self.outconv = _ConvBNELU(e0, out_dim, 1)
+        self.out_dim = out_dim
+
+    @staticmethod
+    def output_size(height: int, width: int) -> tuple[int, int]:
+        """Feature map (h, w) for an input of ``height`` × ``width``: 4× the 1/16 stage (the decoder upsamples it
+        twice and fits the skips to it), e.g. 92×68 for 360×270."""
+        def one(n: int) -> int:
+            return 4 * conv_out(conv_out(conv_out(conv_out(n, 7, 2, 3))))
+        return one(height), one(width)
+
+    @staticmethod
+    def _fuse(up: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        """Zero-pad (or crop, negative padding) the skip to the upsampled map's size; upsampled channels first."""
+        dy, dx = up.shape[2] - skip.shape[2], up.shape[3] - skip.shape[3]
+        skip = F.pad(skip, (dx // 2, dx - dx // 2, dy // 2, dy - dy // 2))
+        return torch.cat([up, skip], 1)
 
     def forward(self, img: torch.Tensor) -> torch.Tensor:
-        x = self.stem((img - self.mean) / self.std)
-        skips = []
-        for stage in self.stages:
-            x = stage(x)
-            skips.append(x)
-        x = skips.pop()
-        for fuse in self.fuse:
-            s = skips.pop()
-            x = F.interpolate(x, size=s.shape[-2:], mode="bilinear", align_corners=False)
-            x = fuse(torch.cat([x, s], 1))
-        return self.out(x)
+        x1 = F.max_pool2d(F.relu(self.firstbn(self.firstconv(img))), 3, 2, 1)
+        x2 = self.encoder1(x1)
+        x3 = self.encoder2(x2)
+        x4 = self.encoder3(x3)
+        x = self.iconv4(self._fuse(self.upconv4(x4), x3))
+        x = self.iconv3(self._fuse(self.upconv3(x), x2))
+        return self.outconv(x)
 
 
 class XFeatEncoder(nn.Module):
@@ -108,6 +163,10 @@ class XFeatEncoder(nn.Module):
             self.net.load_state_dict(torch.load(f, map_location="cpu", weights_only=True))
         self.net.requires_grad_(False)
         self.net.eval()
+
+    @staticmethod
+    def output_size(height: int, width: int) -> tuple[int, int]:
+        return height // 8, width // 8
 
     def train(self, mode: bool = True) -> "XFeatEncoder":
         super().train(mode)

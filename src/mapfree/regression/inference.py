@@ -1,7 +1,9 @@
 """A trained RPR checkpoint as a relocalization method: one pair, a cached reference, or a batch.
 
-Ignores depth and intrinsics (the network regresses the metric pose from pixels); the confidence is the
-predicted-uncertainty score (0 for models trained without it, as in the paper).
+Ignores depth and intrinsics (the network regresses the metric pose from pixels). Preprocessing is the public
+release's: both images resized (bilinear) to the config's input size — 270×360 (W×H) for the published models,
+whatever the photo's orientation — as RGB in [0, 1]. The pose is the network's R, t (``X_query = R X_ref + t``);
+the confidence is the predicted-uncertainty score (0 for models without that head, as the published ones).
 """
 
 from __future__ import annotations
@@ -11,7 +13,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
@@ -19,9 +20,11 @@ from ..data import read_image
 from ..estimate import Estimate
 from ..geometry import Pose
 from .config import RPRConfig
-from .data import resolve_size
+from .config import load_config, resolve_config
+from .data import resolve_size, to_input
 from .metrics import confidence_from_log_sigma
 from .module import RPRModule
+from .official import is_public, load_weights, official_config_for, read_checkpoint
 
 __all__ = ["RPRMethod", "load_method", "image_of"]
 
@@ -65,11 +68,8 @@ class RPRMethod:
         return f"rpr {self.cfg.name}"
 
     def _tensor(self, img: np.ndarray, size: tuple[int, int]) -> torch.Tensor:
-        h, w = img.shape[:2]
-        if (w, h) != size:
-            img = cv2.resize(img, size, interpolation=cv2.INTER_AREA if size[0] < w else cv2.INTER_LINEAR)
-        t = torch.from_numpy(np.ascontiguousarray(img.transpose(2, 0, 1))).float().div_(255.0)
-        return t.unsqueeze(0).to(self.device)
+        """The public preprocessing: bilinear resize to ``size`` (W, H), RGB float in [0, 1], no normalisation."""
+        return torch.from_numpy(to_input(img, size).transpose(2, 0, 1).copy()).unsqueeze(0).to(self.device)
 
     def input_size(self, img: np.ndarray) -> tuple[int, int]:
         return resolve_size((img.shape[1], img.shape[0]), self.cfg.data)
@@ -136,10 +136,17 @@ class RPRMethod:
         return out
 
 
-def load_method(checkpoint: os.PathLike | str, device: str | torch.device | None = None) -> RPRMethod:
-    """A Lightning checkpoint written by ``mapfree train`` -> an ``RPRMethod`` (CPU/GPU picked automatically)."""
-    path = Path(checkpoint)
-    if not path.is_file():
-        raise FileNotFoundError(f"RPR checkpoint {path} not found")
-    module = RPRModule.load_from_checkpoint(str(path), map_location="cpu", weights_only=False)
+def load_method(checkpoint: os.PathLike | str, device: str | torch.device | None = None,
+                config: str | None = None) -> RPRMethod:
+    """A checkpoint -> an ``RPRMethod`` (CPU/GPU picked automatically).
+
+    Ours (written by ``mapfree train``) carry their config; a public Map-free checkpoint is built from
+    ``configs/rpr/<config>.yaml`` (``config``, else the file's stem such as ``3d3d``) and loaded by key.
+    """
+    ckpt = read_checkpoint(checkpoint)
+    if is_public(ckpt):
+        module = RPRModule(load_config(resolve_config(official_config_for(checkpoint, config))))
+    else:
+        module = RPRModule(ckpt["hyper_parameters"]["config"])
+    load_weights(module, ckpt, str(checkpoint))
     return RPRMethod(module, device)

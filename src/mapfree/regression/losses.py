@@ -8,7 +8,9 @@ import torch.nn.functional as F
 
 from .metrics import virtual_points
 from .params import PoseOutput
-from .rotations import EULER_BINS, SPHERICAL_BINS, angle_between, bin_index, direction_to_spherical, euler_from_matrix, geodesic_angle, _safe_norm
+from .rotations import (
+    _safe_norm, angle_between, direction_to_spherical, euler_bin_index, euler_from_matrix, geodesic_angle, spherical_bin_index,
+)
 
 __all__ = ["rotation_loss", "translation_loss", "virtual_point_loss", "PoseLoss", "ROTATION_LOSSES", "TRANSLATION_LOSSES"]
 
@@ -16,47 +18,47 @@ ROTATION_LOSSES = ("geodesic", "frobenius", "l1", "quat_l1", "ce")
 TRANSLATION_LOSSES = ("l1", "l2", "angle", "scale_dir", "ce")
 
 
-def _bins_ce(logits: list[torch.Tensor], values: torch.Tensor, bins) -> torch.Tensor:
-    """Sum over bin groups of the cross-entropy against the bin holding each target value: (B,)."""
-    out = 0
-    for i, (l, (lo, hi, n)) in enumerate(zip(logits, bins)):
-        out = out + F.cross_entropy(l.float(), bin_index(values[..., i], lo, hi, n), reduction="none")
-    return out
+def _bins_ce(logits: list[torch.Tensor], index: torch.Tensor) -> torch.Tensor:
+    """Mean over bin groups of the cross-entropy against each group's target bin: (B,)."""
+    return sum(F.cross_entropy(l.float(), index[..., i], reduction="none") for i, l in enumerate(logits)) / len(logits)
 
 
 def rotation_loss(kind: str, out: PoseOutput, R_gt: torch.Tensor, q_gt: torch.Tensor | None = None) -> torch.Tensor:
-    """(B,) rotation loss; 0 exactly at the ground truth."""
+    """(B,) rotation loss; 0 exactly at the ground truth. Element means as in the public release (its batch mean
+    is ``PoseLoss``'s); geodesic: the angle in radians."""
     if kind == "geodesic":
         return geodesic_angle(out.R, R_gt)
     if kind == "frobenius":
-        return ((out.R - R_gt) ** 2).sum((-1, -2))
+        return ((out.R - R_gt) ** 2).mean((-1, -2))  # = the public mean((R_gt^T R - I)^2) for rotations
     if kind == "l1":
-        return (out.R - R_gt).abs().sum((-1, -2))
+        return (out.R.transpose(-1, -2) @ R_gt - torch.eye(3, dtype=R_gt.dtype, device=R_gt.device)).abs().mean((-1, -2))
     if kind == "quat_l1":
         if "quat" not in out.raw or q_gt is None:
             raise ValueError("quat_l1 needs a quaternion output and a ground-truth quaternion")
         q = out.raw["quat"]
-        return torch.minimum((q - q_gt).abs().sum(-1), (q + q_gt).abs().sum(-1))  # q and -q are one rotation
+        return torch.minimum((q - q_gt).abs().mean(-1), (q + q_gt).abs().mean(-1))  # q and -q are one rotation
     if kind == "ce":
-        return _bins_ce(out.raw["euler_logits"], euler_from_matrix(R_gt), EULER_BINS)
+        return _bins_ce(out.raw["euler_logits"], euler_bin_index(euler_from_matrix(R_gt)))
     raise ValueError(f"unknown rotation loss {kind!r} (known: {', '.join(ROTATION_LOSSES)})")
 
 
 def translation_loss(kind: str, out: PoseOutput, t_gt: torch.Tensor) -> torch.Tensor:
-    """(B,) translation loss; 0 exactly at the ground truth."""
+    """(B,) translation loss; 0 exactly at the ground truth. l1/l2: mean over x, y, z (public ``F.l1_loss``);
+    scale_dir: |Δscale| + L1 of the unit directions; ce: |Δscale| + mean of the two bin cross-entropies."""
     if kind == "l1":
-        return (out.t - t_gt).abs().sum(-1)
+        return (out.t - t_gt).abs().mean(-1)
     if kind == "l2":
-        return _safe_norm(out.t - t_gt)
+        return ((out.t - t_gt) ** 2).mean(-1)
     if kind == "angle":
         return angle_between(out.t, t_gt)
     scale = out.raw.get("scale")
     scale = _safe_norm(out.t) if scale is None else scale
     scale_err = (scale - _safe_norm(t_gt)).abs()
     if kind == "scale_dir":
-        return scale_err + angle_between(out.raw.get("direction", out.t), t_gt)
+        d = out.raw.get("direction", F.normalize(out.t, dim=-1, eps=1e-12))
+        return scale_err + (d - F.normalize(t_gt, dim=-1, eps=1e-12)).abs().mean(-1)
     if kind == "ce":
-        return scale_err + _bins_ce(out.raw["spherical_logits"], direction_to_spherical(t_gt), SPHERICAL_BINS)
+        return scale_err + _bins_ce(out.raw["spherical_logits"], spherical_bin_index(direction_to_spherical(t_gt)))
     raise ValueError(f"unknown translation loss {kind!r} (known: {', '.join(TRANSLATION_LOSSES)})")
 
 
@@ -85,15 +87,17 @@ class PoseLoss(nn.Module):
         super().__init__()
         self.cfg = cfg
         if cfg.weighting == "learned":
-            self.s_rot = nn.Parameter(torch.tensor(float(cfg.init_s_rot)))
-            self.s_trans = nn.Parameter(torch.tensor(float(cfg.init_s_trans)))
+            # Shape (1,), as the public release's s_r / s_t (its checkpoints load into these).
+            self.s_rot = nn.Parameter(torch.full((1,), float(cfg.init_s_rot)))
+            self.s_trans = nn.Parameter(torch.full((1,), float(cfg.init_s_trans)))
 
     def forward(self, out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor,
                 q_gt: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         l_rot = rotation_loss(self.cfg.rotation, out, R_gt, q_gt).mean()
         l_trans = translation_loss(self.cfg.translation, out, t_gt).mean()
         if self.cfg.weighting == "learned":
-            pose = l_rot * torch.exp(-self.s_rot) + l_trans * torch.exp(-self.s_trans) + self.s_rot + self.s_trans
+            s_r, s_t = self.s_rot[0], self.s_trans[0]
+            pose = l_rot * torch.exp(-s_r) + l_trans * torch.exp(-s_t) + s_r + s_t
         else:
             pose = l_rot + self.cfg.lam * l_trans
         terms = {"loss_rot": l_rot.detach(), "loss_trans": l_trans.detach()}

@@ -1,67 +1,112 @@
-"""The RPR network: Siamese ResUNet -> warping aggregator -> residual head + pooling -> MLP -> pose."""
+"""The RPR network of the public Map-free release: Siamese encoder -> aggregator -> pose head (residual blocks,
+pooling or flattening, MLP, decoding), plus our optional uncertainty head for the submission confidence."""
 
 from __future__ import annotations
 
 import torch
 import torch.nn as nn
 
-from .aggregator import WarpAggregator
+from .aggregator import build_aggregator
 from .config import ModelConfig
-from .encoder import PreActBlock, ResUNet, XFeatEncoder
+from .encoder import PreActBlock, ResUNet, XFeatEncoder, conv_out
 from .params import Parameterisation, PoseOutput, build_parameterisation
 
-__all__ = ["RPRNet"]
+__all__ = ["RPRNet", "PoseHead"]
+
+
+def _mlp(dims: list[int]) -> nn.Module:
+    """Linear layers with ReLU between them; a single ``Linear`` when there is no hidden layer (public layout)."""
+    if len(dims) == 2:
+        return nn.Linear(dims[0], dims[1])
+    layers: list[nn.Module] = []
+    for i in range(len(dims) - 1):
+        layers.append(nn.Linear(dims[i], dims[i + 1]))
+        if i < len(dims) - 2:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class PoseHead(nn.Module):
+    """Stride-2 pre-activation residual blocks, global average pooling (or flattening of a fixed-size map),
+    an MLP to the parameterisation's output vector, and its decoding (public ``DeepResBlock`` heads)."""
+
+    def __init__(self, cin: int, channels: tuple[int, ...], mlp: tuple[int, ...], param: Parameterisation,
+                 avg_pool: bool = True, grid: tuple[int, int] | None = None):
+        super().__init__()
+        chans = [cin, *channels]
+        for i in range(len(channels)):
+            setattr(self, f"resblock{i + 1}", PreActBlock(chans[i], chans[i + 1], stride=2))
+        self.n_blocks, self.avg_pool, self.param = len(channels), avg_pool, param
+        if avg_pool:
+            self.feature_dim = chans[-1]
+        else:
+            if grid is None:
+                raise ValueError("a head without average pooling needs the input size (data.image_size)")
+            h, w = grid
+            for _ in channels:
+                h, w = conv_out(h), conv_out(w)
+            self.feature_dim = chans[-1] * h * w
+        self.mlp = _mlp([self.feature_dim, *mlp, param.dim])
+        last = self.mlp if isinstance(self.mlp, nn.Linear) else self.mlp[-1]
+        with torch.no_grad():  # start at the prior pose (identity rotation, forward direction) when trained anew
+            last.bias.copy_(torch.tensor(param.prior()))
+
+    def features(self, volume: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) aggregated volume -> (B, feature_dim)."""
+        x = volume
+        for i in range(self.n_blocks):
+            x = getattr(self, f"resblock{i + 1}")(x)
+        if self.avg_pool:
+            x = x.mean(dim=2, keepdim=True).mean(dim=3, keepdim=True)
+        return x.flatten(1)
+
+    def decode(self, feats: torch.Tensor) -> PoseOutput:
+        x = self.mlp(feats)
+        # Decoding (Gram–Schmidt, SVD, bins) runs in float32 even under mixed precision.
+        with torch.autocast(device_type=x.device.type, enabled=False):
+            return self.param.decode(x.float())
 
 
 class RPRNet(nn.Module):
-    """Two RGB images (B,3,H,W) in [0,1] -> metric pose of image 1 relative to image 0 (and error scales)."""
+    """Two RGB images (B,3,H,W) in [0,1] -> metric pose of image 1 relative to image 0 (and error scales).
 
-    def __init__(self, cfg: ModelConfig | None = None):
+    ``input_size`` (W, H) is needed only by heads without average pooling (their MLP sees the flattened map).
+    Parameter names match the public checkpoints (``encoder.*``, ``aggregator.*``, ``head.*``); the uncertainty
+    head (``uncertainty.*``, beyond the paper) reads the head's pooled features.
+    """
+
+    def __init__(self, cfg: ModelConfig | None = None, input_size: tuple[int, int] | None = None):
         super().__init__()
         self.cfg = cfg = cfg or ModelConfig()
         self.param: Parameterisation = build_parameterisation(cfg)
         if cfg.encoder == "xfeat":
-            self.encoder = XFeatEncoder()
+            self.encoder: nn.Module = XFeatEncoder()
             dim = XFeatEncoder.out_dim
         else:
             self.encoder = ResUNet(tuple(cfg.encoder_channels), cfg.encoder_blocks, cfg.feature_dim)
             dim = cfg.feature_dim
-        self.aggregator = WarpAggregator(dim, cfg.warping, cfg.position, cfg.max_score,
-                                         cfg.temperature, cfg.own_position)
-        chans = [self.aggregator.out_channels, *cfg.head_channels]
-        self.head = nn.Sequential(
-            *[PreActBlock(chans[i], chans[i + 1], stride=2) for i in range(len(cfg.head_channels))],
-            nn.BatchNorm2d(chans[-1]), nn.ReLU(inplace=True), nn.AdaptiveAvgPool2d(1), nn.Flatten(),
-        )
-        dims = [chans[-1], *cfg.mlp]
-        layers: list[nn.Module] = []
-        for i in range(len(cfg.mlp)):
-            layers += [nn.Linear(dims[i], dims[i + 1]), nn.ReLU(inplace=True)]
-        self.mlp = nn.Sequential(*layers)
-        self.n_sigma = 2 if cfg.uncertainty else 0
-        self.out = nn.Linear(dims[-1], self.param.dim + self.n_sigma)
-        # Centre the outputs on the prior pose (identity rotation, forward direction).
-        with torch.no_grad():
-            self.out.bias.zero_()
-            self.out.bias[: self.param.dim] = torch.tensor(self.param.prior())
+        self.aggregator = build_aggregator(cfg.aggregator, dim, cfg.position, cfg.max_score, cfg.temperature,
+                                           cfg.own_position)
+        grid = None if input_size is None else self.encoder.output_size(int(input_size[1]), int(input_size[0]))
+        self.head = PoseHead(self.aggregator.out_channels, tuple(cfg.head_channels), tuple(cfg.mlp), self.param,
+                             cfg.avg_pool, grid)
+        if cfg.uncertainty:
+            self.uncertainty = nn.Sequential(nn.Linear(self.head.feature_dim, 64), nn.ReLU(), nn.Linear(64, 2))
 
     @property
     def frozen_encoder(self) -> bool:
-        """True when no encoder weight trains (XFeat): its features of an image never change."""
+        """True when no encoder weight trains (XFeat, or ``train.freeze``): its features of an image never change."""
         return not any(p.requires_grad for p in self.encoder.parameters())
 
     def forward(self, img0: torch.Tensor, img1: torch.Tensor) -> PoseOutput:
-        B = img0.shape[0]
-        feats = self.encoder(torch.cat([img0, img1], 0))  # shared weights: one pass over both images
-        return self.from_features(feats[:B], feats[B:])
+        # Shared weights, one call per image set (as the public code: BatchNorm batch statistics per image set).
+        return self.from_features(self.encoder(img0), self.encoder(img1))
 
     def from_features(self, f0: torch.Tensor, f1: torch.Tensor) -> PoseOutput:
         """The pose from the two encoder feature maps (everything after the Siamese encoder)."""
-        x = self.out(self.mlp(self.head(self.aggregator(f0, f1))))
-        # Decoding (Gram–Schmidt, SVD, bins) runs in float32 even under mixed precision.
-        with torch.autocast(device_type=x.device.type, enabled=False):
-            x = x.float()
-            out = self.param.decode(x[:, : self.param.dim])
-            if self.n_sigma:
-                out.log_sigma = x[:, self.param.dim:]
+        feats = self.head.features(self.aggregator(f0, f1))
+        out = self.head.decode(feats)
+        if self.cfg.uncertainty:
+            with torch.autocast(device_type=feats.device.type, enabled=False):
+                out.log_sigma = self.uncertainty(feats.float())
         return out

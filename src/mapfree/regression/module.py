@@ -26,10 +26,29 @@ class RPRModule(pl.LightningModule):
         cfg = config if isinstance(config, RPRConfig) else RPRConfig.from_dict(config or {}).validate()
         self.save_hyperparameters({"config": cfg.to_dict()})
         self.cfg = cfg
-        self.net = RPRNet(cfg.model)
+        self.net = RPRNet(cfg.model, cfg.data.image_size)
         self.criterion = PoseLoss(cfg.loss)
         self._val: list[dict[str, np.ndarray]] = []
         self._features: dict[str, torch.Tensor] = {}  # train.cache_features: image key -> frozen features
+        self._frozen = self._freeze(cfg.train.freeze)
+
+    def _freeze(self, what: str) -> list[torch.nn.Module]:
+        """Stop gradients into the frozen parts; they also stay in eval mode (fixed BatchNorm statistics)."""
+        if what == "encoder":
+            parts = [self.net.encoder]
+        elif what == "pose":  # everything but the uncertainty head, the learned loss weights included
+            parts = [m for n, m in self.net.named_children() if n != "uncertainty"] + [self.criterion]
+        else:
+            return []
+        for m in parts:
+            m.requires_grad_(False)
+        return parts
+
+    def train(self, mode: bool = True) -> "RPRModule":
+        super().train(mode)
+        for m in getattr(self, "_frozen", []):
+            m.eval()
+        return self
 
     def forward(self, img0: torch.Tensor, img1: torch.Tensor) -> PoseOutput:
         return self.net(img0, img1)
@@ -70,8 +89,8 @@ class RPRModule(pl.LightningModule):
             if k in terms:
                 self.log(f"train/{k}", terms[k], batch_size=bs)
         if self.cfg.loss.weighting == "learned":
-            self.log("train/s_rot", self.criterion.s_rot.detach(), batch_size=bs)
-            self.log("train/s_trans", self.criterion.s_trans.detach(), batch_size=bs)
+            self.log("train/s_rot", self.criterion.s_rot.detach()[0], batch_size=bs)
+            self.log("train/s_trans", self.criterion.s_trans.detach()[0], batch_size=bs)
         return terms["loss"]
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
@@ -104,8 +123,9 @@ class RPRModule(pl.LightningModule):
 
     def configure_optimizers(self):
         tc = self.cfg.train
-        opt = (torch.optim.AdamW(self.parameters(), lr=tc.lr, weight_decay=tc.weight_decay) if tc.weight_decay
-               else torch.optim.Adam(self.parameters(), lr=tc.lr))
+        params = [p for p in self.parameters() if p.requires_grad]
+        opt = (torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay, eps=tc.adam_eps) if tc.weight_decay
+               else torch.optim.Adam(params, lr=tc.lr, eps=tc.adam_eps))
         if tc.scheduler == "none":
             return opt
         total = max(int(self.trainer.estimated_stepping_batches), 1) if self.trainer is not None else 1

@@ -1,8 +1,12 @@
-"""Output parameterisations: raw network outputs -> (R, t), plus what each loss needs (SPEC §4).
+"""Output parameterisations: the pose head's output vector -> (R, t), plus what each loss needs (SPEC §4).
 
-Rotation: R(q), R(6D), R(α,β,γ) bins. Translation: t, s·t̂, s·t̂(φ,θ) bins. Joint: [3D-3D] point pairs
-aligned by differentiable Procrustes. The pose is of image 1 (query) relative to image 0 (reference):
-``X_1 = R X_0 + t``.
+Layouts and decodings are those of the public Map-free release, so its checkpoints give its poses:
+rotation first — R(q) 4 (normalised, w x y z), R(6D) 6 (Gram–Schmidt), R(α,β,γ) 900 bin logits
+(x 360, y 180, z 360; argmax → whole degrees − (180, 90, 180), extrinsic "xyz") — then translation:
+t 3; s·t̂ as [s, t̂ 3] (|s| times the normalised direction); s·t̂(φ,θ) as [φ 360, θ 180, s] (|s| times the
+direction of the argmax whole-degree angles). Or jointly [3D-3D]: ``n_points`` predicted 3D points (3: matched to
+the fixed basis e_x, e_y, e_z; 6 or more: half per image, the basis added for 6), solved by Procrustes.
+The pose is of image 1 (query) relative to image 0 (reference): ``X_1 = R X_0 + t``.
 """
 
 from __future__ import annotations
@@ -14,17 +18,13 @@ import torch
 import torch.nn.functional as F
 
 from ..geometry import rotmat_to_quat
-
 from .procrustes import procrustes
 from .rotations import (
-    EULER_BINS, SPHERICAL_BINS, bin_center, matrix_from_euler, quat_to_matrix, rot6d_to_matrix,
+    EULER_BINS, SPHERICAL_BINS, euler_bin_angles, matrix_from_euler, quat_to_matrix, rot6d_to_matrix,
     spherical_to_direction,
 )
 
-__all__ = ["PoseOutput", "Parameterisation", "build_parameterisation", "BASIS"]
-
-#: Fixed scalene triangle added to the [3D-3D] points: keeps Procrustes well conditioned at initialisation.
-BASIS = ((1.0, 0.0, 0.0), (0.0, 2.0, 0.0), (0.0, 0.0, 3.0))
+__all__ = ["PoseOutput", "Parameterisation", "build_parameterisation"]
 
 
 @dataclass
@@ -52,8 +52,8 @@ class _Quat(_Part):
         return [1.0, 0.0, 0.0, 0.0]
 
     def decode(self, x: torch.Tensor, raw: dict) -> torch.Tensor:
-        raw["quat"] = F.normalize(x, dim=-1, eps=1e-8)
-        return quat_to_matrix(x)
+        raw["quat"] = F.normalize(x, dim=-1, eps=1e-12)
+        return quat_to_matrix(raw["quat"])
 
 
 class _SixD(_Part):
@@ -66,20 +66,14 @@ class _SixD(_Part):
         return rot6d_to_matrix(x)
 
 
-def _split_bins(x: torch.Tensor, bins) -> list[torch.Tensor]:
-    return list(torch.split(x, [b[2] for b in bins], dim=-1))
-
-
-def _argmax_centers(logits: list[torch.Tensor], bins) -> torch.Tensor:
-    return torch.stack([bin_center(l.argmax(-1), lo, hi, n).to(l.dtype) for l, (lo, hi, n) in zip(logits, bins)], -1)
-
-
 class _EulerBins(_Part):
-    dim = sum(b[2] for b in EULER_BINS)
+    dim = sum(EULER_BINS)
 
     def decode(self, x: torch.Tensor, raw: dict) -> torch.Tensor:
-        raw["euler_logits"] = _split_bins(x, EULER_BINS)
-        return matrix_from_euler(_argmax_centers(raw["euler_logits"], EULER_BINS))
+        raw["euler_logits"] = list(torch.split(x, list(EULER_BINS), dim=-1))
+        with torch.no_grad():
+            idx = torch.stack([lg.argmax(-1) for lg in raw["euler_logits"]], -1)
+            return matrix_from_euler(euler_bin_angles(idx).to(x.dtype))
 
 
 class _T(_Part):
@@ -101,35 +95,35 @@ class _ScaleDir(_Part):
         return [1.0, 0.0, 0.0, 1.0]
 
     def decode(self, x: torch.Tensor, raw: dict) -> torch.Tensor:
-        raw["scale"], raw["direction"] = x[..., 0], F.normalize(x[..., 1:4], dim=-1, eps=1e-8)
+        raw["scale"], raw["direction"] = x[..., 0].abs(), F.normalize(x[..., 1:4], dim=-1, eps=1e-12)
         return raw["scale"].unsqueeze(-1) * raw["direction"]
 
 
 class _ScaleBins(_Part):
-    dim = 1 + sum(b[2] for b in SPHERICAL_BINS)
+    dim = sum(SPHERICAL_BINS) + 1
 
     def prior(self) -> list[float]:
-        return [1.0] + [0.0] * (self.dim - 1)
+        return [0.0] * (self.dim - 1) + [1.0]
 
     def decode(self, x: torch.Tensor, raw: dict) -> torch.Tensor:
-        raw["scale"] = x[..., 0]
-        raw["spherical_logits"] = _split_bins(x[..., 1:], SPHERICAL_BINS)
-        d = spherical_to_direction(_argmax_centers(raw["spherical_logits"], SPHERICAL_BINS))
-        return raw["scale"].unsqueeze(-1) * d
+        raw["spherical_logits"] = list(torch.split(x[..., :-1], list(SPHERICAL_BINS), dim=-1))
+        raw["scale"] = x[..., -1].abs()
+        idx = torch.stack([lg.argmax(-1) for lg in raw["spherical_logits"]], -1)
+        return raw["scale"].unsqueeze(-1) * spherical_to_direction(idx.to(x.dtype))
 
 
 class Parameterisation:
-    """Splits the MLP output into a rotation and a translation part, or [3D-3D] point pairs."""
+    """Splits the MLP output into a rotation and a translation part, or [3D-3D] points."""
 
-    def __init__(self, rotation: str = "6d", translation: str = "t", n_points: int = 3, basis: bool = True,
+    def __init__(self, rotation: str = "6d", translation: str = "t", n_points: int = 6, basis: bool = True,
                  t_mean=(0.0, 0.0, 0.0), t_std=(1.0, 1.0, 1.0), R_mean=None):
         self.rotation, self.translation = rotation, translation
         self.n_points, self.basis = n_points, basis
         self.R_mean = None if R_mean is None else np.asarray(R_mean, dtype=np.float64).reshape(3, 3)
         if rotation == "3d3d":
-            if n_points < 3:
-                raise ValueError("3d3d needs at least 3 point pairs")
-            self.dim = 6 * n_points
+            if not (n_points == 3 or (n_points >= 6 and n_points % 2 == 0)):
+                raise ValueError(f"3d3d needs n_points 3, 6 or an even number above 6, got {n_points}")
+            self.dim = 3 * n_points
             self._rot = self._trans = None
         else:
             self._rot = {"quat": _Quat, "6d": _SixD, "euler_bins": _EulerBins}[rotation]()
@@ -154,21 +148,16 @@ class Parameterisation:
             rot = list(rotmat_to_quat(self.R_mean))
         return [float(v) for v in rot] + self._trans.prior()
 
-    def basis_points(self, like: torch.Tensor) -> torch.Tensor:
-        """(n,3) fixed points: the scalene triangle, then further generic points for n > 3."""
-        g = torch.Generator().manual_seed(0)
-        extra = torch.randn(max(self.n_points - 3, 0), 3, generator=g, dtype=torch.float64)
-        pts = torch.cat([torch.tensor(BASIS, dtype=torch.float64), extra])[: self.n_points]
-        return pts.to(device=like.device, dtype=like.dtype)
-
     def decode(self, x: torch.Tensor) -> PoseOutput:
         raw: dict = {}
         if self._rot is None:
             n = self.n_points
-            P0, P1 = x[..., : 3 * n].reshape(-1, n, 3), x[..., 3 * n:].reshape(-1, n, 3)
+            pts = x.reshape(x.shape[0], n, 3)
+            eye = torch.eye(3, dtype=x.dtype, device=x.device).expand(x.shape[0], 3, 3)
+            P0, P1 = (eye, pts) if n == 3 else (pts[:, : n // 2], pts[:, n // 2:])
             if self.basis:
-                b = self.basis_points(x)
-                P0, P1 = P0 + b, P1 + b
+                P0 = P0 + eye if n == 6 else P0
+                P1 = P1 + eye if n in (3, 6) else P1
             raw["points0"], raw["points1"] = P0, P1
             R, t = procrustes(P0, P1)
             return PoseOutput(R, t, raw)

@@ -1,4 +1,4 @@
-"""Rotation and direction parameterisations in torch: 6D Gram–Schmidt, quaternions, Euler and spherical bins.
+"""Rotation and direction parameterisations: 6D Gram–Schmidt, quaternions, whole-degree Euler and spherical bins.
 
 Batched over the leading axis; everything is differentiable except the argmax bin decoders.
 """
@@ -10,14 +10,15 @@ import torch.nn.functional as F
 
 __all__ = [
     "rot6d_to_matrix", "matrix_to_rot6d", "quat_to_matrix", "geodesic_angle", "euler_from_matrix",
-    "matrix_from_euler", "bin_index", "bin_center", "direction_to_spherical", "spherical_to_direction",
-    "EULER_BINS", "SPHERICAL_BINS", "angle_between",
+    "matrix_from_euler", "euler_bin_index", "euler_bin_angles", "direction_to_spherical", "spherical_bin_index",
+    "spherical_to_direction", "EULER_BINS", "EULER_OFFSETS", "SPHERICAL_BINS", "angle_between",
 ]
 
-#: (low, high, count) in degrees for yaw (about y), pitch (about x), roll (about z): 1° bins (SPEC §4).
-EULER_BINS = ((-180.0, 180.0, 360), (-90.0, 90.0, 180), (-180.0, 180.0, 360))
-#: (low, high, count) in degrees for azimuth phi and polar angle theta of a unit translation: 1° bins.
-SPHERICAL_BINS = ((-180.0, 180.0, 360), (0.0, 180.0, 180))
+#: Whole-degree bins of the public release: angles about x, y, z (extrinsic "xyz"), index = angle + offset.
+EULER_BINS = (360, 180, 360)
+EULER_OFFSETS = (180.0, 90.0, 180.0)
+#: Whole-degree bins of a unit translation's azimuth phi in [0, 360) and polar angle theta in [0, 180).
+SPHERICAL_BINS = (360, 180)
 
 
 def rot6d_to_matrix(x: torch.Tensor) -> torch.Tensor:
@@ -57,53 +58,55 @@ def geodesic_angle(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     return torch.atan2(sin, cos)
 
 
-def _axis_rot(angle: torch.Tensor, axis: int) -> torch.Tensor:
-    c, s = torch.cos(angle), torch.sin(angle)
-    o, z = torch.ones_like(angle), torch.zeros_like(angle)
-    if axis == 0:
-        rows = [o, z, z, z, c, -s, z, s, c]
-    elif axis == 1:
-        rows = [c, z, s, z, o, z, -s, z, c]
-    else:
-        rows = [c, -s, z, s, c, z, z, z, o]
-    return torch.stack(rows, -1).reshape(angle.shape + (3, 3))
-
-
 def matrix_from_euler(euler_deg: torch.Tensor) -> torch.Tensor:
-    """(B,3) yaw, pitch, roll in degrees -> R = Ry(yaw) Rx(pitch) Rz(roll) (OpenCV axes: y down, z forward)."""
-    a = torch.deg2rad(euler_deg)
-    return _axis_rot(a[..., 0], 1) @ _axis_rot(a[..., 1], 0) @ _axis_rot(a[..., 2], 2)
+    """(B,3) angles in degrees about the fixed x, y, z axes (extrinsic "xyz", R = Rz Ry Rx) -> (B,3,3).
+
+    Computed by scipy in float64 and returned in the input's float dtype, as the public release decodes its bins.
+    """
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_euler("xyz", euler_deg.detach().cpu().double().numpy(), degrees=True).as_matrix()
+    dtype = euler_deg.dtype if euler_deg.is_floating_point() else torch.float32
+    return torch.from_numpy(R).to(device=euler_deg.device, dtype=dtype)
 
 
 def euler_from_matrix(R: torch.Tensor) -> torch.Tensor:
-    """Inverse of ``matrix_from_euler``: (B,3,3) -> (B,3) degrees, pitch in [-90, 90]."""
-    pitch = torch.asin(torch.clamp(-R[..., 1, 2], -1.0, 1.0))
-    yaw = torch.atan2(R[..., 0, 2], R[..., 2, 2])
-    roll = torch.atan2(R[..., 1, 0], R[..., 1, 1])
-    return torch.rad2deg(torch.stack([yaw, pitch, roll], -1))
+    """Inverse of ``matrix_from_euler``: (B,3,3) -> (B,3) degrees, x and z in [-180, 180], y in [-90, 90]."""
+    from scipy.spatial.transform import Rotation
+
+    e = Rotation.from_matrix(R.detach().cpu().double().numpy()).as_euler("xyz", degrees=True)
+    return torch.from_numpy(e).to(device=R.device, dtype=R.dtype)
 
 
-def bin_index(value: torch.Tensor, low: float, high: float, count: int) -> torch.Tensor:
-    """Index of the bin of width (high-low)/count holding ``value`` (clamped into range)."""
-    idx = torch.floor((value - low) / ((high - low) / count)).long()
-    return idx.clamp(0, count - 1)
+def euler_bin_index(euler_deg: torch.Tensor) -> torch.Tensor:
+    """(B,3) degrees -> (B,3) bin indices: the angle plus (180, 90, 180) rounded to whole degrees, clamped."""
+    idx = torch.round(euler_deg + euler_deg.new_tensor(EULER_OFFSETS)).long()
+    return torch.stack([idx[..., i].clamp(0, n - 1) for i, n in enumerate(EULER_BINS)], -1)
 
 
-def bin_center(index: torch.Tensor, low: float, high: float, count: int) -> torch.Tensor:
-    return low + (index.to(torch.get_default_dtype()) + 0.5) * ((high - low) / count)
+def euler_bin_angles(index: torch.Tensor) -> torch.Tensor:
+    """(B,3) bin indices -> (B,3) whole-degree angles (the bin's value, not a centre)."""
+    return index - index.new_tensor(EULER_OFFSETS).to(index.dtype)
 
 
 def direction_to_spherical(d: torch.Tensor) -> torch.Tensor:
-    """(B,3) vectors -> (B,2) azimuth phi = atan2(y, x) and polar theta from +z, in degrees."""
+    """(B,3) vectors -> (B,2) azimuth phi = atan2(y, x) in [0, 360) and polar theta from +z in [0, 180], degrees."""
     d = F.normalize(d, dim=-1, eps=1e-12)
-    phi = torch.atan2(d[..., 1], d[..., 0])
+    phi = torch.remainder(torch.atan2(d[..., 1], d[..., 0]), 2 * torch.pi)
     theta = torch.acos(d[..., 2].clamp(-1.0, 1.0))
     return torch.rad2deg(torch.stack([phi, theta], -1))
 
 
+def spherical_bin_index(angles_deg: torch.Tensor) -> torch.Tensor:
+    """(B,2) phi, theta in degrees -> (B,2) whole-degree bins (phi 360 wraps to 0, theta clamped to 179)."""
+    idx = torch.round(angles_deg).long()
+    return torch.stack([torch.remainder(idx[..., 0], SPHERICAL_BINS[0]), idx[..., 1].clamp(0, SPHERICAL_BINS[1] - 1)], -1)
+
+
 def spherical_to_direction(angles_deg: torch.Tensor) -> torch.Tensor:
+    """(B,2) phi, theta in degrees -> (B,3) unit vectors (sin θ cos φ, sin θ sin φ, cos θ)."""
     phi, theta = torch.deg2rad(angles_deg).unbind(-1)
-    return torch.stack([torch.sin(theta) * torch.cos(phi), torch.sin(theta) * torch.sin(phi), torch.cos(theta)], -1)
+    return torch.stack([torch.cos(phi) * torch.sin(theta), torch.sin(phi) * torch.sin(theta), torch.cos(theta)], -1)
 
 
 def angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

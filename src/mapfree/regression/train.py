@@ -14,31 +14,15 @@ import yaml
 from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
 from pytorch_lightning.loggers import CSVLogger
 
-from .config import RPRConfig
+from .config import RPRConfig, config_dir, resolve_config
 from .data import RPRDataModule, pose_statistics
 from .module import RPRModule
+from .official import load_weights, read_checkpoint
 from .report import plot_curves
 
 log = logging.getLogger(__name__)
 
 __all__ = ["TrainerOptions", "build_trainer", "fit", "with_target_statistics", "config_dir", "resolve_config"]
-
-
-def config_dir() -> Path:
-    """The repository's ``configs/rpr`` (one YAML per paper variant)."""
-    return Path(__file__).resolve().parents[3] / "configs" / "rpr"
-
-
-def resolve_config(name_or_path: str | os.PathLike) -> Path:
-    """A config path, or a name in ``configs/rpr`` (``R6D_t`` or ``R6D_t.yaml``)."""
-    p = Path(name_or_path)
-    if p.is_file():
-        return p
-    for cand in (config_dir() / p.name, config_dir() / f"{p.name}.yaml"):
-        if cand.is_file():
-            return cand
-    known = ", ".join(sorted(q.stem for q in config_dir().glob("*.yaml"))) if config_dir().is_dir() else "none"
-    raise FileNotFoundError(f"config {name_or_path} not found (configs/rpr has: {known})")
 
 
 @dataclass
@@ -114,11 +98,13 @@ def fit(cfg: RPRConfig, out: os.PathLike | str, opts: TrainerOptions | None = No
     pl.seed_everything(cfg.train.seed, workers=True, verbose=False)
     dm = RPRDataModule(cfg.data)
     dm.setup("fit")
-    if cfg.data.normalize_targets and resume is None:
+    if cfg.data.normalize_targets and resume is None and not cfg.train.init:  # a loaded model keeps its decoding
         cfg = with_target_statistics(cfg, dm)
     has_val = bool(dm.val_pairs())
     (out / "config.yaml").write_text(yaml.safe_dump(_plain(cfg.to_dict()), sort_keys=False))
     module = RPRModule(cfg)
+    if cfg.train.init and resume is None:  # fine-tuning: start from a public or our own checkpoint
+        load_weights(module, read_checkpoint(cfg.train.init), cfg.train.init)
     trainer = build_trainer(cfg, out, opts, has_val=has_val)
     trainer.fit(module, datamodule=dm, ckpt_path=str(resume) if resume else None)
     # The final weights, also when max_steps stopped mid-epoch (every rank calls; rank 0 writes).

@@ -1,0 +1,185 @@
+"""The published Map-free RPR checkpoints: all 12 configurations load by key and give the public code's poses.
+
+``shared/fixtures/official-rpr`` records what the public network code outputs for each configuration when every
+tensor of its checkpoint is filled by a fixed rule; here we write such a checkpoint, load it through our
+public-checkpoint path and compare R, t on the same inputs (binned variants exactly, the others to 1e-4).
+"""
+
+from __future__ import annotations
+
+import json
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("pytorch_lightning")
+
+from mapfree.regression.official import OFFICIAL_CONFIGS  # noqa: E402
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def fill_state_dict(spec: dict[str, list]) -> dict[str, "torch.Tensor"]:
+    """The fixture's fill rule (its README): a deterministic value for every key of a checkpoint."""
+    sd = {}
+    for key, (dtype, shape) in spec.items():
+        if not dtype.startswith("float"):
+            sd[key] = torch.zeros(shape, dtype=getattr(torch, dtype))
+            continue
+        u = np.random.default_rng(zlib.crc32(key.encode())).random(int(np.prod(shape))) * 2 - 1
+        leaf = key.rsplit(".", 1)[-1]
+        if leaf == "running_var":
+            v = 1 + 0.25 * np.abs(u)
+        elif leaf in ("running_mean", "bias"):
+            v = 0.05 * u
+        elif len(shape) >= 2:
+            v = u * np.sqrt(3 / np.prod(shape[1:]))
+        else:
+            v = 1 + 0.1 * u
+        sd[key] = torch.from_numpy(v.reshape(shape).astype(np.float32))
+    return sd
+
+
+@pytest.fixture(scope="module")
+def official(official_rpr) -> dict:
+    return json.loads((official_rpr / "official_rpr.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def inputs() -> tuple["torch.Tensor", "torch.Tensor"]:
+    x = np.random.default_rng(2022).random((2, 2, 3, 360, 270)).astype(np.float32)
+    return torch.from_numpy(x[0]), torch.from_numpy(x[1])
+
+
+def write_checkpoint(official: dict, name: str, folder: Path) -> Path:
+    """A checkpoint shaped as the published ones: Lightning's dict with the public ``state_dict``."""
+    path = folder / f"{name}.ckpt"
+    if not path.is_file():
+        folder.mkdir(parents=True, exist_ok=True)
+        torch.save({"epoch": 49, "global_step": 0, "pytorch-lightning_version": "1.6.5",
+                    "state_dict": fill_state_dict(official[name]["state_dict"])}, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def weights(official, tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("weights")
+
+
+@pytest.fixture(scope="module")
+def encoder_features(official, weights, inputs):
+    """Both images' encoder features through the loaded 3d3d checkpoint (every release shares this encoder)."""
+    from mapfree.regression import load_method
+
+    net = load_method(write_checkpoint(official, "3d3d", weights), device="cpu").module.net
+    with torch.no_grad():
+        return net.encoder(inputs[0]), net.encoder(inputs[1]), net.encoder.state_dict()
+
+
+def test_fixture_lists_the_twelve_published_configurations(official):
+    assert sorted(official) == sorted(OFFICIAL_CONFIGS)
+    for name in OFFICIAL_CONFIGS:
+        assert official[name]["config"] == f"config/regression/mapfree/{name}.yaml"
+
+
+@pytest.mark.parametrize("name", OFFICIAL_CONFIGS)
+def test_published_checkpoint_loads_strictly_and_gives_the_public_pose(name, official, weights, inputs,
+                                                                       encoder_features):
+    from mapfree.regression import load_method
+
+    method = load_method(write_checkpoint(official, name, weights), device="cpu")  # config from the file name
+    module = method.module
+    assert not module.training and method.cfg.model.uncertainty is False
+    # Strict: our module holds exactly the checkpoint's keys, in its shapes (s_r/s_t are the loss weights).
+    ours = {k.removeprefix("net."): v for k, v in module.state_dict().items()}
+    ours = {{"criterion.s_rot": "s_r", "criterion.s_trans": "s_t"}.get(k, k): v for k, v in ours.items()}
+    spec = official[name]["state_dict"]
+    assert set(ours) == set(spec)
+    for k, (dtype, shape) in spec.items():
+        assert list(ours[k].shape) == shape and str(ours[k].dtype) == f"torch.{dtype}", k
+    # Every release shares the encoder's keys and fill, so its features are computed once (encoder_features)
+    # after checking that this checkpoint's encoder is bit-identical; the 3d3d case runs the whole forward.
+    f0, f1, enc_state = encoder_features
+    for k, v in module.net.encoder.state_dict().items():
+        assert torch.equal(v, enc_state[k]), k
+    with torch.no_grad():
+        out = module.net(*inputs) if name == "3d3d" else module.net.from_features(f0, f1)
+    R, t = out.R.numpy(), out.t.numpy().reshape(2, 1, 3)
+    R_pub, t_pub = np.array(official[name]["R"]), np.array(official[name]["t"])
+    assert np.isfinite(R).all() and np.isfinite(t).all()
+    if name.startswith("rotbin"):
+        assert np.array_equal(R.astype(np.float32), R_pub.astype(np.float32))  # argmax bins: exactly
+    else:
+        np.testing.assert_allclose(R, R_pub, atol=1e-4, rtol=0)
+    if name.startswith("rotbin_transdirectionbin"):
+        np.testing.assert_allclose(t, t_pub, atol=1e-6, rtol=0)  # binned direction, regressed scale
+    else:
+        np.testing.assert_allclose(t, t_pub, atol=1e-4, rtol=0)
+    # The two pairs differ, so a network that ignored its inputs would not pass.
+    assert np.abs(R_pub[0] - R_pub[1]).max() > 1e-3 or np.abs(t_pub[0] - t_pub[1]).max() > 1e-3
+
+
+def test_a_checkpoint_of_another_configuration_is_refused_naming_the_keys(official, weights, tmp_path):
+    from mapfree.regression import load_method
+
+    src = write_checkpoint(official, "rotbin_trans", weights)
+    wrong = tmp_path / "3d3d.ckpt"
+    wrong.write_bytes(src.read_bytes())
+    with pytest.raises(ValueError, match=r"3d3d\.ckpt: does not match .*head\.mlp"):
+        load_method(wrong, device="cpu")
+    with pytest.raises(ValueError, match="rpr-<config>"):  # a public checkpoint under an unknown file name
+        load_method(_copy(src, tmp_path / "mine.ckpt"), device="cpu")
+    bad = tmp_path / "broken.ckpt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="broken.ckpt: not a readable"):
+        load_method(bad, device="cpu")
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    dst.write_bytes(src.read_bytes())
+    return dst
+
+
+def _public_preprocess(path: Path) -> "torch.Tensor":
+    """The public code's image reading, written independently: cv2.imread, BGR->RGB, resize to W 270 x H 360."""
+    import cv2
+
+    img = cv2.resize(cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB), (270, 360))
+    return torch.from_numpy(img).float().permute(2, 0, 1)[None] / 255
+
+
+def test_relocalize_cli_matches_the_network_on_public_preprocessing(official, weights, realmini, capsys,
+                                                                     monkeypatch):
+    """``mapfree relocalize REF QUERY --method rpr-3d3d --checkpoint CKPT`` on landscape photos (squashed to
+    270×360 as the public code does) prints the network's pose; without --checkpoint the weights come from
+    $MAPFREE_WEIGHTS_DIR, and a missing file names itself and the release's address."""
+    from mapfree.cli import main
+    from mapfree.geometry import Pose
+    from mapfree.regression import load_method
+
+    ckpt = write_checkpoint(official, "3d3d", weights)
+    scene = realmini / "val" / "s00000"
+    ref, query = scene / "seq0" / "frame_00000.jpg", scene / "seq1" / "frame_00005.jpg"
+    net = load_method(ckpt, device="cpu").module.net
+    with torch.no_grad():
+        out = net(_public_preprocess(ref), _public_preprocess(query))
+    want = Pose(out.R[0].double().numpy(), out.t[0].double().numpy())
+    capsys.readouterr()
+    assert main(["relocalize", str(ref), str(query), "--method", "rpr-3d3d", "--checkpoint", str(ckpt),
+                 "--gt-pose", "auto"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(np.array(res["R"]), want.R, atol=1e-5)
+    np.testing.assert_allclose(np.array(res["t"]), want.t, atol=1e-5)
+    np.testing.assert_allclose(Pose.from_qt(res["q_wxyz"], res["t"]).R, want.R, atol=1e-5)
+    assert res["confidence"] == 0.0 and "error" in res  # the published models carry no confidence
+    monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(weights))
+    assert main(["relocalize", str(ref), str(query), "--method", "rpr-3d3d"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(again["t"], res["t"], atol=1e-6)
+    monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(weights / "empty"))
+    assert main(["relocalize", str(ref), str(query), "--method", "rpr-rot6d_trans"]) == 2
+    err = capsys.readouterr().err
+    assert "rot6d_trans.ckpt not found" in err and "mapfree_rpr_weights.zip" in err
