@@ -246,3 +246,22 @@ def bind_scene_references(loc: Any, scene: Scene, method_dict: dict, ref_pose: P
         return loc, ref_pose
     refs = scene_references(scene, int(spec.get("k", 1)), spec.get("mode", "retrieval"), top=int(spec.get("top", 1)))
     return ReferencedLocalizer(loc, refs), Pose.identity()
+
+
+def localize_with_references(method: Any, mapping: Sequence[ViewLike], queries: Sequence[ViewLike], k: int,
+                             mode: str = "retrieval", top: int = 1, progress: bool = False,
+                             localizer: Any = None) -> tuple[ReferenceSet, list[Estimate]]:
+    """Choose ``k`` references among ``mapping`` and localize every query with ``method`` (a name, path,
+    ``Method`` or, through ``localizer``, an already built one); estimates are world-to-camera poses in the
+    frame of the mapping poses. A bad query is a failed estimate, never an exception."""
+    from .pipeline import Relocalizer
+
+    loc = localizer if localizer is not None else Relocalizer.from_method(method)
+    refs = ReferenceSet.build(mapping, options=ReferenceOptions(k=k, mode=mode, top=top))
+    bound = ReferencedLocalizer(loc, refs)
+    it: Iterable = queries
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(queries, desc=f"K={k}", unit="frame", dynamic_ncols=True)
+    return refs, [bound.localize(q) for q in it]
