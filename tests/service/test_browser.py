@@ -181,6 +181,11 @@ def test_ties_best_view_scene_csv_and_compare(page, sqlite_server):
 
 def test_form_errors_keep_the_form_and_the_user(page, sqlite_server, tmp_path):
     (user,) = fresh_users(sqlite_server, "forms")
+    page.goto("/login")
+    page.fill("#token", "mf_not-a-token")
+    page.click("#login-button")
+    page.wait_for_selector("#form-error:not([hidden])")
+    assert "invalid or revoked" in page.inner_text("#form-error") and page.locator("#login-form").count() == 1
     _sign_in(page, sqlite_server, user)
     zip_path = tmp_path / "kept.zip"
     zip_path.write_bytes(make_submission(sqlite_server.data.root / "val", seed=41))

@@ -103,8 +103,12 @@ def home(request: Request, db: Session = Depends(db_session)):
 
 @router.get("/login", response_class=HTMLResponse)
 def login_form(request: Request, db: Session = Depends(db_session)):
+    return _login_page(request, db)
+
+
+def _login_page(request: Request, db: Session, status: int = 200, error: str = "") -> HTMLResponse:
     token = secrets.token_urlsafe(24)  # double-submit: no session exists yet
-    resp = page(request, "login.html", db, login_csrf=token)
+    resp = page(request, "login.html", db, status, login_csrf=token, error=error)
     resp.set_cookie(LOGIN_CSRF_COOKIE, token, httponly=True, samesite="strict",
                     secure=request.app.state.settings.secure_cookies, max_age=3600)
     return resp
@@ -115,8 +119,8 @@ def login(request: Request, token: str = Form(...), csrf_token: str = Form(""), 
     if not auth.same_secret(csrf_token, request.cookies.get(LOGIN_CSRF_COOKIE)):
         raise HTTPException(403, "CSRF check failed: reload the sign-in page and try again")
     user = auth.user_for_token(db, token.strip())
-    if user is None:
-        raise HTTPException(401, "invalid or revoked API token")
+    if user is None:  # the sign-in form again, with the error above it
+        return _login_page(request, db, 401, "invalid or revoked API token")
     settings = request.app.state.settings
     sid, _ = auth.open_session(db, user, settings.session_hours)
     db.commit()
