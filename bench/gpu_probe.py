@@ -1,0 +1,147 @@
+"""The GPU figures of issue 9 in one call, for a session that has a GPU (one H100 expected):
+
+    MAPFREE_OFFLINE=1 python bench/gpu_probe.py [ROOT] --out DIR [--train]
+
+1. Never-seen inputs: every learned matcher that runs offline here and a full-size (randomly initialised)
+   Depth Anything V2 network, each on new images (two sizes): the first pass over a new input against the
+   same input again. A ratio far above 1 means per-shape set-up (cuDNN graphs, autotuning) is back.
+2. ``bench/bench_pipeline.py`` at the benchmark's 540x720 on every query of ROOT's val split with depth: each
+   preset's ``mapfree run`` on never-seen pairs, the pairs again, GPU utilisation, the kornia loop baseline,
+   and ``aliked-lightglue_emat_sensor:b0`` (one pair at a time) for the same-poses check.
+3. ``--train``: ``bench/bench_train.py`` as it stands (issue 9 point 4).
+Everything printed also lands in DIR (``probe.md``, ``never_seen.json``, ``pipeline.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+LEARNED = ["xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "superpoint-lightglue",
+           "loftr"]
+
+
+def _sync() -> None:
+    import torch
+
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
+def _timed(fn) -> float:
+    _sync()
+    t0 = time.perf_counter()
+    fn()
+    _sync()
+    return 1000 * (time.perf_counter() - t0)
+
+
+def _images(root: Path, n: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The first scene's reference at 540x720 and ``n`` queries alternating 540x720 and the native size."""
+    import cv2
+
+    from mapfree.data import Dataset
+
+    scene = Dataset(root).scenes("val")[0]
+    ref = cv2.resize(scene.reference.image(), (540, 720))
+    qs = [q.image() for q in scene.queries[1 : 1 + n]]
+    return ref, [cv2.resize(q, (540, 720)) if i % 2 == 0 else q for i, q in enumerate(qs)]
+
+
+def never_seen_matchers(root: Path, n: int) -> list[dict]:
+    from mapfree import matching
+
+    ref, queries = _images(root, n)
+    rows = []
+    for name in [m for m in LEARNED if m in matching.available()]:
+        m = matching.create(name)
+        f0 = m.extract(ref)
+        m.match(f0, m.extract(np.ascontiguousarray(ref[:, ::-1])))  # warm-up on a mirrored (other) image
+        first, again = [], []
+        for q in queries:
+            first.append(_timed(lambda: m.match(f0, m.extract(q))))
+            again.append(_timed(lambda: m.match(f0, m.extract(q))))
+        rows.append({"network": name, "first_ms": statistics.median(first), "again_ms": statistics.median(again),
+                     "max_first_ms": max(first)})
+    return rows
+
+
+def never_seen_depth(root: Path, n: int) -> list[dict]:
+    """Depth Anything V2 Metric at ViT-S size with random weights (no download): attention over a new number of
+    patches per image size is where per-shape set-up would show."""
+    from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, Dinov2Config
+    from transformers.models.dpt.image_processing_pil_dpt import DPTImageProcessorPil
+
+    from mapfree.depth import create
+
+    backbone = Dinov2Config(image_size=518, patch_size=14, hidden_size=384, num_hidden_layers=12,
+                            num_attention_heads=6, intermediate_size=1536, out_indices=[3, 6, 9, 12],
+                            reshape_hidden_states=False)
+    cfg = DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=384,
+                              neck_hidden_sizes=[48, 96, 192, 384], fusion_hidden_size=64,
+                              depth_estimation_type="metric", max_depth=20)
+    proc = DPTImageProcessorPil(size={"height": 518, "width": 518}, keep_aspect_ratio=True, ensure_multiple_of=14,
+                                image_mean=[0.485, 0.456, 0.406], image_std=[0.229, 0.224, 0.225])
+    _, queries = _images(root, n)
+    with tempfile.TemporaryDirectory() as d:
+        DepthAnythingForDepthEstimation(cfg).save_pretrained(d)
+        proc.save_pretrained(d)
+        net = create(f"hf:{d}")
+        net.predict([np.ascontiguousarray(queries[0][::-1])])  # warm-up on a mirrored image
+        first, again = [], []
+        for q in queries:
+            first.append(_timed(lambda: net.predict([q])))
+            again.append(_timed(lambda: net.predict([q])))
+    return [{"network": "depth-anything-v2 ViT-S (random weights)", "first_ms": statistics.median(first),
+             "again_ms": statistics.median(again), "max_first_ms": max(first)}]
+
+
+def main(argv: list[str] | None = None) -> int:
+    from bench_pipeline import DEFAULT_PRESETS, DEFAULT_ROOT
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("root", nargs="?", type=Path, default=DEFAULT_ROOT)
+    ap.add_argument("--out", type=Path, default=Path("gpu-probe"))
+    ap.add_argument("--queries", type=int, default=8, help="never-seen query images per network")
+    ap.add_argument("--threads", type=int, default=8)
+    ap.add_argument("--train", action="store_true", help="also run bench/bench_train.py")
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    import torch
+
+    lines = [f"# GPU probe: {torch.cuda.get_device_name() if torch.cuda.is_available() else 'no GPU (cpu)'}, "
+             f"torch {torch.__version__}", "", "| network | never-seen ms (median) | same input again ms | ratio "
+             "| worst never-seen ms |", "|---|---|---|---|---|"]
+    rows = never_seen_matchers(args.root, args.queries) + never_seen_depth(args.root, args.queries)
+    for r in rows:
+        lines.append(f"| {r['network']} | {r['first_ms']:.1f} | {r['again_ms']:.1f} | "
+                     f"{r['first_ms'] / r['again_ms']:.2f} | {r['max_first_ms']:.1f} |")
+    (args.out / "never_seen.json").write_text(json.dumps(rows, indent=1))
+    print("\n".join(lines), flush=True)
+    presets = DEFAULT_PRESETS + ["aliked-lightglue_emat_sensor:b0"]
+    cmd = [sys.executable, str(HERE / "bench_pipeline.py"), str(args.root), "--size", "540x720", "--all-frames",
+           "--second-pass", "--threads", str(args.threads), "--presets", ",".join(presets),
+           "--json", str(args.out / "pipeline.json")]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    lines += ["", "## bench_pipeline.py", "`" + " ".join(cmd[1:]) + "`", "", res.stdout, res.stderr[-3000:]]
+    print(res.stdout, res.stderr[-3000:], flush=True)
+    if args.train and (HERE / "bench_train.py").is_file():
+        res = subprocess.run([sys.executable, str(HERE / "bench_train.py")], capture_output=True, text=True)
+        lines += ["", "## bench_train.py", res.stdout, res.stderr[-3000:]]
+        print(res.stdout, res.stderr[-3000:], flush=True)
+    (args.out / "probe.md").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
