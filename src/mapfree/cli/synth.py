@@ -21,6 +21,7 @@ examples:
   mapfree synth data/synth --split val --scenes 10 --queries 40
   mapfree synth data/synth --split train --scenes 20 --train-frames 80
   mapfree synth data/synth --split test --scenes 5 --private-gt data/synth-gt
+  mapfree synth data/raw --split scans --scenes 3 --scan-frames 12 --private-gt data/raw-gt
 """
 
 
@@ -30,7 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("root", metavar="ROOT", help="dataset root; scenes go to ROOT/SPLIT/sNNNNN")
-    p.add_argument("--split", choices=("train", "val", "test"), default="val", help="split to write (default: val)")
+    p.add_argument("--split", choices=("train", "val", "test", "scans"), default="val",
+                   help="split to write (default: val); scans: raw phone scans for `mapfree build`")
     p.add_argument("--scenes", type=int, default=10, help="number of scenes (default: 10)")
     p.add_argument("--queries", type=int, default=40, help="queries per val/test scene (default: 40)")
     p.add_argument("--train-frames", type=int, default=50, help="frames per train scan, two scans a scene (default: 50)")
@@ -39,7 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--size", default="540x720", metavar="WxH", help="image size, width x height (default: 540x720)")
     p.add_argument("--no-overlap", type=float, default=0.2, metavar="FRAC",
                    help="fraction of val/test queries that see nothing of the reference (default: 0.2)")
-    p.add_argument("--private-gt", metavar="DIR", help="test split: write true poses/intrinsics to DIR/test/sNNNNN/")
+    p.add_argument("--private-gt", metavar="DIR",
+                   help="test/scans split: write true poses (and scans' overlaps) to DIR/SPLIT/sNNNNN/")
+    p.add_argument("--scan-frames", type=int, default=12, help="scans split: images per scan, two scans a place (default: 12)")
     p.add_argument("--no-mono", action="store_true", help="skip the simulated monocular depth (frame.mono.png)")
     p.add_argument("--workers", type=int, default=1, help="scenes rendered in parallel processes (default: 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -54,8 +58,8 @@ def run(args: argparse.Namespace) -> int:
     except ValueError:
         print(f"mapfree synth: --size must look like 540x720, got {args.size!r}", file=sys.stderr)
         return 2
-    if args.private_gt and args.split != "test":
-        print("mapfree synth: --private-gt only applies to --split test", file=sys.stderr)
+    if args.private_gt and args.split not in ("test", "scans"):
+        print("mapfree synth: --private-gt only applies to --split test or scans", file=sys.stderr)
         return 2
     if w < 32 or h < 32 or args.scenes < 0 or args.queries < 1 or args.train_frames < 1 \
             or not 0 <= args.no_overlap < 1 or args.workers < 1:
@@ -68,10 +72,26 @@ def run(args: argparse.Namespace) -> int:
         workers=args.workers,
     )
     t0 = time.perf_counter()
+    if args.split == "scans":
+        return _scans(args, opts, t0)
     dirs = generate(args.root, args.split, args.scenes, args.queries, args.seed, args.private_gt, opts,
                     progress=not args.quiet)
     dt = time.perf_counter() - t0
     print(f"wrote {len(dirs)} {args.split} scene(s) under {args.root}/{args.split} in {dt:.1f} s")
     if args.private_gt:
         print(f"private ground truth under {args.private_gt}/test")
+    return 0
+
+
+def _scans(args: argparse.Namespace, opts, t0: float) -> int:
+    from ..data.synth.scans import ScanOptions, generate_scans
+
+    if args.scan_frames < 3:
+        print("mapfree synth: --scan-frames must be >= 3", file=sys.stderr)
+        return 2
+    dirs = generate_scans(args.root, args.scenes, args.seed, ScanOptions(frames=args.scan_frames, synth=opts),
+                          args.private_gt, args.first_scene, progress=not args.quiet)
+    print(f"wrote {len(dirs)} place(s) of raw scans under {args.root}/scans in {time.perf_counter() - t0:.1f} s")
+    if args.private_gt:
+        print(f"true poses and overlaps under {args.private_gt}/scans")
     return 0
