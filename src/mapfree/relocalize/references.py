@@ -265,3 +265,29 @@ def localize_with_references(method: Any, mapping: Sequence[ViewLike], queries: 
 
         it = tqdm(queries, desc=f"K={k}", unit="frame", dynamic_ncols=True)
     return refs, [bound.localize(q) for q in it]
+
+
+def relocalize_pairs(method: Any, pairs: Sequence[tuple[ViewLike, ViewLike]], progress: bool = False) -> list[Estimate]:
+    """Pose of the second image of each pair relative to the first (``X1 = R X0 + t``), one method for all.
+
+    An Ess.Mat method without depth (``*_emat_none``) returns its up-to-scale pose instead of failing: the
+    angular scores of a pair benchmark do not need the scale."""
+    from ..methods import Method, get
+    from .pipeline import Relocalizer
+
+    m = method if isinstance(method, Method) else get(method)
+    if m.kind == "matching" and m.depth == "none" and m.solver == "essential":
+        m = replace(m, solver_opts={**m.solver_opts, "allow_unscaled": True})
+    loc = Relocalizer.from_method(m)
+    it: Iterable = pairs
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(pairs, desc="pairs", unit="pair", dynamic_ncols=True)
+    out = []
+    for a, b in it:
+        try:
+            out.append(loc.relocalize(a, b))
+        except Exception as e:  # other method kinds: a bad pair is a failure, not the end of the run
+            out.append(Estimate.failure(f"error: {type(e).__name__}: {e}"))
+    return out
