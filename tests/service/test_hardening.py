@@ -2,12 +2,30 @@
 
 from __future__ import annotations
 
+import hashlib
 import io
+import logging
+import os
+import signal
+import stat
+import subprocess
+import sys
+import time
+import tracemalloc
 import zipfile
+from dataclasses import dataclass
+from pathlib import Path
 
+import cv2
+import httpx
+import numpy as np
 import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import func, select
 
-from .conftest import make_submission
+from mapfree.service import Limits, Settings, create_app
+
+from .conftest import create_users, free_port, make_submission, mapfree, stop_server, truth_poses
 
 BOM = b"\xef\xbb\xbf"
 
@@ -38,3 +56,358 @@ def test_bom_is_accepted_by_evaluate_and_the_server(server, tmp_path):
     d = server.wait_done(r.json()["id"], "alice")
     assert d["status"] == "done" and not any("unknown frame" in p for p in d["problems"]), d
     assert d["metrics"]["AUC @ VCRE < 90px"] == pytest.approx(want.metrics["AUC @ VCRE < 90px"])
+
+
+# ------------------------------------------------------------------------ helpers: an in-process app, real DB
+
+
+def _png(h: int, w: int, channels: int = 3, dtype=np.uint8) -> bytes:
+    ok, buf = cv2.imencode(".png", np.full((h, w, channels) if channels > 1 else (h, w), 7, dtype))
+    assert ok
+    return buf.tobytes()
+
+
+def _jpg(h: int, w: int) -> bytes:
+    ok, buf = cv2.imencode(".jpg", np.full((h, w, 3), 7, np.uint8))
+    assert ok
+    return buf.tobytes()
+
+
+def _zip(entries: dict[str, bytes], method=zipfile.ZIP_DEFLATED) -> bytes:
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", method) as z:
+        for name, data in entries.items():
+            z.writestr(name, data)
+    return buf.getvalue()
+
+
+@dataclass
+class App:
+    client: TestClient
+    settings: Settings
+    tokens: dict[str, str]
+
+    def auth(self, user: str) -> dict:
+        return {"Authorization": f"Bearer {self.tokens[user]}"}
+
+
+@pytest.fixture
+def make_app(split_data, tmp_path):
+    """``make_app(**settings)``: the real FastAPI app on a fresh SQLite file, called in-process."""
+    clients = []
+
+    def make(limits: Limits | None = None, **kw) -> App:
+        url = f"sqlite:///{tmp_path / f'app{len(clients)}.db'}"
+        settings = Settings(db_url=url, data_root=split_data.root, gt_root=split_data.gt,
+                            limits=limits or Limits(), **kw)
+        tokens = create_users(url, {"ann": None, "ben": None})
+        client = TestClient(create_app(settings), raise_server_exceptions=False)
+        clients.append(client)
+        return App(client, settings, tokens)
+
+    yield make
+    for c in clients:
+        c.close()
+
+
+# --------------------------------------------------------------------------- 1: `method` never names a file
+
+
+def test_method_cannot_read_or_probe_server_files(server, tmp_path):
+    secret = tmp_path / "secrets.yaml"
+    secret.write_text("aws_secret_key: AKIA123\ndb_password: hunter2\n")
+    form = {"fx": "50", "fy": "50", "cx": "32", "cy": "24"}
+    answers = []
+    with server.client("alice") as c:
+        for method in (str(secret), str(tmp_path / "missing.yaml"), "/proc/self/environ", "/etc/hostname",
+                       "secrets.yaml", "../../etc/passwd", "sift_pnp_hf:/tmp", "best-offline@hf:/tmp"):
+            r = c.post("/anchors", files={"image": ("a.png", _png(48, 64))}, data={**form, "method": method})
+            assert r.status_code == 422, (method, r.text)
+            detail = r.json()["detail"]
+            for leak in ("aws_secret_key", "db_password", "not found", "unknown key", "line ", "No such file"):
+                assert leak not in detail, (method, detail)
+            assert "best-offline" in detail and "allowed" in detail, detail
+            answers.append(detail.replace(method[:64], "M"))
+    assert len(set(answers)) == 1, answers  # an existing path and a missing one get the same answer
+
+
+# ------------------------------------------------------------------ 2 and 9: isolated workers, live /health
+
+
+FAKE_CONCURRENT = '''
+import importlib.util, os, sys, sysconfig
+with open({marker!r}, "a") as f:
+    f.write(f"{{os.getpid()}}\\n")
+_dir = os.path.join(sysconfig.get_paths()["stdlib"], "concurrent")
+_spec = importlib.util.spec_from_file_location("concurrent", os.path.join(_dir, "__init__.py"),
+                                               submodule_search_locations=[_dir])
+_mod = importlib.util.module_from_spec(_spec)
+sys.modules["concurrent"] = _mod
+_spec.loader.exec_module(_mod)
+'''
+
+
+def test_workers_ignore_the_working_directory_and_health_drops_dead_workers(split_data, tmp_path):
+    """A ``concurrent.py`` where ``mapfree serve`` starts never runs in a worker; a SIGKILLed worker vanishes
+    from /health at once, which says ``degraded`` while no worker is alive."""
+    hostile = tmp_path / "cwd"
+    hostile.mkdir()
+    marker = tmp_path / "imported-from-cwd.txt"
+    (hostile / "concurrent.py").write_text(FAKE_CONCURRENT.format(marker=str(marker)))
+    port, db = free_port(), f"sqlite:///{tmp_path / 'iso.db'}"
+    log = open(tmp_path / "serve.log", "w")
+    # -P: the API process itself must not pick the file up either (what the console script `mapfree` does)
+    proc = subprocess.Popen([sys.executable, "-P", "-m", "mapfree.cli.serve", "--db", db, "--data",
+                             str(split_data.root), "--workers", "1", "--port", str(port)], cwd=hostile,
+                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                            env={**os.environ, "OMP_NUM_THREADS": "1"})
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline, h = time.time() + 60, {}
+        while time.time() < deadline and not h.get("workers"):
+            assert proc.poll() is None, (tmp_path / "serve.log").read_text()[-2000:]
+            try:
+                h = httpx.get(url + "/health", timeout=2).json()
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        assert h.get("workers") and h["status"] == "ok", (h, (tmp_path / "serve.log").read_text()[-2000:])
+        time.sleep(1.0)  # a worker that imported the file would have written the marker by now
+        assert not marker.exists(), f"imported from the working directory by pid {marker.read_text()}"
+        os.kill(h["workers"][0]["pid"], signal.SIGKILL)
+        time.sleep(0.3)
+        after = httpx.get(url + "/health", timeout=5).json()
+        assert after["workers"] == [] and after["status"] == "degraded", after
+    finally:
+        stop_server(proc)
+        log.close()
+
+
+def test_a_worker_that_keeps_dying_is_restarted_with_backoff():
+    from mapfree.cli.serve import Supervisor
+
+    sup = Supervisor([sys.executable, "-c", "raise SystemExit(3)"], 1, backoff=0.25, max_backoff=10.0)
+    sup.start()
+    time.sleep(2.5)
+    sup.stop()
+    # restarts after 0.25, 0.5, 1, 2 s: at most 4 in 2.5 s (a fixed 1 s poll or none would give more)
+    assert 2 <= sup.spawned <= 4, sup.spawned
+    assert sup.failures[0] >= 2
+
+
+# ----------------------------------------------------------------------- 3: uploads are cheap and bounded
+
+
+def _pose_text(scene_dir: Path, lines: int, seed: int) -> bytes:
+    """``lines`` pose lines over the scene's query frames (repeats are duplicates, which the reader skips)."""
+    names = [n for n, _ in truth_poses(scene_dir)]
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(lines, 8))
+    v[:, 7] = np.abs(v[:, 7])
+    return "".join(f"{names[i % len(names)]} {r[0]:.9f} {r[1]:.9f} {r[2]:.9f} {r[3]:.9f} {r[4]:.9f} {r[5]:.9f} "
+                   f"{r[6]:.9f} {r[7]:.6f}\n" for i, r in enumerate(v)).encode()
+
+
+def test_upload_is_stored_in_chunks_without_parsing_or_holding_it(make_app, split_data, tmp_path):
+    """A few-MB submission is checked from its ZIP directory and copied into the database in chunks: the API's
+    Python memory peak stays near one chunk (the old path read, inflated and parsed everything)."""
+    from mapfree.service import storage
+    from mapfree.service.db import Submission, User, ZipChunk
+    from mapfree.service.submissions import accept
+
+    app = make_app()
+    scenes = sorted(p for p in (split_data.root / "val").iterdir())
+    data = _zip({f"pose_{s.name}.txt": _pose_text(s, 40_000, i) for i, s in enumerate(scenes)}, zipfile.ZIP_STORED)
+    assert len(data) > 6 * storage.CHUNK_BYTES
+    path = tmp_path / "upload.zip"
+    path.write_bytes(data)
+    sessions = app.client.app.state.sessions
+    with sessions() as db, open(path, "rb") as f:
+        user = db.scalar(select(User).where(User.name == "ann"))
+        tracemalloc.start()
+        sub = accept(db, app.settings, user, "val", "big", False, f)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert sub.status == "queued" and sub.size_bytes == len(data)
+        assert sub.sha256 == hashlib.sha256(data).hexdigest()
+        assert db.scalar(select(func.count()).select_from(ZipChunk).where(ZipChunk.submission_id == sub.id)) >= 3
+        assert storage.read_zip(db, sub.id) == data
+    # a few chunks in flight, whatever the size (the old path held the whole ZIP, inflated and parsed)
+    assert peak < min(6 * storage.CHUNK_BYTES, 0.6 * len(data)), f"{peak / 1e6:.1f} MB for {len(data) / 1e6:.1f} MB"
+    with sessions() as db:
+        assert db.get(Submission, sub.id).status == "queued"
+
+
+def test_val_rate_limit_storage_quota_and_retention(make_app, split_data):
+    from mapfree.service import storage
+    from mapfree.service.db import Submission, SubmissionFile
+
+    data = make_submission(split_data.root / "val")
+    app = make_app(val_hourly_limit=2, storage_quota_bytes=int(2.5 * len(data)))
+    up = lambda user, name: app.client.post(  # noqa: E731
+        "/api/submissions", headers=app.auth(user), files={"file": ("s.zip", data)},
+        data={"split": "val", "name": name})
+    assert up("ann", "a1").status_code == 202 and up("ann", "a2").status_code == 202
+    r = up("ann", "a3")
+    assert r.status_code == 429 and "hourly limit" in r.json()["detail"] and "2 val" in r.json()["detail"], r.text
+    app.settings.val_hourly_limit = 0  # unlimited: now the storage quota (2.5 ZIPs) speaks
+    r = up("ann", "a3")
+    assert r.status_code == 413 and "storage quota" in r.json()["detail"], r.text
+    assert up("ben", "b1").status_code == 202  # per account
+    sessions = app.client.app.state.sessions
+    with sessions.begin() as db:  # ann's first submission finished 100 days ago: its ZIP goes, its row stays
+        first = db.scalars(select(Submission).where(Submission.name == "a1")).one()
+        first.status, first.finished_at = "done", time.time() - 100 * 86400
+    with sessions.begin() as db:
+        assert storage.sweep(db, retention_days=90) == 1
+    with sessions() as db:
+        assert db.get(SubmissionFile, first.id) is None and db.get(Submission, first.id) is not None
+        assert storage.read_zip(db, first.id) is None
+    assert up("ann", "a3").status_code == 202  # room again
+
+
+# ----------------------------------------------------------------------- 4: revoking ends browser sessions
+
+
+def test_revoke_tokens_ends_browser_sessions(server):
+    token = create_users(server.db_url, {"dave": None})["dave"]
+    with server.client(follow_redirects=False) as c:
+        login = c.get("/login")
+        csrf = login.text.split('name="csrf_token" value="')[1].split('"')[0]
+        assert c.post("/login", data={"token": token, "csrf_token": csrf}).status_code == 303
+        assert c.get("/api/me").status_code == 200
+        page = c.get("/submit").text
+        session_csrf = page.split('name="csrf_token" value="')[1].split('"')[0]
+        mapfree("admin", "--db", server.db_url, "revoke-tokens", "dave")
+        assert c.get("/api/me").status_code == 401
+        r = c.post("/api/submissions", files={"file": ("s.zip", make_submission(server.data.root / "val"))},
+                   data={"split": "val", "name": "after-revoke", "csrf_token": session_csrf})
+        assert r.status_code == 401, r.text
+
+
+# ---------------------------------------------------------- 5: methods that cannot run; logged 500s with ids
+
+
+def test_anchor_whose_method_cannot_run_is_refused_at_creation(server):
+    from mapfree import matching
+
+    if "loftr" in matching.available():
+        pytest.skip("LoFTR weights are installed here")
+    with server.client("alice") as c:
+        r = c.post("/anchors", files={"image": ("a.png", _png(48, 64)), "depth": ("d.png", _png(48, 64, 1, np.uint16))},
+                   data={"fx": "50", "fy": "50", "cx": "32", "cy": "24", "method": "loftr_emat_sensor"})
+    assert r.status_code == 422, r.text
+    assert "loftr_outdoor.ckpt" in r.json()["detail"] and "/root" not in r.json()["detail"], r.json()
+
+
+def test_unexpected_error_is_a_logged_json_500_with_a_request_id(make_app, caplog):
+    app = make_app()
+
+    @app.client.app.get("/boom")
+    def boom():
+        raise RuntimeError("a bug")
+
+    with caplog.at_level(logging.INFO):
+        r = app.client.get("/boom")
+    assert r.status_code == 500 and r.headers["content-type"].startswith("application/json")
+    rid = r.json()["request_id"]
+    assert rid and r.headers["x-request-id"] == rid and rid in r.json()["detail"]
+    access = [rec for rec in caplog.records if rec.getMessage() == "request" and getattr(rec, "status", 0) == 500]
+    assert access and access[0].request_id == rid
+    assert any(rec.getMessage() == "unhandled error" and getattr(rec, "request_id", None) == rid
+               for rec in caplog.records)
+
+
+# ------------------------------------------------------------------------ 6: depth and intrinsics checked
+
+
+DEPTH_CASES = {
+    "jpeg depth": ({"depth": ("d.jpg", lambda: _jpg(48, 64))}, {}, "PNG"),
+    "8-bit rgb png depth": ({"depth": ("d.png", lambda: _png(48, 64))}, {}, "16-bit"),
+    "8-bit gray png depth": ({"depth": ("d.png", lambda: _png(48, 64, 1))}, {}, "16-bit"),
+    "16-bit rgb png depth": ({"depth": ("d.png", lambda: _png(48, 64, 3, np.uint16))}, {}, "single-channel"),
+    "huge focal": ({}, {"fx": "1e308"}, "focal"),
+    "focal too long": ({}, {"fy": "6401"}, "focal"),
+    "principal point outside": ({}, {"cx": "-1"}, "principal point"),
+    "principal point far": ({}, {"cy": "90"}, "principal point"),
+    "no depth for a depth method": ({"depth": None}, {"method": "sift_pnp_sensor"}, "depth"),
+}
+
+
+@pytest.mark.parametrize("case", list(DEPTH_CASES))
+def test_depth_and_intrinsics_are_checked(server, case):
+    files_over, form_over, words = DEPTH_CASES[case]
+    files = {"image": ("a.png", _png(48, 64)), "depth": ("d.png", _png(48, 64, 1, np.uint16))}
+    for k, v in files_over.items():
+        if v is None:
+            files.pop(k)
+        else:
+            files[k] = (v[0], v[1]())
+    form = {"fx": "50", "fy": "50", "cx": "32", "cy": "24", "method": "sift_pnp_sensor", **form_over}
+    with server.client("alice") as c:
+        r = c.post("/anchors", files=files, data=form)
+    assert r.status_code == 422, (case, r.text)
+    assert words.lower() in r.json()["detail"].lower(), r.json()
+
+
+# ------------------------------------------------------------------- 7: consistent limits, named when hit
+
+
+def test_zip_limits_are_named_per_entry_and_in_total(make_app, split_data):
+    scenes = sorted(p.name for p in (split_data.root / "val").iterdir())
+    app = make_app(limits=Limits(max_zip_entry_bytes=1000, max_zip_uncompressed_bytes=1500))
+    line = b"seq1/frame_00000.jpg 1 0 0 0 0 0 0 1\n"
+    one_big = _zip({f"pose_{scenes[0]}.txt": line * 30})  # 1110 bytes
+    two = _zip({f"pose_{s}.txt": line * 22 for s in scenes[:2]})  # 814 + 814 bytes
+    for data, words in ((one_big, "per-file limit is 1000 bytes"), (two, "total limit of 1500 bytes")):
+        r = app.client.post("/api/submissions", headers=app.auth("ann"), files={"file": ("s.zip", data)},
+                            data={"split": "val"})
+        assert r.status_code == 413 and words in r.json()["detail"], r.text
+
+
+def test_the_worker_reads_with_the_same_limits(split_data, tmp_path):
+    """Declared sizes can lie; the workers' reader enforces the service's per-file limit and names it."""
+    from mapfree.service.evaluation import SubmissionRejected, score
+
+    scene = sorted(p for p in (split_data.root / "val").iterdir())[0]
+    p = tmp_path / "s.zip"
+    p.write_bytes(_zip({f"pose_{scene.name}.txt": _pose_text(scene, 50, 0)}))
+    settings = Settings(data_root=split_data.root, limits=Limits(max_zip_entry_bytes=1000))
+    with pytest.raises(SubmissionRejected, match="per-file limit of 1000 bytes"):
+        score(settings, "val", p)
+
+
+# ---------------------------------------------------- 9: bidi names, private SQLite file, token guessing
+
+
+def test_names_with_bidi_controls_are_refused(server):
+    data = make_submission(server.data.root / "val")
+    with server.client("alice") as c:
+        r = c.post("/api/submissions", files={"file": ("s.zip", data)},
+                   data={"split": "val", "name": "good\u202egnp.exe"})
+        assert r.status_code == 422 and "U+202E" in r.json()["detail"], r.text
+        r = c.post("/anchors", files={"image": ("a.png", _png(48, 64)), "depth": ("d.png", _png(48, 64, 1, np.uint16))},
+                   data={"fx": "50", "fy": "50", "cx": "32", "cy": "24", "method": "sift_pnp_sensor",
+                         "name": "office\u200f"})
+        assert r.status_code == 422 and "U+200F" in r.json()["detail"], r.text
+
+
+def test_sqlite_database_is_private(tmp_path):
+    from mapfree.service.db import init_db, make_engine
+
+    engine = make_engine(f"sqlite:///{tmp_path / 'private.db'}")
+    init_db(engine)
+    engine.dispose()
+    for p in tmp_path.glob("private.db*"):
+        assert stat.S_IMODE(p.stat().st_mode) & 0o077 == 0, (p.name, oct(p.stat().st_mode))
+
+
+def test_token_guessing_is_limited_per_client(make_app):
+    app = make_app(auth_failures_per_minute=5)
+    c = app.client
+    for i in range(5):
+        assert c.get("/api/me", headers={"Authorization": f"Bearer mf_guess{i}"}).status_code == 401
+    r = c.get("/api/me", headers={"Authorization": "Bearer mf_guess5"})
+    assert r.status_code == 429 and int(r.headers["retry-after"]) > 0, r.text
+    assert c.get("/api/me", headers=app.auth("ann")).status_code == 429  # even a right guess: no oracle
+    assert c.get("/health").status_code == 200  # anonymous reads go on

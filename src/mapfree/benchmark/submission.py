@@ -310,6 +310,13 @@ def read_submission(
     return out, problems.finish()
 
 
+def _limit_name(limits: SubmissionLimits, budget: int) -> str:
+    """Which limit an entry hit: the per-file one, or what is left of the total."""
+    if limits.max_file_bytes <= budget:
+        return f"the per-file limit of {limits.max_file_bytes} bytes"
+    return f"the total limit of {limits.max_total_bytes} bytes for all files ({budget} left)"
+
+
 def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) -> None:
     infos = zf.infolist()
     if len(infos) > limits.max_entries:
@@ -343,10 +350,10 @@ def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) 
         if expected is not None and scene not in expected:
             problems.add(scene, None, "scene is not part of the evaluated split; ignored")
             continue
-        if info.file_size > min(limits.max_file_bytes, budget):
-            problems.add(scene, None, f"{name} unpacks to {info.file_size} bytes, over the limit; ignored")
-            continue
         cap = min(limits.max_file_bytes, budget)
+        if info.file_size > cap:
+            problems.add(scene, None, f"{name} unpacks to {info.file_size} bytes, over {_limit_name(limits, budget)}; ignored")
+            continue
         try:
             with zf.open(info) as member:
                 data = member.read(cap + 1)
@@ -354,7 +361,8 @@ def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) 
             problems.add(scene, None, f"cannot read {name} ({e}); ignored")
             continue
         if len(data) > cap:
-            problems.add(scene, None, f"{name} unpacks to more than {cap} bytes (size in the ZIP directory is wrong); ignored")
+            problems.add(scene, None, f"{name} unpacks to more than {cap} bytes, over {_limit_name(limits, budget)} "
+                                      "(the size in the ZIP directory is wrong); ignored")
             continue
         budget -= len(data)
         names, keys, vals, bad, lines = _parse_file(scene, data, compat, problems)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import hashlib
 from typing import BinaryIO, Iterator
 
-from sqlalchemy import delete, func, select
+from sqlalchemy import delete, func, insert, select
 from sqlalchemy.orm import Session
 
 from .db import Submission, SubmissionFile, ZipChunk, now
@@ -29,8 +29,9 @@ def copy_in(db: Session, sid: str, f: BinaryIO) -> tuple[int, str]:
             break
         sha.update(chunk)
         size += len(chunk)
-        db.add(SubmissionFile(submission_id=sid, data=chunk) if seq == 0 else
-               ZipChunk(submission_id=sid, seq=seq, data=chunk))
+        # Core inserts: the ORM would keep every chunk alive in the session until the commit
+        db.execute(insert(SubmissionFile).values(submission_id=sid, data=chunk) if seq == 0 else
+                   insert(ZipChunk).values(submission_id=sid, seq=seq, data=chunk))
         seq += 1
         if seq % CHUNKS_PER_TRANSACTION == 0 or len(chunk) < CHUNK_BYTES:
             db.commit()
