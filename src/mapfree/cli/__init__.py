@@ -7,7 +7,7 @@ import importlib
 import sys
 
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
-COMMANDS = ["demo", "synth", "evaluate", "relocalize", "run", "train", "serve", "admin", "sevenscenes", "scannet"]
+COMMANDS = ["demo", "synth", "evaluate", "relocalize", "run", "train", "serve", "admin", "sevenscenes", "scannet", "build"]
 
 
 def build_parser() -> argparse.ArgumentParser:

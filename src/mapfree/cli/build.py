@@ -1,0 +1,91 @@
+"""``mapfree build``: Map-free scenes from your own scans (SfM, metric scale, overlaps, correspondences)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+
+DESCRIPTION = """\
+Turn raw scans of places into Map-free scenes. SCANS holds one folder per place, each with two or more scan
+folders (images or a video, optional intrinsics.txt, rgb.txt timestamps and device_poses.txt in TUM format).
+All scans of a place are reconstructed together with pycolmap, scaled to metres from the device track (or
+depth maps), and written as ROOT/SPLIT/sNNNNN with intrinsics.txt, poses.txt, poses_device.txt, overlaps.npz,
+build_report.json and build_report.png. Train scenes keep both scans in one metric frame (origin: the first
+registered frame of scan 0); val/test scenes keep that frame as the reference (identity) and scan 1 as
+queries (test poses.txt holds zeros; --private-gt writes the true ones). Finished places are skipped."""
+
+EPILOG = """\
+examples:
+  mapfree synth data/raw --split scans --scenes 3 --private-gt data/raw-gt
+  mapfree build data/raw/scans --out data/built --split train --workers 2 --correspondences
+  mapfree build data/raw/scans --out data/built --split val --ray local
+  mapfree build /shared/scans --out /shared/built --split train --ray ray://head:10001
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("build", help="build Map-free scenes from your own scans (pycolmap SfM)",
+                              description=DESCRIPTION, epilog=EPILOG,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scans", metavar="SCANS", help="folder of places, each a folder of two or more scans")
+    p.add_argument("--out", required=True, metavar="ROOT", help="dataset root; scenes go to ROOT/SPLIT/sNNNNN")
+    p.add_argument("--split", choices=("train", "val", "test"), default="train", help="layout to write (default: train)")
+    p.add_argument("--workers", type=int, default=1, help="places built in parallel (default: 1)")
+    p.add_argument("--ray", metavar="ADDRESS", help="run places as Ray tasks: 'local' or a cluster address "
+                   "(every node must see SCANS and ROOT at the same paths)")
+    p.add_argument("--fps", type=float, default=2.0, help="video scans: frames sampled per second (default: 2)")
+    p.add_argument("--device-axes", choices=("opencv", "opengl"), default="opencv",
+                   help="camera axes of device_poses.txt (ARKit/ARCore: opengl; default: opencv)")
+    p.add_argument("--allow-unscaled", action="store_true", help="no device poses or depth: keep SfM units")
+    p.add_argument("--sfm-depth", action="store_true", help="write sparse SfM depth frame_NNNNN.sfm.png")
+    p.add_argument("--correspondences", action="store_true",
+                   help="write correspondences.npz: ground-truth matches of training pairs from depth")
+    p.add_argument("--min-registered", type=float, default=0.5, metavar="FRAC",
+                   help="fraction of each scan's images SfM must register (default: 0.5)")
+    p.add_argument("--max-features", type=int, default=4096, help="SIFT features per image (default: 4096)")
+    p.add_argument("--private-gt", metavar="DIR", help="test split: write true poses to DIR/test/sNNNNN/")
+    p.add_argument("--first-scene", type=int, default=0, help="number of the first scene when places are not named sNNNNN")
+    p.add_argument("--force", action="store_true", help="rebuild places that are already built")
+    p.add_argument("--keep-work", action="store_true", help="keep the COLMAP database and model under ROOT/SPLIT/.build")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..build import BuildOptions, SfmOptions
+    from ..build.run import build_all
+
+    if args.workers < 1 or args.fps <= 0 or not 0 < args.min_registered <= 1 or args.max_features < 64:
+        print("mapfree build: --workers >= 1, --fps > 0, 0 < --min-registered <= 1, --max-features >= 64",
+              file=sys.stderr)
+        return 2
+    if args.private_gt and args.split != "test":
+        print("mapfree build: --private-gt only applies to --split test", file=sys.stderr)
+        return 2
+    opts = BuildOptions(split=args.split, fps=args.fps, device_axes=args.device_axes, min_registered=args.min_registered,
+                        allow_unscaled=args.allow_unscaled, sfm_depth=args.sfm_depth,
+                        correspondences=args.correspondences, keep_work=args.keep_work,
+                        sfm=replace(SfmOptions(), max_features=args.max_features))
+    t0 = time.perf_counter()
+    try:
+        results = build_all(args.scans, args.out, opts, args.workers, args.ray, args.private_gt, args.force,
+                            args.first_scene, progress=not args.quiet)
+    except FileNotFoundError as e:
+        print(f"mapfree build: {e}", file=sys.stderr)
+        return 2
+    for r in results:
+        line = f"{r.place} -> {args.split}/{r.scene}: {r.status}"
+        if r.status == "ok":
+            rep = r.report
+            line += (f" ({rep['registered']}/{rep['images']} images, {rep['reprojection_error_px']:.2f} px, "
+                     f"scale from {rep['scale']['source']}, residual {100 * (rep['scale']['residual'] or 0):.1f} %, "
+                     f"{r.seconds:.1f} s)")
+        elif r.reason:
+            line += f": {r.reason}"
+        print(line)
+    failed = sum(r.status == "failed" for r in results)
+    print(f"{len(results) - failed}/{len(results)} place(s) built under {args.out}/{args.split} "
+          f"in {time.perf_counter() - t0:.1f} s")
+    return 1 if failed else 0
