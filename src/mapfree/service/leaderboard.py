@@ -141,19 +141,20 @@ def board(db: Session, split: str, sort: str = "vcre_auc", view: str = "all", sc
         raise UploadError(422, f"view must be one of {', '.join(VIEWS)}; got {view!r}")
     if scene is not None and split == "test":
         raise UploadError(422, "the test split has no per-scene results")
+    scores = Result.metrics if scene is None else Result.per_scene  # only the column needed (per_scene is big)
     rows = db.execute(
-        select(Submission, Result, User.name, MethodInfo).join(Result, Result.submission_id == Submission.id)
-        .join(User, User.id == Submission.user_id)
+        select(Submission.id, Submission.name, Submission.created_at, User.name, scores, MethodInfo)
+        .join(Result, Result.submission_id == Submission.id).join(User, User.id == Submission.user_id)
         .outerjoin(MethodInfo, MethodInfo.submission_id == Submission.id)
         .where(Submission.split == split, Submission.public.is_(True), Submission.status == "done")
     ).all()
     entries = []
-    for sub, res, uname, info in rows:
-        values = res.metrics if scene is None else (res.per_scene or {}).get(scene)
+    for sid, name, created_at, uname, values, info in rows:
+        values = values if scene is None else (values or {}).get(scene)
         if values is None:
             continue
-        entries.append({"id": sub.id, "name": sub.name, "user": uname, "created_at": sub.created_at,
-                        "url": f"/submissions/{sub.id}", "method": meta_json(info),
+        entries.append({"id": sid, "name": name, "user": uname, "created_at": created_at,
+                        "url": f"/submissions/{sid}", "method": meta_json(info),
                         "metrics": {short: values.get(long) for short, long in SHORT.items()}})
     entries = _ordered(entries, sort)
     if view == "best":
@@ -162,17 +163,6 @@ def board(db: Session, split: str, sort: str = "vcre_auc", view: str = "all", sc
     for e, r in zip(entries, competition_ranks([e["metrics"].get(sort) for e in entries])):
         e["rank"] = r
     return entries
-
-
-def scenes_of(db: Session, split: str) -> list[str]:
-    """Scenes with per-scene results among the public entries of a split (for the scene picker)."""
-    if split == "test":
-        return []
-    found: set[str] = set()
-    for per_scene in db.scalars(select(Result.per_scene).join(Submission, Submission.id == Result.submission_id)
-                                .where(Submission.split == split, Submission.public.is_(True))).all():
-        found.update((per_scene or {}).keys())
-    return sorted(found)
 
 
 def reference_rows() -> list[dict]:

@@ -21,9 +21,9 @@ from . import auth
 from .api import read_upload
 from .db import MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
-from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT
+from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT, known_scenes
 from .leaderboard import (VIEWS, board, check_sort, compare, meta_json, parse_meta, reference_rows, save_meta,
-                          scenes_of, visible_json)
+                          visible_json)
 from .manage import own_submission, test_quota, withdraw, zip_response
 from .reloc import check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
 from .submissions import accept, to_json, visible
@@ -271,7 +271,8 @@ def leaderboard_page(split: str, request: Request, sort: str = Query("vcre_auc")
     entries = board(db, split, sort, view, scene or None)
     query = urlencode({"sort": sort, "view": view, **({"scene": scene} if scene else {})})
     return page(request, "leaderboard.html", db, split=split, sort=sort, view=view, views=VIEWS, scene=scene,
-                scenes=scenes_of(db, split), entries=entries, labels=LABELS, lower=LOWER_IS_BETTER,
+                scenes=[] if split == "test" else sorted(known_scenes(request.app.state.settings, split) or ()),
+                entries=entries, labels=LABELS, lower=LOWER_IS_BETTER,
                 reference=reference_rows(), csv_url=f"/api/leaderboard/{split}.csv?{query}")
 
 
