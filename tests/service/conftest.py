@@ -122,6 +122,24 @@ def make_submission(split_root: Path, noise: float = 0.0, seed: int = 0, drop_ev
     return buf.getvalue()
 
 
+def zip_of(entries: dict[str, bytes], method: int = zipfile.ZIP_DEFLATED) -> bytes:
+    """A ZIP holding exactly ``entries`` (name -> bytes)."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", method) as z:
+        for name, data in entries.items():
+            z.writestr(name, data)
+    return buf.getvalue()
+
+
+def png_of(h: int, w: int, channels: int = 3, dtype=np.uint8) -> bytes:
+    """A blank PNG of that size, channel count and bit depth."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.zeros((h, w, channels) if channels > 1 else (h, w), dtype))
+    assert ok
+    return buf.tobytes()
+
+
 # ---------------------------------------------------------------------------------------------- servers
 
 

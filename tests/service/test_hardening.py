@@ -26,6 +26,8 @@ from sqlalchemy import func, select
 from mapfree.service import Limits, Settings, create_app
 
 from .conftest import create_users, free_port, make_submission, mapfree, stop_server, truth_poses
+from .conftest import png_of as _png
+from .conftest import zip_of as _zip
 
 BOM = b"\xef\xbb\xbf"
 
@@ -61,24 +63,10 @@ def test_bom_is_accepted_by_evaluate_and_the_server(server, tmp_path):
 # ------------------------------------------------------------------------ helpers: an in-process app, real DB
 
 
-def _png(h: int, w: int, channels: int = 3, dtype=np.uint8) -> bytes:
-    ok, buf = cv2.imencode(".png", np.full((h, w, channels) if channels > 1 else (h, w), 7, dtype))
-    assert ok
-    return buf.tobytes()
-
-
 def _jpg(h: int, w: int) -> bytes:
     ok, buf = cv2.imencode(".jpg", np.full((h, w, 3), 7, np.uint8))
     assert ok
     return buf.tobytes()
-
-
-def _zip(entries: dict[str, bytes], method=zipfile.ZIP_DEFLATED) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", method) as z:
-        for name, data in entries.items():
-            z.writestr(name, data)
-    return buf.getvalue()
 
 
 @dataclass

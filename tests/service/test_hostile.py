@@ -3,22 +3,12 @@
 
 from __future__ import annotations
 
-import io
-import zipfile
-
-import cv2
 import numpy as np
 import pytest
 
 from .conftest import make_submission
-
-
-def _zip(entries: dict[str, bytes], method=zipfile.ZIP_DEFLATED) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", method) as z:
-        for name, data in entries.items():
-            z.writestr(name, data)
-    return buf.getvalue()
+from .conftest import png_of as _png
+from .conftest import zip_of as _zip
 
 
 def _scene(server) -> str:
@@ -86,13 +76,6 @@ def test_malformed_forms(server):
         assert r.status_code == 422
         assert c.get("/api/submissions/" + "a" * 5000).status_code in (404, 414)
         assert c.patch("/api/submissions/x", json={"public": "maybe"}).status_code == 422
-
-
-def _png(h: int, w: int, channels: int = 3, dtype=np.uint8) -> bytes:
-    shape = (h, w, channels) if channels > 1 else (h, w)
-    ok, buf = cv2.imencode(".png", np.zeros(shape, dtype))
-    assert ok
-    return buf.tobytes()
 
 
 IMAGE_CASES = {
