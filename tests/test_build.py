@@ -1,0 +1,167 @@
+"""mapfree build on synthetic raw scans: real pycolmap SfM, metric scale, layout, accuracy, failures, Ray."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+pytest.importorskip("pycolmap")
+
+from mapfree.build import BuildOptions, read_correspondences
+from mapfree.build.accuracy import compare_to_truth
+from mapfree.build.inputs import interpolate_track, read_place, read_tum
+from mapfree.build.run import build_all
+from mapfree.cli import main as cli_main
+from mapfree.data import Dataset, read_overlaps, read_poses
+from mapfree.data.synth import SynthOptions
+from mapfree.data.synth.scans import ScanOptions, generate_scans
+from mapfree.geometry import Pose, project, backproject
+
+SMALL = ScanOptions(frames=8, synth=SynthOptions(width=240, height=320, texture_size=256, write_mono=False))
+
+
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("scans")
+    generate_scans(root, 1, seed=0, options=SMALL, private_gt_dir=root / "gt", progress=False)
+    return root
+
+
+@pytest.fixture(scope="module")
+def built(scans, tmp_path_factory) -> tuple[Path, list]:
+    out = tmp_path_factory.mktemp("built")
+    results = build_all(scans / "scans", out, BuildOptions(split="train", correspondences=True), progress=False)
+    return out, results
+
+
+def test_scans_split_layout(scans):
+    place = read_place(scans / "scans" / "s00000")
+    assert [s.name for s in place.scans] == ["scan0", "scan1"]
+    for scan in place.scans:
+        assert len(scan.frames) == 8
+        assert all(f.intrinsics is not None and f.device is not None for f in scan.frames)
+        assert np.all(np.diff([f.time for f in scan.frames]) > 0)
+    # The device track drifts, but only by centimetres over a few metres of walking.
+    t, c, _ = read_tum(scans / "scans/s00000/scan0/device_poses.txt")
+    assert len(t) == (8 - 1) * SMALL.device_rate + 1
+    truth = read_poses(scans / "gt/scans/s00000/scan0/poses.txt")
+    dev = np.stack([f.device.center for f in place.scans[0].frames])
+    true = np.stack([truth.pose(i).center for i in range(len(truth))])
+    d_dev = np.linalg.norm(dev[:, None] - dev[None], axis=-1)
+    d_true = np.linalg.norm(true[:, None] - true[None], axis=-1)
+    assert 0 < np.abs(d_dev - d_true).max() < 0.1 * d_true.max()
+
+
+def test_interpolate_track_between_samples():
+    R = np.stack([np.eye(3)] * 2)
+    poses = interpolate_track(np.array([0.0, 1.0]), np.array([[0.0, 0, 0], [2.0, 0, 0]]), R, np.array([0.25, 2.0]))
+    assert np.allclose(poses[0].t, [0.5, 0, 0]) and poses[1] is None
+
+
+def test_build_matches_the_truth(built, scans):
+    out, results = built
+    assert [r.status for r in results] == ["ok"], results[0].reason
+    acc = compare_to_truth(out / "train/s00000", scans / "gt/scans/s00000")
+    assert acc["frames"] >= 14
+    assert acc["rotation_median_deg"] < 0.5
+    assert acc["centre_median_rel"] < 0.02  # metric scale from the drifting device track
+    assert acc["overlap_correlation"] > 0.9
+
+
+def test_built_scene_reads_as_mapfree(built):
+    out, _ = built
+    scene = Dataset(out).scene("train", "s00000")
+    assert {f.seq for f in scene.frames.values()} == {"seq0", "seq1"}
+    first = scene.poses.pose(0)
+    assert np.allclose(first.R, np.eye(3), atol=1e-6) and np.allclose(first.t, 0, atol=1e-6)
+    assert scene.device_poses is not None and len(scene.device_poses) == len(scene.frames)
+    assert all(f.has_depth("sensor") for f in scene.frames.values())
+    ov = read_overlaps(out / "train/s00000/overlaps.npz")
+    assert len(ov) > 0 and (ov.idxs[:, 0] != ov.idxs[:, 2]).any() and (ov.overlaps <= 1).all()
+    report = json.loads((out / "train/s00000/build_report.json").read_text())
+    assert report["scale"]["source"] == "device" and report["reprojection_error_px"] < 2
+    assert (out / "train/s00000/build_report.png").stat().st_size > 1000
+
+
+def test_correspondences_follow_the_true_geometry(built, scans):
+    """Correspondences come from the built poses; the true poses must map them onto each other too."""
+    out, _ = built
+    corr = read_correspondences(out / "train/s00000/correspondences.npz")
+    assert corr
+    truth = {}
+    for k in (0, 1):
+        table = read_poses(scans / f"gt/scans/s00000/scan{k}/poses.txt")
+        truth.update({(k, i): table.pose(i) for i in range(len(table))})
+    from mapfree.data import read_depth, read_intrinsics
+
+    intr = read_intrinsics(out / "train/s00000/intrinsics.txt")
+    errs = []
+    for (sa, fa, sb, fb), (k0, k1) in list(corr.items())[:5]:
+        na, nb = f"seq{sa}/frame_{fa:05d}.jpg", f"seq{sb}/frame_{fb:05d}.jpg"
+        d = read_depth(out / "train/s00000" / na.replace(".jpg", ".sensor.png"))
+        uv = k0.astype(np.float64)
+        X = backproject(uv, d[uv[:, 1].astype(int), uv[:, 0].astype(int)], intr[na].K)
+        rel: Pose = truth[(sb, fb)] @ truth[(sa, fa)].inverse()
+        errs.append(np.linalg.norm(project(rel.transform(X), intr[nb].K) - k1, axis=1))
+    assert np.median(np.concatenate(errs)) < 3.0  # pixels
+
+
+def test_resume_and_clear_failures(built, scans, tmp_path):
+    """A built place is skipped; a place whose second scan shows nothing of the first fails on its own."""
+    out, _ = built
+    report = out / "train/s00000/build_report.json"
+    before = report.stat().st_mtime_ns
+    root = tmp_path / "scans"
+    shutil.copytree(scans / "scans/s00000", root / "s00000", symlinks=True)
+    bad = root / "s00001"
+    shutil.copytree(scans / "scans/s00000/scan0", bad / "scan0")
+    (bad / "scan1").mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(4):  # another "place": smooth noise nothing in scan0 resembles
+        img = cv2.GaussianBlur(rng.integers(0, 255, (320, 240, 3), dtype=np.uint8), (0, 0), 3)
+        cv2.imwrite(str(bad / "scan1" / f"frame_{i:05d}.jpg"), img)
+    results = build_all(root, out, BuildOptions(split="train"), progress=False)
+    status = {r.scene: (r.status, r.reason) for r in results}
+    assert status["s00000"][0] == "skipped" and report.stat().st_mtime_ns == before
+    assert status["s00001"][0] == "failed"
+    assert "scan1" in status["s00001"][1] and ("registered" in status["s00001"][1] or "overlap" in status["s00001"][1])
+    assert not (out / "train/s00001").exists()  # no half-written scene
+    assert json.loads((out / "train/build_summary.json").read_text())[1]["status"] == "failed"
+
+
+def test_no_metric_scale_is_a_clear_error(scans, tmp_path):
+    place = tmp_path / "scans" / "s00000"
+    for k in (0, 1):
+        (place / f"scan{k}").mkdir(parents=True)
+        for p in (scans / f"scans/s00000/scan{k}").glob("frame_*.jpg"):
+            (place / f"scan{k}" / p.name).symlink_to(p)
+    # No device poses, no depth, no intrinsics: SfM guesses the focal length, the scale is unknown.
+    res = build_all(tmp_path / "scans", tmp_path / "out", BuildOptions(split="train", report_plot=False),
+                    progress=False)
+    assert res[0].status == "failed" and "no metric scale" in res[0].reason and "--allow-unscaled" in res[0].reason
+
+
+@pytest.mark.slow
+def test_ray_val_build_runs_and_evaluates(built, scans, tmp_path):
+    """Ray tasks give the pool's poses; the val scene is a reference plus queries that mapfree run/evaluate score."""
+    ray = pytest.importorskip("ray")
+    out = tmp_path / "ray"
+    try:
+        rc = cli_main(["build", str(scans / "scans"), "--out", str(out), "--split", "val", "--ray", "local", "--quiet"])
+    finally:
+        ray.shutdown()
+    assert rc == 0
+    val = read_poses(out / "val/s00000/poses.txt")
+    assert val.names[0] == "seq0/frame_00000.jpg" and all(n.startswith("seq1/") for n in val.names[1:])
+    train = read_poses(built[0] / "train/s00000/poses.txt").as_dict()
+    for i, n in enumerate(val.names[1:], 1):  # train's origin is the same reference frame
+        assert np.allclose(val.pose(i).t, train[n].t, atol=1e-3)
+    sub = tmp_path / "sub.zip"
+    assert cli_main(["run", str(out), "--split", "val", "--method", "sift_emat_sensor", "-o", str(sub),
+                     "--all-frames", "--no-progress"]) == 0
+    assert cli_main(["evaluate", str(sub), "--dataset", str(out), "--split", "val", "--json"]) == 0
