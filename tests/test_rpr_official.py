@@ -176,10 +176,78 @@ def test_relocalize_cli_matches_the_network_on_public_preprocessing(official, we
     np.testing.assert_allclose(Pose.from_qt(res["q_wxyz"], res["t"]).R, want.R, atol=1e-5)
     assert res["confidence"] == 0.0 and "error" in res  # the published models carry no confidence
     monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(weights))
-    assert main(["relocalize", str(ref), str(query), "--method", "rpr-3d3d"]) == 0
-    again = json.loads(capsys.readouterr().out)
-    np.testing.assert_allclose(again["t"], res["t"], atol=1e-6)
+    from mapfree.methods import get
+
+    found = get("rpr-3d3d").build().module.net.state_dict()  # no --checkpoint: $MAPFREE_WEIGHTS_DIR/3d3d.ckpt
+    assert all(torch.equal(v, net.state_dict()[k]) for k, v in found.items())
     monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(weights / "empty"))
     assert main(["relocalize", str(ref), str(query), "--method", "rpr-rot6d_trans"]) == 2
     err = capsys.readouterr().err
     assert "rot6d_trans.ckpt not found" in err and "mapfree_rpr_weights.zip" in err
+
+
+def test_run_split_with_a_published_model_writes_the_networks_poses(official, weights, realmini, tmp_path, capsys):
+    """``mapfree run ROOT --method rpr-3d3d --checkpoint CKPT``: every scored query's pose is the network's on the
+    public preprocessing, with confidence 0 (the published models carry none)."""
+    import zipfile
+
+    from mapfree.cli import main
+    from mapfree.data import Dataset
+    from mapfree.geometry import Pose
+    from mapfree.regression import load_method
+
+    ckpt = write_checkpoint(official, "3d3d", weights)
+    out = tmp_path / "sub.zip"
+    assert main(["run", str(realmini), "--split", "val", "--scenes", "s00003", "--method", "rpr-3d3d",
+                 "--checkpoint", str(ckpt), "-o", str(out), "--no-progress"]) == 0
+    capsys.readouterr()
+    rows = [r.split() for r in zipfile.ZipFile(out).read("pose_s00003.txt").decode().splitlines() if r.strip()]
+    scene = Dataset(realmini).scene("val", "s00003")
+    assert [r[0] for r in rows] == [q.name for q in scene.scored_queries()]
+    assert all(float(r[8]) == 0.0 for r in rows)
+    net = load_method(ckpt, device="cpu").module.net
+    last = rows[-1]  # one pair recomputed independently (the others go through the same code)
+    with torch.no_grad():
+        o = net(_public_preprocess(scene.reference.image_path), _public_preprocess(scene.frame(last[0]).image_path))
+    got = Pose.from_qt(np.array(last[1:5], float), np.array(last[5:8], float))
+    np.testing.assert_allclose(got.R, o.R[0].double().numpy(), atol=1e-5)
+    np.testing.assert_allclose(got.t, o.t[0].double().numpy(), atol=1e-5)
+
+
+def test_finetune_a_confidence_on_top_of_a_published_model(official, weights, tmp_path):
+    """``mapfree train 3d3d --init 3d3d.ckpt --freeze pose --set model.uncertainty=true``: only the added
+    uncertainty head trains (frozen encoder features cached); the poses stay the published model's exactly and
+    the submissions gain a confidence."""
+    import pytorch_lightning as pl
+    from test_regression_train import make_tiny_root
+
+    from mapfree.cli import main
+    from mapfree.regression import load_method
+    from mapfree.regression.config import apply_overrides, load_config, resolve_config
+    from mapfree.regression.module import RPRModule
+
+    root = make_tiny_root(tmp_path / "data", n_train=1, frames=3)
+    ckpt = write_checkpoint(official, "3d3d", weights)
+    sets = ["data.pairs_per_scene=2", "data.batch_size=2", "data.val_batch_size=1", "data.max_val_pairs=1",
+            "model.uncertainty=true", "train.cache_features=true"]
+    out = tmp_path / "ft"
+    args = ["train", "3d3d", "--data", str(root), "--out", str(out), "--init", str(ckpt), "--freeze", "pose",
+            "--max-steps", "2", "--accelerator", "cpu", "--devices", "1", "--no-progress"]
+    assert main(args + [a for s in sets for a in ("--set", s)]) == 0
+    tuned = load_method(out / "checkpoints" / "last.ckpt", device="cpu")
+    public = load_method(ckpt, device="cpu").module.state_dict()
+    state = tuned.module.state_dict()
+    for k, v in public.items():  # weights and BatchNorm statistics untouched
+        assert torch.equal(state[k], v), k
+    # The uncertainty head moved away from its initialisation (fit seeds with train.seed before building).
+    cfg = apply_overrides(load_config(resolve_config("3d3d")), sets + [f"data.root={root}", "train.freeze=pose"])
+    pl.seed_everything(cfg.train.seed, verbose=False)
+    init = RPRModule(cfg).state_dict()
+    assert any(not torch.equal(state[k], init[k]) for k in state if k.startswith("net.uncertainty."))
+    x0, x1 = (torch.rand(2, 3, 360, 270, generator=torch.Generator().manual_seed(i)) for i in (1, 2))
+    res = tuned.predict({"img0": x0, "img1": x1})
+    assert np.isfinite(res["log_sigma"]).all() and ((res["confidence"] > 0) & (res["confidence"] <= 1)).all()
+    with pytest.raises(SystemExit):
+        main(["train", "3d3d", "--freeze", "bogus"])
+    # --freeze pose without an uncertainty head would train nothing: refused before any work.
+    assert main(["train", "3d3d", "--data", str(root), "--out", str(tmp_path / "x"), "--freeze", "pose"]) == 2

@@ -42,6 +42,7 @@ class RPRModule(pl.LightningModule):
             return []
         for m in parts:
             m.requires_grad_(False)
+            m.eval()
         return parts
 
     def train(self, mode: bool = True) -> "RPRModule":
@@ -54,6 +55,7 @@ class RPRModule(pl.LightningModule):
         return self.net(img0, img1)
 
     def on_fit_start(self) -> None:
+        self.train(self.training)  # Lightning sets modes per submodule: put the frozen parts back in eval
         if self.cfg.train.channels_last:
             self.net.to(memory_format=torch.channels_last)
 
