@@ -4,8 +4,8 @@ Every row runs the same network on the same random batch in this process; ratios
 fp32 training loop measured here. CPU by default (bf16 autocast); on a GPU run with --device cuda.
 
     python bench/bench_train.py                      # CPU-synthetic config (frozen XFeat, 192×256), batch 8
-    python bench/bench_train.py --config R6D_t       # the paper's network at 360×270
-    python bench/bench_train.py --device cuda --batch 10 --config R6D_t
+    python bench/bench_train.py --config rot6d_trans # the paper's network at 360×270
+    python bench/bench_train.py --device cuda --batch 10 --config rot6d_trans
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def measure(cfg, device: torch.device, batch: int, steps: int, warmup: int, amp:
     runs only what trains: aggregator, head and MLP (the steady state once every image has been seen).
     """
     torch.manual_seed(0)
-    net = RPRNet(cfg.model).to(device)
+    net = RPRNet(cfg.model, cfg.data.image_size).to(device)
     if channels_last:
         net = net.to(memory_format=torch.channels_last)
     loss_fn = PoseLoss(cfg.loss).to(device)
@@ -110,7 +110,7 @@ def main() -> None:
     results = []
     for kind, name, amp, cl, train in rows:
         results.append((kind, name, measure(cfg, device, args.batch, args.steps, args.warmup, amp, cl, train)))
-    if RPRNet(cfg.model).frozen_encoder:  # the frozen XFeat encoder: also the cached-feature training step
+    if RPRNet(cfg.model, cfg.data.image_size).frozen_encoder:  # the frozen XFeat encoder: also the cached-feature training step
         results.insert(4, ("train", "fp32 cached encoder features", measure(
             cfg, device, args.batch, args.steps, args.warmup, False, False, True, cached=True)))
     base = {k: next(r for kk, _, r in results if kk == k) for k in ("train", "infer")}
