@@ -112,7 +112,7 @@ def test_fusion_drops_outliers_averages_the_rest_and_scores_agreement(realmini):
     more = fuse(good + [Hypothesis(f"g{i}", _noisy(truth, rng, 3.0, 0.15), 30.0) for i in range(3)], 9)
     assert more.confidence > est.confidence > fuse(good[:1], 9).confidence > 0
     # Constant-zero confidences (regression methods) vote equally; nothing at all is "no estimate".
-    flat = fuse([replace(h, confidence=0.0) for h in good + bad], 9)
+    flat = fuse([replace(h, confidence=c) for h, c in zip(good + bad, [0.0, np.nan, -1.0] * 3)], 9)
     assert flat.ok and flat.extras["support"] == 6 and np.isfinite(flat.confidence)
     none = fuse([], 9)
     assert not none.ok and "no frame" in none.reason

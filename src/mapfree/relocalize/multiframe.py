@@ -97,7 +97,8 @@ def fuse(hyps: Sequence[Hypothesis], n_frames: int | None = None, options: Fusio
         return Estimate.failure("no frame of the burst has an estimate")
     R = np.stack([h.pose.R for h in hyps])
     C = np.stack([h.pose.center for h in hyps])
-    conf = np.array([max(float(h.confidence), 0.0) for h in hyps])
+    conf = np.array([float(h.confidence) for h in hyps])
+    conf = np.where(np.isfinite(conf) & (conf > 0), conf, 0.0)  # NaN or negative: no confidence
     top = conf.max()
     w = np.maximum(conf, 1e-3 * top) if top > 0 else np.ones(len(hyps))  # all-zero confidences: equal votes
     agree = _agree(R, C, R, C, options)
