@@ -1,9 +1,14 @@
-"""Load test of `mapfree serve` on loopback (bounded): 200 submissions from 20 concurrent clients with 4
-evaluation workers, one worker SIGKILLed mid-run (every submission must end evaluated exactly once, none lost);
-then `localize` latency and throughput under 8 concurrent clients, against in-process localization as the
-baseline. Prints a table.
+"""Load test of `mapfree serve` on loopback (bounded), in three phases, one table:
+
+1. uploads: three 38 MB submissions (3 x 60 MB of pose lines each, within every limit) uploaded at once, while
+   the API process's memory (RSS, sampled every 20 ms) and `/health` latency (polled every 50 ms) are measured
+   against the idle API; targets: RSS < 400 MB and `/health` p99 < 100 ms. The workers then parse them.
+2. 200 submissions from 20 concurrent clients with 4 evaluation workers, one worker SIGKILLed mid-run (every
+   submission must end evaluated exactly once, none lost).
+3. `localize` latency and throughput under 8 concurrent clients, against in-process localization.
 
     python bench/bench_service.py [--db postgresql://...] [--submissions 200] [--clients 20] [--workers 4]
+                                  [--phases uploads,submissions,localize]
 """
 
 from __future__ import annotations
@@ -56,6 +61,71 @@ def submission(split_dir: Path, rng: np.random.Generator) -> bytes:
     return buf.getvalue()
 
 
+def big_submission(scenes: list[str], entry_bytes: int = 60_000_000) -> bytes:
+    """A valid submission of ``entry_bytes`` of pose lines per scene (frames repeat: the reader keeps the first of
+    each and reports the rest), about 4.7:1 compressible like real pose files: 3 scenes -> ~38 MB."""
+    rng = np.random.default_rng(1)
+    v = rng.normal(size=(20000, 4))
+    block = "".join(f"seq1/frame_{i % 20:05d}.jpg 1.0 0.0 0.0 0.0 {r[0]:.4f} {r[1]:.4f} {r[2]:.4f} {abs(r[3]) * 10:.1f}\n"
+                    for i, r in enumerate(v)).encode()
+    text = (block * (entry_bytes // len(block) + 1))[:entry_bytes]
+    text = text[: text.rfind(b"\n") + 1]
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for s in scenes:
+            z.writestr(f"pose_{s}.txt", text)
+    return buf.getvalue()
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024
+
+
+def upload_pressure(url: str, api_pid: int, tokens: list[str], payload: bytes) -> dict:
+    """Three uploads of ``payload`` at once; API RSS and /health latency meanwhile (and idle, before)."""
+    idle_rss = rss_mb(api_pid)
+    idle_health = []
+    with httpx.Client(base_url=url, timeout=30) as c:
+        for _ in range(40):
+            t0 = time.perf_counter()
+            c.get("/health")
+            idle_health.append(time.perf_counter() - t0)
+            time.sleep(0.02)
+    done = threading.Event()
+    rss, health = [idle_rss], []
+
+    def sample_rss() -> None:
+        while not done.is_set():
+            rss.append(rss_mb(api_pid))
+            done.wait(0.02)
+
+    def poll_health() -> None:
+        with httpx.Client(base_url=url, timeout=30) as c:
+            while not done.is_set():
+                t0 = time.perf_counter()
+                c.get("/health")
+                health.append(time.perf_counter() - t0)
+                done.wait(0.05)
+
+    def upload(token: str) -> tuple[int, float, str]:
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=300) as c:
+            t0 = time.perf_counter()
+            r = c.post("/api/submissions", files={"file": ("big.zip", payload)}, data={"split": "val", "name": "big"})
+            return r.status_code, time.perf_counter() - t0, r.json().get("id", r.text[:200])
+
+    watchers = [threading.Thread(target=sample_rss), threading.Thread(target=poll_health)]
+    for t in watchers:
+        t.start()
+    with ThreadPoolExecutor(3) as ex:
+        results = list(ex.map(upload, tokens[:3]))
+    done.set()
+    for t in watchers:
+        t.join()
+    return {"idle_rss": idle_rss, "max_rss": max(rss), "health": health, "idle_health": idle_health,
+            "uploads": results}
+
+
 def pct(xs, q) -> float:
     return float(np.percentile(np.asarray(xs) * 1000, q)) if xs else float("nan")
 
@@ -69,7 +139,9 @@ def main() -> int:
     ap.add_argument("--localize-clients", type=int, default=8)
     ap.add_argument("--localize-requests", type=int, default=48)
     ap.add_argument("--timeout", type=float, default=420.0, help="give up after this many seconds")
+    ap.add_argument("--phases", default="uploads,submissions,localize", help="which phases to run")
     a = ap.parse_args()
+    phases = set(a.phases.split(","))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     from sqlalchemy import func, select
     from sqlalchemy.exc import OperationalError
@@ -80,7 +152,7 @@ def main() -> int:
     from mapfree.service.db import Base, Result, Submission, WorkerRow, init_db, make_engine, session_factory
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-service-"))
-    generate(tmp / "data", "val", 2, 20, seed=3, options=SynthOptions(first_scene=460, width=135, height=180,
+    generate(tmp / "data", "val", 3, 20, seed=3, options=SynthOptions(first_scene=460, width=135, height=180,
                                                                       texture_size=128, write_mono=False),
              progress=False)
     db_url = a.db or f"sqlite:///{tmp / 'bench.db'}"
@@ -93,6 +165,7 @@ def main() -> int:
     with S.begin() as db:
         for i in range(a.clients):
             tokens.append(auth.create_user(db, f"client{i}")[1])
+    big = big_submission([f"s{460 + i:05d}" for i in range(3)]) if "uploads" in phases else b""
     port = free_port()
     log = open(tmp / "serve.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "mapfree", "serve", "--db", db_url, "--data", str(tmp / "data"),
@@ -111,119 +184,138 @@ def main() -> int:
                 raise SystemExit("server did not start:\n" + (tmp / "serve.log").read_text()[-2000:])
             time.sleep(0.3)
 
-        # ---------------------------------------------------------------- 200 submissions, 20 clients
-        rng = np.random.default_rng(0)
-        payloads = [submission(tmp / "data" / "val", rng) for _ in range(8)]
-        upload_lat: list[float] = []
-        ids: list[str] = []
         lock = threading.Lock()
+        # ---------------------------------------------------------------- three 38 MB uploads at once
+        up = None
+        if "uploads" in phases:
+            up = upload_pressure(url, proc.pid, tokens, big)
+            big_ids = [r[2] for r in up["uploads"] if r[0] == 202]
+            t0 = time.perf_counter()
+            while time.time() < deadline:  # the workers parse them (not the API): wait before the next phase
+                with S() as db:
+                    left = db.scalar(select(func.count()).select_from(Submission).where(
+                        Submission.id.in_(big_ids), Submission.status.in_(("queued", "running"))))
+                if not left:
+                    break
+                time.sleep(0.5)
+            up["eval_wall"] = time.perf_counter() - t0
+            with S() as db:
+                up["statuses"] = [db.get(Submission, i).status for i in big_ids]
+        ok = True
+        if "submissions" in phases:
+            # ---------------------------------------------------------------- 200 submissions, 20 clients
+            rng = np.random.default_rng(0)
+            payloads = [submission(tmp / "data" / "val", rng) for _ in range(8)]
+            upload_lat: list[float] = []
+            ids: list[str] = []
 
-        def client(k: int) -> None:
-            with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[k]}"}, timeout=60) as c:
-                for j in range(k, a.submissions, a.clients):
-                    t0 = time.perf_counter()
-                    r = c.post("/api/submissions", files={"file": ("s.zip", payloads[j % len(payloads)])},
-                               data={"split": "val", "name": f"b{j}", "public": "true"})
-                    dt = time.perf_counter() - t0
-                    assert r.status_code == 202, r.text
-                    with lock:
-                        upload_lat.append(dt)
-                        ids.append(r.json()["id"])
+            def client(k: int) -> None:
+                with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[k]}"}, timeout=60) as c:
+                    for j in range(k, a.submissions, a.clients):
+                        t0 = time.perf_counter()
+                        r = c.post("/api/submissions", files={"file": ("s.zip", payloads[j % len(payloads)])},
+                                   data={"split": "val", "name": f"b{j}", "public": "true"})
+                        dt = time.perf_counter() - t0
+                        assert r.status_code == 202, r.text
+                        with lock:
+                            upload_lat.append(dt)
+                            ids.append(r.json()["id"])
 
-        killed: dict = {}
+            killed: dict = {}
 
-        def killer() -> None:
-            """SIGKILL a worker while it evaluates a job."""
-            while time.time() < deadline and not killed:
+            def killer() -> None:
+                """SIGKILL a worker while it evaluates a job."""
+                while time.time() < deadline and not killed:
+                    try:
+                        with S() as db:
+                            row = db.execute(select(WorkerRow.pid, Submission.id).join(
+                                Submission, Submission.worker_id == WorkerRow.id).where(Submission.status == "running")
+                            ).first()
+                    except OperationalError:  # busy database: look again
+                        continue
+                    if row is not None:
+                        try:
+                            os.kill(row[0], signal.SIGKILL)
+                            killed.update(pid=row[0], job=row[1])
+                        except ProcessLookupError:
+                            pass
+                        return
+                    time.sleep(0.05)
+
+            t_start = time.perf_counter()
+            kt = threading.Thread(target=killer)
+            with ThreadPoolExecutor(a.clients) as ex:
+                futs = [ex.submit(client, k) for k in range(a.clients)]
+                time.sleep(0.5)
+                kt.start()
+                for f in futs:
+                    f.result()
+            kt.join()
+            t_uploaded = time.perf_counter()
+            while time.time() < deadline:
                 try:
                     with S() as db:
-                        row = db.execute(select(WorkerRow.pid, Submission.id).join(
-                            Submission, Submission.worker_id == WorkerRow.id).where(Submission.status == "running")
-                        ).first()
-                except OperationalError:  # busy database: look again
+                        pending = db.scalar(select(func.count()).select_from(Submission).where(
+                            Submission.status.in_(("queued", "running"))))
+                except OperationalError:
                     continue
-                if row is not None:
-                    try:
-                        os.kill(row[0], signal.SIGKILL)
-                        killed.update(pid=row[0], job=row[1])
-                    except ProcessLookupError:
-                        pass
-                    return
-                time.sleep(0.05)
+                if pending == 0:
+                    break
+                time.sleep(0.25)
+            t_done = time.perf_counter()
+            with S() as db:
+                statuses = dict(db.execute(select(Submission.status, func.count()).group_by(Submission.status)).all())
+                n_results = db.scalar(select(func.count()).select_from(Result))
+                n_distinct = db.scalar(select(func.count(func.distinct(Result.submission_id))))
+                retried = db.scalar(select(func.count()).select_from(Submission).where(Submission.attempts > 1))
+                killed_job = db.get(Submission, killed["job"]) if killed else None
+            ok = (len(ids) == a.submissions and statuses.get("done", 0) == a.submissions
+                  and n_results == n_distinct == a.submissions)
 
-        t_start = time.perf_counter()
-        kt = threading.Thread(target=killer)
-        with ThreadPoolExecutor(a.clients) as ex:
-            futs = [ex.submit(client, k) for k in range(a.clients)]
-            time.sleep(0.5)
-            kt.start()
-            for f in futs:
-                f.result()
-        kt.join()
-        t_uploaded = time.perf_counter()
-        while time.time() < deadline:
-            try:
-                with S() as db:
-                    pending = db.scalar(select(func.count()).select_from(Submission).where(
-                        Submission.status.in_(("queued", "running"))))
-            except OperationalError:
-                continue
-            if pending == 0:
-                break
-            time.sleep(0.25)
-        t_done = time.perf_counter()
-        with S() as db:
-            statuses = dict(db.execute(select(Submission.status, func.count()).group_by(Submission.status)).all())
-            n_results = db.scalar(select(func.count()).select_from(Result))
-            n_distinct = db.scalar(select(func.count(func.distinct(Result.submission_id))))
-            retried = db.scalar(select(func.count()).select_from(Submission).where(Submission.attempts > 1))
-            killed_job = db.get(Submission, killed["job"]) if killed else None
-        ok = (len(ids) == a.submissions and statuses.get("done", 0) == a.submissions
-              and n_results == n_distinct == a.submissions)
+        if "localize" in phases:
+            # ---------------------------------------------------------------- localize, 8 clients
+            scene = Dataset(realmini()).scene("val", "s00000")
+            ref = scene.reference
+            queries = [q for q in scene.queries][:8]
+            form = lambda K: {"fx": str(K.fx), "fy": str(K.fy), "cx": str(K.cx), "cy": str(K.cy)}  # noqa: E731
+            with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[0]}"}, timeout=120) as c:
+                anchor = c.post("/anchors", files={"image": ("r.jpg", ref.image_path.read_bytes()),
+                                                   "depth": ("d.png", ref.depth_path("sensor").read_bytes())},
+                                data={**form(ref.intrinsics), "method": "sift_pnp_sensor"}).json()["id"]
+                c.post(f"/anchors/{anchor}/localize", files={"image": ("q.jpg", queries[0].image_path.read_bytes())},
+                       data=form(queries[0].intrinsics))  # warm-up: builds the relocalizer, prepares the anchor
+            loc_lat: list[float] = []
+            loc_ok = [0]
 
-        # ---------------------------------------------------------------- localize, 8 clients
-        scene = Dataset(realmini()).scene("val", "s00000")
-        ref = scene.reference
-        queries = [q for q in scene.queries][:8]
-        form = lambda K: {"fx": str(K.fx), "fy": str(K.fy), "cx": str(K.cx), "cy": str(K.cy)}  # noqa: E731
-        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[0]}"}, timeout=120) as c:
-            anchor = c.post("/anchors", files={"image": ("r.jpg", ref.image_path.read_bytes()),
-                                               "depth": ("d.png", ref.depth_path("sensor").read_bytes())},
-                            data={**form(ref.intrinsics), "method": "sift_pnp_sensor"}).json()["id"]
-            c.post(f"/anchors/{anchor}/localize", files={"image": ("q.jpg", queries[0].image_path.read_bytes())},
-                   data=form(queries[0].intrinsics))  # warm-up: builds the relocalizer, prepares the anchor
-        loc_lat: list[float] = []
-        loc_ok = [0]
+            def loc_client(k: int) -> None:
+                with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[k]}"}, timeout=120) as c:
+                    for j in range(k, a.localize_requests, a.localize_clients):
+                        q = queries[j % len(queries)]
+                        t0 = time.perf_counter()
+                        r = c.post(f"/anchors/{anchor}/localize", files={"image": ("q.jpg", q.image_path.read_bytes())},
+                                   data=form(q.intrinsics))
+                        dt = time.perf_counter() - t0
+                        assert r.status_code == 200, r.text
+                        with lock:
+                            loc_lat.append(dt)
+                            loc_ok[0] += bool(r.json()["ok"])
 
-        def loc_client(k: int) -> None:
-            with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[k]}"}, timeout=120) as c:
-                for j in range(k, a.localize_requests, a.localize_clients):
-                    q = queries[j % len(queries)]
-                    t0 = time.perf_counter()
-                    r = c.post(f"/anchors/{anchor}/localize", files={"image": ("q.jpg", q.image_path.read_bytes())},
-                               data=form(q.intrinsics))
-                    dt = time.perf_counter() - t0
-                    assert r.status_code == 200, r.text
-                    with lock:
-                        loc_lat.append(dt)
-                        loc_ok[0] += bool(r.json()["ok"])
+            t0 = time.perf_counter()
+            with ThreadPoolExecutor(a.localize_clients) as ex:
+                list(ex.map(loc_client, range(a.localize_clients)))
+            loc_wall = time.perf_counter() - t0
 
-        t0 = time.perf_counter()
-        with ThreadPoolExecutor(a.localize_clients) as ex:
-            list(ex.map(loc_client, range(a.localize_clients)))
-        loc_wall = time.perf_counter() - t0
+            # baseline: the same localizations in this process, one at a time, no HTTP
+            from mapfree.relocalize import Relocalizer, View
 
-        # baseline: the same localizations in this process, one at a time, no HTTP
-        from mapfree.relocalize import Relocalizer, View
-
-        r = Relocalizer.from_method("sift_pnp_sensor")
-        prepared = r.prepare(View(ref.image(), ref.intrinsics, ref.depth("sensor")))
-        base_lat = []
-        for j in range(min(16, a.localize_requests)):
-            q = queries[j % len(queries)]
-            t1 = time.perf_counter()
-            r.localize(View(q.image(), q.intrinsics), prepared)
-            base_lat.append(time.perf_counter() - t1)
+            r = Relocalizer.from_method("sift_pnp_sensor")
+            prepared = r.prepare(View(ref.image(), ref.intrinsics, ref.depth("sensor")))
+            base_lat = []
+            for j in range(min(16, a.localize_requests)):
+                q = queries[j % len(queries)]
+                t1 = time.perf_counter()
+                r.localize(View(q.image(), q.intrinsics), prepared)
+                base_lat.append(time.perf_counter() - t1)
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -232,29 +324,48 @@ def main() -> int:
             os.killpg(proc.pid, signal.SIGKILL)
         engine.dispose()
 
-    sub_wall = t_done - t_start
-    rows = [
-        ("submissions uploaded / evaluated (done)", f"{len(ids)} / {statuses.get('done', 0)}", ""),
-        ("result rows (distinct submissions)", f"{n_results} ({n_distinct})", "exactly once" if ok else "MISMATCH"),
-        ("worker killed mid-job (pid, job attempts)",
-         f"{killed.get('pid', '-')}, {killed_job.attempts if killed_job else '-'}", f"{retried} job(s) retried"),
-        ("upload latency p50 / p99 (ms)", f"{pct(upload_lat, 50):.0f} / {pct(upload_lat, 99):.0f}", ""),
-        ("evaluation throughput (submissions/s)", f"{a.submissions / sub_wall:.1f}",
-         f"{sub_wall:.1f} s wall, uploads done at {t_uploaded - t_start:.1f} s"),
-        (f"localize latency p50 / p99 (ms), {a.localize_clients} clients",
-         f"{pct(loc_lat, 50):.0f} / {pct(loc_lat, 99):.0f}", f"{loc_ok[0]}/{len(loc_lat)} with a pose"),
-        ("localize throughput (req/s)", f"{len(loc_lat) / loc_wall:.2f}",
-         f"{(len(loc_lat) / loc_wall) * np.mean(base_lat):.2f}x in-process serial"),
-        ("in-process localize p50 (ms), baseline", f"{pct(base_lat, 50):.0f}",
-         f"HTTP p50 / baseline = {pct(loc_lat, 50) / pct(base_lat, 50):.1f}x"),
-    ]
+    rows = []
+    if up is not None:
+        h, ih = up["health"], up["idle_health"]
+        codes = ", ".join(f"{c} in {t:.1f} s" for c, t, _ in up["uploads"])
+        rows += [
+            (f"3 uploads of {len(big) / 1e6:.0f} MB at once (status, time)", codes, ""),
+            ("API RSS idle / max during uploads (MB)", f"{up['idle_rss']:.0f} / {up['max_rss']:.0f}",
+             "target < 400 MB: " + ("met" if up["max_rss"] < 400 else "MISSED")),
+            ("/health p50 / p99 / max during uploads (ms)", f"{pct(h, 50):.0f} / {pct(h, 99):.0f} / {pct(h, 100):.0f}",
+             f"{len(h)} polls, idle p99 {pct(ih, 99):.0f} ms; target p99 < 100 ms: "
+             + ("met" if pct(h, 99) < 100 else "MISSED")),
+            ("workers: the 3 big submissions evaluated (s)", f"{up['eval_wall']:.1f}", ", ".join(up["statuses"])),
+        ]
+        ok = ok and all(c == 202 for c, _, _ in up["uploads"])
+    if "submissions" in phases:
+        sub_wall = t_done - t_start
+        rows += [
+            ("submissions uploaded / evaluated (done)", f"{len(ids)} / {statuses.get('done', 0)}", ""),
+            ("result rows (distinct submissions)", f"{n_results} ({n_distinct})", "exactly once" if ok else "MISMATCH"),
+            ("worker killed mid-job (pid, job attempts)",
+             f"{killed.get('pid', '-')}, {killed_job.attempts if killed_job else '-'}", f"{retried} job(s) retried"),
+            ("upload latency p50 / p99 (ms)", f"{pct(upload_lat, 50):.0f} / {pct(upload_lat, 99):.0f}", ""),
+            ("evaluation throughput (submissions/s)", f"{a.submissions / sub_wall:.1f}",
+             f"{sub_wall:.1f} s wall, uploads done at {t_uploaded - t_start:.1f} s"),
+        ]
+    if "localize" in phases:
+        rows += [
+            (f"localize latency p50 / p99 (ms), {a.localize_clients} clients",
+             f"{pct(loc_lat, 50):.0f} / {pct(loc_lat, 99):.0f}", f"{loc_ok[0]}/{len(loc_lat)} with a pose"),
+            ("localize throughput (req/s)", f"{len(loc_lat) / loc_wall:.2f}",
+             f"{(len(loc_lat) / loc_wall) * np.mean(base_lat):.2f}x in-process serial"),
+            ("in-process localize p50 (ms), baseline", f"{pct(base_lat, 50):.0f}",
+             f"HTTP p50 / baseline = {pct(loc_lat, 50) / pct(base_lat, 50):.1f}x"),
+        ]
     db_name = db_url.split(":")[0]
     print(f"\nmapfree serve on loopback ({db_name}, {a.workers} workers, {a.clients} clients, "
           f"{os.cpu_count()} CPUs)")
     w = max(len(r[0]) for r in rows)
     for name, val, note in rows:
         print(f"  {name:<{w}}  {val:>14}  {note}")
-    print("PASS: every submission evaluated exactly once, none lost" if ok else "FAIL: lost or duplicated results")
+    print("PASS: every upload accepted, every submission evaluated exactly once, none lost" if ok
+          else "FAIL: a refused upload, or lost or duplicated results")
     return 0 if ok else 1
 
 

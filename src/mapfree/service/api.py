@@ -14,7 +14,7 @@ from sqlalchemy import select, text
 from sqlalchemy.orm import Session
 
 from . import jobs
-from .db import Anchor, Submission, WorkerRow, new_id, now
+from .db import READ_ONLY, Anchor, Submission, WorkerRow, new_id, now
 from .deps import db_session, identify, require_writer
 from .reloc import check_method, check_runnable, default_method, estimate_json, intrinsics_of
 from .submissions import accept, daily_test_limit, to_json, visible
@@ -61,20 +61,21 @@ def _alive(w: WorkerRow) -> bool:
 
 
 @router.get("/health", tags=["operations"])
-def health(request: Request, db: Session = Depends(db_session)):
+def health(request: Request):
     """Liveness and readiness: database reachable, queue length, live workers. ``degraded`` when no worker is
     alive (submissions would wait forever); workers count as alive while they report every few seconds."""
+    engine = request.app.state.engine
     try:
-        db.execute(text("SELECT 1"))
-        counts = jobs.counts(db)
-        rows = db.scalars(select(WorkerRow).where(WorkerRow.last_seen > now() - 3 * SEEN_SECONDS)).all()
-        db.commit()
+        with engine.connect().execution_options(**{READ_ONLY: True}) as conn, Session(conn) as rdb:
+            rdb.execute(text("SELECT 1"))
+            counts = jobs.counts(rdb)
+            rows = rdb.scalars(select(WorkerRow).where(WorkerRow.last_seen > now() - 3 * SEEN_SECONDS)).all()
+            workers = [{"id": w.id, "pid": w.pid, "host": w.host, "jobs_done": w.jobs_done} for w in rows if _alive(w)]
+            rdb.rollback()
     except Exception as e:
         log.warning("health check failed", extra={"error": type(e).__name__})
         return JSONResponse({"status": "error", "db": "unreachable"}, status_code=503)
-    workers = [w for w in rows if _alive(w)]
-    return {"status": "ok" if workers else "degraded", "db": db.get_bind().dialect.name, "jobs": counts,
-            "workers": [{"id": w.id, "pid": w.pid, "host": w.host, "jobs_done": w.jobs_done} for w in workers]}
+    return {"status": "ok" if workers else "degraded", "db": engine.dialect.name, "jobs": counts, "workers": workers}
 
 
 # ------------------------------------------------------------------------------------------ submissions

@@ -181,6 +181,11 @@ def _private_file(path: str | None) -> None:
     os.close(os.open(path, os.O_CREAT | os.O_WRONLY, 0o600))
 
 
+#: Execution option of a connection that only reads (``/health``): on SQLite its transactions do not take the
+#: write lock, so a health check never waits behind an upload's inserts.
+READ_ONLY = "mapfree_read_only"
+
+
 def make_engine(url: str) -> Engine:
     """An engine; on SQLite every transaction is ``BEGIN IMMEDIATE`` (one writer at a time, waits up to 30 s),
     in WAL mode so that readers in other processes are not blocked."""
@@ -200,7 +205,8 @@ def make_engine(url: str) -> Engine:
 
         @event.listens_for(engine, "begin")
         def _begin(conn):  # pragma: no cover - driver hook
-            conn.exec_driver_sql("BEGIN IMMEDIATE")
+            # a connection marked read-only reads a WAL snapshot without queueing for the write lock
+            conn.exec_driver_sql("BEGIN" if conn.get_execution_options().get(READ_ONLY) else "BEGIN IMMEDIATE")
 
         return engine
     return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=10)
