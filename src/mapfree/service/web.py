@@ -18,7 +18,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from . import auth
-from .api import read_upload
+from .api import spooled_upload
 from .db import MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT, known_scenes
@@ -183,10 +183,7 @@ def submit(request: Request, file: UploadFile = File(...), split: str = Form(...
     settings = request.app.state.settings
     try:
         meta = parse_meta(description, paper_url, code_url, runtime_ms, extra_data)
-        data = read_upload(file, settings.limits.max_submission_bytes, "submission")
-        if data is None:
-            raise UploadError(400, "submission: no file chosen")
-        sub = accept(db, settings, caller.user, split, name, public, data)
+        sub = accept(db, settings, caller.user, split, name, public, spooled_upload(file, "submission"))
     except (UploadError, HTTPException) as e:
         db.rollback()
         status, message = _problem(e)
