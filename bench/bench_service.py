@@ -264,10 +264,13 @@ def main() -> int:
                 time.sleep(0.25)
             t_done = time.perf_counter()
             with S() as db:
-                statuses = dict(db.execute(select(Submission.status, func.count()).group_by(Submission.status)).all())
-                n_results = db.scalar(select(func.count()).select_from(Result))
-                n_distinct = db.scalar(select(func.count(func.distinct(Result.submission_id))))
-                retried = db.scalar(select(func.count()).select_from(Submission).where(Submission.attempts > 1))
+                mine = Submission.id.in_(ids)  # this phase's submissions only (not the big uploads before)
+                statuses = dict(db.execute(select(Submission.status, func.count()).where(mine)
+                                           .group_by(Submission.status)).all())
+                n_results = db.scalar(select(func.count()).select_from(Result).where(Result.submission_id.in_(ids)))
+                n_distinct = db.scalar(select(func.count(func.distinct(Result.submission_id)))
+                                       .where(Result.submission_id.in_(ids)))
+                retried = db.scalar(select(func.count()).select_from(Submission).where(mine, Submission.attempts > 1))
                 killed_job = db.get(Submission, killed["job"]) if killed else None
             ok = (len(ids) == a.submissions and statuses.get("done", 0) == a.submissions
                   and n_results == n_distinct == a.submissions)
