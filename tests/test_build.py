@@ -85,6 +85,7 @@ def test_built_scene_reads_as_mapfree(built):
     assert len(ov) > 0 and (ov.idxs[:, 0] != ov.idxs[:, 2]).any() and (ov.overlaps <= 1).all()
     report = json.loads((out / "train/s00000/build_report.json").read_text())
     assert report["scale"]["source"] == "device" and report["reprojection_error_px"] < 2
+    assert report["overlap_points"] == "depth"  # every frame came with sensor depth
     assert (out / "train/s00000/build_report.png").stat().st_size > 1000
 
 

@@ -25,7 +25,7 @@ from ..data.scene import REFERENCE_NAME
 from ..geometry import Intrinsics, Pose
 from .correspondences import CorrespondenceOptions, depth_correspondences, write_correspondences
 from .inputs import Place, read_place
-from .overlaps import sfm_overlaps
+from .overlaps import depth_overlaps, sfm_overlaps
 from .scale import ScaleFit, scale_from_depth, scale_from_device
 from .sfm import SfmModel, SfmOptions, reconstruct
 
@@ -53,6 +53,7 @@ class BuildOptions:
     corr: CorrespondenceOptions = CorrespondenceOptions()
     sfm: SfmOptions = SfmOptions()
     keep_work: bool = False  # keep the COLMAP database and model
+    overlap_points: str = "auto"  # "depth" (every frame has metric depth), "sfm" (SfM tracks); auto: depth if it can
     report_plot: bool = True
 
 
@@ -208,13 +209,28 @@ def _write_scene(out: Path, place: Place, model: SfmModel, fit: ScaleFit, src: d
     _write_device(out, keep, rename, device, seq_of, opts.split)
     seq = np.array([int(rename[n][3]) for n in keep])
     number = np.array([int(rename[n][-9:-4]) for n in keep])
-    ov = sfm_overlaps([model.observations[n][1] for n in keep], seq, number)
+    ov, points = _overlaps(model, keep, poses, [model.intrinsics[n] for n in keep], images, seq, number,
+                           opts.overlap_points)
     write_overlaps(out / "overlaps.npz", ov)
-    section = {"frames": {rename[n]: str(src[n]) for n in keep}, "overlap_pairs": len(ov),
+    section = {"frames": {rename[n]: str(src[n]) for n in keep}, "overlap_pairs": len(ov), "overlap_points": points,
                "overlap_histogram": _histogram(ov)}
     if opts.correspondences:
         section["correspondences"] = _write_correspondences(out, names, poses, intr, ov, opts.corr)
     return section
+
+
+def _overlaps(model: SfmModel, keep: list[str], poses: list[Pose], intr: list[Intrinsics], images: Path,
+              seq: np.ndarray, number: np.ndarray, mode: str) -> tuple[Overlaps, str]:
+    """Depth-based overlaps where every frame has metric depth (and ``mode`` allows), else SfM tracks."""
+    if mode not in ("auto", "depth", "sfm"):
+        raise ValueError(f"overlap_points must be auto, depth or sfm, not {mode!r}")
+    dense = [[s for s in _depth_suffixes(images / n) if s != SFM_DEPTH_SUFFIX] for n in keep]
+    if mode != "sfm" and all(dense):
+        depths = [read_depth(depth_path_for(images / n, d[0])) for n, d in zip(keep, dense)]
+        return depth_overlaps(poses, intr, depths, seq, number), "depth"
+    if mode == "depth":
+        raise BuildError("--overlap-points depth needs a depth map (frame_NNNNN.SUFFIX.png) beside every image")
+    return sfm_overlaps([model.observations[n][1] for n in keep], seq, number), "sfm"
 
 
 def _write_device(out: Path, keep: list[str], rename: dict[str, str], device: dict[str, Pose | None],

@@ -42,6 +42,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--sfm-depth", action="store_true", help="write sparse SfM depth frame_NNNNN.sfm.png")
     p.add_argument("--correspondences", action="store_true",
                    help="write correspondences.npz: ground-truth matches of training pairs from depth")
+    p.add_argument("--overlap-points", choices=("auto", "depth", "sfm"), default="auto",
+                   help="points behind overlaps.npz: surface points from the frames' metric depth, or SfM tracks "
+                        "(default auto: depth when every frame has a depth map)")
     p.add_argument("--min-registered", type=float, default=0.5, metavar="FRAC",
                    help="fraction of each scan's images SfM must register (default: 0.5)")
     p.add_argument("--max-features", type=int, default=4096, help="SIFT features per image (default: 4096)")
@@ -67,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
     opts = BuildOptions(split=args.split, fps=args.fps, device_axes=args.device_axes, min_registered=args.min_registered,
                         allow_unscaled=args.allow_unscaled, sfm_depth=args.sfm_depth,
                         correspondences=args.correspondences, keep_work=args.keep_work,
+                        overlap_points=args.overlap_points,
                         sfm=replace(SfmOptions(), max_features=args.max_features))
     t0 = time.perf_counter()
     try:

@@ -13,6 +13,9 @@ heading drift and a position random walk growing with the distance walked), in i
 (random heading and origin). With
 ``private_gt_dir`` the true world-to-camera poses (``scanK/poses.txt``, our format) and the overlaps computed
 from the synthetic geometry (``overlaps.npz``, seq = scan index) go to ``private_gt_dir/scans/sNNNNN/``.
+The overlaps follow the same definition as synth's train/val/test scenes (``overlap.py``): surface points
+spread evenly over every frame, counted where they are visible (exact surface id, so occlusion is exact);
+shared / max(points visible in either frame), within and across scans.
 """
 
 from __future__ import annotations
@@ -22,17 +25,16 @@ import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ...geometry import Pose, backproject
+from ...geometry import Pose
 from ..device import DriftModel, simulate_device_trajectory
 from ..io import write_intrinsics, write_poses
 from ..overlaps import Overlaps, write_overlaps
 from .cameras import jitter_intrinsics, walk
 from .generate import SynthOptions, _FrameWriter
-from .overlap import overlap_matrix, overlap_pairs, visible_points
+from .overlap import overlap_matrix, overlap_pairs, sample_frame_points, visible_points
 from .render import random_lighting, rasterize
 from .textures import load_atlas
 from .world import UP, make_world
@@ -51,8 +53,6 @@ class ScanOptions:
     device_rate: int = 3  # device poses per image (the app tracks faster than it saves frames)
     frame_interval: float = 0.5  # seconds between saved images
     drift: DriftModel = DriftModel()
-    match_angle_deg: float = 30.0  # overlaps: a point counts in a frame seen within this angle of its source view
-    match_scale: float = 1.6  # ... and within this distance ratio
     synth: SynthOptions = SynthOptions(write_mono=False)
 
 
@@ -76,7 +76,7 @@ def write_tum(path: os.PathLike | str, times: np.ndarray, cam_to_world: list[Pos
 
 def _rng(seed: int, number: int) -> list[np.random.Generator]:
     ss = np.random.SeedSequence([int(seed), _SCANS_STREAM, int(number)])
-    return [np.random.default_rng(s) for s in ss.spawn(6)]
+    return [np.random.default_rng(s) for s in ss.spawn(7)]
 
 
 def generate_place(root: os.PathLike | str, number: int, seed: int = 0, options: ScanOptions | None = None,
@@ -86,7 +86,7 @@ def generate_place(root: os.PathLike | str, number: int, seed: int = 0, options:
     s = o.synth
     out = Path(root) / "scans" / f"s{number:05d}"
     shutil.rmtree(out, ignore_errors=True)
-    world_rng, cam, lit, noise, drng, dev = _rng(seed, number)
+    world_rng, cam, lit, noise, drng, dev, pts_rng = _rng(seed, number)
     world = make_world(world_rng, load_atlas(s.texture_size))
     writer = _FrameWriter(world, s, noise, drng)
     n_dense = (o.frames - 1) * o.device_rate + 1
@@ -94,7 +94,6 @@ def generate_place(root: os.PathLike | str, number: int, seed: int = 0, options:
     gt_names: list[list[str]] = []
     gt_poses: list[list[Pose]] = []
     seqs, nums, frames, sampled = [], [], [], []
-    sift = cv2.SIFT_create(nfeatures=s.points_per_frame)
     scans = []
     for k in range(o.scans):
         start = theta0 + (0 if k == 0 else cam.uniform(-1.0, 1.0))
@@ -110,7 +109,7 @@ def generate_place(root: os.PathLike | str, number: int, seed: int = 0, options:
         for i, (name, pose, K) in enumerate(zip(names, poses, Ks)):
             qid, depth = rasterize(world, pose, K)
             writer.write(folder / name, pose, K, light, qid, depth)
-            sampled.append(_feature_points(cv2.imread(str(folder / name), cv2.IMREAD_GRAYSCALE), sift, pose, K, qid, depth))
+            sampled.append(sample_frame_points(world, pose, K, s.points_per_frame, pts_rng))
             frames.append((pose, K, qid.astype(np.int16)))
             seqs.append(k)
             nums.append(i)
@@ -122,10 +121,7 @@ def generate_place(root: os.PathLike | str, number: int, seed: int = 0, options:
         gt_poses.append(poses)
     points = np.concatenate([p for p, _ in sampled])
     point_quad = np.concatenate([q for _, q in sampled])
-    source = np.concatenate([np.full(len(p), i) for i, (p, _) in enumerate(sampled)])
-    centres = np.stack([pose.center for pose, _, _ in frames])
-    vis = [visible_points(points, point_quad, pose, K, qid) & _matchable(points, centres[source], pose.center, o)
-           for pose, K, qid in frames]
+    vis = [visible_points(points, point_quad, pose, K, qid) for pose, K, qid in frames]
     if private_gt_dir is not None:
         gt = Path(private_gt_dir) / "scans" / out.name
         shutil.rmtree(gt, ignore_errors=True)
@@ -135,27 +131,6 @@ def generate_place(root: os.PathLike | str, number: int, seed: int = 0, options:
         idxs, ov = overlap_pairs(overlap_matrix(np.stack(vis)), np.array(seqs), np.array(nums))
         write_overlaps(gt / "overlaps.npz", Overlaps(idxs, ov))
     return out
-
-
-def _feature_points(gray: np.ndarray, sift, pose: Pose, K, qid: np.ndarray, depth: np.ndarray):
-    """World points (and their quads) under a frame's SIFT keypoints: where SfM would put its points."""
-    kps = sift.detect(gray, None)
-    uv = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
-    u = np.clip(np.rint(uv[:, 0]).astype(int), 0, K.width - 1)
-    v = np.clip(np.rint(uv[:, 1]).astype(int), 0, K.height - 1)
-    ok = (qid[v, u] >= 0) & (depth[v, u] > 0)
-    X = backproject(np.stack([u[ok], v[ok]], 1).astype(np.float64), depth[v[ok], u[ok]].astype(np.float64), K.K)
-    return pose.inverse().transform(X), qid[v[ok], u[ok]].astype(np.int64)
-
-
-def _matchable(points: np.ndarray, seen_from: np.ndarray, centre: np.ndarray, o: "ScanOptions") -> np.ndarray:
-    """Points whose appearance from ``centre`` stays close to the view they were detected in (angle, scale),
-    as SIFT needs for a point to join an SfM track; geometric visibility alone counts far too much."""
-    a, b = seen_from - points, centre - points
-    na, nb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
-    cos = np.einsum("ij,ij->i", a, b) / np.maximum(na * nb, 1e-12)
-    ratio = nb / np.maximum(na, 1e-12)
-    return (cos >= np.cos(np.radians(o.match_angle_deg))) & (ratio <= o.match_scale) & (ratio >= 1 / o.match_scale)
 
 
 def _one(args: tuple) -> Path:
