@@ -83,6 +83,9 @@ class DataConfig:
     max_val_pairs: int = 0  # 0 = all
     seed: int = 0
     cache_images: bool = False  # keep resized uint8 images in memory (small datasets, num_workers 0)
+    # Decode and resize every frame once into this folder (raw uint8 .npy, 285 kB a frame at 360×270), later
+    # epochs read it back without JPEG decoding; "" = decode every time.
+    cache_dir: str = ""
     normalize_targets: bool = False  # fit: store the training pairs' mean/std pose in model.{t_mean,t_std,R_mean}
 
 

@@ -21,7 +21,7 @@ from ..estimate import Estimate
 from ..geometry import Pose
 from .config import RPRConfig
 from .config import load_config, resolve_config
-from .data import resolve_size, to_input
+from .data import as_float_input, resolve_size, to_input
 from .metrics import confidence_from_log_sigma
 from .module import RPRModule
 from .official import is_public, load_weights, official_config_for, read_checkpoint
@@ -76,8 +76,8 @@ class RPRMethod:
 
     @torch.inference_mode()
     def predict(self, batch: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
-        """``img0``, ``img1`` (B,3,H,W) in [0,1] -> R (B,3,3), t (B,3), confidence (B,), log_sigma (B,2)|absent."""
-        out = self.module.net(batch["img0"].to(self.device), batch["img1"].to(self.device))
+        """``img0``, ``img1`` (B,3,H,W) in [0,1] (or uint8) -> R (B,3,3), t (B,3), confidence (B,), log_sigma (B,2)|absent."""
+        out = self.module.net(as_float_input(batch["img0"].to(self.device)), as_float_input(batch["img1"].to(self.device)))
         res = {"R": out.R.float().cpu().numpy().astype(np.float64), "t": out.t.float().cpu().numpy().astype(np.float64)}
         if out.log_sigma is not None:
             res["log_sigma"] = out.log_sigma.float().cpu().numpy()

@@ -10,6 +10,7 @@ import pytorch_lightning as pl
 import torch
 
 from .config import RPRConfig
+from .data import as_float_input
 from .losses import PoseLoss
 from .metrics import confidence_from_log_sigma, pose_errors, summarize, vcre_px
 from .model import RPRNet
@@ -60,7 +61,7 @@ class RPRModule(pl.LightningModule):
             self.net.to(memory_format=torch.channels_last)
 
     def _step(self, batch: dict[str, torch.Tensor]) -> tuple[PoseOutput, dict[str, torch.Tensor]]:
-        img0, img1 = batch["img0"], batch["img1"]
+        img0, img1 = as_float_input(batch["img0"]), as_float_input(batch["img1"])
         if self.cfg.train.channels_last:
             img0 = img0.contiguous(memory_format=torch.channels_last)
             img1 = img1.contiguous(memory_format=torch.channels_last)

@@ -74,7 +74,8 @@ def build_trainer(cfg: RPRConfig, out: os.PathLike | str, opts: TrainerOptions |
         gradient_clip_val=cfg.train.gradient_clip_val or None,
         log_every_n_steps=cfg.train.log_every_n_steps,
         check_val_every_n_epoch=cfg.train.check_val_every_n_epoch,
-        reload_dataloaders_every_n_epochs=1,  # fresh scene-balanced pairs every epoch
+        # Fresh scene-balanced pairs every epoch come from the dataset itself (data.TrainPairs): the loaders
+        # are built once and their workers persist.
         sync_batchnorm=opts.sync_batchnorm,
         enable_progress_bar=opts.progress,
         default_root_dir=str(out),
