@@ -352,7 +352,8 @@ def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) 
             continue
         cap = min(limits.max_file_bytes, budget)
         if info.file_size > cap:
-            problems.add(scene, None, f"{name} unpacks to {info.file_size} bytes, over {_limit_name(limits, budget)}; ignored")
+            problems.add(scene, None, f"{name} unpacks to {info.file_size} bytes, over the limit "
+                                      f"({_limit_name(limits, budget)}); ignored")
             continue
         try:
             with zf.open(info) as member:
@@ -361,8 +362,8 @@ def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) 
             problems.add(scene, None, f"cannot read {name} ({e}); ignored")
             continue
         if len(data) > cap:
-            problems.add(scene, None, f"{name} unpacks to more than {cap} bytes, over {_limit_name(limits, budget)} "
-                                      "(the size in the ZIP directory is wrong); ignored")
+            problems.add(scene, None, f"{name} unpacks to more than {cap} bytes, over the limit "
+                                      f"({_limit_name(limits, budget)}; the size in the ZIP directory is wrong); ignored")
             continue
         budget -= len(data)
         names, keys, vals, bad, lines = _parse_file(scene, data, compat, problems)
