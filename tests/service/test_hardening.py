@@ -399,3 +399,32 @@ def test_token_guessing_is_limited_per_client(make_app):
     assert r.status_code == 429 and int(r.headers["retry-after"]) > 0, r.text
     assert c.get("/api/me", headers=app.auth("ann")).status_code == 429  # even a right guess: no oracle
     assert c.get("/health").status_code == 200  # anonymous reads go on
+
+
+def test_operator_methods_folder_and_old_anchors_whose_method_cannot_run(make_app, tmp_path):
+    """Methods from ``--methods-dir`` are offered by name (a broken file is skipped, not fatal); an anchor stored
+    before this check whose method cannot run here is a 422 at localize time, not a 500."""
+    from mapfree import matching
+    from mapfree.service.db import Anchor, User
+
+    folder = tmp_path / "methods"
+    folder.mkdir()
+    (folder / "site-sift.yaml").write_text("extends: sift_pnp_sensor\ndescription: the operator's choice\n")
+    (folder / "broken.yaml").write_text("aws_secret_key: x\n")
+    app = make_app(methods_dir=folder)
+    form = {"fx": "50", "fy": "50", "cx": "32", "cy": "24"}
+    files = {"image": ("a.png", _png(48, 64)), "depth": ("d.png", _png(48, 64, 1, np.uint16))}
+    r = app.client.post("/anchors", headers=app.auth("ann"), files=files, data={**form, "method": "site-sift"})
+    assert r.status_code == 201 and r.json()["method"] == "site-sift", r.text
+    r = app.client.post("/anchors", headers=app.auth("ann"), files=files, data={**form, "method": "broken"})
+    assert r.status_code == 422 and "aws_secret_key" not in r.json()["detail"], r.text
+    if "loftr" in matching.available():
+        return
+    with app.client.app.state.sessions.begin() as db:
+        user = db.scalar(select(User).where(User.name == "ann"))
+        old = Anchor(user_id=user.id, method="loftr_emat_sensor", image=_png(48, 64),
+                     intrinsics={**{k: float(v) for k, v in form.items()}, "width": 64, "height": 48})
+        db.add(old)
+    r = app.client.post(f"/anchors/{old.id}/localize", headers=app.auth("ben"),
+                        files={"image": ("q.png", _png(48, 64))}, data=form)
+    assert r.status_code == 422 and "loftr_outdoor.ckpt" in r.json()["detail"], r.text
