@@ -3,11 +3,13 @@ prepared anchors (reference features and depth are computed once per anchor and 
 
 from __future__ import annotations
 
+import logging
 import queue
 import re
 import threading
 from collections import OrderedDict
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -17,6 +19,7 @@ from ..estimate import Estimate
 from ..geometry import Intrinsics
 from .uploads import UploadError
 
+log = logging.getLogger("mapfree.service")
 FALLBACK_METHOD = "sift_pnp_sensor"  # reference depth only: what an anchor with a depth map can always use
 
 
@@ -67,9 +70,6 @@ def check_method(name: str) -> str:
 
 def register_methods_dir(folder) -> list[str]:
     """Register every ``*.yaml`` of the operator's methods folder by its name (``--methods-dir``)."""
-    import logging
-    from pathlib import Path
-
     from .. import methods
 
     names = []
@@ -80,8 +80,7 @@ def register_methods_dir(folder) -> list[str]:
             methods.register(replace(methods.load_yaml(p), name=p.stem), overwrite=True)
             names.append(p.stem)
         except (ValueError, KeyError, FileNotFoundError, OSError) as e:
-            logging.getLogger("mapfree.service").warning("method config skipped", extra={"file": str(p),
-                                                                                          "error": str(e)})
+            log.warning("method config skipped", extra={"file": str(p), "error": str(e)})
     return names
 
 
