@@ -77,6 +77,8 @@ def build_trainer(cfg: RPRConfig, out: os.PathLike | str, opts: TrainerOptions |
         # Fresh scene-balanced pairs every epoch come from the dataset itself (data.TrainPairs): the loaders
         # are built once and their workers persist.
         sync_batchnorm=opts.sync_batchnorm,
+        # One input size for every batch (data.image_size): cuDNN picks its convolution kernels once and keeps them.
+        benchmark=bool(cfg.data.image_size),
         enable_progress_bar=opts.progress,
         default_root_dir=str(out),
         logger=_loggers(out),

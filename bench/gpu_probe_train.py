@@ -1,0 +1,94 @@
+"""The RPR-training GPU figures of issue 9 (point 4) in one call, for a session with a GPU (one H100 expected):
+
+    MAPFREE_OFFLINE=1 python bench/gpu_probe_train.py [--root ROOT] [--out DIR] [--large 64]
+
+1. ``bench/bench_train.py`` for ``rot6d_trans`` (the paper's R(6D)+t) at 360×270, at the paper's batch (10) and
+   at a large batch: step rows before → after (with a torch.compile row), the loader, the loop with GPU utilisation;
+2. a torch profile of five steps before and after at the large batch: the operators that take the CUDA time.
+Everything printed also lands in DIR/probe_train.md; paste the tables into the README's RPR training section.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+
+def profile(batch: int, steps: int = 5) -> str:
+    """Top CUDA-time operators of ``steps`` training steps, before and after."""
+    import torch
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    from bench_train import Trainer, _random_batch, _size
+    from mapfree.regression.config import load_config
+    from mapfree.regression.train import resolve_config
+
+    cfg = load_config(resolve_config("rot6d_trans"))
+    device = torch.device("cuda")
+    data = {k: v.to(device) for k, v in _random_batch(_size(cfg), batch).items()}
+    out = []
+    for name, kw in (("before", dict(fused=False, amp=False, channels_last=False)),
+                     ("after", dict(fused=True, amp=True, channels_last=True))):
+        try:
+            tr = Trainer(cfg, device, **kw)
+            tr.step(data)
+            torch.cuda.synchronize()
+            with torch_profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+                for _ in range(steps):
+                    tr.step(data)
+                torch.cuda.synchronize()
+            table = prof.key_averages().table(sort_by="cuda_time_total", row_limit=15)
+        except torch.cuda.OutOfMemoryError:
+            table = "out of GPU memory"
+        out.append(f"### {name}, batch {batch}, {steps} steps\n\n```\n{table}\n```\n")
+        tr = None
+        torch.cuda.empty_cache()
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from bench_pipeline import DEFAULT_ROOT
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--root", type=Path, default=DEFAULT_ROOT)
+    ap.add_argument("--out", type=Path, default=Path("gpu-probe-train"))
+    ap.add_argument("--large", type=int, default=64, help="the large batch")
+    ap.add_argument("--workers", type=int, default=12)
+    args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    import torch
+
+    if not torch.cuda.is_available():
+        print("no GPU here: this probe only fills in GPU figures (bench/bench_train.py runs on CPU)")
+        return 1
+    lines = [f"# RPR training probe: {torch.cuda.get_device_name()}, torch {torch.__version__}", ""]
+    have_images = args.root is not None and Path(args.root).is_dir()
+    for batch in (10, args.large):
+        cmd = [sys.executable, str(HERE / "bench_train.py"), "--config", "rot6d_trans", "--device", "cuda",
+               "--batch", str(batch), "--steps", "10", "--warmup", "3", "--workers", str(args.workers),
+               "--epochs", "3", "--loop-pairs", str(20 * batch), "--compile",
+               "--parts", "step,loader,loop" if have_images else "step"]
+        if have_images:
+            cmd += ["--root", str(args.root)]
+        try:
+            res = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
+            text = res.stdout + (f"\n(stderr)\n{res.stderr[-2000:]}" if res.returncode else "")
+        except subprocess.TimeoutExpired as e:
+            text = f"timed out after 240 s; partial output:\n{e.stdout or ''}"
+        lines += [f"## batch {batch}", "", "`python " + " ".join(Path(c).name if c == sys.executable else c
+                                                                  for c in cmd[1:]) + "`", "", text, ""]
+        print("\n".join(lines[-6:]), flush=True)
+    lines += ["## where the CUDA time goes", "", profile(min(args.large, 32))]
+    print(lines[-1], flush=True)
+    (args.out / "probe_train.md").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
