@@ -5,7 +5,8 @@ from __future__ import annotations
 import logging
 import os
 import socket
-from typing import BinaryIO
+from dataclasses import dataclass
+from typing import BinaryIO, Callable
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
@@ -14,12 +15,12 @@ from sqlalchemy import select, text
 from sqlalchemy.orm import Session
 
 from . import jobs
-from .db import READ_ONLY, Anchor, Submission, WorkerRow, new_id, now
+from .db import READ_ONLY, Anchor, AnchorPhoto, Submission, WorkerRow, new_id, now
 from .deps import db_session, identify, require_writer
-from .reloc import check_method, check_runnable, default_method, estimate_json, intrinsics_of
+from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of, pose_of
 from .submissions import accept, daily_test_limit, to_json, visible
 from .submissions import plot_png as render_plot
-from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics
+from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics, parse_pose
 from .worker import SEEN_SECONDS
 
 log = logging.getLogger("mapfree.api")
@@ -158,46 +159,148 @@ def plot_png(sid: str, name: str, request: Request, db: Session = Depends(db_ses
 # --------------------------------------------------------------------------------------------- anchors
 
 
-def _anchor_json(a: Anchor) -> dict:
+def _photo_rows(db: Session, aid: str) -> list[AnchorPhoto]:
+    return list(db.scalars(select(AnchorPhoto).where(AnchorPhoto.anchor_id == aid).order_by(AnchorPhoto.seq)))
+
+
+def _anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
+    """An anchor and its photos: photo 0 is the anchor's own (its camera is the anchor's frame); each further
+    photo's ``pose`` is world-to-camera from that frame as ``[qw, qx, qy, qz, tx, ty, tz]``."""
+    photos = [{"index": 0, "intrinsics": a.intrinsics, "has_depth": a.depth is not None, "pose": IDENTITY}]
+    photos += [{"index": i + 1, "intrinsics": r.intrinsics, "has_depth": r.depth is not None, "pose": r.pose}
+               for i, r in enumerate(rows)]
     return {"id": a.id, "name": a.name, "method": a.method, "intrinsics": a.intrinsics,
-            "has_depth": a.depth is not None, "created_at": a.created_at, "url": f"/anchors/{a.id}"}
+            "has_depth": a.depth is not None, "num_photos": len(photos), "photos": photos,
+            "created_at": a.created_at, "url": f"/anchors/{a.id}"}
+
+
+IDENTITY = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
 
 
 def _intr(fx, fy, cx, cy, img, what) -> dict:
     return parse_intrinsics({"fx": fx, "fy": fy, "cx": cx, "cy": cy}, img.shape[1], img.shape[0], what)
 
 
+@dataclass
+class _Upload:
+    """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays."""
+
+    image: bytes
+    intrinsics: dict
+    depth: bytes | None
+    pose: list[float]
+    photo: Photo
+
+
+def _photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth: UploadFile | None,
+                  pose: str | None) -> _Upload:
+    """Read and check one photo (image, intrinsics, depth, pose); every error names ``what`` (the photo) if
+    given. ``pose=None``: the anchor's first photo, whose camera is the anchor's frame."""
+    try:
+        img_bytes = read_upload(image, lim.max_image_bytes, "image")
+        if img_bytes is None:
+            raise UploadError(400, "image: no file uploaded")
+        img = decode_image(img_bytes, lim, "image")
+        intr = _intr(fx, fy, cx, cy, img, "intrinsics")
+        depth_bytes = read_upload(depth, lim.max_image_bytes, "depth")
+        d = decode_depth(depth_bytes, lim, img.shape[:2]) if depth_bytes is not None else None
+        q = IDENTITY if pose is None else parse_pose(pose)
+    except UploadError as e:
+        raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
+    return _Upload(img_bytes, intr, depth_bytes, q, Photo(img, intrinsics_of(intr), d, pose_of(q)))
+
+
+def _photo_name(i: int, f: UploadFile | None) -> str:
+    """How errors name a photo: its index in the anchor (0: the first) and the uploaded file's name."""
+    fname = check_name((f.filename or "") if f is not None else "", 80, "file name") if f is not None else ""
+    return f"photo {i}" + (f" ({fname!r})" if fname else "")
+
+
+def _runnable(m: str, ups: list[_Upload], names: list[str]) -> None:
+    """``check_runnable`` for every photo, naming the one without the depth the method needs."""
+    for i, u in enumerate(ups):
+        try:
+            check_runnable(m, u.depth is not None)
+        except UploadError as e:
+            if not names[i]:
+                raise
+            raise UploadError(e.status, f"{names[i]}: method {m} takes its metric scale from each photo's depth map "
+                                        "and this photo has none: upload its depth (a single-channel uint16 PNG in "
+                                        "millimetres)") from None
+
+
+def _extra_photos(lim, images: list[UploadFile], fx: list[str], fy: list[str], cx: list[str], cy: list[str],
+                  poses: list[str], depths: list[UploadFile], first: int) -> tuple[list[_Upload], list[str]]:
+    """The repeated ``photo_*`` fields of a request: one value per ``photo_image``, in the same order. Depth
+    maps are all or none (an empty file part is dropped, so it cannot stand for a missing one): photos of
+    which only some have depth are added one by one (``POST /anchors/{id}/photos``)."""
+    images = [f for f in images if f.filename or f.size]
+    n = len(images)
+    for field_name, vals in (("photo_fx", fx), ("photo_fy", fy), ("photo_cx", cx), ("photo_cy", cy),
+                             ("photo_pose", poses)):
+        if len(vals) != n:
+            raise UploadError(422, f"{field_name}: {len(vals)} value(s) for {n} photo_image file(s); give one per "
+                                   "photo, in the same order")
+    if depths and len(depths) != n:
+        raise UploadError(422, f"photo_depth: {len(depths)} file(s) for {n} photo_image file(s); give none, or one "
+                               "per photo in the same order (or add the photos one by one: POST "
+                               "/anchors/{id}/photos)")
+    names = [_photo_name(first + i, f) for i, f in enumerate(images)]
+    ups = [_photo_upload(lim, names[i], f, fx[i], fy[i], cx[i], cy[i], depths[i] if depths else None, poses[i])
+           for i, f in enumerate(images)]
+    return ups, names
+
+
+def _store_photos(db: Session, aid: str, ups: list[_Upload], first_seq: int) -> None:
+    for i, u in enumerate(ups):
+        db.add(AnchorPhoto(anchor_id=aid, seq=first_seq + i, intrinsics=u.intrinsics, pose=u.pose, image=u.image,
+                           depth=u.depth, created_at=now()))
+
+
 @router.post("/anchors", status_code=201, tags=["relocalization"])
 def create_anchor(request: Request, image: UploadFile = File(..., description="reference photo (JPEG/PNG)"),
-                        fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
-                        depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
-                        method: str = Form(""), name: str = Form(""), csrf_token: str | None = Form(None),
-                        db: Session = Depends(db_session)):
-    """Register a reference photo (user A) that anyone signed in can localize against."""
+                  fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
+                  depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
+                  method: str = Form(""), name: str = Form(""), csrf_token: str | None = Form(None),
+                  photo_image: list[UploadFile] = File([], description="further photos of the place (repeat)"),
+                  photo_fx: list[str] = Form([], description="one per photo_image"),
+                  photo_fy: list[str] = Form([]), photo_cx: list[str] = Form([]), photo_cy: list[str] = Form([]),
+                  photo_pose: list[str] = Form([], description="one per photo_image: 'qw qx qy qz tx ty tz', "
+                                               "world-to-camera from the first photo's camera, metres"),
+                  photo_depth: list[UploadFile] = File([], description="none, or one per photo_image, in order"),
+                  db: Session = Depends(db_session)):
+    """Register a place (user A) that anyone signed in can localize against: its first photo (``image``, whose
+    camera is the anchor's frame) and optionally further photos (``photo_*``, repeated, one per photo, each
+    with its own intrinsics, optional depth and pose in the anchor's frame). Errors name the photo: photo 0 is
+    ``image``, photo 1 the first ``photo_image``, and so on."""
     caller = require_writer(request, db, csrf_token)
     settings = request.app.state.settings
     lim = settings.limits
-    img_bytes = read_upload(image, lim.max_image_bytes, "image")
-    if img_bytes is None:
-        raise UploadError(400, "image: no file uploaded")
-    img = decode_image(img_bytes, lim, "image")
-    intr = _intr(fx, fy, cx, cy, img, "intrinsics")
-    depth_bytes = read_upload(depth, lim.max_image_bytes, "depth")
-    ref_depth = decode_depth(depth_bytes, lim, img.shape[:2]) if depth_bytes is not None else None
+    several = any(f.filename or f.size for f in photo_image)  # one photo: messages as before, without "photo 0"
+    name0 = _photo_name(0, image) if several else ""
+    first = _photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
+    extra, names = _extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
+    if 1 + len(extra) > lim.max_anchor_photos:
+        raise UploadError(413, f"an anchor holds at most {lim.max_anchor_photos} photos; got {1 + len(extra)}")
     name = check_name(name, lim.max_name_chars)
     m = check_method(method) if method.strip() else default_method(settings.default_method)
-    check_runnable(m, ref_depth is not None)
+    _runnable(m, [first, *extra], [name0, *names])
     aid = new_id()
-    request.app.state.localizers.check(aid, m, img, intrinsics_of(intr), ref_depth)  # 422 if it cannot run here
-    a = Anchor(id=aid, user_id=caller.user.id, name=name, method=m, intrinsics=intr, image=img_bytes,
-               depth=depth_bytes, created_at=now())
+    ups = [first, *extra]
+    request.app.state.localizers.check(aid, m, [u.photo for u in ups], len(ups))  # 422 if it cannot run here
+    a = Anchor(id=aid, user_id=caller.user.id, name=name, method=m, intrinsics=first.intrinsics, image=first.image,
+               depth=first.depth, created_at=now())
     db.add(a)
+    db.flush()
+    _store_photos(db, aid, extra, 1)
     db.commit()
-    return _anchor_json(a)
+    return _anchor_json(a, _photo_rows(db, aid))
 
 
-def _anchor(db: Session, aid: str) -> Anchor:
-    a = db.get(Anchor, aid) if len(aid) <= 32 else None
+def _anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
+    a = None
+    if len(aid) <= 32:
+        a = db.scalars(select(Anchor).where(Anchor.id == aid).with_for_update()).first() if lock else db.get(Anchor, aid)
     if a is None:
         raise HTTPException(404, "no such anchor")
     return a
@@ -208,7 +311,34 @@ def get_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
     caller = identify(request, db)
     if caller.user is None:
         raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
-    return _anchor_json(_anchor(db, aid))
+    a = _anchor(db, aid)
+    return _anchor_json(a, _photo_rows(db, a.id))
+
+
+@router.post("/anchors/{aid}/photos", status_code=201, tags=["relocalization"])
+def add_anchor_photo(aid: str, request: Request, image: UploadFile = File(..., description="photo (JPEG/PNG)"),
+                     fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
+                     pose: str = Form(..., description="'qw qx qy qz tx ty tz': world-to-camera from the anchor's "
+                                                       "first photo, metres"),
+                     depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
+                     csrf_token: str | None = Form(None), db: Session = Depends(db_session)):
+    """Add a photo of the place to one of your anchors (its owner, or an admin). Localizing then retrieves the
+    most similar photo for each query; poses stay in the anchor's frame."""
+    caller = require_writer(request, db, csrf_token)
+    lim = request.app.state.settings.limits
+    a = _anchor(db, aid, lock=True)  # serialises concurrent additions (the next seq) on PostgreSQL too
+    if a.user_id != caller.user.id and not caller.user.is_admin:
+        raise HTTPException(403, "only the anchor's owner can add photos to it")
+    rows = _photo_rows(db, a.id)
+    what = _photo_name(len(rows) + 1, image)
+    if len(rows) + 1 >= lim.max_anchor_photos:
+        raise UploadError(413, f"{what}: anchor {a.id} already holds the limit of {lim.max_anchor_photos} photos")
+    up = _photo_upload(lim, what, image, fx, fy, cx, cy, depth, pose)
+    _runnable(a.method, [up], [what])
+    _store_photos(db, a.id, [up], len(rows) + 1)
+    db.commit()
+    request.app.state.localizers.forget(a.id)  # older versions of this anchor are of no further use here
+    return _anchor_json(a, _photo_rows(db, a.id))
 
 
 @router.delete("/anchors/{aid}", status_code=204, tags=["relocalization"], response_class=Response)
@@ -223,15 +353,33 @@ def delete_anchor(aid: str, request: Request, db: Session = Depends(db_session))
     return Response(status_code=204)
 
 
+def _stored_photos(a: Anchor, rows: list[AnchorPhoto], lim) -> Callable[[], list[Photo]]:
+    """The anchor's photos decoded from the database, on demand (only when not prepared in this process)."""
+
+    def load() -> list[Photo]:
+        out = []
+        for i, (img_b, intr, depth_b, q) in enumerate([(a.image, a.intrinsics, a.depth, IDENTITY)]
+                                                     + [(r.image, r.intrinsics, r.depth, r.pose) for r in rows]):
+            img = decode_image(img_b, lim, f"anchor photo {i}")
+            d = decode_depth(depth_b, lim, img.shape[:2], f"anchor photo {i} depth") if depth_b is not None else None
+            out.append(Photo(img, intrinsics_of(intr), d, pose_of(q)))
+        return out
+
+    return load
+
+
 @router.post("/anchors/{aid}/localize", tags=["relocalization"])
 def localize(aid: str, request: Request, image: UploadFile = File(..., description="query photo (JPEG/PNG)"),
              fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
              depth: UploadFile | None = File(None), csrf_token: str | None = Form(None),
              db: Session = Depends(db_session)):
-    """Metric pose of the query camera relative to the anchor's camera (``X_query = R X_ref + t``), with
-    confidence and timings. ``ok: false`` with a ``reason`` when the method finds no pose."""
+    """Metric pose of the query camera in the anchor's frame, the camera of its first photo
+    (``X_query = R X_anchor + t``), with confidence and timings. With several photos the most similar one
+    (DenseVLAD) answers: ``photo`` says which, ``retrieval_similarity`` how similar. ``ok: false`` with a
+    ``reason`` when the method finds no pose."""
     require_writer(request, db, csrf_token)
     a = _anchor(db, aid)
+    rows = _photo_rows(db, a.id)
     db.commit()  # release the read transaction before the long computation
     lim = request.app.state.settings.limits
     q_bytes = image.file.read(lim.max_image_bytes + 1)
@@ -242,10 +390,8 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     q_depth = None
     if depth is not None and depth.filename:
         q_depth = decode_depth(depth.file.read(lim.max_image_bytes + 1), lim, q_img.shape[:2])
-    ref_img = decode_image(a.image, lim, "anchor image")
-    ref_depth = decode_depth(a.depth, lim, ref_img.shape[:2], "anchor depth") if a.depth is not None else None
-    est = request.app.state.localizers.localize(a.id, a.method, ref_img, intrinsics_of(a.intrinsics), ref_depth,
-                                                q_img, q_K, q_depth)
+    est = request.app.state.localizers.localize_photos(a.id, a.method, 1 + len(rows), _stored_photos(a, rows, lim),
+                                                       q_img, q_K, q_depth)
     out = estimate_json(est, a.method)
     out["anchor"] = a.id
     return out

@@ -19,6 +19,7 @@ class Limits:
     max_image_bytes: int = 16 << 20
     max_image_pixels: int = 4096 * 4096
     max_name_chars: int = 120
+    max_anchor_photos: int = 16  # photos of one anchor's place, the first included
 
 
 @dataclass

@@ -148,6 +148,22 @@ class Anchor(Base):
     created_at: Mapped[float] = mapped_column(Float, default=now)
 
 
+class AnchorPhoto(Base):
+    """A further photo of an anchor's place (the anchor row holds the first one, whose camera is the anchor's
+    frame): its own intrinsics and optional depth, and ``pose`` = world-to-camera from the anchor's frame as
+    ``[qw, qx, qy, qz, tx, ty, tz]`` (metres). A table of its own so that existing databases gain it with
+    ``create_all``; photos are only appended, so their count identifies an anchor's version."""
+
+    __tablename__ = "anchor_photos"
+    anchor_id: Mapped[str] = mapped_column(ForeignKey("anchors.id", ondelete="CASCADE"), primary_key=True)
+    seq: Mapped[int] = mapped_column(Integer, primary_key=True)  # 1, 2, ... (photo 0 is the anchor row's)
+    intrinsics: Mapped[dict] = mapped_column(JSON)
+    pose: Mapped[list] = mapped_column(JSON)
+    image: Mapped[bytes] = mapped_column(LargeBinary)
+    depth: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+    created_at: Mapped[float] = mapped_column(Float, default=now)
+
+
 class WorkerRow(Base):
     __tablename__ = "workers"
     id: Mapped[str] = mapped_column(String(64), primary_key=True)

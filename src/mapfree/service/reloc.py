@@ -8,15 +8,15 @@ import queue
 import re
 import threading
 from collections import OrderedDict
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
 
 from ..estimate import Estimate
-from ..geometry import Intrinsics
+from ..geometry import Intrinsics, Pose, quat_to_rotmat
 from .uploads import UploadError
 
 log = logging.getLogger("mapfree.service")
@@ -152,14 +152,35 @@ def intrinsics_of(d: dict) -> Intrinsics:
     return Intrinsics(d["fx"], d["fy"], d["cx"], d["cy"], int(d["width"]), int(d["height"]))
 
 
+@dataclass
+class Photo:
+    """One photo of an anchor: pixels, intrinsics, optional metric depth, and its world-to-camera pose in the
+    anchor's frame (the first photo's camera; identity for that one)."""
+
+    image: np.ndarray
+    K: Intrinsics
+    depth: np.ndarray | None = None
+    pose: Pose = field(default_factory=Pose.identity)
+
+
+def pose_of(values) -> Pose:
+    """``[qw, qx, qy, qz, tx, ty, tz]`` (as stored) -> ``Pose``."""
+    return Pose(quat_to_rotmat(np.asarray(values[:4], float)), np.asarray(values[4:], float))
+
+
 class Localizers:
-    """Thread-safe access to relocalizers: at most ``per_method`` concurrent computations per method."""
+    """Thread-safe access to relocalizers: at most ``per_method`` concurrent computations per method.
+
+    Prepared anchors are kept per (anchor, method, version): for one photo the method's prepared reference,
+    for several a ``ReferenceSet`` (DenseVLAD retrieval over the photos, each prepared on first use). The
+    version is the anchor's photo count (photos are only appended), so a photo added through another process
+    is never answered from a stale cache."""
 
     def __init__(self, per_method: int = 2, max_anchors: int = 32):
         self.per_method, self.max_anchors = per_method, max_anchors
         self._pools: dict[str, queue.Queue] = {}
         self._made: dict[str, int] = {}
-        self._anchors: OrderedDict[tuple[str, str], Any] = OrderedDict()
+        self._anchors: OrderedDict[tuple, Any] = OrderedDict()
         self._lock = threading.Lock()
 
     def _take(self, method):
@@ -183,9 +204,36 @@ class Localizers:
     def _give(self, method, loc) -> None:
         self._pools[method.name].put(loc)
 
-    def check(self, anchor_id: str, method: str, ref_image: np.ndarray, ref_K: Intrinsics,
-              ref_depth: np.ndarray | None) -> None:
-        """Build the method and prepare the reference now (both kept for the first ``localize``), so that an
+    def _cached(self, key: tuple) -> Any:
+        with self._lock:
+            prepared = self._anchors.get(key)
+            if prepared is not None:
+                self._anchors.move_to_end(key)
+            return prepared
+
+    def _store(self, key: tuple, prepared: Any) -> None:
+        with self._lock:
+            self._anchors[key] = prepared
+            while len(self._anchors) > self.max_anchors:
+                self._anchors.popitem(last=False)
+
+    @staticmethod
+    def _prepare(loc, name: str, photos: list[Photo]) -> Any:
+        """What localizing against these photos reuses: the prepared reference (one photo, a method that
+        prepares), the reference ``View`` (other kinds), or a ``ReferenceSet`` (several photos)."""
+        from ..relocalize import View
+        from ..relocalize.references import ReferenceSet
+
+        views = [View(p.image, p.K, p.depth, name=f"photo {i}") for i, p in enumerate(photos)]
+        try:
+            if len(views) > 1:  # every photo kept; the most similar one (DenseVLAD) answers each query
+                return ReferenceSet.build(views, [p.pose for p in photos], k=len(views), top=1)
+            return loc.prepare(views[0]) if hasattr(loc, "prepare") else views[0]
+        except Exception as e:  # e.g. a depth network whose weights are gone: a 422, not a 500
+            raise _unavailable(name, e) from e
+
+    def check(self, anchor_id: str, method: str, photos: list[Photo], version: int = 1) -> None:
+        """Build the method and prepare the anchor now (both kept for the first ``localize``), so that an
         anchor whose method cannot run here is refused at creation (``MethodUnavailable``), not at use."""
         from ..relocalize import View
 
@@ -195,14 +243,14 @@ class Localizers:
             try:
                 if i > 0 or not hasattr(loc, "prepare"):
                     continue  # built (weights present); the reference is prepared once, by the usual variant
-                try:
-                    prepared = loc.prepare(View(ref_image, ref_K, ref_depth))
-                except Exception as e:
-                    raise _unavailable(m.name, e) from e
-                with self._lock:
-                    self._anchors[(anchor_id, m.name)] = prepared
-                    while len(self._anchors) > self.max_anchors:
-                        self._anchors.popitem(last=False)
+                prepared = self._prepare(loc, m.name, photos)
+                if len(photos) > 1:  # the set prepares lazily: run the method once on the first photo now
+                    p = photos[0]
+                    try:
+                        loc.prepare(View(p.image, p.K, p.depth))
+                    except Exception as e:
+                        raise _unavailable(m.name, e) from e
+                self._store((anchor_id, m.name, version), prepared)
             finally:
                 self._give(m, loc)
 
@@ -214,32 +262,41 @@ class Localizers:
     def localize(self, anchor_id: str, method: str, ref_image: np.ndarray, ref_K: Intrinsics,
                  ref_depth: np.ndarray | None, query_image: np.ndarray, query_K: Intrinsics,
                  query_depth: np.ndarray | None = None) -> Estimate:
-        """Pose of the query relative to the anchor; ``est.extras["method"]`` names what actually ran."""
+        """Pose of the query relative to one reference photo; ``est.extras["method"]`` names what ran."""
+        return self.localize_photos(anchor_id, method, 1, lambda: [Photo(ref_image, ref_K, ref_depth)],
+                                    query_image, query_K, query_depth)
+
+    def localize_photos(self, anchor_id: str, method: str, version: int, photos: Callable[[], list[Photo]],
+                        query_image: np.ndarray, query_K: Intrinsics,
+                        query_depth: np.ndarray | None = None) -> Estimate:
+        """World-to-camera pose of the query in the anchor's frame. ``photos`` is called (decoding the stored
+        images) only when this process has not prepared this version of the anchor yet. With several photos
+        ``est.extras`` names the retrieved one (``photo``, ``retrieval_similarity``)."""
         from ..relocalize import View
+        from ..relocalize.references import ReferenceSet
 
         method = effective_method(method, query_depth is not None)
         loc = self._take(method)
         try:
-            key = (anchor_id, method.name)
-            with self._lock:
-                prepared = self._anchors.get(key)
-                if prepared is not None:
-                    self._anchors.move_to_end(key)
-            if prepared is None and hasattr(loc, "prepare"):
-                try:
-                    prepared = loc.prepare(View(ref_image, ref_K, ref_depth))
-                except Exception as e:  # e.g. a depth network whose weights are gone: a 422, not a 500
-                    raise _unavailable(method.name, e) from e
-                with self._lock:
-                    self._anchors[key] = prepared
-                    while len(self._anchors) > self.max_anchors:
-                        self._anchors.popitem(last=False)
+            key = (anchor_id, method.name, version)
+            prepared = self._cached(key)
+            if prepared is None:
+                prepared = self._prepare(loc, method.name, photos())
+                self._store(key, prepared)
             query = View(query_image, query_K, query_depth)
-            if prepared is not None:
-                est = loc.localize(query, prepared)
-            else:
-                loc.set_reference(View(ref_image, ref_K, ref_depth))
+            if isinstance(prepared, ReferenceSet):
+                try:
+                    est = prepared.localize(loc, query)
+                except Exception as e:  # a photo prepared on first use, by a method that cannot run here
+                    raise _unavailable(method.name, e) from e
+                name = str(est.extras.get("reference", ""))  # "photo I" (the set may reorder its views)
+                est.extras["photo"] = int(name[6:]) if name.startswith("photo ") else None
+            elif isinstance(prepared, View):
+                loc.set_reference(prepared)
                 est = loc.localize(query)
+            else:
+                est = loc.localize(query, prepared)
+            est.extras.setdefault("photo", 0)
             est.extras["method"] = method.name
             return est
         finally:
@@ -251,6 +308,10 @@ def estimate_json(est: Estimate, method: str) -> dict:
     d["method"] = est.extras.get("method", method)
     d["num_matches"] = int(est.extras.get("num_matches", 0) or 0)
     d["scale_free"] = bool(est.extras.get("scale_free", False))
+    if est.extras.get("photo") is not None:  # which photo of the anchor answered (0: its first)
+        d["photo"] = int(est.extras["photo"])
+    if "retrieval_similarity" in est.extras:
+        d["retrieval_similarity"] = float(est.extras["retrieval_similarity"])
     return d
 
 

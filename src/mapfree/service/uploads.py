@@ -196,3 +196,30 @@ def parse_intrinsics(values: dict, width: int, height: int, what: str = "intrins
                                f"{width}x{height} image")
     out.update(width=int(width), height=int(height))
     return out
+
+
+#: How far a photo of an anchor may be from the anchor's first camera (metres): one place, not a city.
+MAX_POSE_METRES = 1000.0
+
+
+def parse_pose(text: str | None, what: str = "pose") -> list[float]:
+    """``"qw qx qy qz tx ty tz"`` (world-to-camera, Map-free ``poses.txt`` order; commas allowed) -> the seven
+    numbers with the quaternion normalised. A quaternion far from unit length or a translation beyond
+    ``MAX_POSE_METRES`` is refused: it almost always means the values are in another order or unit."""
+    parts = (text or "").replace(",", " ").split()
+    if len(parts) != 7:
+        raise UploadError(422, f"{what}: expected 7 numbers 'qw qx qy qz tx ty tz' (world-to-camera from the "
+                               f"anchor's first photo, metres), got {len(parts)}")
+    try:
+        v = [float(p) for p in parts]
+    except ValueError:
+        raise UploadError(422, f"{what}: not a number in {text.strip()[:80]!r}") from None
+    if not all(math.isfinite(x) for x in v):
+        raise UploadError(422, f"{what}: every value must be finite")
+    n = math.sqrt(sum(x * x for x in v[:4]))
+    if abs(n - 1.0) > 0.01:
+        raise UploadError(422, f"{what}: the quaternion (qw qx qy qz) must have unit length, got {n:.4g}")
+    if math.sqrt(sum(x * x for x in v[4:])) > MAX_POSE_METRES:
+        raise UploadError(422, f"{what}: the translation is over {MAX_POSE_METRES:g} m from the anchor's first "
+                               "photo (metres expected)")
+    return [x / n for x in v[:4]] + v[4:]

@@ -1,0 +1,143 @@
+"""Anchors holding several photos of a place (issue 12): created in one request or grown photo by photo, each
+photo with its own intrinsics, depth and pose in the anchor's frame; a query is answered by the most similar
+photo (DenseVLAD) with its pose in the anchor's frame. Real HTTP, real photos (realmini-dev, sensor depth)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapfree.data import Dataset
+from mapfree.geometry import Pose
+
+METHOD = "sift_pnp_sensor"
+SCENE = "s00000"
+#: A second photo from the query scan near its end, and queries: one only that photo sees well (the anchor's
+#: first photo alone gives no pose for it on this scene), one near the first photo.
+SECOND, FAR_QUERY, NEAR_QUERY = "seq1/frame_00022.jpg", "seq1/frame_00024.jpg", "seq1/frame_00010.jpg"
+
+
+def _form(K, prefix: str = "") -> dict:
+    return {f"{prefix}fx": str(K.fx), f"{prefix}fy": str(K.fy), f"{prefix}cx": str(K.cx), f"{prefix}cy": str(K.cy)}
+
+
+def _pose_text(p: Pose) -> str:
+    q, t = p.qt()
+    return " ".join(f"{x:.9f}" for x in [*q, *t])
+
+
+def _files(frame, key: str = "image", depth_key: str = "depth") -> list:
+    return [(key, (frame.image_path.name, frame.image_path.read_bytes(), "image/jpeg")),
+            (depth_key, (frame.depth_path("sensor").name, frame.depth_path("sensor").read_bytes(), "image/png"))]
+
+
+def _errors(est: dict, gt: Pose) -> tuple[float, float]:
+    pose = Pose(np.array(est["R"]), np.array(est["t"]))
+    rot = np.degrees(np.arccos(np.clip((np.trace(pose.R.T @ gt.R) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(pose.center - gt.center)), float(rot)
+
+
+def _localize(client, aid: str, frame) -> dict:
+    r = client.post(f"/anchors/{aid}/localize", data=_form(frame.intrinsics),
+                    files={"image": (frame.image_path.name, frame.image_path.read_bytes(), "image/jpeg")})
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+@pytest.fixture(scope="module")
+def scene(realmini_dir):
+    return Dataset(realmini_dir).scene("val", SCENE)
+
+
+def test_two_photo_anchor_retrieves_the_right_photo_in_the_anchor_frame(server, scene):
+    ref, second = scene.reference, scene.frame(SECOND)
+    far, near = scene.frame(FAR_QUERY), scene.frame(NEAR_QUERY)
+    with server.client("alice") as alice:
+        # one request: photo 0 (the anchor's frame) and photo 1 with its pose relative to photo 0
+        r = alice.post("/anchors", files=_files(ref) + _files(second, "photo_image", "photo_depth"),
+                       data={**_form(ref.intrinsics), **_form(second.intrinsics, "photo_"),
+                             "photo_pose": _pose_text(second.pose), "method": METHOD, "name": "office, 2 photos"})
+        assert r.status_code == 201, r.text
+        anchor = r.json()
+        assert anchor["num_photos"] == 2 and [p["index"] for p in anchor["photos"]] == [0, 1]
+        assert all(p["has_depth"] for p in anchor["photos"]) and anchor["photos"][0]["pose"][0] == 1.0
+        assert np.allclose(anchor["photos"][1]["pose"], [float(x) for x in _pose_text(second.pose).split()],
+                           atol=1e-6)
+        one = alice.post("/anchors", files=_files(ref), data={**_form(ref.intrinsics), "method": METHOD}).json()
+    with server.client("bob") as bob:
+        est = _localize(bob, anchor["id"], far)
+        assert est["ok"] and est["photo"] == 1, est
+        dist, rot = _errors(est, far.pose)  # ground truth is in the first photo's frame
+        assert dist < 0.15 and rot < 5, (dist, rot)
+        est = _localize(bob, anchor["id"], near)
+        assert est["ok"] and est["photo"] == 0, est
+        dist, rot = _errors(est, near.pose)
+        assert dist < 0.15 and rot < 5, (dist, rot)
+        # the first photo alone does not localize the far query within that error: the second photo is what did
+        alone = _localize(bob, one["id"], far)
+        assert not alone["ok"] or _errors(alone, far.pose)[0] > 0.5, alone
+        assert bob.post(f"/anchors/{one['id']}/photos", files=_files(second),
+                        data={**_form(second.intrinsics), "pose": _pose_text(second.pose)}).status_code == 403
+    with server.client("alice") as alice:
+        # growing the single-photo anchor photo by photo gives the same answers (a new version, not the cache)
+        r = alice.post(f"/anchors/{one['id']}/photos", files=_files(second),
+                       data={**_form(second.intrinsics), "pose": _pose_text(second.pose)})
+        assert r.status_code == 201 and r.json()["num_photos"] == 2, r.text
+        assert alice.get(f"/anchors/{one['id']}").json()["photos"][1]["has_depth"]
+        est = _localize(alice, one["id"], far)
+        assert est["ok"] and est["photo"] == 1 and _errors(est, far.pose)[0] < 0.15, est
+        for a in (anchor, one):
+            assert alice.delete(f"/anchors/{a['id']}").status_code == 204  # its photos go with it
+            assert alice.get(f"/anchors/{a['id']}").status_code == 404
+
+
+@pytest.mark.parametrize("bad, words", [
+    ({"photo_pose": "1 0 0 0 0.1 0.2"}, "photo 1 ('frame_00022.jpg'): pose: expected 7 numbers"),
+    ({"photo_pose": "2 0 0 0 0.1 0.2 0.3"}, "photo 1 ('frame_00022.jpg'): pose: the quaternion"),
+    ({"photo_pose": "1 0 0 0 nan 0 0"}, "photo 1 ('frame_00022.jpg'): pose: every value must be finite"),
+    ({"photo_fx": "-5"}, "photo 1 ('frame_00022.jpg'): intrinsics: focal lengths must be positive"),
+    ({"photo_cx": "99999"}, "photo 1 ('frame_00022.jpg'): intrinsics: principal point"),
+    ({"photo_fy": "abc"}, "photo 1 ('frame_00022.jpg'): intrinsics: fy must be a number"),
+])
+def test_a_bad_photo_is_a_422_naming_it(server, scene, bad, words):
+    ref, second = scene.reference, scene.frame(SECOND)
+    data = {**_form(ref.intrinsics), **_form(second.intrinsics, "photo_"), "photo_pose": _pose_text(second.pose),
+            "method": METHOD, **bad}
+    with server.client("carol") as c:
+        r = c.post("/anchors", files=_files(ref) + _files(second, "photo_image", "photo_depth"), data=data)
+    assert r.status_code == 422 and words in r.json()["detail"], r.text
+
+
+def test_photo_fields_must_line_up_and_depth_is_checked_per_photo(server, scene):
+    ref, second, third = scene.reference, scene.frame(SECOND), scene.frame(NEAR_QUERY)
+    base = {**_form(ref.intrinsics), "method": METHOD}
+    two = {k: [v, v] for k, v in _form(second.intrinsics, "photo_").items()}
+    pose2 = [_pose_text(second.pose), _pose_text(third.pose)]
+    imgs = [("photo_image", (f.image_path.name, f.image_path.read_bytes(), "image/jpeg")) for f in (second, third)]
+    with server.client("carol") as c:
+        r = c.post("/anchors", files=_files(ref) + imgs, data={**base, **two, "photo_pose": pose2[:1]})
+        assert r.status_code == 422 and "photo_pose: 1 value(s) for 2 photo_image" in r.json()["detail"], r.text
+        depth1 = [_files(second, depth_key="photo_depth")[1]]
+        r = c.post("/anchors", files=_files(ref) + imgs + depth1, data={**base, **two, "photo_pose": pose2})
+        assert r.status_code == 422 and "photo_depth: 1 file(s) for 2 photo_image" in r.json()["detail"], r.text
+        # the method takes its scale from each photo's depth: the further photos have none
+        r = c.post("/anchors", files=_files(ref) + imgs, data={**base, **two, "photo_pose": pose2})
+        assert r.status_code == 422 and r.json()["detail"].startswith("photo 1 ('frame_00022.jpg'): method"), r.text
+        assert "depth" in r.json()["detail"]
+        # a depth map of the wrong size for its photo, and an image that is not one
+        wrong = [("photo_depth", ("d.png", ref.depth_path("sensor").read_bytes()[:200], "image/png"))] * 2
+        r = c.post("/anchors", files=_files(ref) + imgs + wrong, data={**base, **two, "photo_pose": pose2})
+        assert r.status_code == 422 and r.json()["detail"].startswith("photo 1 ('frame_00022.jpg'): depth"), r.text
+        r = c.post("/anchors", files=_files(ref) + [("photo_image", ("x.jpg", b"not a jpeg", "image/jpeg"))],
+                   data={**base, **_form(second.intrinsics, "photo_"), "photo_pose": pose2[0]})
+        assert r.status_code == 422 and r.json()["detail"].startswith("photo 1 ('x.jpg'): image"), r.text
+        # adding a photo: same checks, the photo named by the index it would get
+        a = c.post("/anchors", files=_files(ref), data=base).json()
+        r = c.post(f"/anchors/{a['id']}/photos", files=_files(second),
+                   data={**_form(second.intrinsics), "pose": "0 0 0 0 0 0 0"})
+        assert r.status_code == 422 and "photo 1 ('frame_00022.jpg'): pose: the quaternion" in r.json()["detail"]
+        r = c.post(f"/anchors/{a['id']}/photos", files=[_files(second)[0]],
+                   data={**_form(second.intrinsics), "pose": _pose_text(second.pose)})
+        assert r.status_code == 422 and "photo 1" in r.json()["detail"] and "depth" in r.json()["detail"], r.text
+        assert c.get(f"/anchors/{a['id']}").json()["num_photos"] == 1  # nothing stored by the refused ones
+        assert c.delete(f"/anchors/{a['id']}").status_code == 204
