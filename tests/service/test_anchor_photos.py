@@ -64,6 +64,9 @@ def test_two_photo_anchor_retrieves_the_right_photo_in_the_anchor_frame(server, 
         assert np.allclose(anchor["photos"][1]["pose"], [float(x) for x in _pose_text(second.pose).split()],
                            atol=1e-6)
         one = alice.post("/anchors", files=_files(ref), data={**_form(ref.intrinsics), "method": METHOD}).json()
+        api = alice.get("/openapi.json").json()  # the API docs describe the photo fields and the new endpoint
+        assert "post" in api["paths"]["/anchors/{aid}/photos"]
+        assert "photo_pose" in str(api["components"]["schemas"])
     with server.client("bob") as bob:
         est = _localize(bob, anchor["id"], far)
         assert est["ok"] and est["photo"] == 1, est

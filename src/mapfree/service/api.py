@@ -159,6 +159,10 @@ def plot_png(sid: str, name: str, request: Request, db: Session = Depends(db_ses
 # --------------------------------------------------------------------------------------------- anchors
 
 
+#: The pose of an anchor's first photo in the anchor's frame (``[qw, qx, qy, qz, tx, ty, tz]``).
+IDENTITY = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+
+
 def _photo_rows(db: Session, aid: str) -> list[AnchorPhoto]:
     return list(db.scalars(select(AnchorPhoto).where(AnchorPhoto.anchor_id == aid).order_by(AnchorPhoto.seq)))
 
@@ -172,9 +176,6 @@ def _anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
     return {"id": a.id, "name": a.name, "method": a.method, "intrinsics": a.intrinsics,
             "has_depth": a.depth is not None, "num_photos": len(photos), "photos": photos,
             "created_at": a.created_at, "url": f"/anchors/{a.id}"}
-
-
-IDENTITY = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
 
 
 def _intr(fx, fy, cx, cy, img, what) -> dict:
