@@ -3,9 +3,11 @@
 For each scan length, writes PLACES synthetic places (two scans each, `mapfree synth --split scans`), builds
 them (pycolmap SfM, metric scale from the drifting device track, layout, overlaps) one place at a time on one
 thread, and compares with the true poses and overlaps: median rotation error, median camera-centre error
-relative to the scan's extent (after a rigid alignment: the scale is the build's own), overlap correlation.
+relative to the scan's extent (after a rigid alignment: the scale is the build's own), overlap correlation
+with synth's own (surface points spread evenly over the frames, exact visibility).
 
-    .venv/bin/python bench/bench_build.py [--places 4] [--frames 8,12,16] [--size 270x360] [--json out.json]
+    .venv/bin/python bench/bench_build.py [--places 4] [--frames 8,12,16] [--size 270x360] [--overlap-points sfm]
+                                          [--json out.json]
 """
 
 from __future__ import annotations
@@ -40,6 +42,8 @@ def main() -> None:
     ap.add_argument("--frames", default="8,12,16", help="images per scan, comma-separated")
     ap.add_argument("--size", default="270x360", help="image size WxH")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--overlap-points", choices=("auto", "depth", "sfm"), default="auto",
+                    help="points behind the built overlaps (sfm: the SfM tracks, as without depth maps)")
     ap.add_argument("--json", type=Path, help="write the rows here")
     args = ap.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
@@ -51,7 +55,8 @@ def main() -> None:
             generate_scans(root, args.places, args.seed, opts, private_gt_dir=root / "gt", progress=False)
             for place in sorted((root / "scans").iterdir()):
                 t0, c0 = time.perf_counter(), _cpu()
-                r = build_place(place, root / "out/train" / place.name, BuildOptions(report_plot=False))
+                build = BuildOptions(report_plot=False, overlap_points=args.overlap_points)
+                r = build_place(place, root / "out/train" / place.name, build)
                 row = {"frames_per_scan": n, "place": place.name, "status": r.status, "reason": r.reason,
                        "seconds": time.perf_counter() - t0, "cpu_seconds": _cpu() - c0,
                        "sfm_seconds": r.report.get("sfm_seconds")}
@@ -61,7 +66,8 @@ def main() -> None:
                     row["scale_residual"] = r.report["scale"]["residual"]
                 rows.append(row)
                 print(json.dumps({k: v for k, v in row.items() if k != "scan_extent_m"}, default=float), flush=True)
-    table = Table(title=f"mapfree build, {args.places} synthetic places per row, {w}x{h}, 1 thread per place")
+    table = Table(title=f"mapfree build, {args.places} synthetic places per row, {w}x{h}, 1 thread per place, "
+                        f"overlaps from {args.overlap_points} points")
     for c in ("images/scan", "built", "s/place (median)", "rot. err. median (deg)", "centre err. (% extent)",
               "overlap corr.", "scale residual (%)"):
         table.add_column(c, justify="right")

@@ -166,3 +166,115 @@ def test_ray_val_build_runs_and_evaluates(built, scans, tmp_path):
     assert cli_main(["run", str(out), "--split", "val", "--method", "sift_emat_sensor", "-o", str(sub),
                      "--all-frames", "--no-progress"]) == 0
     assert cli_main(["evaluate", str(sub), "--dataset", str(out), "--split", "val", "--json"]) == 0
+
+
+REAL = Path("/work/shared/data/realmini-dev/val/s00000")
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="realmini-dev not available")
+def test_exif_focal_length_of_a_real_photo(tmp_path):
+    """A phone photo without intrinsics.txt: its EXIF 35 mm focal length gives the pinhole camera."""
+    from PIL import Image
+
+    from mapfree.data import read_intrinsics
+
+    true = read_intrinsics(REAL / "intrinsics.txt")["seq0/frame_00000.jpg"]
+    f35 = round(true.fx / max(true.width, true.height) * 36)  # what the phone would write, whole millimetres
+    place = tmp_path / "statue"
+    for k, src in enumerate(["seq0/frame_00000.jpg", "seq1/frame_00001.jpg"]):
+        (place / f"scan{k}").mkdir(parents=True)
+        with Image.open(REAL / src) as im:
+            exif = Image.Exif()
+            exif.get_ifd(0x8769)[0xA405] = f35  # Exif sub-IFD, FocalLengthIn35mmFilm
+            im.save(place / f"scan{k}" / "frame_00000.jpg", exif=exif, quality=95)
+            im.save(place / f"scan{k}" / "frame_00001.jpg", quality=95)  # no EXIF: focal unknown
+    (place / "scan1" / "intrinsics.txt").write_text("frame_00000.jpg 500 501 270 180 540 360\n")
+    scans = read_place(place).scans
+    K = scans[0].frames[0].intrinsics
+    assert (K.width, K.height) == (true.width, true.height)
+    assert abs(K.fx - true.fx) / true.fx < 0.02 and K.fx == K.fy  # rounding to whole mm only
+    assert (K.cx, K.cy) == ((true.width - 1) / 2, (true.height - 1) / 2)
+    assert scans[0].frames[1].intrinsics is None
+    assert scans[1].frames[0].intrinsics.fy == 501  # intrinsics.txt wins over EXIF
+
+
+@pytest.mark.slow
+def test_ray_cluster_address(built, scans, tmp_path, monkeypatch):
+    """A Ray head started apart from the build (as on a cluster): --ray HOST:PORT gives the pool's scene."""
+    ray = pytest.importorskip("ray")
+    import os
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import tempfile
+    import time
+
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")  # a throw-away loopback cluster: no token to hand around
+    temp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # Ray's socket paths must stay short
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    head = subprocess.Popen([str(Path(sys.executable).parent / "ray"), "start", "--head", "--block",
+                             f"--port={port}", "--num-cpus=1",
+                             "--object-store-memory=100000000", "--include-dashboard=false", f"--temp-dir={temp}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    out = tmp_path / "cluster"
+    host = ray.util.get_node_ip_address()  # the head listens on this machine's address, as a cluster's would
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # wait for the head to accept connections
+            with socket.socket() as s:
+                if s.connect_ex((host, port)) == 0:
+                    break
+            time.sleep(0.5)
+        else:
+            pytest.fail("the Ray head did not start")
+        results = build_all(scans / "scans", out, BuildOptions(split="train", report_plot=False),
+                            ray_address=f"{host}:{port}", progress=False)
+        assert ray.is_initialized() and ray.get_runtime_context().gcs_address.endswith(f":{port}")
+    finally:
+        ray.shutdown()
+        os.killpg(head.pid, signal.SIGTERM)  # the head and the processes it started, nothing else
+        try:
+            head.wait(5)
+        except subprocess.TimeoutExpired:
+            pass
+        try:
+            os.killpg(head.pid, signal.SIGKILL)  # stragglers of the same process group
+        except ProcessLookupError:
+            pass
+        head.wait(10)
+        shutil.rmtree(temp, ignore_errors=True)
+    assert [r.status for r in results] == ["ok"], results[0].reason
+    pool = read_poses(built[0] / "train/s00000/poses.txt").as_dict()
+    mine = read_poses(out / "train/s00000/poses.txt").as_dict()
+    assert mine.keys() == pool.keys()
+    assert all(np.allclose(mine[n].t, pool[n].t, atol=1e-3) for n in pool)
+
+
+def test_own_matcher_written_into_colmap_database(scans, tmp_path):
+    """--matcher sift: our registry's keypoints and matches go into COLMAP's database and map as accurately."""
+    import pycolmap
+
+    from mapfree.build import SfmOptions
+    from mapfree.matching import create
+
+    opts = BuildOptions(split="train", report_plot=False, keep_work=True, sfm=SfmOptions(matcher="sift"))
+    res = build_all(scans / "scans", tmp_path, opts, progress=False)
+    assert [r.status for r in res] == ["ok"], res[0].reason
+    acc = compare_to_truth(tmp_path / "train/s00000", scans / "gt/scans/s00000")
+    assert acc["frames"] >= 14 and acc["rotation_median_deg"] < 1.0 and acc["centre_median_rel"] < 0.02
+    assert acc["overlap_correlation"] > 0.9
+    first = scans / "scans/s00000/scan0/frame_00000.jpg"
+    ours = create("sift").extract(cv2.cvtColor(cv2.imread(str(first)), cv2.COLOR_BGR2RGB))
+    with pycolmap.Database.open(tmp_path / "train/.build/s00000/colmap/database.db") as db:
+        image = db.read_image_with_name("seq0/frame_00000.jpg")
+        assert np.allclose(db.read_keypoints(image.image_id)[:, :2], ours.kpts, atol=1e-3)
+        assert db.num_verified_image_pairs() > 20
+
+
+def test_unknown_matcher_is_a_clear_error(scans, tmp_path, capsys):
+    assert cli_main(["build", str(scans / "scans"), "--out", str(tmp_path), "--matcher", "nope", "--quiet"]) == 2
+    assert "unknown --matcher 'nope'" in capsys.readouterr().err

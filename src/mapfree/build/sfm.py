@@ -4,6 +4,10 @@ All images of all scans go into one COLMAP database, so the mapper reconstructs 
 scans to each other in one step (cross-scan matches tie them together). The largest model is kept; images
 it lacks are reported as unregistered. Known intrinsics are fixed (one PINHOLE camera per image: phones
 refocus); unknown ones share one camera per scan whose focal length bundle adjustment refines.
+
+``SfmOptions.matcher`` swaps COLMAP's SIFT for any matcher of ``mapfree.matching`` (e.g. ``xfeat``,
+``aliked-lightglue``): its keypoints and every pair's matches are written into the COLMAP database, which
+pycolmap then verifies geometrically and maps as usual.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ class SfmOptions:
     min_inliers: int = 15  # verified matches for an image pair to count
     threads: int = 1  # per place; places run in parallel
     seed: int = 0  # RANSAC and mapper seed: the same inputs give the same model
+    matcher: str = "colmap"  # "colmap" (pycolmap SIFT) or a mapfree.matching name written into the database
 
 
 @dataclass
@@ -52,6 +57,46 @@ def _pinhole(cam) -> Intrinsics:
     return Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(cam.width), int(cam.height))
 
 
+def _indices(kpts: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Index into ``kpts`` of each matched pixel ``uv`` (matchers return coordinates); -1 where none is within
+    half a pixel (dense matchers' off-grid points)."""
+    from scipy.spatial import cKDTree
+
+    if len(kpts) == 0 or len(uv) == 0:
+        return np.full(len(uv), -1, np.int64)
+    dist, idx = cKDTree(kpts).query(uv, distance_upper_bound=0.5)
+    return np.where(np.isfinite(dist), idx, -1)
+
+
+def _write_matches(db: Path, image_root: Path, names: list[str], pairs_file: Path, options: SfmOptions) -> None:
+    """Keypoints and exhaustive pairwise matches of ``options.matcher`` into the database (COLMAP's ids)."""
+    import cv2
+    import pycolmap
+
+    from ..matching import create
+
+    matcher = create(options.matcher, device="cpu")
+    pairs = []
+    with pycolmap.Database.open(db) as d:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+        feats = {}
+        for n in names:
+            bgr = cv2.imread(str(image_root / n), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise ValueError(f"{image_root / n}: cannot decode image")
+            feats[n] = matcher.extract(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+            d.write_keypoints(ids[n], np.asarray(feats[n].kpts, np.float32).reshape(-1, 2))
+        for i, a in enumerate(names):
+            for b in names[i + 1 :]:
+                m = matcher.match(feats[a], feats[b])
+                ia, ib = _indices(feats[a].kpts, m.kpts0), _indices(feats[b].kpts, m.kpts1)
+                ok = (ia >= 0) & (ib >= 0)
+                if ok.sum() >= options.min_inliers:
+                    d.write_matches(ids[a], ids[b], np.stack([ia[ok], ib[ok]], 1).astype(np.uint32))
+                    pairs.append(f"{a} {b}\n")
+    pairs_file.write_text("".join(pairs))
+
+
 def reconstruct(image_root: Path, names: list[str], intrinsics: dict[str, Intrinsics | None], work: Path,
                 options: SfmOptions = SfmOptions()) -> SfmModel | None:
     """SfM of ``image_root/names`` (names like ``seq0/frame_00000.jpg``); None when nothing reconstructs."""
@@ -69,8 +114,12 @@ def reconstruct(image_root: Path, names: list[str], intrinsics: dict[str, Intrin
     extract.max_image_size = options.max_image_size
     extract.sift.max_num_features = options.max_features
     mode = pycolmap.CameraMode.PER_IMAGE if known else pycolmap.CameraMode.PER_FOLDER
-    pycolmap.extract_features(db, image_root, image_names=names, camera_mode=mode, reader_options=reader,
-                              extraction_options=extract, device=pycolmap.Device.cpu)
+    if options.matcher == "colmap":
+        pycolmap.extract_features(db, image_root, image_names=names, camera_mode=mode, reader_options=reader,
+                                  extraction_options=extract, device=pycolmap.Device.cpu)
+    else:
+        pycolmap.Database.open(db).close()  # import_images wants an existing database
+        pycolmap.import_images(db, image_root, camera_mode=mode, image_names=names, options=reader)
     with pycolmap.Database.open(db) as d:  # our intrinsics replace COLMAP's guesses
         for im in d.read_all_images():
             K = intrinsics.get(im.name)
@@ -86,7 +135,12 @@ def reconstruct(image_root: Path, names: list[str], intrinsics: dict[str, Intrin
     verify = pycolmap.TwoViewGeometryOptions()
     verify.min_num_inliers = options.min_inliers
     verify.ransac.random_seed = options.seed
-    pycolmap.match_exhaustive(db, matching_options=match, verification_options=verify, device=pycolmap.Device.cpu)
+    if options.matcher == "colmap":
+        pycolmap.match_exhaustive(db, matching_options=match, verification_options=verify,
+                                  device=pycolmap.Device.cpu)
+    else:
+        _write_matches(db, image_root, names, work / "pairs.txt", options)
+        pycolmap.verify_matches(db, work / "pairs.txt", verify)
     mapper = pycolmap.IncrementalPipelineOptions()
     mapper.num_threads = options.threads
     mapper.random_seed = options.seed

@@ -47,6 +47,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "(default auto: depth when every frame has a depth map)")
     p.add_argument("--min-registered", type=float, default=0.5, metavar="FRAC",
                    help="fraction of each scan's images SfM must register (default: 0.5)")
+    p.add_argument("--matcher", default="colmap", metavar="NAME",
+                   help="features and matches: colmap (pycolmap SIFT, default) or a mapfree.matching name "
+                        "(sift, xfeat, aliked-lightglue, ...) written into COLMAP's database")
     p.add_argument("--max-features", type=int, default=4096, help="SIFT features per image (default: 4096)")
     p.add_argument("--private-gt", metavar="DIR", help="test split: write true poses to DIR/test/sNNNNN/")
     p.add_argument("--first-scene", type=int, default=0, help="number of the first scene when places are not named sNNNNN")
@@ -60,6 +63,12 @@ def run(args: argparse.Namespace) -> int:
     from ..build import BuildOptions, SfmOptions
     from ..build.run import build_all
 
+    from ..matching import names as matcher_names
+
+    if args.matcher != "colmap" and args.matcher.strip().lower().replace("_", "-") not in matcher_names():
+        print(f"mapfree build: unknown --matcher {args.matcher!r}; colmap or one of {', '.join(matcher_names())}",
+              file=sys.stderr)
+        return 2
     if args.workers < 1 or args.fps <= 0 or not 0 < args.min_registered <= 1 or args.max_features < 64:
         print("mapfree build: --workers >= 1, --fps > 0, 0 < --min-registered <= 1, --max-features >= 64",
               file=sys.stderr)
@@ -71,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
                         allow_unscaled=args.allow_unscaled, sfm_depth=args.sfm_depth,
                         correspondences=args.correspondences, keep_work=args.keep_work,
                         overlap_points=args.overlap_points,
-                        sfm=replace(SfmOptions(), max_features=args.max_features))
+                        sfm=replace(SfmOptions(), max_features=args.max_features, matcher=args.matcher))
     t0 = time.perf_counter()
     try:
         results = build_all(args.scans, args.out, opts, args.workers, args.ray, args.private_gt, args.force,
