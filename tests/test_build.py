@@ -278,3 +278,23 @@ def test_own_matcher_written_into_colmap_database(scans, tmp_path):
 def test_unknown_matcher_is_a_clear_error(scans, tmp_path, capsys):
     assert cli_main(["build", str(scans / "scans"), "--out", str(tmp_path), "--matcher", "nope", "--quiet"]) == 2
     assert "unknown --matcher 'nope'" in capsys.readouterr().err
+
+
+def test_overlaps_from_sfm_tracks_without_depth(scans, tmp_path):
+    """Frames without depth: overlaps come from the SfM tracks (the paper's recipe); forcing depth is an error."""
+    from mapfree.build.place import BuildError, _overlaps
+
+    place = tmp_path / "scans" / "s00000"
+    for k in (0, 1):
+        (place / f"scan{k}").mkdir(parents=True)
+        for p in (scans / f"scans/s00000/scan{k}").glob("frame_*.jpg"):
+            (place / f"scan{k}" / p.name).symlink_to(p)
+        shutil.copy(scans / f"scans/s00000/scan{k}/intrinsics.txt", place / f"scan{k}")
+    res = build_all(tmp_path / "scans", tmp_path / "out", BuildOptions(report_plot=False, allow_unscaled=True),
+                    progress=False)
+    assert res[0].status == "ok", res[0].reason
+    assert res[0].report["overlap_points"] == "sfm" and res[0].report["scale"]["source"] == "none"
+    ov = read_overlaps(tmp_path / "out/train/s00000/overlaps.npz")
+    assert len(ov) > 0 and (ov.overlaps > 0).all() and (ov.overlaps <= 1).all()
+    with pytest.raises(BuildError, match="needs a depth map"):
+        _overlaps(None, ["seq0/frame_00000.jpg"], [], [], tmp_path, np.zeros(1), np.zeros(1), "depth")
