@@ -135,12 +135,17 @@ def test_resume_and_clear_failures(built, scans, tmp_path):
     assert json.loads((out / "train/build_summary.json").read_text())[1]["status"] == "failed"
 
 
-def test_no_metric_scale_is_a_clear_error(scans, tmp_path):
-    place = tmp_path / "scans" / "s00000"
+def _images_only(scans: Path, root: Path, files: tuple[str, ...] = ()) -> None:
+    """The test place's images (and ``files`` of each scan) alone under ``root/s00000``: no device track, no depth."""
     for k in (0, 1):
-        (place / f"scan{k}").mkdir(parents=True)
-        for p in (scans / f"scans/s00000/scan{k}").glob("frame_*.jpg"):
-            (place / f"scan{k}" / p.name).symlink_to(p)
+        src, dst = scans / f"scans/s00000/scan{k}", root / "s00000" / f"scan{k}"
+        dst.mkdir(parents=True)
+        for p in [*src.glob("frame_*.jpg"), *(src / f for f in files)]:
+            (dst / p.name).symlink_to(p)
+
+
+def test_no_metric_scale_is_a_clear_error(scans, tmp_path):
+    _images_only(scans, tmp_path / "scans")
     # No device poses, no depth, no intrinsics: SfM guesses the focal length, the scale is unknown.
     res = build_all(tmp_path / "scans", tmp_path / "out", BuildOptions(split="train", report_plot=False),
                     progress=False)
@@ -284,12 +289,7 @@ def test_overlaps_from_sfm_tracks_without_depth(scans, tmp_path):
     """Frames without depth: overlaps come from the SfM tracks (the paper's recipe); forcing depth is an error."""
     from mapfree.build.place import BuildError, _overlaps
 
-    place = tmp_path / "scans" / "s00000"
-    for k in (0, 1):
-        (place / f"scan{k}").mkdir(parents=True)
-        for p in (scans / f"scans/s00000/scan{k}").glob("frame_*.jpg"):
-            (place / f"scan{k}" / p.name).symlink_to(p)
-        shutil.copy(scans / f"scans/s00000/scan{k}/intrinsics.txt", place / f"scan{k}")
+    _images_only(scans, tmp_path / "scans", ("intrinsics.txt",))
     res = build_all(tmp_path / "scans", tmp_path / "out", BuildOptions(report_plot=False, allow_unscaled=True),
                     progress=False)
     assert res[0].status == "ok", res[0].reason
