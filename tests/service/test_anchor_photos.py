@@ -4,11 +4,15 @@ photo (DenseVLAD) with its pose in the anchor's frame. Real HTTP, real photos (r
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from mapfree.data import Dataset
 from mapfree.geometry import Pose
+
+from .test_browser import CHROMIUM, PHONE, _sign_in, browser, phone, shot  # noqa: F401 (fixtures)
 
 METHOD = "sift_pnp_sensor"
 SCENE = "s00000"
@@ -89,6 +93,12 @@ def test_two_photo_anchor_retrieves_the_right_photo_in_the_anchor_frame(server, 
         assert alice.get(f"/anchors/{one['id']}").json()["photos"][1]["has_depth"]
         est = _localize(alice, one["id"], far)
         assert est["ok"] and est["photo"] == 1 and _errors(est, far.pose)[0] < 0.15, est
+        # the relocalize page lists the anchor and localizes a query against it (a token needs no CSRF field)
+        assert "office, 2 photos · 2 photos · sift_pnp_sensor" in alice.get("/relocalize").text
+        r = alice.post("/relocalize/anchor", data={"anchor": anchor["id"], **_form(far.intrinsics, "q_")},
+                       files={"query": (far.image_path.name, far.image_path.read_bytes(), "image/jpeg")})
+        assert r.status_code == 200 and "answered by photo 1" in r.text and 'id="figure"' in r.text, r.text[-2000:]
+        assert "Pose found" in r.text
         for a in (anchor, one):
             assert alice.delete(f"/anchors/{a['id']}").status_code == 204  # its photos go with it
             assert alice.get(f"/anchors/{a['id']}").status_code == 404
@@ -144,3 +154,28 @@ def test_photo_fields_must_line_up_and_depth_is_checked_per_photo(server, scene)
         assert r.status_code == 422 and "photo 1" in r.json()["detail"] and "depth" in r.json()["detail"], r.text
         assert c.get(f"/anchors/{a['id']}").json()["num_photos"] == 1  # nothing stored by the refused ones
         assert c.delete(f"/anchors/{a['id']}").status_code == 204
+
+
+@pytest.mark.browser
+@pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"{CHROMIUM} is absent (apt-get install chromium)")
+def test_relocalize_page_uses_a_two_photo_anchor_at_phone_width(phone, sqlite_server, scene):
+    ref, second, far = scene.reference, scene.frame(SECOND), scene.frame(FAR_QUERY)
+    with sqlite_server.client("alice") as alice:
+        aid = alice.post("/anchors", files=_files(ref) + _files(second, "photo_image", "photo_depth"),
+                         data={**_form(ref.intrinsics), **_form(second.intrinsics, "photo_"), "method": METHOD,
+                               "photo_pose": _pose_text(second.pose), "name": "hall"}).json()["id"]
+    try:
+        _sign_in(phone, sqlite_server, "bob")
+        phone.goto("/relocalize")
+        phone.select_option("#anchor", aid)
+        phone.set_input_files("#anchor-query", str(far.image_path))
+        phone.click("#anchor-button")
+        phone.wait_for_selector("#figure")
+        phone.wait_for_function("() => document.getElementById('figure').naturalWidth > 0")
+        assert "answered by photo 1" in phone.inner_text("#anchor-result")
+        assert "Pose found" in phone.inner_text("#result")  # intrinsics guessed: a pose, not checked against GT
+        assert phone.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+        shot(phone, "phone-relocalize-anchor")
+    finally:
+        with sqlite_server.client("alice") as alice:
+            assert alice.delete(f"/anchors/{aid}").status_code == 204

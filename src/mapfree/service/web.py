@@ -6,6 +6,7 @@ JavaScript the page is not replaced at all, so chosen files stay chosen)."""
 from __future__ import annotations
 
 import base64
+from dataclasses import replace
 import secrets
 import time
 from pathlib import Path
@@ -14,12 +15,12 @@ from urllib.parse import urlencode
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, UploadFile
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from fastapi.templating import Jinja2Templates
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from . import auth
-from .api import spooled_upload
-from .db import MethodInfo, Submission, User
+from .api import _anchor, _photo_rows, _stored_photos, spooled_upload
+from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT, known_scenes
 from .leaderboard import (VIEWS, board, check_sort, compare, meta_json, parse_meta, reference_rows, save_meta,
@@ -285,10 +286,22 @@ def compare_page(request: Request, id: list[str] = Query([]), db: Session = Depe
 # ---------------------------------------------------------------------------------------- relocalization
 
 
+def _anchor_choices(request: Request, db: Session) -> list[dict]:
+    """The newest anchors (anyone signed in may localize against any), with their photo counts, no blobs."""
+    if identify(request, db).user is None:
+        return []
+    rows = db.execute(select(Anchor.id, Anchor.name, Anchor.method, Anchor.created_at, func.count(AnchorPhoto.seq))
+                      .outerjoin(AnchorPhoto, AnchorPhoto.anchor_id == Anchor.id)
+                      .group_by(Anchor.id, Anchor.name, Anchor.method, Anchor.created_at)
+                      .order_by(Anchor.created_at.desc()).limit(50)).all()
+    return [{"id": r[0], "name": r[1] or r[0][:8], "method": r[2], "photos": 1 + r[4]} for r in rows]
+
+
 def _reloc_page(request: Request, db: Session, status: int = 200, **ctx) -> HTMLResponse:
     ctx.setdefault("form", {})
     ctx.setdefault("method", default_method(request.app.state.settings.default_method))
-    return page(request, "relocalize.html", db, status, choices=RELOC_CHOICES, **ctx)
+    return page(request, "relocalize.html", db, status, choices=RELOC_CHOICES,
+                anchors=_anchor_choices(request, db), **ctx)
 
 
 @router.get("/relocalize", response_class=HTMLResponse)
@@ -342,4 +355,32 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
     loc.forget(key)
     png = figure_png(ref_img, q_img, ref_K, q_K, est, title=m)
     return _reloc_page(request, db, method=m, form=form, result=estimate_json(est, m),
+                       figure="data:image/png;base64," + base64.b64encode(png).decode())
+
+
+@router.post("/relocalize/anchor", response_class=HTMLResponse)
+def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFile = File(...),
+                      q_fx: str = Form(""), q_fy: str = Form(""), q_cx: str = Form(""), q_cy: str = Form(""),
+                      csrf_token: str = Form(""), db: Session = Depends(db_session)):
+    """A query photo against a stored anchor (one or several photos): the pose in the anchor's frame, which
+    photo answered, and the figure drawn against that photo."""
+    require_writer(request, db, csrf_token)
+    form = {"q_fx": q_fx, "q_fy": q_fy, "q_cx": q_cx, "q_cy": q_cy, "anchor": anchor}
+    a = _anchor(db, anchor)
+    rows = _photo_rows(db, a.id)
+    db.commit()  # release the read transaction before the long computation
+    lim = request.app.state.settings.limits
+    try:
+        q_img = decode_image(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
+        q_K = intrinsics_of(_guess_intrinsics({k[2:]: v for k, v in form.items() if k.startswith("q_")}, q_img,
+                                              "query intrinsics"))
+    except UploadError as e:
+        return _reloc_page(request, db, e.status, method=a.method, form=form, error=e.message)
+    load = _stored_photos(a, rows, lim)
+    est = request.app.state.localizers.localize_photos(a.id, a.method, 1 + len(rows), load, q_img, q_K)
+    result = estimate_json(est, a.method)
+    photo = load()[result.get("photo") or 0]
+    shown = replace(est, pose=est.pose @ photo.pose.inverse()) if est.pose is not None else est  # vs that photo
+    png = figure_png(photo.image, q_img, photo.K, q_K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
+    return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8],
                        figure="data:image/png;base64," + base64.b64encode(png).decode())
