@@ -218,15 +218,15 @@ def test_ray_cluster_address(built, scans, tmp_path, monkeypatch):
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")  # a throw-away loopback cluster: no token to hand around
     temp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # Ray's socket paths must stay short
 
+    host = "127.0.0.1"  # conftest keeps Ray on the loopback address, as tests must
     with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
+        s.bind((host, 0))
         port = s.getsockname()[1]
     head = subprocess.Popen([str(Path(sys.executable).parent / "ray"), "start", "--head", "--block",
-                             f"--port={port}", "--num-cpus=1",
+                             f"--port={port}", f"--node-ip-address={host}", "--num-cpus=1",
                              "--object-store-memory=100000000", "--include-dashboard=false", f"--temp-dir={temp}"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     out = tmp_path / "cluster"
-    host = ray.util.get_node_ip_address()  # the head listens on this machine's address, as a cluster's would
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:  # wait for the head to accept connections

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import re
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict
@@ -41,6 +42,9 @@ def _job(args: tuple) -> PlaceResult:
 
 
 def _run_ray(jobs: list[tuple], address: str, workers: int, on_result) -> None:
+    if address == "local":
+        # A local instance talks only to itself: keep it on the loopback address (Ray reads this at import).
+        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
     import ray
 
     if not ray.is_initialized():
