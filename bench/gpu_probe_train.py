@@ -20,17 +20,18 @@ sys.path.insert(0, str(HERE))
 
 
 def profile(batch: int, steps: int = 5) -> str:
-    """Top CUDA-time operators of ``steps`` training steps, before and after."""
+    """Operators by their own CUDA time over ``steps`` training steps, before and after (CPU time without a GPU)."""
     import torch
     from torch.profiler import ProfilerActivity
     from torch.profiler import profile as torch_profile
 
-    from bench_train import Trainer, _random_batch, _size
+    from bench_train import Trainer, _random_batch, _size, _sync
     from mapfree.regression.config import load_config
     from mapfree.regression.train import resolve_config
 
     cfg = load_config(resolve_config("rot6d_trans"))
-    device = torch.device("cuda")
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
     data = {k: v.to(device) for k, v in _random_batch(_size(cfg), batch).items()}
     out = []
     for name, kw in (("before", dict(fused=False, amp=False, channels_last=False)),
@@ -38,17 +39,18 @@ def profile(batch: int, steps: int = 5) -> str:
         try:
             tr = Trainer(cfg, device, **kw)
             tr.step(data)
-            torch.cuda.synchronize()
-            with torch_profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+            _sync(device)
+            with torch_profile(activities=activities) as prof:
                 for _ in range(steps):
                     tr.step(data)
-                torch.cuda.synchronize()
-            table = prof.key_averages().table(sort_by="cuda_time_total", row_limit=15)
+                _sync(device)
+            table = prof.key_averages().table(sort_by=f"self_{device.type}_time_total", row_limit=15)
         except torch.cuda.OutOfMemoryError:
             table = "out of GPU memory"
         out.append(f"### {name}, batch {batch}, {steps} steps\n\n```\n{table}\n```\n")
         tr = None
-        torch.cuda.empty_cache()
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
     return "\n".join(out)
 
 
