@@ -178,3 +178,29 @@ def test_one_dataset_with_persistent_workers_resamples_every_epoch(tiny_root):
     assert seen[0] != seen[1] != seen[2]  # resampled, by the same workers
     batch = next(iter(loader))
     assert batch["img0"].dtype == torch.uint8  # un-augmented: uint8 until the device
+
+
+def test_lightning_fit_draws_each_epochs_pairs_through_persistent_workers(tiny_root, tmp_path, monkeypatch):
+    from mapfree.regression.module import RPRModule
+    from mapfree.regression.train import TrainerOptions, fit
+
+    seen: dict[int, list] = {}
+    step = RPRModule.training_step
+
+    def recording_step(self, batch, batch_idx):
+        seen.setdefault(self.current_epoch, []).extend(zip(batch["key0"], batch["key1"]))
+        return step(self, batch, batch_idx)
+
+    monkeypatch.setattr(RPRModule, "training_step", recording_step)
+    cfg = tiny_config(tiny_root, num_workers=1, batch_size=2, cache_dir=str(tmp_path / "cache"))
+    cfg.train.max_epochs = 3
+    trainer, _ = fit(cfg, tmp_path / "run", TrainerOptions(accelerator="cpu", devices=1, progress=False,
+                                                           limit_val_batches=1))
+    dm = RPRDataModule(cfg.data)
+    dm.setup("fit")
+    for e in range(3):
+        want = [(f"{p.scene}/{p.name0}", f"{p.scene}/{p.name1}") for p in dm.train_pairs(e)]
+        assert sorted(seen[e]) == sorted(want), e
+    assert sorted(seen[0]) != sorted(seen[1]) != sorted(seen[2])
+    assert trainer.train_dataloader.persistent_workers  # one loader, built once
+    assert len(list((tmp_path / "cache").rglob("*.npy"))) > 0  # frames decoded once into the cache
