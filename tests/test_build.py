@@ -204,6 +204,7 @@ def test_exif_focal_length_of_a_real_photo(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(240)  # a head that never answers must not hold CI
 def test_ray_cluster_address(built, scans, tmp_path, monkeypatch):
     """A Ray head started apart from the build (as on a cluster): --ray HOST:PORT gives the pool's scene."""
     ray = pytest.importorskip("ray")
