@@ -204,3 +204,16 @@ def test_bad_device_poses_are_a_clear_error(realmini, tmp_path, capsys):
     with pytest.raises(FormatError, match=r"poses_device.txt: missing \(the multi-frame"):
         run_multi(root, "val", "sift_pnp_sensor", tmp_path / "m.zip", derive_device_poses=False, progress=False)
     assert not (tmp_path / "m.zip").exists()
+
+
+def test_all_frames_with_the_multi_track_is_a_clear_error(realmini, tmp_path, capsys):
+    """The multi track runs the bursts of the scored queries; --all-frames would be silently ignored."""
+    out = tmp_path / "m.zip"
+    code = cli_main(["run", str(realmini), "--track", "multi", "--all-frames", "--method", "sift_pnp_sensor",
+                     "-o", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "mapfree run: error: --all-frames" in err and "--track multi" in err
+    assert not out.exists() and not frames_path(out).exists()
+    with pytest.raises(ValueError, match="all_frames"):
+        run_multi(realmini, "val", "sift_pnp_sensor", out, all_frames=True, progress=False)
+    assert not frames_path(out).exists()

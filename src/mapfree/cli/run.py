@@ -37,7 +37,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--batch", type=int, default=None, metavar="N",
                    help="queries per GPU pass of the batched pipeline (background decoding, batched features and "
                         "matching, solvers in a thread pool); 0: one pair at a time (default: 16 on a GPU, else 0)")
-    p.add_argument("--all-frames", action="store_true", help="every query, not only the scored ones")
+    p.add_argument("--all-frames", action="store_true",
+                   help="every query, not only the scored ones (single-frame track only)")
     p.add_argument("--references", type=int, default=1, metavar="K",
                    help="represent each scene by K posed seq0 images chosen by K-means over DenseVLAD, and "
                         "relocalize each query against the most similar (default: 1, the reference image)")
@@ -76,6 +77,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if getattr(args, "batch", None) is not None and args.batch < 0:
         print("mapfree run: error: --batch must be >= 0", file=sys.stderr)
+        return 2
+    if args.track == "multi" and args.all_frames:
+        print("mapfree run: error: --all-frames cannot be combined with --track multi (the multi-frame track "
+              "runs the 9-frame bursts of the scored queries)", file=sys.stderr)
         return 2
     from ..relocalize import run_split
 

@@ -186,7 +186,11 @@ def run_multi(
 
     Scenes without ``poses_device.txt`` get device poses derived from their ground truth when
     ``derive_device_poses`` (listed in the result); otherwise, or without ground truth, a ``FormatError``.
+    ``all_frames`` is refused (``ValueError``): the frames run are the bursts, never every query.
     """
+    if run_kwargs.pop("all_frames", False):
+        raise ValueError("all_frames does not apply to the multi-frame track (it runs the bursts of the "
+                         "scored queries)")
     output = Path(output)
     wanted = set(scenes) if scenes else None
     plan: dict[str, tuple[list, DevicePoses]] = {}
