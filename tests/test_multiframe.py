@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mapfree.benchmark import evaluate, load_truth, read_submission
+from mapfree.benchmark import evaluate, format_table, load_truth, read_submission, write_submission
 from mapfree.cli import main as cli_main
 from mapfree.data import Dataset, DriftModel, FormatError, load_device_poses, multiframe_bursts, scene_bursts
 from mapfree.data.device import rebase_bursts, simulate_device_trajectory
@@ -217,3 +217,22 @@ def test_all_frames_with_the_multi_track_is_a_clear_error(realmini, tmp_path, ca
     with pytest.raises(ValueError, match="all_frames"):
         run_multi(realmini, "val", "sift_pnp_sensor", out, all_frames=True, progress=False)
     assert not frames_path(out).exists()
+
+
+def test_the_report_names_its_track_in_json_and_table_title(realmini, tmp_path, capsys):
+    """A multi-track report says so (JSON ``track``, table title); single-frame output only gains the field."""
+    perfect = {s.name: [(f.name, f.pose, 1.0) for f in s.queries] for s in Dataset(realmini).scenes("val")}
+    sub = tmp_path / "perfect.zip"
+    write_submission(sub, perfect)
+    for track in ("single", "multi"):
+        assert cli_main(["evaluate", str(sub), "--dataset", str(realmini), "--track", track, "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert out["track"] == track and out["split"] == "val"
+        assert cli_main(["evaluate", str(sub), "--dataset", str(realmini), "--track", track]) == 0
+        title = capsys.readouterr().out.splitlines()[0]
+        assert title.startswith("Map-free benchmark — val, 4 scenes, ")
+        assert ("multi-frame track" in title) == (track == "multi"), title
+    single = evaluate(sub, realmini, "val")
+    assert single.track == "single" and "track" not in format_table(single).splitlines()[0]
+    assert format_table(evaluate(sub, realmini, "val", track="multi")).splitlines()[0].endswith(
+        "8 evaluated frames, 8 estimated, multi-frame track")

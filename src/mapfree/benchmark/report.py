@@ -52,6 +52,7 @@ class Report:
     problems: list[Problem] = field(default_factory=list)
     split: str = "val"
     compat: str = "default"
+    track: str = "single"  # leaderboard whose frames were scored: "single" or "multi" (the multi-frame track)
     thresholds: Thresholds = field(default_factory=Thresholds)
     extra_failures: int = 0  # failures beyond the evaluated frames (compat="official": missing scenes)
 
@@ -63,6 +64,7 @@ class Report:
         out = {
             "split": self.split,
             "compat": self.compat,
+            "track": self.track,
             "metrics": {k: _clean(v) for k, v in self.metrics.items()},
             "per_scene": {s: {k: _clean(v) for k, v in m.items()} for s, m in self.per_scene.items()},
             "problems": [
@@ -110,6 +112,7 @@ def format_table(report: Report, per_scene: bool = False, width: int = 100, max_
     title = (
         f"Map-free benchmark — {report.split}, {len(report.per_scene)} scenes, "
         f"{n} evaluated frames, {int(report.estimated.sum())} estimated"
+        + (f", {report.track}-frame track" if report.track != "single" else "")
     )
     console.print(title, markup=False, highlight=False)
     table = Table()

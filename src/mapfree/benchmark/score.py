@@ -64,7 +64,8 @@ def evaluate(
         fatal = [p for p in problems if p.fatal]
         if fatal:
             raise EvaluationError(f"the public evaluator aborts here: {fatal[0]}")
-    return score(truth, estimates, problems, compat=compat, thresholds=thresholds, split=split)
+    return score(truth, estimates, problems, compat=compat, thresholds=thresholds, split=split,
+                 track=track)
 
 
 def _match(t: SceneTruth, sel: np.ndarray, est: SceneEstimates, compat: str) -> np.ndarray:
@@ -83,8 +84,10 @@ def score(
     compat: str = "default",
     thresholds: Thresholds = Thresholds(),
     split: str = "val",
+    track: str = "single",
 ) -> Report:
-    """Per-frame errors for every evaluated frame of every scene, then the aggregates."""
+    """Per-frame errors for every evaluated frame of every scene, then the aggregates (``track``: which
+    leaderboard's frames ``truth`` holds, recorded in the report)."""
     scenes, frames, gt_q, gt_t, K, W, H, est_rows, est_of = [], [], [], [], [], [], [], [], []
     extra: dict[str, int] = {}
     problems = list(problems or [])
@@ -160,6 +163,7 @@ def score(
         problems=sorted(problems, key=lambda p: (p.scene or "", p.line or 0)),
         split=split,
         compat=compat,
+        track=track,
         thresholds=thresholds,
         extra_failures=sum(extra.values()),
     )
