@@ -124,6 +124,28 @@ def test_set_references_retrieves_and_beats_one_reference(realmini):
     assert loc.references is None and loc.localize(tests[0]).ok
 
 
+def test_batched_and_prefetched_paths_honour_the_references(realmini, tmp_path):
+    """With K references set, ``localize_batched`` and ``localize_many`` retrieve per query exactly as
+    ``localize`` does (same reference, same pose), and a bad query fails the same way in all three."""
+    from mapfree.relocalize import Relocalizer
+    from mapfree.relocalize.batched import BatchOptions
+
+    ref, queries = realmini_frames(realmini)
+    mapping, tests = [ref] + queries[0::4], queries[2::4]
+    loc = Relocalizer.from_method("sift_pnp_sensor")
+    refs = loc.set_references(mapping, k=4)
+    items = tests[:2] + [(tmp_path / "missing.jpg", tests[0].intrinsics)] + tests[2:]
+    one = [loc.localize(q) for q in items]
+    assert sum(e.ok for e in one) == len(tests) and {e.extras["reference"] for e in one if e.ok} - {ref.name}
+    for many in (list(loc.localize_batched(items, options=BatchOptions(batch_size=3, decode_workers=2))),
+                 list(loc.localize_many(items, prefetch=2)), list(loc.localize_many(items, prefetch=0))):
+        assert len(many) == len(one)
+        for a, b in zip(one, many):
+            assert (a.ok, a.reason, a.extras.get("reference")) == (b.ok, b.reason, b.extras.get("reference"))
+            assert a.pose is None or np.allclose(a.pose.matrix, b.pose.matrix, atol=1e-9)
+    assert all(e.extras["reference"] in refs.names for e in one if e.ok)
+
+
 def test_pose_triangulation_on_real_references(realmini):
     from mapfree.relocalize import Relocalizer
 

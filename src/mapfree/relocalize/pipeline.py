@@ -14,7 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, Iterator, Protocol, Union
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Protocol, Union
 
 import cv2
 import numpy as np
@@ -98,6 +98,35 @@ def _fit_depth(depth: np.ndarray | None, K: Intrinsics) -> np.ndarray | None:
         d = cv2.resize(d, (K.width, K.height), interpolation=cv2.INTER_NEAREST)
     d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
     return d
+
+
+def ahead(fn: Callable[[Any], Any], items: Iterable[Any], n: int, workers: int = 1) -> Iterator[Any]:
+    """``fn(item)`` for every item, in order, with up to ``n`` of the next items computed in ``workers``
+    background threads meanwhile (``n`` <= 0: in the calling thread)."""
+    if n <= 0:
+        yield from map(fn, items)
+        return
+    it = iter(items)
+    with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="mapfree-prefetch") as pool:
+        pending: deque = deque(pool.submit(fn, x) for x in islice(it, n))
+        while pending:
+            done = pending.popleft().result()
+            nxt = next(it, _END)
+            if nxt is not _END:
+                pending.append(pool.submit(fn, nxt))
+            yield done
+
+
+_END = object()
+
+
+def view_or_query(query: ViewLike) -> ViewLike:
+    """The query decoded to a ``View`` ahead of retrieval; unchanged when that fails, so that the reference
+    set reports the failure exactly as ``localize`` does."""
+    try:
+        return as_view(query)
+    except Exception:
+        return query
 
 
 @dataclass
@@ -298,36 +327,28 @@ class Relocalizer:
                       prefetch: int = 1) -> Iterator[Estimate]:
         """``localize`` over many queries, in order; with ``prefetch`` > 0 the next queries are read and their
         features extracted in a background thread while the current one is matched and solved."""
-        if anchor is None and self.references is not None:
-            yield from (self.localize(q) for q in queries)
+        if anchor is None and self.references is not None:  # retrieval per query, the next ones decoded ahead
+            yield from (self.references.localize(self, v) for v in ahead(view_or_query, queries, prefetch))
             return
         anchor = self._anchor(anchor)
         if self._precheck(anchor) is not None:  # nothing to extract: every query fails the same way
             for _ in queries:
                 yield self._precheck(anchor)
             return
-        if prefetch <= 0:
-            for q in queries:
-                yield self._finish(anchor, self._prepare_query(q))
-            return
-        it = iter(queries)
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapfree-prefetch") as pool:
-            pending: deque = deque(pool.submit(self._prepare_query, q) for q in islice(it, prefetch))
-            while pending:
-                prep = pending.popleft().result()
-                nxt = next(it, None)
-                if nxt is not None:
-                    pending.append(pool.submit(self._prepare_query, nxt))
-                yield self._finish(anchor, prep)
+        yield from (self._finish(anchor, prep) for prep in ahead(self._prepare_query, queries, prefetch))
 
     def localize_batched(self, queries: Iterable[ViewLike], anchor: Anchor | None = None,
                          options: "BatchOptions | None" = None) -> Iterator[Estimate]:
         """``localize`` over many queries, in order, through the batched pipeline (``batched.py``): decoding
         in background threads, features and matches in batches on the device, solvers in a thread pool."""
-        from .batched import localize_batched
+        from .batched import BatchOptions, localize_batched
 
-        if anchor is None and getattr(self, "references", None) is not None:  # several references: per query
-            yield from (self.localize(q) for q in queries)
+        if anchor is None and self.references is not None:
+            # K references: each query retrieves its own reference (no shared anchor to batch against), so it
+            # goes through localize's retrieval path; images are still decoded ahead in background threads.
+            o = options or BatchOptions()
+            views = ahead(view_or_query, queries, max(1, o.batch_size), o.decode_workers)
+            yield from (self.references.localize(self, v) for v in views)
             return
         anchor = self._anchor(anchor)
         if self._precheck(anchor) is not None:

@@ -20,7 +20,7 @@ import numpy as np
 from ..data import Frame, Scene
 from ..estimate import Estimate
 from ..geometry import Pose
-from .pipeline import View, ViewLike, as_view
+from .pipeline import View, ViewLike, ahead, as_view, view_or_query
 
 log = logging.getLogger(__name__)
 
@@ -198,9 +198,9 @@ class ReferencedLocalizer:
     def localize(self, query: ViewLike) -> Estimate:
         return self.references.localize(self.localizer, query)
 
-    def localize_many(self, queries: Iterable[ViewLike]) -> Iterator[Estimate]:
-        for q in queries:
-            yield self.localize(q)
+    def localize_many(self, queries: Iterable[ViewLike], prefetch: int = 1) -> Iterator[Estimate]:
+        """``localize`` over many queries, in order, the next ``prefetch`` decoded in a background thread."""
+        yield from (self.localize(v) for v in ahead(view_or_query, queries, prefetch))
 
 
 def mapping_frames(scene: Scene, seq: str = "seq0") -> list[Frame]:
