@@ -127,6 +127,36 @@ def test_method_metadata(server, board_data):
     assert e["method"] == meta
 
 
+def test_method_metadata_with_the_upload(server):
+    """``POST /api/submissions`` takes the same optional method fields as the web form and ``PUT …/method``,
+    checked the same way; a bad field refuses the whole upload before anything is stored or counted."""
+    (u,) = fresh_users(server, "meta-up")
+    data = make_submission(server.data.root / "val", noise=0.2, seed=21)
+    meta = {"description": "LoFTR + PnP\nwith sensor depth", "paper_url": "https://arxiv.org/abs/2210.05494",
+            "code_url": "https://github.com/example/reloc", "runtime_ms": 120.0, "extra_data": True}
+    form = {**meta, "runtime_ms": "120", "extra_data": "true"}
+    with server.client(u) as c:
+        for bad, field in (({"paper_url": "javascript:alert(1)"}, "paper_url"), ({"code_url": "ftp://x/y"}, "code_url"),
+                           ({"description": "evil \u202e txt"}, "description"), ({"runtime_ms": "-3"}, "runtime_ms"),
+                           ({"runtime_ms": "fast"}, "runtime_ms")):
+            r = c.post("/api/submissions", files={"file": ("sub.zip", data, "application/zip")},
+                       data={"split": "val", "name": "bad-meta", **form, **bad})
+            assert r.status_code == 422 and field in r.json()["detail"], r.text
+        assert c.get("/api/submissions").json() == []  # nothing stored, nothing counted
+        r = c.post("/api/submissions", files={"file": ("sub.zip", data, "application/zip")},
+                   data={"split": "val", "name": "with-meta", "public": "true", **form})
+        assert r.status_code == 202, r.text
+        assert r.json()["method"] == meta
+        plain = upload(c, data, "val", "no-meta")
+        assert plain.status_code == 202 and plain.json()["method"] == {
+            "description": "", "paper_url": "", "code_url": "", "runtime_ms": None, "extra_data": False}
+    sid = r.json()["id"]
+    assert server.wait_done(sid, u)["status"] == "done"
+    with server.client() as anon:
+        e = next(e for e in anon.get("/api/leaderboard/val").json()["entries"] if e["id"] == sid)
+    assert e["method"] == meta
+
+
 def test_withdraw_and_download(server):
     (owner,) = fresh_users(server, "withdrawer")
     data = make_submission(server.data.gt / "test", noise=0.3, seed=21)

@@ -15,7 +15,8 @@ from sqlalchemy import select, text
 from sqlalchemy.orm import Session
 
 from . import jobs
-from .db import READ_ONLY, Anchor, AnchorPhoto, Submission, WorkerRow, new_id, now
+from .db import READ_ONLY, Anchor, AnchorPhoto, MethodInfo, Submission, WorkerRow, new_id, now
+from .leaderboard import meta_json, parse_meta, save_meta
 from .deps import db_session, identify, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of, pose_of
 from .submissions import accept, daily_test_limit, to_json, visible
@@ -99,13 +100,25 @@ def me(request: Request, db: Session = Depends(db_session)):
 def create_submission(request: Request, file: UploadFile = File(..., description="submission ZIP"),
                             split: str = Form(..., description="val or test"), name: str = Form(""),
                             public: bool = Form(False), csrf_token: str | None = Form(None),
+                            description: str = Form("", description="the method, shown on the leaderboard"),
+                            paper_url: str = Form("", description="http(s) link to the paper"),
+                            code_url: str = Form("", description="http(s) link to the code"),
+                            runtime_ms: str = Form("", description="runtime per query in ms"),
+                            extra_data: bool = Form(False, description="trained or tuned on data beyond the train "
+                                                                       "split"),
                             db: Session = Depends(db_session)):
-    """Upload a submission ZIP. It is stored and queued before this answers 202; poll ``api_url``."""
+    """Upload a submission ZIP, optionally with its method's metadata (as ``PUT …/method``; a bad field is a
+    422 naming it, before anything is stored). It is stored and queued before this answers 202; poll
+    ``api_url``."""
     caller = require_writer(request, db, csrf_token)
     settings = request.app.state.settings
+    meta = parse_meta(description, paper_url, code_url, runtime_ms, extra_data)
     sub = accept(db, settings, caller.user, split, name, public, spooled_upload(file, "submission"))
+    if not meta.empty():
+        save_meta(db, sub.id, meta)
+        db.commit()
     log.info("submission queued", extra={"submission": sub.id, "split": split, "user_id": caller.user.id})
-    return to_json(db, sub, caller.user.name)
+    return {**to_json(db, sub, caller.user.name), "method": meta_json(db.get(MethodInfo, sub.id))}
 
 
 @router.get("/api/submissions", tags=["submissions"])
