@@ -23,6 +23,7 @@ from ..data import Frame, read_image
 from ..estimate import Estimate
 from ..geometry import Intrinsics
 from ..matching.base import Features, Matcher, Matches
+from .allocator import keep_heap_warm
 
 if TYPE_CHECKING:
     from .batched import BatchOptions
@@ -194,6 +195,7 @@ class Relocalizer:
             from .. import solvers
 
             solver = solvers.create(solver, **(solver_opts or {}))
+        keep_heap_warm()  # per-pair buffers stay in the heap instead of faulting in again (allocator.py)
         self.matcher, self.depth_source, self.solver = matcher, depth, solver
         self.name = name or f"{matcher.name}+{getattr(depth, 'name', 'depth')}+{solver.name}"
         self.anchor: Anchor | None = None
@@ -204,6 +206,7 @@ class Relocalizer:
         """Build a method by name, YAML path or ``Method`` (regression methods build their own kind)."""
         from .. import methods
 
+        keep_heap_warm()  # also for the methods that build their own kind of localizer
         m = method if isinstance(method, methods.Method) else methods.get(method)
         return m.build()
 
