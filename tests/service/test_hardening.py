@@ -171,6 +171,43 @@ def test_workers_ignore_the_working_directory_and_health_drops_dead_workers(spli
         log.close()
 
 
+def test_health_answers_from_a_live_snapshot_and_fails_when_the_database_does(make_app, tmp_path):
+    """/health answers from state a background thread re-reads (a new worker row shows within a second); a
+    database that cannot be read, or a snapshot gone stale, is a 503; the refresher stops when nobody asks."""
+    import socket
+
+    from sqlalchemy import create_engine
+
+    from mapfree.service.db import WorkerRow, make_engine, session_factory
+    from mapfree.service.health import STALE_SECONDS, HealthMonitor, Snapshot
+
+    app = make_app()
+    h = app.client.get("/health").json()
+    assert h["status"] == "degraded" and h["workers"] == [] and h["db"] == "sqlite" and h["age_ms"] >= 0, h
+    engine = make_engine(app.settings.db_url)
+    with session_factory(engine).begin() as db:
+        db.add(WorkerRow(id="w-test", host=socket.gethostname()[:128], pid=os.getpid()))
+    deadline = time.time() + 3
+    while time.time() < deadline and h["status"] != "ok":
+        time.sleep(0.1)
+        h = app.client.get("/health").json()
+    assert h["status"] == "ok" and [w["id"] for w in h["workers"]] == ["w-test"], h
+    engine.dispose()
+
+    broken = HealthMonitor(create_engine(f"sqlite:///{tmp_path / 'no-such-dir' / 'x.db'}"))
+    assert broken.answer(broken.refresh()) == (503, {"status": "error", "db": "unreachable"})
+    assert broken.answer(Snapshot(time.monotonic() - STALE_SECONDS - 1))[0] == 503
+
+    m = HealthMonitor(make_engine(app.settings.db_url), period=0.05, idle_stop=0.4)
+    assert m.current() is None  # no snapshot yet: the caller reads one itself
+    time.sleep(0.3)
+    snap = m.current()
+    assert snap is not None and snap.error is None and m.answer(snap)[0] == 200
+    time.sleep(1.0)  # nobody asked for 0.4 s: the refresher stopped, the next caller reads afresh
+    assert m.current() is None
+    m.engine.dispose()
+
+
 def test_a_worker_that_keeps_dying_is_restarted_with_backoff():
     from mapfree.cli.serve import Supervisor
 

@@ -20,6 +20,7 @@ from .. import __version__
 from .config import Settings
 from .db import init_db, make_engine, session_factory
 from .guard import AuthThrottle, request_id
+from .health import HealthMonitor
 from .reloc import Localizers, register_methods_dir
 from .uploads import UploadError
 
@@ -58,6 +59,7 @@ def create_app(settings: Settings) -> FastAPI:
                          max_body_size=settings.limits.max_request_bytes,
                          description="Map-free benchmark evaluation server and metric relocalization API.")
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
+    app.state.health = HealthMonitor(engine)
     app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)))
     if settings.methods_dir is not None:
         register_methods_dir(settings.methods_dir)
