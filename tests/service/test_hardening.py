@@ -208,6 +208,28 @@ def test_health_answers_from_a_live_snapshot_and_fails_when_the_database_does(ma
     m.engine.dispose()
 
 
+def test_a_serving_process_freezes_its_long_lived_objects(tmp_path):
+    """In a serving process the app's objects (and a relocalizer built later) leave the garbage collector's
+    walks, so a full collection no longer pauses requests; a process that did not ask collects as usual."""
+    code = f"""
+import gc
+from mapfree.service import Settings, create_app
+from mapfree.service.gcpause import after_load, freeze_long_lived
+app = create_app(Settings(db_url="sqlite:///{tmp_path / 'gc.db'}"))
+after_load()
+assert gc.get_freeze_count() == 0, "froze without being asked"
+freeze_long_lived()
+frozen = gc.get_freeze_count()
+assert frozen > 50000, frozen
+keep = [[i] for i in range(20000)]
+after_load()
+assert gc.get_freeze_count() >= frozen + 20000, (frozen, gc.get_freeze_count())
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert r.returncode == 0, r.stderr[-2000:]
+
+
 def test_a_worker_that_keeps_dying_is_restarted_with_backoff():
     from mapfree.cli.serve import Supervisor
 

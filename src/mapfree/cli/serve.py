@@ -173,8 +173,11 @@ def run(a: argparse.Namespace) -> int:
                         workers=a.api_processes, log_config=None, access_log=False)
         else:
             from ..service import create_app
+            from ..service.gcpause import freeze_long_lived
 
-            uvicorn.run(create_app(settings), host=a.host, port=a.port, log_config=None, access_log=False)
+            app = create_app(settings)
+            freeze_long_lived()
+            uvicorn.run(app, host=a.host, port=a.port, log_config=None, access_log=False)
         return 0
     finally:
         if sup:

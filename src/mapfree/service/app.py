@@ -19,6 +19,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from .. import __version__
 from .config import Settings
 from .db import init_db, make_engine, session_factory
+from .gcpause import freeze_long_lived
 from .guard import AuthThrottle, request_id
 from .health import HealthMonitor
 from .reloc import Localizers, register_methods_dir
@@ -140,10 +141,13 @@ def app_from_env() -> FastAPI:
         d = json.loads(raw)
         d["limits"] = Limits(**d.get("limits", {}))
         d["splits"] = tuple(d.get("splits", ("val", "test")))
-        return create_app(Settings(**d))
-    s = Settings(db_url=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
-                 data_root=os.environ.get("MAPFREE_DATA") or None, gt_root=os.environ.get("MAPFREE_GT") or None,
-                 default_method=os.environ.get("MAPFREE_METHOD", ""),
-                 test_daily_limit=int(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
-                 secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1")
-    return create_app(s)
+        s = Settings(**d)
+    else:
+        s = Settings(db_url=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
+                     data_root=os.environ.get("MAPFREE_DATA") or None, gt_root=os.environ.get("MAPFREE_GT") or None,
+                     default_method=os.environ.get("MAPFREE_METHOD", ""),
+                     test_daily_limit=int(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
+                     secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1")
+    app = create_app(s)
+    freeze_long_lived()
+    return app

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose, quat_to_rotmat
+from .gcpause import after_load
 from .uploads import UploadError
 
 log = logging.getLogger("mapfree.service")
@@ -194,11 +195,13 @@ class Localizers:
                 self._made[key] = self._made.get(key, 0) + 1
         if make:
             try:
-                return Relocalizer.from_method(method)
+                loc = Relocalizer.from_method(method)
             except Exception as e:
                 with self._lock:
                     self._made[key] -= 1
                 raise _unavailable(method.name, e) from e
+            after_load()  # its model stays for the process's life: out of the garbage collector's walks
+            return loc
         return pool.get()
 
     def _give(self, method, loc) -> None:
