@@ -29,11 +29,14 @@ def compare_to_truth(scene: Path, truth_place: Path) -> dict:
     scene, truth_place = Path(scene), Path(truth_place)
     report = json.loads((scene / REPORT_FILE).read_text())
     built = read_poses(scene / "poses.txt").as_dict()
+    tables: dict[str, dict] = {}  # one read per scan, not per frame
     truth = {}
     for name, src in report["frames"].items():
         src = Path(src)
-        table = read_poses(truth_place / src.parent.name / "poses.txt").as_dict()
-        truth[name] = table[src.name]
+        scan = src.parent.name
+        if scan not in tables:
+            tables[scan] = read_poses(truth_place / scan / "poses.txt").as_dict()
+        truth[name] = tables[scan][src.name]
     names = [n for n in built if built[n] is not None and truth.get(n) is not None]
     if len(names) < 3:
         raise ValueError(f"{scene}: fewer than 3 frames with both built and true poses")
