@@ -89,15 +89,16 @@ def interpolate_track(times: np.ndarray, centres: np.ndarray, rots: np.ndarray, 
                 out[i] = Pose(rots[0], centres[0])
         return out
     times_u, keep = np.unique(times, return_index=True)
-    slerp = Slerp(times_u, Rotation.from_matrix(rots[keep]))
-    for i, t in enumerate(at):
-        if not times_u[0] <= t <= times_u[-1]:
-            continue
-        j = int(np.clip(np.searchsorted(times_u, t), 1, len(times_u) - 1))
-        if times_u[j] - times_u[j - 1] > max_gap:
-            continue
-        c = np.array([np.interp(t, times_u, centres[keep][:, k]) for k in range(3)])
-        out[i] = Pose(slerp([t]).as_matrix()[0], c)
+    at = np.asarray(at, dtype=np.float64)
+    j = np.clip(np.searchsorted(times_u, at), 1, len(times_u) - 1)
+    ok = (at >= times_u[0]) & (at <= times_u[-1]) & (times_u[j] - times_u[j - 1] <= max_gap)
+    if not ok.any():
+        return out
+    t_ok = at[ok]  # all frames at once: one slerp call and one interpolation per axis
+    R = Slerp(times_u, Rotation.from_matrix(rots[keep]))(t_ok).as_matrix()
+    C = np.stack([np.interp(t_ok, times_u, centres[keep][:, k]) for k in range(3)], axis=1)
+    for i, Ri, ci in zip(np.flatnonzero(ok), R, C):
+        out[i] = Pose(Ri, ci)
     return out
 
 
