@@ -13,11 +13,12 @@ from pydantic import BaseModel
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from ..geometry import Pose
 from . import jobs
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
 from .deps import db_session, identify, require_writer
-from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of, pose_of
+from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
 from .submissions import accept, daily_test_limit, to_json, visible
 from .submissions import plot_png as render_plot
 from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics, parse_pose
@@ -203,7 +204,7 @@ def _photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, dept
         q = IDENTITY if pose is None else parse_pose(pose)
     except UploadError as e:
         raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
-    return _Upload(img_bytes, intr, depth_bytes, q, Photo(img, intrinsics_of(intr), d, pose_of(q)))
+    return _Upload(img_bytes, intr, depth_bytes, q, Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:])))
 
 
 def _photo_name(i: int, f: UploadFile | None) -> str:
@@ -358,7 +359,7 @@ def _stored_photos(a: Anchor, rows: list[AnchorPhoto], lim) -> Callable[[], list
                                                      + [(r.image, r.intrinsics, r.depth, r.pose) for r in rows]):
             img = decode_image(img_b, lim, f"anchor photo {i}")
             d = decode_depth(depth_b, lim, img.shape[:2], f"anchor photo {i} depth") if depth_b is not None else None
-            out.append(Photo(img, intrinsics_of(intr), d, pose_of(q)))
+            out.append(Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:])))
         return out
 
     return load

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from ..estimate import Estimate
-from ..geometry import Intrinsics, Pose, quat_to_rotmat
+from ..geometry import Intrinsics, Pose
 from .gcpause import after_load
 from .uploads import UploadError
 
@@ -162,11 +162,6 @@ class Photo:
     K: Intrinsics
     depth: np.ndarray | None = None
     pose: Pose = field(default_factory=Pose.identity)
-
-
-def pose_of(values) -> Pose:
-    """``[qw, qx, qy, qz, tx, ty, tz]`` (as stored) -> ``Pose``."""
-    return Pose(quat_to_rotmat(np.asarray(values[:4], float)), np.asarray(values[4:], float))
 
 
 class Localizers:
