@@ -61,6 +61,10 @@ def test_interpolate_track_between_samples():
     R = np.stack([np.eye(3)] * 2)
     poses = interpolate_track(np.array([0.0, 1.0]), np.array([[0.0, 0, 0], [2.0, 0, 0]]), R, np.array([0.25, 2.0]))
     assert np.allclose(poses[0].t, [0.5, 0, 0]) and poses[1] is None
+    # Rotations are slerped too: a quarter of a 90-degree turn about z is 22.5 degrees.
+    R = np.stack([np.eye(3), cv2.Rodrigues(np.array([0.0, 0.0, np.pi / 2]))[0]])
+    mid = interpolate_track(np.array([0.0, 1.0]), np.zeros((2, 3)), R, np.array([0.25]))[0]
+    assert np.allclose(mid.R, cv2.Rodrigues(np.array([0.0, 0.0, np.pi / 8]))[0])
 
 
 def test_build_matches_the_truth(built, scans):
