@@ -101,14 +101,14 @@ def _fit_depth(depth: np.ndarray | None, K: Intrinsics) -> np.ndarray | None:
     return d
 
 
-def ahead(fn: Callable[[Any], Any], items: Iterable[Any], n: int, workers: int = 1) -> Iterator[Any]:
-    """``fn(item)`` for every item, in order, with up to ``n`` of the next items computed in ``workers``
-    background threads meanwhile (``n`` <= 0: in the calling thread)."""
+def ahead(fn: Callable[[Any], Any], items: Iterable[Any], n: int) -> Iterator[Any]:
+    """``fn(item)`` for every item, in order, with up to ``n`` of the next items computed in a background
+    thread meanwhile (``n`` <= 0: in the calling thread)."""
     if n <= 0:
         yield from map(fn, items)
         return
     it = iter(items)
-    with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="mapfree-prefetch") as pool:
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapfree-prefetch") as pool:
         pending: deque = deque(pool.submit(fn, x) for x in islice(it, n))
         while pending:
             done = pending.popleft().result()
@@ -346,19 +346,13 @@ class Relocalizer:
         in background threads, features and matches in batches on the device, solvers in a thread pool."""
         from .batched import BatchOptions, localize_batched
 
-        if anchor is None and self.references is not None:
-            # K references: each query retrieves its own reference (no shared anchor to batch against), so it
-            # goes through localize's retrieval path; images are still decoded ahead in background threads.
-            o = options or BatchOptions()
-            views = ahead(view_or_query, queries, max(1, o.batch_size), o.decode_workers)
-            yield from (self.references.localize(self, v) for v in views)
+        o = options or BatchOptions()
+        if anchor is None and self.references is not None or self._precheck(self._anchor(anchor)) is not None:
+            # K references (each query retrieves its own reference: no shared anchor to batch against), or a
+            # reference every query fails on alike: localize_many's path, the next queries decoded ahead.
+            yield from self.localize_many(queries, anchor, prefetch=max(1, o.batch_size))
             return
-        anchor = self._anchor(anchor)
-        if self._precheck(anchor) is not None:
-            for _ in queries:
-                yield self._precheck(anchor)
-            return
-        yield from localize_batched(self, anchor, queries, options)
+        yield from localize_batched(self, self._anchor(anchor), queries, o)
 
     def _needs(self) -> tuple[str, ...]:
         if not self.metric:
