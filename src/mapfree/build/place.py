@@ -21,7 +21,7 @@ import numpy as np
 from ..data.device import DEVICE_FILE, multiframe_bursts, rebase_bursts, write_device_poses
 from ..data.io import FormatError, depth_path_for, read_depth, write_depth, write_intrinsics, write_poses
 from ..data.overlaps import Overlaps, write_overlaps
-from ..data.scene import REFERENCE_NAME
+from ..data.scene import REFERENCE_NAME, frame_number
 from ..geometry import Intrinsics, Pose
 from .correspondences import CorrespondenceOptions, depth_correspondences, write_correspondences
 from .inputs import Place, read_place
@@ -208,7 +208,7 @@ def _write_scene(out: Path, place: Place, model: SfmModel, fit: ScaleFit, src: d
         write_poses(private_gt / "poses.txt", names, poses)
     _write_device(out, keep, rename, device, seq_of, opts.split)
     seq = np.array([int(rename[n][3]) for n in keep])
-    number = np.array([int(rename[n][-9:-4]) for n in keep])
+    number = np.array([frame_number(rename[n]) for n in keep])
     ov, points = _overlaps(model, keep, poses, [model.intrinsics[n] for n in keep], images, seq, number,
                            opts.overlap_points)
     write_overlaps(out / "overlaps.npz", ov)
@@ -256,7 +256,7 @@ def _write_device(out: Path, keep: list[str], rename: dict[str, str], device: di
 def _write_correspondences(out: Path, names: list[str], poses: list[Pose], intr: dict[str, Intrinsics],
                            ov: Overlaps, co: CorrespondenceOptions) -> dict:
     pose_of = dict(zip(names, poses))
-    by_key = {(int(n[3]), int(n[-9:-4])): n for n in names}
+    by_key = {(int(n[3]), frame_number(n)): n for n in names}
     rows = [i for i in ov.within(co.min_overlap, co.max_overlap)
             if (ov.idxs[i, 0], ov.idxs[i, 1]) < (ov.idxs[i, 2], ov.idxs[i, 3])]
     rows = sorted(rows, key=lambda i: -ov.overlaps[i])[: co.max_pairs]
