@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import rotation_angle_deg
+from .report import _clean
 
 __all__ = ["AUC_THRESHOLDS", "RelPoseReport", "pose_auc", "relpose_errors", "relpose_report", "format_relpose",
            "cumulative_error_figure"]
@@ -68,11 +69,10 @@ class RelPoseReport:
         return np.maximum(self.rot_err, self.trans_dir_err)
 
     def to_dict(self, pairs: bool = False) -> dict:
-        clean = lambda v: None if v is None or not math.isfinite(v) else float(v)  # noqa: E731
-        out: dict = {"metrics": {k: clean(v) for k, v in self.metrics.items()}}
+        out: dict = {"metrics": {k: _clean(v) for k, v in self.metrics.items()}}
         if pairs:
-            out["pairs"] = [{"pair": p, "estimated": bool(e), "rot_err": clean(r), "trans_dir_err": clean(t),
-                             "trans_err_m": clean(m)} for p, e, r, t, m in
+            out["pairs"] = [{"pair": p, "estimated": bool(e), "rot_err": _clean(r), "trans_dir_err": _clean(t),
+                             "trans_err_m": _clean(m)} for p, e, r, t, m in
                             zip(self.pairs, self.estimated, self.rot_err, self.trans_dir_err, self.trans_err_m)]
         return out
 
