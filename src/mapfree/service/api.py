@@ -19,7 +19,8 @@ from .db import Anchor, AnchorPhoto, MethodInfo, Submission, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
 from .deps import db_session, identify, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
-from .submissions import accept, daily_test_limit, to_json, visible
+from .manage import test_quota
+from .submissions import accept, to_json, visible
 from .submissions import plot_png as render_plot
 from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics, parse_pose
 
@@ -72,11 +73,9 @@ def me(request: Request, db: Session = Depends(db_session)):
     if caller.user is None:
         raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
     u = caller.user
-    used = db.scalars(select(Submission.created_at).where(
-        Submission.user_id == u.id, Submission.split == "test", Submission.created_at > now() - 86400)).all()
-    limit = daily_test_limit(request.app.state.settings, u)
-    return {"name": u.name, "admin": u.is_admin, "test_evaluations_left_today": max(0, limit - len(used)),
-            "test_daily_limit": limit}
+    quota = test_quota(db, request.app.state.settings, u)
+    return {"name": u.name, "admin": u.is_admin, "test_evaluations_left_today": quota.left,
+            "test_daily_limit": quota.limit}
 
 
 @router.post("/api/submissions", status_code=202, tags=["submissions"])

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
-from sqlalchemy import delete, func, select
+from sqlalchemy import delete
 from sqlalchemy.orm import Session
 
 from .config import Settings
@@ -16,6 +16,7 @@ from .db import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
 from .deps import db_session, identify, require_writer
 from .leaderboard import meta_json, parse_meta, save_meta
 from .storage import read_zip
+from .submissions import daily_test_limit, recent_count
 
 WITHDRAWN = "withdrawn"
 
@@ -33,10 +34,7 @@ class Quota:
 
 
 def test_quota(db: Session, settings: Settings, user: User) -> Quota:
-    limit = user.test_daily_limit if user.test_daily_limit is not None else settings.test_daily_limit
-    used = db.scalar(select(func.count()).select_from(Submission).where(
-        Submission.user_id == user.id, Submission.split == "test", Submission.created_at > now() - 86400)) or 0
-    return Quota(int(used), int(limit))
+    return Quota(recent_count(db, user, "test", 86400), int(daily_test_limit(settings, user)))
 
 
 def own_submission(db: Session, user: User, sid: str) -> Submission:

@@ -22,12 +22,16 @@ def daily_test_limit(settings: Settings, user: User) -> int:
     return user.test_daily_limit if user.test_daily_limit is not None else settings.test_daily_limit
 
 
+def recent_count(db: Session, user: User, split: str, window_s: float) -> int:
+    """How many submissions ``user`` made to ``split`` in the last ``window_s`` (withdrawn ones included)."""
+    return int(db.scalar(select(func.count()).select_from(Submission).where(
+        Submission.user_id == user.id, Submission.split == split, Submission.created_at > now() - window_s)) or 0)
+
+
 def _limit_reached(db: Session, user: User, split: str, window_s: float, limit: int, what: str) -> None:
     """A 429 when ``user`` already made ``limit`` submissions to ``split`` in the last ``window_s`` (0: none)."""
     since = now() - window_s
-    used = db.scalar(select(func.count()).select_from(Submission).where(
-        Submission.user_id == user.id, Submission.split == split, Submission.created_at > since)) or 0
-    if limit > 0 and used >= limit:
+    if limit > 0 and recent_count(db, user, split, window_s) >= limit:
         first = db.scalar(select(func.min(Submission.created_at)).where(
             Submission.user_id == user.id, Submission.split == split, Submission.created_at > since))
         wait = max(1, int((first or now()) + window_s - now()) + 1)
