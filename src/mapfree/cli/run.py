@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     if args.workers < 1:
         print("mapfree run: error: --workers must be >= 1", file=sys.stderr)
         return 2
-    if getattr(args, "batch", None) is not None and args.batch < 0:
+    if args.batch is not None and args.batch < 0:
         print("mapfree run: error: --batch must be >= 0", file=sys.stderr)
         return 2
     if args.track == "multi" and args.all_frames:
@@ -88,18 +88,17 @@ def run(args: argparse.Namespace) -> int:
         method = args.method
         if getattr(args, "checkpoint", None) is not None:
             method = _with_checkpoint(method, args.checkpoint)
-        if getattr(args, "references", 1) != 1 or getattr(args, "reference_mode", "retrieval") != "retrieval":
+        if args.references != 1 or args.reference_mode != "retrieval":
             from ..relocalize.references import with_references
 
             method = with_references(method, args.references, args.reference_mode)
         run = run_split
-        extra = {"batch_size": args.batch} if getattr(args, "batch", None) is not None else {}
         if args.track == "multi":
             from ..relocalize.multiframe import run_multi as run
         res = run(args.root, args.split, method, args.output, workers=args.workers,
                   all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
                   confidence=args.confidence, progress=not args.no_progress,
-                  scenes=args.scenes.split(",") if args.scenes else None, **extra)
+                  scenes=args.scenes.split(",") if args.scenes else None, batch_size=args.batch)
     except (FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree run: error: {msg}", file=sys.stderr)
