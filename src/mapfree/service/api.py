@@ -349,19 +349,18 @@ def delete_anchor(aid: str, request: Request, db: Session = Depends(db_session))
     return Response(status_code=204)
 
 
+def stored_photo(a: Anchor, rows: list[AnchorPhoto], i: int, lim) -> Photo:
+    """Photo ``i`` of the anchor (0: the anchor row's, ``i``: ``rows[i - 1]``) decoded from the database."""
+    img_b, intr, depth_b, q = ((a.image, a.intrinsics, a.depth, IDENTITY) if i == 0 else
+                               (rows[i - 1].image, rows[i - 1].intrinsics, rows[i - 1].depth, rows[i - 1].pose))
+    img = decode_image(img_b, lim, f"anchor photo {i}")
+    d = decode_depth(depth_b, lim, img.shape[:2], f"anchor photo {i} depth") if depth_b is not None else None
+    return Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:]))
+
+
 def _stored_photos(a: Anchor, rows: list[AnchorPhoto], lim) -> Callable[[], list[Photo]]:
     """The anchor's photos decoded from the database, on demand (only when not prepared in this process)."""
-
-    def load() -> list[Photo]:
-        out = []
-        for i, (img_b, intr, depth_b, q) in enumerate([(a.image, a.intrinsics, a.depth, IDENTITY)]
-                                                     + [(r.image, r.intrinsics, r.depth, r.pose) for r in rows]):
-            img = decode_image(img_b, lim, f"anchor photo {i}")
-            d = decode_depth(depth_b, lim, img.shape[:2], f"anchor photo {i} depth") if depth_b is not None else None
-            out.append(Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:])))
-        return out
-
-    return load
+    return lambda: [stored_photo(a, rows, i, lim) for i in range(1 + len(rows))]
 
 
 @router.post("/anchors/{aid}/localize", tags=["relocalization"])

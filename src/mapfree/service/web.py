@@ -19,7 +19,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from . import auth
-from .api import _anchor, _photo_rows, _stored_photos, spooled_upload
+from .api import _anchor, _photo_rows, _stored_photos, spooled_upload, stored_photo
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT, known_scenes
@@ -376,10 +376,10 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
                                               "query intrinsics"))
     except UploadError as e:
         return _reloc_page(request, db, e.status, method=a.method, form=form, error=e.message)
-    load = _stored_photos(a, rows, lim)
-    est = request.app.state.localizers.localize_photos(a.id, a.method, 1 + len(rows), load, q_img, q_K)
+    est = request.app.state.localizers.localize_photos(a.id, a.method, 1 + len(rows), _stored_photos(a, rows, lim),
+                                                       q_img, q_K)
     result = estimate_json(est, a.method)
-    photo = load()[result.get("photo") or 0]
+    photo = stored_photo(a, rows, result.get("photo") or 0, lim)  # only the one drawn, not every photo again
     shown = replace(est, pose=est.pose @ photo.pose.inverse()) if est.pose is not None else est  # vs that photo
     png = figure_png(photo.image, q_img, photo.K, q_K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
     return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8],
