@@ -251,3 +251,15 @@ def test_finetune_a_confidence_on_top_of_a_published_model(official, weights, tm
         main(["train", "3d3d", "--freeze", "bogus"])
     # --freeze pose without an uncertainty head would train nothing: refused before any work.
     assert main(["train", "3d3d", "--data", str(root), "--out", str(tmp_path / "x"), "--freeze", "pose"]) == 2
+
+
+def test_registering_the_published_methods_does_not_load_torch():
+    """``methods.get`` imports ``mapfree.regression`` to register ``rpr-<config>``: that must stay cheap (no torch,
+    ~2 s) for every CLI call and service start, whatever method they ask for."""
+    import subprocess
+    import sys
+
+    code = ("import sys, mapfree.methods as m; m.get('sift_emat_none'); assert m.get('rpr-3d3d').options == "
+            "{'config': '3d3d'}; print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"

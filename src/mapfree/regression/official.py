@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["OFFICIAL_CONFIGS", "WEIGHTS_URL", "weights_dir", "find_weights", "is_public", "read_checkpoint",
            "load_weights", "official_config_for"]
@@ -45,6 +46,8 @@ def find_weights(name: str) -> Path:
 
 def read_checkpoint(path: os.PathLike | str) -> dict[str, Any]:
     """A checkpoint file as a dict holding ``state_dict``; a clear error naming the file otherwise."""
+    import torch  # here, not at import: ``mapfree.regression`` registers its methods without loading torch
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"RPR checkpoint {path} not found")
