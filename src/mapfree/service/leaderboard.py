@@ -197,6 +197,13 @@ def to_csv(entries: list[dict]) -> str:
 # ----------------------------------------------------------------------------------------------- compare
 
 
+def ordered_metrics(metrics: dict | None) -> list[str]:
+    """Every metric a result holds: the benchmark's eight headline keys first, then the rest (50 cm / 10°,
+    45 px, …) in a stable order."""
+    metrics = metrics or {}
+    return [k for k in METRIC_KEYS if k in metrics] + sorted(k for k in metrics if k not in METRIC_KEYS)
+
+
 def compare(a: dict, b: dict) -> dict:
     """Two visible submissions of one split (``submissions.to_json`` dicts): every metric both have, the
     difference b − a and which is better; per scene as well where both have per-scene results."""
@@ -205,10 +212,8 @@ def compare(a: dict, b: dict) -> dict:
     lower = {SHORT[k] for k in LOWER_IS_BETTER}
 
     def rows(ma: dict, mb: dict) -> list[dict]:
-        keys = [k for k in METRIC_KEYS if k in ma or k in mb]
-        keys += sorted(k for k in {*ma, *mb} if k not in keys)
         out = []
-        for k in keys:
+        for k in ordered_metrics({**ma, **mb}):
             va, vb = ma.get(k), mb.get(k)
             diff = vb - va if isinstance(va, (int, float)) and isinstance(vb, (int, float)) else None
             better = None if not diff else (("b" if diff < 0 else "a") if k in lower else ("b" if diff > 0 else "a"))

@@ -22,9 +22,9 @@ from . import auth
 from .api import _anchor, _photo_rows, _stored_photos, spooled_upload, stored_photo
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
-from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT, known_scenes
-from .leaderboard import (VIEWS, board, check_sort, compare, meta_json, parse_meta, reference_rows, save_meta,
-                          visible_json)
+from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
+from .leaderboard import (VIEWS, board, check_sort, compare, meta_json, ordered_metrics,
+                          parse_meta, reference_rows, save_meta, visible_json)
 from .manage import own_submission, test_quota, withdraw, zip_response
 from .reloc import check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
 from .submissions import accept, to_json, visible
@@ -56,13 +56,6 @@ def _fmt_num(v):
 
 def _fmt_diff(v):
     return "–" if v is None else f"{v:+.3f}"
-
-
-def ordered_metrics(metrics: dict | None) -> list[str]:
-    """Every metric a result holds: the benchmark's eight headline keys first, then the rest (50 cm / 10°,
-    45 px, …) in a stable order."""
-    metrics = metrics or {}
-    return [k for k in METRIC_KEYS if k in metrics] + sorted(k for k in metrics if k not in METRIC_KEYS)
 
 
 templates.env.filters["time"] = _fmt_time
