@@ -23,7 +23,7 @@ from .api import _anchor, _photo_rows, _stored_photos, spooled_upload, stored_ph
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
-from .leaderboard import (VIEWS, board, check_sort, compare, meta_json, ordered_metrics,
+from .leaderboard import (VIEWS, board, check_sort, check_split, compare, meta_json, ordered_metrics,
                           parse_meta, reference_rows, save_meta, visible_json)
 from .manage import own_submission, test_quota, withdraw, zip_response
 from .reloc import check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
@@ -256,8 +256,7 @@ def leaderboard_default(request: Request):
 @router.get("/leaderboard/{split}", response_class=HTMLResponse)
 def leaderboard_page(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
                      scene: str = Query(""), db: Session = Depends(db_session)):
-    if split not in request.app.state.settings.splits:
-        raise HTTPException(404, f"no leaderboard for split {split!r}")
+    check_split(request, split)
     check_sort(sort)
     entries = board(db, split, sort, view, scene or None)
     query = urlencode({"sort": sort, "view": view, **({"scene": scene} if scene else {})})
