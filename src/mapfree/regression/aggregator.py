@@ -19,9 +19,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
-__all__ = ["CorrelationAggregator", "ConcatAggregator", "build_aggregator", "soft_warp", "AGGREGATORS"]
+from .config import AGGREGATORS
 
-AGGREGATORS = ("warp", "qkv", "concat")
+__all__ = ["CorrelationAggregator", "ConcatAggregator", "build_aggregator", "soft_warp", "AGGREGATORS"]
 
 
 def _grid(h: int, w: int, like: torch.Tensor) -> torch.Tensor:
