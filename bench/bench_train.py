@@ -34,7 +34,7 @@ from bench_pipeline import DEFAULT_ROOT, GpuUtilisation  # noqa: E402
 
 from mapfree.data import Dataset  # noqa: E402
 from mapfree.regression.config import load_config  # noqa: E402
-from mapfree.regression.data import PairDataset, as_float_input, resized_image, val_pairs  # noqa: E402
+from mapfree.regression.data import PairDataset, as_float_input, resized_image, resolve_size, val_pairs  # noqa: E402
 from mapfree.regression.losses import PoseLoss  # noqa: E402
 from mapfree.regression.model import RPRNet  # noqa: E402
 from mapfree.regression.train import resolve_config  # noqa: E402
@@ -46,8 +46,8 @@ def _sync(device: torch.device) -> None:
 
 
 def _size(cfg) -> tuple[int, int]:
-    """(W, H) of the network input: the config's image_size, else portrait short × long side."""
-    return tuple(cfg.data.image_size) if cfg.data.image_size else (cfg.data.short_side, cfg.data.long_side)
+    """(W, H) of the network input for Map-free's portrait frames (the config's image_size if it has one)."""
+    return resolve_size((cfg.data.short_side, cfg.data.long_side), cfg.data)
 
 
 class Trainer:
