@@ -48,9 +48,7 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
         raise UploadError(422, f"split must be one of {', '.join(settings.splits)}; got {split!r}")
     name = check_name(name, settings.limits.max_name_chars) or "unnamed"
     f = io.BytesIO(data) if isinstance(data, (bytes, bytearray)) else data
-    f.seek(0, io.SEEK_END)
-    size = f.tell()
-    check_submission_zip(f, settings.limits, split, known_scenes(settings, split))
+    size = check_submission_zip(f, settings.limits, split, known_scenes(settings, split)).zip_bytes
     # counted inside the write transaction (SQLite: BEGIN IMMEDIATE; PG: row lock on user)
     if db.get_bind().dialect.name == "postgresql":
         db.execute(select(User.id).where(User.id == user.id).with_for_update())

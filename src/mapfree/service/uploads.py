@@ -31,7 +31,8 @@ class UploadError(Exception):
 @dataclass
 class ZipInfo:
     scenes: list[str]
-    uncompressed_bytes: int
+    uncompressed_bytes: int  # as the ZIP directory declares them
+    zip_bytes: int  # the upload itself
 
 
 #: How much of each entry the upload check decompresses (the start of the file: encoding, corrupt streams).
@@ -94,7 +95,7 @@ def check_submission_zip(data: bytes | BinaryIO, limits: Limits, split: str,
         raise UploadError(422, "ZIP holds no pose_sNNNNN.txt files")
     for info in infos:
         _sniff(zf, info)
-    return ZipInfo(sorted(scenes), total)
+    return ZipInfo(sorted(scenes), total, size)
 
 
 def _sniff(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> None:
