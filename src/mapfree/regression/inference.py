@@ -19,8 +19,7 @@ import torch
 from ..data import read_image
 from ..estimate import Estimate
 from ..geometry import Pose
-from .config import RPRConfig
-from .config import load_config, resolve_config
+from .config import RPRConfig, load_config, resolve_config
 from .data import as_float_input, resolve_size, to_input
 from .metrics import confidence_from_log_sigma
 from .module import RPRModule
