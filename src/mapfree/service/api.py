@@ -20,7 +20,7 @@ from .leaderboard import meta_json, parse_meta, save_meta
 from .deps import db_session, identify, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
 from .manage import test_quota
-from .submissions import accept, to_json, visible
+from .submissions import accept, to_json, visible_submission
 from .submissions import plot_png as render_plot
 from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics, parse_pose
 
@@ -115,10 +115,7 @@ def my_submissions(request: Request, db: Session = Depends(db_session)):
 
 
 def _visible_submission(request: Request, db: Session, sid: str) -> Submission:
-    sub = db.get(Submission, sid) if len(sid) <= 32 else None
-    if not visible(sub, identify(request, db).user):
-        raise HTTPException(404, "no such submission (or it is private)")
-    return sub
+    return visible_submission(db, identify(request, db).user, sid)
 
 
 @router.get("/api/submissions/{sid}", tags=["submissions"])

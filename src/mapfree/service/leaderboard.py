@@ -21,7 +21,7 @@ from .db import MethodInfo, Result, Submission, User
 from .deps import db_session, identify
 from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT
 from .reference import REFERENCE_ROWS
-from .submissions import to_json, visible
+from .submissions import to_json, visible_submission
 from .uploads import UploadError
 
 VIEWS = ("all", "best")
@@ -268,10 +268,7 @@ def leaderboard(split: str, request: Request, sort: str = Query("vcre_auc"), vie
 
 def visible_json(request: Request, db: Session, sid: str) -> dict:
     """A submission the caller may see, as ``to_json`` (404 otherwise)."""
-    sub = db.get(Submission, sid) if len(sid) <= 32 else None
-    if not visible(sub, identify(request, db).user):
-        raise HTTPException(404, f"no such submission {sid[:40]!r} (or it is private)")
-    return to_json(db, sub)
+    return to_json(db, visible_submission(db, identify(request, db).user, sid, f"no such submission {sid[:40]!r}"))
 
 
 @router.get("/api/compare")

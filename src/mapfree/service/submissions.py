@@ -7,6 +7,7 @@ import io
 import threading
 from typing import BinaryIO
 
+from fastapi import HTTPException
 from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
@@ -81,6 +82,14 @@ def visible(sub: Submission | None, user: User | None) -> bool:
     if sub is None or sub.status == "withdrawn":
         return False
     return sub.public or (user is not None and (user.id == sub.user_id or user.is_admin))
+
+
+def visible_submission(db: Session, user: User | None, sid: str, what: str = "no such submission") -> Submission:
+    """Submission ``sid`` if ``user`` may see it; a 404 ``"{what} (or it is private)"`` otherwise."""
+    sub = db.get(Submission, sid) if len(sid) <= 32 else None
+    if not visible(sub, user):
+        raise HTTPException(404, f"{what} (or it is private)")
+    return sub
 
 
 def to_json(db: Session, sub: Submission, owner_name: str | None = None) -> dict:

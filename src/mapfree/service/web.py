@@ -27,7 +27,7 @@ from .leaderboard import (VIEWS, board, check_sort, check_split, compare, meta_j
                           parse_meta, reference_rows, save_meta, visible_json)
 from .manage import own_submission, test_quota, withdraw, zip_response
 from .reloc import check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
-from .submissions import accept, to_json, visible
+from .submissions import accept, to_json, visible_submission
 from .uploads import UploadError, decode_depth, decode_image, parse_intrinsics
 
 router = APIRouter(include_in_schema=False)
@@ -197,9 +197,7 @@ def _submission(request: Request, db: Session, sid: str, status: int = 200, erro
     """A submission's page: every figure of its result, per-scene table, plots; for its owner also the method
     form, the ZIP download and withdrawing."""
     user = identify(request, db).user
-    sub = db.get(Submission, sid) if len(sid) <= 32 else None
-    if not visible(sub, user):
-        raise HTTPException(404, "no such submission (or it is private)")
+    sub = visible_submission(db, user, sid)
     data = to_json(db, sub)
     first_scene = next(iter((data.get("per_scene") or {}).values()), None) or {}
     return page(request, "submission.html", db, status, sub=data, labels=LABELS, short=SHORT,
