@@ -173,10 +173,42 @@ def test_withdraw_and_download(server):
         assert sid in str(anon.get("/api/leaderboard/test").json())
         assert c.delete(f"/api/submissions/{sid}").status_code == 204
         assert c.get(f"/api/submissions/{sid}").status_code == 404
-        assert c.get(f"/api/submissions/{sid}/zip").status_code == 404
-        assert c.delete(f"/api/submissions/{sid}").status_code == 404
+        assert c.get(f"/api/submissions/{sid}/zip").status_code == 409  # withdrawn: said so, not "no such"
+        assert c.delete(f"/api/submissions/{sid}").status_code == 409
         assert sid not in str(anon.get("/api/leaderboard/test").json())
         mine = {s["id"]: s for s in c.get("/api/submissions").json()}
         assert mine[sid]["status"] == "withdrawn" and mine[sid]["metrics"] is None
         # withdrawing does not give the test evaluation back (else the daily limit could be dodged)
         assert c.get("/api/me").json()["test_evaluations_left_today"] == before - 1
+
+
+def test_a_withdrawn_submission_is_final(server, board_data):
+    """Once withdrawn, every change its owner asks for is a 409 saying so (the visibility PATCH used to answer
+    200 and mark it public), others still get 404, and no board, CSV or comparison ever shows it again."""
+    (owner,) = fresh_users(server, "final")
+    d = submit_done(server, owner, make_submission(server.data.root / "val", noise=0.2, seed=61), "gone-for-good")
+    sid, other = d["id"], board_data["a"]["id"]
+    meta = {"description": "x", "paper_url": "", "code_url": "", "runtime_ms": None, "extra_data": False}
+    with server.client(owner) as c, server.client("bob") as bob, server.client() as anon:
+        assert sid in str(anon.get("/api/leaderboard/val").json())
+        assert c.delete(f"/api/submissions/{sid}").status_code == 204
+        for r in (c.patch(f"/api/submissions/{sid}", json={"public": True}),
+                  c.put(f"/api/submissions/{sid}/method", json=meta),
+                  c.delete(f"/api/submissions/{sid}"), c.get(f"/api/submissions/{sid}/zip")):
+            assert r.status_code == 409, (r.request.method, r.text)
+            assert f"submission {sid} ('gone-for-good') was withdrawn on " in r.json()["detail"], r.text
+        for r in (bob.patch(f"/api/submissions/{sid}", json={"public": True}),
+                  bob.put(f"/api/submissions/{sid}/method", json=meta), bob.delete(f"/api/submissions/{sid}")):
+            assert r.status_code == 404, r.text  # not theirs: nothing to learn about it
+        mine = {s["id"]: s for s in c.get("/api/submissions").json()}
+        assert mine[sid]["status"] == "withdrawn" and mine[sid]["public"] is False
+        for view in ("all", "best"):
+            assert sid not in str(anon.get("/api/leaderboard/val", params={"view": view}).json())
+            assert sid not in anon.get("/api/leaderboard/val.csv", params={"view": view}).text
+        assert anon.get("/api/compare", params={"a": other, "b": sid}).status_code == 404
+        assert c.get("/compare", params={"id": [other, sid]}).status_code == 404
+        # the web form (a page opened before withdrawing): the history page with the reason above it
+        r = c.post(f"/submissions/{sid}/visibility", data={"public": "true"}, headers={"Accept": "text/html"})
+        assert r.status_code == 409 and 'id="history"' in r.text and "was withdrawn on" in r.text, r.text[-1500:]
+        assert c.get(f"/submissions/{sid}/zip", headers={"Accept": "text/html"}).status_code == 409
+        assert c.get("/api/submissions").json()[0]["public"] is False

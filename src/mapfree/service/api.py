@@ -19,7 +19,7 @@ from .db import Anchor, AnchorPhoto, MethodInfo, Submission, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
 from .deps import db_session, identify, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
-from .manage import test_quota
+from .manage import own_submission, test_quota
 from .submissions import accept, to_json, visible_submission
 from .submissions import plot_png as render_plot
 from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics, parse_pose
@@ -129,14 +129,12 @@ class Visibility(BaseModel):
 
 @router.patch("/api/submissions/{sid}", tags=["submissions"])
 def set_visibility(sid: str, body: Visibility, request: Request, db: Session = Depends(db_session)):
-    """Make one of your submissions public or private."""
+    """Make one of your submissions public or private (409 once it is withdrawn: it stays hidden for good)."""
     caller = require_writer(request, db)
-    sub = db.get(Submission, sid) if len(sid) <= 32 else None
-    if sub is None or sub.user_id != caller.user.id:
-        raise HTTPException(404, "no such submission of yours")
+    sub = own_submission(db, caller.user, sid)
     sub.public = body.public
     db.commit()
-    return to_json(db, sub, caller.user.name)
+    return to_json(db, sub)
 
 
 @router.get("/submissions/{sid}/plots/{name}.png", tags=["submissions"], response_class=Response)

@@ -14,6 +14,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
+from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .. import __version__
@@ -22,6 +23,7 @@ from .db import init_db, make_engine, session_factory
 from .gcpause import freeze_long_lived
 from .guard import AuthThrottle, request_id
 from .health import HealthMonitor
+from .manage import Withdrawn
 from .reloc import Localizers, register_methods_dir
 from .uploads import UploadError
 
@@ -68,6 +70,14 @@ def create_app(settings: Settings) -> FastAPI:
     @app.exception_handler(UploadError)
     async def _upload_error(request: Request, exc: UploadError):
         return _error(request, exc.status, exc.message)
+
+    @app.exception_handler(Withdrawn)
+    async def _withdrawn(request: Request, exc: Withdrawn):
+        if _wants_html(request):
+            from .web import withdrawn_page
+
+            return await run_in_threadpool(withdrawn_page, request, exc)
+        return _error(request, exc.status_code, str(exc.detail))
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException):

@@ -1,8 +1,12 @@
 """What an account does with its own submissions: withdraw one (results, plots and ZIP deleted; the row stays so
-that it still counts against the quotas), download its ZIP, describe its method, and see the test quota left."""
+that it still counts against the quotas), download its ZIP, describe its method, and see the test quota left.
+
+Withdrawing is final: every later action of the owner on that submission (visibility, method, withdrawing again,
+downloading) is refused with a 409 ``Withdrawn`` that says so, and nobody ever sees it again (404 elsewhere)."""
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 from fastapi import APIRouter, Depends, HTTPException, Request
@@ -37,11 +41,26 @@ def test_quota(db: Session, settings: Settings, user: User) -> Quota:
     return Quota(recent_count(db, user, "test", 86400), int(daily_test_limit(settings, user)))
 
 
+class Withdrawn(HTTPException):
+    """A 409: the owner asked to change (or download) a submission that was withdrawn. The web pages answer it
+    with the owner's history page and this message above it."""
+
+    def __init__(self, sub: Submission):
+        when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(sub.finished_at)) if sub.finished_at else "earlier"
+        super().__init__(409, f"submission {sub.id} ({sub.name!r}) was withdrawn on {when}: its results and ZIP "
+                              "are deleted and it stays off every board for good, so its visibility, method "
+                              "description and ZIP can no longer be changed or downloaded (upload it again as a "
+                              "new submission)")
+
+
 def own_submission(db: Session, user: User, sid: str) -> Submission:
-    """One of ``user``'s submissions (admins: any), not yet withdrawn; 404 otherwise."""
+    """One of ``user``'s submissions (admins: any) that can still change: 404 when there is no such submission
+    of theirs, ``Withdrawn`` (409) when it was withdrawn."""
     sub = db.get(Submission, sid) if len(sid) <= 32 else None
-    if sub is None or sub.status == WITHDRAWN or (sub.user_id != user.id and not user.is_admin):
+    if sub is None or (sub.user_id != user.id and not user.is_admin):
         raise HTTPException(404, "no such submission of yours")
+    if sub.status == WITHDRAWN:
+        raise Withdrawn(sub)
     return sub
 
 
@@ -76,7 +95,7 @@ router = APIRouter(tags=["submissions"])
 @router.delete("/api/submissions/{sid}", status_code=204, response_class=Response)
 def withdraw_submission(sid: str, request: Request, db: Session = Depends(db_session)):
     """Withdraw one of your submissions: off the leaderboards, results and ZIP deleted. It still counts against
-    the test quota of the day it was uploaded."""
+    the test quota of the day it was uploaded. Final: a withdrawn submission answers 409 to every later change."""
     caller = require_writer(request, db)
     withdraw(db, own_submission(db, caller.user, sid))
     return Response(status_code=204)
@@ -84,7 +103,7 @@ def withdraw_submission(sid: str, request: Request, db: Session = Depends(db_ses
 
 @router.get("/api/submissions/{sid}/zip", response_class=Response)
 def download_zip(sid: str, request: Request, db: Session = Depends(db_session)):
-    """The ZIP you uploaded (owner or admin only)."""
+    """The ZIP you uploaded (owner or admin only; 409 once withdrawn, 410 once past the retention time)."""
     caller = identify(request, db)
     if caller.user is None:
         raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})

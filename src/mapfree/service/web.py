@@ -25,7 +25,7 @@ from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, requi
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
 from .leaderboard import (VIEWS, board, check_sort, check_split, compare, meta_json, ordered_metrics,
                           parse_meta, reference_rows, save_meta, visible_json)
-from .manage import own_submission, test_quota, withdraw, zip_response
+from .manage import Withdrawn, own_submission, test_quota, withdraw, zip_response
 from .reloc import check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
 from .submissions import accept, to_json, visible_submission
 from .uploads import UploadError, decode_depth, decode_image, parse_intrinsics
@@ -144,11 +144,24 @@ def _signed_in(request: Request, db: Session) -> User:
 
 @router.get("/me", response_class=HTMLResponse)
 def history(request: Request, db: Session = Depends(db_session)):
-    user = _signed_in(request, db)
+    return _history(request, db, _signed_in(request, db))
+
+
+def _history(request: Request, db: Session, user: User, status: int = 200, error: str = "") -> HTMLResponse:
     subs = db.scalars(select(Submission).where(Submission.user_id == user.id)
                       .order_by(Submission.created_at.desc()).limit(500)).all()
-    return page(request, "history.html", db, subs=[to_json(db, s, user.name) for s in subs], labels=LABELS,
-                quota=test_quota(db, request.app.state.settings, user))
+    return page(request, "history.html", db, status, subs=[to_json(db, s, user.name) for s in subs],
+                labels=LABELS, quota=test_quota(db, request.app.state.settings, user), error=error)
+
+
+def withdrawn_page(request: Request, exc: Withdrawn) -> HTMLResponse:
+    """A form that changes a withdrawn submission (say, from a page opened before withdrawing it): the owner's
+    history, where it is listed as withdrawn, with the reason above it (409)."""
+    with request.app.state.sessions() as db:
+        user = identify(request, db).user
+        if user is None:
+            return error_page(request, exc.status_code, str(exc.detail))
+        return _history(request, db, user, exc.status_code, str(exc.detail))
 
 
 # ------------------------------------------------------------------------------------------- submissions
