@@ -9,16 +9,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fastapi.testclient import TestClient
+
 from mapfree.data import Dataset
 from mapfree.geometry import Pose
+from mapfree.service import Settings, create_app
 
 from .test_browser import CHROMIUM, PHONE, _sign_in, browser, phone, shot  # noqa: F401 (fixtures)
+from .test_hardening import make_app  # noqa: F401 (fixture)
 
 METHOD = "sift_pnp_sensor"
 SCENE = "s00000"
 #: A second photo from the query scan near its end, and queries: one only that photo sees well (the anchor's
 #: first photo alone gives no pose for it on this scene), one near the first photo.
 SECOND, FAR_QUERY, NEAR_QUERY = "seq1/frame_00022.jpg", "seq1/frame_00024.jpg", "seq1/frame_00010.jpg"
+THIRD = "seq1/frame_00005.jpg"  # a third photo, near the first
 
 
 def _form(K, prefix: str = "") -> dict:
@@ -154,6 +159,105 @@ def test_photo_fields_must_line_up_and_depth_is_checked_per_photo(server, scene)
         assert r.status_code == 422 and "photo 1" in r.json()["detail"] and "depth" in r.json()["detail"], r.text
         assert c.get(f"/anchors/{a['id']}").json()["num_photos"] == 1  # nothing stored by the refused ones
         assert c.delete(f"/anchors/{a['id']}").status_code == 204
+
+
+def _make_two_photo_anchor(client, ref, second, name: str = "two") -> dict:
+    r = client.post("/anchors", files=_files(ref) + _files(second, "photo_image", "photo_depth"),
+                    data={**_form(ref.intrinsics), **_form(second.intrinsics, "photo_"), "method": METHOD,
+                          "photo_pose": _pose_text(second.pose), "name": name})
+    assert r.status_code == 201, r.text
+    return r.json()
+
+
+def _add(client, aid: str, frame, pose: Pose | None = None):
+    return client.post(f"/anchors/{aid}/photos", files=_files(frame),
+                       data={**_form(frame.intrinsics), "pose": _pose_text(pose or frame.pose)})
+
+
+def _bytes_of(frame) -> int:
+    return len(frame.image_path.read_bytes()) + len(frame.depth_path("sensor").read_bytes())
+
+
+def test_delete_a_photo_then_localize_uses_the_photos_left(server, scene):
+    """``DELETE /anchors/{id}/photos/{k}``: owner only, photo 0 (the anchor's frame) refused with a 409, the
+    other indices kept; the next localize never answers from the deleted photo, and its bytes leave the quota."""
+    ref, second, third, far = scene.reference, scene.frame(SECOND), scene.frame(THIRD), scene.frame(FAR_QUERY)
+    with server.client("alice") as alice, server.client("bob") as bob, server.client() as anon:
+        anchor = _make_two_photo_anchor(alice, ref, second)
+        aid = anchor["id"]
+        assert _add(alice, aid, third).json()["photos"][2]["index"] == 2
+        used = alice.get("/api/me").json()["storage_used_bytes"]
+        est = _localize(bob, aid, far)
+        assert est["ok"] and est["photo"] == 1 and _errors(est, far.pose)[0] < 0.15, est  # prepared and cached
+        assert alice.get(f"/anchors/{aid}/photos/1").content == second.image_path.read_bytes()
+        assert bob.delete(f"/anchors/{aid}/photos/1").status_code == 403
+        assert anon.delete(f"/anchors/{aid}/photos/1").status_code == 401
+        r = alice.delete(f"/anchors/{aid}/photos/0")
+        assert r.status_code == 409 and "anchor's frame" in r.json()["detail"], r.text
+        r = alice.delete(f"/anchors/{aid}/photos/7")
+        assert r.status_code == 404 and "has no photo 7 (its photos: 0, 1, 2)" in r.json()["detail"], r.text
+        r = alice.delete(f"/anchors/{aid}/photos/1")
+        assert r.status_code == 200, r.text
+        assert [p["index"] for p in r.json()["photos"]] == [0, 2] and r.json()["num_photos"] == 2
+        assert alice.get(f"/anchors/{aid}").json()["photos"][1]["index"] == 2
+        assert alice.get(f"/anchors/{aid}/photos/1").status_code == 404
+        assert alice.get("/api/me").json()["storage_used_bytes"] == used - _bytes_of(second)
+        est = _localize(bob, aid, far)  # the photo that answered is gone: another one answers, or none
+        assert est.get("photo", 0) in (0, 2), est
+        assert alice.delete(f"/anchors/{aid}/photos/1").status_code == 404
+        # the next photo takes the index after the highest one left
+        assert [p["index"] for p in _add(alice, aid, second).json()["photos"]] == [0, 2, 3]
+        est = _localize(bob, aid, far)
+        assert est["ok"] and est["photo"] == 3 and _errors(est, far.pose)[0] < 0.15, est
+        assert alice.delete(f"/anchors/{aid}").status_code == 204
+        assert alice.get("/api/me").json()["storage_used_bytes"] == used - _bytes_of(ref) - _bytes_of(second) \
+            - _bytes_of(third)
+
+
+def test_another_api_process_never_answers_from_a_deleted_photo(server, scene, realmini_dir):
+    """Photo 1 replaced by a photo of another place through the server: an API process that had prepared the
+    anchor (the same photo count as now) prepares it again instead of answering from the deleted photo."""
+    ref, second, far = scene.reference, scene.frame(SECOND), scene.frame(FAR_QUERY)
+    elsewhere = Dataset(realmini_dir).scene("val", "s00001").reference
+    other = TestClient(create_app(Settings(db_url=server.db_url, data_root=server.data.root,
+                                           gt_root=server.data.gt)), raise_server_exceptions=False)
+    other.headers["Authorization"] = f"Bearer {server.tokens['alice']}"
+    aid = None
+    try:
+        with server.client("alice") as alice:
+            aid = _make_two_photo_anchor(alice, ref, second, "replaced")["id"]
+            est = _localize(other, aid, far)
+            assert est["ok"] and est["photo"] == 1 and _errors(est, far.pose)[0] < 0.15, est
+            assert alice.delete(f"/anchors/{aid}/photos/1").status_code == 200
+            r = _add(alice, aid, elsewhere, Pose.from_qt([1, 0, 0, 0], [0.3, 0, 0]))
+            assert r.status_code == 201 and r.json()["num_photos"] == 2, r.text
+        est = _localize(other, aid, far)
+        assert not (est["ok"] and _errors(est, far.pose)[0] < 0.15), est  # not the stale answer
+    finally:
+        other.close()
+        if aid is not None:
+            with server.client("alice") as alice:
+                assert alice.delete(f"/anchors/{aid}").status_code == 204
+
+
+def test_anchor_photos_count_against_the_storage_quota(make_app, scene):  # noqa: F811
+    ref, second, third = scene.reference, scene.frame(SECOND), scene.frame(THIRD)
+    app = make_app(storage_quota_bytes=_bytes_of(ref) + max(_bytes_of(second), _bytes_of(third)) + 100)
+    c, auth = app.client, app.auth("ann")
+    r = c.post("/anchors", headers=auth, files=_files(ref) + _files(second, "photo_image", "photo_depth"),
+               data={**_form(ref.intrinsics), **_form(second.intrinsics, "photo_"), "method": METHOD,
+                     "photo_pose": _pose_text(second.pose)})
+    assert r.status_code == 201, r.text
+    aid = r.json()["id"]
+    assert c.get("/api/me", headers=auth).json()["storage_used_bytes"] == _bytes_of(ref) + _bytes_of(second)
+    r = c.post(f"/anchors/{aid}/photos", headers=auth, files=_files(third),
+               data={**_form(third.intrinsics), "pose": _pose_text(third.pose)})
+    assert r.status_code == 413 and "storage quota" in r.json()["detail"] and "anchor photos" in r.json()["detail"]
+    assert c.delete(f"/anchors/{aid}/photos/1", headers=auth).status_code == 200  # room again
+    r = c.post(f"/anchors/{aid}/photos", headers=auth, files=_files(third),
+               data={**_form(third.intrinsics), "pose": _pose_text(third.pose)})
+    assert r.status_code == 201, r.text
+    assert c.get("/api/me", headers=auth).json()["storage_used_bytes"] == _bytes_of(ref) + _bytes_of(third)
 
 
 @pytest.mark.browser

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import BinaryIO, Callable
+from typing import BinaryIO
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
@@ -13,13 +13,15 @@ from pydantic import BaseModel
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from ..estimate import Estimate
 from ..geometry import Pose
 from . import jobs
-from .db import Anchor, AnchorPhoto, MethodInfo, Submission, new_id, now
+from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
 from .deps import db_session, identify, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
 from .manage import own_submission, test_quota
+from .storage import check_quota, stored_bytes
 from .submissions import accept, to_json, visible_submission
 from .submissions import plot_png as render_plot
 from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics, parse_pose
@@ -75,7 +77,8 @@ def me(request: Request, db: Session = Depends(db_session)):
     u = caller.user
     quota = test_quota(db, request.app.state.settings, u)
     return {"name": u.name, "admin": u.is_admin, "test_evaluations_left_today": quota.left,
-            "test_daily_limit": quota.limit}
+            "test_daily_limit": quota.limit, "storage_used_bytes": stored_bytes(db, u.id),
+            "storage_quota_bytes": request.app.state.settings.storage_quota_bytes}
 
 
 @router.post("/api/submissions", status_code=202, tags=["submissions"])
@@ -153,16 +156,30 @@ def plot_png(sid: str, name: str, request: Request, db: Session = Depends(db_ses
 IDENTITY = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
 
 
-def _photo_rows(db: Session, aid: str) -> list[AnchorPhoto]:
+def photo_rows(db: Session, aid: str) -> list[AnchorPhoto]:
+    """The anchor's further photos, by index (1, 2, …; deleted ones leave gaps)."""
     return list(db.scalars(select(AnchorPhoto).where(AnchorPhoto.anchor_id == aid).order_by(AnchorPhoto.seq)))
+
+
+def anchor_version(rows: list[AnchorPhoto]) -> tuple:
+    """What identifies the current set of an anchor's photos, the same in every API process: each further
+    photo's index and creation time (photo 0 never changes). A photo added or deleted through any process
+    changes it, so no process answers from an anchor it prepared before."""
+    return tuple((r.seq, r.created_at) for r in rows)
+
+
+def photo_indices(rows: list[AnchorPhoto]) -> list[int]:
+    """The indices of an anchor's photos, in order: 0 (the anchor's frame), then each further photo's."""
+    return [0, *(r.seq for r in rows)]
 
 
 def _anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
     """An anchor and its photos: photo 0 is the anchor's own (its camera is the anchor's frame); each further
-    photo's ``pose`` is world-to-camera from that frame as ``[qw, qx, qy, qz, tx, ty, tz]``."""
+    photo's ``pose`` is world-to-camera from that frame as ``[qw, qx, qy, qz, tx, ty, tz]``. A photo keeps its
+    ``index`` for life (deleting one leaves a gap)."""
     photos = [{"index": 0, "intrinsics": a.intrinsics, "has_depth": a.depth is not None, "pose": IDENTITY}]
-    photos += [{"index": i + 1, "intrinsics": r.intrinsics, "has_depth": r.depth is not None, "pose": r.pose}
-               for i, r in enumerate(rows)]
+    photos += [{"index": r.seq, "intrinsics": r.intrinsics, "has_depth": r.depth is not None, "pose": r.pose}
+               for r in rows]
     return {"id": a.id, "name": a.name, "method": a.method, "intrinsics": a.intrinsics,
             "has_depth": a.depth is not None, "num_photos": len(photos), "photos": photos,
             "created_at": a.created_at, "url": f"/anchors/{a.id}"}
@@ -173,7 +190,7 @@ def _intr(fx, fy, cx, cy, img, what) -> dict:
 
 
 @dataclass
-class _Upload:
+class PhotoUpload:
     """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays."""
 
     image: bytes
@@ -182,9 +199,14 @@ class _Upload:
     pose: list[float]
     photo: Photo
 
+    @property
+    def nbytes(self) -> int:
+        """What storing it counts against the owner's storage quota."""
+        return len(self.image) + len(self.depth or b"")
 
-def _photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth: UploadFile | None,
-                  pose: str | None) -> _Upload:
+
+def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth: UploadFile | None,
+                 pose: str | None) -> PhotoUpload:
     """Read and check one photo (image, intrinsics, depth, pose); every error names ``what`` (the photo) if
     given. ``pose=None``: the anchor's first photo, whose camera is the anchor's frame."""
     try:
@@ -198,16 +220,17 @@ def _photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, dept
         q = IDENTITY if pose is None else parse_pose(pose)
     except UploadError as e:
         raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
-    return _Upload(img_bytes, intr, depth_bytes, q, Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:])))
+    return PhotoUpload(img_bytes, intr, depth_bytes, q, Photo(img, intrinsics_of(intr), d,
+                                                              Pose.from_qt(q[:4], q[4:])))
 
 
-def _photo_name(i: int, f: UploadFile | None) -> str:
+def photo_name(i: int, f: UploadFile | None) -> str:
     """How errors name a photo: its index in the anchor (0: the first) and the uploaded file's name."""
     fname = check_name((f.filename or "") if f is not None else "", 80, "file name") if f is not None else ""
     return f"photo {i}" + (f" ({fname!r})" if fname else "")
 
 
-def _runnable(m: str, ups: list[_Upload], names: list[str]) -> None:
+def _runnable(m: str, ups: list[PhotoUpload], names: list[str]) -> None:
     """``check_runnable`` for every photo, naming the one without the depth the method needs."""
     for i, u in enumerate(ups):
         try:
@@ -221,7 +244,7 @@ def _runnable(m: str, ups: list[_Upload], names: list[str]) -> None:
 
 
 def _extra_photos(lim, images: list[UploadFile], fx: list[str], fy: list[str], cx: list[str], cy: list[str],
-                  poses: list[str], depths: list[UploadFile], first: int) -> tuple[list[_Upload], list[str]]:
+                  poses: list[str], depths: list[UploadFile], first: int) -> tuple[list[PhotoUpload], list[str]]:
     """The repeated ``photo_*`` fields of a request: one value per ``photo_image``, in the same order. Depth
     maps are all or none (an empty file part is dropped, so it cannot stand for a missing one): photos of
     which only some have depth are added one by one (``POST /anchors/{id}/photos``)."""
@@ -236,16 +259,42 @@ def _extra_photos(lim, images: list[UploadFile], fx: list[str], fy: list[str], c
         raise UploadError(422, f"photo_depth: {len(depths)} file(s) for {n} photo_image file(s); give none, or one "
                                "per photo in the same order (or add the photos one by one: POST "
                                "/anchors/{id}/photos)")
-    names = [_photo_name(first + i, f) for i, f in enumerate(images)]
-    ups = [_photo_upload(lim, names[i], f, fx[i], fy[i], cx[i], cy[i], depths[i] if depths else None, poses[i])
+    names = [photo_name(first + i, f) for i, f in enumerate(images)]
+    ups = [photo_upload(lim, names[i], f, fx[i], fy[i], cx[i], cy[i], depths[i] if depths else None, poses[i])
            for i, f in enumerate(images)]
     return ups, names
 
 
-def _store_photos(db: Session, aid: str, ups: list[_Upload], first_seq: int) -> None:
-    for i, u in enumerate(ups):
-        db.add(AnchorPhoto(anchor_id=aid, seq=first_seq + i, intrinsics=u.intrinsics, pose=u.pose, image=u.image,
-                           depth=u.depth, created_at=now()))
+def _photo_rows_of(aid: str, ups: list[PhotoUpload], first_seq: int) -> list[AnchorPhoto]:
+    return [AnchorPhoto(anchor_id=aid, seq=first_seq + i, intrinsics=u.intrinsics, pose=u.pose, image=u.image,
+                        depth=u.depth, created_at=now()) for i, u in enumerate(ups)]
+
+
+def make_anchor(request: Request, db: Session, user: User, name: str, method: str, ups: list[PhotoUpload],
+                names: list[str]) -> tuple[Anchor, list[AnchorPhoto]]:
+    """Store a new anchor of ``user`` from checked photos (``ups[0]``: the anchor's frame; ``names``: how errors
+    name them, "" for a lone photo), refused (4xx) past the photo limit or the storage quota, or when its method
+    cannot run on it here. Shared by ``POST /anchors`` and the relocalize page."""
+    settings = request.app.state.settings
+    lim = settings.limits
+    if len(ups) > lim.max_anchor_photos:
+        raise UploadError(413, f"an anchor holds at most {lim.max_anchor_photos} photos; got {len(ups)}")
+    name = check_name(name, lim.max_name_chars)
+    m = check_method(method) if method.strip() else default_method(settings.default_method)
+    _runnable(m, ups, names)
+    check_quota(db, settings, user.id, sum(u.nbytes for u in ups), "this anchor's photos")
+    db.commit()  # no transaction (SQLite: the write lock) held while the method prepares the photos
+    aid = new_id()
+    rows = _photo_rows_of(aid, ups[1:], 1)
+    request.app.state.localizers.check(aid, m, [u.photo for u in ups], anchor_version(rows))  # 422: cannot run
+    first = ups[0]
+    a = Anchor(id=aid, user_id=user.id, name=name, method=m, intrinsics=first.intrinsics, image=first.image,
+               depth=first.depth, created_at=now())
+    db.add(a)
+    db.flush()
+    db.add_all(rows)
+    db.commit()
+    return a, rows
 
 
 @router.post("/anchors", status_code=201, tags=["relocalization"])
@@ -263,32 +312,20 @@ def create_anchor(request: Request, image: UploadFile = File(..., description="r
     """Register a place (user A) that anyone signed in can localize against: its first photo (``image``, whose
     camera is the anchor's frame) and optionally further photos (``photo_*``, repeated, one per photo, each
     with its own intrinsics, optional depth and pose in the anchor's frame). Errors name the photo: photo 0 is
-    ``image``, photo 1 the first ``photo_image``, and so on."""
+    ``image``, photo 1 the first ``photo_image``, and so on. The photos count against the storage quota."""
     caller = require_writer(request, db, csrf_token)
-    settings = request.app.state.settings
-    lim = settings.limits
+    lim = request.app.state.settings.limits
     several = any(f.filename or f.size for f in photo_image)  # one photo: messages as before, without "photo 0"
-    name0 = _photo_name(0, image) if several else ""
-    first = _photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
+    name0 = photo_name(0, image) if several else ""
+    first = photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
     extra, names = _extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
-    if 1 + len(extra) > lim.max_anchor_photos:
-        raise UploadError(413, f"an anchor holds at most {lim.max_anchor_photos} photos; got {1 + len(extra)}")
-    name = check_name(name, lim.max_name_chars)
-    m = check_method(method) if method.strip() else default_method(settings.default_method)
-    _runnable(m, [first, *extra], [name0, *names])
-    aid = new_id()
-    ups = [first, *extra]
-    request.app.state.localizers.check(aid, m, [u.photo for u in ups], len(ups))  # 422 if it cannot run here
-    a = Anchor(id=aid, user_id=caller.user.id, name=name, method=m, intrinsics=first.intrinsics, image=first.image,
-               depth=first.depth, created_at=now())
-    db.add(a)
-    db.flush()
-    _store_photos(db, aid, extra, 1)
-    db.commit()
-    return _anchor_json(a, _photo_rows(db, aid))
+    a, rows = make_anchor(request, db, caller.user, name, method, [first, *extra], [name0, *names])
+    return _anchor_json(a, rows)
 
 
-def _anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
+def find_anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
+    """Anchor ``aid`` (404 otherwise); ``lock``: its row locked for the transaction, which serialises changes to
+    its photos (the next index) on PostgreSQL too."""
     a = None
     if len(aid) <= 32:
         a = db.scalars(select(Anchor).where(Anchor.id == aid).with_for_update()).first() if lock else db.get(Anchor, aid)
@@ -297,13 +334,40 @@ def _anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
     return a
 
 
+def _own_anchor(a: Anchor, user: User, what: str) -> None:
+    """A 403 unless ``user`` owns the anchor or is an admin (anyone signed in may see and use it)."""
+    if a.user_id != user.id and not user.is_admin:
+        raise HTTPException(403, f"only the anchor's owner can {what}")
+
+
 @router.get("/anchors/{aid}", tags=["relocalization"])
 def get_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
     caller = identify(request, db)
     if caller.user is None:
         raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
-    a = _anchor(db, aid)
-    return _anchor_json(a, _photo_rows(db, a.id))
+    a = find_anchor(db, aid)
+    return _anchor_json(a, photo_rows(db, a.id))
+
+
+def add_photo(request: Request, db: Session, user: User, aid: str, image: UploadFile | None, fx, fy, cx, cy,
+              depth: UploadFile | None, pose: str) -> tuple[Anchor, list[AnchorPhoto]]:
+    """Check and store one more photo of anchor ``aid`` (owner or admin), at the index after the highest one;
+    the same limits and errors as at creation. Shared by the API and the anchor's page."""
+    lim = request.app.state.settings.limits
+    a = find_anchor(db, aid, lock=True)
+    _own_anchor(a, user, "add photos to it")
+    rows = photo_rows(db, a.id)
+    seq = (rows[-1].seq if rows else 0) + 1
+    what = photo_name(seq, image)
+    if len(rows) + 1 >= lim.max_anchor_photos:
+        raise UploadError(413, f"{what}: anchor {a.id} already holds the limit of {lim.max_anchor_photos} photos")
+    up = photo_upload(lim, what, image, fx, fy, cx, cy, depth, pose)
+    _runnable(a.method, [up], [what])
+    check_quota(db, request.app.state.settings, a.user_id, up.nbytes, "this photo")
+    db.add_all(_photo_rows_of(a.id, [up], seq))
+    db.commit()
+    request.app.state.localizers.forget(a.id)  # older versions of this anchor are of no further use here
+    return a, photo_rows(db, a.id)
 
 
 @router.post("/anchors/{aid}/photos", status_code=201, tags=["relocalization"])
@@ -314,48 +378,90 @@ def add_anchor_photo(aid: str, request: Request, image: UploadFile = File(..., d
                      depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
                      csrf_token: str | None = Form(None), db: Session = Depends(db_session)):
     """Add a photo of the place to one of your anchors (its owner, or an admin). Localizing then retrieves the
-    most similar photo for each query; poses stay in the anchor's frame."""
+    most similar photo for each query; poses stay in the anchor's frame. It gets the index after the highest
+    one and counts against the owner's storage quota."""
     caller = require_writer(request, db, csrf_token)
-    lim = request.app.state.settings.limits
-    a = _anchor(db, aid, lock=True)  # serialises concurrent additions (the next seq) on PostgreSQL too
-    if a.user_id != caller.user.id and not caller.user.is_admin:
-        raise HTTPException(403, "only the anchor's owner can add photos to it")
-    rows = _photo_rows(db, a.id)
-    what = _photo_name(len(rows) + 1, image)
-    if len(rows) + 1 >= lim.max_anchor_photos:
-        raise UploadError(413, f"{what}: anchor {a.id} already holds the limit of {lim.max_anchor_photos} photos")
-    up = _photo_upload(lim, what, image, fx, fy, cx, cy, depth, pose)
-    _runnable(a.method, [up], [what])
-    _store_photos(db, a.id, [up], len(rows) + 1)
+    return _anchor_json(*add_photo(request, db, caller.user, aid, image, fx, fy, cx, cy, depth, pose))
+
+
+def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) -> tuple[Anchor, list[AnchorPhoto]]:
+    """Delete photo ``k`` of anchor ``aid`` (owner or admin) with its stored bytes; every API process then
+    prepares the anchor afresh from the photos left. Photo 0 is the anchor's frame and stays (409), so an
+    anchor always keeps at least that photo."""
+    a = find_anchor(db, aid, lock=True)
+    _own_anchor(a, user, "delete its photos")
+    rows = photo_rows(db, a.id)
+    if k == 0:
+        raise HTTPException(409, f"photo 0 of anchor {a.id} cannot be deleted: its camera is the anchor's frame, "
+                                 "the one every photo's pose and every localize answer is given in; delete the "
+                                 "whole anchor instead (DELETE /anchors/{id}) and create a new one from the photos "
+                                 "to keep")
+    row = next((r for r in rows if r.seq == k), None)
+    if row is None:
+        raise HTTPException(404, f"anchor {a.id} has no photo {k} (its photos: "
+                                 f"{', '.join(map(str, photo_indices(rows)))})")
+    db.delete(row)
     db.commit()
-    request.app.state.localizers.forget(a.id)  # older versions of this anchor are of no further use here
-    return _anchor_json(a, _photo_rows(db, a.id))
+    request.app.state.localizers.forget(a.id)
+    return a, photo_rows(db, a.id)
+
+
+@router.delete("/anchors/{aid}/photos/{k}", tags=["relocalization"])
+def delete_anchor_photo(aid: str, k: int, request: Request, db: Session = Depends(db_session)):
+    """Delete photo ``k`` of one of your anchors (its owner, or an admin) -> the anchor. Indices stay as they
+    are (deleting photo 1 of 0, 1, 2 leaves 0, 2); the next localize uses the photos left; the bytes no longer
+    count against the storage quota. Photo 0, the anchor's frame, cannot be deleted (409): delete the anchor."""
+    caller = require_writer(request, db)
+    return _anchor_json(*remove_photo(request, db, caller.user, aid, k))
+
+
+@router.get("/anchors/{aid}/photos/{k}", tags=["relocalization"], response_class=Response)
+def anchor_photo_image(aid: str, k: int, request: Request, db: Session = Depends(db_session)):
+    """The stored image of photo ``k`` (as uploaded, JPEG or PNG), for anyone signed in."""
+    if identify(request, db).user is None:
+        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    a = find_anchor(db, aid)
+    data = a.image if k == 0 else db.scalar(select(AnchorPhoto.image).where(AnchorPhoto.anchor_id == a.id,
+                                                                            AnchorPhoto.seq == k))
+    if data is None:
+        raise HTTPException(404, f"anchor {a.id} has no photo {k}")
+    kind = "image/png" if data.startswith(b"\x89PNG") else "image/jpeg"  # decoded as one of them at upload
+    return Response(data, media_type=kind, headers={"Cache-Control": "private, max-age=3600"})
 
 
 @router.delete("/anchors/{aid}", status_code=204, tags=["relocalization"], response_class=Response)
 def delete_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
     caller = require_writer(request, db)
-    a = _anchor(db, aid)
-    if a.user_id != caller.user.id and not caller.user.is_admin:
-        raise HTTPException(403, "only the anchor's owner can delete it")
+    a = find_anchor(db, aid)
+    _own_anchor(a, caller.user, "delete it")
     db.delete(a)
     db.commit()
     request.app.state.localizers.forget(aid)
     return Response(status_code=204)
 
 
-def stored_photo(a: Anchor, rows: list[AnchorPhoto], i: int, lim) -> Photo:
-    """Photo ``i`` of the anchor (0: the anchor row's, ``i``: ``rows[i - 1]``) decoded from the database."""
-    img_b, intr, depth_b, q = ((a.image, a.intrinsics, a.depth, IDENTITY) if i == 0 else
-                               (rows[i - 1].image, rows[i - 1].intrinsics, rows[i - 1].depth, rows[i - 1].pose))
-    img = decode_image(img_b, lim, f"anchor photo {i}")
-    d = decode_depth(depth_b, lim, img.shape[:2], f"anchor photo {i} depth") if depth_b is not None else None
+def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim) -> Photo:
+    """Photo ``k`` of the anchor (0: the anchor row's; else the row with that index) decoded from the database."""
+    row = next(r for r in rows if r.seq == k) if k else None
+    img_b, intr, depth_b, q = ((a.image, a.intrinsics, a.depth, IDENTITY) if row is None else
+                               (row.image, row.intrinsics, row.depth, row.pose))
+    img = decode_image(img_b, lim, f"anchor photo {k}")
+    d = decode_depth(depth_b, lim, img.shape[:2], f"anchor photo {k} depth") if depth_b is not None else None
     return Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:]))
 
 
-def _stored_photos(a: Anchor, rows: list[AnchorPhoto], lim) -> Callable[[], list[Photo]]:
-    """The anchor's photos decoded from the database, on demand (only when not prepared in this process)."""
-    return lambda: [stored_photo(a, rows, i, lim) for i in range(1 + len(rows))]
+def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img, q_K,
+                    q_depth=None) -> Estimate:
+    """The query's pose in the anchor's frame against its current photos (decoded from ``rows`` only when this
+    process has not prepared this version of the anchor); ``extras["photo"]`` is the answering photo's index."""
+    lim = request.app.state.settings.limits
+    indices = photo_indices(rows)
+    est = request.app.state.localizers.localize_photos(
+        a.id, a.method, anchor_version(rows), lambda: [stored_photo(a, rows, k, lim) for k in indices],
+        q_img, q_K, q_depth)
+    if est.extras.get("photo") is not None:  # the position among the photos prepared -> its index
+        est.extras["photo"] = indices[est.extras["photo"]]
+    return est
 
 
 @router.post("/anchors/{aid}/localize", tags=["relocalization"])
@@ -365,11 +471,11 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
              db: Session = Depends(db_session)):
     """Metric pose of the query camera in the anchor's frame, the camera of its first photo
     (``X_query = R X_anchor + t``), with confidence and timings. With several photos the most similar one
-    (DenseVLAD) answers: ``photo`` says which, ``retrieval_similarity`` how similar. ``ok: false`` with a
-    ``reason`` when the method finds no pose."""
+    (DenseVLAD) answers: ``photo`` says which (its index), ``retrieval_similarity`` how similar. ``ok: false``
+    with a ``reason`` when the method finds no pose."""
     require_writer(request, db, csrf_token)
-    a = _anchor(db, aid)
-    rows = _photo_rows(db, a.id)
+    a = find_anchor(db, aid)
+    rows = photo_rows(db, a.id)
     db.commit()  # release the read transaction before the long computation
     lim = request.app.state.settings.limits
     q_bytes = image.file.read(lim.max_image_bytes + 1)
@@ -380,8 +486,6 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     q_depth = None
     if depth is not None and depth.filename:
         q_depth = decode_depth(depth.file.read(lim.max_image_bytes + 1), lim, q_img.shape[:2])
-    est = request.app.state.localizers.localize_photos(a.id, a.method, 1 + len(rows), _stored_photos(a, rows, lim),
-                                                       q_img, q_K, q_depth)
-    out = estimate_json(est, a.method)
+    out = estimate_json(localize_anchor(request, a, rows, q_img, q_K, q_depth), a.method)
     out["anchor"] = a.id
     return out

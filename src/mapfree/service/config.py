@@ -40,7 +40,7 @@ class Settings:
     session_hours: float = 12.0
     methods_dir: Path | None = None  # the operator's method YAMLs, offered to clients by name
     val_hourly_limit: int = 30  # val submissions per account per hour (0: unlimited)
-    storage_quota_bytes: int = 1 << 30  # stored submission ZIPs per account (0: unlimited)
+    storage_quota_bytes: int = 1 << 30  # stored submission ZIPs and anchor photos per account (0: unlimited)
     zip_retention_days: float = 90.0  # stored ZIPs of finished submissions are deleted after this (0: kept)
     auth_failures_per_minute: int = 20  # failed token checks per client address before a 429 (0: unlimited)
     limits: Limits = field(default_factory=Limits)

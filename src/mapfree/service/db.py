@@ -152,7 +152,8 @@ class AnchorPhoto(Base):
     """A further photo of an anchor's place (the anchor row holds the first one, whose camera is the anchor's
     frame): its own intrinsics and optional depth, and ``pose`` = world-to-camera from the anchor's frame as
     ``[qw, qx, qy, qz, tx, ty, tz]`` (metres). A table of its own so that existing databases gain it with
-    ``create_all``; photos are only appended, so their count identifies an anchor's version."""
+    ``create_all``. ``seq`` is the photo's index for life: deleting one leaves a gap, and the photos' indices
+    and creation times identify an anchor's version (``api.anchor_version``)."""
 
     __tablename__ = "anchor_photos"
     anchor_id: Mapped[str] = mapped_column(ForeignKey("anchors.id", ondelete="CASCADE"), primary_key=True)

@@ -10,7 +10,7 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Hashable
 
 import cv2
 import numpy as np
@@ -169,8 +169,8 @@ class Localizers:
 
     Prepared anchors are kept per (anchor, method, version): for one photo the method's prepared reference,
     for several a ``ReferenceSet`` (DenseVLAD retrieval over the photos, each prepared on first use). The
-    version is the anchor's photo count (photos are only appended), so a photo added through another process
-    is never answered from a stale cache."""
+    version names the anchor's current photos (``api.anchor_version``: it changes when one is added or
+    deleted), so a change made through another process is never answered from a stale cache."""
 
     def __init__(self, per_method: int = 2, max_anchors: int = 32):
         self.per_method, self.max_anchors = per_method, max_anchors
@@ -230,7 +230,7 @@ class Localizers:
         except Exception as e:  # e.g. a depth network whose weights are gone: a 422, not a 500
             raise _unavailable(name, e) from e
 
-    def check(self, anchor_id: str, method: str, photos: list[Photo], version: int = 1) -> None:
+    def check(self, anchor_id: str, method: str, photos: list[Photo], version: Hashable = ()) -> None:
         """Build the method and prepare the anchor now (both kept for the first ``localize``), so that an
         anchor whose method cannot run here is refused at creation (``MethodUnavailable``), not at use."""
         from ..relocalize import View
@@ -261,10 +261,10 @@ class Localizers:
                  ref_depth: np.ndarray | None, query_image: np.ndarray, query_K: Intrinsics,
                  query_depth: np.ndarray | None = None) -> Estimate:
         """Pose of the query relative to one reference photo; ``est.extras["method"]`` names what ran."""
-        return self.localize_photos(anchor_id, method, 1, lambda: [Photo(ref_image, ref_K, ref_depth)],
+        return self.localize_photos(anchor_id, method, (), lambda: [Photo(ref_image, ref_K, ref_depth)],
                                     query_image, query_K, query_depth)
 
-    def localize_photos(self, anchor_id: str, method: str, version: int, photos: Callable[[], list[Photo]],
+    def localize_photos(self, anchor_id: str, method: str, version: Hashable, photos: Callable[[], list[Photo]],
                         query_image: np.ndarray, query_K: Intrinsics,
                         query_depth: np.ndarray | None = None) -> Estimate:
         """World-to-camera pose of the query in the anchor's frame. ``photos`` is called (decoding the stored

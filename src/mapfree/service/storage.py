@@ -1,16 +1,19 @@
 """Stored submission ZIPs, streamed in chunks: an upload is copied from its spooled file into the database in
 1 MiB rows (a few per transaction, so no request waits long for SQLite's write lock), and a worker copies them
-back to a file; neither holds a whole ZIP in memory. Per-account quota and retention of the stored ZIPs."""
+back to a file; neither holds a whole ZIP in memory. Per-account storage quota (ZIPs and anchor photos) and
+retention of the stored ZIPs."""
 
 from __future__ import annotations
 
 import hashlib
-from typing import BinaryIO, Iterator
+from typing import Any, BinaryIO, Iterator
 
 from sqlalchemy import delete, func, insert, select
 from sqlalchemy.orm import Session
 
-from .db import Submission, SubmissionFile, ZipChunk, now
+from .config import Settings
+from .db import Anchor, AnchorPhoto, Submission, SubmissionFile, ZipChunk, now
+from .uploads import UploadError
 
 CHUNK_BYTES = 1 << 20
 CHUNKS_PER_TRANSACTION = 4
@@ -64,11 +67,35 @@ def read_zip(db: Session, sid: str) -> bytes | None:
     return b"".join(parts) if parts else None
 
 
+def _blob_bytes(table) -> Any:
+    """The bytes of a row's image and (optional) depth map, as a SQL expression."""
+    return func.length(table.image) + func.coalesce(func.length(table.depth), 0)
+
+
 def stored_bytes(db: Session, user_id: int) -> int:
-    """Bytes of ``user_id``'s submission ZIPs still stored (what the storage quota counts)."""
-    return int(db.scalar(select(func.coalesce(func.sum(Submission.size_bytes), 0))
-                         .join(SubmissionFile, SubmissionFile.submission_id == Submission.id)
-                         .where(Submission.user_id == user_id)) or 0)
+    """Bytes ``user_id`` keeps stored, what the storage quota counts: submission ZIPs still stored, and the
+    image and depth bytes of every photo of their anchors."""
+    zips = db.scalar(select(func.coalesce(func.sum(Submission.size_bytes), 0))
+                     .join(SubmissionFile, SubmissionFile.submission_id == Submission.id)
+                     .where(Submission.user_id == user_id))
+    firsts = db.scalar(select(func.coalesce(func.sum(_blob_bytes(Anchor)), 0)).where(Anchor.user_id == user_id))
+    photos = db.scalar(select(func.coalesce(func.sum(_blob_bytes(AnchorPhoto)), 0))
+                       .join(Anchor, Anchor.id == AnchorPhoto.anchor_id).where(Anchor.user_id == user_id))
+    return int(zips or 0) + int(firsts or 0) + int(photos or 0)
+
+
+def check_quota(db: Session, settings: Settings, user_id: int, adding: int, what: str) -> None:
+    """A 413 when storing ``adding`` more bytes (``what``: "this submission", "these photos") would take
+    ``user_id`` past the storage quota (0: none)."""
+    quota = settings.storage_quota_bytes
+    if quota <= 0:
+        return
+    used = stored_bytes(db, user_id)
+    if used + adding > quota:
+        raise UploadError(413, f"storage quota reached: your stored submission ZIPs and anchor photos may total "
+                               f"{quota} bytes; {used} are stored and {what} would add {adding}; withdraw old "
+                               "submissions, delete anchors or anchor photos, or wait for ZIPs older than "
+                               f"{settings.zip_retention_days:g} days to be deleted")
 
 
 def sweep(db: Session, retention_days: float) -> int:

@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 from .config import Settings
 from .db import Plot, Result, Submission, User, now
 from .evaluation import PLOT_NAMES, known_scenes, render_plots, unpack_report
-from .storage import copy_in, stored_bytes
+from .storage import check_quota, copy_in
 from .uploads import UploadError, check_name, check_submission_zip
 
 
@@ -57,11 +57,7 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
         _limit_reached(db, user, "test", 86400, daily_test_limit(settings, user), "daily")
     else:
         _limit_reached(db, user, split, 3600, settings.val_hourly_limit, "hourly")
-    quota = settings.storage_quota_bytes
-    if quota > 0 and stored_bytes(db, user.id) + size > quota:
-        raise UploadError(413, f"storage quota reached: your stored submission ZIPs may total {quota} bytes "
-                               f"(this one is {size}); withdraw old submissions or wait for ZIPs older than "
-                               f"{settings.zip_retention_days:g} days to be deleted")
+    check_quota(db, settings, user.id, size, "this submission")
     sub = Submission(user_id=user.id, split=split, name=name, public=bool(public), status="uploading",
                      size_bytes=size, sha256="", created_at=now())
     db.add(sub)

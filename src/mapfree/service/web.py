@@ -19,7 +19,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from . import auth
-from .api import _anchor, _photo_rows, _stored_photos, spooled_upload, stored_photo
+from .api import find_anchor, localize_anchor, photo_rows, spooled_upload, stored_photo
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
@@ -369,8 +369,8 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
     photo answered, and the figure drawn against that photo."""
     require_writer(request, db, csrf_token)
     form = {"q_fx": q_fx, "q_fy": q_fy, "q_cx": q_cx, "q_cy": q_cy, "anchor": anchor}
-    a = _anchor(db, anchor)
-    rows = _photo_rows(db, a.id)
+    a = find_anchor(db, anchor)
+    rows = photo_rows(db, a.id)
     db.commit()  # release the read transaction before the long computation
     lim = request.app.state.settings.limits
     try:
@@ -379,8 +379,7 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
                                               "query intrinsics"))
     except UploadError as e:
         return _reloc_page(request, db, e.status, method=a.method, form=form, error=e.message)
-    est = request.app.state.localizers.localize_photos(a.id, a.method, 1 + len(rows), _stored_photos(a, rows, lim),
-                                                       q_img, q_K)
+    est = localize_anchor(request, a, rows, q_img, q_K)
     result = estimate_json(est, a.method)
     photo = stored_photo(a, rows, result.get("photo") or 0, lim)  # only the one drawn, not every photo again
     shown = replace(est, pose=est.pose @ photo.pose.inverse()) if est.pose is not None else est  # vs that photo
