@@ -260,6 +260,73 @@ def test_anchor_photos_count_against_the_storage_quota(make_app, scene):  # noqa
     assert c.get("/api/me", headers=auth).json()["storage_used_bytes"] == _bytes_of(ref) + _bytes_of(third)
 
 
+def _camera_line(frame, pose: bool) -> str:
+    K = frame.intrinsics
+    return f"{frame.image_path.name} {K.fx} {K.fy} {K.cx} {K.cy}" + (f" {_pose_text(frame.pose)}" if pose else "")
+
+
+def _page_files(*frames, depth: bool = True) -> list:
+    """The create-anchor form's two multiple file inputs: photos, and depth maps matched by file name."""
+    out = [("photos", (f.image_path.name, f.image_path.read_bytes(), "image/jpeg")) for f in frames]
+    if depth:
+        out += [("depths", (f.depth_path("sensor").name, f.depth_path("sensor").read_bytes(), "image/png"))
+                for f in frames]
+    return out
+
+
+def test_the_relocalize_page_creates_an_anchor_and_adds_and_deletes_photos(server, scene):
+    """The page's forms do what the API does, with its limits and messages; a form that fails comes back with
+    the error and the values typed."""
+    ref, second, third, far = scene.reference, scene.frame(SECOND), scene.frame(THIRD), scene.frame(FAR_QUERY)
+    cameras = _camera_line(ref, False) + "\n" + _camera_line(second, True) + "\n"
+    html = {"Accept": "text/html"}
+    with server.client("alice", headers=html) as alice, server.client("bob", headers=html) as bob:
+        form = {"name": "lobby", "method": METHOD, "cameras": cameras}
+        for files, data, status, words in (
+                (_page_files(ref, second, depth=False) + _page_files(ref)[1:], form, 422,
+                 "photo 1 (&#39;frame_00022.jpg&#39;): method"),  # photo 1 has no depth map
+                (_page_files(ref, second), {**form, "cameras": _camera_line(ref, False) + "\n"
+                                            + _camera_line(second, False)}, 422, "cameras line 2: expected"),
+                (_page_files(ref, second), {**form, "cameras": cameras.replace(_pose_text(second.pose),
+                                                                               "2 0 0 0 0.1 0.2 0.3")},
+                 422, "photo 1 (&#39;frame_00022.jpg&#39;): pose: the quaternion"),
+                (_page_files(ref), form, 422, "cameras line 2: no chosen photo is named &#39;frame_00022.jpg&#39;"),
+                (_page_files(ref, second) + [("depths", ("other.png", b"x", "image/png"))], form, 422,
+                 "depths: &#39;other.png&#39; goes with no chosen photo")):
+            r = alice.post("/relocalize/anchors", files=files, data=data)
+            assert r.status_code == status and words in r.text, r.text[-3000:]
+            assert 'id="anchor-error" role="alert">' in r.text  # shown above the create form, not hidden
+            assert 'value="lobby"' in r.text and data["cameras"].splitlines()[0] in r.text  # values kept
+        r = alice.post("/relocalize/anchors", files=_page_files(ref, second), data=form)
+        assert r.status_code == 303, r.text[-2000:]
+        aid = r.headers["location"].rsplit("/", 1)[1]
+        anchor = alice.get(f"/anchors/{aid}").json()
+        assert anchor["name"] == "lobby" and anchor["num_photos"] == 2 and anchor["photos"][1]["has_depth"]
+        assert np.allclose(anchor["photos"][1]["pose"], [float(x) for x in _pose_text(second.pose).split()],
+                           atol=1e-6)
+        assert _localize(bob, aid, far)["photo"] == 1
+        assert f'href="/relocalize/anchors/{aid}"' in alice.get("/relocalize").text  # listed as hers
+        page = alice.get(f"/relocalize/anchors/{aid}").text
+        assert 'id="delete-photo-1"' in page and 'id="delete-photo-0"' not in page and 'id="add-photo-form"' in page
+        assert 'id="delete-photo-1"' not in bob.get(f"/relocalize/anchors/{aid}").text  # not bob's
+        # add a photo: a bad pose keeps the values typed; then a good one
+        add = {**_form(third.intrinsics), "pose": "1 0 0"}
+        r = alice.post(f"/relocalize/anchors/{aid}/photos", files=_files(third), data=add)
+        assert r.status_code == 422 and "photo 2 (&#39;frame_00005.jpg&#39;): pose: expected 7 numbers" in r.text
+        assert f'value="{third.intrinsics.fx}"' in r.text and 'value="1 0 0"' in r.text
+        r = alice.post(f"/relocalize/anchors/{aid}/photos", files=_files(third),
+                       data={**add, "pose": _pose_text(third.pose)})
+        assert r.status_code == 303 and alice.get(f"/anchors/{aid}").json()["num_photos"] == 3
+        # delete: photo 0 refused on the page, bob refused, photo 1 deleted
+        r = alice.post(f"/relocalize/anchors/{aid}/photos/0/delete")
+        assert r.status_code == 409 and "anchor&#39;s frame" in r.text and 'id="photos"' in r.text
+        assert bob.post(f"/relocalize/anchors/{aid}/photos/1/delete").status_code == 403
+        assert alice.post(f"/relocalize/anchors/{aid}/photos/1/delete").status_code == 303
+        assert [p["index"] for p in alice.get(f"/anchors/{aid}").json()["photos"]] == [0, 2]
+        assert _localize(bob, aid, far).get("photo", 0) in (0, 2)
+        assert alice.delete(f"/anchors/{aid}", headers={"Accept": "application/json"}).status_code == 204
+
+
 @pytest.mark.browser
 @pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"{CHROMIUM} is absent (apt-get install chromium)")
 def test_relocalize_page_uses_a_two_photo_anchor_at_phone_width(phone, sqlite_server, scene):

@@ -2,7 +2,8 @@
 token, upload a submission with its method's description, watch it finish, find it on the leaderboard (ties,
 best per account, one scene, CSV, comparing two), open its page with every figure and its plots, download and
 withdraw it; a failing form keeps its values and chosen file; /docs with no network; relocalize two real photos
-(refused without the depth the method needs); every page at a 390 px wide phone viewport. Screenshots go to
+(refused without the depth the method needs); create a multi-photo anchor on the page, add and delete a photo;
+every page at a 390 px wide phone viewport. Screenshots go to
 test-artifacts/."""
 
 from __future__ import annotations
@@ -283,6 +284,70 @@ def test_relocalize_two_real_photos(page, sqlite_server, realmini_dir):
     assert page.locator("#pose").count() == 1, page.inner_text("#result")
     assert "Pose found" in page.inner_text("#result")
     shot(page, "relocalize")
+
+
+def test_anchor_from_several_photos_then_add_and_delete_one(page, sqlite_server, realmini_dir):
+    """The relocalize page creates a multi-photo anchor (multiple file inputs, one cameras line per photo); a
+    failing form keeps its files and text; the anchor's page adds a photo and deletes one."""
+    scene = Dataset(realmini_dir).scene("val", "s00000")
+    ref, second, third = scene.reference, scene.frame("seq1/frame_00022.jpg"), scene.frame("seq1/frame_00005.jpg")
+
+    def line(f, pose: bool) -> str:
+        K, (q, t) = f.intrinsics, f.pose.qt()
+        return f"{f.image_path.name} {K.fx} {K.fy} {K.cx} {K.cy}" + (" " + " ".join(f"{x:.9f}" for x in [*q, *t])
+                                                                       if pose else "")
+
+    cameras = line(ref, False) + "\n" + line(second, True)
+    _sign_in(page, sqlite_server, "alice")
+    page.goto("/relocalize")
+    page.fill("#new-name", "browser anchor")
+    page.fill("#new-method", "sift_pnp_sensor")
+    page.set_input_files("#new-photos", [str(ref.image_path), str(second.image_path)])
+    assert page.input_value("#cameras").split() == [ref.image_path.name, second.image_path.name]  # started
+    page.fill("#cameras", cameras)
+    page.set_input_files("#new-depths", [str(ref.depth_path("sensor"))])  # photo 1's depth forgotten
+    page.click("#create-anchor-button")
+    page.wait_for_selector("#anchor-error:not([hidden])")
+    assert "photo 1 ('frame_00022.jpg'): method sift_pnp_sensor" in page.inner_text("#anchor-error")
+    assert page.locator("#form-error").is_hidden()  # the other form's box stays empty
+    assert page.eval_on_selector("#new-photos", "e => e.files.length") == 2
+    assert page.input_value("#cameras") == cameras and page.input_value("#new-name") == "browser anchor"
+    shot(page, "anchor-create-error")
+    page.set_input_files("#new-depths", [str(ref.depth_path("sensor")), str(second.depth_path("sensor"))])
+    page.click("#create-anchor-button")
+    page.wait_for_url("**/relocalize/anchors/*")
+    aid = page.url.rsplit("/", 1)[1]
+    try:
+        assert page.locator("figure.anchor-photo").count() == 2
+        assert page.locator("#delete-photo-0").count() == 0  # the anchor's frame stays
+        # add a photo: a bad pose first (the values typed and the file stay), then the right one
+        K = third.intrinsics
+        page.set_input_files("#add-image", str(third.image_path))
+        page.set_input_files("#add-depth", str(third.depth_path("sensor")))
+        for k in ("fx", "fy", "cx", "cy"):
+            page.fill(f"#add-{k}", str(getattr(K, k)))
+        page.fill("#add-pose", "1 0 0")
+        page.click("#add-photo-button")
+        page.wait_for_selector("#form-error:not([hidden])")
+        assert "photo 2 ('frame_00005.jpg'): pose: expected 7 numbers" in page.inner_text("#form-error")
+        assert page.input_value("#add-fx") == str(K.fx) and page.eval_on_selector("#add-image", "e => e.files.length")
+        page.fill("#add-pose", line(third, True).split(" ", 5)[5])
+        page.click("#add-photo-button")
+        page.wait_for_selector("#photo-2")
+        assert page.inner_text("#photo-count") == "3 photos"
+        page.once("dialog", lambda dialog: dialog.accept())
+        page.click("#delete-photo-1")
+        page.wait_for_selector("#photo-1", state="detached")
+        ids = page.eval_on_selector_all("figure.anchor-photo", "fs => fs.map(f => f.id)")
+        assert ids == ["photo-0", "photo-2"], ids
+        page.wait_for_function("() => [...document.images].every(i => i.complete && i.naturalWidth > 0)")
+        shot(page, "anchor-page")
+        page.set_viewport_size(PHONE)
+        assert page.evaluate("document.documentElement.scrollWidth") <= PHONE["width"]
+        shot(page, "phone-anchor-page")
+    finally:
+        with sqlite_server.client("alice") as alice:
+            assert alice.delete(f"/anchors/{aid}").status_code == 204
 
 
 def test_phone_width(phone, sqlite_server):

@@ -173,7 +173,7 @@ def photo_indices(rows: list[AnchorPhoto]) -> list[int]:
     return [0, *(r.seq for r in rows)]
 
 
-def _anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
+def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
     """An anchor and its photos: photo 0 is the anchor's own (its camera is the anchor's frame); each further
     photo's ``pose`` is world-to-camera from that frame as ``[qw, qx, qy, qz, tx, ty, tz]``. A photo keeps its
     ``index`` for life (deleting one leaves a gap)."""
@@ -320,7 +320,7 @@ def create_anchor(request: Request, image: UploadFile = File(..., description="r
     first = photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
     extra, names = _extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
     a, rows = make_anchor(request, db, caller.user, name, method, [first, *extra], [name0, *names])
-    return _anchor_json(a, rows)
+    return anchor_json(a, rows)
 
 
 def find_anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
@@ -346,7 +346,7 @@ def get_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
     if caller.user is None:
         raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
     a = find_anchor(db, aid)
-    return _anchor_json(a, photo_rows(db, a.id))
+    return anchor_json(a, photo_rows(db, a.id))
 
 
 def add_photo(request: Request, db: Session, user: User, aid: str, image: UploadFile | None, fx, fy, cx, cy,
@@ -381,7 +381,7 @@ def add_anchor_photo(aid: str, request: Request, image: UploadFile = File(..., d
     most similar photo for each query; poses stay in the anchor's frame. It gets the index after the highest
     one and counts against the owner's storage quota."""
     caller = require_writer(request, db, csrf_token)
-    return _anchor_json(*add_photo(request, db, caller.user, aid, image, fx, fy, cx, cy, depth, pose))
+    return anchor_json(*add_photo(request, db, caller.user, aid, image, fx, fy, cx, cy, depth, pose))
 
 
 def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) -> tuple[Anchor, list[AnchorPhoto]]:
@@ -412,7 +412,7 @@ def delete_anchor_photo(aid: str, k: int, request: Request, db: Session = Depend
     are (deleting photo 1 of 0, 1, 2 leaves 0, 2); the next localize uses the photos left; the bytes no longer
     count against the storage quota. Photo 0, the anchor's frame, cannot be deleted (409): delete the anchor."""
     caller = require_writer(request, db)
-    return _anchor_json(*remove_photo(request, db, caller.user, aid, k))
+    return anchor_json(*remove_photo(request, db, caller.user, aid, k))
 
 
 @router.get("/anchors/{aid}/photos/{k}", tags=["relocalization"], response_class=Response)

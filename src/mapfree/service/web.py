@@ -6,6 +6,7 @@ JavaScript the page is not replaced at all, so chosen files stay chosen)."""
 from __future__ import annotations
 
 import base64
+import shlex
 from dataclasses import replace
 import secrets
 import time
@@ -19,7 +20,8 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from . import auth
-from .api import find_anchor, localize_anchor, photo_rows, spooled_upload, stored_photo
+from .api import (PhotoUpload, add_photo, anchor_json, find_anchor, localize_anchor, make_anchor, photo_name,
+                  photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
@@ -290,21 +292,25 @@ def compare_page(request: Request, id: list[str] = Query([]), db: Session = Depe
 
 
 def _anchor_choices(request: Request, db: Session) -> list[dict]:
-    """The newest anchors (anyone signed in may localize against any), with their photo counts, no blobs."""
-    if identify(request, db).user is None:
+    """The newest anchors (anyone signed in may localize against any), with their photo counts and whether the
+    caller owns them, no blobs."""
+    user = identify(request, db).user
+    if user is None:
         return []
-    rows = db.execute(select(Anchor.id, Anchor.name, Anchor.method, Anchor.created_at, func.count(AnchorPhoto.seq))
+    rows = db.execute(select(Anchor.id, Anchor.name, Anchor.method, Anchor.user_id, func.count(AnchorPhoto.seq))
                       .outerjoin(AnchorPhoto, AnchorPhoto.anchor_id == Anchor.id)
-                      .group_by(Anchor.id, Anchor.name, Anchor.method, Anchor.created_at)
+                      .group_by(Anchor.id, Anchor.name, Anchor.method, Anchor.user_id, Anchor.created_at)
                       .order_by(Anchor.created_at.desc()).limit(50)).all()
-    return [{"id": r[0], "name": r[1] or r[0][:8], "method": r[2], "photos": 1 + r[4]} for r in rows]
+    return [{"id": r[0], "name": r[1] or r[0][:8], "method": r[2], "photos": 1 + r[4], "mine": r[3] == user.id}
+            for r in rows]
 
 
 def _reloc_page(request: Request, db: Session, status: int = 200, **ctx) -> HTMLResponse:
     ctx.setdefault("form", {})
     ctx.setdefault("method", default_method(request.app.state.settings.default_method))
     return page(request, "relocalize.html", db, status, choices=RELOC_CHOICES,
-                anchors=_anchor_choices(request, db), **ctx)
+                anchors=_anchor_choices(request, db), max_photos=request.app.state.settings.limits.max_anchor_photos,
+                **ctx)
 
 
 @router.get("/relocalize", response_class=HTMLResponse)
@@ -386,3 +392,140 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
     png = figure_png(photo.image, q_img, photo.K, q_K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
     return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8],
                        figure="data:image/png;base64," + base64.b64encode(png).decode())
+
+
+# ------------------------------------------------------------------------------------ anchors from the page
+
+
+def _camera_lines(text: str) -> list[tuple[int, str, list[str], str | None]]:
+    """The page's "cameras" box: one line per photo, in the anchor's order, ``NAME fx fy cx cy`` and, for every
+    photo but the first, its pose ``qw qx qy qz tx ty tz`` -> (line number, file name, intrinsics, pose). A
+    name with spaces is quoted; blank lines and ``#`` comments are skipped. Values are checked per photo later,
+    with the API's messages."""
+    out = []
+    for no, line in enumerate(text.splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        try:
+            parts = shlex.split(line)
+        except ValueError as e:
+            raise UploadError(422, f"cameras line {no}: {e}") from None
+        if len(parts) not in (5, 12) or (len(parts) == 12) != bool(out):
+            want = "NAME fx fy cx cy qw qx qy qz tx ty tz" if out else "NAME fx fy cx cy (no pose: its camera is " \
+                                                                       "the anchor's frame)"
+            raise UploadError(422, f"cameras line {no}: expected {want!r} for {'a further' if out else 'the first'} "
+                                   f"photo; got {len(parts)} value(s)")
+        out.append((no, parts[0], parts[1:5], " ".join(parts[5:]) if len(parts) == 12 else None))
+    if not out:
+        raise UploadError(422, "cameras: give one line per photo, the first 'NAME fx fy cx cy', each further one "
+                               "'NAME fx fy cx cy qw qx qy qz tx ty tz'")
+    return out
+
+
+def _stem(name: str) -> str:
+    """A file name up to its first dot: ``frame_00000.sensor.png`` goes with ``frame_00000.jpg``."""
+    return Path(name).name.split(".", 1)[0]
+
+
+def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
+                 cameras: str) -> tuple[list[PhotoUpload], list[str]]:
+    """The create-anchor form's photos (a multiple file input), depth maps (another, matched by file name) and
+    cameras lines, checked as ``POST /anchors`` checks its fields, errors naming the photo the same way."""
+    files = {Path(f.filename or "").name: f for f in photos if f.filename or f.size}
+    if not files:
+        raise UploadError(400, "photos: choose at least one photo")
+    if len(files) < len([f for f in photos if f.filename or f.size]):
+        raise UploadError(422, "photos: two chosen photos have the same file name; rename one")
+    lines = _camera_lines(cameras)
+    seen: set[str] = set()
+    for no, name, _, _ in lines:
+        if name not in files:
+            raise UploadError(422, f"cameras line {no}: no chosen photo is named {name!r} (chosen: "
+                                   f"{', '.join(sorted(files))[:300]})")
+        if name in seen:
+            raise UploadError(422, f"cameras line {no}: {name!r} has a line already")
+        seen.add(name)
+    if len(seen) < len(files):
+        missing = sorted(set(files) - seen)
+        raise UploadError(422, f"cameras: no line for the chosen photo(s) {', '.join(map(repr, missing))[:300]}")
+    by_stem = {_stem(n): n for n in files}
+    depth_of: dict[str, UploadFile] = {}
+    for d in depths:
+        if not (d.filename or d.size):
+            continue
+        owner = by_stem.get(_stem(d.filename or ""))
+        if owner is None:
+            raise UploadError(422, f"depths: {Path(d.filename or '').name!r} goes with no chosen photo (a depth map "
+                                   "is matched by the part of its name before the first dot: frame_00000.sensor.png "
+                                   "goes with frame_00000.jpg)")
+        if owner in depth_of:
+            raise UploadError(422, f"depths: two depth maps for {owner!r}")
+        depth_of[owner] = d
+    several = len(lines) > 1  # one photo: the API's messages for a lone photo, without "photo 0"
+    names = [photo_name(i, files[name]) if several else "" for i, (_, name, _, _) in enumerate(lines)]
+    ups = [photo_upload(lim, names[i], files[name], *intr, depth_of.get(name), pose)
+           for i, (_, name, intr, pose) in enumerate(lines)]
+    return ups, names
+
+
+@router.post("/relocalize/anchors")
+def create_anchor_form(request: Request, photos: list[UploadFile] = File([]), depths: list[UploadFile] = File([]),
+                       cameras: str = Form(""), name: str = Form(""), method: str = Form(""),
+                       csrf_token: str = Form(""), db: Session = Depends(db_session)):
+    """Create an anchor from the page (what ``POST /anchors`` does, same limits and errors): on success its page;
+    on a problem the relocalize page with the error above this form, its values kept."""
+    caller = require_writer(request, db, csrf_token)
+    form = {"new_name": name, "new_method": method, "cameras": cameras}
+    try:
+        ups, names = _form_photos(request.app.state.settings.limits, photos, depths, cameras)
+        a, _ = make_anchor(request, db, caller.user, name, method, ups, names)
+    except (UploadError, HTTPException) as e:
+        db.rollback()
+        status, message = _problem(e)
+        return _reloc_page(request, db, status, form=form, error=message, error_box="anchor-error")
+    return RedirectResponse(f"/relocalize/anchors/{a.id}", status_code=303)
+
+
+def _anchor_page(request: Request, db: Session, aid: str, status: int = 200, error: str = "",
+                 form: dict | None = None) -> HTMLResponse:
+    user = _signed_in(request, db)
+    a = find_anchor(db, aid)
+    data = anchor_json(a, photo_rows(db, a.id))
+    return page(request, "anchor.html", db, status, anchor=data, error=error, form=form or {},
+                owner=user.id == a.user_id or user.is_admin, max_photos=request.app.state.settings.limits.max_anchor_photos)
+
+
+@router.get("/relocalize/anchors/{aid}", response_class=HTMLResponse)
+def anchor_page(aid: str, request: Request, db: Session = Depends(db_session)):
+    """An anchor's photos (images, intrinsics, depth, poses); its owner adds and deletes photos here."""
+    return _anchor_page(request, db, aid)
+
+
+@router.post("/relocalize/anchors/{aid}/photos")
+def add_photo_form(aid: str, request: Request, image: UploadFile | None = File(None),
+                   depth: UploadFile | None = File(None), fx: str = Form(""), fy: str = Form(""),
+                   cx: str = Form(""), cy: str = Form(""), pose: str = Form(""), csrf_token: str = Form(""),
+                   db: Session = Depends(db_session)):
+    """``POST /anchors/{id}/photos`` from the anchor's page; a problem shows above the form, values kept."""
+    caller = require_writer(request, db, csrf_token)
+    try:
+        add_photo(request, db, caller.user, aid, image, fx, fy, cx, cy, depth, pose)
+    except (UploadError, HTTPException) as e:
+        db.rollback()
+        status, message = _problem(e)
+        return _anchor_page(request, db, aid, status, message,
+                            {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "pose": pose})
+    return RedirectResponse(f"/relocalize/anchors/{aid}", status_code=303)
+
+
+@router.post("/relocalize/anchors/{aid}/photos/{k}/delete")
+def delete_photo_form(aid: str, k: int, request: Request, csrf_token: str = Form(""),
+                      db: Session = Depends(db_session)):
+    """``DELETE /anchors/{id}/photos/{k}`` from the anchor's page; a refusal shows on the page."""
+    caller = require_writer(request, db, csrf_token)
+    try:
+        remove_photo(request, db, caller.user, aid, k)
+    except HTTPException as e:
+        db.rollback()
+        return _anchor_page(request, db, aid, e.status_code, str(e.detail))
+    return RedirectResponse(f"/relocalize/anchors/{aid}", status_code=303)

@@ -5,7 +5,17 @@ document.addEventListener("DOMContentLoaded", () => {
     form.addEventListener("submit", (ev) => { if (!window.confirm(form.dataset.confirm)) ev.preventDefault(); });
   }
   for (const form of document.querySelectorAll("form[data-async]")) submitInPlace(form);
+  prefillCameras();
 });
+
+// Create-anchor form: choosing photos with the cameras box still empty starts one line per photo name.
+function prefillCameras() {
+  const input = document.getElementById("new-photos"), box = document.getElementById("cameras");
+  if (!input || !box) return;
+  input.addEventListener("change", () => {
+    if (!box.value.trim()) box.value = [...input.files].map((f) => (/\s/.test(f.name) ? `"${f.name}"` : f.name) + " ").join("\n");
+  });
+}
 
 // Submission pages: poll the JSON status until the evaluation is finished, then reload to show the scores.
 function pollSubmissionStatus() {
@@ -27,10 +37,12 @@ function pollSubmissionStatus() {
   setTimeout(tick, 700);
 }
 
-// Forms with data-async post in the background: an error shows above the form, which stays as it is (chosen
-// files included); a redirect is followed; a result section in the answer replaces the page's one.
+// Forms with data-async post in the background: an error shows above the form (in its data-error-box, else
+// #form-error), which stays as it is (chosen files included); a redirect is followed; a result section in the
+// answer replaces the page's one.
 function submitInPlace(form) {
-  const box = document.getElementById("form-error");
+  const boxId = form.dataset.errorBox || "form-error";
+  const box = document.getElementById(boxId);
   const button = form.querySelector("button[type=submit]");
   const busy = form.querySelector(".busy");
   form.addEventListener("submit", async (ev) => {
@@ -43,7 +55,8 @@ function submitInPlace(form) {
                                            headers: { Accept: "text/html" } });
       if (r.ok && r.redirected) { window.location.assign(r.url); return; }
       const doc = new DOMParser().parseFromString(await r.text(), "text/html");
-      const err = doc.getElementById("form-error") || doc.getElementById("error-message");
+      const err = [boxId, "form-error", "error-message"].map((id) => doc.getElementById(id))
+        .find((e) => e && e.textContent.trim());
       show(r.ok ? "" : ((err && err.textContent.trim()) || `the server answered ${r.status}`));
       const fresh = doc.getElementById("result-section"), here = document.getElementById("result-section");
       if (r.ok && fresh && here) here.replaceWith(fresh);
