@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--val-hourly-limit", type=int, default=30,
                    help="val submissions per account per hour (default 30; 0: unlimited)")
     p.add_argument("--storage-quota-mb", type=float, default=1024.0,
-                   help="stored submission ZIPs per account (default 1024 MiB; 0: unlimited)")
+                   help="stored submission ZIPs and anchor photos (images + depth maps) per account (default 1024 MiB; 0: unlimited)")
     p.add_argument("--zip-retention-days", type=float, default=90.0,
                    help="delete stored ZIPs of finished submissions after this many days (default 90; 0: keep)")
     p.add_argument("--auth-failures-per-minute", type=int, default=20,
