@@ -200,9 +200,10 @@ def _view_or_query(query: ViewLike) -> ViewLike:
 
 class ReferencedLocalizer:
     """Any method's localizer bound to a ``ReferenceSet``: ``localize(query)`` retrieves, then relocalizes, and
-    returns the query pose in the frame of the references' poses. The one way to use K references: ``mapfree run
-    --references K`` binds each scene's set; the service binds an anchor's photos (its pooled localizers share
-    one cached ``ReferenceSet`` per anchor, which is why the set lives apart from the localizer)."""
+    returns the query pose in the frame of the references' poses. K references are always a ``ReferenceSet``
+    apart from the localizer (which stays a one-reference localizer): ``mapfree run --references K`` binds each
+    scene's set here; the service keeps one set per anchor and calls ``set.localize(loc, query)`` with whichever
+    pooled localizer is free."""
 
     def __init__(self, localizer: Any, references: ReferenceSet) -> None:
         self.localizer, self.references = localizer, references
