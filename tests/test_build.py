@@ -156,6 +156,33 @@ def test_no_metric_scale_is_a_clear_error(scans, tmp_path):
     assert res[0].status == "failed" and "no metric scale" in res[0].reason and "--allow-unscaled" in res[0].reason
 
 
+@pytest.mark.parametrize("corrupt, problem", [
+    ("equal", "is equal to the previous one"),  # every timestamp the same (an export without a clock)
+    ("backwards", "is before the previous one"),  # line 5 goes back in time
+])
+def test_device_track_without_increasing_times_fails_the_place_naming_file_and_line(scans, tmp_path, corrupt,
+                                                                                    problem):
+    _images_only(scans, tmp_path / "scans", ("rgb.txt", "intrinsics.txt", "device_poses.txt"))
+    track = tmp_path / "scans/s00000/scan1/device_poses.txt"
+    lines = track.read_text().splitlines(keepends=True)
+    track.unlink()  # a copy of the synthetic track, then corrupted
+    assert len(lines) > 5 and all(not ln.startswith("#") for ln in lines)
+    if corrupt == "equal":
+        lines = [lines[0].split()[0] + " " + ln.split(maxsplit=1)[1] for ln in lines]
+        line = 2
+    else:
+        lines[4] = lines[2].split()[0] + " " + lines[4].split(maxsplit=1)[1]
+        line = 5
+    track.write_text("".join(lines))
+    res = build_all(tmp_path / "scans", tmp_path / "out", BuildOptions(split="train", report_plot=False),
+                    progress=False)
+    assert res[0].status == "failed"
+    assert f"{track}:{line}: timestamp" in res[0].reason and problem in res[0].reason, res[0].reason
+    assert not (tmp_path / "out/train/s00000").exists()
+    summary = json.loads((tmp_path / "out/train/build_summary.json").read_text())
+    assert summary[0]["status"] == "failed" and f"device_poses.txt:{line}" in summary[0]["reason"]
+
+
 @pytest.mark.slow
 def test_ray_val_build_runs_and_evaluates(built, scans, tmp_path):
     """Ray tasks give the pool's poses; the val scene is a reference plus queries that mapfree run/evaluate score."""

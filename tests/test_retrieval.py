@@ -1,5 +1,5 @@
 """K reference images by retrieval: DenseVLAD, K-means selection, retrieval, pose triangulation, and
-``Relocalizer.set_references`` / ``mapfree run --references K`` on real realmini-dev images."""
+``ReferencedLocalizer`` / ``mapfree run --references K`` on real realmini-dev images."""
 
 from __future__ import annotations
 
@@ -104,41 +104,44 @@ def test_pose_triangulation_exact_and_degenerate():
     assert not triangulate_pose(refs[:1], rel[:1]).ok
 
 
-def test_set_references_retrieves_and_beats_one_reference(realmini):
+def test_k_references_retrieve_and_beat_one_reference(realmini):
     from mapfree.relocalize import Relocalizer
+    from mapfree.relocalize.references import ReferencedLocalizer
 
     ref, queries = realmini_frames(realmini)
     mapping, tests = [ref] + queries[0::4], queries[2::4]
     loc = Relocalizer.from_method("sift_pnp_sensor")
     results = {}
     for k in (1, 4):
-        refs = loc.set_references(mapping, k=k)
+        bound = ReferencedLocalizer.build(loc, mapping, k=k)
+        refs = bound.references
         assert len(refs) == k and set(refs.names) <= {f.name for f in mapping}
-        ests = [loc.localize(q) for q in tests]
+        ests = [bound.localize(q) for q in tests]
         ok = [e for e in ests if e.ok]
         assert all(e.extras["reference"] in refs.names for e in ok)
         results[k] = sum(1 for e, q in zip(ests, tests) if e.ok and errors(e.pose, q.pose)[0] < 0.25
                          and errors(e.pose, q.pose)[1] < 5)
     assert results[4] == len(tests) and results[4] > results[1]
-    loc.set_reference(ref)  # back to one reference: localize is relative to it again
-    assert loc.references is None and loc.localize(tests[0]).ok
+    assert loc.anchor is None  # binding leaves the localizer as it was: one reference, set as usual
+    loc.set_reference(ref)
+    assert loc.localize(tests[0]).ok
 
 
-def test_batched_and_prefetched_paths_honour_the_references(realmini, tmp_path):
-    """With K references set, ``localize_batched`` and ``localize_many`` retrieve per query exactly as
-    ``localize`` does (same reference, same pose), and a bad query fails the same way in all three."""
+def test_prefetched_path_honours_the_references(realmini, tmp_path):
+    """With K references bound, ``localize_many`` (what ``mapfree run`` calls) retrieves per query exactly as
+    ``localize`` does (same reference, same pose), with and without prefetching, and a bad query fails the same
+    way in all of them."""
     from mapfree.relocalize import Relocalizer
-    from mapfree.relocalize.batched import BatchOptions
+    from mapfree.relocalize.references import ReferencedLocalizer
 
     ref, queries = realmini_frames(realmini)
     mapping, tests = [ref] + queries[0::4], queries[2::4]
-    loc = Relocalizer.from_method("sift_pnp_sensor")
-    refs = loc.set_references(mapping, k=4)
+    bound = ReferencedLocalizer.build(Relocalizer.from_method("sift_pnp_sensor"), mapping, k=4)
+    refs = bound.references
     items = tests[:2] + [(tmp_path / "missing.jpg", tests[0].intrinsics)] + tests[2:]
-    one = [loc.localize(q) for q in items]
+    one = [bound.localize(q) for q in items]
     assert sum(e.ok for e in one) == len(tests) and {e.extras["reference"] for e in one if e.ok} - {ref.name}
-    for many in (list(loc.localize_batched(items, options=BatchOptions(batch_size=3, decode_workers=2))),
-                 list(loc.localize_many(items, prefetch=2)), list(loc.localize_many(items, prefetch=0))):
+    for many in (list(bound.localize_many(items, prefetch=2)), list(bound.localize_many(items, prefetch=0))):
         assert len(many) == len(one)
         for a, b in zip(one, many):
             assert (a.ok, a.reason, a.extras.get("reference")) == (b.ok, b.reason, b.extras.get("reference"))
@@ -147,17 +150,17 @@ def test_batched_and_prefetched_paths_honour_the_references(realmini, tmp_path):
 
 
 def test_pose_triangulation_on_real_references(realmini):
-    from mapfree.relocalize import Relocalizer
+    from mapfree.relocalize.references import ReferencedLocalizer
 
     ref, queries = realmini_frames(realmini)
-    loc = Relocalizer.from_method("sift_emat_none")  # no depth at all: the scale comes from the references
-    loc.set_references([ref] + queries[0::4], k=4, mode="triangulation")
-    est = loc.localize(queries[14])
+    # A method name: no depth at all, the scale comes from the references.
+    bound = ReferencedLocalizer.build("sift_emat_none", [ref] + queries[0::4], k=4, mode="triangulation")
+    est = bound.localize(queries[14])
     assert est.ok and len(est.extras["references"].split(",")) == 2
     t_err, r_err = errors(est.pose, queries[14].pose)
     assert t_err < 0.25 and r_err < 5
     with pytest.raises(ValueError, match="K >= 2"):
-        loc.set_references([ref], k=1, mode="triangulation")
+        ReferencedLocalizer.build(bound.localizer, [ref], k=1, mode="triangulation")
 
 
 def test_run_with_k_references_cli(realmini, tmp_path, capsys):

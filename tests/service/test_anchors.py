@@ -70,3 +70,44 @@ def test_anchor_default_method_is_the_registry_preset(server, realmini_dir):
                    data={**_form(ref.intrinsics), "method": "sift_emat_none"})
         assert r.status_code == 201 and not r.json()["has_depth"], r.text
         assert c.delete(f"/anchors/{r.json()['id']}").status_code == 204
+
+
+def test_needs_reference_depth_one_definition_two_questions():
+    """Files-depth methods need the reference's map for their scale; ``scale_free_too`` adds the depth-free
+    PnP/Procrustes methods, which cannot give any pose without one (they use an uploaded map when given)."""
+    from mapfree import methods
+    from mapfree.service.reloc import needs_reference_depth
+
+    table = {  # name: (for the metric scale, for any pose at all)
+        "sift_pnp_sensor": (True, True), "sift_emat_sensor": (True, True),
+        "sift_pnp_none": (False, True), "sift_procrustes_none": (False, True),
+        "sift_emat_none": (False, False), "xfeat_pnp_dpt-kitti": (False, False), "rpr-3d3d": (False, False),
+    }
+    for name, (scale, any_pose) in table.items():
+        assert needs_reference_depth(name, scale_free_too=False) is scale, name
+        assert needs_reference_depth(methods.get(name), scale_free_too=True) is any_pose, name
+
+
+def test_scale_free_pnp_anchor_needs_depth_and_the_try_page_runs_it_without(server, realmini_dir):
+    scene = Dataset(realmini_dir).scene("val", "s00000")
+    ref, query = scene.reference, scene.frame("seq1/frame_00009.jpg")
+    image = ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg")
+    with server.client("carol") as c:
+        r = c.post("/anchors", files={"image": image}, data={**_form(ref.intrinsics), "method": "sift_pnp_none"})
+        assert r.status_code == 422 and "depth" in r.json()["detail"], r.text  # it could never localize
+        r = c.post("/anchors", files={"image": image, "depth": ("d.png", ref.depth_path("sensor").read_bytes(),
+                                                                 "image/png")},
+                   data={**_form(ref.intrinsics), "method": "sift_pnp_none"})
+        assert r.status_code == 201, r.text
+        est = c.post(f"/anchors/{r.json()['id']}/localize", data=_form(query.intrinsics),
+                     files={"image": ("q.jpg", query.image_path.read_bytes(), "image/jpeg")}).json()
+        assert est["ok"] and np.linalg.norm(Pose(np.array(est["R"]), np.array(est["t"])).center
+                                            - query.pose.center) < 0.25, est  # metric: the anchor's depth
+        assert c.delete(f"/anchors/{r.json()['id']}").status_code == 204
+        pair = {"reference": image, "query": ("q.jpg", query.image_path.read_bytes(), "image/jpeg")}
+        form = {**{f"ref_{k}": v for k, v in _form(ref.intrinsics).items()},
+                **{f"q_{k}": v for k, v in _form(query.intrinsics).items()}}
+        r = c.post("/relocalize", files=pair, data={**form, "method": "sift_pnp_sensor"})
+        assert r.status_code == 422 and "needs the reference depth" in r.text  # refused before anything runs
+        r = c.post("/relocalize", files=pair, data={**form, "method": "sift_pnp_none"})
+        assert r.status_code == 200 and 'id="no-estimate"' in r.text  # one-off pair: runs, shows why no pose

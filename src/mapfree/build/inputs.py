@@ -62,21 +62,32 @@ class Place:
 
 
 def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(times (N,), centres (N,3), rotations (N,3,3) camera-to-world)`` sorted by time; errors name file:line."""
+    """``(times (N,), centres (N,3), rotations (N,3,3) camera-to-world)`` of a device track, in file order.
+
+    Times must increase strictly from line to line (a track is a log in time order: repeated or backward times
+    mean a corrupt export, and interpolating between them is undefined); errors name ``file:line``."""
     times, rows = [], []
+    prev: tuple[float, int] | None = None
     for lineno, first, v in iter_records(path, 7):
         try:
-            times.append(float(first))
+            t = float(first)
         except ValueError:
             raise FormatError(path, lineno, f"timestamp {first!r} is not a number") from None
+        if not np.isfinite(t):
+            raise FormatError(path, lineno, f"timestamp {first!r} is not finite")
+        if prev is not None and not t > prev[0]:
+            raise FormatError(path, lineno, f"timestamp {first} is {'equal to' if t == prev[0] else 'before'} the "
+                                            f"previous one ({prev[0]!r}, line {prev[1]}): a device track's times "
+                                            "must increase from line to line")
         if not np.linalg.norm(v[3:]) > 0:
             raise FormatError(path, lineno, "zero quaternion")
+        times.append(t)
         rows.append(v)
+        prev = (t, lineno)
     if not rows:
         raise FormatError(path, None, "no poses")
-    order = np.argsort(times, kind="stable")
-    arr = np.array(rows)[order]
-    return np.asarray(times)[order], arr[:, :3], Rotation.from_quat(arr[:, 3:]).as_matrix()
+    arr = np.array(rows)
+    return np.asarray(times), arr[:, :3], Rotation.from_quat(arr[:, 3:]).as_matrix()
 
 
 def interpolate_track(times: np.ndarray, centres: np.ndarray, rots: np.ndarray, at: np.ndarray,

@@ -9,7 +9,7 @@ from typing import Any
 
 import yaml
 
-from ..yamlio import read_yaml
+from ..yamlio import read_yaml_with_base
 
 __all__ = ["ModelConfig", "LossConfig", "DataConfig", "TrainConfig", "RPRConfig", "load_config", "apply_overrides",
            "config_dir", "resolve_config"]
@@ -210,11 +210,14 @@ def _coerce(value: Any, default: Any, where: str) -> Any:
 
 
 def load_config(path: os.PathLike | str) -> RPRConfig:
-    """An ``RPRConfig`` from a YAML file; unknown keys and bad values raise naming the file."""
+    """An ``RPRConfig`` from a YAML file; unknown keys and bad values raise naming the file.
+
+    A top-level ``base: OTHER.yaml`` makes the file extend OTHER (relative to the file, else a name in
+    ``configs/rpr``): OTHER's keys, then this file's deep-merged over them (``yamlio.read_yaml_with_base``)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"config {path} not found")
-    data = read_yaml(path)
+    data = read_yaml_with_base(path, search=(config_dir(),))
     try:
         return RPRConfig.from_dict(data, str(path)).validate()
     except ValueError as e:

@@ -121,15 +121,6 @@ def ahead(fn: Callable[[Any], Any], items: Iterable[Any], n: int) -> Iterator[An
 _END = object()
 
 
-def view_or_query(query: ViewLike) -> ViewLike:
-    """The query decoded to a ``View`` ahead of retrieval; unchanged when that fails, so that the reference
-    set reports the failure exactly as ``localize`` does."""
-    try:
-        return as_view(query)
-    except Exception:
-        return query
-
-
 @dataclass
 class _Prepared:
     """A query after the reference-independent stage (or the error that stopped it)."""
@@ -199,7 +190,6 @@ class Relocalizer:
         self.matcher, self.depth_source, self.solver = matcher, depth, solver
         self.name = name or f"{matcher.name}+{getattr(depth, 'name', 'depth')}+{solver.name}"
         self.anchor: Anchor | None = None
-        self.references: Any = None  # a ReferenceSet after set_references (references.py)
 
     @classmethod
     def from_method(cls, method: Any) -> "Localizer":
@@ -239,18 +229,7 @@ class Relocalizer:
 
     def set_reference(self, reference: ViewLike | Anchor) -> Anchor:
         self.anchor = reference if isinstance(reference, Anchor) else self.prepare(reference)
-        self.references = None
         return self.anchor
-
-    def set_references(self, mapping: Iterable[ViewLike], k: int = 1, poses: Any = None, **options: Any) -> Any:
-        """Represent the place by ``k`` of the ``mapping`` images (Frames with poses, or views with ``poses``),
-        chosen by K-means over DenseVLAD; ``localize(query)`` then retrieves the most similar reference and
-        returns the query pose in the frame of those poses. ``mode="triangulation"``: the depth-free baseline.
-        """
-        from .references import ReferenceSet
-
-        self.references = ReferenceSet.build(list(mapping), poses, k=k, **options)
-        return self.references
 
     def relocalize(self, reference: ViewLike, query: ViewLike) -> Estimate:
         """Pose of ``query`` relative to ``reference``; timings include preparing the reference."""
@@ -320,8 +299,6 @@ class Relocalizer:
 
         Never raises for bad pixels or geometry: the answer is then an ``Estimate`` with ``pose=None``.
         """
-        if anchor is None and self.references is not None:
-            return self.references.localize(self, query)
         anchor = self._anchor(anchor)
         early = self._precheck(anchor)
         return early if early is not None else self._finish(anchor, self._prepare_query(query))
@@ -330,9 +307,6 @@ class Relocalizer:
                       prefetch: int = 1) -> Iterator[Estimate]:
         """``localize`` over many queries, in order; with ``prefetch`` > 0 the next queries are read and their
         features extracted in a background thread while the current one is matched and solved."""
-        if anchor is None and self.references is not None:  # retrieval per query, the next ones decoded ahead
-            yield from (self.references.localize(self, v) for v in ahead(view_or_query, queries, prefetch))
-            return
         anchor = self._anchor(anchor)
         if self._precheck(anchor) is not None:  # nothing to extract: every query fails the same way
             for _ in queries:
@@ -347,9 +321,8 @@ class Relocalizer:
         from .batched import BatchOptions, localize_batched
 
         o = options or BatchOptions()
-        if anchor is None and self.references is not None or self._precheck(self._anchor(anchor)) is not None:
-            # K references (each query retrieves its own reference: no shared anchor to batch against), or a
-            # reference every query fails on alike: localize_many's path, the next queries decoded ahead.
+        if self._precheck(self._anchor(anchor)) is not None:
+            # A reference every query fails on alike: localize_many's path, the next queries decoded ahead.
             yield from self.localize_many(queries, anchor, prefetch=max(1, o.batch_size))
             return
         yield from localize_batched(self, self._anchor(anchor), queries, o)

@@ -20,7 +20,7 @@ import numpy as np
 from ..data import Frame, Scene
 from ..estimate import Estimate
 from ..geometry import Pose
-from .pipeline import View, ViewLike, ahead, as_view, view_or_query
+from .pipeline import View, ViewLike, ahead, as_view
 
 log = logging.getLogger(__name__)
 
@@ -189,18 +189,43 @@ class ReferenceSet:
         return out
 
 
+def _view_or_query(query: ViewLike) -> ViewLike:
+    """The query decoded to a ``View`` ahead of retrieval; unchanged when that fails, so that the reference
+    set reports the failure exactly as ``localize`` does."""
+    try:
+        return as_view(query)
+    except Exception:
+        return query
+
+
 class ReferencedLocalizer:
-    """Any method's localizer bound to a ``ReferenceSet``: ``localize(query)`` retrieves, then relocalizes."""
+    """Any method's localizer bound to a ``ReferenceSet``: ``localize(query)`` retrieves, then relocalizes, and
+    returns the query pose in the frame of the references' poses. K references are always a ``ReferenceSet``
+    apart from the localizer (which stays a one-reference localizer): ``mapfree run --references K`` binds each
+    scene's set here; the service keeps one set per anchor and calls ``set.localize(loc, query)`` with whichever
+    pooled localizer is free."""
 
     def __init__(self, localizer: Any, references: ReferenceSet) -> None:
         self.localizer, self.references = localizer, references
+
+    @classmethod
+    def build(cls, localizer: Any, mapping: Sequence[ViewLike], k: int = 1, poses: Sequence[Pose | None] | None = None,
+              **options: Any) -> "ReferencedLocalizer":
+        """``localizer`` (a built localizer, or a method name, path or ``Method``) bound to ``k`` references
+        chosen among ``mapping`` (Frames with poses, or views with ``poses``); ``options``: ``ReferenceOptions``
+        fields, e.g. ``mode="triangulation"`` (the depth-free baseline) or ``top``."""
+        if not hasattr(localizer, "localize"):
+            from .pipeline import Relocalizer
+
+            localizer = Relocalizer.from_method(localizer)
+        return cls(localizer, ReferenceSet.build(mapping, poses, k=k, **options))
 
     def localize(self, query: ViewLike) -> Estimate:
         return self.references.localize(self.localizer, query)
 
     def localize_many(self, queries: Iterable[ViewLike], prefetch: int = 1) -> Iterator[Estimate]:
         """``localize`` over many queries, in order, the next ``prefetch`` decoded in a background thread."""
-        yield from (self.localize(v) for v in ahead(view_or_query, queries, prefetch))
+        yield from (self.localize(v) for v in ahead(_view_or_query, queries, prefetch))
 
 
 def mapping_frames(scene: Scene, seq: str = "seq0") -> list[Frame]:
@@ -254,17 +279,13 @@ def localize_with_references(method: Any, mapping: Sequence[ViewLike], queries: 
     """Choose ``k`` references among ``mapping`` and localize every query with ``method`` (a name, path,
     ``Method`` or, through ``localizer``, an already built one); estimates are world-to-camera poses in the
     frame of the mapping poses. A bad query is a failed estimate, never an exception."""
-    from .pipeline import Relocalizer
-
-    loc = localizer if localizer is not None else Relocalizer.from_method(method)
-    refs = ReferenceSet.build(mapping, options=ReferenceOptions(k=k, mode=mode, top=top))
-    bound = ReferencedLocalizer(loc, refs)
+    bound = ReferencedLocalizer.build(localizer if localizer is not None else method, mapping, k, mode=mode, top=top)
     it: Iterable = queries
     if progress:
         from tqdm import tqdm
 
         it = tqdm(queries, desc=f"K={k}", unit="frame", dynamic_ncols=True)
-    return refs, [bound.localize(q) for q in it]
+    return bound.references, [bound.localize(q) for q in it]
 
 
 def relocalize_pairs(method: Any, pairs: Sequence[tuple[ViewLike, ViewLike]], progress: bool = False) -> list[Estimate]:

@@ -92,19 +92,30 @@ class MethodUnavailable(UploadError):
         super().__init__(422, message)
 
 
-def _needs_reference_depth(m) -> bool:
-    """Whether a method can only ever localize against a reference that has an uploaded depth map."""
+#: Solvers that lift the reference's pixels to 3D with its depth: without a depth map they give no pose at all,
+#: even in a method with no depth source ("none"), which then uses a depth map uploaded with the reference.
+_LIFTING_SOLVERS = ("pnp", "procrustes")
+
+
+def needs_reference_depth(method: Any, *, scale_free_too: bool) -> bool:
+    """Whether ``method`` (a name or ``Method``) needs a depth map uploaded with the reference photo.
+
+    Always for matching methods whose depth comes from files (``files:SUFFIX``): that map is their metric scale.
+    ``scale_free_too`` also counts methods without depth (``none``) whose solver is PnP or Procrustes: with an
+    uploaded map they run (at its scale), without one every query fails. An anchor is refused for those
+    (``check_runnable``: it would never localize); the one-off try page lets them run and shows the failure.
+    Predicted-depth (a network), Ess.Mat-without-depth and regression methods never need one."""
+    from .. import methods
+
+    m = method if isinstance(method, methods.Method) else methods.get(method)
     if m.kind != "matching":
         return False
-    return m.depth.startswith("files:") or (m.depth == "none" and m.solver in ("pnp", "procrustes"))
+    return m.depth.startswith("files:") or (scale_free_too and m.depth == "none" and m.solver in _LIFTING_SOLVERS)
 
 
 def check_runnable(name: str, has_reference_depth: bool) -> None:
     """Refuse (422) an anchor whose method can never localize it: a reference-depth method without a depth map."""
-    from .. import methods
-
-    m = methods.get(name)
-    if not has_reference_depth and _needs_reference_depth(m):
+    if not has_reference_depth and needs_reference_depth(name, scale_free_too=True):
         raise MethodUnavailable(
             f"method {name} takes its metric scale from the anchor's depth map, and this anchor has none: upload "
             "'depth' (a single-channel uint16 PNG in millimetres), or choose a method that works without depth "
@@ -137,16 +148,6 @@ def effective_method(name: str, has_query_depth: bool):
     if m.kind == "matching" and m.depth != "none" and not has_query_depth and m.solver in _QUERY_DEPTH_SOLVERS:
         m = replace(m, solver="pnp", solver_opts={}, name=f"{m.name}+pnp")
     return m
-
-
-def needs_reference_depth(name: str) -> bool:
-    """Whether a method can only work with a depth map uploaded for the reference: matching methods whose depth
-    comes from files (``files:SUFFIX``). Scale-free (``none``), predicted-depth and regression methods cannot
-    use one."""
-    from .. import methods
-
-    m = methods.get(name)
-    return m.kind == "matching" and m.depth.startswith("files:")
 
 
 def intrinsics_of(d: dict) -> Intrinsics:

@@ -352,7 +352,7 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
         if reference_depth is not None and reference_depth.filename:
             ref_depth = decode_depth(reference_depth.file.read(lim.max_image_bytes + 1), lim, ref_img.shape[:2],
                                      "reference depth")
-        elif needs_reference_depth(m):
+        elif needs_reference_depth(m, scale_free_too=False):
             raise UploadError(422, f"method {m} needs the reference depth map (a uint16 PNG in millimetres, the "
                                    "size of the reference photo) for a metric pose; choose one, or a method "
                                    "without depth such as sift_emat_none (direction only, no metric scale)")
