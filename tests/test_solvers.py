@@ -189,7 +189,8 @@ def test_depth_lookups_equal_the_float64_map(realmini):
     d = frame.depth("sensor")
     d[:5, :5], d[10, 10], d[11, 11], d[12, 12], d[13, 13] = np.nan, np.inf, -1.0, 2 * MAX_DEPTH, 0.0
     rng = np.random.default_rng(0)
-    uv = np.vstack([rng.uniform(-3, [d.shape[1] + 2, d.shape[0] + 2], (3000, 2)), [[2, 2], [10, 10], [11, 11], [12, 12]]])
+    uv = rng.uniform(-3, [d.shape[1] + 2, d.shape[0] + 2], (3000, 2))
+    uv = np.vstack([uv, [[2, 2], [10, 10], [11, 11], [12, 12]]])  # the NaN, inf, negative and too-far pixels
     for K in (frame.intrinsics, frame.intrinsics.scaled(2.0, 2.0)):  # same size, and a map at half the image size
         for mode in ("nearest", "floor", "bilinear"):
             got, want = sample_depth_at(d, uv, K, mode), sample_depth_at(d.astype(np.float64), uv, K, mode)
