@@ -124,7 +124,7 @@ def shared_floor(pairs: list, matches: list, depth_suffix: str = "sensor") -> di
 def spec4_comparison(pairs: list, root, split: str, rounds: int) -> dict:
     """``sift_emat_sensor`` vs the SPEC §4 reference and the shared-work floor, in ``rounds`` rounds whose order
     rotates, so that load from other jobs that comes and goes falls on every side alike; the verdict is the
-    median of the rounds' ratios (each round: every loop once over the same pairs)."""
+    median of the rounds' CPU-time ratios (each round: every loop once over the same pairs)."""
     from mapfree.relocalize import Relocalizer
 
     loc = Relocalizer.from_method("sift_emat_sensor")
@@ -396,8 +396,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--second-pass", action="store_true", help="also time the same pairs again (seen pairs)")
     ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the kornia loop")
     ap.add_argument("--no-spec4", dest="spec4", action="store_false", help="skip the SPEC §4 SIFT comparison")
-    ap.add_argument("--spec4-rounds", type=int, default=3,
-                    help="rounds of the SPEC §4 comparison, in rotating order (verdict: the median ratio)")
+    ap.add_argument("--spec4-rounds", type=int, default=5,
+                    help="rounds of the SPEC §4 comparison, in rotating order (verdict: the median CPU-time ratio)")
     ap.add_argument("--json", type=Path, help="also write the results here")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: time one preset in this (fresh) process
     ap.add_argument("--kornia-loop", action="store_true", help=argparse.SUPPRESS)  # internal
@@ -470,13 +470,16 @@ def main(argv: list[str] | None = None) -> int:
         med = lambda k: float(np.median(spec4[k]))  # noqa: E731
         span = lambda k: f"{min(spec4[k]):.2f}-{max(spec4[k]):.2f}x"  # noqa: E731
         agree = spec4["agreement"]
+        # The verdict is on CPU time: both sides are single-threaded, and other jobs' load stretches wall-clock
+        # rounds unevenly (a round of either side slowed 2x by a neighbour's burst is common on a shared CPU).
+        ok = med("speedup_cpu") >= 2
         print(f"sift_emat_sensor (in-process loop; pairs/s per round: {pps('ours')}) vs straightforward SPEC §4 "
-              f"({pps('reference')}): {med('speedup'):.2f}x median of {len(spec4['speedup'])} rounds "
-              f"({span('speedup')}; CPU time {med('speedup_cpu'):.2f}x) ({'PASS' if med('speedup') >= 2 else 'FAIL'}: "
-              f"target >= 2x); poses: {json.dumps(agree)}")
+              f"({pps('reference')}): CPU time {med('speedup_cpu'):.2f}x, wall clock {med('speedup'):.2f}x (medians "
+              f"of {len(spec4['speedup'])} rounds; wall {span('speedup')}) ({'PASS' if ok else 'FAIL'}: target >= 2x "
+              f"in CPU time); poses: {json.dumps(agree)}")
         print(f"shared work only ({pps('floor')} pairs/s: the reference's own SIFT, depth, decoding and RANSAC for "
-              f"each query, the reference image's once per scene): at most {med('ceiling'):.2f}x "
-              f"({span('ceiling')}; CPU time {med('ceiling_cpu'):.2f}x) for any pipeline with the same poses")
+              f"each query, the reference image's once per scene): at most CPU time {med('ceiling_cpu'):.2f}x, wall "
+              f"clock {med('ceiling'):.2f}x ({span('ceiling')}) for any pipeline with the same poses")
         result["spec4"] = {k: spec4[k] for k in ("speedup", "ceiling", "speedup_cpu", "ceiling_cpu", "agreement")} | {
             "pairs_per_s": {k: [r["pairs_per_s"] for r in v] for k, v in spec4["runs"].items()}}
     if args.json:
