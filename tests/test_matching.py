@@ -219,3 +219,32 @@ def test_sift_ratio_test_equals_opencv_brute_force(pair):
     got_pts = {(tuple(a), tuple(b)) for a, b in zip(m.kpts0.tolist(), m.kpts1.tolist())}
     want_pts = {(tuple(f0.kpts[i]), tuple(f1.kpts[j])) for i, j in expected}
     assert len(expected) > 50 and got_pts == want_pts and len(m) == len(expected)
+
+
+def _straightforward_two_nearest(d0: np.ndarray, d1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plain formula: clipped squared distances, then the nearest and second nearest of every row."""
+    sq = np.maximum((d0 * d0).sum(1)[:, None] + (d1 * d1).sum(1)[None, :] - 2.0 * (d0 @ d1.T), 0.0)
+    nearest = sq.argmin(axis=1)
+    rows = np.arange(len(sq))
+    first = sq[rows, nearest]
+    sq[rows, nearest] = np.inf
+    return nearest, np.sqrt(np.stack([first, sq.min(axis=1)], axis=1))
+
+
+def test_sift_fast_distances_equal_the_straightforward_formula(pair):
+    """Cached norms, 2 a.b as (2 a).b and unclipped distances give the plain formula's bits on real descriptors,
+    also where rounding makes distances negative (a descriptor matched against copies of itself)."""
+    from mapfree.matching.sift import squared_distances, two_nearest
+
+    f0, f1 = features("sift", pair, 0), features("sift", pair, 1)
+    d0, d1 = f0.data["descriptors"], f1.data["descriptors"]
+    dup = np.vstack([d1[:300], d0[:200], d0[:200]])  # every d0[:200] row has two exact copies among these columns
+    for a, b, fa, fb in ((d0, d1, f0, f1), (d1, d0, f1, f0), (d0, dup, f0, None)):
+        want = _straightforward_two_nearest(a, b)
+        nb = fb.data["sq_norms"] if fb is not None else None
+        sq = squared_distances(a, b, fa.data["sq_norms"], nb, clip=False)
+        got = two_nearest(sq)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+        assert np.array_equal(sq, squared_distances(a, b))  # negative rows were clipped in place: mutual sees these
+    sq = squared_distances(d0, dup, clip=False)
+    assert (sq < 0).any(), "the duplicate rows are meant to exercise the negative-distance branch"

@@ -22,7 +22,7 @@ from mapfree.solvers import (
     scale_vote,
     scale_vote_bruteforce,
 )
-from mapfree.solvers.common import sample_depth_at
+from mapfree.solvers.common import MAX_DEPTH, sample_depth_at, valid_depth_map
 from mapfree.solvers.icp import icp
 from mapfree.solvers.procrustes import _cloud
 from mapfree.solvers.scale import vote_counts
@@ -177,6 +177,29 @@ def test_depth_maps_at_another_resolution():
     K = Intrinsics(100, 100, 3.5, 2.5, 8, 6)  # image 8x6, depth 4x3
     uv = np.array([[0.0, 0.0], [7.0, 5.0], [2.4, 2.6]])
     assert sample_depth_at(d, uv, K).tolist() == [1.0, 12.0, 6.0]
+
+
+def test_depth_lookups_equal_the_float64_map(realmini):
+    """Depth is gathered at the keypoints and then made float64 (no float64 copy of the whole map per call): the
+    same values as looking up in the converted map, in every sampling mode, on a real sensor map with holes made
+    invalid in every way; ``valid_depth_map``'s one-pass shortcut agrees with the full test."""
+    from mapfree.data import Dataset
+
+    frame = Dataset(realmini).scene("val", "s00001").reference
+    d = frame.depth("sensor")
+    d[:5, :5], d[10, 10], d[11, 11], d[12, 12], d[13, 13] = np.nan, np.inf, -1.0, 2 * MAX_DEPTH, 0.0
+    rng = np.random.default_rng(0)
+    uv = rng.uniform(-3, [d.shape[1] + 2, d.shape[0] + 2], (3000, 2))
+    uv = np.vstack([uv, [[2, 2], [10, 10], [11, 11], [12, 12]]])  # the NaN, inf, negative and too-far pixels
+    for K in (frame.intrinsics, frame.intrinsics.scaled(2.0, 2.0)):  # same size, and a map at half the image size
+        for mode in ("nearest", "floor", "bilinear"):
+            got, want = sample_depth_at(d, uv, K, mode), sample_depth_at(d.astype(np.float64), uv, K, mode)
+            assert got.dtype == np.float64 and np.array_equal(got, want) and (got > 0).sum() > 1000
+    for m, ok in ((d, True), (np.where(np.isfinite(d), 0.0, d), False), (np.full((4, 4), np.inf), False),
+                  (np.array([[np.nan, 2 * MAX_DEPTH], [np.inf, 1.0]]), True), (np.full((3, 3), 2 * MAX_DEPTH), False)):
+        with np.errstate(invalid="ignore"):
+            full = bool(np.any(np.isfinite(m) & (m > 0) & (m < MAX_DEPTH)))
+        assert valid_depth_map(m) is ok is full
 
 
 def test_confidence_option_switches_the_reported_confidence():

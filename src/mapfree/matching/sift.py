@@ -33,25 +33,50 @@ def root_sift(desc: np.ndarray, eps: float = 1e-7) -> np.ndarray:
     return np.sqrt(desc)
 
 
-def squared_distances(d0: np.ndarray, d1: np.ndarray) -> np.ndarray:
-    """All pairwise squared L2 distances by one matrix product (|a|^2 + |b|^2 - 2 a.b), clipped at 0."""
-    sq = (d0 * d0).sum(1)[:, None] + (d1 * d1).sum(1)[None, :] - 2.0 * (d0 @ d1.T)
-    return np.maximum(sq, 0.0, out=sq)
+def squared_distances(d0: np.ndarray, d1: np.ndarray, norms0: np.ndarray | None = None,
+                      norms1: np.ndarray | None = None, clip: bool = True) -> np.ndarray:
+    """All pairwise squared L2 distances by one matrix product, ``(|a|^2 + |b|^2) - 2 a.b``, clipped at 0.
+
+    ``norms0``/``norms1`` are the rows' squared norms when the caller has them (a reference's, once per scene).
+    ``clip=False`` leaves the few slightly negative values rounding can give (``two_nearest`` clips them itself).
+    """
+    n0 = (d0 * d0).sum(1) if norms0 is None else norms0
+    n1 = (d1 * d1).sum(1) if norms1 is None else norms1
+    sq = np.add.outer(n0, n1)
+    # 2 a.b as (2 a).b: scaling by a power of two is exact, so these are the bits of 2 * (d0 @ d1.T) without a
+    # pass over the whole matrix; in place, one temporary fewer.
+    sq -= (2 * d0) @ d1.T
+    return np.maximum(sq, 0.0, out=sq) if clip else sq
 
 
 def two_nearest(sq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Index of the nearest column of each row and the L2 distances (N,2) to the nearest and second nearest.
 
     Exact, like OpenCV's brute-force ``knnMatch(k=2)``, but several times faster on CPU (BLAS product, then two
-    row scans instead of a per-row selection). ``sq`` is left unchanged.
+    row scans instead of a per-row selection). ``sq`` may be unclipped (``squared_distances(clip=False)``):
+    negative entries count as 0 (the first column wins ties), and the rows holding them are clipped in place, so
+    ``sq`` ends as the clipped matrix; it is otherwise left unchanged.
     """
     rows = np.arange(len(sq))
     nearest = sq.argmin(axis=1)
+    neg = np.flatnonzero(sq[rows, nearest] < 0)
+    if len(neg):  # rare: a row holds a negative value only if its minimum is negative
+        sq[neg] = np.maximum(sq[neg], 0.0)
+        nearest[neg] = sq[neg].argmin(axis=1)
     d1 = sq[rows, nearest]
     sq[rows, nearest] = np.inf
     d2 = sq.min(axis=1)
     sq[rows, nearest] = d1
     return nearest, np.sqrt(np.stack([d1, d2], axis=1))
+
+
+def _sq_norms(f: Features) -> np.ndarray:
+    """Squared norms of the descriptors, computed at extraction (a reference's once per scene, not per pair)."""
+    norms = f.data.get("sq_norms")
+    if norms is None:
+        d = f.data["descriptors"]
+        norms = (d * d).sum(1)
+    return norms
 
 
 class SIFTMatcher:
@@ -71,19 +96,20 @@ class SIFTMatcher:
         if desc is None or len(kps) == 0:
             desc, xy = np.zeros((0, 128), np.float32), np.zeros((0, 2))
         else:
-            xy = np.array([k.pt for k in kps], dtype=np.float64)
+            xy = cv2.KeyPoint_convert(kps).astype(np.float64)  # float32 positions, as KeyPoint.pt gives them
             # OpenCV may return more than nfeatures when responses tie at the cut.
             desc, xy = desc[: self.options.max_features], xy[: self.options.max_features]
         if self.options.root_sift:
             desc = root_sift(desc)
+        desc = np.ascontiguousarray(desc, np.float32)
         size = (image.shape[1], image.shape[0])
-        return Features(to_original(xy, scale), size, {"descriptors": np.ascontiguousarray(desc, np.float32)})
+        return Features(to_original(xy, scale), size, {"descriptors": desc, "sq_norms": (desc * desc).sum(1)})
 
     def match(self, f0: Features, f1: Features) -> Matches:
         d0, d1 = f0.data["descriptors"], f1.data["descriptors"]
         if len(d0) < 2 or len(d1) < 2:
             return Matches.empty()
-        sq = squared_distances(d0, d1)
+        sq = squared_distances(d0, d1, _sq_norms(f0), _sq_norms(f1), clip=False)
         i1, dist = two_nearest(sq)
         ratio = dist[:, 0] / np.maximum(dist[:, 1], 1e-12)
         keep = ratio < self.options.ratio

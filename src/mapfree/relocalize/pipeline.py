@@ -88,8 +88,12 @@ def as_view(x: ViewLike) -> View:
     raise TypeError(f"expected a Frame, a View or (image, intrinsics[, depth]); got {type(x).__name__}")
 
 
-def _fit_depth(depth: np.ndarray | None, K: Intrinsics) -> np.ndarray | None:
-    """Depth at the image size (nearest-neighbour resize keeps holes as holes); NaN/inf/negative -> 0."""
+def _fit_depth(depth: np.ndarray | None, K: Intrinsics, owned: bool = False) -> np.ndarray | None:
+    """Depth at the image size (nearest-neighbour resize keeps holes as holes); NaN/inf/negative -> 0.
+
+    A new array, unless ``owned`` (the caller's fresh array: read from a file or predicted just now) and already
+    clean, as every map read from a depth PNG is: it is then returned as is, not copied.
+    """
     if depth is None:
         return None
     d = np.asarray(depth, dtype=np.float32)
@@ -97,8 +101,10 @@ def _fit_depth(depth: np.ndarray | None, K: Intrinsics) -> np.ndarray | None:
         raise ValueError(f"depth map must be 2-D, got shape {d.shape}")
     if d.shape != (K.height, K.width):
         d = cv2.resize(d, (K.width, K.height), interpolation=cv2.INTER_NEAREST)
-    d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
-    return d
+    # min >= 0 and max < inf: no NaN (it would be the min), no negative, no infinity: nothing to replace.
+    if (owned or d is not depth) and d.size and d.min() >= 0 and d.max() < np.inf:
+        return d
+    return np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
 
 
 def ahead(fn: Callable[[Any], Any], items: Iterable[Any], n: int) -> Iterator[Any]:
@@ -212,9 +218,10 @@ class Relocalizer:
         if not self.metric:
             return None
         if view.frame is not None:
-            return _fit_depth(self.depth_source.depth(view.frame), view.intrinsics)
+            return _fit_depth(self.depth_source.depth(view.frame), view.intrinsics, owned=True)
         if hasattr(self.depth_source, "predict"):  # a network: predict from the pixels themselves
-            return _fit_depth(self.depth_source.predict([view.image], [view.intrinsics.fx])[0], view.intrinsics)
+            return _fit_depth(self.depth_source.predict([view.image], [view.intrinsics.fx])[0], view.intrinsics,
+                              owned=True)
         return None
 
     def prepare(self, reference: ViewLike) -> Anchor:

@@ -67,6 +67,8 @@ def valid_depth_map(depth: np.ndarray | None) -> bool:
     if d.ndim != 2 or d.size == 0:
         return False
     with np.errstate(invalid="ignore"):
+        if 0 < d.max() < MAX_DEPTH:  # the usual case in one pass: the maximum itself is valid (NaN fails the test)
+            return True
         return bool(np.any(np.isfinite(d) & (d > 0) & (d < MAX_DEPTH)))
 
 
@@ -87,7 +89,7 @@ def sample_depth_at(depth: np.ndarray, uv: np.ndarray, K: Intrinsics, mode: str 
     """
     if mode not in DEPTH_SAMPLING:
         raise ValueError(f"depth sampling must be one of {DEPTH_SAMPLING}, got {mode!r}")
-    d = np.asarray(depth, dtype=np.float64)
+    d = np.asarray(depth)  # values are gathered first, then made float64 (exact): no copy of the whole map per call
     H, W = d.shape
     out = np.zeros(len(uv))
     if len(uv) == 0:
@@ -100,7 +102,7 @@ def sample_depth_at(depth: np.ndarray, uv: np.ndarray, K: Intrinsics, mode: str 
         fu, fv = p[:, 0] - u0, p[:, 1] - v0
         inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 < W) & (v0 + 1 < H)
         u0, v0, fu, fv = u0[inside], v0[inside], fu[inside], fv[inside]
-        q = np.stack([d[v0, u0], d[v0, u0 + 1], d[v0 + 1, u0], d[v0 + 1, u0 + 1]], axis=1)
+        q = np.stack([d[v0, u0], d[v0, u0 + 1], d[v0 + 1, u0], d[v0 + 1, u0 + 1]], axis=1).astype(np.float64)
         with np.errstate(invalid="ignore"):
             ok = np.all(np.isfinite(q) & (q > 0) & (q < MAX_DEPTH), axis=1)
         w = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], axis=1)
@@ -110,7 +112,7 @@ def sample_depth_at(depth: np.ndarray, uv: np.ndarray, K: Intrinsics, mode: str 
     r = np.floor(p) if mode == "floor" else np.rint(p)
     u, v = r[:, 0].astype(np.int64), r[:, 1].astype(np.int64)
     inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    out[inside] = d[v[inside], u[inside]]
+    out[inside] = d[v[inside], u[inside]]  # float64 ``out``: the assignment converts
     with np.errstate(invalid="ignore"):
         out[~(np.isfinite(out) & (out > 0) & (out < MAX_DEPTH))] = 0.0
     return out
