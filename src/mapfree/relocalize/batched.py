@@ -75,7 +75,7 @@ def _network_depth(loc: "Relocalizer", batch: list["_Prepared"]) -> None:
     deps = src.depth_many([p.view.frame for p in todo])
     share = (time.perf_counter() - t0) / len(todo)
     for p, d in zip(todo, deps):
-        p.depth = _fit_depth(d, p.view.intrinsics)
+        p.depth = _fit_depth(d, p.view.intrinsics, owned=True)  # fresh from the network or its cache file
         p.timings["depth"] = p.timings.get("depth", 0.0) + share
 
 
