@@ -1,6 +1,6 @@
 """The RPR-training GPU figures of issue 9 (point 4) in one call, for a session with a GPU (one H100 expected):
 
-    MAPFREE_OFFLINE=1 python bench/gpu_probe_train.py [--root ROOT] [--out DIR] [--large 64]
+    MAPFREE_OFFLINE=1 python bench/gpu_probe_train.py [--root ROOT] [--out DIR] [--large 64] [--quick]
 
 1. ``bench/bench_train.py`` for ``rot6d_trans`` (the paper's R(6D)+t) at 360×270, at the paper's batch (10) and
    at a large batch: step rows before → after (with a torch.compile row), the loader, the loop with GPU utilisation;
@@ -8,6 +8,8 @@
    where the attention kernels differ from the CPU's;
 3. a torch profile of five steps before and after at the large batch: the operators that take the CUDA time.
 Everything printed also lands in DIR/probe_train.md; paste the tables into the README's RPR training section.
+``--quick`` is a rehearsal of every step on any device (CPU included): batches 2 and 3, one timed step, no
+compile row; its numbers are not figures.
 """
 
 from __future__ import annotations
@@ -98,33 +100,42 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("gpu-probe-train"))
     ap.add_argument("--large", type=int, default=64, help="the large batch")
     ap.add_argument("--workers", type=int, default=12)
+    ap.add_argument("--quick", action="store_true", help="rehearse every step on any device, in a few minutes")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     import torch
 
-    if not torch.cuda.is_available():
-        print("no GPU here: this probe only fills in GPU figures (bench/bench_train.py runs on CPU)")
+    gpu = torch.cuda.is_available()
+    if not gpu and not args.quick:
+        print("no GPU here: this probe only fills in GPU figures (bench/bench_train.py runs on CPU; --quick "
+              "rehearses this probe on the CPU)")
         return 1
-    lines = [f"# RPR training probe: {torch.cuda.get_device_name()}, torch {torch.__version__}", ""]
+    device = torch.cuda.get_device_name() if gpu else "no GPU (cpu)"
+    lines = [f"# RPR training probe: {device}, torch {torch.__version__}"
+             + (" (--quick: a rehearsal, not figures)" if args.quick else ""), ""]
     have_images = args.root is not None and Path(args.root).is_dir()
-    for batch in (10, args.large):
-        cmd = [sys.executable, str(HERE / "bench_train.py"), "--config", "rot6d_trans", "--device", "cuda",
-               "--batch", str(batch), "--steps", "10", "--warmup", "3", "--workers", str(args.workers),
-               "--epochs", "3", "--loop-pairs", str(20 * batch), "--compile",
-               "--parts", "step,loader,loop" if have_images else "step"]
+    batches = (2, 3) if args.quick else (10, args.large)
+    steps, warmup, epochs, per_epoch = ("1", "1", "1", 2) if args.quick else ("10", "3", "3", 20)
+    for batch in batches:
+        cmd = [sys.executable, str(HERE / "bench_train.py"), "--config", "rot6d_trans",
+               "--device", "cuda" if gpu else "cpu", "--batch", str(batch), "--steps", steps, "--warmup", warmup,
+               "--workers", str(min(args.workers, 2) if args.quick else args.workers), "--epochs", epochs,
+               "--loop-pairs", str(per_epoch * batch), "--parts", "step,loader,loop" if have_images else "step"]
+        cmd += [] if args.quick else ["--compile"]
         if have_images:
             cmd += ["--root", str(args.root)]
         try:
             res = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
             text = res.stdout + (f"\n(stderr)\n{res.stderr[-2000:]}" if res.returncode else "")
         except subprocess.TimeoutExpired as e:
-            text = f"timed out after 240 s; partial output:\n{e.stdout or ''}"
+            partial = e.stdout.decode() if isinstance(e.stdout, bytes) else e.stdout or ""  # bytes despite text=True
+            text = f"timed out after 240 s; partial output:\n{partial}"
         lines += [f"## batch {batch}", "", "`python " + " ".join(Path(c).name if c == sys.executable else c
                                                                   for c in cmd[1:]) + "`", "", text, ""]
         print("\n".join(lines[-6:]), flush=True)
-    lines += ["## fused warping vs the explicit volume on this GPU", "", equivalence(), ""]
+    lines += ["## fused warping vs the explicit volume on this device", "", equivalence(1 if args.quick else 2), ""]
     print("\n".join(lines[-4:]), flush=True)
-    lines += ["## where the CUDA time goes", "", profile(min(args.large, 32))]
+    lines += ["## where the CUDA time goes", "", profile(2, 1) if args.quick else profile(min(args.large, 32))]
     print(lines[-1], flush=True)
     (args.out / "probe_train.md").write_text("\n".join(lines) + "\n")
     return 0
