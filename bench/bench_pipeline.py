@@ -231,7 +231,8 @@ def run_one(root, split: str, spec: str, all_frames: bool, batch: int | None, se
 
 def kornia_loop(root, split: str, all_frames: bool, max_pairs: int | None = None) -> dict:
     """The straightforward baseline: per pair, read both images, kornia ALIKED on each, kornia LightGlue, the
-    same essential-matrix + depth-scale solver; batch 1, default attention, nothing cached."""
+    same essential-matrix + depth-scale solver with the preset's options; batch 1, default attention, nothing
+    cached."""
     import cv2
     import kornia.feature as KF
     import torch
@@ -248,7 +249,9 @@ def kornia_loop(root, split: str, all_frames: bool, max_pairs: int | None = None
     path = _shipped("aliked_lightglue.pth")
     _load_strict(lg, _remap_glue_keys(load_checkpoint(path), lg.conf.n_layers), "LightGlue", path)
     ext, lg = ext.to(dev).eval(), lg.to(dev).eval()
-    solver = solvers.create("essential")
+    from mapfree.methods import get
+
+    solver = solvers.create("essential", **get("aliked-lightglue_emat_sensor").solver_opts)  # the preset's 2 px
     from mapfree.matching import Matches
 
     def tensor(p):
@@ -292,9 +295,12 @@ def pose_diffs(a: dict, b: dict) -> dict:
         "only_one": sum((a.get(k) is None) != (b.get(k) is None) for k in a)}
 
 
-def _child(argv: list[str]) -> dict:
+def _child(argv: list[str], timeout: float | None = None) -> dict:
     """Run this script with ``argv`` in a fresh process; its last stdout line is the JSON result."""
-    proc = subprocess.run([sys.executable, __file__, *argv], capture_output=True, text=True)
+    try:
+        proc = subprocess.run([sys.executable, __file__, *argv], capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"error": f"timed out after {timeout:.0f} s (--child-timeout)"}
     if proc.returncode != 0:
         return {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1]}
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -319,6 +325,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the kornia loop")
     ap.add_argument("--no-spec4", dest="spec4", action="store_false", help="skip the SPEC §4 SIFT comparison")
     ap.add_argument("--json", type=Path, help="also write the results here")
+    ap.add_argument("--child-timeout", type=float, help="seconds each preset's process may take before it is "
+                    "reported as timed out (default: no limit)")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: time one preset in this (fresh) process
     ap.add_argument("--kornia-loop", action="store_true", help=argparse.SUPPRESS)  # internal
     args = ap.parse_args(argv)
@@ -353,12 +361,12 @@ def main(argv: list[str] | None = None) -> int:
         common += ["--warmup-queries", str(args.warmup_queries)]
         rows = []
         for spec in args.presets.split(","):
-            r = _child(common + ["--one", spec])
+            r = _child(common + ["--one", spec], args.child_timeout)
             r.setdefault("preset", spec)
             print(f"{spec}: {_fmt(r.get('first', {}).get('pairs_per_s'), '.2f')} pairs/s"
                   + (f" ({r['error']})" if "error" in r else ""), flush=True)
             rows.append(r)
-        base = _child(common + ["--kornia-loop"]) if args.baseline else None
+        base = _child(common + ["--kornia-loop"], args.child_timeout) if args.baseline else None
         spec4 = None
         if args.spec4 and any(r["preset"] == "sift_emat_sensor" for r in rows):
             spec4 = bench_reference(pairs)
