@@ -23,6 +23,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -109,15 +110,25 @@ def never_seen_depth(root: Path, n: int) -> list[dict]:
              "again_ms": statistics.median(again), "max_first_ms": max(first)}]
 
 
-def _stream(cmd: list[str]) -> str:
-    """Run ``cmd``, echoing its output line by line as it comes (a run cut short still shows how far it got)."""
+def stream(cmd: list[str], timeout: float | None = None) -> str:
+    """Run ``cmd``, echoing its output line by line as it comes (a run cut short still shows how far it got);
+    killed after ``timeout`` seconds. Returns the output."""
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+    timer = threading.Timer(timeout, proc.kill) if timeout else None
+    if timer:
+        timer.start()
     out = []
-    for line in proc.stdout:  # type: ignore[union-attr]
-        print(line, end="", flush=True)
-        out.append(line)
+    try:
+        for line in proc.stdout:  # type: ignore[union-attr]
+            print(line, end="", flush=True)
+            out.append(line)
+    finally:
+        if timer:
+            timer.cancel()
     if proc.wait():
-        out.append(f"(exit status {proc.returncode})\n")
+        killed = timeout is not None and proc.returncode == -9
+        out.append(f"({f'killed after {timeout:.0f} s' if killed else f'exit status {proc.returncode}'})\n")
+        print(out[-1], end="", flush=True)
     return "".join(out)
 
 
@@ -162,18 +173,19 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"| {r['network']} | {r['first_ms']:.1f} | {r['again_ms']:.1f} | "
                      f"{r['first_ms'] / r['again_ms']:.2f} | {r['max_first_ms']:.1f} |")
     (args.out / "never_seen.json").write_text(json.dumps(rows, indent=1))
+    (args.out / "probe.md").write_text("\n".join(lines) + "\n")  # again at the end; this if the call runs out
     print("\n".join(lines), flush=True)
     if args.presets:
         cmd = [sys.executable, str(HERE / "bench_pipeline.py"), str(args.root), "--size",
                "270x360" if args.quick else args.size, "--second-pass", "--threads", str(args.threads),
-               "--presets", args.presets, "--json", str(args.out / "pipeline.json")]
+               "--presets", args.presets, "--json", str(args.out / "pipeline.json"), "--child-timeout", "240"]
         cmd += ["--max-pairs", "1", "--warmup-queries", "1"] if args.quick else ["--all-frames"]
         cmd += [] if args.baseline else ["--no-baseline"]
         lines += ["", "## bench_pipeline.py", "`" + " ".join(cmd[1:]) + "`", ""]
         print("\n".join(lines[-4:]), flush=True)
-        lines.append(_stream(cmd))
+        lines.append(stream(cmd))
     if args.train and (HERE / "bench_train.py").is_file():
-        lines += ["", "## bench_train.py", _stream([sys.executable, str(HERE / "bench_train.py")])]
+        lines += ["", "## bench_train.py", stream([sys.executable, str(HERE / "bench_train.py")])]
     (args.out / "probe.md").write_text("\n".join(lines) + "\n")
     return 0
 
