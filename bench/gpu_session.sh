@@ -6,7 +6,8 @@
 # Installs the kit's wheels into $MAPFREE_GPU_SITE (/tmp/site), puts src/ and them on PYTHONPATH, points
 # $MAPFREE_WEIGHTS_DIR at the kit's fp16 weights, runs offline, and writes per part $OUT/PART.log (everything
 # printed, with the environment first) and $OUT/PART/ (probe.md or probe_train.md, JSON). --quick rehearses a
-# part on any device in minutes (its numbers are not figures). Off the device, set OUT and PYTHON yourself:
+# part on any device in minutes (its numbers are not figures). MAPFREE_GPU_PRESETS=a,b narrows part match's
+# pipeline presets (e.g. to re-run what a call cut short). Off the device, set OUT and PYTHON yourself:
 #   PYTHON=/tmp/gpukit-venv/bin/python OUT=/tmp/gpukit-out bash bench/gpu_session.sh --quick match
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -80,8 +81,8 @@ for part in "${parts[@]}"; do
   mkdir -p "$dir"
   case "$part" in
     match)
-      cmd=("$PY" bench/gpu_probe.py "$ROOT" --out "$dir" --threads 8 --presets
-           aliked-lightglue_emat_sensor,xfeat-lighterglue_emat_sensor,xfeat_emat_sensor,xfeat-star_emat_sensor,loftr_emat_sensor,sift_emat_sensor,aliked-lightglue_emat_sensor:b0) ;;
+      presets=${MAPFREE_GPU_PRESETS:-aliked-lightglue_emat_sensor,xfeat-lighterglue_emat_sensor,xfeat_emat_sensor,xfeat-star_emat_sensor,loftr_emat_sensor,sift_emat_sensor,aliked-lightglue_emat_sensor:b0}
+      cmd=("$PY" bench/gpu_probe.py "$ROOT" --out "$dir" --threads 8 --presets "$presets") ;;
     disk)
       cmd=("$PY" bench/gpu_probe.py "$ROOT" --out "$dir" --threads 8 --presets disk-lightglue_emat_sensor
            --never-seen disk-lightglue --no-depth --no-baseline) ;;
