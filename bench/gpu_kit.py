@@ -16,8 +16,8 @@ repository root) holds:
   through ``$MAPFREE_WEIGHTS_DIR``; fp16 tensors load into the fp32 networks);
 - ``data/``: a copy of realmini-dev.
 
-``bench/gpu_session.sh PART`` runs a part on the device from these. fp16 weights round each value (relative error
-< 5e-4), so poses can differ slightly from a run with the original files; every comparison within a part uses the
+``bench/gpu_session.sh PART`` runs a part on the device from these. fp16 weights round each value (to 11
+significant bits), so poses can differ slightly from a run with the original files; every comparison within a part uses the
 same files.
 """
 
@@ -69,7 +69,7 @@ PARTS = (
          "xfeat, xfeat-star, loftr (skipped without weights), sift (+ SPEC 4 loop), aliked-lightglue one pair at "
          "a time, the kornia ALIKED+LightGlue loop"),
     Part("disk", ("whl", "w-disk", DATA), 2, "never-seen check and bench_pipeline row of disk-lightglue"),
-    Part("train", ("whl", DATA), 6,
+    Part("train", ("whl", DATA), 8,
          "gpu_probe_train.py: bench_train.py rot6d_trans 360x270 at batch 10 and 64 (step, loader, loop, compile "
          "row), fused-warp equivalence on the GPU, CUDA profile"),
 )
