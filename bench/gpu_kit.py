@@ -17,8 +17,8 @@ repository root) holds:
 - ``data/``: a copy of realmini-dev.
 
 ``bench/gpu_session.sh PART`` runs a part on the device from these. fp16 weights round each value (to 11
-significant bits), so poses can differ slightly from a run with the original files; every comparison within a part uses the
-same files.
+significant bits), so poses can differ slightly from a run with the original files; every comparison within a part
+uses the same files.
 """
 
 from __future__ import annotations
@@ -248,7 +248,8 @@ def rehearse(parts: list[Part], kit: Path, python: str, where: Path) -> int:
     ver = subprocess.run([python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"], check=True,
                          capture_output=True, text=True).stdout.strip()
     if ver != have:
-        raise SystemExit(f"{kit} holds wheels for Python {have}, {python} is {ver}: rebuild with --python-version {ver}")
+        raise SystemExit(f"{kit} holds wheels for Python {have}, {python} is {ver}: "
+                         f"rebuild with --python-version {ver}")
     status = 0
     for part in parts:
         tree, out = stage(part, kit, where / part.name), where / f"{part.name}-out"
@@ -268,7 +269,8 @@ def _mib(n: int) -> str:
 
 
 def report(kit: Path, rows: list[dict], tree: int) -> str:
-    lines = [f"GPU kit {kit} — working tree {_mib(tree)}; limit per call {_mib(LIMIT)} (kept free: {_mib(MARGIN)})", ""]
+    lines = [f"GPU kit {kit} — working tree {_mib(tree)}; limit per call {_mib(LIMIT)} "
+             f"(kept free: {_mib(MARGIN)})", ""]
     for r in rows:
         parts = ", ".join(f"{c} {_mib(b)}" for c, b in r["bytes"].items())
         lines.append(f"part {r['part']}: {_mib(r['total'])} {'fits' if r['fits'] else 'DOES NOT FIT'} ({parts})")
