@@ -15,8 +15,8 @@ from mapfree.matching.lightglue import SHIPPED, _load_strict, _shipped
 from mapfree.matching.weights import WEIGHTS_ENV, load_checkpoint
 
 # Loaded from its file: putting bench/ on sys.path would let its modules shadow others for the whole session.
-_spec = importlib.util.spec_from_file_location("gpu_kit", Path(__file__).resolve().parents[1] / "bench/gpu_kit.py")
-gpu_kit = importlib.util.module_from_spec(_spec)
+_spec = importlib.util.spec_from_file_location("bench_gpu_kit", Path(__file__).resolve().parents[1] / "bench/gpu_kit.py")
+gpu_kit = sys.modules["bench_gpu_kit"] = importlib.util.module_from_spec(_spec)  # dataclasses look it up there
 _spec.loader.exec_module(gpu_kit)
 
 
