@@ -108,6 +108,36 @@ def test_resume_after_kill_loses_and_recomputes_nothing(tiny, tmp_path):
     assert len(sub["pose_s00000.txt"]) == sum(r["ok"] for r in after if r["scene"] == "s00000")
 
 
+def test_ctrl_c_with_workers_stops_at_once_and_resumes(realmini, tmp_path):
+    """Ctrl-C (SIGINT to the whole foreground group, as a terminal sends it) during ``run --workers 2``: the run
+    stops after the frames in flight, starts no queued scene, says how to resume, and --resume finishes it.
+    Before, the pool kept running every queued scene to its end after the interrupt."""
+    root = _tiny_split(realmini, tmp_path / "data", {"s00000": 10, "s00001": 10, "s00002": 10})
+    out = tmp_path / "sub.zip"
+    journal = out.with_name("sub.journal.jsonl")
+    cmd = [sys.executable, "-m", "mapfree", "run", str(root), "--split", "val", "--method", METHOD, "-o", str(out),
+           "--all-frames", "--workers", "2", "--no-progress"]
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), text=True)
+    deadline = time.time() + 90
+    while time.time() < deadline and proc.poll() is None and len(read_journal(journal)[1]) < 2:
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGINT)
+    try:
+        err = proc.communicate(timeout=30)[1]
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert "--resume" in err and "Traceback" not in err, err
+    before = read_journal(journal)[1]
+    assert len({r["scene"] for r in before}) <= 2, "a queued scene started after Ctrl-C"
+    assert 2 <= len(before) < 30 and not out.exists()
+    res = run_split(root, "val", METHOD, out, all_frames=True, resume=True, workers=2, progress=False)
+    keys = [(r["scene"], r["frame"]) for r in read_journal(journal)[1]]
+    assert len(keys) == len(set(keys)) == 30 and res.skipped == len(before)
+
+
 def test_cli_relocalize_json_and_viz(realmini, tmp_path, capsys):
     scene = realmini / "val" / "s00000"
     png = tmp_path / "viz.png"

@@ -103,6 +103,14 @@ def run(args: argparse.Namespace) -> int:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree run: error: {msg}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        from ..relocalize import journal_path, read_journal
+        from ..relocalize.multiframe import frames_path
+
+        jpath = journal_path(frames_path(args.output) if args.track == "multi" else args.output)
+        print(f"mapfree run: interrupted; the {len(read_journal(jpath)[1])} finished frames are kept in {jpath}: "
+              f"run the same command with --resume to continue", file=sys.stderr)
+        return 130
     out = res.to_dict()
     if args.evaluate:
         from ..benchmark import evaluate

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
+import signal
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -26,6 +27,9 @@ from .references import bind_scene_references
 __all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
 
 JOURNAL_VERSION = 1
+
+# Set in pool workers: the parent's request to stop after the frame in flight (Ctrl-C, an error elsewhere).
+_STOP: Any = None
 
 
 def journal_path(output: os.PathLike | str) -> Path:
@@ -165,6 +169,8 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
             on_frame and on_frame(r)
         return len(recs)
     for name, est in zip(frames, _estimates(loc, scene, frames, batch_size)):
+        if _STOP is not None and _STOP.is_set():
+            break
         # Relative pose (query w.r.t. reference) -> world-to-camera in the scene's frame.
         world = est.pose @ ref_pose if est.pose is not None else None
         rec = _record(scene.name, name, est, world)
@@ -193,7 +199,11 @@ def _estimates(loc: Any, scene: Scene, frames: list[str], batch_size: int | None
             yield Estimate.failure(f"error: {type(e).__name__}: {e}")
 
 
-def _init_worker(threads: int) -> None:
+def _init_worker(threads: int, stop: Any = None) -> None:
+    """Pool worker set-up: ``threads`` per library, and Ctrl-C left to the parent, which sets ``stop``."""
+    global _STOP
+    _STOP = stop
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(threads)
     import cv2
@@ -314,22 +324,31 @@ def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, bat
     threads = max(1, (os.cpu_count() or 1) // workers)
     offset = jpath.stat().st_size
     ctx = mp.get_context("spawn")  # torch and OpenCV threads do not survive fork reliably
+    stop = ctx.Event()
     with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_init_worker,
-                             initargs=(threads,)) as pool:
+                             initargs=(threads, stop)) as pool:
         # Largest scenes first so that the last worker to finish is not left with a big one.
         futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size)
                    for s, names in sorted(todo, key=lambda x: -len(x[1]))]
         pending = set(futures)
-        while pending:
-            finished, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
-            with open(jpath, "rb") as f:  # progress = new complete lines in the journal
-                f.seek(offset)
-                chunk = f.read()
-            n = chunk.rfind(b"\n") + 1
-            bar.update(chunk[:n].count(b"\n"))
-            offset += n
-            for fut in finished:
-                fut.result()  # re-raise a worker crash
+        try:
+            while pending:
+                finished, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
+                with open(jpath, "rb") as f:  # progress = new complete lines in the journal
+                    f.seek(offset)
+                    chunk = f.read()
+                n = chunk.rfind(b"\n") + 1
+                bar.update(chunk[:n].count(b"\n"))
+                offset += n
+                for fut in finished:
+                    fut.result()  # re-raise a worker crash
+        except BaseException:
+            # Ctrl-C or a crash: queued scenes never start, running ones stop after their frame in flight
+            # (journaled), so leaving the pool takes a frame, not the rest of the split.
+            stop.set()
+            for fut in pending:
+                fut.cancel()
+            raise
 
 
 class _NoBar:
