@@ -127,7 +127,7 @@ def _gt_pose(args):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..data import FormatError, read_depth
+    from ..data import FormatError, check_depth_size, read_depth
     from ..methods import get
     from ..relocalize import Relocalizer, as_view
 
@@ -148,6 +148,8 @@ def run(args: argparse.Namespace) -> int:
                                     (args.query, args.K_query, args.depth_query)):
             K = _intrinsics(args, image, kflag, optional=method.kind == "regression")
             depth = read_depth(dpath) if dpath else None
+            if depth is not None and K is not None:
+                check_depth_size(dpath, depth.shape, K.width, K.height)
             v = as_view((image, K, depth))
             if v.image.shape[:2] != (K.height, K.width):
                 raise InputError(f"{image}: image is {v.image.shape[1]}x{v.image.shape[0]} but its intrinsics "
