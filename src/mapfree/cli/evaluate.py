@@ -49,9 +49,10 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(report.to_json(frames=args.frames))
     elif report.fatal:
-        print("error: the submission cannot be evaluated:", file=sys.stderr)
+        # Only the causes: the "no estimates" lines of every scene that follow from them add nothing.
         for p in report.problems:
-            print(f"  {p}", file=sys.stderr)
+            if p.fatal:
+                print(f"error: {args.submission}: {p.reason if p.scene is None else p}", file=sys.stderr)
         return 1
     else:
         print(format_table(report, per_scene=args.per_scene), end="")
