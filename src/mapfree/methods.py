@@ -8,6 +8,7 @@ are parsed on the fly; anything else is a YAML file under ``configs/methods/`` o
 
 from __future__ import annotations
 
+import difflib
 import importlib
 import os
 from dataclasses import asdict, dataclass, field, replace
@@ -212,8 +213,10 @@ def get(name_or_path: str | os.PathLike) -> Method:
     _load_plugins()
     if s in _REGISTRY:
         return _REGISTRY[s]
+    close = difflib.get_close_matches(s, list_methods(), n=3, cutoff=0.75)
+    hint = f"did you mean {' or '.join(map(repr, close))}? " if close else ""
     raise KeyError(
-        f"unknown method {s!r}: use {{matcher}}_{{solver}}_{{depth}} with matcher in {', '.join(MATCHERS)}, "
+        f"unknown method {s!r}: {hint}use {{matcher}}_{{solver}}_{{depth}} with matcher in {', '.join(MATCHERS)}, "
         f"solver in emat/pnp/procrustes, depth a file suffix or 'none'; or a YAML config "
         f"(see `mapfree run --list-methods`)"
     )
