@@ -138,6 +138,16 @@ def test_ctrl_c_with_workers_stops_at_once_and_resumes(realmini, tmp_path):
     assert len(keys) == len(set(keys)) == 30 and res.skipped == len(before)
 
 
+def test_depth_suffix_typo_is_refused_before_any_work(realmini, tmp_path, capsys):
+    """``sift_emat_sensr``: no reference of the split has a ``.sensr.png`` map, so the run stops at once naming the
+    suffixes that exist, instead of writing a submission where every frame failed (and exiting 0)."""
+    out = tmp_path / "sub.zip"
+    with pytest.raises(ValueError, match=r"\*\.sensr\.png.*suffixes there: sensor"):
+        run_split(realmini, "val", "sift_emat_sensr", out, progress=False)
+    assert main(["run", str(realmini), "--method", "sift_pnp_sensr", "-o", str(out), "--no-progress"]) == 2
+    assert "sensor" in capsys.readouterr().err and not out.exists()
+
+
 def test_cli_relocalize_json_and_viz(realmini, tmp_path, capsys):
     scene = realmini / "val" / "s00000"
     png = tmp_path / "viz.png"

@@ -19,7 +19,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from ..data import Dataset, Scene
+from ..data import REFERENCE_NAME, Dataset, Scene
 from ..estimate import Estimate
 from ..geometry import Pose
 from .references import bind_scene_references
@@ -290,6 +290,7 @@ def run_split(
     if scenes:
         wanted = set(scenes)
         scene_list = [s for s in scene_list if s.name in wanted]
+    _check_depth_files(m, scene_list, split)
     done = {(r["scene"], r["frame"]) for r in recs}
     todo: list[tuple[Scene, list[str]]] = []
     for s in scene_list:
@@ -318,6 +319,21 @@ def run_split(
     return RunResult(output, jpath, failures_path(output), computed=total, skipped=len(done), estimated=estimated,
                      failed=failed, seconds=time.perf_counter() - t_start, scenes=len(scene_list),
                      timings=timing_sums)
+
+
+def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
+    """A ``files:SUFFIX`` method whose depth maps exist at no scene's reference is a typo in the suffix (or the
+    wrong split), not a run of failures: refuse it before any work, naming the suffixes that do exist."""
+    if m.kind != "matching" or not m.depth.startswith("files:") or not scene_list:
+        return
+    suffix = m.depth.split(":", 1)[1]
+    refs = [s.frames[REFERENCE_NAME] for s in scene_list if REFERENCE_NAME in s.frames]
+    if not refs or any(f.has_depth(suffix) for f in refs):
+        return
+    found = sorted({p.name.split(".")[-2] for f in refs for p in f.image_path.parent.glob(f"{f.image_path.stem}.*.png")})
+    raise ValueError(f"method {m.name!r} reads depth maps *.{suffix}.png, but no reference image of the {split} "
+                     f"split has one (e.g. {refs[0].depth_path(suffix)}); depth suffixes there: "
+                     f"{', '.join(found) or 'none'} (pick one with NAME@SUFFIX or the method's last part)")
 
 
 def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, batch_size: int | None = None) -> None:
