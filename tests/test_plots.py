@@ -66,3 +66,20 @@ def test_scene_scatter_labels_narrow_ranges(realmini):
     assert len(_labels(ax.yaxis)) >= 2, _labels(ax.yaxis)
     assert len(_labels(ax.xaxis)) >= 2, _labels(ax.xaxis)
     assert all("e" not in s for s in _labels(ax.yaxis) + _labels(ax.xaxis))  # plain numbers, no 2e-01
+
+
+def test_unwritable_output_is_a_clean_error(realmini, tmp_path, capsys):
+    """--plots / --viz into a place that cannot be written (here below a regular file; also a read-only or full
+    disk): one line naming the path and exit 1, no traceback."""
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("")
+    write_submission(tmp_path / "empty.zip", {})
+    assert cli_main(["evaluate", str(tmp_path / "empty.zip"), "--dataset", str(realmini),
+                     "--plots", str(blocker / "plots")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapfree evaluate: error:") and str(blocker / "plots") in err and "Traceback" not in err
+    scene = realmini / "val" / "s00000"
+    assert cli_main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(scene / "seq1/frame_00010.jpg"),
+                     "--method", "sift_pnp_sensor", "--viz", str(blocker / "viz.png")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapfree relocalize: error:") and str(blocker) in err

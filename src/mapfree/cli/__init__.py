@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except OSError as e:  # an output that cannot be written (read-only, full disk, a file in the way): one line
+        print(f"mapfree {args.command}: error: {e}", file=sys.stderr)
+        return 1
 
-
-if __name__ == "__main__":
-    sys.exit(main())
