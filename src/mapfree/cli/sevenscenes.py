@@ -80,6 +80,11 @@ def evaluate_sevenscenes(root, method, ks, mode="retrieval", scenes=None, mappin
     if not names:
         raise FileNotFoundError(f"{root}: no 7-Scenes scene folders (with seq-XX/) found")
     data = {n: (ds.scene(n).frames("train", mapping_stride), ds.scene(n).frames("test", query_stride)) for n in names}
+    for n, (mapping, _) in data.items():
+        if len(mapping) < max(ks):  # K is capped by the candidates: say so rather than print a K it never used
+            print(f"mapfree sevenscenes: note: {n} has {len(mapping)} mapping frame(s) at --mapping-stride "
+                  f"{mapping_stride}, so K > {len(mapping)} uses {len(mapping)}; lower the stride for more",
+                  file=sys.stderr)
     loc = Relocalizer.from_method(method)
     reports = {}
     for k in ks:
