@@ -75,8 +75,14 @@ class Method:
         return self.kind != "matching" or self.depth != "none"
 
     def build(self) -> Any:
-        """An object with ``set_reference(view)``, ``localize(view)`` and ``relocalize(ref, query)``."""
-        return factory(self.kind)(self)
+        """An object with ``set_reference(view)``, ``localize(view)`` and ``relocalize(ref, query)``.
+
+        Ess.Mat without depth (``*_emat_none``) returns its up-to-scale pose, flagged ``scale_free``, instead of
+        failing on the missing depth: the direction is all such a method can give (unless ``solver_opts`` say)."""
+        m = self
+        if self.kind == "matching" and self.depth == "none" and self.solver == "essential":
+            m = replace(self, solver_opts={"allow_unscaled": True, **self.solver_opts})
+        return factory(m.kind)(m)
 
 
 # --------------------------------------------------------------------------- kinds
