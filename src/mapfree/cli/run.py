@@ -32,8 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("root", nargs="?", type=Path, help="Map-free dataset root (holding val/, test/ …)")
     p.add_argument("--split", default="val", help="split to run (default: val)")
     p.add_argument("--method", help="preset name ({matcher}_{solver}_{depth}), YAML config name or path")
-    p.add_argument("-o", "--output", type=Path, default=Path("submission.zip"), help="submission ZIP to write")
-    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (over scenes)")
+    p.add_argument("-o", "--output", type=Path, default=Path("submission.zip"), help="submission ZIP to write (default: submission.zip)")
+    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (over scenes; default: 1)")
     p.add_argument("--batch", type=int, default=None, metavar="N",
                    help="queries per GPU pass of the batched pipeline (background decoding, batched features and "
                         "matching, solvers in a thread pool); 0: one pair at a time (default: 16 on a GPU, else 0)")
@@ -44,11 +44,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "relocalize each query against the most similar (default: 1, the reference image)")
     p.add_argument("--reference-mode", default="retrieval", choices=("retrieval", "triangulation"),
                    help="with --references K >= 2: 'triangulation' = the paper's depth-free baseline "
-                        "(relative directions to the two most similar references)")
+                        "(relative directions to the two most similar references; default: retrieval)")
     p.add_argument("--track", default="single", choices=("single", "multi"),
                    help="'multi': the multi-frame track — relocalize each scored query's 9-frame burst, fuse "
                         "them through poses_device.txt (derived from ground truth with simulated drift when a "
-                        "scene has none); per-frame results go to OUTPUT.frames.zip")
+                        "scene has none); per-frame results go to OUTPUT.frames.zip (default: single)")
     p.add_argument("--resume", action="store_true", help="continue the run journaled beside OUTPUT")
     p.add_argument("--overwrite", action="store_true", help="discard an existing journal and start again")
     p.add_argument("--scenes", help="comma-separated scene names (default: all)")
