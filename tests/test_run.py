@@ -166,3 +166,12 @@ def test_cli_relocalize_json_and_viz(realmini, tmp_path, capsys):
 
     rc = main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(tmp_path / "missing.jpg"), "--method", METHOD])
     assert rc == 2 and "missing.jpg" in capsys.readouterr().err
+
+
+def test_cli_relocalize_bad_intrinsics_flag_is_named(realmini, capsys):
+    scene = realmini / "val" / "s00000"
+    ref, q = str(scene / "seq0/frame_00000.jpg"), str(scene / "seq1/frame_00010.jpg")
+    assert main(["relocalize", ref, q, "--K-ref", "500,500,270,180", "--K-query", "500,500"]) == 2
+    assert "--K-query: expected 4" in capsys.readouterr().err
+    assert main(["relocalize", ref, q, "--K-ref", "0,500,270,180", "--K-query", "500,500,270,180"]) == 2
+    assert "--K-ref: focal lengths must be positive" in capsys.readouterr().err
