@@ -175,3 +175,18 @@ def test_cli_relocalize_bad_intrinsics_flag_is_named(realmini, capsys):
     assert "--K-query: expected 4" in capsys.readouterr().err
     assert main(["relocalize", ref, q, "--K-ref", "0,500,270,180", "--K-query", "500,500,270,180"]) == 2
     assert "--K-ref: focal lengths must be positive" in capsys.readouterr().err
+
+
+def test_run_evaluate_on_a_test_split_explains_instead_of_crashing(tmp_path, capsys):
+    """``run --split test --evaluate``: the test poses are private (all zeros), so the run's JSON is printed, the
+    evaluation is refused with a pointer to ``mapfree evaluate --gt-root``, exit 2; before, a traceback."""
+    root = tmp_path / "data"
+    assert main(["synth", str(root), "--split", "test", "--scenes", "1", "--queries", "5", "--size", "240x320",
+                 "--no-mono", "--quiet"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "t.zip"
+    assert main(["run", str(root), "--split", "test", "--method", "sift_pnp_sensor", "-o", str(out),
+                 "--no-progress", "--evaluate"]) == 2
+    res = capsys.readouterr()
+    assert json.loads(res.out)["computed"] == 1 and out.is_file()
+    assert "--gt-root" in res.err and "Traceback" not in res.err

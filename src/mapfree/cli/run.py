@@ -112,11 +112,20 @@ def run(args: argparse.Namespace) -> int:
               f"run the same command with --resume to continue", file=sys.stderr)
         return 130
     out = res.to_dict()
+    error = None
     if args.evaluate:
-        from ..benchmark import evaluate
+        from ..benchmark import EvaluationError, evaluate
 
-        out["metrics"] = evaluate(res.submission, args.root, args.split, track=args.track).metrics
+        try:
+            out["metrics"] = evaluate(res.submission, args.root, args.split, track=args.track).metrics
+        except (EvaluationError, FormatError, FileNotFoundError, ValueError) as e:
+            error = (f"mapfree run: error: the submission {res.submission} was written but cannot be scored here: "
+                     f"{e}; score it with `mapfree evaluate {res.submission} --dataset {args.root} --split "
+                     f"{args.split} --gt-root GT` when you hold the ground truth")
     print(json.dumps(out, indent=2, allow_nan=False))
+    if error:
+        print(error, file=sys.stderr)
+        return 2
     return 0
 
 
