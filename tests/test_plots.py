@@ -46,8 +46,10 @@ def test_cli_plots_without_estimates(realmini, tmp_path):
 
 
 def _labels(axis) -> list[str]:
-    return [t.get_text() for t in axis.get_ticklabels(minor=False) + axis.get_ticklabels(minor=True)
-            if t.get_text() and axis.get_view_interval()[0] <= t.get_position()[axis is axis.axes.yaxis] <= axis.get_view_interval()[1]]
+    """The tick labels drawn inside the axis' view."""
+    lo, hi = axis.get_view_interval()
+    ticks = axis.get_ticklabels(minor=False) + axis.get_ticklabels(minor=True)
+    return [t.get_text() for t in ticks if t.get_text() and lo <= t.get_position()[axis is axis.axes.yaxis] <= hi]
 
 
 def test_scene_scatter_labels_narrow_ranges(realmini):

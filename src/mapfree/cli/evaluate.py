@@ -26,7 +26,8 @@ def register(subparsers) -> None:
         formatter_class=HelpFormatter,
     )
     p.add_argument("submission", help="submission ZIP file")
-    p.add_argument("--dataset", required=False, default=None, help="dataset root holding SPLIT/sNNNNN/ (needed unless --gt-root holds everything)")
+    p.add_argument("--dataset", required=False, default=None,
+                   help="dataset root holding SPLIT/sNNNNN/ (needed unless --gt-root holds everything)")
     p.add_argument("--split", default="val", choices=("train", "val", "test"), help="split to score (default val)")
     p.add_argument("--gt-root", default=None, help="root with private ground truth SPLIT/sNNNNN/poses.txt")
     p.add_argument("--track", default="single", choices=("single", "multi"),

@@ -32,7 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("root", nargs="?", type=Path, help="Map-free dataset root (holding val/, test/ …)")
     p.add_argument("--split", default="val", help="split to run (default: val)")
     p.add_argument("--method", help="preset name ({matcher}_{solver}_{depth}), YAML config name or path")
-    p.add_argument("-o", "--output", type=Path, default=Path("submission.zip"), help="submission ZIP to write (default: submission.zip)")
+    p.add_argument("-o", "--output", type=Path, default=Path("submission.zip"),
+                   help="submission ZIP to write (default: submission.zip)")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes (over scenes; default: 1)")
     p.add_argument("--batch", type=int, default=None, metavar="N",
                    help="queries per GPU pass of the batched pipeline (background decoding, batched features and "

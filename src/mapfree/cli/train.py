@@ -33,7 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("config", help="YAML config path or name in configs/rpr")
     p.add_argument("--data", type=Path, help="dataset root (overrides data.root)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: runs/rpr/<config name>)")
-    p.add_argument("--devices", type=_devices, default="auto", help="devices per node: N, 'auto' or a list '0,1' (default: auto)")
+    p.add_argument("--devices", type=_devices, default="auto",
+                   help="devices per node: N, 'auto' or a list '0,1' (default: auto)")
     p.add_argument("--num-nodes", type=int, default=1, help="number of nodes (DDP; default: 1)")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto, ddp, ddp_spawn, fsdp, … (default: auto)")
     p.add_argument("--accelerator", default="auto", help="auto, cpu, gpu, mps, … (default: auto: a GPU when present)")

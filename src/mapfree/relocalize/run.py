@@ -330,7 +330,8 @@ def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
     refs = [s.frames[REFERENCE_NAME] for s in scene_list if REFERENCE_NAME in s.frames]
     if not refs or any(f.has_depth(suffix) for f in refs):
         return
-    found = sorted({p.name.split(".")[-2] for f in refs for p in f.image_path.parent.glob(f"{f.image_path.stem}.*.png")})
+    found = sorted({p.name.split(".")[-2] for f in refs
+                    for p in f.image_path.parent.glob(f"{f.image_path.stem}.*.png")})
     raise ValueError(f"method {m.name!r} reads depth maps *.{suffix}.png, but no reference image of the {split} "
                      f"split has one (e.g. {refs[0].depth_path(suffix)}); depth suffixes there: "
                      f"{', '.join(found) or 'none'} (pick one with NAME@SUFFIX or the method's last part)")
