@@ -109,9 +109,10 @@ def test_resume_after_kill_loses_and_recomputes_nothing(tiny, tmp_path):
 
 
 def test_ctrl_c_with_workers_stops_at_once_and_resumes(realmini, tmp_path):
-    """Ctrl-C (SIGINT to the whole foreground group, as a terminal sends it) during ``run --workers 2``: the run
-    stops after the frames in flight, starts no queued scene, says how to resume, and --resume finishes it.
-    Before, the pool kept running every queued scene to its end after the interrupt."""
+    """Ctrl-C (SIGINT to the whole foreground group, as a terminal sends it; twice, as impatient users do) during
+    ``run --workers 2``: the run stops after the frames in flight, starts no queued scene, says how to resume, and
+    --resume finishes it. Before, the pool kept running every queued scene to its end after the interrupt, and a
+    second Ctrl-C hung the exit on idle workers."""
     root = _tiny_split(realmini, tmp_path / "data", {"s00000": 10, "s00001": 10, "s00002": 10})
     out = tmp_path / "sub.zip"
     journal = out.with_name("sub.journal.jsonl")
@@ -122,6 +123,8 @@ def test_ctrl_c_with_workers_stops_at_once_and_resumes(realmini, tmp_path):
     deadline = time.time() + 90
     while time.time() < deadline and proc.poll() is None and len(read_journal(journal)[1]) < 2:
         time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGINT)
+    time.sleep(0.3)
     os.killpg(proc.pid, signal.SIGINT)
     try:
         err = proc.communicate(timeout=30)[1]

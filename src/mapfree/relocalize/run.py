@@ -11,8 +11,10 @@ import json
 import multiprocessing as mp
 import os
 import signal
+import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
@@ -321,6 +323,19 @@ def run_split(
                      timings=timing_sums)
 
 
+@contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """Ctrl-C ignored inside the block (main thread only: elsewhere signals cannot be set)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
     """A ``files:SUFFIX`` method whose depth maps exist at no scene's reference is a typo in the suffix (or the
     wrong split), not a run of failures: refuse it before any work, naming the suffixes that do exist."""
@@ -361,10 +376,13 @@ def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, bat
                     fut.result()  # re-raise a worker crash
         except BaseException:
             # Ctrl-C or a crash: queued scenes never start, running ones stop after their frame in flight
-            # (journaled), so leaving the pool takes a frame, not the rest of the split.
+            # (journaled), so leaving the pool takes a frame, not the rest of the split. A second Ctrl-C
+            # meanwhile would break the pool's shutdown and hang the exit on its idle workers: it waits.
             stop.set()
             for fut in pending:
                 fut.cancel()
+            with _sigint_ignored():
+                pool.shutdown(wait=True)
             raise
 
 
