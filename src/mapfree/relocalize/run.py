@@ -292,7 +292,6 @@ def run_split(
     if scenes:
         wanted = set(scenes)
         scene_list = [s for s in scene_list if s.name in wanted]
-    _check_depth_files(m, scene_list, split)
     done = {(r["scene"], r["frame"]) for r in recs}
     todo: list[tuple[Scene, list[str]]] = []
     for s in scene_list:
@@ -300,6 +299,7 @@ def run_split(
         names = [f for f in wanted_frames if (s.name, f) not in done]
         if names:
             todo.append((s, names))
+    _check_depth_files(m, scene_list, split)
     total = sum(len(f) for _, f in todo)
     bar = _progress(total, len(done), progress, m.name)
     md = m.to_dict()
