@@ -330,3 +330,11 @@ def test_overlaps_from_sfm_tracks_without_depth(scans, tmp_path):
     assert len(ov) > 0 and (ov.overlaps > 0).all() and (ov.overlaps <= 1).all()
     with pytest.raises(BuildError, match="needs a depth map"):
         _overlaps(None, ["seq0/frame_00000.jpg"], [], [], tmp_path, np.zeros(1), np.zeros(1), "depth")
+
+
+def test_colmap_info_log_stays_off_the_console(scans, tmp_path, capfd):
+    """COLMAP's INFO lines (about 180 for one small place) drowned the progress bar and --quiet; its
+    warnings and errors still show."""
+    assert cli_main(["build", str(scans / "scans"), "--out", str(tmp_path / "out"), "--split", "val", "--quiet"]) == 0
+    err = capfd.readouterr().err
+    assert not [ln for ln in err.splitlines() if ln.startswith("I20")], err[:500]

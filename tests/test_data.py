@@ -135,3 +135,24 @@ def test_large_scene_is_lazy_and_fast(tmp_path):
     assert "frames" not in s.__dict__  # nothing parsed yet
     assert len(s.frames) == 30000 and s.frame_by_seq_number(1, 14999).pose is not None
     assert time.perf_counter() - t0 < 10
+
+
+def test_scored_query_without_intrinsics_is_named(realmini, tmp_path, capsys):
+    """A scored query listed in poses.txt but missing from intrinsics.txt: ``mapfree run`` stops before any work
+    with an error naming the file and the frame. Before, the frame was silently left out of the submission (the
+    evaluator then refused the whole split)."""
+    import shutil
+
+    from mapfree.cli import main
+
+    src = realmini / "val" / "s00000"
+    dst = tmp_path / "val" / "s00000"
+    dst.mkdir(parents=True)
+    shutil.copy(src / "poses.txt", dst)
+    lines = (src / "intrinsics.txt").read_text().splitlines(keepends=True)
+    (dst / "intrinsics.txt").write_text("".join(ln for ln in lines if not ln.startswith("seq1/frame_00010.jpg")))
+    with pytest.raises(FormatError, match=r"intrinsics\.txt.*seq1/frame_00010\.jpg"):
+        Dataset(tmp_path).scene("val", "s00000").scored_queries()
+    out = tmp_path / "sub.zip"
+    assert main(["run", str(tmp_path), "--method", "sift_pnp_sensor", "-o", str(out), "--no-progress"]) == 2
+    assert "frame_00010.jpg" in capsys.readouterr().err and not out.exists()

@@ -30,6 +30,31 @@ def test_files_source_reads_the_png(scene):
         assert (d > 0).mean() > 0.5
 
 
+def test_files_source_refuses_a_map_of_another_frame(scene, tmp_path):
+    """A depth PNG whose aspect ratio is not the image's (another frame's map, rotated, cropped) or that is 8-bit
+    (not millimetres) is a FormatError naming the file, not a silently stretched or 1000x too small scale.
+    A map at another resolution of the same aspect ratio is still resized (ScanNet stores depth smaller)."""
+    import cv2
+
+    from mapfree.data import FormatError, Frame
+
+    src_frame = scene.queries[5]
+    mm = cv2.imread(str(src_frame.depth_path("sensor")), cv2.IMREAD_UNCHANGED)  # 540x360 uint16
+    frame = Frame(src_frame.name, tmp_path / "q.jpg", src_frame.intrinsics)
+    src = D.create("files:sensor")
+    cv2.imwrite(str(frame.depth_path("sensor")), cv2.resize(mm, (100, 80), interpolation=cv2.INTER_NEAREST))
+    with pytest.raises(FormatError, match=r"q\.sensor\.png.*100x80.*540x360"):
+        src.depth(frame)
+    cv2.imwrite(str(frame.depth_path("sensor")), np.ascontiguousarray(mm.T))  # portrait map for a landscape image
+    with pytest.raises(FormatError, match="360x540"):
+        src.depth(frame)
+    cv2.imwrite(str(frame.depth_path("sensor")), (mm // 100).astype(np.uint8))
+    with pytest.raises(FormatError, match=r"q\.sensor\.png.*8-bit"):
+        src.depth(frame)
+    cv2.imwrite(str(frame.depth_path("sensor")), cv2.resize(mm, (270, 180), interpolation=cv2.INTER_NEAREST))
+    assert src.depth(frame).shape == (360, 540)
+
+
 def test_files_source_missing_file_is_none(realmini, scene):
     no_depth = Dataset(realmini).scene("val", "s00003")  # ships without depth maps
     assert D.create("files:sensor").depth(no_depth.reference) is None

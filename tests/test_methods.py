@@ -94,3 +94,11 @@ def test_register_and_kind_hook():
     assert type(m.build()).__name__ == "Relocalizer"
     with pytest.raises(KeyError, match="unknown method kind"):
         methods.factory("no-such-kind")
+
+
+def test_unknown_method_suggests_close_names():
+    """A typo gets the nearest real names, not only the grammar of names."""
+    for typo, meant in (("best-ofline", "best-offline"), ("siftt_emat_sensor", "sift_emat_sensor"),
+                        ("xfeat-pnp-sensor", "xfeat_pnp_sensor"), ("rpr-3d3", "rpr-3d3d")):
+        with pytest.raises(KeyError, match=f"did you mean .*'{meant}'"):
+            methods.get(typo)

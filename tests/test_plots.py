@@ -43,3 +43,45 @@ def test_cli_plots_without_estimates(realmini, tmp_path):
         f"{n}.{e}" for n in ("precision_ratio", "vcre_cdf", "scenes") for e in ("png", "pdf")
     )
     assert (tmp_path / "p" / "scenes.pdf").read_bytes().startswith(b"%PDF")
+
+
+def _labels(axis) -> list[str]:
+    """The tick labels drawn inside the axis' view."""
+    lo, hi = axis.get_view_interval()
+    ticks = axis.get_ticklabels(minor=False) + axis.get_ticklabels(minor=True)
+    return [t.get_text() for t in ticks if t.get_text() and lo <= t.get_position()[axis is axis.axes.yaxis] <= hi]
+
+
+def test_scene_scatter_labels_narrow_ranges(realmini):
+    """Per-scene medians within less than a decade (0.22-0.4 m, 6-17°, as a real SIFT run on realmini-dev gives)
+    still get numbers on both log axes: the scatter once showed a translation axis without a single label."""
+    from mapfree.benchmark.plots import scene_scatter_figure
+    from scipy.spatial.transform import Rotation
+
+    est = {}
+    for k, (scene, rows) in enumerate(sorted(_estimates(realmini, 0.0).items())):
+        R = Rotation.from_euler("y", 6.0 + 3.5 * k, degrees=True).as_matrix()
+        est[scene] = [(n, Pose(R @ p.R, R @ p.t + np.array([0.22 + 0.06 * k, 0, 0])), c) for n, p, c in rows]
+    fig = scene_scatter_figure(evaluate(est, realmini, "val"))
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    assert len(_labels(ax.yaxis)) >= 2, _labels(ax.yaxis)
+    assert len(_labels(ax.xaxis)) >= 2, _labels(ax.xaxis)
+    assert all("e" not in s for s in _labels(ax.yaxis) + _labels(ax.xaxis))  # plain numbers, no 2e-01
+
+
+def test_unwritable_output_is_a_clean_error(realmini, tmp_path, capsys):
+    """--plots / --viz into a place that cannot be written (here below a regular file; also a read-only or full
+    disk): one line naming the path and exit 1, no traceback."""
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("")
+    write_submission(tmp_path / "empty.zip", {})
+    assert cli_main(["evaluate", str(tmp_path / "empty.zip"), "--dataset", str(realmini),
+                     "--plots", str(blocker / "plots")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapfree evaluate: error:") and str(blocker / "plots") in err and "Traceback" not in err
+    scene = realmini / "val" / "s00000"
+    assert cli_main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(scene / "seq1/frame_00010.jpg"),
+                     "--method", "sift_pnp_sensor", "--viz", str(blocker / "viz.png")]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapfree relocalize: error:") and str(blocker) in err

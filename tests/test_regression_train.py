@@ -361,3 +361,18 @@ def test_feature_cache_gives_the_same_loss_and_encodes_each_image_once(tiny_root
     assert torch.equal(again, got)
     with pytest.raises(ValueError, match="cache_features needs a frozen encoder"):
         replace(tiny_config(tiny_root), train=replace(cfg.train, cache_features=True)).validate()
+
+
+def test_curves_of_a_run_that_logged_nothing_yet(tmp_path):
+    """``train --max-steps 3`` stops before the first logged loss: Lightning's CSV holds only the learning rate.
+    The figure says so instead of two empty legends (and matplotlib's warnings about them)."""
+    import warnings
+
+    from mapfree.regression.report import plot_curves
+
+    csv_path = tmp_path / "metrics.csv"
+    csv_path.write_text("lr-Adam,step\n1e-05,0\n")  # what such a run writes
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        png = plot_curves(csv_path, tmp_path / "curves.png", "tiny")
+    assert cv2.imread(str(png)) is not None

@@ -79,6 +79,25 @@ def test_scale_free_method_flags_its_output(scene):
     assert abs(np.linalg.norm(est.pose.t) - 1.0) < 1e-6
 
 
+def test_emat_none_by_name_gives_the_direction(scene, capsys):
+    """``sift_emat_none`` (offered by the service for anchors without depth, "direction only") returns the
+    flagged up-to-scale pose from ``mapfree relocalize`` and ``Relocalizer.from_method``; before, every query
+    failed with "no valid depth" unless the caller set ``allow_unscaled`` itself."""
+    from mapfree.cli import main
+
+    est = Relocalizer.from_method("sift_emat_none").relocalize(scene.reference, scene.frame(EASY_QUERY))
+    gt = scene.frame(EASY_QUERY).pose
+    assert est.ok and est.extras.get("scale_free") is True, est.reason
+    assert rotation_angle_deg(est.pose.R, gt.R) < 2.0
+    assert np.degrees(np.arccos(np.clip(est.pose.t @ gt.t / np.linalg.norm(gt.t), -1, 1))) < 10.0
+    ref, q = scene.reference.image_path, scene.frame(EASY_QUERY).image_path
+    assert main(["relocalize", str(ref), str(q), "--method", "sift_emat_none"]) == 0
+    import json
+
+    out = json.loads(capsys.readouterr().out)
+    assert out["ok"] and abs(np.linalg.norm(out["t"]) - 1.0) < 1e-6
+
+
 def test_epipolar_inliers_and_vcre_on_exact_geometry():
     K = Intrinsics(500, 500, 320, 240, 640, 480)
     rng = np.random.default_rng(1)

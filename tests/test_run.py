@@ -108,6 +108,49 @@ def test_resume_after_kill_loses_and_recomputes_nothing(tiny, tmp_path):
     assert len(sub["pose_s00000.txt"]) == sum(r["ok"] for r in after if r["scene"] == "s00000")
 
 
+def test_ctrl_c_with_workers_stops_at_once_and_resumes(realmini, tmp_path):
+    """Ctrl-C (SIGINT to the whole foreground group, as a terminal sends it; twice, as impatient users do) during
+    ``run --workers 2``: the run stops after the frames in flight, starts no queued scene, says how to resume, and
+    --resume finishes it. Before, the pool kept running every queued scene to its end after the interrupt, and a
+    second Ctrl-C hung the exit on idle workers."""
+    root = _tiny_split(realmini, tmp_path / "data", {"s00000": 10, "s00001": 10, "s00002": 10})
+    out = tmp_path / "sub.zip"
+    journal = out.with_name("sub.journal.jsonl")
+    cmd = [sys.executable, "-m", "mapfree", "run", str(root), "--split", "val", "--method", METHOD, "-o", str(out),
+           "--all-frames", "--workers", "2", "--no-progress"]
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), text=True)
+    deadline = time.time() + 90
+    while time.time() < deadline and proc.poll() is None and len(read_journal(journal)[1]) < 2:
+        time.sleep(0.02)
+    os.killpg(proc.pid, signal.SIGINT)
+    time.sleep(0.3)
+    os.killpg(proc.pid, signal.SIGINT)
+    try:
+        err = proc.communicate(timeout=30)[1]
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert "--resume" in err and "Traceback" not in err, err
+    before = read_journal(journal)[1]
+    assert len({r["scene"] for r in before}) <= 2, "a queued scene started after Ctrl-C"
+    assert 2 <= len(before) < 30 and not out.exists()
+    res = run_split(root, "val", METHOD, out, all_frames=True, resume=True, workers=2, progress=False)
+    keys = [(r["scene"], r["frame"]) for r in read_journal(journal)[1]]
+    assert len(keys) == len(set(keys)) == 30 and res.skipped == len(before)
+
+
+def test_depth_suffix_typo_is_refused_before_any_work(realmini, tmp_path, capsys):
+    """``sift_emat_sensr``: no reference of the split has a ``.sensr.png`` map, so the run stops at once naming the
+    suffixes that exist, instead of writing a submission where every frame failed (and exiting 0)."""
+    out = tmp_path / "sub.zip"
+    with pytest.raises(ValueError, match=r"\*\.sensr\.png.*suffixes there: sensor"):
+        run_split(realmini, "val", "sift_emat_sensr", out, progress=False)
+    assert main(["run", str(realmini), "--method", "sift_pnp_sensr", "-o", str(out), "--no-progress"]) == 2
+    assert "sensor" in capsys.readouterr().err and not out.exists()
+
+
 def test_cli_relocalize_json_and_viz(realmini, tmp_path, capsys):
     scene = realmini / "val" / "s00000"
     png = tmp_path / "viz.png"
@@ -126,3 +169,27 @@ def test_cli_relocalize_json_and_viz(realmini, tmp_path, capsys):
 
     rc = main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(tmp_path / "missing.jpg"), "--method", METHOD])
     assert rc == 2 and "missing.jpg" in capsys.readouterr().err
+
+
+def test_cli_relocalize_bad_intrinsics_flag_is_named(realmini, capsys):
+    scene = realmini / "val" / "s00000"
+    ref, q = str(scene / "seq0/frame_00000.jpg"), str(scene / "seq1/frame_00010.jpg")
+    assert main(["relocalize", ref, q, "--K-ref", "500,500,270,180", "--K-query", "500,500"]) == 2
+    assert "--K-query: expected 4" in capsys.readouterr().err
+    assert main(["relocalize", ref, q, "--K-ref", "0,500,270,180", "--K-query", "500,500,270,180"]) == 2
+    assert "--K-ref: focal lengths must be positive" in capsys.readouterr().err
+
+
+def test_run_evaluate_on_a_test_split_explains_instead_of_crashing(tmp_path, capsys):
+    """``run --split test --evaluate``: the test poses are private (all zeros), so the run's JSON is printed, the
+    evaluation is refused with a pointer to ``mapfree evaluate --gt-root``, exit 2; before, a traceback."""
+    root = tmp_path / "data"
+    assert main(["synth", str(root), "--split", "test", "--scenes", "1", "--queries", "5", "--size", "240x320",
+                 "--no-mono", "--quiet"]) == 0
+    capsys.readouterr()
+    out = tmp_path / "t.zip"
+    assert main(["run", str(root), "--split", "test", "--method", "sift_pnp_sensor", "-o", str(out),
+                 "--no-progress", "--evaluate"]) == 2
+    res = capsys.readouterr()
+    assert json.loads(res.out)["computed"] == 1 and out.is_file()
+    assert "--gt-root" in res.err and "Traceback" not in res.err

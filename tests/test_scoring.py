@@ -244,7 +244,10 @@ def test_realmini_val_ground_truth_scores_perfectly_and_cli(realmini, tmp_path, 
     assert "Precision @ VCRE < 90px" in out and "s00003" in out
     (tmp_path / "junk.zip").write_bytes(b"not a zip at all")
     assert cli_main(["evaluate", str(tmp_path / "junk.zip"), "--dataset", str(realmini)]) == 1
-    assert "not a ZIP" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'junk.zip'}: not a ZIP" in err and "pose_s00000.txt missing" not in err  # the cause only
+    assert cli_main(["evaluate", str(tmp_path / "missing.zip"), "--dataset", str(realmini)]) == 1
+    assert f"{tmp_path / 'missing.zip'}: cannot open submission" in capsys.readouterr().err
 
 
 def test_reference_slot_when_seq1_has_no_frame_zero(tmp_path):

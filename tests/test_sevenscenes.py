@@ -116,3 +116,16 @@ def test_sevenscenes_cli_more_references_localise_better(realmini, seven, tmp_pa
     img = cv2.imread(str(out / "compare_vcre_cdf.png"))
     assert img is not None and img.std() > 5  # a drawn figure, not a blank canvas
     assert main(["sevenscenes", str(seven), "--k", "0", "--out", str(out)]) == 2
+
+
+def test_sevenscenes_says_when_k_exceeds_the_mapping_frames(realmini, seven, tmp_path, capsys):
+    """--k 10 with the default --mapping-stride 10 on a short scene: the K=10 row is K=1 in truth, and the
+    command says so (before, two identical rows and no word why)."""
+    from mapfree.cli import main
+
+    n = len(SevenScenes(seven).scene("office").frames("train", 10))
+    assert n < 10
+    assert main(["sevenscenes", str(seven), "--method", "sift_pnp_depth", "--k", "10", "--query-stride", "50",
+                 "--intrinsics", *map(str, camera(realmini)), "--out", str(tmp_path / "o"), "--no-plots",
+                 "--no-progress"]) == 0
+    assert f"office has {n} mapping frame(s) at --mapping-stride 10, so K > {n} uses {n}" in capsys.readouterr().err

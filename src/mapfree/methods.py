@@ -8,6 +8,7 @@ are parsed on the fly; anything else is a YAML file under ``configs/methods/`` o
 
 from __future__ import annotations
 
+import difflib
 import importlib
 import os
 from dataclasses import asdict, dataclass, field, replace
@@ -74,8 +75,14 @@ class Method:
         return self.kind != "matching" or self.depth != "none"
 
     def build(self) -> Any:
-        """An object with ``set_reference(view)``, ``localize(view)`` and ``relocalize(ref, query)``."""
-        return factory(self.kind)(self)
+        """An object with ``set_reference(view)``, ``localize(view)`` and ``relocalize(ref, query)``.
+
+        Ess.Mat without depth (``*_emat_none``) returns its up-to-scale pose, flagged ``scale_free``, instead of
+        failing on the missing depth: the direction is all such a method can give (unless ``solver_opts`` say)."""
+        m = self
+        if self.kind == "matching" and self.depth == "none" and self.solver == "essential":
+            m = replace(self, solver_opts={"allow_unscaled": True, **self.solver_opts})
+        return factory(m.kind)(m)
 
 
 # --------------------------------------------------------------------------- kinds
@@ -212,8 +219,10 @@ def get(name_or_path: str | os.PathLike) -> Method:
     _load_plugins()
     if s in _REGISTRY:
         return _REGISTRY[s]
+    close = difflib.get_close_matches(s, list_methods(), n=3, cutoff=0.75)
+    hint = f"did you mean {' or '.join(map(repr, close))}? " if close else ""
     raise KeyError(
-        f"unknown method {s!r}: use {{matcher}}_{{solver}}_{{depth}} with matcher in {', '.join(MATCHERS)}, "
+        f"unknown method {s!r}: {hint}use {{matcher}}_{{solver}}_{{depth}} with matcher in {', '.join(MATCHERS)}, "
         f"solver in emat/pnp/procrustes, depth a file suffix or 'none'; or a YAML config "
         f"(see `mapfree run --list-methods`)"
     )

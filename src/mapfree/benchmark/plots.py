@@ -16,12 +16,20 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.ticker import FuncFormatter
+from matplotlib.ticker import LogFormatter
 
 from .metrics import Thresholds, precision_ratio_curve
 from .report import Report
 
 __all__ = ["save_plots", "precision_ratio_figure", "vcre_cdf_figure", "scene_scatter_figure"]
+
+
+class _PlainLogFormatter(LogFormatter):
+    """Log-axis labels as plain numbers (0.3, 20); matplotlib picks which minor ticks to label from the span:
+    all of them under half a decade, a subset under two, none beyond, so a narrow axis is never left bare."""
+
+    def _num_to_string(self, x, vmin, vmax):
+        return f"{x:g}"
 
 
 def _figure(size=(5.5, 4.2)) -> Figure:
@@ -112,12 +120,9 @@ def scene_scatter_figure(report: Report) -> Figure:
         fig.colorbar(sc, ax=ax, label=f"precision (VCRE < {report.thresholds.vcre[0]:g} px)")
         ax.set_xscale("log")
         ax.set_yscale("log")
-        plain = FuncFormatter(lambda v, _: f"{v:g}")
-        # Label only the 2x and 5x minor ticks of each decade: every one of them overlaps its neighbours.
-        sparse = FuncFormatter(lambda v, _: f"{v:g}" if v > 0 and round(v / 10 ** np.floor(np.log10(v))) in (2, 5) else "")
         for axis in (ax.xaxis, ax.yaxis):
-            axis.set_major_formatter(plain)
-            axis.set_minor_formatter(sparse)
+            axis.set_major_formatter(_PlainLogFormatter(labelOnlyBase=False))
+            axis.set_minor_formatter(_PlainLogFormatter(labelOnlyBase=False, minor_thresholds=(2, 0.5)))
     else:
         ax.text(0.5, 0.5, "no estimates", ha="center", va="center", transform=ax.transAxes)
     tm, rd = report.thresholds.pose[0]

@@ -216,6 +216,7 @@ def load_truth(
         out[name] = truth
     if all(t.n_keys == 0 for t in out.values()):
         raise FormatError(
-            root / split, None, "no ground-truth poses (all-zero lines, as in the public test split): pass gt_root"
+            root / split, None,
+            "no ground-truth poses (all-zero lines, as in the public test split): pass gt_root (--gt-root)"
         )
     return out

@@ -99,7 +99,20 @@ def _write_matches(db: Path, image_root: Path, names: list[str], pairs_file: Pat
 
 def reconstruct(image_root: Path, names: list[str], intrinsics: dict[str, Intrinsics | None], work: Path,
                 options: SfmOptions = SfmOptions()) -> SfmModel | None:
-    """SfM of ``image_root/names`` (names like ``seq0/frame_00000.jpg``); None when nothing reconstructs."""
+    """SfM of ``image_root/names`` (names like ``seq0/frame_00000.jpg``); None when nothing reconstructs.
+    COLMAP logs warnings and errors only: its INFO lines (hundreds per place) would bury the progress."""
+    import pycolmap
+
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)
+    try:
+        return _reconstruct(image_root, names, intrinsics, work, options)
+    finally:
+        pycolmap.logging.minloglevel = level
+
+
+def _reconstruct(image_root: Path, names: list[str], intrinsics: dict[str, Intrinsics | None], work: Path,
+                 options: SfmOptions) -> SfmModel | None:
     import pycolmap
 
     shutil.rmtree(work, ignore_errors=True)

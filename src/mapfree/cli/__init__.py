@@ -6,6 +6,19 @@ import argparse
 import importlib
 import sys
 
+class HelpFormatter(argparse.HelpFormatter):
+    """The description wrapped as usual; an epilog that starts with ``examples:`` kept line by line."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if text.startswith("examples:"):
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+
+class DefaultsHelpFormatter(HelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """``HelpFormatter`` that also prints every option's default."""
+
+
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
 COMMANDS = ["demo", "synth", "evaluate", "relocalize", "run", "train", "serve", "admin", "sevenscenes", "scannet", "build"]
 
@@ -41,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except OSError as e:  # an output that cannot be written (read-only, full disk, a file in the way): one line
+        print(f"mapfree {args.command}: error: {e}", file=sys.stderr)
+        return 1
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -6,10 +6,18 @@ import argparse
 import os
 import sys
 
+from . import HelpFormatter
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("admin", help="manage service accounts and API tokens",
-                       description="Manage accounts of `mapfree serve`. Tokens are printed once and stored hashed.")
+                       description="Manage accounts of `mapfree serve`. Tokens are printed once and stored hashed.",
+                       epilog="examples:\n"
+                              "  mapfree admin --db sqlite:///mapfree.db create-user alice\n"
+                              "  mapfree admin --db sqlite:///mapfree.db new-token alice\n"
+                              "  mapfree admin --db sqlite:///mapfree.db revoke-tokens alice\n"
+                              "  mapfree admin --db sqlite:///mapfree.db list-users\n",
+                       formatter_class=HelpFormatter)
     p.add_argument("--db", default=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
                    help="database URL (default: $MAPFREE_DB or sqlite:///mapfree.db)")
     s = p.add_subparsers(dest="action", metavar="ACTION", required=True)

@@ -7,6 +7,8 @@ import json
 import time
 from pathlib import Path
 
+from . import DefaultsHelpFormatter
+
 # On monocular depth (the realistic case) PnP, which needs the depth of the reference only, ranks best on
 # synthetic val: AUC @ VCRE < 90px 0.952 against 0.864 for best-offline (Procrustes) and 0.769 for Ess.Mat.
 DEFAULT_METHOD = "best-offline-pnp@mono"
@@ -21,7 +23,11 @@ def register(sub: argparse._SubParsersAction) -> None:
             "ground truth and a simulated monocular depth), relocalization of every scored query against its "
             "scene's reference, the benchmark's scores, and the paper's plots. Needs no dataset and no network."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        epilog="examples:\n"
+               "  mapfree demo\n"
+               "  mapfree demo --out demo-big --scenes 10 --queries 40 --workers 2\n"
+               "  mapfree demo --method sift_pnp_mono   # another method on the same simulated depth\n",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("--out", type=Path, default=Path("demo-out"), help="output folder")
     p.add_argument("--scenes", type=int, default=4, help="synthetic val scenes")

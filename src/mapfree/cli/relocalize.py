@@ -85,7 +85,7 @@ def _lookup(table: dict, image: Path, source: Path):
     raise InputError(f"{source}: no unique entry for {name}")
 
 
-def _intrinsics(args, image: Path, flag: str | None, optional: bool = False):
+def _intrinsics(args, image: Path, flag: str | None, optional: bool = False, what: str = "intrinsics"):
     from ..data import read_image, read_intrinsics
     from ..geometry import Intrinsics
 
@@ -94,9 +94,9 @@ def _intrinsics(args, image: Path, flag: str | None, optional: bool = False):
         return Intrinsics(float(max(w, h)), float(max(w, h)), (w - 1) / 2, (h - 1) / 2, w, h)
     if flag:
         h, w = read_image(image).shape[:2]
-        fx, fy, cx, cy = _floats(flag, 4, "intrinsics")
+        fx, fy, cx, cy = _floats(flag, 4, what)
         if fx <= 0 or fy <= 0:
-            raise InputError("intrinsics: focal lengths must be positive")
+            raise InputError(f"{what}: focal lengths must be positive")
         return Intrinsics(fx, fy, cx, cy, w, h)
     source = args.intrinsics or _scene_dir(image) / "intrinsics.txt"
     if not source.is_file():
@@ -127,7 +127,7 @@ def _gt_pose(args):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..data import FormatError, read_depth
+    from ..data import FormatError, check_depth_size, read_depth
     from ..methods import get
     from ..relocalize import Relocalizer, as_view
 
@@ -144,10 +144,12 @@ def run(args: argparse.Namespace) -> int:
             if not p.is_file():
                 raise InputError(f"{p}: image not found")
         views = []
-        for image, kflag, dpath in ((args.reference, args.K_ref, args.depth_ref),
-                                    (args.query, args.K_query, args.depth_query)):
-            K = _intrinsics(args, image, kflag, optional=method.kind == "regression")
+        for image, kflag, dpath, what in ((args.reference, args.K_ref, args.depth_ref, "--K-ref"),
+                                          (args.query, args.K_query, args.depth_query, "--K-query")):
+            K = _intrinsics(args, image, kflag, optional=method.kind == "regression", what=what)
             depth = read_depth(dpath) if dpath else None
+            if depth is not None and K is not None:
+                check_depth_size(dpath, depth.shape, K.width, K.height)
             v = as_view((image, K, depth))
             if v.image.shape[:2] != (K.height, K.width):
                 raise InputError(f"{image}: image is {v.image.shape[1]}x{v.image.shape[0]} but its intrinsics "

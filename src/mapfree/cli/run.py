@@ -32,8 +32,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("root", nargs="?", type=Path, help="Map-free dataset root (holding val/, test/ …)")
     p.add_argument("--split", default="val", help="split to run (default: val)")
     p.add_argument("--method", help="preset name ({matcher}_{solver}_{depth}), YAML config name or path")
-    p.add_argument("-o", "--output", type=Path, default=Path("submission.zip"), help="submission ZIP to write")
-    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (over scenes)")
+    p.add_argument("-o", "--output", type=Path, default=Path("submission.zip"),
+                   help="submission ZIP to write (default: submission.zip)")
+    p.add_argument("--workers", type=int, default=1, help="parallel worker processes (over scenes; default: 1)")
     p.add_argument("--batch", type=int, default=None, metavar="N",
                    help="queries per GPU pass of the batched pipeline (background decoding, batched features and "
                         "matching, solvers in a thread pool); 0: one pair at a time (default: 16 on a GPU, else 0)")
@@ -44,11 +45,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "relocalize each query against the most similar (default: 1, the reference image)")
     p.add_argument("--reference-mode", default="retrieval", choices=("retrieval", "triangulation"),
                    help="with --references K >= 2: 'triangulation' = the paper's depth-free baseline "
-                        "(relative directions to the two most similar references)")
+                        "(relative directions to the two most similar references; default: retrieval)")
     p.add_argument("--track", default="single", choices=("single", "multi"),
                    help="'multi': the multi-frame track — relocalize each scored query's 9-frame burst, fuse "
                         "them through poses_device.txt (derived from ground truth with simulated drift when a "
-                        "scene has none); per-frame results go to OUTPUT.frames.zip")
+                        "scene has none); per-frame results go to OUTPUT.frames.zip (default: single)")
     p.add_argument("--resume", action="store_true", help="continue the run journaled beside OUTPUT")
     p.add_argument("--overwrite", action="store_true", help="discard an existing journal and start again")
     p.add_argument("--scenes", help="comma-separated scene names (default: all)")
@@ -103,12 +104,29 @@ def run(args: argparse.Namespace) -> int:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree run: error: {msg}", file=sys.stderr)
         return 2
-    out = res.to_dict()
-    if args.evaluate:
-        from ..benchmark import evaluate
+    except KeyboardInterrupt:
+        from ..relocalize import journal_path, read_journal
+        from ..relocalize.multiframe import frames_path
 
-        out["metrics"] = evaluate(res.submission, args.root, args.split, track=args.track).metrics
+        jpath = journal_path(frames_path(args.output) if args.track == "multi" else args.output)
+        print(f"mapfree run: interrupted; the {len(read_journal(jpath)[1])} finished frames are kept in {jpath}: "
+              f"run the same command with --resume to continue", file=sys.stderr)
+        return 130
+    out = res.to_dict()
+    error = None
+    if args.evaluate:
+        from ..benchmark import EvaluationError, evaluate
+
+        try:
+            out["metrics"] = evaluate(res.submission, args.root, args.split, track=args.track).metrics
+        except (EvaluationError, FormatError, FileNotFoundError, ValueError) as e:
+            error = (f"mapfree run: error: the submission {res.submission} was written but cannot be scored here: "
+                     f"{e}; score it with `mapfree evaluate {res.submission} --dataset {args.root} --split "
+                     f"{args.split} --gt-root GT` when you hold the ground truth")
     print(json.dumps(out, indent=2, allow_nan=False))
+    if error:
+        print(error, file=sys.stderr)
+        return 2
     return 0
 
 

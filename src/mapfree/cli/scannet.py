@@ -31,7 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--root", type=Path, help="folder the image paths are relative to (default: the list's folder)")
     p.add_argument("--method", default="sift_emat_depth", help="method name or YAML (default: sift_emat_depth)")
     p.add_argument("--limit", type=int, default=0, help="only the first N pairs (default: all)")
-    p.add_argument("--out", type=Path, default=Path("scannet-out"), help="output folder")
+    p.add_argument("--out", type=Path, default=Path("scannet-out"), help="output folder (default: scannet-out)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

@@ -13,6 +13,8 @@ import sys
 import threading
 import time
 
+from . import HelpFormatter
+
 log = logging.getLogger("mapfree.serve")
 
 
@@ -21,21 +23,29 @@ def register(sub: argparse._SubParsersAction) -> None:
         "serve", help="run the evaluation server + relocalization API (FastAPI) with evaluation workers",
         description="Serve the benchmark's evaluation server and the relocalization API. SQLite by default; "
                     "pass --db postgresql://user:pass@host/db to share one database between several API "
-                    "processes and workers on several hosts. Create accounts with `mapfree admin create-user`.")
+                    "processes and workers on several hosts. Create accounts with `mapfree admin create-user`.",
+        epilog="examples:\n"
+               "  mapfree admin --db sqlite:///mapfree.db create-user alice   # prints alice's API token once\n"
+               "  mapfree serve --db sqlite:///mapfree.db --data data/mapfree --gt private_gt --workers 2 --port 8000\n"
+               "  mapfree serve --db postgresql+psycopg://u:p@dbhost/mapfree --api-processes 4 --workers 0\n"
+               "  mapfree serve --db postgresql+psycopg://u:p@dbhost/mapfree --no-api --workers 8 --data … --gt …\n",
+        formatter_class=HelpFormatter)
     p.add_argument("--db", default=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
                    help="database URL: sqlite:///path.db (default) or postgresql://user:pass@host:5432/db")
     p.add_argument("--data", default=os.environ.get("MAPFREE_DATA"),
-                   help="dataset root with the public val/ and test/ splits (scene lists, val ground truth)")
+                   help="dataset root with the public val/ and test/ splits (scene lists, val ground truth; "
+                        "default: $MAPFREE_DATA)")
     p.add_argument("--gt", default=os.environ.get("MAPFREE_GT"),
-                   help="private ground-truth root for test (GT/test/sNNNNN/poses.txt); never served")
+                   help="private ground-truth root for test (GT/test/sNNNNN/poses.txt); never served "
+                        "(default: $MAPFREE_GT)")
     p.add_argument("--workers", type=int, default=1, help="evaluation worker processes on this host (default 1)")
     p.add_argument("--host", default="127.0.0.1", help="bind address (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8000, help="port (default 8000)")
-    p.add_argument("--api-processes", type=int, default=1, help="uvicorn worker processes for the API")
+    p.add_argument("--api-processes", type=int, default=1, help="uvicorn worker processes for the API (default 1)")
     p.add_argument("--no-api", action="store_true", help="run only the evaluation workers (scale-out hosts)")
     p.add_argument("--lease-seconds", type=float, default=60.0,
                    help="a job whose worker stops renewing for this long is retried (default 60)")
-    p.add_argument("--test-daily-limit", type=int, default=5, help="test evaluations per account per 24 h")
+    p.add_argument("--test-daily-limit", type=int, default=5, help="test evaluations per account per 24 h (default 5)")
     p.add_argument("--max-upload-mb", type=float, default=50.0, help="largest submission ZIP (default 50 MB)")
     p.add_argument("--max-entry-mb", type=float, default=64.0,
                    help="largest pose file inside a ZIP, uncompressed (default 64 MiB)")
@@ -50,10 +60,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--auth-failures-per-minute", type=int, default=20,
                    help="failed token checks per client address and minute before a 429 (default 20; 0: off)")
     p.add_argument("--methods-dir", default=os.environ.get("MAPFREE_SERVICE_METHODS"),
-                   help="folder of method YAMLs that clients may name (by file name, never by path)")
-    p.add_argument("--method", default="", help="default relocalization method of new anchors")
+                   help="folder of method YAMLs that clients may name (by file name, never by path; "
+                        "default: $MAPFREE_SERVICE_METHODS)")
+    p.add_argument("--method", default="", help="relocalization method of new anchors that name none "
+                                                "(default: best-offline)")
     p.add_argument("--secure-cookies", action="store_true", help="mark cookies Secure (behind HTTPS)")
-    p.add_argument("--log-level", default="info")
+    p.add_argument("--log-level", default="info", help="debug, info, warning or error (default: info)")
     p.set_defaults(func=run)
 
 

@@ -33,14 +33,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", default="sift_pnp_depth", help="method name or YAML (default: sift_pnp_depth)")
     p.add_argument("--k", default="1,10", help="comma-separated numbers of references per scene (default: 1,10)")
     p.add_argument("--mode", default="retrieval", choices=("retrieval", "triangulation"),
-                   help="'triangulation': the depth-free pose triangulation baseline (K >= 2)")
+                   help="'triangulation': the depth-free pose triangulation baseline (K >= 2; default: retrieval)")
     p.add_argument("--scenes", help="comma-separated scene names (default: every scene under ROOT)")
     p.add_argument("--mapping-stride", type=int, default=10,
                    help="use every N-th training frame as a mapping candidate (default: 10)")
     p.add_argument("--query-stride", type=int, default=10, help="localize every N-th test frame (default: 10)")
     p.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
                    help="colour camera intrinsics (default: 525 525 320 240)")
-    p.add_argument("--out", type=Path, default=Path("sevenscenes-out"), help="output folder")
+    p.add_argument("--out", type=Path, default=Path("sevenscenes-out"), help="output folder (default: sevenscenes-out)")
     p.add_argument("--no-plots", action="store_true", help="reports only, no figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -80,6 +80,11 @@ def evaluate_sevenscenes(root, method, ks, mode="retrieval", scenes=None, mappin
     if not names:
         raise FileNotFoundError(f"{root}: no 7-Scenes scene folders (with seq-XX/) found")
     data = {n: (ds.scene(n).frames("train", mapping_stride), ds.scene(n).frames("test", query_stride)) for n in names}
+    for n, (mapping, _) in data.items():
+        if len(mapping) < max(ks):  # K is capped by the candidates: say so rather than print a K it never used
+            print(f"mapfree sevenscenes: note: {n} has {len(mapping)} mapping frame(s) at --mapping-stride "
+                  f"{mapping_stride}, so K > {len(mapping)} uses {len(mapping)}; lower the stride for more",
+                  file=sys.stderr)
     loc = Relocalizer.from_method(method)
     reports = {}
     for k in ks:

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from . import HelpFormatter
+
 
 def _devices(v: str):
     return v if v == "auto" or "," in v else int(v)
@@ -20,14 +22,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "configurations, or R6D_t_cpu_synth). Writes OUT/checkpoints/"
         "{best,last}.ckpt, OUT/logs/metrics.csv and OUT/tensorboard/. Multi-GPU / multi-node: "
         "--devices N --num-nodes M --strategy ddp (on a cluster, launch one process per device, e.g. with srun).",
+        epilog="examples:\n"
+               "  mapfree train 3d3d --data data/mapfree --out runs/3d3d\n"
+               "  mapfree train 3d3d --data data/mapfree --out runs/3d3d --resume runs/3d3d/checkpoints/last.ckpt\n"
+               "  mapfree train 3d3d --data data/mapfree --init 3d3d.ckpt --set train.lr=1e-5   # fine-tune\n"
+               "  mapfree train rot6d_trans --data data/mapfree --devices 4 --strategy ddp --precision bf16-mixed\n"
+               "  mapfree train R6D_t_cpu_synth --data data/synth --max-steps 20 --set data.batch_size=2   # smoke test\n",
+        formatter_class=HelpFormatter,
     )
     p.add_argument("config", help="YAML config path or name in configs/rpr")
     p.add_argument("--data", type=Path, help="dataset root (overrides data.root)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: runs/rpr/<config name>)")
-    p.add_argument("--devices", type=_devices, default="auto", help="devices per node: N, 'auto' or a list '0,1'")
-    p.add_argument("--num-nodes", type=int, default=1, help="number of nodes (DDP)")
-    p.add_argument("--strategy", default="auto", help="Lightning strategy: auto, ddp, ddp_spawn, fsdp, …")
-    p.add_argument("--accelerator", default="auto", help="auto, cpu, gpu, mps, …")
+    p.add_argument("--devices", type=_devices, default="auto",
+                   help="devices per node: N, 'auto' or a list '0,1' (default: auto)")
+    p.add_argument("--num-nodes", type=int, default=1, help="number of nodes (DDP; default: 1)")
+    p.add_argument("--strategy", default="auto", help="Lightning strategy: auto, ddp, ddp_spawn, fsdp, … (default: auto)")
+    p.add_argument("--accelerator", default="auto", help="auto, cpu, gpu, mps, … (default: auto: a GPU when present)")
     p.add_argument("--precision", default=None, help="32-true, bf16-mixed, 16-mixed (default: the config's)")
     p.add_argument("--max-epochs", type=int, default=None, help="override train.max_epochs")
     p.add_argument("--max-steps", type=int, default=None, help="stop after this many optimizer steps")

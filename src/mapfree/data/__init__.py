@@ -3,6 +3,7 @@
 from .io import (
     FormatError,
     PoseTable,
+    check_depth_size,
     depth_path_for,
     read_depth,
     read_image,
@@ -17,7 +18,8 @@ from .scene import REFERENCE_NAME, SPLITS, Dataset, Frame, Scene, frame_number, 
 from .device import DevicePoses, DriftModel, load_device_poses, multiframe_bursts, scene_bursts
 
 __all__ = [
-    "FormatError", "PoseTable", "depth_path_for", "read_depth", "read_image", "read_intrinsics", "read_poses",
+    "FormatError", "PoseTable", "check_depth_size", "depth_path_for", "read_depth", "read_image", "read_intrinsics",
+    "read_poses",
     "write_depth", "write_intrinsics", "write_poses", "Overlaps", "read_overlaps", "write_overlaps",
     "REFERENCE_NAME", "SPLITS", "Dataset", "Frame", "Scene", "frame_number", "scored_query_names",
     "DevicePoses", "DriftModel", "load_device_poses", "multiframe_bursts", "scene_bursts",

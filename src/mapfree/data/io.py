@@ -26,6 +26,7 @@ __all__ = [
     "read_poses",
     "write_poses",
     "read_depth",
+    "check_depth_size",
     "write_depth",
     "read_image",
     "depth_path_for",
@@ -142,7 +143,18 @@ def read_depth(path: os.PathLike | str) -> np.ndarray:
         raise FormatError(path, None, "cannot read depth image (missing or corrupt)")
     if d.ndim != 2:
         raise FormatError(path, None, f"depth must be single-channel, got shape {d.shape}")
+    if d.dtype == np.uint8:
+        raise FormatError(path, None, "depth must be a 16-bit PNG of millimetres, got an 8-bit image")
     return d.astype(np.float32) / 1000.0
+
+
+def check_depth_size(path: os.PathLike | str, shape: tuple[int, ...], width: int, height: int) -> None:
+    """A depth map may be stored at another resolution than its image (it is resized), never at another aspect
+    ratio: that is another frame's map, rotated or cropped, and would put depth on the wrong pixels."""
+    h, w = shape[:2]
+    if abs(w * height - h * width) > 0.02 * width * h:
+        raise FormatError(path, None, f"depth map is {w}x{h} but the image is {width}x{height} (intrinsics): "
+                                      f"another aspect ratio, so not this frame's map")
 
 
 def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:

@@ -142,9 +142,10 @@ class Scene:
         return [f for n, f in self.frames.items() if n.startswith("seq1/")]
 
     def scored_queries(self) -> list[Frame]:
-        """The queries the benchmark scores (every 5th, SPEC §3), in file order."""
+        """The queries the benchmark scores (every 5th, SPEC §3), in file order; one without intrinsics is a
+        ``FormatError`` naming ``intrinsics.txt`` (the evaluator needs them too)."""
         order = self.poses.names if self.poses is not None else list(self.intrinsics)
-        return [self.frames[n] for n in scored_query_names(order) if n.startswith("seq1/") and n in self.frames]
+        return [self.frame(n) for n in scored_query_names(order) if n.startswith("seq1/")]
 
 
 class Dataset:

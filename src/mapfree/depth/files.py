@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..data import Frame
+from ..data import Frame, check_depth_size
 
 __all__ = ["FileDepth", "NoDepth"]
 
@@ -26,6 +26,7 @@ class FileDepth:
             return None
         d = frame.depth(self.suffix)  # FormatError naming the file when it is corrupt
         w, h = frame.intrinsics.width, frame.intrinsics.height
+        check_depth_size(frame.depth_path(self.suffix), d.shape, w, h)
         if d.shape != (h, w):  # a map stored at another resolution: nearest keeps invalid pixels invalid
             d = cv2.resize(d, (int(w), int(h)), interpolation=cv2.INTER_NEAREST)
         return d

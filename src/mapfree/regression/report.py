@@ -99,7 +99,6 @@ def plot_curves(metrics_csv: os.PathLike | str, out_png: os.PathLike | str, titl
     ax0.set_xlabel("step")
     ax0.set_ylabel("loss")
     ax0.set_title("losses" + (f" — {title}" if title else ""))
-    ax0.legend(fontsize=8)
     for key in ("val/vcre_prec", "val/vcre_auc", "val/pose_prec"):
         if key in s:
             x, y = zip(*s[key])
@@ -109,7 +108,11 @@ def plot_curves(metrics_csv: os.PathLike | str, out_png: os.PathLike | str, titl
     ax1.set_xlabel("step")
     ax1.set_ylim(0, 1)
     ax1.set_title("validation (VCRE < 90 px)")
-    ax1.legend(fontsize=8)
+    for ax in (ax0, ax1):
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+        else:  # a run shorter than the logging interval or than one epoch
+            ax.text(0.5, 0.5, "nothing logged yet", ha="center", va="center", transform=ax.transAxes)
     fig.tight_layout()
     out = Path(out_png)
     fig.savefig(out, dpi=100)

@@ -291,15 +291,11 @@ def localize_with_references(method: Any, mapping: Sequence[ViewLike], queries: 
 def relocalize_pairs(method: Any, pairs: Sequence[tuple[ViewLike, ViewLike]], progress: bool = False) -> list[Estimate]:
     """Pose of the second image of each pair relative to the first (``X1 = R X0 + t``), one method for all.
 
-    An Ess.Mat method without depth (``*_emat_none``) returns its up-to-scale pose instead of failing: the
+    An Ess.Mat method without depth (``*_emat_none``) returns its up-to-scale pose (``Method.build``): the
     angular scores of a pair benchmark do not need the scale."""
-    from ..methods import Method, get
     from .pipeline import Relocalizer
 
-    m = method if isinstance(method, Method) else get(method)
-    if m.kind == "matching" and m.depth == "none" and m.solver == "essential":
-        m = replace(m, solver_opts={**m.solver_opts, "allow_unscaled": True})
-    loc = Relocalizer.from_method(m)
+    loc = Relocalizer.from_method(method)
     it: Iterable = pairs
     if progress:
         from tqdm import tqdm

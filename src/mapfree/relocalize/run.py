@@ -10,15 +10,18 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
+import signal
+import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from ..data import Dataset, Scene
+from ..data import REFERENCE_NAME, Dataset, Scene
 from ..estimate import Estimate
 from ..geometry import Pose
 from .references import bind_scene_references
@@ -26,6 +29,9 @@ from .references import bind_scene_references
 __all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
 
 JOURNAL_VERSION = 1
+
+# Set in pool workers: the parent's request to stop after the frame in flight (Ctrl-C, an error elsewhere).
+_STOP: Any = None
 
 
 def journal_path(output: os.PathLike | str) -> Path:
@@ -165,6 +171,8 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
             on_frame and on_frame(r)
         return len(recs)
     for name, est in zip(frames, _estimates(loc, scene, frames, batch_size)):
+        if _STOP is not None and _STOP.is_set():
+            break
         # Relative pose (query w.r.t. reference) -> world-to-camera in the scene's frame.
         world = est.pose @ ref_pose if est.pose is not None else None
         rec = _record(scene.name, name, est, world)
@@ -193,7 +201,11 @@ def _estimates(loc: Any, scene: Scene, frames: list[str], batch_size: int | None
             yield Estimate.failure(f"error: {type(e).__name__}: {e}")
 
 
-def _init_worker(threads: int) -> None:
+def _init_worker(threads: int, stop: Any = None) -> None:
+    """Pool worker set-up: ``threads`` per library, and Ctrl-C left to the parent, which sets ``stop``."""
+    global _STOP
+    _STOP = stop
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(threads)
     import cv2
@@ -287,6 +299,7 @@ def run_split(
         names = [f for f in wanted_frames if (s.name, f) not in done]
         if names:
             todo.append((s, names))
+    _check_depth_files(m, scene_list, split)
     total = sum(len(f) for _, f in todo)
     bar = _progress(total, len(done), progress, m.name)
     md = m.to_dict()
@@ -310,26 +323,67 @@ def run_split(
                      timings=timing_sums)
 
 
+@contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """Ctrl-C ignored inside the block (main thread only: elsewhere signals cannot be set)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
+    """A ``files:SUFFIX`` method whose depth maps exist at no scene's reference is a typo in the suffix (or the
+    wrong split), not a run of failures: refuse it before any work, naming the suffixes that do exist."""
+    if m.kind != "matching" or not m.depth.startswith("files:") or not scene_list:
+        return
+    suffix = m.depth.split(":", 1)[1]
+    refs = [s.frames[REFERENCE_NAME] for s in scene_list if REFERENCE_NAME in s.frames]
+    if not refs or any(f.has_depth(suffix) for f in refs):
+        return
+    found = sorted({p.name.split(".")[-2] for f in refs
+                    for p in f.image_path.parent.glob(f"{f.image_path.stem}.*.png")})
+    raise ValueError(f"method {m.name!r} reads depth maps *.{suffix}.png, but no reference image of the {split} "
+                     f"split has one (e.g. {refs[0].depth_path(suffix)}); depth suffixes there: "
+                     f"{', '.join(found) or 'none'} (pick one with NAME@SUFFIX or the method's last part)")
+
+
 def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, batch_size: int | None = None) -> None:
     threads = max(1, (os.cpu_count() or 1) // workers)
     offset = jpath.stat().st_size
     ctx = mp.get_context("spawn")  # torch and OpenCV threads do not survive fork reliably
+    stop = ctx.Event()
     with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_init_worker,
-                             initargs=(threads,)) as pool:
+                             initargs=(threads, stop)) as pool:
         # Largest scenes first so that the last worker to finish is not left with a big one.
         futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size)
                    for s, names in sorted(todo, key=lambda x: -len(x[1]))]
         pending = set(futures)
-        while pending:
-            finished, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
-            with open(jpath, "rb") as f:  # progress = new complete lines in the journal
-                f.seek(offset)
-                chunk = f.read()
-            n = chunk.rfind(b"\n") + 1
-            bar.update(chunk[:n].count(b"\n"))
-            offset += n
-            for fut in finished:
-                fut.result()  # re-raise a worker crash
+        try:
+            while pending:
+                finished, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
+                with open(jpath, "rb") as f:  # progress = new complete lines in the journal
+                    f.seek(offset)
+                    chunk = f.read()
+                n = chunk.rfind(b"\n") + 1
+                bar.update(chunk[:n].count(b"\n"))
+                offset += n
+                for fut in finished:
+                    fut.result()  # re-raise a worker crash
+        except BaseException:
+            # Ctrl-C or a crash: queued scenes never start, running ones stop after their frame in flight
+            # (journaled), so leaving the pool takes a frame, not the rest of the split. A second Ctrl-C
+            # meanwhile would break the pool's shutdown and hang the exit on its idle workers: it waits.
+            stop.set()
+            for fut in pending:
+                fut.cancel()
+            with _sigint_ignored():
+                pool.shutdown(wait=True)
+            raise
 
 
 class _NoBar:

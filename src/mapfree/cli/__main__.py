@@ -1,0 +1,7 @@
+"""``python -m mapfree.cli`` = the ``mapfree`` command (as ``python -m mapfree``)."""
+
+import sys
+
+from . import main
+
+sys.exit(main())
