@@ -182,3 +182,17 @@ def test_sift_emat_sensor_equals_the_straightforward_spec4_code(realmini):
                                                   q.intrinsics.K, s.reference.depth("sensor"), q.depth("sensor"))
             assert est.ok and rotation_angle_deg(est.pose.R, R) < 1e-5 and np.linalg.norm(est.pose.t - t) < 1e-9
             assert est.confidence == conf
+
+
+def test_a_depth_map_of_another_aspect_ratio_is_refused(scene, sift_sensor):
+    """A map at half resolution is resized onto the image; one of another aspect ratio (another frame's, rotated)
+    would put depth on the wrong pixels: a clean "no estimate" naming both sizes (``set_reference`` raises it)."""
+    ref, q = scene.reference, scene.frame(EASY_QUERY)
+    d, query = ref.depth("sensor"), (q.image(), q.intrinsics, q.depth("sensor"))
+    est = sift_sensor.relocalize((ref.image(), ref.intrinsics, d[::2, ::2].copy()), query)
+    assert est.ok and np.linalg.norm(est.pose.center - q.pose.center) < 0.25
+    rotated = (ref.image(), ref.intrinsics, d.T.copy())
+    est = sift_sensor.relocalize(rotated, query)
+    assert not est.ok and "depth map is 360x540 but the image is 540x360" in est.reason
+    with pytest.raises(ValueError, match=r"depth map is 360x540 but the image is 540x360"):
+        sift_sensor.set_reference(rotated)

@@ -27,6 +27,7 @@ __all__ = [
     "write_poses",
     "read_depth",
     "check_depth_size",
+    "same_aspect",
     "write_depth",
     "read_image",
     "depth_path_for",
@@ -151,10 +152,16 @@ def read_depth(path: os.PathLike | str) -> np.ndarray:
 def check_depth_size(path: os.PathLike | str, shape: tuple[int, ...], width: int, height: int) -> None:
     """A depth map may be stored at another resolution than its image (it is resized), never at another aspect
     ratio: that is another frame's map, rotated or cropped, and would put depth on the wrong pixels."""
-    h, w = shape[:2]
-    if abs(w * height - h * width) > 0.02 * width * h:
+    if not same_aspect(shape, width, height):
+        h, w = shape[:2]
         raise FormatError(path, None, f"depth map is {w}x{h} but the image is {width}x{height} (intrinsics): "
                                       f"another aspect ratio, so not this frame's map")
+
+
+def same_aspect(shape: tuple[int, ...], width: int, height: int) -> bool:
+    """Whether an array of ``shape`` (rows, cols, ...) has the aspect ratio of a width x height image (2 %)."""
+    h, w = shape[:2]
+    return abs(w * height - h * width) <= 0.02 * width * h
 
 
 def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:

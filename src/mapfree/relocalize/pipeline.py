@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from ..data import Frame, read_image
+from ..data.io import same_aspect
 from ..estimate import Estimate
 from ..geometry import Intrinsics
 from ..matching.base import Features, Matcher, Matches
@@ -100,6 +101,9 @@ def _fit_depth(depth: np.ndarray | None, K: Intrinsics, owned: bool = False) -> 
     if d.ndim != 2:
         raise ValueError(f"depth map must be 2-D, got shape {d.shape}")
     if d.shape != (K.height, K.width):
+        if not same_aspect(d.shape, K.width, K.height):
+            raise ValueError(f"depth map is {d.shape[1]}x{d.shape[0]} but the image is {K.width}x{K.height}: another "
+                             f"aspect ratio, so not this image's map (a map at another resolution is resized)")
         d = cv2.resize(d, (K.width, K.height), interpolation=cv2.INTER_NEAREST)
     # min >= 0 and max < inf: no NaN (it would be the min), no negative, no infinity: nothing to replace.
     if (owned or d is not depth) and d.size and d.min() >= 0 and d.max() < np.inf:
