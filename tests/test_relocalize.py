@@ -126,9 +126,15 @@ def test_viz_writes_png(tmp_path, scene, sift_sensor):
     # Orange estimate dots and cyan ground-truth dots were drawn in the AR panel (bottom right).
     ar = fig[-q.intrinsics.height:, scene.reference.intrinsics.width:]
     assert np.any(np.all(ar == (255, 150, 0), axis=2)) and np.any(np.all(ar == (0, 200, 255), axis=2))
-    failed = relocalization_figure(scene.reference.image(), q.image(), scene.reference.intrinsics,
-                                   q.intrinsics, np.zeros((0, 2)), np.zeros((0, 2)), None)
+    none = [scene.reference.image(), q.image(), scene.reference.intrinsics, q.intrinsics, np.zeros((0, 2)),
+            np.zeros((0, 2)), None]
+    failed = relocalization_figure(*none)
     assert save_png(tmp_path / "none.png", failed).is_file()
+    # Without a pose the AR panel says why: only its second label row changes, and it reaches further right.
+    why = relocalization_figure(*none, reason="too few matches (3 < 8) after the ratio test")
+    rows, cols = np.nonzero(np.any(why != failed, axis=2))
+    top = why.shape[0] - q.intrinsics.height  # the AR panel's first row
+    assert rows.size and rows.min() >= top + 20 and rows.max() <= top + 60 and cols.max() > 300
 
 
 def test_localize_many_equals_localize(scene, sift_sensor):

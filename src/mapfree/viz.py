@@ -111,8 +111,9 @@ def draw_grid(img: np.ndarray, X_cam: np.ndarray, K: Intrinsics, colour: tuple, 
 
 
 def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
-              pose: Pose | None, gt_pose: Pose | None = None) -> np.ndarray:
-    """Reference with the virtual grid | query with the grid rendered by the estimate (orange) and GT (cyan)."""
+              pose: Pose | None, gt_pose: Pose | None = None, reason: str = "") -> np.ndarray:
+    """Reference with the virtual grid | query with the grid rendered by the estimate (orange) and GT (cyan);
+    without an estimate, ``reason`` says why (the Estimate's reason)."""
     # The grid lives in the reference camera frame; with a ground truth it is the VCRE grid of the query.
     X_ref = gt_pose.inverse().transform(vcre_grid()) if gt_pose is not None else vcre_grid()
     left = draw_grid(ref_img, X_ref, K_ref, CYAN if gt_pose is not None else ORANGE)
@@ -130,7 +131,8 @@ def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_q
     canvas, _ = _side_by_side(left, right)
     _label(canvas, "AR check: virtual grid, estimate = orange" + (", ground truth = cyan" if gt_pose else ""))
     if pose is None:
-        _label(canvas, "no estimate", row=1)
+        text = f"no estimate: {reason}" if reason else "no estimate"
+        _label(canvas, text if len(text) <= 90 else text[:87] + "...", row=1)  # Hershey fonts are ASCII only
     elif gt_pose is not None:
         terr = float(np.linalg.norm(pose.center - gt_pose.center))
         rerr = float(np.degrees(np.arccos(np.clip((np.trace(pose.R.T @ gt_pose.R) - 1) / 2, -1, 1))))
@@ -140,11 +142,11 @@ def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_q
 
 def relocalization_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
                           kpts0: np.ndarray, kpts1: np.ndarray, pose: Pose | None, gt_pose: Pose | None = None,
-                          threshold_px: float = 3.0, title: str = "") -> np.ndarray:
-    """Matches on top, AR check below, one RGB image."""
+                          threshold_px: float = 3.0, title: str = "", reason: str = "") -> np.ndarray:
+    """Matches on top, AR check below, one RGB image; ``reason``: why there is no pose, when there is none."""
     inl = epipolar_inliers(kpts0, kpts1, K_ref, K_query, pose, threshold_px) if pose is not None else None
     top = draw_matches(ref_img, query_img, kpts0, kpts1, inl)
-    bottom = ar_panels(ref_img, query_img, K_ref, K_query, pose, gt_pose)
+    bottom = ar_panels(ref_img, query_img, K_ref, K_query, pose, gt_pose, reason)
     if title:
         _label(top, title, row=1)
     w = max(top.shape[1], bottom.shape[1])

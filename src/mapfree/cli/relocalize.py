@@ -182,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
         m = est.extras.get("matches", Matches.empty())
         thr = float(method.solver_opts.get("ransac_threshold_px", 3.0))
         fig = relocalization_figure(ref.image, query.image, ref.intrinsics, query.intrinsics, m.kpts0, m.kpts1,
-                                    est.pose, gt, threshold_px=thr, title=method.name)
+                                    est.pose, gt, threshold_px=thr, title=method.name, reason=est.reason)
         out["viz"] = str(save_png(args.viz, fig))
     print(json.dumps(out, indent=2, allow_nan=False))
     return 0

@@ -322,7 +322,8 @@ def figure_png(ref_image: np.ndarray, query_image: np.ndarray, ref_K: Intrinsics
     m = est.extras.get("matches")
     k0 = np.asarray(getattr(m, "kpts0", np.zeros((0, 2))), float).reshape(-1, 2)
     k1 = np.asarray(getattr(m, "kpts1", np.zeros((0, 2))), float).reshape(-1, 2)
-    fig = viz.relocalization_figure(ref_image, query_image, ref_K, query_K, k0, k1, est.pose, title=title)
+    fig = viz.relocalization_figure(ref_image, query_image, ref_K, query_K, k0, k1, est.pose, title=title,
+                                    reason=est.reason)
     ok, buf = cv2.imencode(".png", cv2.cvtColor(fig, cv2.COLOR_RGB2BGR))
     if not ok:
         raise RuntimeError("could not encode the figure")
