@@ -97,6 +97,6 @@ def run(args: argparse.Namespace) -> int:
         return 2
     ck = trainer.checkpoint_callback
     if trainer.is_global_zero:
-        print(f"checkpoints: {out / 'checkpoints'} (best: {getattr(ck, 'best_model_path', '') or 'n/a'}); "
-              f"logs: {out / 'logs' / 'metrics.csv'}")
+        best = getattr(ck, "best_model_path", "") or "none yet: no validation ran, use last.ckpt"
+        print(f"checkpoints: {out / 'checkpoints'} (best: {best}); logs: {out / 'logs' / 'metrics.csv'}")
     return 0
