@@ -231,8 +231,8 @@ class Server:
         raise AssertionError(f"submission {sid} not finished after {timeout} s:\n{self.log()[-3000:]}")
 
 
-def create_users(db_url: str, users: dict[str, int | None]) -> dict[str, str]:
-    """Accounts made in-process (what `mapfree admin create-user` does): name -> token."""
+def create_users(db_url: str, users: dict[str, int | None], admin: bool = False) -> dict[str, str]:
+    """Accounts made in-process (what `mapfree admin create-user [--admin]` does): name -> token."""
     from mapfree.service import auth
     from mapfree.service.db import init_db, make_engine, session_factory
 
@@ -241,7 +241,7 @@ def create_users(db_url: str, users: dict[str, int | None]) -> dict[str, str]:
     out = {}
     with session_factory(engine).begin() as db:
         for name, limit in users.items():
-            user, out[name] = auth.create_user(db, name)
+            user, out[name] = auth.create_user(db, name, admin=admin)
             user.test_daily_limit = limit
     engine.dispose()
     return out

@@ -4,17 +4,23 @@ photo (DenseVLAD) with its pose in the anchor's frame. Real HTTP, real photos (r
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fastapi.testclient import TestClient
+from sqlalchemy import func, select, text
 
 from mapfree.data import Dataset
 from mapfree.geometry import Pose
 from mapfree.service import Settings, create_app
+from mapfree.service.db import Anchor, User, make_engine, session_factory
+from mapfree.service.storage import check_quota
+from mapfree.service.uploads import UploadError
 
+from .conftest import BACKENDS, create_users, db_url_for
 from .test_browser import CHROMIUM, PHONE, _sign_in, browser, phone, shot  # noqa: F401 (fixtures)
 from .test_hardening import make_app  # noqa: F401 (fixture)
 
@@ -209,9 +215,38 @@ def test_delete_a_photo_then_localize_uses_the_photos_left(server, scene):
         assert [p["index"] for p in _add(alice, aid, second).json()["photos"]] == [0, 2, 3]
         est = _localize(bob, aid, far)
         assert est["ok"] and est["photo"] == 3 and _errors(est, far.pose)[0] < 0.15, est
+        # the highest photo deleted: its index is not given again (it used to be: "photo 3" became another photo)
+        assert [p["index"] for p in alice.delete(f"/anchors/{aid}/photos/3").json()["photos"]] == [0, 2]
+        assert [p["index"] for p in _add(alice, aid, second).json()["photos"]] == [0, 2, 4]
+        assert alice.delete(f"/anchors/{aid}/photos/4").status_code == 200
         assert alice.delete(f"/anchors/{aid}").status_code == 204
         assert alice.get("/api/me").json()["storage_used_bytes"] == used - _bytes_of(ref) - _bytes_of(second) \
             - _bytes_of(third)
+
+
+def test_photo_indices_are_never_reused_in_a_database_from_before_the_retired_indices(make_app, scene):  # noqa: F811
+    """A database made before ``anchor_retired_indices`` existed gains the table on start (``create_all``), and
+    from then on the index of a deleted highest photo is never given again, even to an anchor created before."""
+    ref, second, third = scene.reference, scene.frame(SECOND), scene.frame(THIRD)
+    app = make_app()
+    c, auth = app.client, app.auth("ann")
+    c.headers.update(auth)
+    aid = _make_two_photo_anchor(c, ref, second)["id"]
+    engine = make_engine(app.settings.db_url)
+    with engine.begin() as conn:  # what an older version of the service left
+        conn.execute(text("DROP TABLE anchor_retired_indices"))
+    engine.dispose()
+    with TestClient(create_app(app.settings), raise_server_exceptions=False, headers=auth) as restarted:
+        assert [p["index"] for p in _add(restarted, aid, third).json()["photos"]] == [0, 1, 2]
+        assert [p["index"] for p in restarted.delete(f"/anchors/{aid}/photos/2").json()["photos"]] == [0, 1]
+        assert [p["index"] for p in restarted.delete(f"/anchors/{aid}/photos/1").json()["photos"]] == [0]
+        r = _add(restarted, aid, third)
+        assert r.status_code == 201 and [p["index"] for p in r.json()["photos"]] == [0, 3], r.text
+        assert r.json()["photos"][1]["pose"] == pytest.approx([float(x) for x in _pose_text(third.pose).split()], abs=1e-6)
+        assert restarted.get(f"/anchors/{aid}/photos/2").status_code == 404
+        assert restarted.delete(f"/anchors/{aid}").status_code == 204
+    with TestClient(create_app(app.settings), headers=auth) as again:  # deleting the anchor took its row along
+        assert again.get(f"/anchors/{aid}").status_code == 404
 
 
 def test_another_api_process_never_answers_from_a_deleted_photo(server, scene, realmini_dir):
@@ -258,6 +293,75 @@ def test_anchor_photos_count_against_the_storage_quota(make_app, scene):  # noqa
                data={**_form(third.intrinsics), "pose": _pose_text(third.pose)})
     assert r.status_code == 201, r.text
     assert c.get("/api/me", headers=auth).json()["storage_used_bytes"] == _bytes_of(ref) + _bytes_of(third)
+
+
+def test_an_upload_that_came_while_the_anchor_was_prepared_counts(make_app, scene):  # noqa: F811
+    """The quota is counted again, locked, in the transaction that stores a new anchor: another upload of the
+    same account stored while the method prepared the photos (no lock held then) makes this one a 413."""
+    ref, second = scene.reference, scene.frame(SECOND)
+    app = make_app(storage_quota_bytes=_bytes_of(ref) + _bytes_of(second) + 100)
+    c, auth = app.client, app.auth("ann")
+    localizers = c.app.state.localizers
+    prepare = localizers.check
+    engine = make_engine(app.settings.db_url)
+    make = session_factory(engine)
+
+    def check_while_another_upload_lands(aid, *args, **kw):
+        prepare(aid, *args, **kw)
+        with make.begin() as db:  # the other upload: another anchor of ann's, as large as this one
+            uid = db.scalar(select(User.id).where(User.name == "ann"))
+            db.add(Anchor(user_id=uid, method=METHOD, intrinsics={}, image=b"x" * (_bytes_of(ref) + 50)))
+
+    localizers.check = check_while_another_upload_lands
+    try:
+        r = c.post("/anchors", headers=auth, files=_files(ref), data={**_form(ref.intrinsics), "method": METHOD})
+    finally:
+        localizers.check = prepare
+    assert r.status_code == 413 and "storage quota" in r.json()["detail"], r.text
+    assert c.get("/api/me", headers=auth).json()["storage_used_bytes"] == _bytes_of(ref) + 50  # the other only
+    with make() as db:
+        assert db.scalar(select(func.count()).select_from(Anchor)) == 1
+    engine.dispose()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_two_concurrent_uploads_cannot_both_pass_the_quota(backend, tmp_path):
+    """``check_quota`` locks the account's writes (PostgreSQL: ``SELECT … FOR UPDATE`` on the user row; SQLite:
+    ``BEGIN IMMEDIATE``) until the bytes are stored: a second upload waits, then counts the first and is
+    refused. Without the lock both would read the same room on PostgreSQL and both pass."""
+    url = db_url_for(backend, tmp_path)
+    create_users(url, {"ann": None})
+    engine = make_engine(url)
+    make = session_factory(engine)
+    settings = Settings(db_url=url, storage_quota_bytes=1500)
+    first, second = make(), make()
+    try:
+        uid = first.scalar(select(User.id).where(User.name == "ann"))
+        check_quota(first, settings, uid, 1000, "this photo")  # passes; holds the lock until its commit
+        outcome: dict = {}
+
+        def other_upload():
+            try:
+                check_quota(second, settings, uid, 1000, "this photo")
+                outcome["passed"] = True
+            except UploadError as e:
+                outcome["error"] = e
+            finally:
+                second.rollback()
+
+        t = threading.Thread(target=other_upload)
+        t.start()
+        t.join(0.5)
+        assert t.is_alive() and not outcome, outcome  # waiting for the first upload's transaction
+        first.add(Anchor(user_id=uid, method=METHOD, intrinsics={}, image=b"x" * 1000))
+        first.commit()
+        t.join(30)
+        assert not t.is_alive() and "error" in outcome, outcome
+        assert outcome["error"].status == 413 and "1000 are stored" in outcome["error"].message
+    finally:
+        first.close()
+        second.close()
+        engine.dispose()
 
 
 def _camera_line(frame, pose: bool) -> str:

@@ -159,6 +159,7 @@ def test_method_metadata_with_the_upload(server):
 
 def test_withdraw_and_download(server):
     (owner,) = fresh_users(server, "withdrawer")
+    server.tokens.update(create_users(server.db_url, {(admin := f"root-{owner}"): None}, admin=True))
     data = make_submission(server.data.gt / "test", noise=0.3, seed=21)
     with server.client(owner) as c:
         before = c.get("/api/me").json()["test_evaluations_left_today"]
@@ -172,7 +173,15 @@ def test_withdraw_and_download(server):
         assert bob.delete(f"/api/submissions/{sid}").status_code == 404
         assert sid in str(anon.get("/api/leaderboard/test").json())
         assert c.delete(f"/api/submissions/{sid}").status_code == 204
-        assert c.get(f"/api/submissions/{sid}").status_code == 404
+        # the owner (and admins) still get the record their list shows; everyone else 404
+        got = c.get(f"/api/submissions/{sid}").json()
+        assert got["status"] == "withdrawn" and got["metrics"] is None and got["plots"] == [], got
+        assert got["withdrawn_at"] == got["finished_at"] and got["withdrawn_at"] >= got["created_at"], got
+        assert c.get(f"/submissions/{sid}").status_code == 200  # its page says withdrawn (browser test)
+        with server.client(admin) as adm:
+            assert adm.get(f"/api/submissions/{sid}").json()["status"] == "withdrawn"
+        assert bob.get(f"/api/submissions/{sid}").status_code == 404
+        assert anon.get(f"/api/submissions/{sid}").status_code == 404
         assert c.get(f"/api/submissions/{sid}/zip").status_code == 409  # withdrawn: said so, not "no such"
         assert c.delete(f"/api/submissions/{sid}").status_code == 409
         assert sid not in str(anon.get("/api/leaderboard/test").json())

@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session
 from ..estimate import Estimate
 from ..geometry import Pose
 from . import jobs
-from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User, new_id, now
+from .db import Anchor, AnchorPhoto, MethodInfo, RetiredPhotoIndex, Submission, User, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
 from .deps import db_session, identify, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
@@ -123,7 +123,9 @@ def _visible_submission(request: Request, db: Session, sid: str) -> Submission:
 
 @router.get("/api/submissions/{sid}", tags=["submissions"])
 def get_submission(sid: str, request: Request, db: Session = Depends(db_session)):
-    return to_json(db, _visible_submission(request, db, sid))
+    """A submission you may see. Once withdrawn, its owner (and admins) still get it, as their list shows it:
+    status ``withdrawn``, ``withdrawn_at``, no results; everyone else gets 404."""
+    return to_json(db, visible_submission(db, identify(request, db).user, sid, withdrawn=True))
 
 
 class Visibility(BaseModel):
@@ -282,11 +284,18 @@ def make_anchor(request: Request, db: Session, user: User, name: str, method: st
     name = check_name(name, lim.max_name_chars)
     m = check_method(method) if method.strip() else default_method(settings.default_method)
     _runnable(m, ups, names)
-    check_quota(db, settings, user.id, sum(u.nbytes for u in ups), "this anchor's photos")
-    db.commit()  # no transaction (SQLite: the write lock) held while the method prepares the photos
+    nbytes = sum(u.nbytes for u in ups)
+    check_quota(db, settings, user.id, nbytes, "this anchor's photos")  # refused before the costly preparation
+    db.commit()  # no transaction (SQLite: the write lock; PostgreSQL: the user's row) held while preparing
     aid = new_id()
     rows = _photo_rows_of(aid, ups[1:], 1)
     request.app.state.localizers.check(aid, m, [u.photo for u in ups], anchor_version(rows))  # 422: cannot run
+    try:  # counted again, locked, in the transaction that stores them: another upload may have come meanwhile
+        check_quota(db, settings, user.id, nbytes, "this anchor's photos")
+    except UploadError:
+        db.rollback()
+        request.app.state.localizers.forget(aid)
+        raise
     first = ups[0]
     a = Anchor(id=aid, user_id=user.id, name=name, method=m, intrinsics=first.intrinsics, image=first.image,
                depth=first.depth, created_at=now())
@@ -349,15 +358,31 @@ def get_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
     return anchor_json(a, photo_rows(db, a.id))
 
 
+def next_photo_index(db: Session, aid: str, rows: list[AnchorPhoto]) -> int:
+    """The index the anchor's next photo gets: after the highest one it ever had, deleted ones included, so that
+    an index always names the same photo."""
+    retired = db.scalar(select(RetiredPhotoIndex.highest).where(RetiredPhotoIndex.anchor_id == aid)) or 0
+    return max(retired, rows[-1].seq if rows else 0) + 1
+
+
+def retire_photo_index(db: Session, aid: str, k: int) -> None:
+    """Remember that index ``k`` of the anchor was given (its photo is being deleted), if it is the highest."""
+    row = db.get(RetiredPhotoIndex, aid)
+    if row is None:
+        db.add(RetiredPhotoIndex(anchor_id=aid, highest=k))
+    elif row.highest < k:
+        row.highest = k
+
+
 def add_photo(request: Request, db: Session, user: User, aid: str, image: UploadFile | None, fx, fy, cx, cy,
               depth: UploadFile | None, pose: str) -> tuple[Anchor, list[AnchorPhoto]]:
-    """Check and store one more photo of anchor ``aid`` (owner or admin), at the index after the highest one;
-    the same limits and errors as at creation. Shared by the API and the anchor's page."""
+    """Check and store one more photo of anchor ``aid`` (owner or admin), at the index after the highest one it
+    ever had (``next_photo_index``); the same limits and errors as at creation. Shared by the API and the anchor's page."""
     lim = request.app.state.settings.limits
     a = find_anchor(db, aid, lock=True)
     _own_anchor(a, user, "add photos to it")
     rows = photo_rows(db, a.id)
-    seq = (rows[-1].seq if rows else 0) + 1
+    seq = next_photo_index(db, a.id, rows)
     what = photo_name(seq, image)
     if len(rows) + 1 >= lim.max_anchor_photos:
         raise UploadError(413, f"{what}: anchor {a.id} already holds the limit of {lim.max_anchor_photos} photos")
@@ -379,7 +404,8 @@ def add_anchor_photo(aid: str, request: Request, image: UploadFile = File(..., d
                      csrf_token: str | None = Form(None), db: Session = Depends(db_session)):
     """Add a photo of the place to one of your anchors (its owner, or an admin). Localizing then retrieves the
     most similar photo for each query; poses stay in the anchor's frame. It gets the index after the highest
-    one and counts against the owner's storage quota."""
+    one the anchor ever had (a deleted photo's index is never given again) and counts against the owner's
+    storage quota."""
     caller = require_writer(request, db, csrf_token)
     return anchor_json(*add_photo(request, db, caller.user, aid, image, fx, fy, cx, cy, depth, pose))
 
@@ -401,6 +427,7 @@ def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) ->
         raise HTTPException(404, f"anchor {a.id} has no photo {k} (its photos: "
                                  f"{', '.join(map(str, photo_indices(rows)))})")
     db.delete(row)
+    retire_photo_index(db, a.id, k)
     db.commit()
     request.app.state.localizers.forget(a.id)
     return a, photo_rows(db, a.id)

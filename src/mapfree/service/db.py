@@ -152,8 +152,9 @@ class AnchorPhoto(Base):
     """A further photo of an anchor's place (the anchor row holds the first one, whose camera is the anchor's
     frame): its own intrinsics and optional depth, and ``pose`` = world-to-camera from the anchor's frame as
     ``[qw, qx, qy, qz, tx, ty, tz]`` (metres). A table of its own so that existing databases gain it with
-    ``create_all``. ``seq`` is the photo's index for life: deleting one leaves a gap, and the photos' indices
-    and creation times identify an anchor's version (``api.anchor_version``)."""
+    ``create_all``. ``seq`` is the photo's index for life: deleting one leaves a gap, an index is never given
+    again (``RetiredPhotoIndex``), and the photos' indices and creation times identify an anchor's version
+    (``api.anchor_version``)."""
 
     __tablename__ = "anchor_photos"
     anchor_id: Mapped[str] = mapped_column(ForeignKey("anchors.id", ondelete="CASCADE"), primary_key=True)
@@ -163,6 +164,16 @@ class AnchorPhoto(Base):
     image: Mapped[bytes] = mapped_column(LargeBinary)
     depth: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
     created_at: Mapped[float] = mapped_column(Float, default=now)
+
+
+class RetiredPhotoIndex(Base):
+    """The highest index among an anchor's deleted photos, so that a photo added later never reuses it (a client
+    that remembered "photo 2" must not get another photo). A table of its own so that existing databases gain
+    it with ``create_all``; an anchor without a row has had none of its highest photos deleted since then."""
+
+    __tablename__ = "anchor_retired_indices"
+    anchor_id: Mapped[str] = mapped_column(ForeignKey("anchors.id", ondelete="CASCADE"), primary_key=True)
+    highest: Mapped[int] = mapped_column(Integer)
 
 
 class WorkerRow(Base):

@@ -2,7 +2,8 @@
 that it still counts against the quotas), download its ZIP, describe its method, and see the test quota left.
 
 Withdrawing is final: every later action of the owner on that submission (visibility, method, withdrawing again,
-downloading) is refused with a 409 ``Withdrawn`` that says so, and nobody ever sees it again (404 elsewhere)."""
+downloading) is refused with a 409 ``Withdrawn`` that says so; only its owner (and admins) still see its record,
+marked withdrawn (``GET /api/submissions/{id}``, its page); boards, compare and everyone else: 404."""
 
 from __future__ import annotations
 

@@ -12,7 +12,7 @@ from sqlalchemy import delete, func, insert, select
 from sqlalchemy.orm import Session
 
 from .config import Settings
-from .db import Anchor, AnchorPhoto, Submission, SubmissionFile, ZipChunk, now
+from .db import Anchor, AnchorPhoto, Submission, SubmissionFile, User, ZipChunk, now
 from .uploads import UploadError
 
 CHUNK_BYTES = 1 << 20
@@ -84,12 +84,22 @@ def stored_bytes(db: Session, user_id: int) -> int:
     return int(zips or 0) + int(firsts or 0) + int(photos or 0)
 
 
+def lock_user(db: Session, user_id: int) -> None:
+    """Serialise the writes counted against ``user_id``'s limits until this transaction ends: on PostgreSQL the
+    user row is locked (``SELECT … FOR UPDATE``); on SQLite every write transaction is ``BEGIN IMMEDIATE``
+    already, one at a time. Without it two concurrent uploads could both pass the same check."""
+    if db.get_bind().dialect.name == "postgresql":
+        db.execute(select(User.id).where(User.id == user_id).with_for_update())
+
+
 def check_quota(db: Session, settings: Settings, user_id: int, adding: int, what: str) -> None:
     """A 413 when storing ``adding`` more bytes (``what``: "this submission", "these photos") would take
-    ``user_id`` past the storage quota (0: none)."""
+    ``user_id`` past the storage quota (0: none). Locks the user's writes (``lock_user``): store the bytes in
+    this same transaction, so that a concurrent upload counts them."""
     quota = settings.storage_quota_bytes
     if quota <= 0:
         return
+    lock_user(db, user_id)
     used = stored_bytes(db, user_id)
     if used + adding > quota:
         raise UploadError(413, f"storage quota reached: your stored submission ZIPs and anchor photos may total "

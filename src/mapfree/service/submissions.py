@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 from .config import Settings
 from .db import Plot, Result, Submission, User, now
 from .evaluation import PLOT_NAMES, known_scenes, render_plots, unpack_report
-from .storage import check_quota, copy_in
+from .storage import check_quota, copy_in, lock_user
 from .uploads import UploadError, check_name, check_submission_zip
 
 
@@ -50,9 +50,7 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
     name = check_name(name, settings.limits.max_name_chars) or "unnamed"
     f = io.BytesIO(data) if isinstance(data, (bytes, bytearray)) else data
     size = check_submission_zip(f, settings.limits, split, known_scenes(settings, split)).zip_bytes
-    # counted inside the write transaction (SQLite: BEGIN IMMEDIATE; PG: row lock on user)
-    if db.get_bind().dialect.name == "postgresql":
-        db.execute(select(User.id).where(User.id == user.id).with_for_update())
+    lock_user(db, user.id)  # the limits are counted inside the write transaction that stores the row
     if split == "test":
         _limit_reached(db, user, "test", 86400, daily_test_limit(settings, user), "daily")
     else:
@@ -74,16 +72,23 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
     return sub
 
 
-def visible(sub: Submission | None, user: User | None) -> bool:
-    if sub is None or sub.status == "withdrawn":
+def visible(sub: Submission | None, user: User | None, withdrawn: bool = False) -> bool:
+    """Whether ``user`` may see ``sub``: public, or theirs (admins: any). A withdrawn one only where
+    ``withdrawn`` is asked for, and then only by its owner or an admin (their history lists it)."""
+    if sub is None:
         return False
-    return sub.public or (user is not None and (user.id == sub.user_id or user.is_admin))
+    mine = user is not None and (user.id == sub.user_id or user.is_admin)
+    if sub.status == "withdrawn":
+        return withdrawn and mine
+    return sub.public or mine
 
 
-def visible_submission(db: Session, user: User | None, sid: str, what: str = "no such submission") -> Submission:
-    """Submission ``sid`` if ``user`` may see it; a 404 ``"{what} (or it is private)"`` otherwise."""
+def visible_submission(db: Session, user: User | None, sid: str, what: str = "no such submission",
+                       withdrawn: bool = False) -> Submission:
+    """Submission ``sid`` if ``user`` may see it (``withdrawn``: its owner sees it once withdrawn, too); a 404
+    ``"{what} (or it is private)"`` otherwise."""
     sub = db.get(Submission, sid) if len(sid) <= 32 else None
-    if not visible(sub, user):
+    if not visible(sub, user, withdrawn):
         raise HTTPException(404, f"{what} (or it is private)")
     return sub
 
@@ -101,6 +106,7 @@ def to_json(db: Session, sub: Submission, owner_name: str | None = None) -> dict
         "id": sub.id, "name": sub.name, "split": sub.split, "public": sub.public, "user": owner,
         "status": sub.status, "attempts": sub.attempts, "error": sub.error,
         "created_at": sub.created_at, "started_at": sub.started_at, "finished_at": sub.finished_at,
+        "withdrawn_at": sub.finished_at if sub.status == "withdrawn" else None,
         "size_bytes": sub.size_bytes, "sha256": sub.sha256,
         "url": f"/submissions/{sub.id}", "api_url": f"/api/submissions/{sub.id}",
         "metrics": res.metrics if res else None, "problems": res.problems if res else [],

@@ -212,7 +212,7 @@ def _submission(request: Request, db: Session, sid: str, status: int = 200, erro
     """A submission's page: every figure of its result, per-scene table, plots; for its owner also the method
     form, the ZIP download and withdrawing."""
     user = identify(request, db).user
-    sub = visible_submission(db, user, sid)
+    sub = visible_submission(db, user, sid, withdrawn=True)
     data = to_json(db, sub)
     first_scene = next(iter((data.get("per_scene") or {}).values()), None) or {}
     return page(request, "submission.html", db, status, sub=data, labels=LABELS, short=SHORT,
