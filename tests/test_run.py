@@ -193,3 +193,22 @@ def test_run_evaluate_on_a_test_split_explains_instead_of_crashing(tmp_path, cap
     res = capsys.readouterr()
     assert json.loads(res.out)["computed"] == 1 and out.is_file()
     assert "--gt-root" in res.err and "Traceback" not in res.err
+
+
+def test_a_stop_asked_during_a_frame_keeps_that_frame(tiny, tmp_path, monkeypatch):
+    """A pool worker asked to stop (Ctrl-C in the parent) while it computes a frame journals that frame and starts
+    no other: the work in flight is kept for --resume. Before, the finished estimate was thrown away."""
+    import threading
+
+    from mapfree.methods import get
+    from mapfree.relocalize import run as run_mod
+
+    stop = threading.Event()
+    stop.set()  # set while the first frame was computed: it is already set when that frame comes back
+    monkeypatch.setattr(run_mod, "_STOP", stop)
+    journal = tmp_path / "j.jsonl"
+    journal.write_text("")
+    frames = Dataset(tiny).scene("val", "s00003").scored_queries()
+    run_mod._run_scene(get(METHOD).to_dict(), str(tiny / "val" / "s00003"), [f.name for f in frames], str(journal))
+    recs = read_journal(journal)[1]
+    assert [r["frame"] for r in recs] == [frames[0].name]

@@ -171,13 +171,13 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
             on_frame and on_frame(r)
         return len(recs)
     for name, est in zip(frames, _estimates(loc, scene, frames, batch_size)):
-        if _STOP is not None and _STOP.is_set():
-            break
         # Relative pose (query w.r.t. reference) -> world-to-camera in the scene's frame.
         world = est.pose @ ref_pose if est.pose is not None else None
         rec = _record(scene.name, name, est, world)
         _append(journal_p, [rec])
         on_frame and on_frame(rec)
+        if _STOP is not None and _STOP.is_set():  # asked to stop: the frame in flight is journaled, no more
+            break
     return len(frames)
 
 
