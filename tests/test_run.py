@@ -212,3 +212,19 @@ def test_a_stop_asked_during_a_frame_keeps_that_frame(tiny, tmp_path, monkeypatc
     run_mod._run_scene(get(METHOD).to_dict(), str(tiny / "val" / "s00003"), [f.name for f in frames], str(journal))
     recs = read_journal(journal)[1]
     assert [r["frame"] for r in recs] == [frames[0].name]
+
+
+def test_refused_run_leaves_an_existing_journal_alone(realmini, tmp_path):
+    """Bad data refused up front (here a depth-suffix typo) with --overwrite or --resume: the earlier run's journal
+    is kept byte for byte. Before, the journal was restarted first, so a typo under --overwrite lost it."""
+    out = tmp_path / "sub.zip"
+    journal = out.with_name("sub.journal.jsonl")
+    from mapfree.methods import get
+
+    old = (json.dumps({"kind": "header", "version": 1, "method": get("sift_emat_sensr").to_dict()}) + "\n"
+           + json.dumps({"kind": "frame", "scene": "s00000", "frame": "seq1/frame_00000.jpg", "ok": False}) + "\n")
+    journal.write_text(old)
+    for flags in ({"overwrite": True}, {"resume": True}):
+        with pytest.raises(ValueError, match=r"\*\.sensr\.png"):
+            run_split(realmini, "val", "sift_emat_sensr", out, progress=False, **flags)
+        assert journal.read_text() == old

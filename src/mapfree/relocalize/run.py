@@ -280,12 +280,9 @@ def run_split(
     if resume and header is not None and not _same_method(header["method"], m.to_dict()):
         raise ValueError(f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
                          f"use another output path or --overwrite")
-    if overwrite or not resume or header is None:
-        jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
-                                     "root": str(root), "split": split, "all_frames": all_frames}) + "\n")
+    fresh = overwrite or not resume or header is None
+    if fresh:
         recs = []
-    else:
-        _repair_tail(jpath)
 
     ds = Dataset(root)
     scene_list = ds.scenes(split)
@@ -300,6 +297,12 @@ def run_split(
         if names:
             todo.append((s, names))
     _check_depth_files(m, scene_list, split)
+    # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
+    if fresh:
+        jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
+                                     "root": str(root), "split": split, "all_frames": all_frames}) + "\n")
+    else:
+        _repair_tail(jpath)
     total = sum(len(f) for _, f in todo)
     bar = _progress(total, len(done), progress, m.name)
     md = m.to_dict()
