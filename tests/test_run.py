@@ -197,21 +197,30 @@ def test_run_evaluate_on_a_test_split_explains_instead_of_crashing(tmp_path, cap
 
 def test_a_stop_asked_during_a_frame_keeps_that_frame(tiny, tmp_path, monkeypatch):
     """A pool worker asked to stop (Ctrl-C in the parent) while it computes a frame journals that frame and starts
-    no other: the work in flight is kept for --resume. Before, the finished estimate was thrown away."""
+    no other, nor a scene handed to it afterwards: the work in flight is kept for --resume. Before, the finished
+    estimate was thrown away."""
     import threading
 
     from mapfree.methods import get
     from mapfree.relocalize import run as run_mod
 
-    stop = threading.Event()
-    stop.set()  # set while the first frame was computed: it is already set when that frame comes back
+    stop, estimates = threading.Event(), run_mod._estimates
+
+    def interrupted(*args, **kwargs):
+        for est in estimates(*args, **kwargs):
+            stop.set()  # Ctrl-C arrives while this frame is computed
+            yield est
+
     monkeypatch.setattr(run_mod, "_STOP", stop)
+    monkeypatch.setattr(run_mod, "_estimates", interrupted)
     journal = tmp_path / "j.jsonl"
     journal.write_text("")
-    frames = Dataset(tiny).scene("val", "s00003").scored_queries()
-    run_mod._run_scene(get(METHOD).to_dict(), str(tiny / "val" / "s00003"), [f.name for f in frames], str(journal))
-    recs = read_journal(journal)[1]
-    assert [r["frame"] for r in recs] == [frames[0].name]
+    md, frames = get(METHOD).to_dict(), [f.name for f in Dataset(tiny).scene("val", "s00003").scored_queries()]
+    assert len(frames) >= 2
+    run_mod._run_scene(md, str(tiny / "val" / "s00003"), frames, str(journal))
+    assert [r["frame"] for r in read_journal(journal)[1]] == frames[:1]
+    assert run_mod._run_scene(md, str(tiny / "val" / "s00000"), frames, str(journal)) == 0
+    assert len(read_journal(journal)[1]) == 1
 
 
 def test_refused_run_leaves_an_existing_journal_alone(realmini, tmp_path):

@@ -155,6 +155,8 @@ def _localizer(method_dict: dict) -> Any:
 def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: str,
                on_frame: Callable[[dict], None] | None = None, batch_size: int | None = None) -> int:
     """Relocalize ``frames`` of one scene against its reference, appending each result to the journal."""
+    if _stopping():  # a scene already handed to this worker when the parent asked to stop: not started
+        return 0
     scene = Scene(Path(scene_path))
     journal_p = Path(journal)
     try:
@@ -176,9 +178,14 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
         rec = _record(scene.name, name, est, world)
         _append(journal_p, [rec])
         on_frame and on_frame(rec)
-        if _STOP is not None and _STOP.is_set():  # asked to stop: the frame in flight is journaled, no more
+        if _stopping():  # asked to stop: the frame in flight is journaled, no more
             break
     return len(frames)
+
+
+def _stopping() -> bool:
+    """Whether the parent asked this pool worker to stop (never in the parent's own process)."""
+    return _STOP is not None and _STOP.is_set()
 
 
 def _estimates(loc: Any, scene: Scene, frames: list[str], batch_size: int | None = None) -> Iterator[Estimate]:
@@ -362,9 +369,12 @@ def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, bat
     stop = ctx.Event()
     with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_init_worker,
                              initargs=(threads, stop)) as pool:
-        # Largest scenes first so that the last worker to finish is not left with a big one.
-        futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size)
-                   for s, names in sorted(todo, key=lambda x: -len(x[1]))]
+        # Largest scenes first so that the last worker to finish is not left with a big one. The workers are
+        # spawned here, while Ctrl-C is ignored: they inherit that, so one pressed while a worker still imports
+        # (seconds, before ``_init_worker``) no longer prints a KeyboardInterrupt traceback from it.
+        with _sigint_ignored():
+            futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size)
+                       for s, names in sorted(todo, key=lambda x: -len(x[1]))]
         pending = set(futures)
         try:
             while pending:
