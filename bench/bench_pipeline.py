@@ -317,15 +317,15 @@ def kornia_loop(root, split: str, all_frames: bool, max_pairs: int | None = None
     import torch
 
     from mapfree import solvers
-    from mapfree.matching.lightglue import _load_strict, _remap_glue_keys, _shipped
+    from mapfree.matching.lightglue import _load_strict, _remap_glue_keys, shipped_file
     from mapfree.matching.weights import load_checkpoint
 
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     ext = KF.ALIKED("aliked-n16", max_num_keypoints=2048, detection_threshold=0.0)
-    path = _shipped("aliked-n16.pth")
+    path = shipped_file("aliked-n16.pth")
     _load_strict(ext, load_checkpoint(path), "ALIKED", path)
     lg = KF.LightGlue(None, **{k: v for k, v in KF.LightGlue.features["aliked"].items() if k != "weights"})
-    path = _shipped("aliked_lightglue.pth")
+    path = shipped_file("aliked_lightglue.pth")
     _load_strict(lg, _remap_glue_keys(load_checkpoint(path), lg.conf.n_layers), "LightGlue", path)
     ext, lg = ext.to(dev).eval(), lg.to(dev).eval()
     from mapfree.methods import get

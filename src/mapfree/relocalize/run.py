@@ -155,6 +155,8 @@ def _localizer(method_dict: dict) -> Any:
 def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: str,
                on_frame: Callable[[dict], None] | None = None, batch_size: int | None = None) -> int:
     """Relocalize ``frames`` of one scene against its reference, appending each result to the journal."""
+    if _stopping():  # a scene already handed to this worker when the parent asked to stop: not started
+        return 0
     scene = Scene(Path(scene_path))
     journal_p = Path(journal)
     try:
@@ -171,14 +173,19 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
             on_frame and on_frame(r)
         return len(recs)
     for name, est in zip(frames, _estimates(loc, scene, frames, batch_size)):
-        if _STOP is not None and _STOP.is_set():
-            break
         # Relative pose (query w.r.t. reference) -> world-to-camera in the scene's frame.
         world = est.pose @ ref_pose if est.pose is not None else None
         rec = _record(scene.name, name, est, world)
         _append(journal_p, [rec])
         on_frame and on_frame(rec)
+        if _stopping():  # asked to stop: the frame in flight is journaled, no more
+            break
     return len(frames)
+
+
+def _stopping() -> bool:
+    """Whether the parent asked this pool worker to stop (never in the parent's own process)."""
+    return _STOP is not None and _STOP.is_set()
 
 
 def _estimates(loc: Any, scene: Scene, frames: list[str], batch_size: int | None = None) -> Iterator[Estimate]:
@@ -280,12 +287,9 @@ def run_split(
     if resume and header is not None and not _same_method(header["method"], m.to_dict()):
         raise ValueError(f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
                          f"use another output path or --overwrite")
-    if overwrite or not resume or header is None:
-        jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
-                                     "root": str(root), "split": split, "all_frames": all_frames}) + "\n")
+    fresh = overwrite or not resume or header is None
+    if fresh:
         recs = []
-    else:
-        _repair_tail(jpath)
 
     ds = Dataset(root)
     scene_list = ds.scenes(split)
@@ -300,6 +304,12 @@ def run_split(
         if names:
             todo.append((s, names))
     _check_depth_files(m, scene_list, split)
+    # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
+    if fresh:
+        jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
+                                     "root": str(root), "split": split, "all_frames": all_frames}) + "\n")
+    else:
+        _repair_tail(jpath)
     total = sum(len(f) for _, f in todo)
     bar = _progress(total, len(done), progress, m.name)
     md = m.to_dict()
@@ -359,9 +369,12 @@ def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, bat
     stop = ctx.Event()
     with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_init_worker,
                              initargs=(threads, stop)) as pool:
-        # Largest scenes first so that the last worker to finish is not left with a big one.
-        futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size)
-                   for s, names in sorted(todo, key=lambda x: -len(x[1]))]
+        # Largest scenes first so that the last worker to finish is not left with a big one. The workers are
+        # spawned here, while Ctrl-C is ignored: they inherit that, so one pressed while a worker still imports
+        # (seconds, before ``_init_worker``) no longer prints a KeyboardInterrupt traceback from it.
+        with _sigint_ignored():
+            futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size)
+                       for s, names in sorted(todo, key=lambda x: -len(x[1]))]
         pending = set(futures)
         try:
             while pending:
