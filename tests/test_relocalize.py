@@ -135,6 +135,9 @@ def test_viz_writes_png(tmp_path, scene, sift_sensor):
     rows, cols = np.nonzero(np.any(why != failed, axis=2))
     top = why.shape[0] - q.intrinsics.height  # the AR panel's first row
     assert rows.size and rows.min() >= top + 20 and rows.max() <= top + 60 and cols.max() > 300
+    # OpenCV draws ASCII only: a reason with a degree sign reads "deg", not "?" (pose triangulation's reason has one).
+    deg = relocalization_figure(*none, reason="rays 0.40° apart are nearly parallel")
+    assert np.array_equal(deg, relocalization_figure(*none, reason="rays 0.40 deg apart are nearly parallel"))
 
 
 def test_localize_many_equals_localize(scene, sift_sensor):

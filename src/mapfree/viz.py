@@ -71,7 +71,9 @@ def _side_by_side(img0: np.ndarray, img1: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def _label(img: np.ndarray, text: str, row: int = 0) -> None:
-    """White text on a dark box, top-left, one row per call."""
+    """White text on a dark box, top-left, one row per call (OpenCV's fonts are ASCII only: ° becomes "deg")."""
+    text = text.replace("°", " deg").replace("…", "...").replace("×", "x").replace("≥", ">=").replace("≤", "<=")
+    text = text.encode("ascii", "replace").decode()
     (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
     y = 6 + (h + base + 6) * row
     cv2.rectangle(img, (4, y), (12 + w, y + h + base + 4), (20, 20, 20), -1)
@@ -132,7 +134,7 @@ def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_q
     _label(canvas, "AR check: virtual grid, estimate = orange" + (", ground truth = cyan" if gt_pose else ""))
     if pose is None:
         text = f"no estimate: {reason}" if reason else "no estimate"
-        _label(canvas, text if len(text) <= 90 else text[:87] + "...", row=1)  # Hershey fonts are ASCII only
+        _label(canvas, text if len(text) <= 90 else text[:87] + "...", row=1)
     elif gt_pose is not None:
         terr = float(np.linalg.norm(pose.center - gt_pose.center))
         rerr = float(np.degrees(np.arccos(np.clip((np.trace(pose.R.T @ gt_pose.R) - 1) / 2, -1, 1))))
