@@ -15,7 +15,7 @@ from sqlalchemy import func, select, text
 
 from mapfree.data import Dataset
 from mapfree.geometry import Pose
-from mapfree.service import Settings, create_app
+from mapfree.service import Limits, Settings, create_app
 from mapfree.service.db import Anchor, User, make_engine, session_factory
 from mapfree.service.storage import check_quota
 from mapfree.service.uploads import UploadError
@@ -454,3 +454,69 @@ def test_relocalize_page_uses_a_two_photo_anchor_at_phone_width(phone, sqlite_se
     finally:
         with sqlite_server.client("alice") as alice:
             assert alice.delete(f"/anchors/{aid}").status_code == 204
+
+
+# ------------------------------------------------------------------- review: hostile indices, counts, names
+
+
+def _web_session(app) -> tuple[TestClient, str]:
+    """A browser-like client of ``app`` signed in as ann (session cookie), and its session's CSRF token."""
+    web = TestClient(app.client.app, raise_server_exceptions=False, follow_redirects=False)
+    login = web.get("/login").text.split('name="csrf_token" value="')[1].split('"')[0]
+    assert web.post("/login", data={"token": app.tokens["ann"], "csrf_token": login}).status_code == 303
+    return web, web.get("/relocalize").text.split('name="csrf_token" value="')[1].split('"')[0]
+
+
+def test_a_photo_index_past_the_database_integer_is_a_404_not_a_500(make_app, scene):  # noqa: F811
+    """``GET /anchors/{id}/photos/{k}`` with ``k`` beyond a 64-bit integer used to crash SQLite's driver (a 500)."""
+    app = make_app()
+    auth = app.auth("ann")
+    r = app.client.post("/anchors", headers=auth, files=_files(scene.reference),
+                        data={**_form(scene.reference.intrinsics), "method": METHOD})
+    assert r.status_code == 201, r.text
+    aid = r.json()["id"]
+    for k in (2**63, 10**20, 2**31, -1):
+        r = app.client.get(f"/anchors/{aid}/photos/{k}", headers=app.auth("ben"))
+        assert r.status_code == 404 and f"has no photo {k}" in r.json()["detail"], (k, r.text)
+        assert app.client.delete(f"/anchors/{aid}/photos/{k}", headers=auth).status_code == 404
+    assert app.client.get(f"/anchors/{aid}/photos/0", headers=app.auth("ben")).content == \
+        scene.reference.image_path.read_bytes()
+
+
+def test_too_many_photos_are_refused_before_any_is_decoded(make_app):  # noqa: F811
+    """The photo limit is checked before reading the photos (API and page): a small PNG can decode to tens of
+    MB, and a 64 MB request holds a thousand of them. Unreadable photos show the count is checked first."""
+    app = make_app(limits=Limits(max_anchor_photos=3))
+    junk = b"not an image"
+    n = 4
+    files = [("image", ("p0.png", junk, "image/png"))] + [("photo_image", (f"p{i}.png", junk, "image/png"))
+                                                          for i in range(1, n)]
+    cam = {"fx": "1", "fy": "1", "cx": "1", "cy": "1"}
+    data = {**cam, **{f"photo_{k}": [v] * (n - 1) for k, v in cam.items()}, "photo_pose": ["1 0 0 0 0 0 0"] * (n - 1)}
+    r = app.client.post("/anchors", headers=app.auth("ann"), files=files, data=data)
+    assert r.status_code == 413 and "at most 3 photos; got 4" in r.json()["detail"], r.text
+    web, csrf = _web_session(app)
+    cameras = "p0.png 1 1 1 1\n" + "".join(f"p{i}.png 1 1 1 1 1 0 0 0 0 0 0\n" for i in range(1, n))
+    r = web.post("/relocalize/anchors", files=[("photos", (f"p{i}.png", junk, "image/png")) for i in range(n)],
+                 data={"cameras": cameras, "csrf_token": csrf})
+    assert r.status_code == 413 and "at most 3 photos; got 4" in r.text, r.text[-2000:]
+
+
+def test_a_depth_map_whose_name_fits_two_photos_is_refused(make_app, scene):  # noqa: F811
+    """The page matches depth maps by the name before the first dot: with photos ``frame.jpg`` and
+    ``frame.png``, ``frame.sensor.png`` used to go silently to the last one chosen."""
+    import cv2
+
+    ref = scene.reference
+    K = ref.intrinsics
+    ok, png = cv2.imencode(".png", cv2.imread(str(ref.image_path)))
+    assert ok
+    app = make_app()
+    web, csrf = _web_session(app)
+    files = [("photos", ("frame.jpg", ref.image_path.read_bytes(), "image/jpeg")),
+             ("photos", ("frame.png", png.tobytes(), "image/png")),
+             ("depths", ("frame.sensor.png", ref.depth_path("sensor").read_bytes(), "image/png"))]
+    cameras = f"frame.jpg {K.fx} {K.fy} {K.cx} {K.cy}\nframe.png {K.fx} {K.fy} {K.cx} {K.cy} 1 0 0 0 0.1 0 0\n"
+    r = web.post("/relocalize/anchors", files=files, data={"cameras": cameras, "method": METHOD, "csrf_token": csrf})
+    assert r.status_code == 422, r.text[-2000:]
+    assert "depths: &#39;frame.sensor.png&#39; could go with any of &#39;frame.jpg&#39;, &#39;frame.png&#39;" in r.text

@@ -156,6 +156,8 @@ def plot_png(sid: str, name: str, request: Request, db: Session = Depends(db_ses
 
 #: The pose of an anchor's first photo in the anchor's frame (``[qw, qx, qy, qz, tx, ty, tz]``).
 IDENTITY = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+#: The highest photo index the database can hold (``anchor_photos.seq``: a 32-bit integer on PostgreSQL).
+MAX_PHOTO_INDEX = 2**31 - 1
 
 
 def photo_rows(db: Session, aid: str) -> list[AnchorPhoto]:
@@ -272,6 +274,13 @@ def _photo_rows_of(aid: str, ups: list[PhotoUpload], first_seq: int) -> list[Anc
                         depth=u.depth, created_at=now()) for i, u in enumerate(ups)]
 
 
+def check_photo_count(lim, n: int) -> None:
+    """A 413 when an anchor would hold more than the limit of photos. Called before any photo is decoded too:
+    a small PNG can decode to tens of MB, so a request of a thousand of them must be refused unread."""
+    if n > lim.max_anchor_photos:
+        raise UploadError(413, f"an anchor holds at most {lim.max_anchor_photos} photos; got {n}")
+
+
 def make_anchor(request: Request, db: Session, user: User, name: str, method: str, ups: list[PhotoUpload],
                 names: list[str]) -> tuple[Anchor, list[AnchorPhoto]]:
     """Store a new anchor of ``user`` from checked photos (``ups[0]``: the anchor's frame; ``names``: how errors
@@ -279,8 +288,7 @@ def make_anchor(request: Request, db: Session, user: User, name: str, method: st
     cannot run on it here. Shared by ``POST /anchors`` and the relocalize page."""
     settings = request.app.state.settings
     lim = settings.limits
-    if len(ups) > lim.max_anchor_photos:
-        raise UploadError(413, f"an anchor holds at most {lim.max_anchor_photos} photos; got {len(ups)}")
+    check_photo_count(lim, len(ups))
     name = check_name(name, lim.max_name_chars)
     m = check_method(method) if method.strip() else default_method(settings.default_method)
     _runnable(m, ups, names)
@@ -324,7 +332,9 @@ def create_anchor(request: Request, image: UploadFile = File(..., description="r
     ``image``, photo 1 the first ``photo_image``, and so on. The photos count against the storage quota."""
     caller = require_writer(request, db, csrf_token)
     lim = request.app.state.settings.limits
-    several = any(f.filename or f.size for f in photo_image)  # one photo: messages as before, without "photo 0"
+    n_extra = sum(1 for f in photo_image if f.filename or f.size)
+    check_photo_count(lim, 1 + n_extra)  # before decoding any
+    several = n_extra > 0  # one photo: messages as before, without "photo 0"
     name0 = photo_name(0, image) if several else ""
     first = photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
     extra, names = _extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
@@ -448,8 +458,9 @@ def anchor_photo_image(aid: str, k: int, request: Request, db: Session = Depends
     if identify(request, db).user is None:
         raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
     a = find_anchor(db, aid)
-    data = a.image if k == 0 else db.scalar(select(AnchorPhoto.image).where(AnchorPhoto.anchor_id == a.id,
-                                                                            AnchorPhoto.seq == k))
+    data = a.image if k == 0 else None
+    if 0 < k <= MAX_PHOTO_INDEX:  # a larger int would not fit the database's integer (SQLite: OverflowError)
+        data = db.scalar(select(AnchorPhoto.image).where(AnchorPhoto.anchor_id == a.id, AnchorPhoto.seq == k))
     if data is None:
         raise HTTPException(404, f"anchor {a.id} has no photo {k}")
     kind = "image/png" if data.startswith(b"\x89PNG") else "image/jpeg"  # decoded as one of them at upload

@@ -20,8 +20,8 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from . import auth
-from .api import (PhotoUpload, add_photo, anchor_json, find_anchor, localize_anchor, make_anchor, photo_name,
-                  photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
+from .api import (PhotoUpload, add_photo, anchor_json, check_photo_count, find_anchor, localize_anchor, make_anchor,
+                  photo_name, photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
@@ -436,6 +436,7 @@ def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
         raise UploadError(400, "photos: choose at least one photo")
     if len(files) < len([f for f in photos if f.filename or f.size]):
         raise UploadError(422, "photos: two chosen photos have the same file name; rename one")
+    check_photo_count(lim, len(files))  # before decoding any
     lines = _camera_lines(cameras)
     seen: set[str] = set()
     for no, name, _, _ in lines:
@@ -448,12 +449,19 @@ def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
     if len(seen) < len(files):
         missing = sorted(set(files) - seen)
         raise UploadError(422, f"cameras: no line for the chosen photo(s) {', '.join(map(repr, missing))[:300]}")
-    by_stem = {_stem(n): n for n in files}
+    by_stem: dict[str, list[str]] = {}
+    for n in files:
+        by_stem.setdefault(_stem(n), []).append(n)
     depth_of: dict[str, UploadFile] = {}
     for d in depths:
         if not (d.filename or d.size):
             continue
-        owner = by_stem.get(_stem(d.filename or ""))
+        owners = by_stem.get(_stem(d.filename or ""), [])
+        if len(owners) > 1:
+            raise UploadError(422, f"depths: {Path(d.filename or '').name!r} could go with any of "
+                                   f"{', '.join(map(repr, sorted(owners)))[:300]} (a depth map is matched by the "
+                                   "part of its name before the first dot); rename the photos apart")
+        owner = owners[0] if owners else None
         if owner is None:
             raise UploadError(422, f"depths: {Path(d.filename or '').name!r} goes with no chosen photo (a depth map "
                                    "is matched by the part of its name before the first dot: frame_00000.sensor.png "
