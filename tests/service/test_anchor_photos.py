@@ -520,3 +520,38 @@ def test_a_depth_map_whose_name_fits_two_photos_is_refused(make_app, scene):  # 
     r = web.post("/relocalize/anchors", files=files, data={"cameras": cameras, "method": METHOD, "csrf_token": csrf})
     assert r.status_code == 422, r.text[-2000:]
     assert "depths: &#39;frame.sensor.png&#39; could go with any of &#39;frame.jpg&#39;, &#39;frame.png&#39;" in r.text
+
+
+def test_a_photo_is_decoded_without_holding_the_database_write_lock(make_app, scene, monkeypatch):  # noqa: F811
+    """Adding a photo decodes up to 16 MB; on SQLite every transaction is the database's write lock, so it must not
+    be held meanwhile (every other writer would wait). Checked from a second connection during the decode."""
+    import sqlite3
+
+    import mapfree.service.api as api
+
+    ref, second = scene.reference, scene.frame(SECOND)
+    app = make_app()
+    c, auth = app.client, app.auth("ann")
+    r = c.post("/anchors", headers=auth, files=_files(ref), data={**_form(ref.intrinsics), "method": METHOD})
+    assert r.status_code == 201, r.text
+    aid = r.json()["id"]
+    db_file = app.settings.db_url.removeprefix("sqlite:///")
+    seen, decode = [], api.photo_upload
+
+    def probing_decode(*args, **kw):
+        other = sqlite3.connect(db_file, timeout=0.05)
+        try:
+            other.execute("BEGIN IMMEDIATE")
+            other.execute("ROLLBACK")
+            seen.append("free")
+        except sqlite3.OperationalError as e:  # "database is locked"
+            seen.append(str(e))
+        finally:
+            other.close()
+        return decode(*args, **kw)
+
+    monkeypatch.setattr(api, "photo_upload", probing_decode)
+    r = c.post(f"/anchors/{aid}/photos", headers=auth, files=_files(second),
+               data={**_form(second.intrinsics), "pose": _pose_text(second.pose)})
+    assert r.status_code == 201, r.text
+    assert seen == ["free"] and [p["index"] for p in r.json()["photos"]] == [0, 1]
