@@ -231,12 +231,13 @@ def test_download_and_withdraw(page, sqlite_server, tmp_path):
     page.click("#withdraw")
     page.wait_for_url("**/me")
     row = page.locator("#history tr", has_text="withdraw-me")
-    assert "withdrawn" in row.inner_text() and row.locator("a").count() == 0
+    assert "withdrawn" in row.inner_text() and row.locator("a").count() == 1
     assert int(page.locator("#quota b").inner_text()) == left  # the evaluation stays counted
     shot(page, "history-withdrawn")
-    # its owner still sees its page, as their history lists it (it used to be a 404, which contradicted that
+    # its owner still sees its page, linked from their history (it used to be a 404, which contradicted that
     # list): marked withdrawn, no scores, nothing left to change; others get 404 (test_withdraw_and_download)
-    page.goto(d["url"])
+    row.locator("a").click()
+    page.wait_for_url(f"**{d['url']}")
     assert page.inner_text("#status") == "withdrawn" and "Withdrawn " in page.inner_text("#withdrawn")
     assert page.locator("#metrics").count() == 0 and page.locator("#owner-actions").count() == 0
     assert page.locator("#method-form").count() == 0

@@ -178,6 +178,7 @@ def test_withdraw_and_download(server):
         assert got["status"] == "withdrawn" and got["metrics"] is None and got["plots"] == [], got
         assert got["withdrawn_at"] == got["finished_at"] and got["withdrawn_at"] >= got["created_at"], got
         assert c.get(f"/submissions/{sid}").status_code == 200  # its page says withdrawn (browser test)
+        assert f'href="/submissions/{sid}"' in c.get("/me").text  # and the owner's history links to it
         with server.client(admin) as adm:
             assert adm.get(f"/api/submissions/{sid}").json()["status"] == "withdrawn"
         assert bob.get(f"/api/submissions/{sid}").status_code == 404
