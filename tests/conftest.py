@@ -12,15 +12,15 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
 
-def _find_realmini() -> Path | None:
-    here = Path(__file__).resolve()
-    for cand in (here.parents[2] / "shared/data/realmini-dev", Path("/work/shared/data/realmini-dev")):
-        if (cand / "val").is_dir():
+def _shared(rel: str, marker: str) -> Path | None:
+    """``shared/REL`` beside the checkout (or at /work/shared), when it holds ``marker``."""
+    for cand in (Path(__file__).resolve().parents[2] / "shared" / rel, Path("/work/shared") / rel):
+        if (cand / marker).exists():
             return cand
     return None
 
 
-REALMINI = _find_realmini()
+REALMINI = _shared("data/realmini-dev", "val")
 
 
 @pytest.fixture(scope="session")
@@ -42,15 +42,7 @@ def one_torch_thread():
     torch.set_num_threads(n)
 
 
-def _find_official_rpr() -> Path | None:
-    here = Path(__file__).resolve()
-    for cand in (here.parents[2] / "shared/fixtures/official-rpr", Path("/work/shared/fixtures/official-rpr")):
-        if (cand / "official_rpr.json").is_file():
-            return cand
-    return None
-
-
-OFFICIAL_RPR = _find_official_rpr()
+OFFICIAL_RPR = _shared("fixtures/official-rpr", "official_rpr.json")
 
 
 @pytest.fixture(scope="session")

@@ -390,8 +390,8 @@ def add_photo(request: Request, db: Session, user: User, aid: str, image: Upload
     ever had (``next_photo_index``); the same limits and errors as at creation. Shared by the API and the anchor's page."""
     lim = request.app.state.settings.limits
 
-    def locked_checks() -> tuple[Anchor, int, str]:
-        a = find_anchor(db, aid, lock=True)
+    def checks(lock: bool) -> tuple[Anchor, int, str]:
+        a = find_anchor(db, aid, lock=lock)
         _own_anchor(a, user, "add photos to it")
         rows = photo_rows(db, a.id)
         seq = next_photo_index(db, a.id, rows)
@@ -400,13 +400,13 @@ def add_photo(request: Request, db: Session, user: User, aid: str, image: Upload
             raise UploadError(413, f"{what}: anchor {a.id} already holds the limit of {lim.max_anchor_photos} photos")
         return a, seq, what
 
-    a, _, what = locked_checks()
+    a, _, what = checks(lock=False)
     method = a.method
     # Decode (up to 16 MB) outside any transaction: on SQLite every transaction holds the database's write lock.
     db.commit()
     up = photo_upload(lim, what, image, fx, fy, cx, cy, depth, pose)
     _runnable(method, [up], [what])
-    a, seq, what = locked_checks()  # again, locked: the anchor may have changed (or gone) while decoding
+    a, seq, what = checks(lock=True)  # again, locked: the anchor may have changed (or gone) while decoding
     check_quota(db, request.app.state.settings, a.user_id, up.nbytes, "this photo")
     db.add_all(_photo_rows_of(a.id, [up], seq))
     db.commit()
