@@ -26,7 +26,7 @@ __all__ = [
 
 #: Matchers whose presets exist; ``OFFLINE_MATCHERS`` run without downloading weights.
 MATCHERS = ("sift", "xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "loftr",
-            "superpoint-lightglue")
+            "superpoint-lightglue", "superglue", "superglue-indoor", "efficientloftr")
 OFFLINE_MATCHERS = MATCHERS[:6]
 #: Solver token in a preset name -> solver registry name.
 SOLVERS = {"emat": "essential", "essential": "essential", "pnp": "pnp", "procrustes": "procrustes"}

@@ -49,6 +49,22 @@ def _loftr(kind: str) -> Callable[..., Matcher]:
     return make
 
 
+def _superglue(kind: str) -> Callable[..., Matcher]:
+    def make(**o: object) -> Matcher:
+        from .superglue import SuperGlueMatcher
+
+        o.setdefault("weights_kind", kind)
+        return SuperGlueMatcher(**o)
+
+    return make
+
+
+def _efficientloftr(**o: object) -> Matcher:
+    from .efficientloftr import EfficientLoFTRMatcher
+
+    return EfficientLoFTRMatcher(**o)
+
+
 _REGISTRY: dict[str, Callable[..., Matcher]] = {
     "sift": _sift,
     "xfeat": _xfeat("sparse"),
@@ -60,6 +76,9 @@ _REGISTRY: dict[str, Callable[..., Matcher]] = {
     "loftr": _loftr("outdoor"),
     "loftr-outdoor": _loftr("outdoor"),
     "loftr-indoor": _loftr("indoor"),
+    "superglue": _superglue("outdoor"),
+    "superglue-indoor": _superglue("indoor"),
+    "efficientloftr": _efficientloftr,
 }
 
 
@@ -98,4 +117,10 @@ def available() -> list[str]:
         out += ["loftr", "loftr-outdoor"]
     if loftr_weights_available("indoor"):
         out.append("loftr-indoor")
+    from .efficientloftr import efficientloftr_available
+    from .superglue import superglue_available
+
+    out += [n for n, kind in (("superglue", "outdoor"), ("superglue-indoor", "indoor")) if superglue_available(kind)]
+    if efficientloftr_available():
+        out.append("efficientloftr")
     return out
