@@ -108,7 +108,7 @@ class EfficientLoFTRMatcher:
 
         def configure(cfg: EfficientLoFTRConfig) -> None:
             if o.match_threshold is not None:
-                cfg.coarse_matching_threshold = o.match_threshold
+                cfg.coarse_matching_threshold = float(o.match_threshold)  # a strict dataclass field
 
         self.net = load_hub_model(EfficientLoFTRForKeypointMatching, EfficientLoFTRConfig, EFFICIENTLOFTR_MODEL,
                                   o.weights, configure).to(self.device)

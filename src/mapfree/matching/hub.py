@@ -74,12 +74,16 @@ def _missing(hm: HubModel, explicit: str | os.PathLike | None, why: str) -> Miss
         where = f"the folder given as weights= ({explicit})"
     else:
         where = f"${WEIGHTS_ENV}/{hm.folder}" + (f" ({Path(env).expanduser() / hm.folder})" if env else "")
-        where += " or the Hugging Face cache"
+        where += ", or into the Hugging Face cache"
     return MissingWeightsError(
         f"{hm.what}: model '{hm.repo_id}' not found ({why}). Place its folder (config.json, model.safetensors; "
         f"`huggingface-cli download {hm.repo_id} --local-dir DIR` on a machine with internet) as {where}. "
         f"It is published at {hm.url}" + (f" ({hm.licence})." if hm.licence else ".")
     )
+
+
+class _OptionError(ValueError):
+    """A matcher option the model's config refuses (reported as such, not as a bad model folder)."""
 
 
 def load_hub_model(
@@ -106,7 +110,10 @@ def load_hub_model(
         if config.model_type != config_cls.model_type:
             raise ValueError(f"its config.json is a '{config.model_type}' model, not '{config_cls.model_type}'")
         if configure is not None:
-            configure(config)
+            try:
+                configure(config)
+            except (TypeError, ValueError) as e:
+                raise _OptionError(f"{hm.what}: an option has a value of the wrong type ({e})") from None
         net, info = model_cls.from_pretrained(src, config=config, local_files_only=local_only,
                                               output_loading_info=True)
         # transformers fills missing weights with random ones and only warns: refuse such a folder instead
@@ -114,6 +121,8 @@ def load_hub_model(
         if bad:
             raise ValueError(f"{len(bad)} weights missing or of the wrong shape, e.g. {bad[0]}")
         return net.eval()
+    except _OptionError:
+        raise
     except (OSError, ValueError, TypeError, RuntimeError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         if isinstance(e, RuntimeError):  # transformers' refusal of mismatched sizes says only that

@@ -68,10 +68,12 @@ class SuperGlueMatcher:
         self.device = resolve_device(o.device)
 
         def configure(cfg: SuperGlueConfig) -> None:
-            cfg.sinkhorn_iterations = o.sinkhorn_iterations
-            cfg.matching_threshold = o.match_threshold
+            # the configs are strict dataclasses: an int where a float belongs (e.g. from YAML "0") is refused
+            cfg.sinkhorn_iterations = int(o.sinkhorn_iterations)
+            cfg.matching_threshold = float(o.match_threshold)
             sp = cfg.keypoint_detector_config
-            sp.max_keypoints, sp.keypoint_threshold, sp.nms_radius = o.max_keypoints, o.keypoint_threshold, o.nms_radius
+            sp.max_keypoints, sp.nms_radius = int(o.max_keypoints), int(o.nms_radius)
+            sp.keypoint_threshold = float(o.keypoint_threshold)
 
         net = load_hub_model(SuperGlueForKeypointMatching, SuperGlueConfig, SUPERGLUE_MODELS[o.weights_kind],
                              o.weights, configure)
