@@ -297,3 +297,21 @@ def test_a_folder_with_weights_of_the_wrong_shape_is_refused(weights_dir, tmp_pa
     (bad / "config.json").write_text(json.dumps(cfg))
     with pytest.raises(ValueError, match="superglue_outdoor.*wrong shape"):
         M.create("superglue", weights=str(bad), device="cpu")
+
+
+@pytest.mark.parametrize("name, folder", [("superglue", "superglue_outdoor"), ("efficientloftr", "efficientloftr")])
+def test_batched_path_equals_one_pair_at_a_time(name, folder, weights_dir, realmini):
+    from mapfree.relocalize import Relocalizer
+    from mapfree.relocalize.batched import BatchOptions
+
+    scene = Dataset(realmini).scene("val", "s00000")
+    loc = Relocalizer(name, "files:sensor", "pnp", matcher_opts={"device": "cpu", "match_threshold": 0.0,
+                                                                 "weights": str(weights_dir / folder)})
+    anchor = loc.prepare(scene.reference)
+    queries = scene.queries[3:5]
+    one = [loc.localize(q, anchor) for q in queries]
+    many = list(loc.localize_batched(queries, anchor, BatchOptions(batch_size=2, decode_workers=1, solve_workers=1)))
+    for a, b in zip(one, many, strict=True):
+        assert a.ok == b.ok and a.reason == b.reason and a.inliers == b.inliers
+        if a.ok:
+            np.testing.assert_allclose(a.pose.t, b.pose.t, atol=1e-9)

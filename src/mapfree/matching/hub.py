@@ -97,7 +97,8 @@ def load_hub_model(
         if explicit is not None:
             raise _missing(hm, explicit, f"{explicit} holds no config.json")
         if not _reachable(hm.url):
-            why = f"${OFFLINE_ENV} is set" if os.environ.get(OFFLINE_ENV) else "offline: huggingface.co unreachable"
+            flag = next((v for v in (OFFLINE_ENV, "HF_HUB_OFFLINE") if os.environ.get(v)), None)
+            why = f"${flag} is set" if flag else "offline: huggingface.co unreachable"
             raise _missing(hm, None, why)
     from transformers.utils import logging as hf_logging
 
