@@ -80,6 +80,8 @@ def refine(fine0: torch.Tensor, fine1: torch.Tensor, kp0: torch.Tensor, kp1: tor
     conf = (sim.softmax(1) * sim.softmax(2)).reshape(m, ww, w + 2, w + 2)[..., 1:-1, 1:-1].reshape(m, ww * ww)
     best = conf.argmax(1)
     l, r = best // ww, best % ww
+    # Window pixel m sits at m - W/2 + 0.5 from the coarse point (8 x cell): the frame the published models were
+    # trained in (their fine-level ground truth is built on the same grid), so the output is in image pixels.
     offsets = torch.arange(w, device=fine0.device, dtype=kp0.dtype) - w // 2 + 0.5
     kp0 = kp0 + torch.stack([offsets[l % w], offsets[l // w]], -1) * step
     kp1 = kp1 + torch.stack([offsets[r % w], offsets[r // w]], -1) * step
