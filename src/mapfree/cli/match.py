@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     except TypeError as e:  # an option the matcher's options dataclass does not have
         print(f"mapfree match: error: option not accepted by matcher {args.matcher!r}: {e}", file=sys.stderr)
         return 2
-    except (FormatError, MissingWeightsError, KeyError, ValueError) as e:
+    except (FormatError, MissingWeightsError, KeyError, ValueError, ImportError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree match: error: {msg}", file=sys.stderr)
         return 2

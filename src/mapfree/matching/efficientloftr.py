@@ -11,7 +11,7 @@ along the wrong axis, so every match gets the window's first offset instead of i
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -19,7 +19,7 @@ import torch.nn.functional as F
 
 from .attention import steady_kernels
 from .base import Features, Matches
-from .hub import HubModel, find_hub_model, grey_pixels, load_hub_model
+from .hub import HubModel, find_hub_model, grey_pixels, load_hub_model, transformers_classes
 from .utils import autocast, checked_or_blank, inside, resolve_device, to_original
 
 __all__ = ["EfficientLoFTROptions", "EfficientLoFTRMatcher", "EFFICIENTLOFTR_MODEL", "efficientloftr_available",
@@ -103,12 +103,13 @@ class EfficientLoFTRMatcher:
     name = "efficientloftr"
 
     def __init__(self, options: EfficientLoFTROptions | None = None, **overrides: object) -> None:
-        from transformers import EfficientLoFTRConfig, EfficientLoFTRForKeypointMatching
+        EfficientLoFTRConfig, EfficientLoFTRForKeypointMatching = transformers_classes(
+            "EfficientLoFTRConfig", "EfficientLoFTRForKeypointMatching")
 
         self.options = o = options or EfficientLoFTROptions(**overrides)  # type: ignore[arg-type]
         self.device = resolve_device(o.device)
 
-        def configure(cfg: EfficientLoFTRConfig) -> None:
+        def configure(cfg: Any) -> None:
             if o.match_threshold is not None:
                 cfg.coarse_matching_threshold = float(o.match_threshold)  # a strict dataclass field
 

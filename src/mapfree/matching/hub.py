@@ -19,7 +19,7 @@ import torch
 from .utils import matching_size
 from .weights import OFFLINE_ENV, WEIGHTS_ENV, MissingWeightsError, _reachable
 
-__all__ = ["HubModel", "find_hub_model", "load_hub_model", "grey_pixels", "GREY_WEIGHTS"]
+__all__ = ["HubModel", "find_hub_model", "load_hub_model", "transformers_classes", "grey_pixels", "GREY_WEIGHTS"]
 
 #: The transformers image processors' grey conversion (NTSC weights on the [0,1] RGB values).
 GREY_WEIGHTS = (0.2989, 0.5870, 0.1140)
@@ -80,6 +80,17 @@ def _missing(hm: HubModel, explicit: str | os.PathLike | None, why: str) -> Miss
         f"`huggingface-cli download {hm.repo_id} --local-dir DIR` on a machine with internet) as {where}. "
         f"It is published at {hm.url}" + (f" ({hm.licence})." if hm.licence else ".")
     )
+
+
+def transformers_classes(*names: str) -> tuple[Any, ...]:
+    """Classes of the installed transformers; an older release without them is an ImportError saying so."""
+    import transformers
+
+    missing = [n for n in names if not hasattr(transformers, n)]
+    if missing:
+        raise ImportError(f"transformers {transformers.__version__} has no {', '.join(missing)}: "
+                          f"pip install -U transformers")
+    return tuple(getattr(transformers, n) for n in names)
 
 
 class _OptionError(ValueError):

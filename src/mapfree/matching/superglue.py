@@ -8,14 +8,14 @@ SuperGlue graph network and Sinkhorn on the pair. Defaults are the paper's: 1024
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
 
 from .attention import steady_kernels
 from .base import Features, Matches
-from .hub import HubModel, find_hub_model, grey_pixels, load_hub_model
+from .hub import HubModel, find_hub_model, grey_pixels, load_hub_model, transformers_classes
 from .utils import autocast, checked_or_blank, resolve_device, to_original
 
 __all__ = ["SuperGlueOptions", "SuperGlueMatcher", "SUPERGLUE_MODELS", "superglue_available"]
@@ -59,7 +59,8 @@ class SuperGlueMatcher:
     """``superglue`` (outdoor weights) / ``superglue-indoor``."""
 
     def __init__(self, options: SuperGlueOptions | None = None, **overrides: object) -> None:
-        from transformers import SuperGlueConfig, SuperGlueForKeypointMatching
+        SuperGlueConfig, SuperGlueForKeypointMatching = transformers_classes("SuperGlueConfig",
+                                                                            "SuperGlueForKeypointMatching")
 
         self.options = o = options or SuperGlueOptions(**overrides)  # type: ignore[arg-type]
         if o.weights_kind not in SUPERGLUE_MODELS:
@@ -67,7 +68,7 @@ class SuperGlueMatcher:
         self.name = "superglue" if o.weights_kind == "outdoor" else f"superglue-{o.weights_kind}"
         self.device = resolve_device(o.device)
 
-        def configure(cfg: SuperGlueConfig) -> None:
+        def configure(cfg: Any) -> None:
             # the configs are strict dataclasses: an int where a float belongs (e.g. from YAML "0") is refused
             cfg.sinkhorn_iterations = int(o.sinkhorn_iterations)
             cfg.matching_threshold = float(o.match_threshold)
