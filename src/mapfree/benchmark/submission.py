@@ -196,18 +196,6 @@ def _parse_file(scene: str, data: bytes, compat: str, problems: _Problems, line0
     return table.names(), table.keys, vals, bad, table.line_numbers + line0, len(table)
 
 
-def _check_rows(
-    scene: str,
-    est: SceneEstimates,
-    bad: np.ndarray | None,
-    compat: str,
-    known: Collection[str] | None,
-    problems: _Problems,
-) -> SceneEstimates:
-    """Drop (and report) rows a scorer must not use; resolve duplicates as the mode says."""
-    return _drop_duplicates(scene, _validate_rows(scene, est, bad, compat, known, problems), compat, problems, {})
-
-
 def _validate_rows(
     scene: str,
     est: SceneEstimates,
@@ -486,7 +474,8 @@ def from_estimates(
             conf = np.array([float(c) for _, _, c in rows], dtype=np.float64)
             est = SceneEstimates([n for n, _, _ in rows], q, t, conf, np.zeros(len(rows), dtype=np.int64))
         known = expected.get(scene) if expected is not None else None
-        out[scene] = _check_rows(scene, est, None, compat, known, problems)
+        out[scene] = _drop_duplicates(scene, _validate_rows(scene, est, None, compat, known, problems), compat,
+                                      problems, {})
     return out, problems.finish()
 
 
