@@ -12,7 +12,6 @@ import io
 import os
 import re
 import struct
-import tempfile
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -510,6 +509,8 @@ def write_submission(
             q, t = pose.qt()
             lines.append(name + " " + " ".join(repr(float(v)) for v in (*q, *t, conf)) + "\n")
         files[f"pose_{scene}.txt"] = "".join(lines)
+    import tempfile
+
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".part", dir=path.parent)
     try:
