@@ -1,5 +1,8 @@
-"""Load test of `mapfree serve` on loopback (bounded), in three phases, one table:
+"""Load test of `mapfree serve` on loopback (bounded), in phases, one table:
 
+0. memory: three of those 38 MB submissions uploaded at once, then evaluated; the peak RSS (sampled every 20 ms)
+   of the API process and of each worker process, separately, against their idle RSS: the workers parse the
+   pose text piece by piece, so their growth stays a small multiple of the ZIP's size.
 1. uploads: three streams each uploading a 38 MB submission (3 x 60 MB of pose lines each, within every limit)
    three times back to back (``--upload-rounds``), while the API process's memory (RSS, sampled every 20 ms)
    and `/health` latency (a dedicated client process polling every 10 ms, from the first upload to the last
@@ -10,7 +13,7 @@
 3. `localize` latency and throughput under 8 concurrent clients, against in-process localization.
 
     python bench/bench_service.py [--db postgresql://...] [--submissions 200] [--clients 20] [--workers 4]
-                                  [--phases uploads,submissions,localize] [--upload-rounds 3]
+                                  [--phases memory,uploads,submissions,localize] [--upload-rounds 3]
 """
 
 from __future__ import annotations
@@ -149,6 +152,71 @@ def upload_pressure(url: str, api_pid: int, tokens: list[str], payload: bytes, r
             "uploads": results, "window": t_end - t_start}
 
 
+def worker_pids(serve_pid: int) -> list[int]:
+    """The evaluation worker processes `mapfree serve` started (its children running mapfree.service.worker)."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        try:
+            if d.name.isdigit() and int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == serve_pid \
+                    and b"mapfree.service.worker" in (d / "cmdline").read_bytes():
+                pids.append(int(d.name))
+        except (OSError, ValueError, IndexError):
+            continue
+    return sorted(pids)
+
+
+def upload_memory(url: str, api_pid: int, tokens: list[str], payload: bytes, sessions, deadline: float) -> dict:
+    """Three uploads of ``payload`` at once, then their evaluation: peak RSS of the API process and of every
+    worker process, sampled every 20 ms from before the uploads until the workers have parsed and scored them."""
+    from sqlalchemy import func, select
+
+    from mapfree.service.db import Submission
+
+    workers = worker_pids(api_pid)
+    pids = [api_pid, *workers]
+    idle = {p: rss_mb(p) for p in pids}
+    peak = dict(idle)
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            for p in pids:
+                try:
+                    peak[p] = max(peak[p], rss_mb(p))
+                except (OSError, StopIteration):
+                    pass
+            done.wait(0.02)
+
+    def upload(token: str):
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=300) as c:
+            r = c.post("/api/submissions", files={"file": ("big.zip", payload)}, data={"split": "val", "name": "mem"})
+            return r.status_code, r.json().get("id")
+
+    sampler = threading.Thread(target=sample)
+    sampler.start()
+    t0 = time.perf_counter()
+    try:
+        with ThreadPoolExecutor(3) as ex:
+            results = list(ex.map(upload, tokens[:3]))
+        ids = [i for code, i in results if code == 202]
+        while time.time() < deadline:
+            with sessions() as db:
+                left = db.scalar(select(func.count()).select_from(Submission).where(
+                    Submission.id.in_(ids), Submission.status.in_(("queued", "running"))))
+            if not left:
+                break
+            time.sleep(0.2)
+    finally:
+        done.set()
+        sampler.join()
+    with sessions() as db:
+        statuses = [db.get(Submission, i).status for i in ids]
+    return {"codes": [c for c, _ in results], "statuses": statuses, "wall": time.perf_counter() - t0,
+            "api_idle": idle[api_pid], "api_peak": peak[api_pid], "worker_idle": max(idle[p] for p in workers),
+            "worker_peak": max(peak[p] for p in workers), "workers": len(workers),
+            "worker_peaks": sorted(peak[p] for p in workers)}
+
+
 def pct(xs, q) -> float:
     return float(np.percentile(np.asarray(xs) * 1000, q)) if xs else float("nan")
 
@@ -164,7 +232,7 @@ def main() -> int:
     ap.add_argument("--upload-rounds", type=int, default=3, help="uploads of the big ZIP per stream (3 streams)")
     ap.add_argument("--health-interval", type=float, default=0.01, help="seconds between /health polls")
     ap.add_argument("--timeout", type=float, default=420.0, help="give up after this many seconds")
-    ap.add_argument("--phases", default="uploads,submissions,localize", help="which phases to run")
+    ap.add_argument("--phases", default="memory,uploads,submissions,localize", help="which phases to run")
     a = ap.parse_args()
     phases = set(a.phases.split(","))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -190,7 +258,7 @@ def main() -> int:
     with S.begin() as db:
         for i in range(a.clients):
             tokens.append(auth.create_user(db, f"client{i}")[1])
-    big = big_submission([f"s{460 + i:05d}" for i in range(3)]) if "uploads" in phases else b""
+    big = big_submission([f"s{460 + i:05d}" for i in range(3)]) if phases & {"uploads", "memory"} else b""
     port = free_port()
     log = open(tmp / "serve.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "mapfree", "serve", "--db", db_url, "--data", str(tmp / "data"),
@@ -210,6 +278,9 @@ def main() -> int:
             time.sleep(0.3)
 
         lock = threading.Lock()
+        mem = None
+        if "memory" in phases:  # first: the workers' RSS before it is their start-up RSS
+            mem = upload_memory(url, proc.pid, tokens, big, S, deadline)
         # ---------------------------------------------------------------- three 38 MB uploads at once
         up = None
         if "uploads" in phases:
@@ -353,6 +424,18 @@ def main() -> int:
         engine.dispose()
 
     rows = []
+    if mem is not None:
+        rows += [
+            (f"memory: 3 uploads of {len(big) / 1e6:.0f} MB at once, then parsed", f"{mem['wall']:.1f} s",
+             f"status {sorted(mem['codes'])}; " + ", ".join(f"{s} x {mem['statuses'].count(s)}"
+                                                             for s in sorted(set(mem["statuses"])))),
+            ("API process RSS idle / peak (MB)", f"{mem['api_idle']:.0f} / {mem['api_peak']:.0f}", ""),
+            (f"worker RSS idle / peak, largest of {mem['workers']} (MB)",
+             f"{mem['worker_idle']:.0f} / {mem['worker_peak']:.0f}",
+             f"peaks {', '.join(f'{x:.0f}' for x in mem['worker_peaks'])}; growth "
+             f"{(mem['worker_peak'] - mem['worker_idle']) / (len(big) / 2**20):.2f}x the ZIP"),
+        ]
+        ok = ok and all(c == 202 for c in mem["codes"]) and set(mem["statuses"]) == {"done"}
     if up is not None:
         h, ih = up["health"], up["idle_health"]
         codes = sorted(c for c, _, _ in up["uploads"])
