@@ -21,7 +21,7 @@ __all__ = [
     "Method", "MATCHERS", "OFFLINE_MATCHERS", "SOLVERS", "DEPTH_ALIASES", "BEST_OFFLINE", "BEST_OFFLINE_REFERENCE_DEPTH",
     "PAPER_THRESHOLD_PX",
     "get", "list_methods", "register", "register_kind", "factory", "parse_name", "preset_name", "load_yaml",
-    "config_dirs",
+    "config_dirs", "check_options",
 ]
 
 #: Matchers whose presets exist; ``OFFLINE_MATCHERS`` run without downloading weights.
@@ -175,7 +175,25 @@ def load_yaml(path: os.PathLike | str) -> Method:
         data["depth"] = _depth_spec(str(data["depth"]))
     merged.update(data)
     merged["name"] = data.get("name", path.stem)
-    return Method(**merged)
+    method = Method(**merged)
+    check_options(method, where=str(path))
+    return method
+
+
+def check_options(method: Method, where: str = "") -> None:
+    """Refuse a matcher or solver option the component does not have (a misspelt key would otherwise surface as a
+    TypeError when the method is built, or as every frame of a run failing), suggesting the nearest known one."""
+    if method.kind != "matching":
+        return
+    from . import matching, solvers
+
+    for key, component, known in (("matcher_opts", method.matcher, matching.option_names(method.matcher)),
+                                  ("solver_opts", method.solver, solvers.option_names(method.solver))):
+        for opt in sorted(set(getattr(method, key)) - set(known)):
+            close = difflib.get_close_matches(opt, known, n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise ValueError(f"{where or method.name}: unknown option {key}.{opt} for {component!r}: {hint}"
+                             f"known: {', '.join(sorted(known))}")
 
 
 def _yaml_named(name: str) -> Path | None:

@@ -178,7 +178,12 @@ def read_image(path: os.PathLike | str) -> np.ndarray:
     data = np.fromfile(str(path), dtype=np.uint8) if Path(path).is_file() else None
     if data is None:
         raise FormatError(path, None, "image file not found")
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    if data.size == 0:
+        raise FormatError(path, None, "image file is empty (0 bytes)")
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    except cv2.error:  # OpenCV asserts on some truncated headers instead of returning None
+        img = None
     if img is None:
         raise FormatError(path, None, "cannot decode image (corrupt or unsupported format)")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)

@@ -294,8 +294,7 @@ def run_split(
     ds = Dataset(root)
     scene_list = ds.scenes(split)
     if scenes:
-        wanted = set(scenes)
-        scene_list = [s for s in scene_list if s.name in wanted]
+        scene_list = _pick_scenes(scene_list, scenes, split)
     done = {(r["scene"], r["frame"]) for r in recs}
     todo: list[tuple[Scene, list[str]]] = []
     for s in scene_list:
@@ -331,6 +330,23 @@ def run_split(
     return RunResult(output, jpath, failures_path(output), computed=total, skipped=len(done), estimated=estimated,
                      failed=failed, seconds=time.perf_counter() - t_start, scenes=len(scene_list),
                      timings=timing_sums)
+
+
+def _pick_scenes(scene_list: list[Scene], names: Sequence[str], split: str) -> list[Scene]:
+    """The scenes named, in split order; a name the split does not hold is refused (with the nearest ones)."""
+    import difflib
+
+    have = [s.name for s in scene_list]
+    unknown = [n for n in dict.fromkeys(names) if n not in have]
+    if unknown:
+        hints = []
+        for n in unknown:
+            close = difflib.get_close_matches(n, have, n=2, cutoff=0.6)
+            hints.append(f"{n} (did you mean {' or '.join(close)}?)" if close else n)
+        raise ValueError(f"the {split} split has no scene {', '.join(hints)}; it holds {len(have)} scene(s)"
+                         + (f": {', '.join(have[:8])}{' …' if len(have) > 8 else ''}" if have else ""))
+    wanted = set(names)
+    return [s for s in scene_list if s.name in wanted]
 
 
 @contextmanager

@@ -1,0 +1,81 @@
+"""What a newcomer's first hour ran into: each defect and friction item, reproduced on small synthetic or real data,
+with the clear error (naming the file, the option, the flag) or the honest exit status it now gets."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from mapfree.data import FormatError, read_image
+from mapfree.relocalize import run_split
+
+SYNTH_ARGS = ["--size", "240x320", "--no-mono", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory) -> Path:
+    """A small synthetic val split: two scenes of 10 queries, sensor depth (suffix ``sensor``)."""
+    from mapfree.cli import main
+
+    root = tmp_path_factory.mktemp("synth")
+    assert main(["synth", str(root), "--split", "val", "--scenes", "2", "--queries", "10", *SYNTH_ARGS]) == 0
+    return root
+
+
+# --------------------------------------------------------------------------- defect 1: 0-byte / corrupt image
+
+
+@pytest.mark.parametrize("content", [b"", b"\xff\xd8\xff\xe0 truncated"])
+def test_empty_or_corrupt_image_names_the_file(tmp_path, content):
+    bad = tmp_path / "empty.jpg"
+    bad.write_bytes(content)
+    with pytest.raises(FormatError, match="empty.jpg"):
+        read_image(bad)
+
+
+def test_empty_image_in_a_dataset_fails_with_its_name(synth, tmp_path):
+    import shutil
+
+    root = tmp_path / "data"
+    shutil.copytree(synth / "val" / "s00000", root / "val" / "s00000")
+    (root / "val" / "s00000" / "seq1" / "frame_00005.jpg").write_bytes(b"")
+    res = run_split(root, "val", "sift_pnp_sensor", tmp_path / "sub.zip", progress=False)
+    failures = [json.loads(x) for x in res.failures.read_text().splitlines()]
+    reason = next(f["reason"] for f in failures if f["frame"] == "seq1/frame_00005.jpg")
+    assert "frame_00005.jpg" in reason and "empty" in reason and "buf.empty" not in reason
+
+
+# --------------------------------------------------------------------------- defect 2: misspelt option in a YAML
+
+
+def test_misspelt_yaml_option_names_the_file_and_suggests(synth, tmp_path):
+    cfg = tmp_path / "typo.yaml"
+    cfg.write_text("extends: sift_emat_sensor\nmatcher_opts: {max_featurs: 1000}\n")
+    with pytest.raises(ValueError, match=r"typo\.yaml.*max_featurs.*did you mean 'max_features'"):
+        run_split(synth, "val", str(cfg), tmp_path / "sub.zip", progress=False)
+    assert not (tmp_path / "sub.journal.jsonl").exists()  # refused before any work
+    cfg.write_text("extends: sift_emat_sensor\nsolver_opts: {ransac_treshold_px: 2}\n")
+    with pytest.raises(ValueError, match=r"solver_opts\.ransac_treshold_px.*'ransac_threshold_px'"):
+        run_split(synth, "val", str(cfg), tmp_path / "sub.zip", progress=False)
+
+
+def test_shipped_method_configs_pass_the_option_check():
+    from mapfree.methods import config_dirs, get
+
+    files = [p for d in config_dirs() for p in d.glob("*.yaml")]
+    assert files
+    for p in files:
+        get(str(p))
+
+
+# --------------------------------------------------------------------------- defect 4: unknown scene names
+
+
+def test_unknown_scene_names_are_refused_with_suggestions(synth, tmp_path):
+    with pytest.raises(ValueError, match=r"no scene s0009 \(did you mean s0000"):
+        run_split(synth, "val", "sift_pnp_sensor", tmp_path / "a.zip", scenes=["s00001", "s0009"], progress=False)
+    assert not (tmp_path / "a.zip").exists()
+    res = run_split(synth, "val", "sift_pnp_sensor", tmp_path / "b.zip", scenes=["s00001"], progress=False)
+    assert res.scenes == 1
