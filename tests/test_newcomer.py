@@ -79,3 +79,33 @@ def test_unknown_scene_names_are_refused_with_suggestions(synth, tmp_path):
     assert not (tmp_path / "a.zip").exists()
     res = run_split(synth, "val", "sift_pnp_sensor", tmp_path / "b.zip", scenes=["s00001"], progress=False)
     assert res.scenes == 1
+
+
+# --------------------------------------------------------------------------- defect 6: resume after the data changed
+
+
+def test_resume_recomputes_a_scene_whose_data_changed(synth, tmp_path):
+    import shutil
+
+    from mapfree.data import Dataset, read_intrinsics, read_poses, write_intrinsics, write_poses
+    from mapfree.relocalize import read_journal
+
+    root = tmp_path / "data"
+    shutil.copytree(synth, root)
+    out = tmp_path / "sub.zip"
+    first = run_split(root, "val", "sift_pnp_sensor", out, all_frames=True, progress=False)
+    assert first.computed == 20 and first.stale_scenes == []
+    # s00001 "regenerated" with 5 queries fewer: its journaled frames no longer describe it.
+    scene = root / "val" / "s00001"
+    poses, intr = read_poses(scene / "poses.txt"), read_intrinsics(scene / "intrinsics.txt")
+    write_poses(scene / "poses.txt", poses.names[:6], [poses.pose(i) for i in range(6)])
+    write_intrinsics(scene / "intrinsics.txt", {n: intr[n] for n in poses.names[:6]})
+    again = run_split(root, "val", "sift_pnp_sensor", out, all_frames=True, resume=True, progress=False)
+    assert again.stale_scenes == ["s00001"]
+    assert again.skipped == 10 and again.computed == 5  # s00000 kept, s00001 recomputed on its new frames
+    frames = {(r["scene"], r["frame"]) for r in read_journal(again.journal)[1]}
+    now = {("s00001", f.name) for f in Dataset(root).scene("val", "s00001").queries}
+    assert {f for f in frames if f[0] == "s00001"} == now and len(frames) == 15
+    # Nothing changed since: a plain resume recomputes nothing.
+    third = run_split(root, "val", "sift_pnp_sensor", out, all_frames=True, resume=True, progress=False)
+    assert third.computed == 0 and third.skipped == 15 and third.stale_scenes == []

@@ -7,7 +7,9 @@ there. The submission ZIP and the failure log (``submission.failures.jsonl``) ar
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 import multiprocessing as mp
 import os
 import signal
@@ -26,7 +28,9 @@ from ..estimate import Estimate
 from ..geometry import Pose
 from .references import bind_scene_references
 
-__all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
+log = logging.getLogger(__name__)
+
+__all__ = ["RunResult", "scene_fingerprint", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
 
 JOURNAL_VERSION = 1
 
@@ -59,6 +63,7 @@ class RunResult:
     seconds: float = 0.0
     scenes: int = 0
     timings: dict[str, float] = field(default_factory=dict)
+    stale_scenes: list[str] = field(default_factory=list)  # resumed scenes whose data changed: recomputed
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in self.__dict__.items()}
@@ -123,6 +128,43 @@ def _repair_tail(path: Path) -> None:
     if data and not data.endswith(b"\n"):
         with open(path, "r+b") as f:
             f.truncate(data.rfind(b"\n") + 1)
+
+
+def scene_fingerprint(scene_dir: os.PathLike | str) -> str:
+    """What a scene's data looked like: a hash of its text files' bytes and of every other file's name, size and
+    modification time (images and depth maps are not read). A resumed run recomputes a scene whose print changed."""
+    h = hashlib.sha1()
+    root = Path(scene_dir)
+    for p in sorted(root.rglob("*")):
+        if not p.is_file():
+            continue
+        rel = p.relative_to(root).as_posix()
+        if p.suffix == ".txt":
+            h.update(f"{rel}\0".encode() + p.read_bytes() + b"\0")
+        else:
+            st = p.stat()
+            h.update(f"{rel}\0{st.st_size}\0{st.st_mtime_ns}\0".encode())
+    return h.hexdigest()
+
+
+def _drop_stale(jpath: Path, header: dict | None, recs: list[dict],
+                fingerprints: dict[str, str]) -> tuple[list[dict], list[str]]:
+    """Journal records of scenes whose data is unchanged since they were computed, and the names of those that
+    changed (or have no recorded print: a journal of an older version), whose records are dropped."""
+    known = (header or {}).get("data", {})
+    stale = sorted({r["scene"] for r in recs if r["scene"] in fingerprints
+                    and known.get(r["scene"]) != fingerprints[r["scene"]]})
+    if stale:
+        log.warning("%s: the data of %d scene(s) changed since they were journaled (%s): recomputing them",
+                    jpath, len(stale), ", ".join(stale))
+    return [r for r in recs if r["scene"] not in stale], stale
+
+
+def _rewrite_journal(jpath: Path, header: dict, recs: list[dict]) -> None:
+    """Replace the journal by ``header`` + ``recs`` (atomically: a kill meanwhile leaves the old one)."""
+    tmp = jpath.with_name(jpath.name + ".tmp")
+    tmp.write_text("".join(json.dumps(r, allow_nan=False) + "\n" for r in [header, *recs]))
+    os.replace(tmp, jpath)
 
 
 def _same_method(a: dict, b: dict) -> bool:
@@ -295,6 +337,10 @@ def run_split(
     scene_list = ds.scenes(split)
     if scenes:
         scene_list = _pick_scenes(scene_list, scenes, split)
+    fingerprints = {s.name: scene_fingerprint(s.path) for s in scene_list}
+    stale: list[str] = []
+    if not fresh:
+        recs, stale = _drop_stale(jpath, header, recs, fingerprints)
     done = {(r["scene"], r["frame"]) for r in recs}
     todo: list[tuple[Scene, list[str]]] = []
     for s in scene_list:
@@ -306,9 +352,11 @@ def run_split(
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
     if fresh:
         jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
-                                     "root": str(root), "split": split, "all_frames": all_frames}) + "\n")
+                                     "root": str(root), "split": split, "all_frames": all_frames,
+                                     "data": fingerprints}) + "\n")
     else:
         _repair_tail(jpath)
+        _rewrite_journal(jpath, {**header, "data": {**header.get("data", {}), **fingerprints}}, recs)
     total = sum(len(f) for _, f in todo)
     bar = _progress(total, len(done), progress, m.name)
     md = m.to_dict()
@@ -329,7 +377,7 @@ def run_split(
             timing_sums[k] = timing_sums.get(k, 0.0) + v
     return RunResult(output, jpath, failures_path(output), computed=total, skipped=len(done), estimated=estimated,
                      failed=failed, seconds=time.perf_counter() - t_start, scenes=len(scene_list),
-                     timings=timing_sums)
+                     timings=timing_sums, stale_scenes=stale)
 
 
 def _pick_scenes(scene_list: list[Scene], names: Sequence[str], split: str) -> list[Scene]:
