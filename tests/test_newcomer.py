@@ -109,3 +109,20 @@ def test_resume_recomputes_a_scene_whose_data_changed(synth, tmp_path):
     # Nothing changed since: a plain resume recomputes nothing.
     third = run_split(root, "val", "sift_pnp_sensor", out, all_frames=True, resume=True, progress=False)
     assert third.computed == 0 and third.skipped == 15 and third.stale_scenes == []
+
+
+# --------------------------------------------------------------------------- defect 7: a depth network not available offline
+
+
+def test_unavailable_depth_network_is_refused_before_any_work(synth, tmp_path, monkeypatch):
+    from mapfree.depth.hf import MissingModelError
+
+    monkeypatch.setenv("MAPFREE_OFFLINE", "1")
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "empty-cache"))  # nothing cached
+    import huggingface_hub.constants as hc
+
+    monkeypatch.setattr(hc, "HF_HUB_CACHE", str(tmp_path / "empty-cache"))
+    out = tmp_path / "sub.zip"
+    with pytest.raises(MissingModelError, match="huggingface-cli download"):
+        run_split(synth, "val", "sift_pnp_dav2-indoor", out, progress=False)
+    assert not out.exists() and not (tmp_path / "sub.journal.jsonl").exists()

@@ -30,7 +30,7 @@ from .references import bind_scene_references
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunResult", "scene_fingerprint", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
+__all__ = ["RunResult", "scene_fingerprint", "check_available", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
 
 JOURNAL_VERSION = 1
 
@@ -349,6 +349,8 @@ def run_split(
         if names:
             todo.append((s, names))
     _check_depth_files(m, scene_list, split)
+    if todo:
+        check_available(m)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
     if fresh:
         jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
@@ -408,6 +410,16 @@ def _sigint_ignored() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, old)
+
+
+def check_available(m: Any) -> None:
+    """Build ``m`` here (kept for this process's frames) and check its depth network can be loaded: weights or a
+    model that are neither on this machine nor downloadable are one clear error before any work, not a run in
+    which every frame fails."""
+    loc = _localizer(m.to_dict())
+    check = getattr(getattr(loc, "depth_source", None), "check_available", None)
+    if check is not None:
+        check()
 
 
 def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
