@@ -195,3 +195,95 @@ def test_estimate_prints_in_one_short_line():
     assert "\n" not in text and len(text) < 120, text
     assert "90.00 deg" in text and "1.500" in text and "inliers 140" in text
     assert str(Estimate.failure("no depth for the query image")) == "Estimate(no estimate: no depth for the query image)"
+
+
+# --------------------------------------------------------------------------- --references K beyond the mapping frames
+
+
+def test_more_references_than_mapping_frames_is_refused_up_front(synth, tmp_path):
+    from mapfree.relocalize.references import with_references
+
+    out = tmp_path / "k10.zip"
+    with pytest.raises(ValueError, match=r"--references 10 needs 10 posed seq0.*s00000 \(1\), s00001 \(1\)"):
+        run_split(synth, "val", with_references("sift_pnp_sensor", 10), out, progress=False)
+    with pytest.raises(ValueError, match=r"triangulation needs 2 posed seq0"):
+        run_split(synth, "val", with_references("sift_emat_none", 2, "triangulation"), out, progress=False)
+    assert not out.exists() and not (tmp_path / "k10.journal.jsonl").exists()
+
+
+# --------------------------------------------------------------------------- mapfree run: exit codes, output, --viz
+
+
+def test_run_exit_codes_summary_table_and_viz(synth, tmp_path, capsys):
+    from mapfree.cli import main
+
+    out, viz = tmp_path / "sub.zip", tmp_path / "viz"
+    rc = main(["run", str(synth), "--method", "sift_pnp_sensor", "-o", str(out), "--no-progress", "--evaluate",
+               "--viz", str(viz)])
+    res = capsys.readouterr()
+    assert rc == 0, res.err
+    assert res.out.startswith(f"wrote {out}: ") and "AUC @ VCRE < 90px" in res.out  # evaluate's table, not JSON
+    figs = sorted(p.relative_to(viz).as_posix() for p in viz.rglob("*.png"))
+    assert figs == [f"{s}/seq1_frame_{i:05d}.png" for s in ("s00000", "s00001") for i in (0, 5)], figs
+    import cv2
+
+    img = cv2.imread(str(viz / "s00000" / "seq1_frame_00005.png"))
+    assert img.shape[:2] == (2 * 320 + 6, 2 * 240)  # matches above the AR check, reference | query in each
+    # --json: the summary and the scores as JSON.
+    assert main(["run", str(synth), "--method", "sift_pnp_sensor", "-o", str(out), "--no-progress", "--resume",
+                 "--evaluate", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["skipped"] == 4 and "AUC @ VCRE < 90px" in data["metrics"]
+
+
+def test_run_exit_3_when_nothing_or_not_everything_is_estimated(synth, tmp_path, capsys):
+    import shutil
+
+    from mapfree.cli import main
+
+    root = tmp_path / "data"
+    shutil.copytree(synth, root)
+    for p in (root / "val" / "s00001" / "seq1").glob("*.sensor.png"):
+        p.unlink()  # s00001's queries lose their depth: Procrustes cannot solve them
+    args = ["run", str(root), "--method", "sift_procrustes_sensor", "--no-progress"]
+    assert main([*args, "-o", str(tmp_path / "a.zip")]) == 0  # s00000 estimated
+    assert main([*args, "-o", str(tmp_path / "b.zip"), "--strict"]) == 3
+    assert "2 frame(s) without an estimate" in capsys.readouterr().err
+    assert main([*args, "-o", str(tmp_path / "c.zip"), "--scenes", "s00001"]) == 3
+    err = capsys.readouterr().err
+    assert "no frame got an estimate" in err and "c.failures.jsonl" in err
+    assert (tmp_path / "c.zip").is_file()  # the (empty) submission is still written
+
+
+def test_run_cli_errors_are_exit_1_with_one_line(synth, tmp_path, capsys):
+    from mapfree.cli import main
+
+    base = ["run", str(synth), "--method", "sift_pnp_sensor", "--no-progress", "-o", str(tmp_path / "x.zip")]
+    assert main([*base, "--scenes", "s0009"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapfree run: error: the val split has no scene s0009") and "Traceback" not in err
+    assert main([*base, "--references", "3"]) == 1
+    assert "--references 3 needs 3 posed seq0" in capsys.readouterr().err
+    (tmp_path / "afile").write_text("")
+    assert main([*base, "--viz", str(tmp_path / "afile")]) == 1
+    assert "not a folder" in capsys.readouterr().err
+    assert main([*base]) == 0
+    capsys.readouterr()
+    assert main([*base]) == 1  # the journal holds results: the message names the flags, not Python
+    err = capsys.readouterr().err
+    assert "--resume" in err and "--overwrite" in err and "resume=True (" not in err
+
+
+def test_every_method_in_the_run_help_exists():
+    """`mapfree run --help` showed `--method configs/methods/best-offline.yaml`, a file that did not exist."""
+    import re
+
+    from mapfree.cli import build_parser
+    from mapfree.methods import get
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction").choices
+    root = Path(__file__).resolve().parents[1]
+    for name in ("run", "relocalize"):
+        for method in re.findall(r"--method (\S+)", sub[name].format_help().split("examples:")[1]):
+            get(str(root / method) if method.endswith(".yaml") else method)

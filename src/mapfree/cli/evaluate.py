@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.dataset is None and args.gt_root is None:
         print("error: give --dataset (and/or --gt-root)", file=sys.stderr)
-        return 2
+        return 1
     try:
         report = evaluate(args.submission, args.dataset, args.split, compat=args.compat, gt_root=args.gt_root,
                           track=args.track)

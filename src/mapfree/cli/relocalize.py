@@ -162,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
     except (InputError, FormatError, FileNotFoundError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree relocalize: error: {msg}", file=sys.stderr)
-        return 2
+        return 1
 
     ref, query = views
     est = loc.relocalize(ref, query)
@@ -178,13 +178,11 @@ def run(args: argparse.Namespace) -> int:
                         "rotation_deg": float(rotation_angle_deg(est.pose.R, gt.R)),
                         "vcre_px": vcre_px(est.pose, gt, query.intrinsics)}
     if args.viz:
-        from ..matching.base import Matches
-        from ..viz import relocalization_figure, save_png
+        from ..viz import estimate_figure, save_png
 
-        m = est.extras.get("matches", Matches.empty())
         thr = float(method.solver_opts.get("ransac_threshold_px", 3.0))
-        fig = relocalization_figure(ref.image, query.image, ref.intrinsics, query.intrinsics, m.kpts0, m.kpts1,
-                                    est.pose, gt, threshold_px=thr, title=method.name, reason=est.reason)
+        fig = estimate_figure(ref.image, query.image, ref.intrinsics, query.intrinsics, est, gt, threshold_px=thr,
+                              title=method.name)
         out["viz"] = str(save_png(args.viz, fig))
     print(json.dumps(out, indent=2, allow_nan=False))
     return 0

@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     except (FileNotFoundError, FormatError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree scannet: error: {msg}", file=sys.stderr)
-        return 2
+        return 1
     nan_R, nan_t = np.full((3, 3), np.nan), np.full(3, np.nan)
     report = relpose_report(
         [p.name for p in pairs], [p.T_0to1.R for p in pairs], [p.T_0to1.t for p in pairs],

@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     except (FileNotFoundError, FormatError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree sevenscenes: error: {msg}", file=sys.stderr)
-        return 2
+        return 1
     print(write_reports(reports, args.out, plots=not args.no_plots))
     return 0
 

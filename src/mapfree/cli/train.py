@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         from ..regression.train import TrainerOptions, fit, resolve_config
     except ImportError as e:
         print(f"mapfree train needs the training extra (pip install 'mapfree[train]'): {e}", file=sys.stderr)
-        return 2
+        return 1
     try:
         path = resolve_config(args.config)
         cfg = load_config(path)
@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         cfg = apply_overrides(cfg, overrides) if overrides else cfg
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
-        return 2
+        return 1
     lvb = args.limit_val_batches
     opts = TrainerOptions(
         accelerator=args.accelerator, devices=args.devices, num_nodes=args.num_nodes, strategy=args.strategy,
@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
         trainer, _ = fit(cfg, out, opts, resume=args.resume)
     except (FileNotFoundError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
-        return 2
+        return 1
     ck = trainer.checkpoint_callback
     if trainer.is_global_zero:
         best = getattr(ck, "best_model_path", "") or "none yet: no validation ran, use last.ckpt"

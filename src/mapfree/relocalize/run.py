@@ -26,11 +26,11 @@ import numpy as np
 from ..data import REFERENCE_NAME, Dataset, Scene
 from ..estimate import Estimate
 from ..geometry import Pose
-from .references import bind_scene_references
+from .references import bind_scene_references, check_scene_references
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunResult", "scene_fingerprint", "check_available", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
+__all__ = ["RunResult", "scene_fingerprint", "check_available", "frame_figure_path", "write_frame_figure", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
 
 JOURNAL_VERSION = 1
 
@@ -195,7 +195,8 @@ def _localizer(method_dict: dict) -> Any:
 
 
 def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: str,
-               on_frame: Callable[[dict], None] | None = None, batch_size: int | None = None) -> int:
+               on_frame: Callable[[dict], None] | None = None, batch_size: int | None = None,
+               viz_dir: str | None = None) -> int:
     """Relocalize ``frames`` of one scene against its reference, appending each result to the journal."""
     if _stopping():  # a scene already handed to this worker when the parent asked to stop: not started
         return 0
@@ -219,10 +220,40 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
         world = est.pose @ ref_pose if est.pose is not None else None
         rec = _record(scene.name, name, est, world)
         _append(journal_p, [rec])
+        if viz_dir is not None:
+            write_frame_figure(Path(viz_dir), scene, name, est, world, method_dict)
         on_frame and on_frame(rec)
         if _stopping():  # asked to stop: the frame in flight is journaled, no more
             break
     return len(frames)
+
+
+def frame_figure_path(viz_dir: os.PathLike | str, scene: str, frame: str) -> Path:
+    """``VIZ/s00000/seq1_frame_00005.png``: where ``run --viz VIZ`` draws a frame."""
+    return Path(viz_dir) / scene / (frame.replace("/", "_").rsplit(".", 1)[0] + ".png")
+
+
+def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, world: Pose | None,
+                       method_dict: dict) -> Path | None:
+    """Draw one frame's figure (matches + AR check against the scene's reference image, ground truth when the
+    split has it) for ``run --viz``. Methods that relocalize against other references than the scene's (``--references
+    K``) get the AR check alone: their matches are with another image. A figure that cannot be drawn is logged."""
+    from ..viz import estimate_figure, save_png
+
+    try:
+        ref, query = scene.reference, scene.frame(frame)
+        ref_pose = ref.pose if ref.pose is not None else Pose.identity()
+        rel = world @ ref_pose.inverse() if world is not None else None
+        gt = query.pose @ ref_pose.inverse() if query.pose is not None and ref.pose is not None else None
+        extras = {} if (method_dict.get("options") or {}).get("references") else est.extras
+        shown = Estimate(rel, est.confidence, est.inliers, est.reason, extras=extras)
+        thr = float((method_dict.get("solver_opts") or {}).get("ransac_threshold_px", 3.0))
+        fig = estimate_figure(ref.image(), query.image(), ref.intrinsics, query.intrinsics, shown, gt,
+                              threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
+        return save_png(frame_figure_path(viz_dir, scene.name, frame), fig)
+    except Exception as e:  # a figure is a by-product: the frame's result is journaled already
+        log.warning("no figure for %s %s: %s", scene.name, frame, e)
+        return None
 
 
 def _stopping() -> bool:
@@ -306,6 +337,7 @@ def run_split(
     progress: bool = True,
     select: Callable[[Scene], list[str]] | None = None,
     batch_size: int | None = None,
+    viz_dir: os.PathLike | str | None = None,
 ) -> RunResult:
     """Relocalize every (scored) query of ``split`` and write a submission ZIP at ``output``.
 
@@ -313,7 +345,8 @@ def run_split(
     as the submission confidence instead of the method's own. With ``resume`` the journal's frames are kept.
     ``select`` (optional) names the frames to run in a scene instead (the multi-frame track's bursts).
     ``batch_size``: queries per device pass of the batched pipeline (0: one pair at a time; ``None``: 16 when
-    the matcher runs on a GPU, else 0).
+    the matcher runs on a GPU, else 0). ``viz_dir``: draw each frame computed by this call there
+    (``frame_figure_path``: matches + AR check).
     """
     from ..methods import Method, get
 
@@ -324,8 +357,8 @@ def run_split(
     jpath = journal_path(output)
     header, recs = read_journal(jpath)
     if recs and not resume and not overwrite:
-        raise FileExistsError(f"{jpath} already holds {len(recs)} results: pass resume=True (--resume) to "
-                              f"continue that run or overwrite=True (--overwrite) to start again")
+        raise FileExistsError(f"{jpath} already holds {len(recs)} results: run again with --resume to continue "
+                              f"that run or --overwrite to start again (in Python: resume=True, overwrite=True)")
     if resume and header is not None and not _same_method(header["method"], m.to_dict()):
         raise ValueError(f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
                          f"use another output path or --overwrite")
@@ -349,6 +382,7 @@ def run_split(
         if names:
             todo.append((s, names))
     _check_depth_files(m, scene_list, split)
+    check_scene_references(scene_list, m.to_dict())
     if todo:
         check_available(m)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
@@ -362,13 +396,14 @@ def run_split(
     total = sum(len(f) for _, f in todo)
     bar = _progress(total, len(done), progress, m.name)
     md = m.to_dict()
+    viz = str(viz_dir) if viz_dir is not None else None
     try:
         if workers <= 1 or len(todo) <= 1:
             for s, names in todo:
                 _run_scene(md, str(s.path), names, str(jpath), on_frame=lambda r: bar.update(1),
-                           batch_size=batch_size)
+                           batch_size=batch_size, viz_dir=viz)
         else:
-            _run_parallel(md, todo, jpath, workers, bar, batch_size)
+            _run_parallel(md, todo, jpath, workers, bar, batch_size, viz)
     finally:
         bar.close()
     _, recs = read_journal(jpath)
@@ -438,7 +473,8 @@ def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
                      f"{', '.join(found) or 'none'} (pick one with NAME@SUFFIX or the method's last part)")
 
 
-def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, batch_size: int | None = None) -> None:
+def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, batch_size: int | None = None,
+                  viz_dir: str | None = None) -> None:
     threads = max(1, (os.cpu_count() or 1) // workers)
     offset = jpath.stat().st_size
     ctx = mp.get_context("spawn")  # torch and OpenCV threads do not survive fork reliably
@@ -449,7 +485,7 @@ def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, bat
         # spawned here, while Ctrl-C is ignored: they inherit that, so one pressed while a worker still imports
         # (seconds, before ``_init_worker``) no longer prints a KeyboardInterrupt traceback from it.
         with _sigint_ignored():
-            futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size)
+            futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size, viz_dir)
                        for s, names in sorted(todo, key=lambda x: -len(x[1]))]
         pending = set(futures)
         try:
