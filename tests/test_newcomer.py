@@ -287,3 +287,57 @@ def test_every_method_in_the_run_help_exists():
     for name in ("run", "relocalize"):
         for method in re.findall(r"--method (\S+)", sub[name].format_help().split("examples:")[1]):
             get(str(root / method) if method.endswith(".yaml") else method)
+
+
+# --------------------------------------------------------------------------- mapfree relocalize
+
+
+def test_relocalize_bad_inputs_are_one_line_and_no_estimate_is_exit_3(synth, tmp_path, capfd):
+    from mapfree.cli import main
+
+    scene = synth / "val" / "s00000"
+    ref, q = str(scene / "seq0/frame_00000.jpg"), str(scene / "seq1/frame_00005.jpg")
+    empty = tmp_path / "empty.jpg"
+    empty.write_bytes(b"")
+    K = "200,200,120,160"
+    assert main(["relocalize", ref, str(empty), "--method", "sift_pnp_sensor", "--K-ref", K, "--K-query", K]) == 1
+    err = capfd.readouterr().err
+    assert f"{empty}: image file is empty" in err and "Traceback" not in err and "buf.empty" not in err
+    assert main(["relocalize", ref, q, "--method", "sift_pnp_sensor", "--intrinsics", "nosuch.txt"]) == 1
+    assert "intrinsics file nosuch.txt not found" in capfd.readouterr().err
+    cfg = tmp_path / "typo.yaml"
+    cfg.write_text("extends: sift_emat_sensor\nmatcher_opts: {max_featurs: 1000}\n")
+    assert main(["relocalize", ref, q, "--method", str(cfg)]) == 1
+    err = capfd.readouterr().err
+    assert "typo.yaml" in err and "max_featurs" in err and "Traceback" not in err
+    # A missing depth map: our one line, without OpenCV's "[ WARN ] can't open/read file" before it.
+    assert main(["relocalize", ref, q, "--method", "sift_pnp_sensor", "--depth-ref", str(tmp_path / "no.png")]) == 1
+    err = capfd.readouterr().err
+    assert err.strip() == f"mapfree relocalize: error: {tmp_path / 'no.png'}: depth image not found", err
+    # Ran, but no estimate (the query is the reference image): exit 3, the JSON says why.
+    assert main(["relocalize", ref, ref, "--method", "sift_pnp_sensor"]) == 3
+    res = capfd.readouterr()
+    assert json.loads(res.out)["ok"] is False and "no estimate" in res.err
+    assert main(["relocalize", ref, q, "--method", "sift_pnp_sensor"]) == 0
+
+
+def test_figure_of_a_method_without_matches_has_no_matches_panel(synth):
+    """A regression method (RPR) has no correspondences: its --viz showed an empty "0 matches" panel."""
+    from mapfree.data import Dataset
+    from mapfree.estimate import Estimate
+    from mapfree.viz import estimate_figure
+
+    scene = Dataset(synth).scene("val", "s00000")
+    ref, q = scene.reference, scene.queries[5]
+    rel = q.pose @ ref.pose.inverse()
+    args = (ref.image(), q.image(), ref.intrinsics, q.intrinsics)
+    h, w = ref.image().shape[:2]
+    regression = estimate_figure(*args, Estimate(rel, 1.0), rel, title="rpr")
+    assert regression.shape[:2] == (h, 2 * w)  # the AR check alone
+    from mapfree.matching.base import Matches
+
+    import numpy as np
+
+    k = np.array([[10.0, 10.0], [50.0, 60.0]])
+    matched = estimate_figure(*args, Estimate(rel, 1.0, extras={"matches": Matches(k, k + 1, np.ones(2))}), rel)
+    assert matched.shape[:2] == (2 * h + 6, 2 * w)

@@ -12,6 +12,7 @@ from ..method_names import BEST_OFFLINE
 DESCRIPTION = """\
 Estimate the metric 6-DoF pose of QUERY relative to REF (X_query = R X_ref + t) and print it as JSON
 (pose, confidence, inliers, per-stage timings, or the reason there is no estimate).
+Exit status: 0 pose estimated, 1 error, 3 no estimate (the JSON says why).
 
 Intrinsics come from --K-ref/--K-query, from --intrinsics (a Map-free intrinsics.txt), or, for images
 inside a Map-free scene folder, from that scene's intrinsics.txt. Depth comes from --depth-ref/--depth-query
@@ -98,6 +99,8 @@ def _intrinsics(args, image: Path, flag: str | None, optional: bool = False, wha
         if fx <= 0 or fy <= 0:
             raise InputError(f"{what}: focal lengths must be positive")
         return Intrinsics(fx, fy, cx, cy, w, h)
+    if args.intrinsics is not None and not args.intrinsics.is_file():
+        raise InputError(f"intrinsics file {args.intrinsics} not found")
     source = args.intrinsics or _scene_dir(image) / "intrinsics.txt"
     if not source.is_file():
         raise InputError(f"no intrinsics for {image}: pass --K-ref/--K-query or --intrinsics FILE")
@@ -132,6 +135,7 @@ def run(args: argparse.Namespace) -> int:
     from ..data import FormatError, check_depth_size, read_depth
     from ..methods import get
     from ..relocalize import Relocalizer, as_view
+    from . import EXIT_ERROR, EXIT_NOTHING
 
     try:
         if args.checkpoint is not None:
@@ -159,10 +163,13 @@ def run(args: argparse.Namespace) -> int:
             views.append(v)
         gt = _gt_pose(args)
         loc = Relocalizer.from_method(method)
+        check = getattr(getattr(loc, "depth_source", None), "check_available", None)
+        if check is not None and (args.depth_ref is None or args.depth_query is None):
+            check()  # a depth network that cannot be loaded: one clear error, not a "no estimate"
     except (InputError, FormatError, FileNotFoundError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree relocalize: error: {msg}", file=sys.stderr)
-        return 1
+        return EXIT_ERROR
 
     ref, query = views
     est = loc.relocalize(ref, query)
@@ -185,4 +192,7 @@ def run(args: argparse.Namespace) -> int:
                               title=method.name)
         out["viz"] = str(save_png(args.viz, fig))
     print(json.dumps(out, indent=2, allow_nan=False))
+    if est.pose is None:
+        print(f"mapfree relocalize: no estimate: {est.reason}", file=sys.stderr)
+        return EXIT_NOTHING
     return 0
