@@ -341,3 +341,72 @@ def test_figure_of_a_method_without_matches_has_no_matches_panel(synth):
     k = np.array([[10.0, 10.0], [50.0, 60.0]])
     matched = estimate_figure(*args, Estimate(rel, 1.0, extras={"matches": Matches(k, k + 1, np.ones(2))}), rel)
     assert matched.shape[:2] == (2 * h + 6, 2 * w)
+
+
+# --------------------------------------------------------------------------- mapfree evaluate
+
+
+@pytest.fixture(scope="module")
+def run_with_viz(synth, tmp_path_factory):
+    """A run of the synthetic split with its figures (``run --viz``)."""
+    from mapfree.cli import main
+
+    d = tmp_path_factory.mktemp("runviz")
+    assert main(["run", str(synth), "--method", "sift_pnp_sensor", "-o", str(d / "sub.zip"), "--no-progress",
+                 "--viz", str(d / "viz")]) == 0
+    return d
+
+
+def _embedded_pngs(page: str) -> list[bytes]:
+    import base64
+    import re
+
+    return [base64.b64decode(b) for b in re.findall(r'src="data:image/png;base64,([^"]+)"', page)]
+
+
+def test_evaluate_html_report_is_self_contained(synth, run_with_viz, tmp_path, capsys):
+    import re
+
+    from mapfree.cli import main
+
+    sub, viz = run_with_viz / "sub.zip", run_with_viz / "viz"
+    page_path = tmp_path / "out" / "report.html"
+    assert main(["evaluate", str(sub), "--dataset", str(synth), "--html", str(page_path), "--viz", str(viz)]) == 0
+    page = page_path.read_text()
+    assert "AUC @ VCRE &lt; 90px" in page and "s00000" in page and "s00001" in page  # tables
+    assert not re.search(r'(src|href)="(?!data:)', page)  # nothing fetched from elsewhere
+    pngs = _embedded_pngs(page)
+    assert len(pngs) == 3 + 4 and all(p.startswith(b"\x89PNG") for p in pngs)  # 3 plots, 4 scored frames
+    # The worst frames' pictures are the run's own figures (matches + AR check), byte for byte.
+    figs = {p.read_bytes() for p in viz.rglob("*.png")}
+    assert set(pngs[3:]) == figs
+    # Without the run's figures, the AR check is drawn from the dataset's images.
+    assert main(["evaluate", str(sub), "--dataset", str(synth), "--html", str(tmp_path / "r2.html")]) == 0
+    pngs2 = _embedded_pngs((tmp_path / "r2.html").read_text())
+    assert len(pngs2) == 7 and not set(pngs2[3:]) & figs
+    capsys.readouterr()
+
+
+def test_evaluate_exit_codes_plots_file_and_track_mixup(synth, run_with_viz, tmp_path, capsys):
+    from mapfree.benchmark import write_submission
+    from mapfree.cli import main
+
+    sub = run_with_viz / "sub.zip"
+    base = ["evaluate", str(sub), "--dataset", str(synth)]
+    (tmp_path / "afile").write_text("")
+    assert main([*base, "--plots", str(tmp_path / "afile")]) == 1
+    err = capsys.readouterr().err
+    assert err.strip() == f"mapfree evaluate: error: --plots {tmp_path / 'afile'}: not a folder (it names a file)"
+    assert main([*base, "--strict"]) == 0  # every scored frame estimated, no problem
+    capsys.readouterr()
+    write_submission(tmp_path / "empty.zip", {})
+    assert main(["evaluate", str(tmp_path / "empty.zip"), "--dataset", str(synth)]) == 3
+    assert "no scored frame has an estimate" in capsys.readouterr().err
+    # A multi-frame submission scored on the single-frame track: said, not silent zeros.
+    multi = tmp_path / "multi.zip"
+    assert main(["run", str(synth), "--track", "multi", "--method", "sift_pnp_sensor", "-o", str(multi),
+                 "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", str(multi), "--dataset", str(synth)]) == 3
+    assert "score it with --track multi" in capsys.readouterr().err
+    assert main(["evaluate", str(multi), "--dataset", str(synth), "--track", "multi"]) == 0

@@ -18,7 +18,7 @@ from .geometry import Intrinsics, Pose, project
 
 __all__ = [
     "vcre_grid", "epipolar_inliers", "draw_matches", "draw_grid", "ar_panels", "relocalization_figure", "save_png",
-    "vcre_px", "estimate_figure",
+    "vcre_px", "estimate_figure", "png_bytes",
 ]
 
 GREEN, RED, ORANGE, CYAN, WHITE = (40, 200, 60), (230, 40, 40), (255, 150, 0), (0, 200, 255), (255, 255, 255)
@@ -160,6 +160,14 @@ def relocalization_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Int
     w = max(top.shape[1], bottom.shape[1])
     pad = lambda im: np.pad(im, ((0, 0), (0, w - im.shape[1]), (0, 0)))  # noqa: E731
     return np.concatenate([pad(top), np.full((6, w, 3), 255, np.uint8), pad(bottom)], axis=0)
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """An RGB image encoded as PNG (to embed in a page)."""
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError("could not encode the image as PNG")
+    return buf.tobytes()
 
 
 def save_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:

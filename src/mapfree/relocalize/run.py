@@ -23,6 +23,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
+from ..benchmark.html import frame_figure_path
 from ..data import REFERENCE_NAME, Dataset, Scene
 from ..estimate import Estimate
 from ..geometry import Pose
@@ -226,11 +227,6 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
         if _stopping():  # asked to stop: the frame in flight is journaled, no more
             break
     return len(frames)
-
-
-def frame_figure_path(viz_dir: os.PathLike | str, scene: str, frame: str) -> Path:
-    """``VIZ/s00000/seq1_frame_00005.png``: where ``run --viz VIZ`` draws a frame."""
-    return Path(viz_dir) / scene / (frame.replace("/", "_").rsplit(".", 1)[0] + ".png")
 
 
 def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, world: Pose | None,
