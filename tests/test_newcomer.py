@@ -410,3 +410,36 @@ def test_evaluate_exit_codes_plots_file_and_track_mixup(synth, run_with_viz, tmp
     assert main(["evaluate", str(multi), "--dataset", str(synth)]) == 3
     assert "score it with --track multi" in capsys.readouterr().err
     assert main(["evaluate", str(multi), "--dataset", str(synth), "--track", "multi"]) == 0
+
+
+# --------------------------------------------------------------------------- mapfree build
+
+
+def test_build_on_an_empty_folder_is_an_error(tmp_path, capsys):
+    from mapfree.cli import main
+
+    (tmp_path / "scans").mkdir()
+    assert main(["build", str(tmp_path / "scans"), "--out", str(tmp_path / "out"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapfree build: error:") and "no place folders" in err
+    assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------- mapfree train
+
+
+@pytest.mark.parametrize("argv", [["nosuch"], ["R6D_t_cpu_synth", "--set", "model.rotation=euler"],
+                                  ["R6D_t_cpu_synth", "--resume", "nosuch.ckpt"]])
+def test_train_argument_errors_come_before_lightning_is_imported(argv, tmp_path):
+    """A typo in `mapfree train`'s command line once waited for Lightning (seconds) and its banner lines."""
+    import os
+    import subprocess
+    import sys
+
+    probe = ("import sys\nfrom mapfree.cli import main\ncode = main(sys.argv[1:])\n"
+             "print('LOADED' if any(m in sys.modules for m in ('pytorch_lightning', 'lightning')) else 'CLEAN', code)")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
+    p = subprocess.run([sys.executable, "-c", probe, "train", *argv, "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True, env=env, timeout=120)
+    assert p.stdout.split() == ["CLEAN", "1"], (p.stdout, p.stderr)
+    assert p.stderr.startswith("mapfree train: error:") and "Traceback" not in p.stderr
