@@ -443,3 +443,48 @@ def test_train_argument_errors_come_before_lightning_is_imported(argv, tmp_path)
                        capture_output=True, text=True, env=env, timeout=120)
     assert p.stdout.split() == ["CLEAN", "1"], (p.stdout, p.stderr)
     assert p.stderr.startswith("mapfree train: error:") and "Traceback" not in p.stderr
+
+
+# --------------------------------------------------------------------------- depth-free PnP/Procrustes, best-offline
+
+
+def test_depth_free_pnp_and_procrustes_are_not_listed_and_refused_for_a_split(synth, tmp_path):
+    from mapfree.methods import list_methods
+
+    names = list_methods()
+    assert "sift_emat_none" in names and "sift_pnp_sensor" in names
+    assert not [n for n in names if n.endswith(("_pnp_none", "_procrustes_none"))]
+    for name in ("sift_pnp_none", "xfeat_procrustes_none"):
+        with pytest.raises(ValueError, match=r"no depth source.*needs a depth map.*_emat_none"):
+            run_split(synth, "val", name, tmp_path / "x.zip", progress=False)
+    assert not (tmp_path / "x.journal.jsonl").exists()
+
+
+def test_relocalize_default_method_falls_back_to_pnp_for_a_query_without_depth(synth, tmp_path, capsys):
+    """The default best-offline (Procrustes: depth at both images) on a query without a depth map: the PnP twin,
+    with the reference's metric depth, as the service answers a plain photo (was: no estimate)."""
+    import shutil
+
+    from mapfree.cli import main
+    from mapfree.data import Dataset
+
+    scene = Dataset(synth).scene("val", "s00000")
+    q = scene.queries[5]
+    bare = tmp_path / "photo.jpg"
+    shutil.copy(q.image_path, bare)  # no photo.sensor.png beside it
+    K = q.intrinsics
+    k = f"{K.fx},{K.fy},{K.cx},{K.cy}"
+    rc = main(["relocalize", str(scene.reference.image_path), str(bare), "--K-query", k,
+               "--K-ref", k])
+    res = capsys.readouterr()
+    assert rc == 0, res.err
+    out = json.loads(res.out)
+    assert out["ok"] and out["method"] == "best-offline+pnp" and "runs with PnP" in res.err
+    gt = q.pose @ scene.reference.pose.inverse()
+    import numpy as np
+
+    assert np.linalg.norm(np.array(out["center"]) - gt.center) < 0.1  # metric: the reference's depth
+    # PnP without any depth source and no map given: refused with the reason.
+    ref = str(scene.reference.image_path)
+    assert main(["relocalize", ref, str(q.image_path), "--method", "sift_pnp_none"]) == 1
+    assert "needs a depth map of the reference" in capsys.readouterr().err

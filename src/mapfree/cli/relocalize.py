@@ -129,6 +129,15 @@ def _gt_pose(args):
         raise InputError(f"--gt-pose: {e}") from None
 
 
+def _query_has_depth(method, args) -> bool:
+    """Whether the query will have a depth map: given, predicted by a network, or a ``files:`` map beside it."""
+    if args.depth_query is not None or method.kind != "matching" or not method.depth.startswith("files:"):
+        return True
+    from ..data.io import depth_path_for
+
+    return depth_path_for(args.query, method.depth.split(":", 1)[1]).is_file()
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -146,6 +155,17 @@ def run(args: argparse.Namespace) -> int:
             method = get(args.method)
         if args.depth:
             method = method.with_depth(args.depth)
+        from ..methods import depth_free_problem, query_depth_fallback
+
+        problem = depth_free_problem(method)
+        if problem and (args.depth_ref is None or (method.solver == "procrustes" and args.depth_query is None)):
+            raise InputError(f"{problem}; or pass the maps with --depth-ref/--depth-query")
+        if not _query_has_depth(method, args):
+            fallback = query_depth_fallback(method)
+            if fallback is not method:
+                print(f"mapfree relocalize: {args.query} has no depth map ({method.depth}): {method.name} runs with "
+                      f"PnP instead (reference depth only)", file=sys.stderr)
+                method = fallback
         for p in (args.reference, args.query):
             if not p.is_file():
                 raise InputError(f"{p}: image not found")

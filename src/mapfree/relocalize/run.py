@@ -377,6 +377,10 @@ def run_split(
         names = [f for f in wanted_frames if (s.name, f) not in done]
         if names:
             todo.append((s, names))
+    from ..methods import depth_free_problem
+
+    if depth_free_problem(m):  # a split's frames come without depth maps of their own: nothing could succeed
+        raise ValueError(depth_free_problem(m))
     _check_depth_files(m, scene_list, split)
     check_scene_references(scene_list, m.to_dict())
     if todo:
