@@ -64,4 +64,11 @@ def run(args: argparse.Namespace) -> int:
     (args.out / "table.txt").write_text(table)
     cumulative_error_figure(report).savefig(args.out / "pose_error_cdf.png")
     print(table)
+    if not any(e.ok for e in ests):
+        from . import EXIT_NOTHING
+
+        reasons = sorted({e.reason for e in ests if e.reason})
+        print(f"mapfree scannet: no pair got an estimate ({'; '.join(reasons[:3]) or 'no reason given'})",
+              file=sys.stderr)
+        return EXIT_NOTHING
     return 0

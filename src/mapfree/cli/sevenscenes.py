@@ -62,6 +62,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"mapfree sevenscenes: error: {msg}", file=sys.stderr)
         return 1
     print(write_reports(reports, args.out, plots=not args.no_plots))
+    if not any(r.estimated.any() for r in reports.values()):
+        from . import EXIT_NOTHING
+
+        print("mapfree sevenscenes: no frame got an estimate", file=sys.stderr)
+        return EXIT_NOTHING
     return 0
 
 
