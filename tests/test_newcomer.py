@@ -488,3 +488,24 @@ def test_relocalize_default_method_falls_back_to_pnp_for_a_query_without_depth(s
     ref = str(scene.reference.image_path)
     assert main(["relocalize", ref, str(q.image_path), "--method", "sift_pnp_none"]) == 1
     assert "needs a depth map of the reference" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- docs/reports.md
+
+
+def test_the_reports_page_example_runs_as_printed(tmp_path):
+    """The "Try it" block of docs/reports.md, run as a reader would, prints the statuses its comments say."""
+    import os
+    import re
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[1]
+    block = re.findall(r"```bash\n(.*?)```", (repo / "docs" / "reports.md").read_text(), re.S)[-1]
+    env = {**os.environ, "PYTHONPATH": str(repo / "src"), "PATH": f"{Path(sys.executable).parent}{os.pathsep}"
+           f"{os.environ['PATH']}"}
+    p = subprocess.run(["bash", "-c", block], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    lines = p.stdout.splitlines()
+    assert [ln for ln in lines if ln in ("0", "3")] == ["0", "3"], p.stdout + p.stderr
+    assert (tmp_path / "out" / "report.html").is_file() and (tmp_path / "out" / "none.zip").is_file()
+    assert "Traceback" not in p.stderr
