@@ -113,7 +113,12 @@ def _quiet_lightning() -> None:
     """Lightning's start-up lines (available accelerators, tips, the model summary's preamble) at INFO go away;
     its warnings stay."""
     import logging
+    import warnings
 
     for name in ("pytorch_lightning.utilities.rank_zero", "lightning.pytorch.utilities.rank_zero",
                  "pytorch_lightning.accelerators.cuda", "lightning.pytorch.accelerators.cuda"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    # Two warnings every run prints that ask nothing of the user: a deprecation inside Lightning itself, and
+    # the frozen pretrained encoder being (deliberately) in eval mode.
+    warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\)")
+    warnings.filterwarnings("ignore", message=r"Found \d+ module\(s\) in eval mode")
