@@ -509,3 +509,11 @@ def test_the_reports_page_example_runs_as_printed(tmp_path):
     assert [ln for ln in lines if ln in ("0", "3")] == ["0", "3"], p.stdout + p.stderr
     assert (tmp_path / "out" / "report.html").is_file() and (tmp_path / "out" / "none.zip").is_file()
     assert "Traceback" not in p.stderr
+
+
+def test_demo_with_a_bad_method_is_one_line_exit_1(tmp_path, capsys):
+    from mapfree.cli import main
+
+    assert main(["demo", "--out", str(tmp_path), "--method", "sift_pnp_sensr", "--scenes", "1", "--queries", "5"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mapfree demo: error:") and "sensr" in err
