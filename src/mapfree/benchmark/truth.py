@@ -218,6 +218,6 @@ def load_truth(
     if all(t.n_keys == 0 for t in out.values()):
         raise FormatError(
             root / split, None,
-            "no ground-truth poses (all-zero lines, as in the public test split): pass gt_root (--gt-root)"
+            "no ground-truth poses (all-zero lines, as in the public test split): pass the private ground truth with --gt-root DIR (in Python: gt_root=DIR)"
         )
     return out

@@ -19,6 +19,10 @@ class DefaultsHelpFormatter(HelpFormatter, argparse.ArgumentDefaultsHelpFormatte
     """``HelpFormatter`` that also prints every option's default."""
 
 
+#: Exit statuses of every command: results written; an error (a message on stderr says what); argparse's own
+#: usage errors; the command ran but estimated nothing (with ``--strict``: not everything).
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_NOTHING = 0, 1, 2, 3
+
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
 COMMANDS = ["demo", "synth", "evaluate", "relocalize", "match", "run", "train", "serve", "admin", "sevenscenes", "scannet", "build"]
 

@@ -13,7 +13,7 @@ from .base import Features, Matcher, Matches
 from .weights import WEIGHTS_ENV, MissingWeightsError
 
 __all__ = ["Features", "Matches", "Matcher", "MissingWeightsError", "WEIGHTS_ENV", "create", "available", "names",
-           "needs", "NEEDS"]
+           "needs", "NEEDS", "option_names"]
 
 
 def _sift(**o: object) -> Matcher:
@@ -120,6 +120,23 @@ def create(name: str, **options: object) -> Matcher:
     if key not in _REGISTRY:
         raise KeyError(f"unknown matcher {name!r}; available: {', '.join(_REGISTRY)}")
     return _REGISTRY[key](**options)
+
+
+_OPTIONS = {"sift": ("sift", "SIFTOptions"), "xfeat": ("xfeat", "XFeatOptions"),
+            "lightglue": ("lightglue", "LightGlueOptions"), "loftr": ("loftr", "LoFTROptions")}
+
+
+def option_names(name: str) -> list[str]:
+    """The options matcher ``name`` accepts (the fields of its options dataclass), to check a config early."""
+    import importlib
+    from dataclasses import fields
+
+    key = name.strip().lower().replace("_", "-")
+    if key not in _REGISTRY:
+        raise KeyError(f"unknown matcher {name!r}; available: {', '.join(_REGISTRY)}")
+    family = "lightglue" if key.endswith("-lightglue") else key.split("-")[0]
+    module, cls = _OPTIONS[family]
+    return [f.name for f in fields(getattr(importlib.import_module(f"{__name__}.{module}"), cls))]
 
 
 def available() -> list[str]:

@@ -92,9 +92,6 @@ class MethodUnavailable(UploadError):
         super().__init__(422, message)
 
 
-#: Solvers that lift the reference's pixels to 3D with its depth: without a depth map they give no pose at all,
-#: even in a method with no depth source ("none"), which then uses a depth map uploaded with the reference.
-_LIFTING_SOLVERS = ("pnp", "procrustes")
 
 
 def needs_reference_depth(method: Any, *, scale_free_too: bool) -> bool:
@@ -110,7 +107,9 @@ def needs_reference_depth(method: Any, *, scale_free_too: bool) -> bool:
     m = method if isinstance(method, methods.Method) else methods.get(method)
     if m.kind != "matching":
         return False
-    return m.depth.startswith("files:") or (scale_free_too and m.depth == "none" and m.solver in _LIFTING_SOLVERS)
+    # Without a depth map, PnP/Procrustes give no pose at all, even in a method with no depth source ("none"),
+    # which then uses a depth map uploaded with the reference.
+    return m.depth.startswith("files:") or (scale_free_too and m.depth == "none" and m.solver in methods.LIFTING_SOLVERS)
 
 
 def check_runnable(name: str, has_reference_depth: bool) -> None:
@@ -135,19 +134,13 @@ def _unavailable(name: str, e: Exception) -> MethodUnavailable:
     return MethodUnavailable(f"method {name} cannot run on this server: {msg}")
 
 
-#: Solvers that need a depth map of the query too; without one the service swaps in PnP (reference depth only).
-_QUERY_DEPTH_SOLVERS = ("essential", "procrustes")
-
-
 def effective_method(name: str, has_query_depth: bool):
     """The ``Method`` to run: ``name``, or its PnP twin when the query has no depth map but the method's solver
     would need one (so that the default preset answers for a plain photo, at the anchor's metric scale)."""
     from .. import methods
 
     m = methods.get(name)
-    if m.kind == "matching" and m.depth != "none" and not has_query_depth and m.solver in _QUERY_DEPTH_SOLVERS:
-        m = replace(m, solver="pnp", solver_opts={}, name=f"{m.name}+pnp")
-    return m
+    return m if has_query_depth else methods.query_depth_fallback(m)
 
 
 def intrinsics_of(d: dict) -> Intrinsics:
