@@ -84,24 +84,24 @@ def test_sift_file_holds_what_the_matcher_finds(images, tmp_path, capsys):
 
 def test_errors_are_one_line_naming_the_problem(images, tmp_path, capsys, monkeypatch):
     rc, _, err = run_match(capsys, *images, "--matcher", "superglu")
-    assert rc == 2 and "did you mean 'superglue'" in err
+    assert rc == 1 and "did you mean 'superglue'" in err
     bad = tmp_path / "broken.jpg"
     bad.write_bytes(b"not a jpeg")
     rc, _, err = run_match(capsys, images[0], bad)
-    assert rc == 2 and str(bad) in err and "decode" in err
+    assert rc == 1 and str(bad) in err and "decode" in err
     rc, _, err = run_match(capsys, images[0], tmp_path / "missing.png")
-    assert rc == 2 and "missing.png" in err
+    assert rc == 1 and "missing.png" in err
     rc, _, err = run_match(capsys, *images, "--option", "nonsense=1")
-    assert rc == 2 and "nonsense" in err and "sift" in err
+    assert rc == 1 and "nonsense" in err and "sift" in err
     rc, _, err = run_match(capsys, *images, "--option", "novalue")
-    assert rc == 2 and "KEY=VALUE" in err
+    assert rc == 1 and "KEY=VALUE" in err
     monkeypatch.setenv("MAPFREE_OFFLINE", "1")
     monkeypatch.setenv(M.WEIGHTS_ENV, str(tmp_path / "empty"))
     import huggingface_hub.constants as hf
 
     monkeypatch.setattr(hf, "HF_HUB_CACHE", str(tmp_path / "hf"))
     rc, _, err = run_match(capsys, *images, "--matcher", "efficientloftr")
-    assert rc == 2 and "zju-community/efficientloftr" in err and M.WEIGHTS_ENV in err
+    assert rc == 1 and "zju-community/efficientloftr" in err and M.WEIGHTS_ENV in err
     assert len(err.strip().splitlines()) == 1
 
 

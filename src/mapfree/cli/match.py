@@ -65,11 +65,11 @@ def run(args: argparse.Namespace) -> int:
         r = match_files(args.image0, args.image1, args.matcher, **_options(args))
     except TypeError as e:  # an option the matcher's options dataclass does not have
         print(f"mapfree match: error: option not accepted by matcher {args.matcher!r}: {e}", file=sys.stderr)
-        return 2
+        return 1
     except (FormatError, MissingWeightsError, KeyError, ValueError, ImportError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree match: error: {msg}", file=sys.stderr)
-        return 2
+        return 1
     where = []
     if args.output:
         where.append(str(save_npz(args.output, r)))
