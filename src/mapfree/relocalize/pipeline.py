@@ -21,6 +21,7 @@ import numpy as np
 
 from ..data import Frame, read_image
 from ..data.io import same_aspect
+from ..data.orientation import exif_orientation, fit_intrinsics, orient_pixels
 from ..estimate import Estimate
 from ..geometry import Intrinsics
 from ..matching.base import Features, Matcher, Matches
@@ -48,6 +49,8 @@ class View:
     depth: np.ndarray | None = None
     frame: Frame | None = None
     name: str = ""
+    #: EXIF orientation by which the frame's stored files (its intrinsics, depth maps) were turned upright.
+    orientation: int = 1
 
 
 ViewLike = Union[View, Frame, tuple]
@@ -79,14 +82,31 @@ def as_view(x: ViewLike) -> View:
     if isinstance(x, View):
         return x
     if isinstance(x, Frame):
-        return View(x.image(), x.intrinsics, None, x, x.name)
+        image = x.image()
+        K, _, turned = _upright(image, x.intrinsics, x.image_path, None)
+        return View(image, K, None, x, x.name, turned)
     if isinstance(x, tuple) and len(x) in (2, 3):
         image, path = _read_image_any(x[0])
-        K = _as_intrinsics(x[1], image)
         depth = None if len(x) == 2 or x[2] is None else np.asarray(x[2], dtype=np.float32)
-        frame = Frame(path.name, path, K) if path is not None else None
-        return View(image, K, depth, frame, path.name if path is not None else "")
+        K0 = _as_intrinsics(x[1], image)
+        K, depth, turned = _upright(image, K0, path, depth)
+        frame = Frame(path.name, path, K0) if path is not None else None  # its files keep the stored grid's K
+        return View(image, K, depth, frame, path.name if path is not None else "", turned)
     raise TypeError(f"expected a Frame, a View or (image, intrinsics[, depth]); got {type(x).__name__}")
+
+
+def _upright(image: np.ndarray, K: Intrinsics, path: Path | None,
+             depth: np.ndarray | None) -> tuple[Intrinsics, np.ndarray | None, int]:
+    """Intrinsics and depth for the upright pixels of an image file: given for its stored grid (a tagged phone
+    photo), they are turned with it. Returns them and the orientation applied to them (1: none)."""
+    o = exif_orientation(path) if path is not None else 1
+    if o == 1:
+        return K, depth, 1
+    h, w = image.shape[:2]
+    K2 = fit_intrinsics(K, w, h, o, str(path))
+    if K2 is K:
+        return K, depth, 1
+    return K2, (orient_pixels(depth, o) if depth is not None else None), o
 
 
 def _fit_depth(depth: np.ndarray | None, K: Intrinsics, owned: bool = False) -> np.ndarray | None:
@@ -222,7 +242,10 @@ class Relocalizer:
         if not self.metric:
             return None
         if view.frame is not None:
-            return _fit_depth(self.depth_source.depth(view.frame), view.intrinsics, owned=True)
+            d = self.depth_source.depth(view.frame)
+            if view.orientation != 1 and d is not None and getattr(self.depth_source, "reads_files", False):
+                d = orient_pixels(d, view.orientation)  # a stored map of a tagged photo: turned like its pixels
+            return _fit_depth(d, view.intrinsics, owned=True)
         if hasattr(self.depth_source, "predict"):  # a network: predict from the pixels themselves
             return _fit_depth(self.depth_source.predict([view.image], [view.intrinsics.fx])[0], view.intrinsics,
                               owned=True)

@@ -24,7 +24,8 @@ from .manage import own_submission, test_quota
 from .storage import check_quota, stored_bytes
 from .submissions import accept, to_json, visible_submission
 from .submissions import plot_png as render_plot
-from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics, parse_pose
+from .exif import clean_photo, depth_png, stored_shape, upright_depth, upright_intrinsics
+from .uploads import UploadError, check_name, decode_depth, decode_image, decode_photo, parse_intrinsics, parse_pose
 
 log = logging.getLogger("mapfree.api")
 router = APIRouter()
@@ -189,8 +190,10 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
             "created_at": a.created_at, "url": f"/anchors/{a.id}"}
 
 
-def _intr(fx, fy, cx, cy, img, what) -> dict:
-    return parse_intrinsics({"fx": fx, "fy": fy, "cx": cx, "cy": cy}, img.shape[1], img.shape[0], what)
+def _intr(fx, fy, cx, cy, img, what, orientation: int = 1) -> dict:
+    """Intrinsics the client gave for the photo's stored pixel grid, checked there, for the upright photo."""
+    h, w = stored_shape(img, orientation)
+    return upright_intrinsics(parse_intrinsics({"fx": fx, "fy": fy, "cx": cx, "cy": cy}, w, h, what), orientation)
 
 
 @dataclass
@@ -217,15 +220,18 @@ def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth
         img_bytes = read_upload(image, lim.max_image_bytes, "image")
         if img_bytes is None:
             raise UploadError(400, "image: no file uploaded")
-        img = decode_image(img_bytes, lim, "image")
-        intr = _intr(fx, fy, cx, cy, img, "intrinsics")
+        img, o = decode_photo(img_bytes, lim, "image")
+        intr = _intr(fx, fy, cx, cy, img, "intrinsics", o)
         depth_bytes = read_upload(depth, lim.max_image_bytes, "depth")
-        d = decode_depth(depth_bytes, lim, img.shape[:2]) if depth_bytes is not None else None
+        d = decode_depth(depth_bytes, lim, stored_shape(img, o)) if depth_bytes is not None else None
+        if d is not None and o != 1:  # stored upright, like its photo
+            d = upright_depth(d, o)
+            depth_bytes = depth_png(d)
         q = IDENTITY if pose is None else parse_pose(pose)
     except UploadError as e:
         raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
-    return PhotoUpload(img_bytes, intr, depth_bytes, q, Photo(img, intrinsics_of(intr), d,
-                                                              Pose.from_qt(q[:4], q[4:])))
+    return PhotoUpload(clean_photo(img_bytes, img), intr, depth_bytes, q,
+                       Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:])))
 
 
 def photo_name(i: int, f: UploadFile | None) -> str:
@@ -473,6 +479,7 @@ def anchor_photo_image(aid: str, k: int, request: Request, db: Session = Depends
     if data is None:
         raise HTTPException(404, f"anchor {a.id} has no photo {k}")
     kind = "image/png" if data.startswith(b"\x89PNG") else "image/jpeg"  # decoded as one of them at upload
+    data = clean_photo(data)  # rows stored before photos were cleaned at upload still hold their metadata
     return Response(data, media_type=kind, headers={"Cache-Control": "private, max-age=3600"})
 
 
@@ -528,11 +535,12 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     q_bytes = image.file.read(lim.max_image_bytes + 1)
     if len(q_bytes) > lim.max_image_bytes:
         raise UploadError(413, f"image: larger than the limit of {lim.max_image_bytes} bytes")
-    q_img = decode_image(q_bytes, lim, "image")
-    q_K = intrinsics_of(_intr(fx, fy, cx, cy, q_img, "intrinsics"))
+    q_img, o = decode_photo(q_bytes, lim, "image")
+    q_K = intrinsics_of(_intr(fx, fy, cx, cy, q_img, "intrinsics", o))
     q_depth = None
     if depth is not None and depth.filename:
-        q_depth = decode_depth(depth.file.read(lim.max_image_bytes + 1), lim, q_img.shape[:2])
+        q_depth = upright_depth(decode_depth(depth.file.read(lim.max_image_bytes + 1), lim,
+                                             stored_shape(q_img, o)), o)
     out = estimate_json(localize_anchor(request, a, rows, q_img, q_K, q_depth), a.method)
     out["anchor"] = a.id
     return out

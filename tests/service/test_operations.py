@@ -1,0 +1,114 @@
+"""What an operator and a privacy-minded user expect of the service: photos stored without EXIF and turned
+upright, health without internals, metrics, the database URL off the command line, interrupted uploads refunded,
+migrations, backups, tokens. Real app, real database, real photos (realmini-dev)."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from mapfree.data import Dataset
+from mapfree.data.orientation import orient_intrinsics, orient_pixels
+
+from .test_hardening import make_app  # noqa: F401 (fixture)
+
+METHOD = "sift_pnp_sensor"
+QUERY = "seq1/frame_00010.jpg"
+
+
+@pytest.fixture(scope="module")
+def scene(realmini_dir):
+    return Dataset(realmini_dir).scene("val", "s00000")
+
+
+def _form(K) -> dict:
+    return {"fx": str(K.fx), "fy": str(K.fy), "cx": str(K.cx), "cy": str(K.cy)}
+
+
+def _tagged_jpeg(rgb: np.ndarray, orientation: int = 1, serial: str = "SN-0042-SECRET") -> bytes:
+    """A JPEG with the metadata a phone writes: orientation, GPS position and the camera's serial number."""
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    exif[0x010F] = "PhoneMaker"
+    exif.get_ifd(0x8769)[0xA431] = serial  # BodySerialNumber
+    exif.get_ifd(0x8825).update({1: "N", 2: (51.0, 30.0, 12.5), 3: "W", 4: (0.0, 7.0, 39.0)})  # GPS
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="JPEG", quality=95, exif=exif)
+    return buf.getvalue()
+
+
+def _png(depth_m: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(np.rint(depth_m * 1000).astype(np.uint16)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _decode(data: bytes) -> np.ndarray:
+    with Image.open(io.BytesIO(data)) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+def test_anchor_photos_are_stored_upright_without_exif(make_app, scene):  # noqa: F811
+    """GPS and serial never leave the server; an upright photo keeps its pixels exactly; a phone photo stored
+    sideways with orientation 6 (and intrinsics/depth for its stored grid, as the phone gives them) is accepted,
+    served upright, and localizes a query as well as the original."""
+    app = make_app()
+    c, auth = app.client, app.auth("ann")
+    ref, q = scene.reference, scene.frame(QUERY)
+    plain = _tagged_jpeg(ref.image())
+    r = c.post("/anchors", headers=auth, data={**_form(ref.intrinsics), "method": METHOD},
+               files={"image": ("ref.jpg", plain, "image/jpeg"),
+                      "depth": ("ref.png", _png(ref.depth("sensor")), "image/png")})
+    assert r.status_code == 201, r.text
+    served = c.get(f"/anchors/{r.json()['id']}/photos/0", headers=auth).content
+    assert b"Exif" not in served and b"SN-0042" not in served and b"PhoneMaker" not in served
+    assert np.array_equal(_decode(served), _decode(plain))  # same pixels: only the metadata went
+
+    sideways = _tagged_jpeg(orient_pixels(ref.image(), 8), orientation=6)  # displays as the original
+    r = c.post("/anchors", headers=auth, data={**_form(orient_intrinsics(ref.intrinsics, 8)), "method": METHOD},
+               files={"image": ("ref.jpg", sideways, "image/jpeg"),
+                      "depth": ("ref.png", _png(orient_pixels(ref.depth("sensor"), 8)), "image/png")})
+    assert r.status_code == 201, r.text
+    turned = r.json()
+    assert turned["intrinsics"]["width"] == ref.intrinsics.width
+    assert turned["intrinsics"]["cx"] == pytest.approx(ref.intrinsics.cx)
+    served = c.get(f"/anchors/{turned['id']}/photos/0", headers=auth).content
+    assert b"Exif" not in served and b"SN-0042" not in served
+    assert _decode(served).shape == ref.image().shape
+    assert np.abs(_decode(served).astype(int) - ref.image()).mean() < 4  # upright (JPEG noise only)
+
+    est = c.post(f"/anchors/{turned['id']}/localize", headers=auth, data=_form(q.intrinsics),
+                 files={"image": ("q.jpg", q.image_path.read_bytes(), "image/jpeg")}).json()
+    assert est["ok"], est
+    center = -np.array(est["R"]).T @ np.array(est["t"])
+    assert np.linalg.norm(center - q.pose.center) < 0.15, est
+
+
+def test_a_sideways_query_gives_the_pose_of_the_upright_one(make_app, scene):  # noqa: F811
+    """Orientation 3, 6 and 8 queries, with intrinsics for the stored grid: the pose of the original query (not
+    "corrupt", not a pose rotated by the tag)."""
+    app = make_app()
+    c, auth = app.client, app.auth("ann")
+    ref, q = scene.reference, scene.frame(QUERY)
+    r = c.post("/anchors", headers=auth, data={**_form(ref.intrinsics), "method": METHOD},
+               files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+                      "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")})
+    aid = r.json()["id"]
+
+    def pose_of(data: bytes, K) -> np.ndarray:
+        est = c.post(f"/anchors/{aid}/localize", headers=auth, data=_form(K),
+                     files={"image": ("q.jpg", data, "image/jpeg")}).json()
+        assert est.get("ok"), est
+        return -np.array(est["R"]).T @ np.array(est["t"])
+
+    original = pose_of(_tagged_jpeg(q.image()), q.intrinsics)
+    assert np.linalg.norm(original - q.pose.center) < 0.15
+    for o, undo in ((6, 8), (8, 6), (3, 3)):
+        center = pose_of(_tagged_jpeg(orient_pixels(q.image(), undo), o), orient_intrinsics(q.intrinsics, undo))
+        assert np.linalg.norm(center - original) < 0.06, o
+    mirrored = c.post(f"/anchors/{aid}/localize", headers=auth, data=_form(q.intrinsics),
+                      files={"image": ("q.jpg", _tagged_jpeg(q.image(), 2), "image/jpeg")})
+    assert mirrored.status_code == 422 and "mirrored" in mirrored.json()["detail"]
