@@ -5,6 +5,7 @@ migrations, backups, tokens. Real app, real database, real photos (realmini-dev)
 from __future__ import annotations
 
 import io
+import os
 
 import numpy as np
 import pytest
@@ -112,3 +113,39 @@ def test_a_sideways_query_gives_the_pose_of_the_upright_one(make_app, scene):  #
     mirrored = c.post(f"/anchors/{aid}/localize", headers=auth, data=_form(q.intrinsics),
                       files={"image": ("q.jpg", _tagged_jpeg(q.image(), 2), "image/jpeg")})
     assert mirrored.status_code == 422 and "mirrored" in mirrored.json()["detail"]
+
+
+def test_public_health_says_only_the_status_and_head_is_answered(make_app):  # noqa: F811
+    """/health tells anyone whether the service lives, nothing about hosts, processes or queues; the detail is
+    for admins and the operator token. HEAD is answered wherever GET is, with GET's headers and no body."""
+    import socket
+
+    from mapfree.service.db import WorkerRow, make_engine, session_factory
+
+    from .conftest import OPERATOR, create_users
+
+    app = make_app()
+    c = app.client
+    engine = make_engine(app.settings.db_url)
+    with session_factory(engine).begin() as db:
+        db.add(WorkerRow(id="w-probe", host=socket.gethostname()[:128], pid=os.getpid()))
+    engine.dispose()
+    public = c.get("/health")
+    assert public.status_code == 200 and public.json() == {"status": "ok"}, public.text
+    for secret in (socket.gethostname(), str(os.getpid()), "w-probe", "jobs", "workers"):
+        assert secret not in public.text
+    assert c.get("/health/detail").status_code == 401
+    assert c.get("/health/detail", headers=app.auth("ann")).status_code == 403  # signed in, not an admin
+    assert c.get("/health/detail", headers={"Authorization": "Bearer mf_wrong"}).status_code == 401
+    detail = c.get("/health/detail", headers=OPERATOR).json()
+    assert [w["id"] for w in detail["workers"]] == ["w-probe"] and "jobs" in detail, detail
+    admin = create_users(app.settings.db_url, {"root": None}, admin=True)["root"]
+    assert c.get("/health/detail", headers={"Authorization": f"Bearer {admin}"}).json()["workers"], detail
+
+    for path in ("/health", "/", "/leaderboard/val", "/api/leaderboard/val", "/openapi.json"):
+        got, head = c.get(path), c.head(path)
+        assert head.status_code == got.status_code == 200, (path, head.status_code, got.status_code)
+        assert head.content == b"" and head.headers.get("content-type") == got.headers.get("content-type"), path
+        assert head.headers.get("content-length") == str(len(got.content)), path
+    assert c.head("/api/submissions", headers=app.auth("ann")).status_code == 200
+    assert c.head("/health/detail").status_code == 401

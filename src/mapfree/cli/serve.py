@@ -80,7 +80,8 @@ def settings_from_args(a: argparse.Namespace):
                     lease_seconds=a.lease_seconds, default_method=a.method, secure_cookies=a.secure_cookies,
                     methods_dir=a.methods_dir, val_hourly_limit=a.val_hourly_limit,
                     storage_quota_bytes=int(a.storage_quota_mb * mb), zip_retention_days=a.zip_retention_days,
-                    auth_failures_per_minute=a.auth_failures_per_minute, limits=limits)
+                    auth_failures_per_minute=a.auth_failures_per_minute, limits=limits,
+                    operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""))
 
 
 #: Start workers without the working directory on their module path (``-P``; ``-I`` before Python 3.11): a

@@ -18,7 +18,7 @@ from ..geometry import Pose
 from . import jobs
 from .db import Anchor, AnchorPhoto, MethodInfo, RetiredPhotoIndex, Submission, User, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
-from .deps import db_session, identify, require_writer
+from .deps import db_session, identify, require_operator, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
 from .manage import own_submission, test_quota
 from .storage import check_quota, stored_bytes
@@ -54,17 +54,30 @@ def spooled_upload(f: UploadFile | None, what: str) -> BinaryIO:
 
 @router.get("/health", tags=["operations"])
 async def health(request: Request):
-    """Liveness and readiness: database reachable, queue length, live workers. ``degraded`` when no worker is
-    alive (submissions would wait forever); workers count as alive while they report every few seconds. Answered
-    on the event loop from the state a background thread reads every 0.25 s (``age_ms`` old; ``db_ms``: how long
-    that read took), so that a probe never waits behind the database while uploads are copied in; a killed
-    worker on this host drops out at once."""
+    """Public liveness: ``ok``, ``degraded`` (no evaluation worker alive: submissions would wait) or ``error``
+    (503: the database cannot be read). Nothing else: host names, process ids and queue counts are in
+    ``/health/detail`` for admins and the monitoring token."""
+    status, body = await _health(request)
+    return JSONResponse({"status": body["status"]}, status_code=status)
+
+
+@router.get("/health/detail", tags=["operations"])
+async def health_detail(request: Request):
+    """Readiness in detail (an admin's token or session, or the operator token): database, queue counts, live
+    workers. Answered on the event loop from the state a background thread reads every 0.25 s (``age_ms`` old;
+    ``db_ms``: how long that read took), so that a probe never waits behind the database while uploads are copied
+    in; a killed worker on this host drops out at once."""
+    await run_in_threadpool(require_operator, request)
+    status, body = await _health(request)
+    return JSONResponse(body, status_code=status)
+
+
+async def _health(request: Request) -> tuple[int, dict]:
     monitor = request.app.state.health
     snap = monitor.current()
     if snap is None:
         snap = await run_in_threadpool(monitor.refresh)
-    status, body = monitor.answer(snap)
-    return JSONResponse(body, status_code=status) if status != 200 else body
+    return monitor.answer(snap)
 
 
 # ------------------------------------------------------------------------------------------ submissions

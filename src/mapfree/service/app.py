@@ -22,6 +22,7 @@ from .config import Settings
 from .db import init_db, make_engine, session_factory
 from .gcpause import freeze_long_lived
 from .guard import AuthThrottle, request_id
+from .head import HeadAsGet
 from .health import HealthMonitor
 from .manage import Withdrawn
 from .reloc import Localizers, register_methods_dir
@@ -136,6 +137,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.include_router(manage.router)
     app.include_router(web.router)
     app.mount("/static", StaticFiles(directory=str(Path(__file__).parent / "static")), name="static")
+    app.add_middleware(HeadAsGet)
     return app
 
 
@@ -157,7 +159,8 @@ def app_from_env() -> FastAPI:
                      data_root=os.environ.get("MAPFREE_DATA") or None, gt_root=os.environ.get("MAPFREE_GT") or None,
                      default_method=os.environ.get("MAPFREE_METHOD", ""),
                      test_daily_limit=int(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
-                     secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1")
+                     secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1",
+                     operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""))
     app = create_app(s)
     freeze_long_lived()
     return app

@@ -65,3 +65,18 @@ def require_writer(request: Request, db: Session, form_csrf: str | None = None) 
         if not auth.same_secret(given, caller.csrf):
             raise HTTPException(403, "CSRF check failed: reload the page and submit the form again")
     return caller
+
+
+def require_operator(request: Request) -> None:
+    """Monitoring endpoints: the operator token (``Settings.operator_token``) or an admin's token or session."""
+    expected = request.app.state.settings.operator_token
+    scheme, _, given = request.headers.get("authorization", "").partition(" ")
+    if expected and scheme.lower() == "bearer" and auth.same_secret(given.strip(), expected):
+        return
+    with request.app.state.sessions() as db:
+        caller = identify(request, db)
+    if caller.user is None:
+        raise HTTPException(401, "authentication required: the operator token or an admin's",
+                            headers={"WWW-Authenticate": "Bearer"})
+    if not caller.user.is_admin:
+        raise HTTPException(403, "only admins and the operator token may read this")
