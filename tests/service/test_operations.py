@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -149,3 +150,17 @@ def test_public_health_says_only_the_status_and_head_is_answered(make_app):  # n
         assert head.headers.get("content-length") == str(len(got.content)), path
     assert c.head("/api/submissions", headers=app.auth("ann")).status_code == 200
     assert c.head("/health/detail").status_code == 401
+
+
+def test_the_database_url_is_not_on_any_workers_command_line(sqlite_server):
+    """``ps`` shows every user of the host each process's command line: the workers get the URL (and with it a
+    PostgreSQL password) through their environment, which only their owner can read."""
+    from .conftest import health_detail
+
+    workers = health_detail(sqlite_server.url)["workers"]
+    assert len(workers) >= 2
+    secret = sqlite_server.db_url.split("///")[-1]
+    for w in workers:
+        cmdline = Path(f"/proc/{w['pid']}/cmdline").read_bytes().decode().split("\0")
+        assert "mapfree.service.worker" in cmdline and not any(secret in part for part in cmdline), cmdline
+        assert secret in Path(f"/proc/{w['pid']}/environ").read_bytes().decode()  # how it got there

@@ -91,7 +91,7 @@ ISOLATED = "-P" if sys.version_info >= (3, 11) else "-I"
 
 def worker_command(a: argparse.Namespace) -> list[str]:
     limits = dataclasses.asdict(settings_from_args(a).limits)
-    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.worker", "--db", a.db,
+    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.worker",  # the database URL: worker_env
            "--lease-seconds", str(a.lease_seconds), "--zip-retention-days", str(a.zip_retention_days),
            "--limits", json.dumps(limits), "--log-level", a.log_level, "--exit-with-parent"]
     if a.data:
@@ -101,14 +101,21 @@ def worker_command(a: argparse.Namespace) -> list[str]:
     return cmd
 
 
+def worker_env(a: argparse.Namespace) -> dict[str, str]:
+    """The workers' environment: the database URL goes there, never on their command line, where ``ps`` would
+    show its password to every user of the host (a process's environment is readable by its owner only)."""
+    return {**os.environ, "MAPFREE_DB": a.db}
+
+
 class Supervisor:
     """Keeps ``n`` worker processes alive until ``stop()``. A worker that exits is replaced; one that keeps dying
     soon after its start is replaced after a growing pause (``backoff`` doubling up to ``max_backoff`` s), so a
     broken installation does not spin, and a worker that ran ``stable_s`` seconds starts the count afresh."""
 
     def __init__(self, cmd: list[str], n: int, backoff: float = 1.0, max_backoff: float = 60.0,
-                 stable_s: float = 30.0):
+                 stable_s: float = 30.0, env: dict[str, str] | None = None):
         self.cmd, self.n, self.procs, self.stopping = cmd, n, [], threading.Event()
+        self.env = env
         self.backoff, self.max_backoff, self.stable_s = backoff, max_backoff, stable_s
         self.started: list[float] = []
         self.failures: list[int] = []  # consecutive quick deaths per slot
@@ -118,7 +125,7 @@ class Supervisor:
 
     def _spawn(self) -> subprocess.Popen:
         self.spawned += 1
-        return subprocess.Popen(self.cmd)
+        return subprocess.Popen(self.cmd, env=self.env)
 
     def start(self) -> None:
         self.procs = [self._spawn() for _ in range(self.n)]
@@ -165,7 +172,7 @@ def run(a: argparse.Namespace) -> int:
     engine = make_engine(settings.db_url)
     init_db(engine)  # once, before several processes race to create tables
     engine.dispose()
-    sup = Supervisor(worker_command(a), a.workers) if a.workers > 0 else None
+    sup = Supervisor(worker_command(a), a.workers, env=worker_env(a)) if a.workers > 0 else None
     if sup:
         sup.start()
     try:
