@@ -164,3 +164,70 @@ def test_the_database_url_is_not_on_any_workers_command_line(sqlite_server):
         cmdline = Path(f"/proc/{w['pid']}/cmdline").read_bytes().decode().split("\0")
         assert "mapfree.service.worker" in cmdline and not any(secret in part for part in cmdline), cmdline
         assert secret in Path(f"/proc/{w['pid']}/environ").read_bytes().decode()  # how it got there
+
+
+_KILLED_MID_UPLOAD = """
+import io, os, signal, sys
+from sqlalchemy import select
+from mapfree.service import storage, submissions
+from mapfree.service.config import Settings
+from mapfree.service.db import User, make_engine, session_factory
+
+class DiesWhileCopied(io.BytesIO):
+    def read(self, n=-1):
+        if n == storage.CHUNK_BYTES:  # the copy into the database has begun: this process is killed
+            os.kill(os.getpid(), signal.SIGKILL)
+        return super().read(n)
+
+url, data_root, gt_root, zip_path = sys.argv[1:]
+settings = Settings(db_url=url, data_root=data_root, gt_root=gt_root)
+engine = make_engine(url)
+with session_factory(engine)() as db:
+    user = db.scalar(select(User).where(User.name == "ann"))
+    submissions.accept(db, settings, user, "test", "cut off", False, DiesWhileCopied(open(zip_path, "rb").read()))
+"""
+
+
+def test_an_upload_cut_off_by_a_killed_server_is_removed_and_refunded(make_app, split_data, tmp_path):  # noqa: F811
+    """The process storing a test submission is SIGKILLed mid-copy: its ``uploading`` row stops renewing its
+    lease, and the next server start removes it, giving the test evaluation back."""
+    import subprocess
+    import sys
+    import time
+
+    from sqlalchemy import func, select
+
+    from mapfree.service import Settings, create_app, storage
+    from mapfree.service.db import Submission, make_engine, session_factory
+
+    from .conftest import make_submission
+
+    app = make_app(test_daily_limit=2)
+    auth = app.auth("ann")
+    assert app.client.get("/api/me", headers=auth).json()["test_evaluations_left_today"] == 2
+    zip_path = tmp_path / "test.zip"
+    zip_path.write_bytes(make_submission(split_data.root / "test"))
+    proc = subprocess.run([sys.executable, "-c", _KILLED_MID_UPLOAD, app.settings.db_url, str(split_data.root),
+                           str(split_data.gt), str(zip_path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -9, proc.stderr[-2000:]
+    engine = make_engine(app.settings.db_url)
+    count = select(func.count()).select_from(Submission).where(Submission.status == "uploading")
+    with session_factory(engine)() as db:
+        assert db.scalar(count) == 1
+        lease = db.scalar(select(Submission.lease_until))
+    assert app.client.get("/api/me", headers=auth).json()["test_evaluations_left_today"] == 1  # spent
+    assert lease is not None and lease - time.time() <= storage.UPLOAD_LEASE_SECONDS
+    settings = Settings(db_url=app.settings.db_url, data_root=split_data.root, gt_root=split_data.gt,
+                        test_daily_limit=2)
+    other = create_app(settings)  # another API process starting meanwhile: the lease still runs, could be alive
+    with session_factory(engine)() as db:
+        assert db.scalar(count) == 1
+    other.state.engine.dispose()
+    with session_factory(engine).begin() as db:  # the lease lapses (instead of waiting two minutes)
+        db.execute(Submission.__table__.update().values(lease_until=time.time() - 1))
+    restarted = create_app(settings)
+    with session_factory(engine)() as db:
+        assert db.scalar(count) == 0
+    assert app.client.get("/api/me", headers=auth).json()["test_evaluations_left_today"] == 2  # refunded
+    restarted.state.engine.dispose()
+    engine.dispose()

@@ -26,6 +26,7 @@ from .head import HeadAsGet
 from .health import HealthMonitor
 from .manage import Withdrawn
 from .reloc import Localizers, register_methods_dir
+from .storage import drop_interrupted_uploads
 from .uploads import UploadError
 
 log = logging.getLogger("mapfree.http")
@@ -58,6 +59,10 @@ def _validation_message(exc: RequestValidationError) -> str:
 def create_app(settings: Settings) -> FastAPI:
     engine = make_engine(settings.db_url)
     init_db(engine)
+    with session_factory(engine).begin() as db:  # uploads cut off when a server was killed: refund them now
+        if (n := drop_interrupted_uploads(db)):
+            log.warning("interrupted uploads removed; their quota and test evaluations refunded",
+                        extra={"submissions": n})
     # /docs and /redoc with their assets served from /docs-assets (fastapi-offline): no CDN, so they work offline
     app = FastAPIOffline(title="mapfree service", version=__version__, static_url="/docs-assets",
                          max_body_size=settings.limits.max_request_bytes,
