@@ -231,3 +231,22 @@ def test_an_upload_cut_off_by_a_killed_server_is_removed_and_refunded(make_app, 
     assert app.client.get("/api/me", headers=auth).json()["test_evaluations_left_today"] == 2  # refunded
     restarted.state.engine.dispose()
     engine.dispose()
+
+
+def test_a_ground_truth_folder_missing_a_test_scene_is_refused_at_start(split_data, tmp_path):
+    """``serve`` (and a worker started alone) with a ``--gt`` that lacks a test scene stops at once, naming it,
+    instead of accepting test submissions it can never score."""
+    import shutil
+    import subprocess
+    import sys
+
+    gt = tmp_path / "gt"
+    shutil.copytree(split_data.gt, gt)
+    scenes = sorted(p.name for p in (gt / "test").iterdir())
+    shutil.rmtree(gt / "test" / scenes[-1])
+    db = f"sqlite:///{tmp_path / 'gt.db'}"
+    for cmd in (["mapfree.cli.serve", "--workers", "1", "--port", "1"], ["mapfree.service.worker"]):
+        r = subprocess.run([sys.executable, "-m", *cmd, "--db", db, "--data", str(split_data.root), "--gt",
+                            str(gt)], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2, (cmd, r.stderr[-2000:])
+        assert scenes[-1] in r.stderr and scenes[0] not in r.stderr and "lacks 1 of" in r.stderr, r.stderr

@@ -165,10 +165,16 @@ class Supervisor:
 
 def run(a: argparse.Namespace) -> int:
     from ..service.db import init_db, make_engine
+    from ..service.evaluation import check_ground_truth
     from ..service.logs import setup_logging
 
     setup_logging(a.log_level)
     settings = settings_from_args(a)
+    try:
+        check_ground_truth(settings)
+    except ValueError as e:
+        print(f"mapfree serve: error: {e}", file=sys.stderr)
+        return 2
     engine = make_engine(settings.db_url)
     init_db(engine)  # once, before several processes race to create tables
     engine.dispose()

@@ -23,7 +23,7 @@ from sqlalchemy import delete, update
 from . import jobs, storage
 from .config import Limits, Settings
 from .db import WorkerRow, init_db, make_engine, new_id, now, session_factory
-from .evaluation import SubmissionRejected, score
+from .evaluation import SubmissionRejected, check_ground_truth, score
 
 log = logging.getLogger("mapfree.worker")
 
@@ -161,6 +161,10 @@ def main(argv: list[str] | None = None) -> int:
     settings = Settings(db_url=a.db, data_root=a.data, gt_root=a.gt, lease_seconds=a.lease_seconds,
                         max_attempts=a.max_attempts, poll_seconds=a.poll_seconds,
                         zip_retention_days=a.zip_retention_days, limits=Limits(**json.loads(a.limits)))
+    try:
+        check_ground_truth(settings)
+    except ValueError as e:
+        p.error(str(e))
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
