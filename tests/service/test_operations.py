@@ -250,3 +250,25 @@ def test_a_ground_truth_folder_missing_a_test_scene_is_refused_at_start(split_da
                             str(gt)], capture_output=True, text=True, timeout=120)
         assert r.returncode == 2, (cmd, r.stderr[-2000:])
         assert scenes[-1] in r.stderr and scenes[0] not in r.stderr and "lacks 1 of" in r.stderr, r.stderr
+
+
+def test_implausible_focals_and_empty_depth_are_refused_and_the_anchor_photo_itself_is_the_identity(
+        make_app, scene):  # noqa: F811
+    app = make_app()
+    c, auth = app.client, app.auth("ann")
+    ref = scene.reference
+    files = {"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+             "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")}
+    for fx in ("1e-300", "0.5", "50"):  # 50 px on a 540 px photo: a 158-degree view, not a pinhole camera
+        r = c.post("/anchors", headers=auth, files=files, data={**_form(ref.intrinsics), "fx": fx, "method": METHOD})
+        assert r.status_code == 422 and "focal lengths must lie between 54 and 54000 px" in r.json()["detail"], r.text
+    zero = {**files, "depth": ("ref.png", _png(np.zeros_like(ref.depth("sensor"))), "image/png")}
+    r = c.post("/anchors", headers=auth, files=zero, data={**_form(ref.intrinsics), "method": METHOD})
+    assert r.status_code == 422 and "every pixel is 0" in r.json()["detail"], r.text
+
+    r = c.post("/anchors", headers=auth, files=files, data={**_form(ref.intrinsics), "method": METHOD})
+    assert r.status_code == 201, r.text
+    est = c.post(f"/anchors/{r.json()['id']}/localize", headers=auth, data=_form(ref.intrinsics),
+                 files={"image": ("same.jpg", ref.image_path.read_bytes(), "image/jpeg")}).json()
+    assert est["ok"] and est["confidence"] > 100, est  # not "no parallax": taken where the anchor photo was
+    assert np.allclose(est["R"], np.eye(3)) and np.allclose(est["t"], 0), est

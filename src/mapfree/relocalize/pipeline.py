@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["View", "Anchor", "Localizer", "Relocalizer", "as_view", "ViewLike", "MIN_PARALLAX_PX"]
 
-#: Median keypoint displacement (px) below which the query is taken for the reference image itself.
+#: Median keypoint displacement (px) below which the query is seen from the reference's viewpoint (identity pose).
 MIN_PARALLAX_PX = 0.5
 #: Which depth maps each solver needs (anything else: both).
 _DEPTH_NEEDS = {"essential": ("ref", "query"), "pnp": ("ref",), "procrustes": ("ref", "query")}
@@ -375,7 +375,7 @@ class Relocalizer:
     def _solve(self, anchor: Anchor, view: View, matches: Matches, depth_q: np.ndarray | None) -> Estimate:
         flow = np.linalg.norm(matches.kpts1 - matches.kpts0, axis=1)
         if len(matches) and float(np.median(flow)) <= MIN_PARALLAX_PX:
-            return Estimate.failure("no parallax: the query is the reference image")
+            return _same_viewpoint(flow, getattr(getattr(self.solver, "options", None), "confidence", "inliers"))
         needs = self._needs()
         if "ref" in needs and anchor.depth is None:
             return Estimate.failure("no depth for the reference image")
@@ -385,6 +385,18 @@ class Relocalizer:
         if est.pose is not None and not self.metric:
             est.extras.setdefault("scale_free", True)
         return est
+
+
+def _same_viewpoint(flow: np.ndarray, mode: str) -> Estimate:
+    """The query shows the scene from the reference's viewpoint (its keypoints have not moved): the identity
+    pose, which needs no depth and no solver (an essential matrix is undefined without parallax, a rotation
+    would have moved the keypoints). Inliers: the matches that stayed within a pixel, ranked like a solver's."""
+    from ..geometry import Pose
+    from ..solvers.confidence import choose, confidences
+
+    n = int(np.count_nonzero(flow <= 2 * MIN_PARALLAX_PX))
+    values = confidences(n, n / len(flow))
+    return Estimate(Pose.identity(), choose(mode, values), n, extras={**values, "same_viewpoint": True})
 
 
 def build_matching(method: Any) -> Relocalizer:

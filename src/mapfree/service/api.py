@@ -237,6 +237,9 @@ def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth
         intr = _intr(fx, fy, cx, cy, img, "intrinsics", o)
         depth_bytes = read_upload(depth, lim.max_image_bytes, "depth")
         d = decode_depth(depth_bytes, lim, stored_shape(img, o)) if depth_bytes is not None else None
+        if d is not None and not d.any():
+            raise UploadError(422, "depth: every pixel is 0 (no measurement), so the photo could never give a "
+                                   "metric pose; send its real depth map, or none with a method that needs none")
         if d is not None and o != 1:  # stored upright, like its photo
             d = upright_depth(d, o)
             depth_bytes = depth_png(d)

@@ -22,6 +22,9 @@ from .exif import photo_orientation
 ENTRY_RE = re.compile(r"^pose_(s\d{5})\.txt$")
 #: A focal length beyond this many times the image's longest side is not a camera (a ~0.6 degree field of view).
 MAX_FOCAL_FACTOR = 100
+#: Smallest focal length, per pixel of the longest side: 0.1 is a 157-degree field of view across it, past any
+#: pinhole lens (fisheyes need another camera model); 0.5 px or 1e-300 are unit mistakes, not cameras.
+MIN_FOCAL_FACTOR = 0.1
 
 
 class UploadError(Exception):
@@ -196,10 +199,11 @@ def parse_intrinsics(values: dict, width: int, height: int, what: str = "intrins
         if not math.isfinite(f):
             raise UploadError(422, f"{what}: {k} must be finite")
         out[k] = f
-    fmax = MAX_FOCAL_FACTOR * max(width, height)
-    if not (0 < out["fx"] < fmax and 0 < out["fy"] < fmax):
-        raise UploadError(422, f"{what}: focal lengths must be positive and below {fmax:g} px "
-                               f"({MAX_FOCAL_FACTOR} x the image's longest side); got fx={out['fx']:g}, fy={out['fy']:g}")
+    fmin, fmax = MIN_FOCAL_FACTOR * max(width, height), MAX_FOCAL_FACTOR * max(width, height)
+    if not (fmin <= out["fx"] < fmax and fmin <= out["fy"] < fmax):
+        raise UploadError(422, f"{what}: focal lengths must lie between {fmin:g} and {fmax:g} px "
+                               f"({MIN_FOCAL_FACTOR} to {MAX_FOCAL_FACTOR} x the image's longest side, {max(width, height)} "
+                               f"px; in pixels, not millimetres); got fx={out['fx']:g}, fy={out['fy']:g}")
     if not (0 <= out["cx"] <= width and 0 <= out["cy"] <= height):
         raise UploadError(422, f"{what}: principal point ({out['cx']:g}, {out['cy']:g}) must lie inside the "
                                f"{width}x{height} image")
