@@ -272,3 +272,69 @@ def test_implausible_focals_and_empty_depth_are_refused_and_the_anchor_photo_its
                  files={"image": ("same.jpg", ref.image_path.read_bytes(), "image/jpeg")}).json()
     assert est["ok"] and est["confidence"] > 100, est  # not "no parallax": taken where the anchor photo was
     assert np.allclose(est["R"], np.eye(3)) and np.allclose(est["t"], 0), est
+
+
+def _scrape(url: str, **kw) -> dict:
+    """``/metrics`` parsed: {sample name with sorted labels: value}."""
+    import httpx
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from .conftest import OPERATOR
+
+    r = httpx.get(url + "/metrics", headers=OPERATOR, timeout=10, **kw)
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain"), r.text
+    out = {}
+    for fam in text_string_to_metric_families(r.text):
+        for s in fam.samples:
+            out[s.name + "".join(f"|{k}={v}" for k, v in sorted(s.labels.items()))] = s.value
+    return out
+
+
+def test_metrics_and_json_access_logs(sqlite_server):
+    """A real server scraped like Prometheus does: request latency by route template, queue, live workers and
+    scoring time; the access log is JSON lines with the client address and the request id it answered with."""
+    import json
+
+    import httpx
+
+    from .conftest import make_submission
+    from .test_api import upload
+
+    url = sqlite_server.url
+    assert httpx.get(url + "/metrics").status_code == 401  # queue and workers are not public
+    with sqlite_server.client("bob") as c:
+        assert c.get("/metrics").status_code == 403
+        r = upload(c, make_submission(sqlite_server.data.root / "val", noise=0.1), "val", "metrics-run")
+        assert r.status_code == 202, r.text
+        rid = r.headers["X-Request-ID"]
+    sqlite_server.wait_done(r.json()["id"], "bob")
+    m = _scrape(url)
+    assert m["mapfree_http_request_duration_seconds_count|method=POST|route=/api/submissions|status=202"] >= 1
+    assert m["mapfree_workers_alive"] >= 2 and m["mapfree_queue_depth"] >= 0
+    assert m["mapfree_queue_oldest_age_seconds"] >= 0 and m["mapfree_jobs|status=done"] >= 1
+    assert m["mapfree_scored_submissions_total"] >= 1 and m["mapfree_scoring_seconds_total"] > 0
+    assert any(k.startswith("mapfree_worker_last_seen_age_seconds|worker=") for k in m)
+    lines = [json.loads(x) for x in sqlite_server.log().splitlines() if x.startswith("{")]
+    mine = [x for x in lines if x.get("request_id") == rid and x.get("msg") == "request"]
+    assert len(mine) == 1 and mine[0]["client"] == "127.0.0.1" and mine[0]["route"] == "/api/submissions", mine
+    assert mine[0]["status"] == 202 and mine[0]["ms"] > 0 and mine[0]["user_id"] is not None
+
+
+def test_metrics_show_a_waiting_queue(make_app, split_data):  # noqa: F811
+    """No worker runs in-process: an upload waits, and the queue depth and its oldest job's age say so."""
+    import time
+
+    from prometheus_client.parser import text_string_to_metric_families
+
+    from .conftest import OPERATOR, make_submission
+    from .test_api import upload
+
+    app = make_app()
+    with app.client as c:
+        c.headers.update(app.auth("ann"))
+        assert upload(c, make_submission(split_data.root / "val"), "val").status_code == 202
+        time.sleep(0.3)
+        text = c.get("/metrics", headers=OPERATOR).text
+    m = {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples if not s.labels}
+    assert m["mapfree_queue_depth"] == 1 and 0.3 <= m["mapfree_queue_oldest_age_seconds"] < 60, m
+    assert m["mapfree_workers_alive"] == 0

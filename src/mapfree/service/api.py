@@ -24,6 +24,7 @@ from .manage import own_submission, test_quota
 from .storage import check_quota, stored_bytes
 from .submissions import accept, to_json, visible_submission
 from .submissions import plot_png as render_plot
+from .metrics import CONTENT_TYPE_LATEST
 from .exif import clean_photo, depth_png, stored_shape, upright_depth, upright_intrinsics
 from .uploads import UploadError, check_name, decode_depth, decode_image, decode_photo, parse_intrinsics, parse_pose
 
@@ -70,6 +71,14 @@ async def health_detail(request: Request):
     await run_in_threadpool(require_operator, request)
     status, body = await _health(request)
     return JSONResponse(body, status_code=status)
+
+
+@router.get("/metrics", tags=["operations"], response_class=Response)
+def metrics(request: Request):
+    """Prometheus metrics (admins and the operator token): request latency of this API process, queue depth and
+    oldest job age, worker liveness, scoring time."""
+    require_operator(request)
+    return Response(request.app.state.metrics.render(), media_type=CONTENT_TYPE_LATEST)
 
 
 async def _health(request: Request) -> tuple[int, dict]:

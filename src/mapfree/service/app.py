@@ -25,12 +25,13 @@ from .guard import AuthThrottle, request_id
 from .head import HeadAsGet
 from .health import HealthMonitor
 from .manage import Withdrawn
+from .metrics import Metrics
 from .reloc import Localizers, register_methods_dir
 from .storage import drop_interrupted_uploads
 from .uploads import UploadError
 
 log = logging.getLogger("mapfree.http")
-_API_PREFIXES = ("/api/", "/anchors", "/health", "/openapi.json")
+_API_PREFIXES = ("/api/", "/anchors", "/health", "/metrics", "/openapi.json")
 CSP = "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; frame-ancestors 'none'"
 
 
@@ -69,6 +70,7 @@ def create_app(settings: Settings) -> FastAPI:
                          description="Map-free benchmark evaluation server and metric relocalization API.")
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
     app.state.health = HealthMonitor(engine)
+    app.state.metrics = Metrics(engine)
     app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)))
     if settings.methods_dir is not None:
         register_methods_dir(settings.methods_dir)
@@ -124,14 +126,16 @@ def create_app(settings: Settings) -> FastAPI:
             if response.status_code == 401 and throttle.credentialed(request):
                 throttle.failed(client)
         route = request.scope.get("route")
+        seconds = time.perf_counter() - t0
+        app.state.metrics.observe(request.method, getattr(route, "path", "unmatched"), response.status_code, seconds)
         response.headers["X-Request-ID"] = rid
         response.headers.setdefault("X-Content-Type-Options", "nosniff")
         response.headers.setdefault("Referrer-Policy", "same-origin")
         if not request.url.path.startswith(("/docs", "/redoc")):
             response.headers.setdefault("Content-Security-Policy", CSP)
         log.info("request", extra={"method": request.method, "route": getattr(route, "path", "?"),
-                                   "status": response.status_code,
-                                   "ms": round((time.perf_counter() - t0) * 1000, 2), "request_id": rid,
+                                   "status": response.status_code, "ms": round(seconds * 1000, 2),
+                                   "request_id": rid, "client": client,
                                    "user_id": getattr(request.state, "user_id", None)})
         return response
 
