@@ -188,6 +188,8 @@ def fresh_postgres(tag: str) -> str:
     except Exception:
         engine = make_engine(PG_URL)
         Base.metadata.drop_all(engine)
+        with engine.begin() as c:  # and the schema version with the tables
+            c.execute(text("DROP TABLE IF EXISTS alembic_version"))
         engine.dispose()
         return PG_URL
     finally:
