@@ -338,3 +338,198 @@ def test_metrics_show_a_waiting_queue(make_app, split_data):  # noqa: F811
     m = {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples if not s.labels}
     assert m["mapfree_queue_depth"] == 1 and 0.3 <= m["mapfree_queue_oldest_age_seconds"] < 60, m
     assert m["mapfree_workers_alive"] == 0
+
+
+def test_tokens_expire_and_tokens_and_sessions_are_listed_and_revoked_one_by_one(make_app, tmp_path):  # noqa: F811
+    """An expired token is a 401 saying so; a user lists their tokens and sessions and revokes one without the
+    others; the admin CLI does the same for any account."""
+    import time
+
+    from .conftest import mapfree
+    from .test_anchor_photos import _web_session
+
+    app = make_app()
+    c, ann = app.client, app.auth("ann")
+    r = c.post("/api/tokens", headers=ann, data={"expires_in_days": str(1.5 / 86400), "label": "short"})
+    assert r.status_code == 201, r.text
+    short = r.json()
+    assert short["label"] == "short" and short["expires_at"] - time.time() < 2 and short["token"].startswith("mf_")
+    assert c.get("/api/me", headers={"Authorization": f"Bearer {short['token']}"}).status_code == 200
+    time.sleep(1.6)
+    r = c.get("/api/me", headers={"Authorization": f"Bearer {short['token']}"})
+    assert r.status_code == 401 and "expired on" in r.json()["detail"] and short["prefix"] in r.json()["detail"]
+    assert c.post("/api/tokens", headers=ann, data={"expires_in_days": "400"}).status_code == 422
+
+    second = c.post("/api/tokens", headers=ann, data={"expires_in_days": "30", "label": "laptop"}).json()
+    listed = c.get("/api/tokens", headers=ann).json()
+    assert [t["label"] for t in listed] == ["", "short", "laptop"] and [t["current"] for t in listed] == [
+        True, False, False]
+    assert listed[1]["expired"] and not listed[2]["expired"] and "token" not in listed[2]
+    assert c.delete(f"/api/tokens/{second['id']}", headers=ann).json()["revoked"]
+    assert c.get("/api/me", headers={"Authorization": f"Bearer {second['token']}"}).status_code == 401
+    assert c.get("/api/me", headers=ann).status_code == 200  # the others still work
+    assert c.delete(f"/api/tokens/{listed[0]['id']}", headers=app.auth("ben")).status_code == 404  # not ben's
+
+    web1, csrf1 = _web_session(app)
+    web2, _ = _web_session(app)
+    sessions = web1.get("/api/sessions").json()
+    assert len(sessions) == 2 and [s["current"] for s in sessions] == [True, False], sessions
+    other = sessions[1]["id"]
+    assert web1.delete(f"/api/sessions/{other}", headers={"X-CSRF-Token": csrf1}).status_code == 200
+    assert web2.get("/api/me").status_code == 401 and web1.get("/api/me").status_code == 200
+
+    url = app.settings.db_url
+    out = mapfree("admin", "--db", url, "list-tokens", "ann")
+    assert "laptop" in out and "revoked" in out and "expired" in out and "active" in out, out
+    token = mapfree("admin", "--db", url, "new-token", "ann", "--expires-in", "30d", "--label", "ci").splitlines()[-1]
+    assert c.get("/api/me", headers={"Authorization": f"Bearer {token}"}).status_code == 200
+    tid = next(t["id"] for t in c.get("/api/tokens", headers=ann).json() if t["label"] == "ci")
+    assert 29.9 * 86400 < next(t["expires_at"] for t in c.get("/api/tokens", headers=ann).json()
+                               if t["label"] == "ci") - time.time() <= 30 * 86400
+    mapfree("admin", "--db", url, "revoke-token", str(tid))
+    assert c.get("/api/me", headers={"Authorization": f"Bearer {token}"}).status_code == 401
+    sid = mapfree("admin", "--db", url, "list-sessions", "ann").splitlines()[-1].split("\t")[0]
+    mapfree("admin", "--db", url, "revoke-session", sid)
+    assert web1.get("/api/me").status_code == 401
+
+
+def test_private_anchor_photos_are_for_the_owner_only(make_app, scene):  # noqa: F811
+    """A private anchor answers everyone's queries, but only its owner (and admins) get its photos."""
+    from .conftest import create_users
+
+    app = make_app()
+    c = app.client
+    ref, q = scene.reference, scene.frame(QUERY)
+    files = {"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+             "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")}
+    r = c.post("/anchors", headers=app.auth("ann"), files=files,
+               data={**_form(ref.intrinsics), "method": METHOD, "private": "true"})
+    assert r.status_code == 201 and r.json()["private"], r.text
+    aid = r.json()["id"]
+    public = c.post("/anchors", headers=app.auth("ann"), files=files, data={**_form(ref.intrinsics), "method": METHOD})
+    assert not public.json()["private"]
+    root = {"Authorization": "Bearer " + create_users(app.settings.db_url, {"root": None}, admin=True)["root"]}
+    assert c.get(f"/anchors/{aid}/photos/0", headers=app.auth("ann")).status_code == 200
+    assert c.get(f"/anchors/{aid}/photos/0", headers=root).status_code == 200
+    r = c.get(f"/anchors/{aid}/photos/0", headers=app.auth("ben"))
+    assert r.status_code == 403 and "private" in r.json()["detail"]
+    assert c.get(f"/anchors/{public.json()['id']}/photos/0", headers=app.auth("ben")).status_code == 200
+    est = c.post(f"/anchors/{aid}/localize", headers=app.auth("ben"), data=_form(q.intrinsics),
+                 files={"image": ("q.jpg", q.image_path.read_bytes(), "image/jpeg")}).json()
+    assert est["ok"], est
+    page = c.post("/relocalize/anchor", headers=app.auth("ben"), data={"anchor": aid, **{f"q_{k}": v for k, v in
+                                                                                         _form(q.intrinsics).items()}},
+                  files={"query": ("q.jpg", q.image_path.read_bytes(), "image/jpeg")})
+    assert page.status_code == 200 and "private-figure" in page.text and 'id="figure"' not in page.text
+    assert f"/anchors/{aid}/photos/0" not in c.get(f"/relocalize/anchors/{aid}", headers=app.auth("ben")).text
+
+
+def test_delete_user_takes_their_tokens_sessions_anchors_and_submissions(make_app, split_data, scene):  # noqa: F811
+    """``mapfree admin delete-user`` says what it would delete, then deletes the account and all it owns (their
+    leaderboard entries too); other accounts keep theirs; the only admin cannot be deleted."""
+    from sqlalchemy import func, select
+
+    from mapfree.service.db import (Anchor, ApiToken, Submission, SubmissionFile, User, WebSession, make_engine,
+                                    session_factory)
+
+    from .conftest import create_users, make_submission
+    from .test_anchor_photos import _web_session
+    from .test_api import upload
+
+    app = make_app()
+    c = app.client
+    ref = scene.reference
+    for user in ("ann", "ben"):
+        c.headers.update(app.auth(user))
+        assert upload(c, make_submission(split_data.root / "val"), "val", f"{user}-run").status_code == 202
+        r = c.post("/anchors", files={"image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+                                      "depth": ("r.png", ref.depth_path("sensor").read_bytes(), "image/png")},
+                   data={**_form(ref.intrinsics), "method": METHOD})
+        assert r.status_code == 201
+    c.headers.pop("Authorization")
+    _web_session(app)  # ann signs in with a browser too
+    url = app.settings.db_url
+    engine = make_engine(url)
+
+    def owned(name: str) -> dict:
+        with session_factory(engine)() as db:
+            uid = db.scalar(select(User.id).where(User.name == name))
+            n = {t.__name__: db.scalar(select(func.count()).select_from(t).where(t.user_id == uid))
+                 for t in (ApiToken, WebSession, Anchor, Submission)}
+            n["zips"] = db.scalar(select(func.count()).select_from(SubmissionFile))
+            n["exists"] = uid is not None
+            return n
+
+    assert owned("ann") == {"ApiToken": 1, "WebSession": 1, "Anchor": 1, "Submission": 1, "zips": 2, "exists": True}
+    import subprocess
+    import sys
+
+    dry = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", url, "delete-user", "ann"],
+                         capture_output=True, text=True, timeout=120)
+    assert dry.returncode == 1 and "would delete user 'ann' with 1 tokens, 1 sessions, 1 anchors, 1 submissions" \
+        in dry.stderr, dry.stderr
+    assert owned("ann")["exists"]
+    done = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", url, "delete-user", "ann", "--yes"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert owned("ann") == {"ApiToken": 0, "WebSession": 0, "Anchor": 0, "Submission": 0, "zips": 1, "exists": False}
+    assert owned("ben")["Anchor"] == 1 and owned("ben")["Submission"] == 1
+    assert c.get("/api/me", headers=app.auth("ann")).status_code == 401
+    assert c.get("/api/me", headers=app.auth("ben")).status_code == 200
+    create_users(url, {"root": None}, admin=True)
+    only = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", url, "delete-user", "root", "--yes"],
+                          capture_output=True, text=True, timeout=120)
+    assert only.returncode == 1 and "only admin" in only.stderr
+    engine.dispose()
+
+
+def test_backup_of_a_live_sqlite_database_is_consistent(make_app, tmp_path):  # noqa: F811
+    """``mapfree admin backup`` copies the database while another connection keeps writing (in WAL mode, the
+    newest rows live in the -wal file a file copy would miss): the copy opens, passes its integrity check and
+    holds every row committed before it started. PostgreSQL gets pg_dump advice, its password not echoed."""
+    import sqlite3
+    import subprocess
+    import sys
+    import threading
+
+    from mapfree.service.db import make_engine
+
+    app = make_app()
+    engine = make_engine(app.settings.db_url)
+    with engine.begin() as conn:
+        conn.exec_driver_sql("CREATE TABLE ticks (n INTEGER)")
+        conn.exec_driver_sql("INSERT INTO ticks VALUES (0)")
+    stop = threading.Event()
+
+    def write():
+        n = 1
+        while not stop.is_set() and n < 5000:
+            with engine.begin() as conn:
+                conn.exec_driver_sql(f"INSERT INTO ticks VALUES ({n})")
+            n += 1
+
+    writer = threading.Thread(target=write)
+    writer.start()
+    try:
+        r = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", app.settings.db_url, "backup",
+                            str(tmp_path / "copy.db")], capture_output=True, text=True, timeout=120)
+    finally:
+        stop.set()
+        writer.join(30)
+    assert r.returncode == 0 and "integrity checked" in r.stdout, r.stderr
+    assert (tmp_path / "copy.db").stat().st_mode & 0o777 == 0o600
+    copy = sqlite3.connect(tmp_path / "copy.db")
+    assert copy.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    n, top = copy.execute("SELECT count(*), max(n) FROM ticks").fetchone()
+    assert n == top + 1  # a prefix of the inserts: one moment's state
+    assert copy.execute("SELECT count(*) FROM users").fetchone()[0] == 2
+    assert copy.execute("SELECT version_num FROM alembic_version").fetchone()[0]
+    copy.close()
+    again = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", app.settings.db_url, "backup",
+                            str(tmp_path / "copy.db")], capture_output=True, text=True, timeout=120)
+    assert again.returncode == 1 and "exists" in again.stderr  # never overwritten
+    pg = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", "postgresql://svc:s3cret@db.example:5433/mf",
+                         "backup", "/backups/mf.dump"], capture_output=True, text=True, timeout=120)
+    assert pg.returncode == 0 and "pg_dump -h db.example -p 5433 -U svc -Fc -f /backups/mf.dump mf" in pg.stdout
+    assert "s3cret" not in pg.stdout
+    engine.dispose()

@@ -207,7 +207,7 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
     photos = [{"index": 0, "intrinsics": a.intrinsics, "has_depth": a.depth is not None, "pose": IDENTITY}]
     photos += [{"index": r.seq, "intrinsics": r.intrinsics, "has_depth": r.depth is not None, "pose": r.pose}
                for r in rows]
-    return {"id": a.id, "name": a.name, "method": a.method, "intrinsics": a.intrinsics,
+    return {"id": a.id, "name": a.name, "method": a.method, "intrinsics": a.intrinsics, "private": bool(a.private),
             "has_depth": a.depth is not None, "num_photos": len(photos), "photos": photos,
             "created_at": a.created_at, "url": f"/anchors/{a.id}"}
 
@@ -356,6 +356,8 @@ def create_anchor(request: Request, image: UploadFile = File(..., description="r
                   photo_pose: list[str] = Form([], description="one per photo_image: 'qw qx qy qz tx ty tz', "
                                                "world-to-camera from the first photo's camera, metres"),
                   photo_depth: list[UploadFile] = File([], description="none, or one per photo_image, in order"),
+                  private: bool = Form(False, description="its photos are served to you (and admins) only; "
+                                                          "others may still localize against it"),
                   db: Session = Depends(db_session)):
     """Register a place (user A) that anyone signed in can localize against: its first photo (``image``, whose
     camera is the anchor's frame) and optionally further photos (``photo_*``, repeated, one per photo, each
@@ -370,6 +372,9 @@ def create_anchor(request: Request, image: UploadFile = File(..., description="r
     first = photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
     extra, names = _extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
     a, rows = make_anchor(request, db, caller.user, name, method, [first, *extra], [name0, *names])
+    if private:
+        a.private = True
+        db.commit()
     return anchor_json(a, rows)
 
 
@@ -382,6 +387,11 @@ def find_anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
     if a is None:
         raise HTTPException(404, "no such anchor")
     return a
+
+
+def may_see_photos(a: Anchor, user: User | None) -> bool:
+    """Whether ``user`` may see the anchor's photos: anyone signed in, unless the anchor is private."""
+    return user is not None and (not a.private or a.user_id == user.id or user.is_admin)
 
 
 def _own_anchor(a: Anchor, user: User, what: str) -> None:
@@ -494,10 +504,14 @@ def delete_anchor_photo(aid: str, k: int, request: Request, db: Session = Depend
 
 @router.get("/anchors/{aid}/photos/{k}", tags=["relocalization"], response_class=Response)
 def anchor_photo_image(aid: str, k: int, request: Request, db: Session = Depends(db_session)):
-    """The stored image of photo ``k`` (as uploaded, JPEG or PNG), for anyone signed in."""
-    if identify(request, db).user is None:
+    """The stored image of photo ``k`` (JPEG or PNG, upright, without EXIF metadata), for anyone signed in; a
+    private anchor's for its owner and admins only."""
+    caller = identify(request, db)
+    if caller.user is None:
         raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
     a = find_anchor(db, aid)
+    if not may_see_photos(a, caller.user):
+        raise HTTPException(403, "this anchor's photos are private to its owner")
     data = a.image if k == 0 else None
     if 0 < k <= MAX_PHOTO_INDEX:  # a larger int would not fit the database's integer (SQLite: OverflowError)
         data = db.scalar(select(AnchorPhoto.image).where(AnchorPhoto.anchor_id == a.id, AnchorPhoto.seq == k))

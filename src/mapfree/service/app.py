@@ -139,9 +139,10 @@ def create_app(settings: Settings) -> FastAPI:
                                    "user_id": getattr(request.state, "user_id", None)})
         return response
 
-    from . import api, leaderboard, manage, web
+    from . import accounts, api, leaderboard, manage, web
 
     app.include_router(api.router)
+    app.include_router(accounts.router)
     app.include_router(leaderboard.router)
     app.include_router(manage.router)
     app.include_router(web.router)

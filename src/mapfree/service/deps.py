@@ -39,9 +39,10 @@ def identify(request: Request, db: Session) -> Caller:
     header = request.headers.get("authorization")
     if header is not None:
         scheme, _, token = header.partition(" ")
-        user = auth.user_for_token(db, token.strip()) if scheme.lower() == "bearer" else None
+        user, why = (auth.check_token(db, token.strip()) if scheme.lower() == "bearer" else
+                     (None, "invalid or revoked API token"))
         if user is None:
-            raise HTTPException(401, "invalid or revoked API token", headers={"WWW-Authenticate": "Bearer"})
+            raise HTTPException(401, why, headers={"WWW-Authenticate": "Bearer"})
         request.state.user_id = user.id
         db.commit()  # end the read transaction (on SQLite it holds the write lock)
         return Caller(user, None, True)

@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session
 
 from . import auth
 from .api import (PhotoUpload, add_photo, anchor_json, check_photo_count, find_anchor, localize_anchor, make_anchor,
-                  photo_name, photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
+                  may_see_photos, photo_name, photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
@@ -375,7 +375,7 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
                       csrf_token: str = Form(""), db: Session = Depends(db_session)):
     """A query photo against a stored anchor (one or several photos): the pose in the anchor's frame, which
     photo answered, and the figure drawn against that photo."""
-    require_writer(request, db, csrf_token)
+    caller = require_writer(request, db, csrf_token)
     form = {"q_fx": q_fx, "q_fy": q_fy, "q_cx": q_cx, "q_cy": q_cy, "anchor": anchor}
     a = find_anchor(db, anchor)
     rows = photo_rows(db, a.id)
@@ -389,6 +389,8 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
         return _reloc_page(request, db, e.status, method=a.method, form=form, error=e.message)
     est = localize_anchor(request, a, rows, q_img, q_K)
     result = estimate_json(est, a.method)
+    if not may_see_photos(a, caller.user):  # the figure would show the anchor's photo
+        return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8])
     photo = stored_photo(a, rows, result.get("photo") or 0, lim)  # only the one drawn, not every photo again
     shown = replace(est, pose=est.pose @ photo.pose.inverse()) if est.pose is not None else est  # vs that photo
     png = figure_png(photo.image, q_img, photo.K, q_K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
