@@ -4,6 +4,8 @@ migrations and the models describe the same schema; processes starting together 
 from __future__ import annotations
 
 import sqlite3
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -94,6 +96,9 @@ def test_a_database_newer_than_the_code_is_refused(tmp_path):
     with pytest.raises(SchemaVersion, match="schema version 9999.*newer release"):
         upgrade(engine)
     engine.dispose()
+    r = subprocess.run([sys.executable, "-m", "mapfree.cli.serve", "--db", url, "--workers", "0", "--port", "1"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "schema version 9999" in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
 def test_processes_starting_together_upgrade_once(tmp_path):

@@ -164,7 +164,7 @@ class Supervisor:
 
 
 def run(a: argparse.Namespace) -> int:
-    from ..service.db import init_db, make_engine
+    from ..service.db import make_engine
     from ..service.evaluation import check_ground_truth
     from ..service.logs import setup_logging
 
@@ -175,9 +175,18 @@ def run(a: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"mapfree serve: error: {e}", file=sys.stderr)
         return 2
+    from ..service.migrations import SchemaVersion, upgrade
+
     engine = make_engine(settings.db_url)
-    init_db(engine)  # once, before several processes race to create tables
-    engine.dispose()
+    try:  # create the tables or upgrade the schema, once, before the API processes and workers start
+        before, after = upgrade(engine)
+    except SchemaVersion as e:
+        print(f"mapfree serve: error: {e}", file=sys.stderr)
+        return 2
+    finally:
+        engine.dispose()
+    if before != after:
+        log.info("database schema upgraded", extra={"from": before or "unversioned", "to": after})
     sup = Supervisor(worker_command(a), a.workers, env=worker_env(a)) if a.workers > 0 else None
     if sup:
         sup.start()
