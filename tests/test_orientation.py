@@ -106,3 +106,38 @@ def test_a_tagged_turned_photo_gives_the_pose_of_the_original(scene, tmp_path, o
     assert np.linalg.norm(tagged.pose.center - plain.pose.center) < tol_m
     assert rotation_angle_deg(tagged.pose.R, plain.pose.R) < tol_deg
     assert np.linalg.norm(plain.pose.center - q.pose.center) < 0.25
+
+
+def test_mapfree_relocalize_reads_a_sideways_phone_photo(scene, tmp_path):
+    """The command line with a query stored sideways (orientation 6) and intrinsics.txt and a depth map for its
+    stored grid: the same pose as the original photo (it used to be refused: the image did not match its
+    intrinsics)."""
+    import json
+    import subprocess
+    import sys
+
+    from mapfree.data import write_depth, write_intrinsics
+
+    ref, q = scene.reference, scene.frame("seq1/frame_00010.jpg")
+    root = tmp_path / "s00000"
+    for sub in ("seq0", "seq1"):
+        (root / sub).mkdir(parents=True)
+    (root / "seq0/frame_00000.jpg").write_bytes(ref.image_path.read_bytes())
+    _save(root / "seq1/frame_00010.png", orient_pixels(q.image(), 8), 6)
+    write_depth(root / "q.png", orient_pixels(q.depth("sensor"), 8))
+    write_intrinsics(root / "intrinsics.txt", {"seq0/frame_00000.jpg": ref.intrinsics,
+                                               "seq1/frame_00010.png": orient_intrinsics(q.intrinsics, 8)})
+
+    def pose(query, depth) -> np.ndarray:
+        r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(root / "seq0/frame_00000.jpg"),
+                            str(query), "--method", "sift_pnp_sensor", "--intrinsics",
+                            str(root / "intrinsics.txt") if query.parent.parent == root else str(scene.path /
+                                                                                                  "intrinsics.txt"),
+                            "--depth-ref", str(ref.depth_path("sensor")), "--depth-query", str(depth)],
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr[-2000:]
+        out = json.loads(r.stdout)
+        return np.array(out["R"]), np.array(out["t"])
+
+    (R0, t0), (R1, t1) = pose(q.image_path, q.depth_path("sensor")), pose(root / "seq1/frame_00010.png", root / "q.png")
+    assert rotation_angle_deg(R0, R1) < 1e-4 and np.linalg.norm(t1 - t0) < 1e-4  # the upright camera's pose
