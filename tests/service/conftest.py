@@ -140,10 +140,12 @@ def zip_of(entries: dict[str, bytes], method: int = zipfile.ZIP_DEFLATED) -> byt
 
 
 def png_of(h: int, w: int, channels: int = 3, dtype=np.uint8) -> bytes:
-    """A blank PNG of that size, channel count and bit depth."""
+    """A blank PNG of that size, channel count and bit depth; a single-channel 16-bit one is a depth map of 1 m
+    everywhere (an all-zero map is refused as an anchor's depth)."""
     import cv2
 
-    ok, buf = cv2.imencode(".png", np.zeros((h, w, channels) if channels > 1 else (h, w), dtype))
+    fill = 1000 if channels == 1 and dtype == np.uint16 else 0
+    ok, buf = cv2.imencode(".png", np.full((h, w, channels) if channels > 1 else (h, w), fill, dtype))
     assert ok
     return buf.tobytes()
 

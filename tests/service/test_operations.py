@@ -534,3 +534,23 @@ def test_backup_of_a_live_sqlite_database_is_consistent(make_app, tmp_path):  # 
     assert pg.returncode == 0 and "pg_dump -h db.example -p 5433 -U svc -Fc -f /backups/mf.dump mf" in pg.stdout
     assert "s3cret" not in pg.stdout
     engine.dispose()
+
+
+def test_the_access_page_revokes_a_token_and_signs_out_another_browser(make_app):  # noqa: F811
+    from .test_anchor_photos import _web_session
+
+    app = make_app()
+    web, _ = _web_session(app)
+    other, _ = _web_session(app)
+    page = web.get("/me/access")
+    assert page.status_code == 200 and "(this one)" in page.text and page.text.count('id="end-session-') == 2
+    csrf = page.text.split('name="csrf_token" value="')[1].split('"')[0]
+    tid = page.text.split('id="revoke-token-')[1].split('"')[0]
+    assert 'href="/me/access"' in web.get("/me").text
+    sid = [s["id"] for s in web.get("/api/sessions").json() if not s["current"]][0]
+    assert web.post(f"/me/sessions/{sid}/end", data={"csrf_token": csrf}).status_code == 303
+    assert other.get("/api/me").status_code == 401
+    assert web.post(f"/me/tokens/{tid}/revoke", data={"csrf_token": "wrong"}).status_code == 403
+    assert web.post(f"/me/tokens/{tid}/revoke", data={"csrf_token": csrf}).status_code == 303
+    assert app.client.get("/api/me", headers=app.auth("ann")).status_code == 401
+    assert "revoked" in web.get("/me/access").text

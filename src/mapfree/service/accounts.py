@@ -5,6 +5,7 @@ and label, never the token."""
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Form, HTTPException, Request
+from fastapi.responses import HTMLResponse, RedirectResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -50,9 +51,9 @@ def _current_token_hash(request: Request) -> str:
     return auth.hash_secret(token.strip()) if scheme.lower() == "bearer" and token.strip() else ""
 
 
-def _own_row(request: Request, db: Session, model, row_id: int, what: str):
+def _own_row(request: Request, db: Session, model, row_id: int, what: str, csrf: str | None = None):
     """Row ``row_id`` of ``model`` if it belongs to the signed-in writer; a 404 otherwise (another's included)."""
-    caller = require_writer(request, db, request.headers.get("x-csrf-token"))
+    caller = require_writer(request, db, csrf or request.headers.get("x-csrf-token"))
     row = db.get(model, row_id)
     if row is None or row.user_id != caller.user.id:
         raise HTTPException(404, f"no such {what} of yours")
@@ -106,6 +107,37 @@ def end_session(session_id: int, request: Request, db: Session = Depends(db_sess
     db.delete(_own_row(request, db, WebSession, session_id, "session"))
     db.commit()
     return {"id": session_id, "ended": True}
+
+
+# ------------------------------------------------------------------------------------------------ the page
+
+
+@router.get("/me/access", response_class=HTMLResponse)
+def access_page(request: Request, db: Session = Depends(db_session)):
+    """Your tokens and browser sessions, each with a button that revokes it."""
+    from .web import page
+
+    caller = _signed_in(request, db)
+    sid = request.cookies.get(SESSION_COOKIE)
+    current = auth.hash_secret(sid) if sid else ""
+    return page(request, "access.html", db, tokens=[token_json(t, _current_token_hash(request))
+                                                    for t in list_tokens(db, caller.user.id)],
+                sessions=[session_json(s, current) for s in list_sessions(db, caller.user.id)])
+
+
+@router.post("/me/tokens/{tid}/revoke")
+def revoke_token_form(tid: int, request: Request, csrf_token: str = Form(""), db: Session = Depends(db_session)):
+    _own_row(request, db, ApiToken, tid, "token", csrf_token).revoked = True
+    db.commit()
+    return RedirectResponse("/me/access", status_code=303)
+
+
+@router.post("/me/sessions/{session_id}/end")
+def end_session_form(session_id: int, request: Request, csrf_token: str = Form(""),
+                     db: Session = Depends(db_session)):
+    db.delete(_own_row(request, db, WebSession, session_id, "session", csrf_token))
+    db.commit()
+    return RedirectResponse("/me/access", status_code=303)
 
 
 def delete_user(db: Session, user, dry_run: bool = False) -> dict[str, int]:
