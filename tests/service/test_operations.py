@@ -424,6 +424,15 @@ def test_private_anchor_photos_are_for_the_owner_only(make_app, scene):  # noqa:
     assert page.status_code == 200 and "private-figure" in page.text and 'id="figure"' not in page.text
     assert f"/anchors/{aid}/photos/0" not in c.get(f"/relocalize/anchors/{aid}", headers=app.auth("ben")).text
 
+    from .test_anchor_photos import _camera_line, _page_files
+
+    r = c.post("/relocalize/anchors", headers=app.auth("ann"), files=_page_files(ref), follow_redirects=False,
+               data={"name": "from the page", "method": METHOD, "cameras": _camera_line(ref, False), "private": "1"})
+    assert r.status_code == 303, r.text
+    page_aid = r.headers["location"].rsplit("/", 1)[-1]
+    assert c.get(f"/anchors/{page_aid}", headers=app.auth("ben")).json()["private"]
+    assert c.get(f"/anchors/{page_aid}/photos/0", headers=app.auth("ben")).status_code == 403
+
 
 def test_delete_user_takes_their_tokens_sessions_anchors_and_submissions(make_app, split_data, scene):  # noqa: F811
     """``mapfree admin delete-user`` says what it would delete, then deletes the account and all it owns (their

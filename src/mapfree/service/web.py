@@ -483,14 +483,17 @@ def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
 @router.post("/relocalize/anchors")
 def create_anchor_form(request: Request, photos: list[UploadFile] = File([]), depths: list[UploadFile] = File([]),
                        cameras: str = Form(""), name: str = Form(""), method: str = Form(""),
-                       csrf_token: str = Form(""), db: Session = Depends(db_session)):
+                       private: str = Form(""), csrf_token: str = Form(""), db: Session = Depends(db_session)):
     """Create an anchor from the page (what ``POST /anchors`` does, same limits and errors): on success its page;
     on a problem the relocalize page with the error above this form, its values kept."""
     caller = require_writer(request, db, csrf_token)
-    form = {"new_name": name, "new_method": method, "cameras": cameras}
+    form = {"new_name": name, "new_method": method, "cameras": cameras, "new_private": bool(private)}
     try:
         ups, names = _form_photos(request.app.state.settings.limits, photos, depths, cameras)
         a, _ = make_anchor(request, db, caller.user, name, method, ups, names)
+        if private:
+            a.private = True
+            db.commit()
     except (UploadError, HTTPException) as e:
         db.rollback()
         status, message = _problem(e)
