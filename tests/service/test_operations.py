@@ -338,7 +338,16 @@ def test_metrics_show_a_waiting_queue(make_app, split_data):  # noqa: F811
         text = c.get("/metrics", headers=OPERATOR).text
     m = {s.name: s.value for f in text_string_to_metric_families(text) for s in f.samples if not s.labels}
     assert m["mapfree_queue_depth"] == 1 and 0.3 <= m["mapfree_queue_oldest_age_seconds"] < 60, m
-    assert m["mapfree_workers_alive"] == 0
+    assert m["mapfree_workers_alive"] == 0 and m["mapfree_database_up"] == 1
+
+    from sqlalchemy import create_engine
+
+    from mapfree.service.metrics import Metrics
+
+    down = Metrics(create_engine(f"sqlite:///{app.settings.db_url.split('///')[-1]}.missing/x.db"))
+    down.observe("GET", "/health", 200, 0.01)
+    text = down.render().decode()
+    assert "mapfree_database_up 0.0" in text and "mapfree_http_request_duration_seconds_count" in text
 
 
 def test_tokens_expire_and_tokens_and_sessions_are_listed_and_revoked_one_by_one(make_app, tmp_path):  # noqa: F811

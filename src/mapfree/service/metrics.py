@@ -7,6 +7,7 @@ and status. The database gauges are read at scrape time in one short read-only t
 
 from __future__ import annotations
 
+import logging
 import time
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Histogram, generate_latest
@@ -19,6 +20,8 @@ from .db import READ_ONLY, Result, Submission, WorkerRow, now
 from .worker import SEEN_SECONDS
 
 __all__ = ["Metrics", "CONTENT_TYPE_LATEST"]
+
+log = logging.getLogger("mapfree.metrics")
 
 #: Latency buckets (seconds): page loads and API reads in the first half, localization and uploads after.
 BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
@@ -36,13 +39,19 @@ class _Database:
 
     def collect(self):
         t = now()
-        with self.engine.connect().execution_options(**{READ_ONLY: True}) as conn, Session(conn) as db:
-            by_status = dict(db.execute(select(Submission.status, func.count()).group_by(Submission.status)).all())
-            oldest = db.scalar(select(func.min(Submission.created_at)).where(Submission.status == "queued"))
-            workers = db.execute(select(WorkerRow.id, WorkerRow.last_seen, WorkerRow.jobs_done)).all()
-            n_scored, scoring_s = db.execute(select(func.count(), func.coalesce(func.sum(Result.eval_seconds), 0.0))
-                                             ).one()
-            db.rollback()
+        try:
+            with self.engine.connect().execution_options(**{READ_ONLY: True}) as conn, Session(conn) as db:
+                by_status = dict(db.execute(select(Submission.status, func.count()).group_by(Submission.status)).all())
+                oldest = db.scalar(select(func.min(Submission.created_at)).where(Submission.status == "queued"))
+                workers = db.execute(select(WorkerRow.id, WorkerRow.last_seen, WorkerRow.jobs_done)).all()
+                n_scored, scoring_s = db.execute(
+                    select(func.count(), func.coalesce(func.sum(Result.eval_seconds), 0.0))).one()
+                db.rollback()
+        except Exception:  # the database is down: say so, and still serve the request metrics
+            log.warning("metrics: database unreadable", exc_info=True)
+            yield GaugeMetricFamily("mapfree_database_up", "Whether the database answered this scrape", value=0.0)
+            return
+        yield GaugeMetricFamily("mapfree_database_up", "Whether the database answered this scrape", value=1.0)
         jobs = GaugeMetricFamily("mapfree_jobs", "Submissions by status", labels=["status"])
         for s in sorted(set(STATUSES) | set(by_status)):
             jobs.add_metric([s], float(by_status.get(s, 0)))
