@@ -141,3 +141,17 @@ def test_mapfree_relocalize_reads_a_sideways_phone_photo(scene, tmp_path):
 
     (R0, t0), (R1, t1) = pose(q.image_path, q.depth_path("sensor")), pose(root / "seq1/frame_00010.png", root / "q.png")
     assert rotation_angle_deg(R0, R1) < 1e-4 and np.linalg.norm(t1 - t0) < 1e-4  # the upright camera's pose
+
+
+def test_build_reads_exif_intrinsics_for_the_upright_photo(tmp_path):
+    """``mapfree build`` takes a phone photo's focal length from EXIF; for a sideways-stored photo the intrinsics
+    are those of the upright photo every reader of ours decodes (they used to keep the stored grid's size)."""
+    from mapfree.build.inputs import exif_intrinsics
+
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    exif.get_ifd(0x8769)[0xA405] = 26  # FocalLengthIn35mmFilm
+    Image.fromarray(np.zeros((30, 40, 3), np.uint8)).save(tmp_path / "p.jpg", exif=exif)
+    K = exif_intrinsics(tmp_path / "p.jpg")
+    assert (K.width, K.height) == (30, 40) == read_image(tmp_path / "p.jpg").shape[1::-1]
+    assert K.fx == K.fy == pytest.approx(26 / 36 * 40) and (K.cx, K.cy) == (14.5, 19.5)
