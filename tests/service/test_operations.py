@@ -151,6 +151,8 @@ def test_public_health_says_only_the_status_and_head_is_answered(make_app):  # n
         assert head.headers.get("content-length") == str(len(got.content)), path
     assert c.head("/api/submissions", headers=app.auth("ann")).status_code == 200
     assert c.head("/health/detail").status_code == 401
+    scraped = c.get("/metrics", headers=OPERATOR).text
+    assert 'mapfree_http_request_duration_seconds_count{method="HEAD",route="/health",status="200"} 1.0' in scraped
 
 
 def test_the_database_url_is_not_on_any_workers_command_line(sqlite_server):

@@ -127,13 +127,14 @@ def create_app(settings: Settings) -> FastAPI:
                 throttle.failed(client)
         route = request.scope.get("route")
         seconds = time.perf_counter() - t0
-        app.state.metrics.observe(request.method, getattr(route, "path", "unmatched"), response.status_code, seconds)
+        method = "HEAD" if getattr(request.state, "head", False) else request.method
+        app.state.metrics.observe(method, getattr(route, "path", "unmatched"), response.status_code, seconds)
         response.headers["X-Request-ID"] = rid
         response.headers.setdefault("X-Content-Type-Options", "nosniff")
         response.headers.setdefault("Referrer-Policy", "same-origin")
         if not request.url.path.startswith(("/docs", "/redoc")):
             response.headers.setdefault("Content-Security-Policy", CSP)
-        log.info("request", extra={"method": request.method, "route": getattr(route, "path", "?"),
+        log.info("request", extra={"method": method, "route": getattr(route, "path", "?"),
                                    "status": response.status_code, "ms": round(seconds * 1000, 2),
                                    "request_id": rid, "client": client,
                                    "user_id": getattr(request.state, "user_id", None)})

@@ -26,4 +26,5 @@ class HeadAsGet:
             elif not message.get("more_body", False):  # the body's last part: end the response, empty
                 await send({"type": "http.response.body", "body": b"", "more_body": False})
 
-        await self.app({**scope, "method": "GET"}, receive, send_head)
+        state = {**scope.get("state", {}), "head": True}  # request.state.head: logs say HEAD
+        await self.app({**scope, "method": "GET", "state": state}, receive, send_head)
