@@ -574,3 +574,33 @@ def test_the_access_page_revokes_a_token_and_signs_out_another_browser(make_app)
     assert web.post(f"/me/tokens/{tid}/revoke", data={"csrf_token": csrf}).status_code == 303
     assert app.client.get("/api/me", headers=app.auth("ann")).status_code == 401
     assert "revoked" in web.get("/me/access").text
+
+
+def test_metadata_stripping_keeps_pixels_and_drops_every_metadata_segment():
+    """Comments, XMP, colour profiles and EXIF go; the image data stays byte for byte; a file whose segments
+    cannot be walked (cut short) is re-encoded rather than served with its metadata."""
+    import cv2
+
+    from mapfree.service.exif import clean_photo, strip_metadata
+
+    rgb = (np.random.default_rng(1).random((24, 32, 3)) * 255).astype(np.uint8)
+    jpeg = _tagged_jpeg(rgb)
+    soi, rest = jpeg[:2], jpeg[2:]
+    xmp = b"http://ns.adobe.com/xap/1.0/\x00<x:xmpmeta>GPSLatitude 51,30</x:xmpmeta>"
+    com = b"shot by SN-0042-SECRET"
+    seg = lambda marker, body: bytes([0xFF, marker]) + (len(body) + 2).to_bytes(2, "big") + body  # noqa: E731
+    rich = soi + seg(0xE1, xmp) + seg(0xFE, com) + seg(0xE2, b"ICC_PROFILE\x00\x01\x01device") + rest
+    clean = clean_photo(rich)
+    for secret in (b"SN-0042", b"GPSLatitude", b"Exif", b"ICC_PROFILE", b"PhoneMaker"):
+        assert secret not in clean
+    assert clean.endswith(jpeg[jpeg.index(b"\xff\xda"):])  # the entropy-coded data untouched
+    assert np.array_equal(_decode(clean), _decode(jpeg))
+    broken = soi + seg(0xFE, com)[:6]  # a segment that claims more bytes than the file has
+    assert strip_metadata(broken) is None
+    png = io.BytesIO()
+    info = __import__("PIL.PngImagePlugin", fromlist=["PngInfo"]).PngInfo()
+    info.add_text("Comment", "SN-0042-SECRET")
+    Image.fromarray(rgb).save(png, format="PNG", pnginfo=info)
+    cleaned = clean_photo(png.getvalue())
+    assert b"SN-0042" not in cleaned and np.array_equal(_decode(cleaned), rgb)
+    assert cv2.imdecode(np.frombuffer(cleaned, np.uint8), cv2.IMREAD_COLOR) is not None

@@ -13,7 +13,7 @@ import struct
 import cv2
 import numpy as np
 
-from ..data.orientation import (OrientationError, check_orientation, displayed_size, exif_orientation,
+from ..data.orientation import (ROTATIONS, OrientationError, check_orientation, displayed_size, exif_orientation,
                                 orient_intrinsics, orient_pixels)
 from ..geometry import Intrinsics
 
@@ -65,7 +65,7 @@ def upright_depth(depth: np.ndarray | None, orientation: int) -> np.ndarray | No
     return None if depth is None else orient_pixels(depth, orientation)
 
 
-def _strip_jpeg(data: bytes) -> bytes:
+def _strip_jpeg(data: bytes) -> bytes | None:
     out, i = [data[:2]], 2
     while i + 4 <= len(data) and data[i] == 0xFF:
         marker = data[i + 1]
@@ -76,47 +76,53 @@ def _strip_jpeg(data: bytes) -> bytes:
             out.append(data[i:])
             return b"".join(out)
         (length,) = struct.unpack(">H", data[i + 2:i + 4])
-        seg = data[i:i + 2 + length]
+        if length < 2 or i + 2 + length > len(data):
+            return None
         if not ((0xE1 <= marker <= 0xEF and marker not in _JPEG_KEEP_APP) or marker == 0xFE):
-            out.append(seg)
+            out.append(data[i:i + 2 + length])
         i += 2 + length
-    return data  # not a JPEG we can walk: callers re-encode instead
+    return None  # not a layout we walk: the caller re-encodes
 
 
-def _strip_png(data: bytes) -> bytes:
+def _strip_png(data: bytes) -> bytes | None:
     out, i = [_PNG_SIG], len(_PNG_SIG)
     while i + 12 <= len(data):
         (length,) = struct.unpack(">I", data[i:i + 4])
         kind = data[i + 4:i + 8]
         end = i + 12 + length
+        if end > len(data):
+            return None
         if kind not in _PNG_DROP:
             out.append(data[i:end])
         i = end
         if kind == b"IEND":
             return b"".join(out)
-    return data
+    return None
 
 
-def strip_metadata(data: bytes) -> bytes:
-    """JPEG or PNG bytes without their metadata segments, pixels untouched (other bytes: unchanged)."""
+def strip_metadata(data: bytes) -> bytes | None:
+    """JPEG or PNG bytes without their metadata segments, pixels untouched; None when the file's layout is not
+    one we can walk (then re-encode it)."""
     if data.startswith(b"\xff\xd8"):
         return _strip_jpeg(data)
     if data.startswith(_PNG_SIG):
         return _strip_png(data)
-    return data
+    return None
 
 
 def clean_photo(data: bytes, upright: np.ndarray | None = None) -> bytes:
     """What is stored and served for an uploaded photo: upright, without metadata. ``upright`` (RGB) saves
     decoding again when the caller has it."""
     orientation = exif_orientation(data)
-    if orientation == 1:
-        return strip_metadata(data)
+    if orientation not in ROTATIONS:  # mirrored (stored before those were refused): shown as stored
+        orientation = 1
+    if orientation == 1 and (stripped := strip_metadata(data)) is not None:
+        return stripped
     if upright is None:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
         if img is None:
-            return strip_metadata(data)
-        upright = orient_pixels(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), check_orientation(orientation))
+            raise ValueError("not a decodable photo")  # never stored: uploads are decoded before
+        upright = orient_pixels(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), orientation)
     png = data.startswith(_PNG_SIG)
     ok, buf = cv2.imencode(".png" if png else ".jpg", cv2.cvtColor(upright, cv2.COLOR_RGB2BGR),
                            [] if png else [cv2.IMWRITE_JPEG_QUALITY, 95])
