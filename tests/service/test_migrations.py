@@ -17,6 +17,8 @@ from mapfree.service import Settings, create_app
 from mapfree.service.db import Base, make_engine
 from mapfree.service.migrations import SchemaVersion, current, head, upgrade
 
+from .conftest import BACKENDS, db_url_for
+
 OLD_SQL = Path(__file__).parent / "data" / "db-before-migrations.sql"
 
 
@@ -120,3 +122,44 @@ def test_processes_starting_together_upgrade_once(tmp_path):
         t.join(60)
     assert not errors, errors
     assert sorted(results, key=str) == sorted([(None, head())] + [(head(), head())] * 3, key=str)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_upgrading_from_the_first_revision_gives_the_models_schema_on_each_backend(backend, tmp_path):
+    """The first revision's tables with a user in them, upgraded by processes starting together (once, under the
+    backend's lock), end as the models' schema, the rows kept."""
+    from alembic import command
+    from sqlalchemy import text
+
+    from mapfree.service.migrations import _config
+
+    old, new = db_url_for(backend, tmp_path), db_url_for(backend, tmp_path)
+    engine = make_engine(old)
+    with engine.begin() as conn:
+        cfg = _config()
+        cfg.attributes["connection"] = conn
+        command.upgrade(cfg, "0001")
+        conn.execute(text("INSERT INTO users (name, is_admin, created_at) VALUES ('old', false, 1.0)"))
+        conn.execute(text("DROP TABLE alembic_version"))  # as a database from before migrations has none
+    engine.dispose()
+    results = []
+
+    def start():
+        e = make_engine(old)
+        results.append(upgrade(e))
+        e.dispose()
+
+    threads = [threading.Thread(target=start) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert sorted(results, key=str) == sorted([(None, head())] + [(head(), head())] * 2, key=str)
+    fresh = make_engine(new)
+    upgrade(fresh)  # empty: made from the models, stamped
+    fresh.dispose()
+    assert schema(old) == schema(new)
+    engine = make_engine(old)
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT name FROM users")).scalar_one() == "old"
+    engine.dispose()
