@@ -8,7 +8,6 @@ and status. The database gauges are read at scrape time in one short read-only t
 from __future__ import annotations
 
 import logging
-import time
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
@@ -86,7 +85,6 @@ class Metrics:
         self.latency = Histogram("mapfree_http_request_duration_seconds", "HTTP request latency (this API process)",
                                  ["method", "route", "status"], buckets=BUCKETS, registry=self.registry)
         self.registry.register(_Database(engine))
-        self.started = time.time()
 
     def observe(self, method: str, route: str, status: int, seconds: float) -> None:
         self.latency.labels(method, route, str(status)).observe(seconds)
