@@ -260,16 +260,19 @@ def main() -> int:
             tokens.append(auth.create_user(db, f"client{i}")[1])
     big = big_submission([f"s{460 + i:05d}" for i in range(3)]) if phases & {"uploads", "memory"} else b""
     port = free_port()
+    operator = "mf_bench-" + os.urandom(8).hex()  # reads /health/detail (worker count)
     log = open(tmp / "serve.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "mapfree", "serve", "--db", db_url, "--data", str(tmp / "data"),
                              "--workers", str(a.workers), "--port", str(port), "--lease-seconds", "3",
-                             "--log-level", "warning"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+                             "--log-level", "warning"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                            env={**os.environ, "MAPFREE_OPERATOR_TOKEN": operator})
     url = f"http://127.0.0.1:{port}"
     deadline = time.time() + a.timeout
     try:
         while True:
             try:
-                if len(httpx.get(url + "/health", timeout=2).json()["workers"]) >= a.workers:
+                detail = httpx.get(url + "/health/detail", timeout=2, headers={"Authorization": f"Bearer {operator}"})
+                if len(detail.json()["workers"]) >= a.workers:
                     break
             except (httpx.HTTPError, ValueError, KeyError):
                 pass

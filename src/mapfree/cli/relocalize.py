@@ -177,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
             if depth is not None and K is not None:
                 check_depth_size(dpath, depth.shape, K.width, K.height)
             v = as_view((image, K, depth))
-            if v.image.shape[:2] != (K.height, K.width):
+            if v.image.shape[:2] != (v.intrinsics.height, v.intrinsics.width):
                 raise InputError(f"{image}: image is {v.image.shape[1]}x{v.image.shape[0]} but its intrinsics "
                                  f"say {K.width}x{K.height}")
             views.append(v)

@@ -80,7 +80,8 @@ def settings_from_args(a: argparse.Namespace):
                     lease_seconds=a.lease_seconds, default_method=a.method, secure_cookies=a.secure_cookies,
                     methods_dir=a.methods_dir, val_hourly_limit=a.val_hourly_limit,
                     storage_quota_bytes=int(a.storage_quota_mb * mb), zip_retention_days=a.zip_retention_days,
-                    auth_failures_per_minute=a.auth_failures_per_minute, limits=limits)
+                    auth_failures_per_minute=a.auth_failures_per_minute, limits=limits,
+                    operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""))
 
 
 #: Start workers without the working directory on their module path (``-P``; ``-I`` before Python 3.11): a
@@ -90,7 +91,7 @@ ISOLATED = "-P" if sys.version_info >= (3, 11) else "-I"
 
 def worker_command(a: argparse.Namespace) -> list[str]:
     limits = dataclasses.asdict(settings_from_args(a).limits)
-    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.worker", "--db", a.db,
+    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.worker",  # the database URL: worker_env
            "--lease-seconds", str(a.lease_seconds), "--zip-retention-days", str(a.zip_retention_days),
            "--limits", json.dumps(limits), "--log-level", a.log_level, "--exit-with-parent"]
     if a.data:
@@ -100,14 +101,21 @@ def worker_command(a: argparse.Namespace) -> list[str]:
     return cmd
 
 
+def worker_env(a: argparse.Namespace) -> dict[str, str]:
+    """The workers' environment: the database URL goes there, never on their command line, where ``ps`` would
+    show its password to every user of the host (a process's environment is readable by its owner only)."""
+    return {**os.environ, "MAPFREE_DB": a.db}
+
+
 class Supervisor:
     """Keeps ``n`` worker processes alive until ``stop()``. A worker that exits is replaced; one that keeps dying
     soon after its start is replaced after a growing pause (``backoff`` doubling up to ``max_backoff`` s), so a
     broken installation does not spin, and a worker that ran ``stable_s`` seconds starts the count afresh."""
 
     def __init__(self, cmd: list[str], n: int, backoff: float = 1.0, max_backoff: float = 60.0,
-                 stable_s: float = 30.0):
+                 stable_s: float = 30.0, env: dict[str, str] | None = None):
         self.cmd, self.n, self.procs, self.stopping = cmd, n, [], threading.Event()
+        self.env = env
         self.backoff, self.max_backoff, self.stable_s = backoff, max_backoff, stable_s
         self.started: list[float] = []
         self.failures: list[int] = []  # consecutive quick deaths per slot
@@ -117,7 +125,7 @@ class Supervisor:
 
     def _spawn(self) -> subprocess.Popen:
         self.spawned += 1
-        return subprocess.Popen(self.cmd)
+        return subprocess.Popen(self.cmd, env=self.env)
 
     def start(self) -> None:
         self.procs = [self._spawn() for _ in range(self.n)]
@@ -156,15 +164,30 @@ class Supervisor:
 
 
 def run(a: argparse.Namespace) -> int:
-    from ..service.db import init_db, make_engine
+    from ..service.db import make_engine
+    from ..service.evaluation import check_ground_truth
     from ..service.logs import setup_logging
 
     setup_logging(a.log_level)
     settings = settings_from_args(a)
+    try:
+        check_ground_truth(settings)
+    except ValueError as e:
+        print(f"mapfree serve: error: {e}", file=sys.stderr)
+        return 2
+    from ..service.migrations import SchemaVersion, upgrade
+
     engine = make_engine(settings.db_url)
-    init_db(engine)  # once, before several processes race to create tables
-    engine.dispose()
-    sup = Supervisor(worker_command(a), a.workers) if a.workers > 0 else None
+    try:  # create the tables or upgrade the schema, once, before the API processes and workers start
+        before, after = upgrade(engine)
+    except SchemaVersion as e:
+        print(f"mapfree serve: error: {e}", file=sys.stderr)
+        return 2
+    finally:
+        engine.dispose()
+    if before != after:
+        log.info("database schema upgraded", extra={"from": before or "unversioned", "to": after})
+    sup = Supervisor(worker_command(a), a.workers, env=worker_env(a)) if a.workers > 0 else None
     if sup:
         sup.start()
     try:

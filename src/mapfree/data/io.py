@@ -15,6 +15,7 @@ from typing import Iterator, Mapping, Sequence
 import numpy as np
 
 from ..geometry import Intrinsics, Pose
+from .orientation import OrientationError, exif_orientation, orient_pixels
 
 __all__ = [
     "FormatError",
@@ -184,7 +185,8 @@ def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:
 
 
 def read_image(path: os.PathLike | str) -> np.ndarray:
-    """Image file -> (H,W,3) uint8 RGB; a missing or corrupt file raises FormatError naming it."""
+    """Image file -> (H,W,3) uint8 RGB, turned upright by its EXIF orientation; a missing or corrupt file raises
+    FormatError naming it."""
     import cv2
 
     data = np.fromfile(str(path), dtype=np.uint8) if Path(path).is_file() else None
@@ -193,9 +195,18 @@ def read_image(path: os.PathLike | str) -> np.ndarray:
     if data.size == 0:
         raise FormatError(path, None, "image file is empty (0 bytes)")
     try:
-        img = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        img = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     except cv2.error:  # OpenCV asserts on some truncated headers instead of returning None
         img = None
     if img is None:
         raise FormatError(path, None, "cannot decode image (corrupt or unsupported format)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return upright(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), path)
+
+
+def upright(img: np.ndarray, path: os.PathLike | str) -> np.ndarray:
+    """The decoded stored pixels of ``path`` -> the photo as displayed (EXIF orientation applied); a mirrored one is
+    refused."""
+    try:
+        return orient_pixels(img, exif_orientation(path))
+    except OrientationError as e:
+        raise FormatError(path, None, str(e).split(": ", 1)[1]) from None

@@ -43,6 +43,7 @@ class Settings:
     storage_quota_bytes: int = 1 << 30  # stored submission ZIPs and anchor photos per account (0: unlimited)
     zip_retention_days: float = 90.0  # stored ZIPs of finished submissions are deleted after this (0: kept)
     auth_failures_per_minute: int = 20  # failed token checks per client address before a 429 (0: unlimited)
+    operator_token: str = ""  # bearer token of monitoring (/health/detail, /metrics) besides admins' own
     limits: Limits = field(default_factory=Limits)
 
     def __post_init__(self) -> None:

@@ -170,3 +170,21 @@ def known_scenes(settings: Settings, split: str) -> set[str] | None:
     if settings.data_root is None or not (settings.data_root / split).is_dir():
         return None
     return {p.name for p in (settings.data_root / split).iterdir() if p.is_dir()}
+
+
+def missing_ground_truth(settings: Settings) -> list[str]:
+    """Test scenes of the dataset whose private ground truth (``gt_root/test/sNNNNN/poses.txt``) is missing: a
+    submission for them could never be scored, so a server with any is refused at start."""
+    scenes = known_scenes(settings, "test")
+    if settings.gt_root is None or not scenes:
+        return []
+    return sorted(s for s in scenes if not (settings.gt_root / "test" / s / "poses.txt").is_file())
+
+
+def check_ground_truth(settings: Settings) -> None:
+    """``ValueError`` naming the test scenes without ground truth under ``gt_root`` (see ``missing_ground_truth``)."""
+    missing = missing_ground_truth(settings)
+    if missing:
+        shown = ", ".join(missing[:20]) + (f" and {len(missing) - 20} more" if len(missing) > 20 else "")
+        raise ValueError(f"the ground-truth folder {settings.gt_root} lacks {len(missing)} of the dataset's test "
+                         f"scenes ({shown}): expected {settings.gt_root}/test/SCENE/poses.txt for each")

@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 from .config import Settings
 from .db import Plot, Result, Submission, User, now
 from .evaluation import PLOT_NAMES, known_scenes, render_plots, unpack_report
-from .storage import check_quota, copy_in, lock_user
+from .storage import UPLOAD_LEASE_SECONDS, check_quota, copy_in, lock_user
 from .uploads import UploadError, check_name, check_submission_zip
 
 
@@ -57,7 +57,7 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
         _limit_reached(db, user, split, 3600, settings.val_hourly_limit, "hourly")
     check_quota(db, settings, user.id, size, "this submission")
     sub = Submission(user_id=user.id, split=split, name=name, public=bool(public), status="uploading",
-                     size_bytes=size, sha256="", created_at=now())
+                     size_bytes=size, sha256="", created_at=now(), lease_until=now() + UPLOAD_LEASE_SECONDS)
     db.add(sub)
     db.commit()
     try:
@@ -67,7 +67,7 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
         db.execute(delete(Submission).where(Submission.id == sub.id))
         db.commit()
         raise
-    sub.sha256, sub.status = sha, "queued"
+    sub.sha256, sub.status, sub.lease_until = sha, "queued", None
     db.commit()
     return sub
 

@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session
 
 from . import auth
 from .api import (PhotoUpload, add_photo, anchor_json, check_photo_count, find_anchor, localize_anchor, make_anchor,
-                  photo_name, photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
+                  may_see_photos, photo_name, photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
@@ -30,7 +30,8 @@ from .leaderboard import (VIEWS, board, check_sort, check_split, compare, meta_j
 from .manage import Withdrawn, own_submission, test_quota, withdraw, zip_response
 from .reloc import check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
 from .submissions import accept, to_json, visible_submission
-from .uploads import UploadError, decode_depth, decode_image, parse_intrinsics
+from .exif import stored_shape, upright_depth, upright_intrinsics
+from .uploads import UploadError, decode_depth, decode_photo, parse_intrinsics
 
 router = APIRouter(include_in_schema=False)
 templates = Jinja2Templates(directory=str(Path(__file__).parent / "templates"))
@@ -318,13 +319,14 @@ def relocalize_form(request: Request, db: Session = Depends(db_session)):
     return _reloc_page(request, db)
 
 
-def _guess_intrinsics(fields: dict, img, what: str) -> dict:
-    """Intrinsics from the form, or a guess (focal 0.8 x longest side, centred) when left empty."""
-    h, w = img.shape[:2]
+def _guess_intrinsics(fields: dict, img, what: str, orientation: int = 1) -> dict:
+    """Intrinsics from the form (for the photo's stored pixel grid), or a guess (focal 0.8 x longest side,
+    centred) when left empty; for the upright photo."""
+    h, w = stored_shape(img, orientation)
     if all(str(fields.get(k, "")).strip() == "" for k in ("fx", "fy", "cx", "cy")):
         f = 0.8 * max(w, h)
         fields = {"fx": f, "fy": f, "cx": (w - 1) / 2, "cy": (h - 1) / 2}
-    return parse_intrinsics(fields, w, h, what)
+    return upright_intrinsics(parse_intrinsics(fields, w, h, what), orientation)
 
 
 @router.post("/relocalize", response_class=HTMLResponse)
@@ -342,16 +344,16 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
     m = method.strip() or default_method(request.app.state.settings.default_method)
     try:
         m = check_method(m)
-        ref_img = decode_image(reference.file.read(lim.max_image_bytes + 1), lim, "reference photo")
-        q_img = decode_image(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
+        ref_img, ref_o = decode_photo(reference.file.read(lim.max_image_bytes + 1), lim, "reference photo")
+        q_img, q_o = decode_photo(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
         ref_K = intrinsics_of(_guess_intrinsics({k[4:]: v for k, v in form.items() if k.startswith("ref_")},
-                                                ref_img, "reference intrinsics"))
+                                                ref_img, "reference intrinsics", ref_o))
         q_K = intrinsics_of(_guess_intrinsics({k[2:]: v for k, v in form.items() if k.startswith("q_")}, q_img,
-                                              "query intrinsics"))
+                                              "query intrinsics", q_o))
         ref_depth = None
         if reference_depth is not None and reference_depth.filename:
-            ref_depth = decode_depth(reference_depth.file.read(lim.max_image_bytes + 1), lim, ref_img.shape[:2],
-                                     "reference depth")
+            ref_depth = upright_depth(decode_depth(reference_depth.file.read(lim.max_image_bytes + 1), lim,
+                                                   stored_shape(ref_img, ref_o), "reference depth"), ref_o)
         elif needs_reference_depth(m, scale_free_too=False):
             raise UploadError(422, f"method {m} needs the reference depth map (a uint16 PNG in millimetres, the "
                                    "size of the reference photo) for a metric pose; choose one, or a method "
@@ -373,20 +375,22 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
                       csrf_token: str = Form(""), db: Session = Depends(db_session)):
     """A query photo against a stored anchor (one or several photos): the pose in the anchor's frame, which
     photo answered, and the figure drawn against that photo."""
-    require_writer(request, db, csrf_token)
+    caller = require_writer(request, db, csrf_token)
     form = {"q_fx": q_fx, "q_fy": q_fy, "q_cx": q_cx, "q_cy": q_cy, "anchor": anchor}
     a = find_anchor(db, anchor)
     rows = photo_rows(db, a.id)
     db.commit()  # release the read transaction before the long computation
     lim = request.app.state.settings.limits
     try:
-        q_img = decode_image(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
+        q_img, q_o = decode_photo(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
         q_K = intrinsics_of(_guess_intrinsics({k[2:]: v for k, v in form.items() if k.startswith("q_")}, q_img,
-                                              "query intrinsics"))
+                                              "query intrinsics", q_o))
     except UploadError as e:
         return _reloc_page(request, db, e.status, method=a.method, form=form, error=e.message)
     est = localize_anchor(request, a, rows, q_img, q_K)
     result = estimate_json(est, a.method)
+    if not may_see_photos(a, caller.user):  # the figure would show the anchor's photo
+        return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8])
     photo = stored_photo(a, rows, result.get("photo") or 0, lim)  # only the one drawn, not every photo again
     shown = replace(est, pose=est.pose @ photo.pose.inverse()) if est.pose is not None else est  # vs that photo
     png = figure_png(photo.image, q_img, photo.K, q_K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
@@ -479,14 +483,17 @@ def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
 @router.post("/relocalize/anchors")
 def create_anchor_form(request: Request, photos: list[UploadFile] = File([]), depths: list[UploadFile] = File([]),
                        cameras: str = Form(""), name: str = Form(""), method: str = Form(""),
-                       csrf_token: str = Form(""), db: Session = Depends(db_session)):
+                       private: str = Form(""), csrf_token: str = Form(""), db: Session = Depends(db_session)):
     """Create an anchor from the page (what ``POST /anchors`` does, same limits and errors): on success its page;
     on a problem the relocalize page with the error above this form, its values kept."""
     caller = require_writer(request, db, csrf_token)
-    form = {"new_name": name, "new_method": method, "cameras": cameras}
+    form = {"new_name": name, "new_method": method, "cameras": cameras, "new_private": bool(private)}
     try:
         ups, names = _form_photos(request.app.state.settings.limits, photos, depths, cameras)
         a, _ = make_anchor(request, db, caller.user, name, method, ups, names)
+        if private:
+            a.private = True
+            db.commit()
     except (UploadError, HTTPException) as e:
         db.rollback()
         status, message = _problem(e)
