@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session
 from ..estimate import Estimate
 from ..geometry import Pose
 from . import jobs
+from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, RetiredPhotoIndex, Submission, User, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
 from .deps import db_session, identify, require_writer
@@ -315,6 +316,7 @@ def make_anchor(request: Request, db: Session, user: User, name: str, method: st
 
 
 @router.post("/anchors", status_code=201, tags=["relocalization"])
+@heavy
 def create_anchor(request: Request, image: UploadFile = File(..., description="reference photo (JPEG/PNG)"),
                   fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
                   depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
@@ -415,6 +417,7 @@ def add_photo(request: Request, db: Session, user: User, aid: str, image: Upload
 
 
 @router.post("/anchors/{aid}/photos", status_code=201, tags=["relocalization"])
+@heavy
 def add_anchor_photo(aid: str, request: Request, image: UploadFile = File(..., description="photo (JPEG/PNG)"),
                      fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
                      pose: str = Form(..., description="'qw qx qy qz tx ty tz': world-to-camera from the anchor's "
@@ -512,6 +515,7 @@ def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img,
 
 
 @router.post("/anchors/{aid}/localize", tags=["relocalization"])
+@heavy
 def localize(aid: str, request: Request, image: UploadFile = File(..., description="query photo (JPEG/PNG)"),
              fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
              depth: UploadFile | None = File(None), csrf_token: str | None = Form(None),

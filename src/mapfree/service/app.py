@@ -18,6 +18,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .. import __version__
+from .concurrency import HeavyPool
 from .config import Settings
 from .db import init_db, make_engine, session_factory
 from .gcpause import freeze_long_lived
@@ -63,7 +64,10 @@ def create_app(settings: Settings) -> FastAPI:
                          description="Map-free benchmark evaluation server and metric relocalization API.")
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
     app.state.health = HealthMonitor(engine)
-    app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)))
+    app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue)
+    app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)),
+                                      cache_bytes=int(settings.anchor_cache_mb * (1 << 20)),
+                                      max_side=settings.work_max_side)
     if settings.methods_dir is not None:
         register_methods_dir(settings.methods_dir)
 

@@ -22,13 +22,14 @@ from sqlalchemy.orm import Session
 from . import auth
 from .api import (PhotoUpload, add_photo, anchor_json, check_photo_count, find_anchor, localize_anchor, make_anchor,
                   photo_name, photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
+from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
 from .leaderboard import (VIEWS, board, check_sort, check_split, compare, meta_json, ordered_metrics,
                           parse_meta, reference_rows, save_meta, visible_json)
 from .manage import Withdrawn, own_submission, test_quota, withdraw, zip_response
-from .reloc import check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
+from .reloc import Photo, check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
 from .submissions import accept, to_json, visible_submission
 from .uploads import UploadError, decode_depth, decode_image, parse_intrinsics
 
@@ -328,6 +329,7 @@ def _guess_intrinsics(fields: dict, img, what: str) -> dict:
 
 
 @router.post("/relocalize", response_class=HTMLResponse)
+@heavy
 def relocalize_try(request: Request, reference: UploadFile = File(...), query: UploadFile = File(...),
                    reference_depth: UploadFile | None = File(None), method: str = Form(""),
                    ref_fx: str = Form(""), ref_fy: str = Form(""), ref_cx: str = Form(""), ref_cy: str = Form(""),
@@ -362,12 +364,14 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
     loc = request.app.state.localizers
     est = loc.localize(key, m, ref_img, ref_K, ref_depth, q_img, q_K)
     loc.forget(key)
-    png = figure_png(ref_img, q_img, ref_K, q_K, est, title=m)
+    ref, q = loc.fit(Photo(ref_img, ref_K)), loc.fit(Photo(q_img, q_K))  # the sizes the matches are in
+    png = figure_png(ref.image, q.image, ref.K, q.K, est, title=m)
     return _reloc_page(request, db, method=m, form=form, result=estimate_json(est, m),
                        figure="data:image/png;base64," + base64.b64encode(png).decode())
 
 
 @router.post("/relocalize/anchor", response_class=HTMLResponse)
+@heavy
 def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFile = File(...),
                       q_fx: str = Form(""), q_fy: str = Form(""), q_cx: str = Form(""), q_cy: str = Form(""),
                       csrf_token: str = Form(""), db: Session = Depends(db_session)):
@@ -389,7 +393,9 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
     result = estimate_json(est, a.method)
     photo = stored_photo(a, rows, result.get("photo") or 0, lim)  # only the one drawn, not every photo again
     shown = replace(est, pose=est.pose @ photo.pose.inverse()) if est.pose is not None else est  # vs that photo
-    png = figure_png(photo.image, q_img, photo.K, q_K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
+    loc = request.app.state.localizers
+    photo, q = loc.fit(photo), loc.fit(Photo(q_img, q_K))  # the sizes the matches are in
+    png = figure_png(photo.image, q.image, photo.K, q.K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
     return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8],
                        figure="data:image/png;base64," + base64.b64encode(png).decode())
 
@@ -477,6 +483,7 @@ def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
 
 
 @router.post("/relocalize/anchors")
+@heavy
 def create_anchor_form(request: Request, photos: list[UploadFile] = File([]), depths: list[UploadFile] = File([]),
                        cameras: str = Form(""), name: str = Form(""), method: str = Form(""),
                        csrf_token: str = Form(""), db: Session = Depends(db_session)):
@@ -510,6 +517,7 @@ def anchor_page(aid: str, request: Request, db: Session = Depends(db_session)):
 
 
 @router.post("/relocalize/anchors/{aid}/photos")
+@heavy
 def add_photo_form(aid: str, request: Request, image: UploadFile | None = File(None),
                    depth: UploadFile | None = File(None), fx: str = Form(""), fy: str = Form(""),
                    cx: str = Form(""), cy: str = Form(""), pose: str = Form(""), csrf_token: str = Form(""),

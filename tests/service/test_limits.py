@@ -1,0 +1,109 @@
+"""Memory, threads and limits of the service: each test here failed on the service before its fix."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from mapfree.data import Dataset
+from mapfree.geometry import Pose
+
+from .test_hardening import make_app  # noqa: F401  (the in-process app fixture)
+
+METHOD = "sift_pnp_sensor"
+
+
+def _form(K) -> dict:
+    return {"fx": repr(K.fx), "fy": repr(K.fy), "cx": repr(K.cx), "cy": repr(K.cy)}
+
+
+def _upscaled(frame, long_side: int):
+    """A realmini frame's JPEG, depth PNG (if any) and intrinsics, upscaled to ``long_side`` (4096: a phone photo)."""
+    img = frame.image()
+    h, w = img.shape[:2]
+    nw, nh = round(w * long_side / max(h, w)), round(h * long_side / max(h, w))
+    big = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_CUBIC)
+    ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(big, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    assert ok
+    depth = None
+    if frame.depth_path("sensor").exists():
+        d = cv2.imread(str(frame.depth_path("sensor")), cv2.IMREAD_UNCHANGED)
+        ok, png = cv2.imencode(".png", cv2.resize(d, (nw, nh), interpolation=cv2.INTER_NEAREST))
+        depth = png.tobytes()
+    return jpg.tobytes(), depth, frame.intrinsics.resized(nw, nh)
+
+
+def _pose(d: dict) -> Pose:
+    return Pose(np.array(d["R"]), np.array(d["t"]))
+
+
+def _angle_deg(a: Pose, b: Pose) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(a.R.T @ b.R) - 1) / 2, -1, 1))))
+
+
+def test_a_4096_photo_is_downscaled_before_extraction_and_keeps_its_pose(make_app, realmini_dir,  # noqa: F811
+                                                                          monkeypatch):
+    """A 4096-pixel anchor photo and query reach SIFT at the working size (it used to get them native, and
+    upsample them: gigabytes), and the pose is the one of the same photos at their native 720 pixels."""
+    from mapfree.matching.sift import SIFTMatcher
+
+    seen: list[tuple[int, int]] = []
+    extract = SIFTMatcher.extract
+
+    def spy(self, image):
+        seen.append(image.shape[:2])
+        assert max(image.shape[:2]) <= 1024, f"SIFT got a {image.shape[1]}x{image.shape[0]} image"
+        return extract(self, image)
+
+    monkeypatch.setattr(SIFTMatcher, "extract", spy)
+    app = make_app()
+    assert app.settings.work_max_side == 1024
+    scene = Dataset(realmini_dir).scene("val", "s00000")
+    ref, query = scene.reference, scene.frame("seq1/frame_00009.jpg")
+    poses = {}
+    for size in (None, 4096):
+        if size is None:
+            r_img, r_depth, r_K = ref.image_path.read_bytes(), ref.depth_path("sensor").read_bytes(), ref.intrinsics
+            q_img, _, q_K = query.image_path.read_bytes(), None, query.intrinsics
+        else:
+            r_img, r_depth, r_K = _upscaled(ref, size)
+            q_img, _, q_K = _upscaled(query, size)
+        r = app.client.post("/anchors", headers=app.auth("ann"), data={**_form(r_K), "method": METHOD},
+                            files={"image": ("r.jpg", r_img), "depth": ("d.png", r_depth)})
+        assert r.status_code == 201, r.text
+        assert r.json()["intrinsics"]["width"] == r_K.width  # stored as uploaded
+        r = app.client.post(f"/anchors/{r.json()['id']}/localize", headers=app.auth("ben"), data=_form(q_K),
+                            files={"image": ("q.jpg", q_img)})
+        assert r.status_code == 200 and r.json()["ok"], r.text
+        poses[size] = _pose(r.json())
+    assert max(max(s) for s in seen) == 1024  # the 4096 photos, downscaled
+    native, big = poses[None], poses[4096]
+    assert np.linalg.norm(native.center - big.center) < 0.05, (native.center, big.center)
+    assert _angle_deg(native, big) < 1.0
+    gt = query.pose
+    assert np.linalg.norm(big.center - gt.center) < 0.25 and _angle_deg(big, gt) < 5
+
+
+def test_heavy_requests_past_the_cap_get_429_with_retry_after(make_app, realmini_dir):  # noqa: F811
+    """With every heavy slot taken, localize is refused at once (429 + Retry-After), cheap reads are not."""
+    app = make_app(heavy_threads=1, heavy_queue=0)
+    ref = Dataset(realmini_dir).scene("val", "s00000").reference
+    files = {"image": ("r.jpg", ref.image_path.read_bytes()), "depth": ("d.png", ref.depth_path("sensor").read_bytes())}
+    r = app.client.post("/anchors", headers=app.auth("ann"), data={**_form(ref.intrinsics), "method": METHOD},
+                        files=files)
+    assert r.status_code == 201, r.text
+    aid = r.json()["id"]
+    pool = app.client.app.state.heavy
+    pool._admit()  # one request in: the pool is full
+    try:
+        r = app.client.post(f"/anchors/{aid}/localize", headers=app.auth("ben"), data=_form(ref.intrinsics),
+                            files={"image": ("q.jpg", ref.image_path.read_bytes())})
+        assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1, r.text
+        assert "busy" in r.json()["detail"]
+        assert app.client.get("/api/me", headers=app.auth("ben")).status_code == 200
+    finally:
+        pool._done(0.0)
+    r = app.client.post(f"/anchors/{aid}/localize", headers=app.auth("ben"), data=_form(ref.intrinsics),
+                        files={"image": ("q.jpg", ref.image_path.read_bytes())})
+    assert r.status_code == 200, r.text
