@@ -23,6 +23,9 @@ from ..geometry import Pose
 NO_PIXELS = np.zeros((0, 0, 3), np.uint8)
 
 
+_ARRAY_HEADER = sys.getsizeof(np.empty(0)) - np.empty(0).nbytes  # an array object without its buffer
+
+
 def _array_root(a: np.ndarray) -> np.ndarray:
     while isinstance(a.base, np.ndarray):
         a = a.base
@@ -32,7 +35,7 @@ def _array_root(a: np.ndarray) -> np.ndarray:
 def deep_nbytes(obj: Any, _seen: set | None = None, _depth: int = 0) -> int:
     """Bytes that ``obj`` keeps alive: NumPy buffers (a slice counts its whole base), torch tensor storages,
     bytes and strings, followed through containers, dataclasses and plain objects' attributes (each buffer
-    once). Python object headers are counted with ``sys.getsizeof``."""
+    once). Other Python objects are counted with ``sys.getsizeof``."""
     seen = set() if _seen is None else _seen
     if _depth > 50:
         return 0
@@ -41,7 +44,7 @@ def deep_nbytes(obj: Any, _seen: set | None = None, _depth: int = 0) -> int:
         if id(root) in seen:
             return 0
         seen.add(id(root))
-        return int(root.nbytes) + sys.getsizeof(obj) if root.flags.owndata else int(root.nbytes)
+        return int(root.nbytes) + _ARRAY_HEADER
     torch = sys.modules.get("torch")
     if torch is not None and isinstance(obj, torch.Tensor):
         storage = obj.untyped_storage()
