@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 import cv2
 import numpy as np
 import pytest
@@ -158,3 +160,43 @@ def test_anchor_cache_is_bounded_in_bytes_and_answers_as_uncached(realmini_dir):
     again = loc.localize_photos("a3", METHOD, 1, lambda: pytest.fail("prepared again"), q.image(), q.intrinsics)
     np.testing.assert_array_equal(again.pose.t, want.pose.t)  # answered from the cache
     assert loc.anchors.get(("a0", METHOD, 1)) is None  # the least recently used went first
+
+
+def test_a_test_limit_of_zero_means_none_and_unlimited_is_explicit(make_app, split_data):  # noqa: F811
+    """``admin set-limit USER 0`` and ``serve --test-daily-limit 0`` refuse every test submission (0 used to
+    mean unlimited while /api/me said 0 left); ``unlimited`` is its own word, shown as such by /api/me."""
+    from mapfree.cli.serve import register, settings_from_args
+
+    from .conftest import make_submission, mapfree
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    parse = lambda *a: settings_from_args(parser.parse_args(["serve", *a]))  # noqa: E731
+    assert parse("--test-daily-limit", "0").test_daily_limit == 0
+    assert parse("--test-daily-limit", "unlimited").test_daily_limit < 0
+    assert parse().test_daily_limit == 5
+    with pytest.raises(SystemExit):
+        parse("--test-daily-limit", "lots")
+
+    app = make_app(test_daily_limit=parse("--test-daily-limit", "0").test_daily_limit)
+    data = make_submission(split_data.gt / "test", noise=0.5, seed=3)
+    up = lambda user: app.client.post("/api/submissions", headers=app.auth(user),  # noqa: E731
+                                      files={"file": ("s.zip", data)}, data={"split": "test", "name": "t"})
+    me = lambda user: app.client.get("/api/me", headers=app.auth(user)).json()  # noqa: E731
+    assert me("ben")["test_daily_limit"] == 0 and me("ben")["test_evaluations_left_today"] == 0
+    for _ in range(3):
+        r = up("ben")
+        assert r.status_code == 429 and "limit is 0" in r.json()["detail"], r.text
+    db = ["--db", app.settings.db_url]
+    mapfree("admin", *db, "set-limit", "ann", "unlimited")
+    assert me("ann")["test_daily_limit"] == "unlimited" and me("ann")["test_evaluations_left_today"] == "unlimited"
+    assert [up("ann").status_code for _ in range(3)] == [202] * 3
+    mapfree("admin", *db, "set-limit", "ann", "0")
+    assert me("ann")["test_daily_limit"] == 0 and me("ann")["test_evaluations_left_today"] == 0
+    assert up("ann").status_code == 429
+    mapfree("admin", *db, "set-limit", "ann", "default")  # the server's: 0 here
+    assert up("ann").status_code == 429
+    app.settings.test_daily_limit = 4
+    assert me("ann")["test_evaluations_left_today"] == 1  # 3 used in the last 24 h
+    assert up("ann").status_code == 202 and up("ann").status_code == 429
+    assert "test_limit=default" in mapfree("admin", *db, "list-users")

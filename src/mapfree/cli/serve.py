@@ -18,6 +18,15 @@ from . import HelpFormatter
 log = logging.getLogger("mapfree.serve")
 
 
+def _daily_limit(text: str) -> int:
+    from ..service.config import parse_daily_limit
+
+    try:
+        return parse_daily_limit(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "serve", help="run the evaluation server + relocalization API (FastAPI) with evaluation workers",
@@ -45,7 +54,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-api", action="store_true", help="run only the evaluation workers (scale-out hosts)")
     p.add_argument("--lease-seconds", type=float, default=60.0,
                    help="a job whose worker stops renewing for this long is retried (default 60)")
-    p.add_argument("--test-daily-limit", type=int, default=5, help="test evaluations per account per 24 h (default 5)")
+    p.add_argument("--test-daily-limit", type=_daily_limit, default=5, metavar="N|unlimited",
+                   help="test evaluations per account per 24 h (default 5; 0: none at all; 'unlimited': no limit)")
     p.add_argument("--max-upload-mb", type=float, default=50.0, help="largest submission ZIP (default 50 MB)")
     p.add_argument("--max-entry-mb", type=float, default=64.0,
                    help="largest pose file inside a ZIP, uncompressed (default 64 MiB)")

@@ -78,7 +78,7 @@ def me(request: Request, db: Session = Depends(db_session)):
     u = caller.user
     quota = test_quota(db, request.app.state.settings, u)
     return {"name": u.name, "admin": u.is_admin, "test_evaluations_left_today": quota.left,
-            "test_daily_limit": quota.limit, "storage_used_bytes": stored_bytes(db, u.id),
+            "test_daily_limit": quota.shown_limit, "storage_used_bytes": stored_bytes(db, u.id),
             "storage_quota_bytes": request.app.state.settings.storage_quota_bytes}
 
 

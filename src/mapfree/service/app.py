@@ -19,7 +19,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .. import __version__
 from .concurrency import HeavyPool
-from .config import Settings
+from .config import Settings, parse_daily_limit
 from .db import init_db, make_engine, session_factory
 from .gcpause import freeze_long_lived
 from .guard import AuthThrottle, request_id
@@ -160,7 +160,7 @@ def app_from_env() -> FastAPI:
         s = Settings(db_url=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
                      data_root=os.environ.get("MAPFREE_DATA") or None, gt_root=os.environ.get("MAPFREE_GT") or None,
                      default_method=os.environ.get("MAPFREE_METHOD", ""),
-                     test_daily_limit=int(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
+                     test_daily_limit=parse_daily_limit(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
                      secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1")
     app = create_app(s)
     freeze_long_lived()

@@ -6,6 +6,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
+#: A daily test limit (the server's or one account's) meaning "no limit"; 0 means none at all.
+UNLIMITED = -1
+
+
+def parse_daily_limit(text: str | int) -> int:
+    """A test-evaluation limit as typed by an operator: a count (0: no test evaluation at all) or ``unlimited``
+    (a negative number means the same) -> the count, or ``UNLIMITED``."""
+    word = str(text).strip().lower()
+    if word == "unlimited":
+        return UNLIMITED
+    try:
+        n = int(word)
+    except ValueError:
+        raise ValueError(f"expected a number of evaluations (0: none) or 'unlimited'; got {str(text)[:40]!r}") from None
+    return UNLIMITED if n < 0 else n
+
+
 @dataclass
 class Limits:
     """Hostile-input limits. Sizes in bytes."""
@@ -31,7 +48,7 @@ class Settings:
     data_root: Path | None = None
     gt_root: Path | None = None
     splits: tuple[str, ...] = ("val", "test")
-    test_daily_limit: int = 5
+    test_daily_limit: int = 5  # per account and 24 h; 0: no test evaluations, UNLIMITED (-1): no limit
     lease_seconds: float = 60.0
     max_attempts: int = 3
     poll_seconds: float = 0.5
