@@ -21,7 +21,7 @@ from .db import MethodInfo, Result, Submission, User
 from .deps import db_session, identify
 from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT
 from .reference import REFERENCE_ROWS
-from .submissions import to_json, visible_submission
+from .submissions import shown_metrics, to_json, visible_submission
 from .uploads import UploadError
 
 VIEWS = ("all", "best")
@@ -151,7 +151,7 @@ def board(db: Session, split: str, sort: str = "vcre_auc", view: str = "all", sc
     ).all()
     entries = []
     for sid, name, created_at, uname, values, info in rows:
-        values = values if scene is None else (values or {}).get(scene)
+        values = shown_metrics(split, values) if scene is None else (values or {}).get(scene)
         if values is None:
             continue
         entries.append({"id": sid, "name": name, "user": uname, "created_at": created_at,

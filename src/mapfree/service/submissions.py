@@ -16,6 +16,7 @@ from .config import UNLIMITED, Settings
 from .db import Plot, Result, Submission, User, now
 from .evaluation import PLOT_NAMES, known_scenes, render_plots, unpack_report
 from .storage import check_quota, copy_in, lock_user
+from .testmetrics import coarsen
 from .uploads import UploadError, check_name, check_submission_zip
 
 
@@ -81,6 +82,11 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
     return sub
 
 
+def shown_metrics(split: str, metrics: dict | None) -> dict | None:
+    """Stored metrics as shown: for ``test`` rounded again (results stored before coarsening was introduced)."""
+    return coarsen(metrics) if split == "test" and metrics else metrics
+
+
 def visible(sub: Submission | None, user: User | None, withdrawn: bool = False) -> bool:
     """Whether ``user`` may see ``sub``: public, or theirs (admins: any). A withdrawn one only where
     ``withdrawn`` is asked for, and then only by its owner or an admin (their history lists it)."""
@@ -118,7 +124,7 @@ def to_json(db: Session, sub: Submission, owner_name: str | None = None) -> dict
         "withdrawn_at": sub.finished_at if sub.status == "withdrawn" else None,
         "size_bytes": sub.size_bytes, "sha256": sub.sha256,
         "url": f"/submissions/{sub.id}", "api_url": f"/api/submissions/{sub.id}",
-        "metrics": res.metrics if res else None, "problems": res.problems if res else [],
+        "metrics": shown_metrics(sub.split, res.metrics) if res else None, "problems": res.problems if res else [],
         "plots": [f"/submissions/{sub.id}/plots/{n}.png" for n in sorted(plots)],
     }
     if sub.split != "test":
