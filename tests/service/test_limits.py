@@ -7,10 +7,12 @@ import argparse
 import cv2
 import numpy as np
 import pytest
+from sqlalchemy import select
 
 from mapfree.data import Dataset
 from mapfree.geometry import Pose
 
+from .conftest import BACKENDS
 from .test_hardening import make_app  # noqa: F401  (the in-process app fixture)
 
 METHOD = "sift_pnp_sensor"
@@ -238,3 +240,77 @@ def test_a_one_frame_probe_does_not_reveal_the_test_ground_truth(split_data, tmp
     result = score(settings, "val", val)[0]  # public ground truth: full numbers, per scene
     assert result["per_scene"] and round(result["metrics"]["Average Median Translation Error"], 2) != \
         result["metrics"]["Average Median Translation Error"]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_parallel_uploads_cannot_overrun_the_storage_quota(backend, split_data, tmp_path):
+    """Ten 4.6 MB uploads at once against a 10 MiB quota: at most two are stored (all ten were on PostgreSQL,
+    three on SQLite: an upload's bytes counted only once its copy had started, after the quota check)."""
+    import zipfile
+    from concurrent.futures import ThreadPoolExecutor
+
+    import httpx
+
+    from .conftest import db_url_for, start_server, stop_server, truth_poses, zip_of
+
+    scene = sorted(p for p in (split_data.root / "val").iterdir() if p.is_dir())[0]
+    name, v = truth_poses(scene)[0]
+    line = f"{name} {' '.join(map(str, v))} 5\n".encode()
+    data = zip_of({f"pose_{scene.name}.txt": line * (4_600_000 // len(line))}, zipfile.ZIP_STORED)
+    assert 4.5e6 < len(data) < 4.7e6
+    srv = start_server(db_url_for(backend, tmp_path), backend, split_data, tmp_path, workers=0,
+                       extra=("--storage-quota-mb", "10", "--max-upload-mb", "5"))
+    try:
+        def upload(i: int) -> int:
+            with httpx.Client(base_url=srv.url, timeout=60,
+                              headers={"Authorization": f"Bearer {srv.tokens['bob']}"}) as c:
+                return c.post("/api/submissions", files={"file": ("s.zip", data)},
+                              data={"split": "val", "name": f"q{i}"}).status_code
+
+        with ThreadPoolExecutor(10) as ex:
+            codes = list(ex.map(upload, range(10)))
+        with srv.client("bob") as c:
+            me = c.get("/api/me").json()
+            stored = [s for s in c.get("/api/submissions").json() if s["status"] != "uploading"]
+    finally:
+        stop_server(srv.proc)
+    assert codes.count(202) == len(stored) <= 2 and codes.count(202) >= 1, codes
+    assert set(codes) <= {202, 413}, codes
+    assert me["storage_used_bytes"] <= 10 << 20, me
+
+
+def test_an_upload_reserves_its_bytes_before_its_copy_starts(make_app, split_data, monkeypatch):  # noqa: F811
+    """While one upload is being copied in, a second one of the same account sees its bytes (it saw none until
+    the first chunk was stored: the race that let parallel uploads pass the quota); a failed copy frees them."""
+    from mapfree.service import storage, submissions
+    from mapfree.service.db import User
+
+    from .conftest import make_submission
+
+    data = make_submission(split_data.root / "val")
+    app = make_app(storage_quota_bytes=int(1.5 * len(data)))
+    sessions = app.client.app.state.sessions
+    seen, real_copy = [], submissions.copy_in
+
+    def copy_in(db, sid, f):
+        with sessions() as other:  # another request's connection, between the quota check and the copy
+            uid = other.scalar(select(User.id).where(User.name == "ann"))
+            seen.append(storage.stored_bytes(other, uid))
+            other.commit()
+        if len(seen) == 2:
+            raise OSError("disk full")  # a copy that fails: its reservation must go with it
+        return real_copy(db, sid, f)
+
+    monkeypatch.setattr(submissions, "copy_in", copy_in)
+    up = lambda: app.client.post("/api/submissions", headers=app.auth("ann"),  # noqa: E731
+                                 files={"file": ("s.zip", data)}, data={"split": "val", "name": "x"})
+    assert up().status_code == 202
+    assert seen == [len(data)]
+    r = up()
+    assert r.status_code == 413 and "storage quota" in r.json()["detail"], r.text
+    monkeypatch.setattr(app.settings, "storage_quota_bytes", 3 * len(data))
+    assert up().status_code == 500  # the failed copy
+    assert seen[1] == 2 * len(data)
+    with sessions() as db:
+        uid = db.scalar(select(User.id).where(User.name == "ann"))
+        assert storage.stored_bytes(db, uid) == len(data)  # released
