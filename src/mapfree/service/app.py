@@ -24,8 +24,10 @@ from .db import init_db, make_engine, session_factory
 from .gcpause import freeze_long_lived
 from .guard import AuthThrottle, request_id
 from .health import HealthMonitor
+from .lifeline import die_with_parent, parent_from_env
 from .manage import Withdrawn
 from .reloc import Localizers, register_methods_dir
+from .timeouts import BodyTimeout
 from .uploads import UploadError
 
 log = logging.getLogger("mapfree.http")
@@ -133,6 +135,8 @@ def create_app(settings: Settings) -> FastAPI:
                                    "user_id": getattr(request.state, "user_id", None)})
         return response
 
+    app.add_middleware(BodyTimeout, seconds=settings.body_timeout)
+
     from . import api, leaderboard, manage, web
 
     app.include_router(api.router)
@@ -149,6 +153,9 @@ def app_from_env() -> FastAPI:
 
     setup_logging(os.environ.get("MAPFREE_LOG_LEVEL", "info"))
     raw = os.environ.get("MAPFREE_SETTINGS")
+    parent = parent_from_env()
+    if parent is not None:  # an API process of `mapfree serve --api-processes N`: it ends with that process
+        die_with_parent(parent)
     if raw:  # written by `mapfree serve --api-processes N`
         from .config import Limits
 
