@@ -12,7 +12,6 @@ import asyncio
 import os
 from typing import Any
 
-from fastapi import HTTPException
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 DEFAULT_HEADER_TIMEOUT = 10.0
@@ -74,8 +73,9 @@ def head_timeout_protocol(header_timeout: float) -> str:
 
 
 class BodyTimeout:
-    """ASGI middleware: a request body whose next piece takes longer than ``seconds`` is a 408 (0: no limit).
-    Only reads of the body are timed; waiting for a disconnect after it is not."""
+    """ASGI middleware: a request body whose next piece takes longer than ``seconds`` is answered 408 and its
+    connection closed (0: no limit). Only reads of the body are timed, not a wait for a disconnect after it;
+    the application sees a disconnect, and whatever it answers then is dropped."""
 
     def __init__(self, app: Any, seconds: float):
         self.app, self.seconds = app, seconds
@@ -83,18 +83,32 @@ class BodyTimeout:
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or self.seconds <= 0:
             return await self.app(scope, receive, send)
-        done = False
+        body_done = timed_out = started = False
 
         async def timed_receive():
-            nonlocal done
-            if done:
-                return await receive()
+            nonlocal body_done, timed_out
+            if body_done or timed_out:
+                return await receive() if not timed_out else {"type": "http.disconnect"}
             try:
                 message = await asyncio.wait_for(receive(), self.seconds)
             except asyncio.TimeoutError:
-                raise HTTPException(408, f"request body not received: nothing came for {self.seconds:g} s",
-                                    headers={"Connection": "close"}) from None
-            done = message.get("type") != "http.request" or not message.get("more_body", False)
+                timed_out = True
+                if not started:
+                    body = f'{{"detail": "request body not received: nothing came for {self.seconds:g} s", ' \
+                           f'"status": 408}}'.encode()
+                    await send({"type": "http.response.start", "status": 408,
+                                "headers": [(b"content-type", b"application/json"), (b"connection", b"close"),
+                                            (b"content-length", str(len(body)).encode())]})
+                    await send({"type": "http.response.body", "body": body})
+                return {"type": "http.disconnect"}
+            body_done = message.get("type") != "http.request" or not message.get("more_body", False)
             return message
 
-        return await self.app(scope, timed_receive, send)
+        async def guarded_send(message):
+            nonlocal started
+            if timed_out:
+                return  # the 408 went out already
+            started = started or message.get("type") == "http.response.start"
+            await send(message)
+
+        return await self.app(scope, timed_receive, guarded_send)
