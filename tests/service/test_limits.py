@@ -314,3 +314,24 @@ def test_an_upload_reserves_its_bytes_before_its_copy_starts(make_app, split_dat
     with sessions() as db:
         uid = db.scalar(select(User.id).where(User.name == "ann"))
         assert storage.stored_bytes(db, uid) == len(data)  # released
+
+
+def test_failed_token_checks_never_lock_out_a_valid_token(make_app):  # noqa: F811
+    """Past the failures allowed from one address, wrong tokens get 429, but a valid token and a correct
+    browser sign-in from the same address still go through (they got 429 too)."""
+    app = make_app(auth_failures_per_minute=3)
+    c = app.client
+    for i in range(3):
+        assert c.get("/api/me", headers={"Authorization": f"Bearer mf_guess{i}"}).status_code == 401
+    r = c.get("/api/me", headers={"Authorization": "Bearer mf_guess3"})
+    assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1, r.text
+
+    def sign_in(token: str):
+        csrf = c.get("/login").text.split('name="csrf_token" value="')[1].split('"')[0]
+        return c.post("/login", data={"token": token, "csrf_token": csrf}, follow_redirects=False)
+
+    r = sign_in("mf_wrong")
+    assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1 and "too many" in r.text
+    assert c.get("/api/me", headers=app.auth("ann")).json()["name"] == "ann"
+    assert sign_in(app.tokens["ben"]).status_code == 303
+    assert c.get("/api/me").json()["name"] == "ben"  # the session cookie works too

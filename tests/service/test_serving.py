@@ -151,3 +151,22 @@ def test_half_sent_requests_are_closed(split_data, tmp_path):
         for s in socks:
             s.close()
         stop_server(srv.proc)
+
+
+def test_x_forwarded_for_is_believed_only_from_configured_proxies(split_data, tmp_path):
+    """uvicorn believed X-Forwarded-For from 127.0.0.1 by default, so a new made-up address per request escaped
+    the failed-token limit. Now the header counts only with --forwarded-allow-ips."""
+
+    def statuses(srv) -> list[int]:
+        with httpx.Client(base_url=srv.url, timeout=10) as c:
+            return [c.get("/api/me", headers={"Authorization": f"Bearer mf_guess{i}",
+                                              "X-Forwarded-For": f"203.0.113.{i}"}).status_code for i in range(5)]
+
+    for trusted, want in (((), [401, 401, 401, 429, 429]),
+                          (("--forwarded-allow-ips", "127.0.0.1"), [401] * 5)):
+        srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
+                           extra=("--auth-failures-per-minute", "3", *trusted))
+        try:
+            assert statuses(srv) == want, trusted
+        finally:
+            stop_server(srv.proc)

@@ -22,7 +22,7 @@ from .concurrency import HeavyPool
 from .config import Settings, parse_daily_limit
 from .db import init_db, make_engine, session_factory
 from .gcpause import freeze_long_lived
-from .guard import AuthThrottle, request_id
+from .guard import AuthThrottle, client_address, request_id
 from .health import HealthMonitor
 from .lifeline import die_with_parent, parent_from_env
 from .manage import Withdrawn
@@ -106,23 +106,17 @@ def create_app(settings: Settings) -> FastAPI:
     @app.middleware("http")
     async def _access_log(request: Request, call_next):
         """Every request gets an id (``X-Request-ID``) and one JSON access-log line, unexpected 500s included;
-        token guessing is cut off per client address."""
+        failed token checks are counted per client address (``guard.AuthThrottle``)."""
         t0 = time.perf_counter()
         rid = request.state.request_id = request_id(request)
-        client = request.client.host if request.client else "?"
-        wait = throttle.retry_after(client) if throttle.credentialed(request) else 0
-        if wait:
-            response = _error(request, 429, f"too many failed token checks from this address; try again in "
-                                            f"{wait} s", {"Retry-After": str(wait)})
-        else:
-            try:
-                response = await call_next(request)
-            except Exception as exc:
-                log.error("unhandled error", exc_info=exc, extra={"request_id": rid, "method": request.method,
-                                                                  "path": request.url.path})
-                response = _error(request, 500, f"internal server error (request id {rid})")
-            if response.status_code == 401 and throttle.credentialed(request):
-                throttle.failed(client)
+        try:
+            response = await call_next(request)
+        except Exception as exc:
+            log.error("unhandled error", exc_info=exc, extra={"request_id": rid, "method": request.method,
+                                                              "path": request.url.path})
+            response = _error(request, 500, f"internal server error (request id {rid})")
+        if response.status_code == 401 and throttle.credentialed(request):
+            throttle.failed(client_address(request))
         route = request.scope.get("route")
         response.headers["X-Request-ID"] = rid
         response.headers.setdefault("X-Content-Type-Options", "nosniff")

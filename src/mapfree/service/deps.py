@@ -41,6 +41,7 @@ def identify(request: Request, db: Session) -> Caller:
         scheme, _, token = header.partition(" ")
         user = auth.user_for_token(db, token.strip()) if scheme.lower() == "bearer" else None
         if user is None:
+            request.app.state.auth_throttle.refuse(request)  # 429 past the failures allowed from this address
             raise HTTPException(401, "invalid or revoked API token", headers={"WWW-Authenticate": "Bearer"})
         request.state.user_id = user.id
         db.commit()  # end the read transaction (on SQLite it holds the write lock)

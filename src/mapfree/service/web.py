@@ -117,6 +117,12 @@ def login(request: Request, token: str = Form(...), csrf_token: str = Form(""), 
         raise HTTPException(403, "CSRF check failed: reload the sign-in page and try again")
     user = auth.user_for_token(db, token.strip())
     if user is None:  # the sign-in form again, with the error above it
+        try:
+            request.app.state.auth_throttle.refuse(request)
+        except HTTPException as e:
+            resp = _login_page(request, db, e.status_code, str(e.detail))
+            resp.headers.update(e.headers or {})
+            return resp
         return _login_page(request, db, 401, "invalid or revoked API token")
     settings = request.app.state.settings
     sid, _ = auth.open_session(db, user, settings.session_hours)
