@@ -335,3 +335,51 @@ def test_failed_token_checks_never_lock_out_a_valid_token(make_app):  # noqa: F8
     assert c.get("/api/me", headers=app.auth("ann")).json()["name"] == "ann"
     assert sign_in(app.tokens["ben"]).status_code == 303
     assert c.get("/api/me").json()["name"] == "ben"  # the session cookie works too
+
+
+def test_leaderboards_are_paged_and_the_csv_streams(make_app):  # noqa: F811
+    """At 20,000 entries one board request read and rendered them all (seconds, 10 MB); now a page of at most
+    ``per_page`` rows (200 at most) answers quickly, ranks continue across pages, and the CSV streams."""
+    import time as _time
+
+    from sqlalchemy import insert
+
+    from mapfree.service.db import Result, Submission, User
+    from mapfree.service.evaluation import METRIC_KEYS
+
+    app = make_app()
+    n = 20_000
+    rng = np.random.default_rng(0)
+    auc = np.round(rng.uniform(0, 1, n), 2)  # many ties: shared ranks across page boundaries
+    with app.client.app.state.sessions.begin() as db:
+        uids = list(db.scalars(select(User.id)))
+        subs = [{"id": f"s{i:06d}", "user_id": uids[i % 2], "split": "val", "name": f"m{i}", "public": True,
+                 "status": "done", "sha256": "", "created_at": 1e9 + i} for i in range(n)]
+        db.execute(insert(Submission), subs)
+        db.execute(insert(Result), [{"submission_id": s["id"], "metrics": {METRIC_KEYS[0]: float(a),
+                                                                           METRIC_KEYS[4]: 1.0 - float(a)},
+                                     "per_scene": {}, "problems": [], "worker_id": "w", "attempt": 1,
+                                     "eval_seconds": 0.1} for s, a in zip(subs, auc)])
+    want = sorted(range(n), key=lambda i: (-auc[i], i))
+    c = app.client
+    t0 = _time.perf_counter()
+    r = c.get("/api/leaderboard/val", params={"per_page": 100, "page": 3})
+    dt = _time.perf_counter() - t0
+    assert r.status_code == 200, r.text
+    d = r.json()
+    assert d["total"] == n and d["pages"] == n // 100 and d["page"] == 3 and len(d["entries"]) == 100
+    assert [e["id"] for e in d["entries"]] == [f"s{i:06d}" for i in want[200:300]]
+    first = d["entries"][0]
+    assert first["rank"] == 1 + int((auc > auc[want[200]]).sum())  # global competition rank
+    assert dt < 1.5 and len(r.content) < 200_000, (dt, len(r.content))
+    assert len(c.get("/api/leaderboard/val").json()["entries"]) == 50  # the default page
+    assert c.get("/api/leaderboard/val", params={"per_page": 10_000}).status_code == 422
+    best = c.get("/api/leaderboard/val", params={"view": "best"}).json()
+    assert best["total"] == 2
+    page = c.get("/leaderboard/val", params={"page": 2}, headers={"accept": "text/html"})
+    assert page.status_code == 200 and "page 2 of 400" in page.text and 'id="page-next"' in page.text
+    assert page.text.count('class="entry"') == 50
+    with c.stream("GET", "/api/leaderboard/val.csv") as r:
+        assert r.status_code == 200 and "content-length" not in r.headers  # streamed
+        lines = "".join(r.iter_text()).splitlines()
+    assert len(lines) == n + 1 and lines[1].split(",")[1] == f"m{want[0]}"

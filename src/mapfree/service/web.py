@@ -26,8 +26,8 @@ from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
-from .leaderboard import (VIEWS, board, check_sort, check_split, compare, meta_json, ordered_metrics,
-                          parse_meta, reference_rows, save_meta, visible_json)
+from .leaderboard import (MAX_PER_PAGE, PER_PAGE, VIEWS, board, check_sort, check_split, compare, meta_json,
+                          ordered_metrics, parse_meta, reference_rows, save_meta, visible_json)
 from .manage import Withdrawn, own_submission, test_quota, withdraw, zip_response
 from .reloc import Photo, check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
 from .submissions import accept, to_json, visible_submission
@@ -275,14 +275,19 @@ def leaderboard_default(request: Request):
 
 @router.get("/leaderboard/{split}", response_class=HTMLResponse)
 def leaderboard_page(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
-                     scene: str = Query(""), db: Session = Depends(db_session)):
+                     scene: str = Query(""), page_no: int = Query(1, ge=1, alias="page"),
+                     per_page: int = Query(PER_PAGE, ge=1, le=MAX_PER_PAGE), db: Session = Depends(db_session)):
     check_split(request, split)
     check_sort(sort)
-    entries = board(db, split, sort, view, scene or None)
+    b = board(db, split, sort, view, scene or None, page_no, per_page)
     query = urlencode({"sort": sort, "view": view, **({"scene": scene} if scene else {})})
+    pages = {"prev": b.page - 1 if b.page > 1 else None, "next": b.page + 1 if b.page < b.pages else None,
+             "first": 1, "last": b.pages}
+    page_url = {k: f"?{query}&page={n}" + (f"&per_page={b.per_page}" if b.per_page != PER_PAGE else "")
+                for k, n in pages.items() if n is not None}
     return page(request, "leaderboard.html", db, split=split, sort=sort, view=view, views=VIEWS, scene=scene,
                 scenes=[] if split == "test" else sorted(known_scenes(request.app.state.settings, split) or ()),
-                entries=entries, labels=LABELS, lower=LOWER_IS_BETTER,
+                entries=b.entries, board=b, page_url=page_url, labels=LABELS, lower=LOWER_IS_BETTER,
                 reference=reference_rows(), csv_url=f"/api/leaderboard/{split}.csv?{query}")
 
 
