@@ -62,7 +62,7 @@ def test_a_4096_photo_is_downscaled_before_extraction_and_keeps_its_pose(make_ap
 
     monkeypatch.setattr(SIFTMatcher, "extract", spy)
     app = make_app()
-    assert app.settings.work_max_side == 1024
+    assert app.settings.limits.work_max_side == 1024
     scene = Dataset(realmini_dir).scene("val", "s00000")
     ref, query = scene.reference, scene.frame("seq1/frame_00009.jpg")
     poses = {}

@@ -107,13 +107,13 @@ def settings_from_args(a: argparse.Namespace):
 
     mb = 1 << 20
     limits = Limits(max_submission_bytes=int(a.max_upload_mb * mb), max_zip_entry_bytes=int(a.max_entry_mb * mb),
-                    max_zip_uncompressed_bytes=int(a.max_unpacked_mb * mb))
+                    max_zip_uncompressed_bytes=int(a.max_unpacked_mb * mb), work_max_side=a.work_max_side)
     limits.max_request_bytes = max(limits.max_request_bytes, limits.max_submission_bytes + mb)
     return Settings(db_url=a.db, data_root=a.data, gt_root=a.gt, test_daily_limit=a.test_daily_limit,
                     lease_seconds=a.lease_seconds, default_method=a.method, secure_cookies=a.secure_cookies,
                     methods_dir=a.methods_dir, val_hourly_limit=a.val_hourly_limit,
                     storage_quota_bytes=int(a.storage_quota_mb * mb), zip_retention_days=a.zip_retention_days,
-                    auth_failures_per_minute=a.auth_failures_per_minute, work_max_side=a.work_max_side,
+                    auth_failures_per_minute=a.auth_failures_per_minute,
                     heavy_threads=a.heavy_threads, heavy_queue=a.heavy_queue, anchor_cache_mb=a.anchor_cache_mb,
                     body_timeout=a.body_timeout, limits=limits)
 

@@ -26,6 +26,7 @@ from .storage import check_quota, stored_bytes
 from .submissions import accept, to_json, visible_submission
 from .submissions import plot_png as render_plot
 from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics, parse_pose
+from .worksize import fit_image
 
 log = logging.getLogger("mapfree.api")
 router = APIRouter()
@@ -196,7 +197,8 @@ def _intr(fx, fy, cx, cy, img, what) -> dict:
 
 @dataclass
 class PhotoUpload:
-    """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays."""
+    """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays at the
+    working size (``Limits.work_max_side``)."""
 
     image: bytes
     intrinsics: dict
@@ -225,8 +227,8 @@ def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth
         q = IDENTITY if pose is None else parse_pose(pose)
     except UploadError as e:
         raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
-    return PhotoUpload(img_bytes, intr, depth_bytes, q, Photo(img, intrinsics_of(intr), d,
-                                                              Pose.from_qt(q[:4], q[4:])))
+    img, K, d = fit_image(img, intrinsics_of(intr), d, lim.work_max_side)  # the decoded 4096² photo goes now
+    return PhotoUpload(img_bytes, intr, depth_bytes, q, Photo(img, K, d, Pose.from_qt(q[:4], q[4:])))
 
 
 def photo_name(i: int, f: UploadFile | None) -> str:
@@ -491,13 +493,15 @@ def delete_anchor(aid: str, request: Request, db: Session = Depends(db_session))
 
 
 def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim) -> Photo:
-    """Photo ``k`` of the anchor (0: the anchor row's; else the row with that index) decoded from the database."""
+    """Photo ``k`` of the anchor (0: the anchor row's; else the row with that index) decoded from the database,
+    at the working size."""
     row = next(r for r in rows if r.seq == k) if k else None
     img_b, intr, depth_b, q = ((a.image, a.intrinsics, a.depth, IDENTITY) if row is None else
                                (row.image, row.intrinsics, row.depth, row.pose))
     img = decode_image(img_b, lim, f"anchor photo {k}")
     d = decode_depth(depth_b, lim, img.shape[:2], f"anchor photo {k} depth") if depth_b is not None else None
-    return Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:]))
+    img, K, d = fit_image(img, intrinsics_of(intr), d, lim.work_max_side)  # one native photo in memory at a time
+    return Photo(img, K, d, Pose.from_qt(q[:4], q[4:]))
 
 
 def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img, q_K,
@@ -507,7 +511,7 @@ def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img,
     lim = request.app.state.settings.limits
     indices = photo_indices(rows)
     est = request.app.state.localizers.localize_photos(
-        a.id, a.method, anchor_version(rows), lambda: [stored_photo(a, rows, k, lim) for k in indices],
+        a.id, a.method, anchor_version(rows), lambda: (stored_photo(a, rows, k, lim) for k in indices),
         q_img, q_K, q_depth)
     if est.extras.get("photo") is not None:  # the position among the photos prepared -> its index
         est.extras["photo"] = indices[est.extras["photo"]]
@@ -537,6 +541,7 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     q_depth = None
     if depth is not None and depth.filename:
         q_depth = decode_depth(depth.file.read(lim.max_image_bytes + 1), lim, q_img.shape[:2])
+    q_img, q_K, q_depth = fit_image(q_img, q_K, q_depth, lim.work_max_side)
     out = estimate_json(localize_anchor(request, a, rows, q_img, q_K, q_depth), a.method)
     out["anchor"] = a.id
     return out

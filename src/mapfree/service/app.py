@@ -69,7 +69,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue)
     app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)),
                                       cache_bytes=int(settings.anchor_cache_mb * (1 << 20)),
-                                      max_side=settings.work_max_side)
+                                      max_side=settings.limits.work_max_side)
     if settings.methods_dir is not None:
         register_methods_dir(settings.methods_dir)
 

@@ -37,6 +37,7 @@ class Limits:
     max_image_pixels: int = 4096 * 4096
     max_name_chars: int = 120
     max_anchor_photos: int = 16  # photos of one anchor's place, the first included
+    work_max_side: int = 1024  # decoded photos are downscaled to this long side at once (0: never)
 
 
 @dataclass
@@ -60,7 +61,6 @@ class Settings:
     storage_quota_bytes: int = 1 << 30  # stored submission ZIPs and anchor photos per account (0: unlimited)
     zip_retention_days: float = 90.0  # stored ZIPs of finished submissions are deleted after this (0: kept)
     auth_failures_per_minute: int = 20  # failed token checks per client address before a 429 (0: unlimited)
-    work_max_side: int = 1024  # photos are downscaled to this long side before a method runs (0: never)
     heavy_threads: int = 0  # localize / anchor computations at once per API process (0: min(4, CPUs))
     heavy_queue: int = 8  # heavy requests waiting for one of those threads; past that a 429 with Retry-After
     anchor_cache_mb: float = 256.0  # prepared anchors kept per API process (features and depth, no pixels)

@@ -9,7 +9,7 @@ import re
 import threading
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Hashable
+from typing import Any, Callable, Hashable, Iterable
 
 import cv2
 import numpy as np
@@ -210,9 +210,10 @@ class Localizers:
     def _give(self, method, loc) -> None:
         self._pools[method.name].put(loc)
 
-    def _prepare(self, loc, name: str, photos: list[Photo]) -> PreparedAnchor:
-        """Every photo prepared at the working size (``prepared.prepare_anchor``); a method that cannot run
-        here is a 422, not a 500."""
+    def _prepare(self, loc, name: str, photos: Iterable[Photo]) -> PreparedAnchor:
+        """Every photo prepared at the working size (``prepared.prepare_anchor``; each one fitted as it comes,
+        so that a generator of decoded photos holds one at its native size at a time); a method that cannot
+        run here is a 422, not a 500."""
         try:
             return prepare_anchor(loc, [self.fit(p) for p in photos])
         except Exception as e:  # e.g. a depth network whose weights are gone
@@ -242,7 +243,7 @@ class Localizers:
         return self.localize_photos(anchor_id, method, (), lambda: [Photo(ref_image, ref_K, ref_depth)],
                                     query_image, query_K, query_depth)
 
-    def localize_photos(self, anchor_id: str, method: str, version: Hashable, photos: Callable[[], list[Photo]],
+    def localize_photos(self, anchor_id: str, method: str, version: Hashable, photos: Callable[[], Iterable[Photo]],
                         query_image: np.ndarray, query_K: Intrinsics,
                         query_depth: np.ndarray | None = None) -> Estimate:
         """World-to-camera pose of the query in the anchor's frame. ``photos`` is called (decoding the stored
