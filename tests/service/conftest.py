@@ -260,8 +260,8 @@ def create_users(db_url: str, users: dict[str, int | None], admin: bool = False)
 
 
 def start_server(db_url: str, backend: str, data: Split, workdir: Path, workers: int = 2,
-                 extra: tuple[str, ...] = ()) -> Server:
-    port = free_port()
+                 extra: tuple[str, ...] = (), port: int | None = None) -> Server:
+    port = port or free_port()
     log_path = workdir / f"serve-{backend}-{port}.log"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MAPFREE_DB": db_url, "MAPFREE_OPERATOR_TOKEN": OPERATOR_TOKEN}
     tokens = {"alice": mapfree("admin", "--db", db_url, "create-user", "alice", env=env).splitlines()[-1]}

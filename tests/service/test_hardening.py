@@ -458,7 +458,7 @@ def test_token_guessing_is_limited_per_client(make_app):
         assert c.get("/api/me", headers={"Authorization": f"Bearer mf_guess{i}"}).status_code == 401
     r = c.get("/api/me", headers={"Authorization": "Bearer mf_guess5"})
     assert r.status_code == 429 and int(r.headers["retry-after"]) > 0, r.text
-    assert c.get("/api/me", headers=app.auth("ann")).status_code == 429  # even a right guess: no oracle
+    assert c.get("/api/me", headers=app.auth("ann")).status_code == 200  # a valid token is never locked out
     assert c.get("/health").status_code == 200  # anonymous reads go on
 
 

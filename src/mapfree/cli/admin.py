@@ -9,6 +9,22 @@ import sys
 from . import HelpFormatter
 
 
+def _limit(text: str) -> int | None:
+    """A daily test limit: a count (0: none), ``unlimited``, or ``default`` (the server's, None)."""
+    if text.strip().lower() == "default":
+        return None
+    from ..service.config import parse_daily_limit
+
+    try:
+        return parse_daily_limit(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"{e}, or 'default'") from None
+
+
+def _shown(limit: int | None) -> str:
+    return "default" if limit is None else ("unlimited" if limit < 0 else str(limit))
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("admin", help="manage service accounts, tokens, sessions, the schema and backups",
                        description="Manage accounts of `mapfree serve`. Tokens are printed once and stored hashed.",
@@ -18,6 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                               "  mapfree admin --db sqlite:///mapfree.db list-tokens alice\n"
                               "  mapfree admin --db sqlite:///mapfree.db revoke-token 12\n"
                               "  mapfree admin --db sqlite:///mapfree.db revoke-tokens alice\n"
+                              "  mapfree admin --db sqlite:///mapfree.db set-limit alice 0   # no test evaluations\n"
+                              "  mapfree admin --db sqlite:///mapfree.db set-limit alice unlimited\n"
                               "  mapfree admin --db sqlite:///mapfree.db list-users\n"
                               "  mapfree admin --db sqlite:///mapfree.db delete-user alice --yes\n"
                               "  mapfree admin --db sqlite:///mapfree.db migrate\n"
@@ -31,7 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     c = s.add_parser("create-user", help="create an account and print its API token")
     c.add_argument("name")
     c.add_argument("--admin", action="store_true", help="may see every submission and delete any anchor")
-    c.add_argument("--test-daily-limit", type=int, default=None, help="override the server's daily test limit")
+    c.add_argument("--test-daily-limit", type=_limit, default=None, metavar="N|unlimited|default",
+                   help="override the server's daily test limit: a count (0: no test evaluations at all), "
+                        "'unlimited', or 'default' (the server's, the default)")
     c.add_argument("--expires-in", **expires)
     t = s.add_parser("new-token", help="issue another token for an account")
     t.add_argument("name")
@@ -49,7 +69,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--yes", action="store_true", help="really delete (without it: say what would go)")
     lim = s.add_parser("set-limit", help="set an account's daily test-evaluation limit")
     lim.add_argument("name")
-    lim.add_argument("limit", type=int)
+    lim.add_argument("limit", type=_limit, metavar="N|unlimited|default",
+                     help="test evaluations per 24 h: a count (0: none at all), 'unlimited', or 'default' (the "
+                          "server's --test-daily-limit)")
     s.add_parser("list-users", help="list accounts")
     s.add_parser("init-db", help="create the tables or upgrade them (serve does this too)")
     s.add_parser("migrate", help="upgrade the schema to this version's (serve does this at start) and say so")
@@ -155,11 +177,12 @@ def run(a: argparse.Namespace) -> int:
             return _delete_user(db, user(db, a.name), a.yes)
         elif a.action == "set-limit":
             user(db, a.name).test_daily_limit = a.limit
+            print(f"{a.name}: daily test limit {_shown(a.limit)}", file=sys.stderr)
         elif a.action == "list-users":
             for u in db.scalars(select(User).order_by(User.id)):
                 n = len(db.scalars(select(ApiToken.id).where(ApiToken.user_id == u.id,
                                                             ApiToken.revoked.is_(False))).all())
-                print(f"{u.name}\tadmin={u.is_admin}\ttokens={n}\ttest_limit={u.test_daily_limit}")
+                print(f"{u.name}\tadmin={u.is_admin}\ttokens={n}\ttest_limit={_shown(u.test_daily_limit)}")
     engine.dispose()
     return 0
 

@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session
 from ..estimate import Estimate
 from ..geometry import Pose
 from . import jobs
+from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, RetiredPhotoIndex, Submission, User, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
 from .deps import db_session, identify, require_operator, require_writer
@@ -27,6 +28,7 @@ from .submissions import plot_png as render_plot
 from .metrics import CONTENT_TYPE_LATEST
 from .exif import clean_photo, depth_png, stored_shape, upright_depth, upright_intrinsics
 from .uploads import UploadError, check_name, decode_depth, decode_image, decode_photo, parse_intrinsics, parse_pose
+from .worksize import fit_image
 
 log = logging.getLogger("mapfree.api")
 router = APIRouter()
@@ -100,7 +102,7 @@ def me(request: Request, db: Session = Depends(db_session)):
     u = caller.user
     quota = test_quota(db, request.app.state.settings, u)
     return {"name": u.name, "admin": u.is_admin, "test_evaluations_left_today": quota.left,
-            "test_daily_limit": quota.limit, "storage_used_bytes": stored_bytes(db, u.id),
+            "test_daily_limit": quota.shown_limit, "storage_used_bytes": stored_bytes(db, u.id),
             "storage_quota_bytes": request.app.state.settings.storage_quota_bytes}
 
 
@@ -220,7 +222,8 @@ def _intr(fx, fy, cx, cy, img, what, orientation: int = 1) -> dict:
 
 @dataclass
 class PhotoUpload:
-    """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays."""
+    """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays at the
+    working size (``Limits.work_max_side``)."""
 
     image: bytes
     intrinsics: dict
@@ -255,8 +258,9 @@ def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth
         q = IDENTITY if pose is None else parse_pose(pose)
     except UploadError as e:
         raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
-    return PhotoUpload(clean_photo(img_bytes, img), intr, depth_bytes, q,
-                       Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:])))
+    stored = clean_photo(img_bytes, img)  # no metadata, upright: what is kept and served
+    img, K, d = fit_image(img, intrinsics_of(intr), d, lim.work_max_side)  # the decoded 4096² photo goes now
+    return PhotoUpload(stored, intr, depth_bytes, q, Photo(img, K, d, Pose.from_qt(q[:4], q[4:])))
 
 
 def photo_name(i: int, f: UploadFile | None) -> str:
@@ -346,6 +350,7 @@ def make_anchor(request: Request, db: Session, user: User, name: str, method: st
 
 
 @router.post("/anchors", status_code=201, tags=["relocalization"])
+@heavy
 def create_anchor(request: Request, image: UploadFile = File(..., description="reference photo (JPEG/PNG)"),
                   fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
                   depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
@@ -456,6 +461,7 @@ def add_photo(request: Request, db: Session, user: User, aid: str, image: Upload
 
 
 @router.post("/anchors/{aid}/photos", status_code=201, tags=["relocalization"])
+@heavy
 def add_anchor_photo(aid: str, request: Request, image: UploadFile = File(..., description="photo (JPEG/PNG)"),
                      fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
                      pose: str = Form(..., description="'qw qx qy qz tx ty tz': world-to-camera from the anchor's "
@@ -534,13 +540,15 @@ def delete_anchor(aid: str, request: Request, db: Session = Depends(db_session))
 
 
 def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim) -> Photo:
-    """Photo ``k`` of the anchor (0: the anchor row's; else the row with that index) decoded from the database."""
+    """Photo ``k`` of the anchor (0: the anchor row's; else the row with that index) decoded from the database,
+    at the working size."""
     row = next(r for r in rows if r.seq == k) if k else None
     img_b, intr, depth_b, q = ((a.image, a.intrinsics, a.depth, IDENTITY) if row is None else
                                (row.image, row.intrinsics, row.depth, row.pose))
     img = decode_image(img_b, lim, f"anchor photo {k}")
     d = decode_depth(depth_b, lim, img.shape[:2], f"anchor photo {k} depth") if depth_b is not None else None
-    return Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:]))
+    img, K, d = fit_image(img, intrinsics_of(intr), d, lim.work_max_side)  # one native photo in memory at a time
+    return Photo(img, K, d, Pose.from_qt(q[:4], q[4:]))
 
 
 def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img, q_K,
@@ -550,7 +558,7 @@ def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img,
     lim = request.app.state.settings.limits
     indices = photo_indices(rows)
     est = request.app.state.localizers.localize_photos(
-        a.id, a.method, anchor_version(rows), lambda: [stored_photo(a, rows, k, lim) for k in indices],
+        a.id, a.method, anchor_version(rows), lambda: (stored_photo(a, rows, k, lim) for k in indices),
         q_img, q_K, q_depth)
     if est.extras.get("photo") is not None:  # the position among the photos prepared -> its index
         est.extras["photo"] = indices[est.extras["photo"]]
@@ -558,6 +566,7 @@ def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img,
 
 
 @router.post("/anchors/{aid}/localize", tags=["relocalization"])
+@heavy
 def localize(aid: str, request: Request, image: UploadFile = File(..., description="query photo (JPEG/PNG)"),
              fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
              depth: UploadFile | None = File(None), csrf_token: str | None = Form(None),
@@ -580,6 +589,7 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     if depth is not None and depth.filename:
         q_depth = upright_depth(decode_depth(depth.file.read(lim.max_image_bytes + 1), lim,
                                              stored_shape(q_img, o)), o)
+    q_img, q_K, q_depth = fit_image(q_img, q_K, q_depth, lim.work_max_side)
     out = estimate_json(localize_anchor(request, a, rows, q_img, q_K, q_depth), a.method)
     out["anchor"] = a.id
     return out

@@ -42,6 +42,7 @@ def identify(request: Request, db: Session) -> Caller:
         user, why = (auth.check_token(db, token.strip()) if scheme.lower() == "bearer" else
                      (None, "invalid or revoked API token"))
         if user is None:
+            request.app.state.auth_throttle.refuse(request)  # 429 past the failures allowed from this address
             raise HTTPException(401, why, headers={"WWW-Authenticate": "Bearer"})
         request.state.user_id = user.id
         db.commit()  # end the read transaction (on SQLite it holds the write lock)

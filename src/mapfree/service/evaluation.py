@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from .config import Settings
+from .testmetrics import public_test_metrics
 
 #: The benchmark's aggregate keys (SPEC §3); for ``test`` nothing else leaves the server.
 METRIC_KEYS = (
@@ -55,14 +56,16 @@ def _problems(report: Any) -> list[str]:
 
 
 def redact(report_dict: dict, problems: list[str], split: str) -> dict:
-    """What may be stored and shown. For ``test`` only the aggregate metrics and submission-format problems:
-    no per-scene or per-frame numbers, so the private ground truth cannot be inferred from responses."""
+    """What may be stored and shown. For ``test`` only the aggregate metrics, coarsened (``testmetrics.py``),
+    and submission-format problems: no per-scene or per-frame numbers, so that responses do not reveal the
+    private ground truth."""
     raw = report_dict.get("metrics", {}) or {}
-    metrics = {**{k: raw.get(k) for k in METRIC_KEYS}, **{str(k): v for k, v in raw.items()}}
-    out = {"metrics": _finite(metrics), "problems": problems}
-    if split != "test":
-        out["per_scene"] = _finite(report_dict.get("per_scene") or {})
-    return out
+    metrics = _finite({**{k: raw.get(k) for k in METRIC_KEYS}, **{str(k): v for k, v in raw.items()}})
+    per_scene = _finite(report_dict.get("per_scene") or {})
+    if split == "test":  # coarsened, medians withheld below a coverage (testmetrics.py)
+        metrics, notes = public_test_metrics(metrics, per_scene)
+        return {"metrics": metrics, "problems": notes + problems}
+    return {"metrics": metrics, "problems": problems, "per_scene": per_scene}
 
 
 _TRUTH: dict[tuple, Any] = {}

@@ -8,7 +8,7 @@ from __future__ import annotations
 import hashlib
 from typing import Any, BinaryIO, Iterator
 
-from sqlalchemy import and_, delete, func, insert, or_, select, update
+from sqlalchemy import and_, delete, exists, func, insert, or_, select, update
 from sqlalchemy.orm import Session
 
 from .config import Settings
@@ -79,11 +79,13 @@ def _blob_bytes(table) -> Any:
 
 
 def stored_bytes(db: Session, user_id: int) -> int:
-    """Bytes ``user_id`` keeps stored, what the storage quota counts: submission ZIPs still stored, and the
-    image and depth bytes of every photo of their anchors."""
+    """Bytes ``user_id`` keeps stored, what the storage quota counts: submission ZIPs still stored or being
+    copied in (an upload's bytes are reserved by its row, written in the transaction that checks the quota,
+    and released with that row when the copy fails), and the image and depth bytes of every photo of their
+    anchors."""
+    stored = exists().where(SubmissionFile.submission_id == Submission.id)
     zips = db.scalar(select(func.coalesce(func.sum(Submission.size_bytes), 0))
-                     .join(SubmissionFile, SubmissionFile.submission_id == Submission.id)
-                     .where(Submission.user_id == user_id))
+                     .where(Submission.user_id == user_id, or_(stored, Submission.status == "uploading")))
     firsts = db.scalar(select(func.coalesce(func.sum(_blob_bytes(Anchor)), 0)).where(Anchor.user_id == user_id))
     photos = db.scalar(select(func.coalesce(func.sum(_blob_bytes(AnchorPhoto)), 0))
                        .join(Anchor, Anchor.id == AnchorPhoto.anchor_id).where(Anchor.user_id == user_id))

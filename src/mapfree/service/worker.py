@@ -168,6 +168,10 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
+    if a.exit_with_parent:  # also mid-job: the kernel signals it (SIGTERM: the job is handed back)
+        from .lifeline import die_with_parent
+
+        die_with_parent(None)
     run(settings, stop=stop, parent_pid=os.getppid() if a.exit_with_parent else None)
     return 0
 
