@@ -111,7 +111,7 @@ def test_resume_recomputes_a_scene_whose_data_changed(synth, tmp_path):
     assert third.computed == 0 and third.skipped == 15 and third.stale_scenes == []
 
 
-# --------------------------------------------------------------------------- defect 7: a depth network not available offline
+# --------------------------------------------------------------------------- defect 7: depth network not available
 
 
 def test_unavailable_depth_network_is_refused_before_any_work(synth, tmp_path, monkeypatch):
@@ -194,7 +194,8 @@ def test_estimate_prints_in_one_short_line():
     text = str(est)
     assert "\n" not in text and len(text) < 120, text
     assert "90.00 deg" in text and "1.500" in text and "inliers 140" in text
-    assert str(Estimate.failure("no depth for the query image")) == "Estimate(no estimate: no depth for the query image)"
+    failed = Estimate.failure("no depth for the query image")
+    assert str(failed) == "Estimate(no estimate: no depth for the query image)"
 
 
 # --------------------------------------------------------------------------- --references K beyond the mapping frames

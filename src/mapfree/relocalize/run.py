@@ -31,7 +31,8 @@ from .references import bind_scene_references, check_scene_references
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunResult", "scene_fingerprint", "check_available", "frame_figure_path", "write_frame_figure", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
+__all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run",
+           "estimate_scores", "scene_fingerprint", "check_available", "frame_figure_path", "write_frame_figure"]
 
 JOURNAL_VERSION = 1
 
@@ -232,8 +233,9 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
 def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, world: Pose | None,
                        method_dict: dict) -> Path | None:
     """Draw one frame's figure (matches + AR check against the scene's reference image, ground truth when the
-    split has it) for ``run --viz``. Methods that relocalize against other references than the scene's (``--references
-    K``) get the AR check alone: their matches are with another image. A figure that cannot be drawn is logged."""
+    split has it) for ``run --viz``. Methods that relocalize against other references than the scene's
+    (``--references K``) get the AR check alone: their matches are with another image. A figure that cannot be
+    drawn is logged, never raised."""
     from ..viz import estimate_figure, save_png
 
     try:
