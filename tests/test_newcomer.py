@@ -84,7 +84,7 @@ def test_unknown_scene_names_are_refused_with_suggestions(synth, tmp_path):
 # --------------------------------------------------------------------------- defect 6: resume after the data changed
 
 
-def test_resume_recomputes_a_scene_whose_data_changed(synth, tmp_path):
+def test_resume_recomputes_a_scene_whose_data_changed(synth, tmp_path, capsys):
     import shutil
 
     from mapfree.data import Dataset, read_intrinsics, read_poses, write_intrinsics, write_poses
@@ -109,6 +109,18 @@ def test_resume_recomputes_a_scene_whose_data_changed(synth, tmp_path):
     # Nothing changed since: a plain resume recomputes nothing.
     third = run_split(root, "val", "sift_pnp_sensor", out, all_frames=True, resume=True, progress=False)
     assert third.computed == 0 and third.skipped == 15 and third.stale_scenes == []
+    # A re-rendered image (new bytes, new mtime) is a change too; the CLI says which scene it recomputes.
+    import os
+
+    from mapfree.cli import main
+
+    img = root / "val" / "s00000" / "seq1" / "frame_00003.jpg"
+    st = img.stat()
+    os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    assert main(["run", str(root), "--method", "sift_pnp_sensor", "-o", str(out), "--all-frames", "--resume",
+                 "--no-progress"]) == 0
+    res = capsys.readouterr()
+    assert "the data of s00000 changed" in res.err and "10 computed, 5 from the journal" in res.out
 
 
 # --------------------------------------------------------------------------- defect 7: depth network not available
