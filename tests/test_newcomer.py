@@ -530,3 +530,26 @@ def test_demo_with_a_bad_method_is_one_line_exit_1(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--method", "sift_pnp_sensr", "--scenes", "1", "--queries", "5"]) == 1
     err = capsys.readouterr().err
     assert err.splitlines()[-1].startswith("mapfree demo: error:") and "sensr" in err and "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_train_prints_no_lightning_banner(tmp_path):
+    """`mapfree train` printed Lightning's accelerator banner, a tip and two warnings that ask nothing of the user
+    before its own output; its real warnings (no validation ran here) stay."""
+    import os
+    import subprocess
+    import sys
+
+    from mapfree.cli import main
+
+    for split in ("train", "val"):
+        assert main(["synth", str(tmp_path / "data"), "--split", split, "--scenes", "1", "--queries", "10",
+                     *SYNTH_ARGS]) == 0
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
+    p = subprocess.run([sys.executable, "-m", "mapfree", "train", "R6D_t_cpu_synth", "--data", str(tmp_path / "data"),
+                        "--out", str(tmp_path / "run"), "--max-steps", "1", "--set", "data.batch_size=2",
+                        "--no-progress"], capture_output=True, text=True, env=env, timeout=600)
+    assert p.returncode == 0, p.stderr
+    for noise in ("GPU available", "TPU available", "Tip:", "LeafSpec", "in eval mode"):
+        assert noise not in p.stderr, p.stderr
+    assert (tmp_path / "run" / "checkpoints" / "last.ckpt").is_file()
