@@ -386,7 +386,7 @@ def run_split(
     _check_depth_files(m, scene_list, split)
     check_scene_references(scene_list, m.to_dict())
     if todo:
-        check_available(m)
+        check_available(m, keep=workers <= 1 or len(todo) <= 1)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
     if fresh:
         jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
@@ -449,11 +449,15 @@ def _sigint_ignored() -> Iterator[None]:
         signal.signal(signal.SIGINT, old)
 
 
-def check_available(m: Any) -> None:
-    """Build ``m`` here (kept for this process's frames) and check its depth network can be loaded: weights or a
-    model that are neither on this machine nor downloadable are one clear error before any work, not a run in
-    which every frame fails."""
-    loc = _localizer(m.to_dict())
+def check_available(m: Any, keep: bool = True) -> None:
+    """Build ``m`` here and check its depth network can be loaded: weights or a model that are neither on this
+    machine nor downloadable are one clear error before any work, not a run in which every frame fails.
+    ``keep``: this process relocalizes the frames itself, so the built method is kept for them (else dropped,
+    leaving the memory to the worker processes)."""
+    md = m.to_dict()
+    loc = _localizer(md)
+    if not keep:
+        _LOCALIZERS.pop(json.dumps(md, sort_keys=True), None)
     check = getattr(getattr(loc, "depth_source", None), "check_available", None)
     if check is not None:
         check()
