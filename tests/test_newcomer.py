@@ -84,7 +84,7 @@ def test_unknown_scene_names_are_refused_with_suggestions(synth, tmp_path):
 # --------------------------------------------------------------------------- defect 6: resume after the data changed
 
 
-def test_resume_recomputes_a_scene_whose_data_changed(synth, tmp_path):
+def test_resume_recomputes_a_scene_whose_data_changed(synth, tmp_path, capsys):
     import shutil
 
     from mapfree.data import Dataset, read_intrinsics, read_poses, write_intrinsics, write_poses
@@ -109,9 +109,21 @@ def test_resume_recomputes_a_scene_whose_data_changed(synth, tmp_path):
     # Nothing changed since: a plain resume recomputes nothing.
     third = run_split(root, "val", "sift_pnp_sensor", out, all_frames=True, resume=True, progress=False)
     assert third.computed == 0 and third.skipped == 15 and third.stale_scenes == []
+    # A re-rendered image (new bytes, new mtime) is a change too; the CLI says which scene it recomputes.
+    import os
+
+    from mapfree.cli import main
+
+    img = root / "val" / "s00000" / "seq1" / "frame_00003.jpg"
+    st = img.stat()
+    os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    assert main(["run", str(root), "--method", "sift_pnp_sensor", "-o", str(out), "--all-frames", "--resume",
+                 "--no-progress"]) == 0
+    res = capsys.readouterr()
+    assert "the data of s00000 changed" in res.err and "10 computed, 5 from the journal" in res.out
 
 
-# --------------------------------------------------------------------------- defect 7: a depth network not available offline
+# --------------------------------------------------------------------------- defect 7: depth network not available
 
 
 def test_unavailable_depth_network_is_refused_before_any_work(synth, tmp_path, monkeypatch):
@@ -194,7 +206,8 @@ def test_estimate_prints_in_one_short_line():
     text = str(est)
     assert "\n" not in text and len(text) < 120, text
     assert "90.00 deg" in text and "1.500" in text and "inliers 140" in text
-    assert str(Estimate.failure("no depth for the query image")) == "Estimate(no estimate: no depth for the query image)"
+    failed = Estimate.failure("no depth for the query image")
+    assert str(failed) == "Estimate(no estimate: no depth for the query image)"
 
 
 # --------------------------------------------------------------------------- --references K beyond the mapping frames
@@ -517,3 +530,26 @@ def test_demo_with_a_bad_method_is_one_line_exit_1(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--method", "sift_pnp_sensr", "--scenes", "1", "--queries", "5"]) == 1
     err = capsys.readouterr().err
     assert err.splitlines()[-1].startswith("mapfree demo: error:") and "sensr" in err and "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_train_prints_no_lightning_banner(tmp_path):
+    """`mapfree train` printed Lightning's accelerator banner, a tip and two warnings that ask nothing of the user
+    before its own output; its real warnings (no validation ran here) stay."""
+    import os
+    import subprocess
+    import sys
+
+    from mapfree.cli import main
+
+    for split in ("train", "val"):
+        assert main(["synth", str(tmp_path / "data"), "--split", split, "--scenes", "1", "--queries", "10",
+                     *SYNTH_ARGS]) == 0
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
+    p = subprocess.run([sys.executable, "-m", "mapfree", "train", "R6D_t_cpu_synth", "--data", str(tmp_path / "data"),
+                        "--out", str(tmp_path / "run"), "--max-steps", "1", "--set", "data.batch_size=2",
+                        "--no-progress"], capture_output=True, text=True, env=env, timeout=600)
+    assert p.returncode == 0, p.stderr
+    for noise in ("GPU available", "TPU available", "Tip:", "LeafSpec", "in eval mode"):
+        assert noise not in p.stderr, p.stderr
+    assert (tmp_path / "run" / "checkpoints" / "last.ckpt").is_file()

@@ -274,7 +274,8 @@ def check_scene_references(scenes: Sequence[Scene], method_dict: dict) -> None:
     short = [(s.name, len(mapping_frames(s))) for s in scenes]
     short = [(n, c) for n, c in short if c < need]
     if short:
-        listed = ", ".join(f"{n} ({c})" for n, c in short[:5]) + (f" and {len(short) - 5} more" if len(short) > 5 else "")
+        listed = ", ".join(f"{n} ({c})" for n, c in short[:5])
+        listed += f" and {len(short) - 5} more" if len(short) > 5 else ""
         what = "pose triangulation needs" if mode == "triangulation" else f"--references {k} needs"
         raise ValueError(f"{what} {need} posed seq0 (mapping) frames per scene; these scenes have fewer: {listed}. "
                          f"Use --references {min(c for _, c in short) or 1} or fewer, or leave those scenes out "

@@ -31,7 +31,8 @@ from .references import bind_scene_references, check_scene_references
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunResult", "scene_fingerprint", "check_available", "frame_figure_path", "write_frame_figure", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
+__all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run",
+           "estimate_scores", "scene_fingerprint", "check_available", "frame_figure_path", "write_frame_figure"]
 
 JOURNAL_VERSION = 1
 
@@ -232,8 +233,9 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
 def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, world: Pose | None,
                        method_dict: dict) -> Path | None:
     """Draw one frame's figure (matches + AR check against the scene's reference image, ground truth when the
-    split has it) for ``run --viz``. Methods that relocalize against other references than the scene's (``--references
-    K``) get the AR check alone: their matches are with another image. A figure that cannot be drawn is logged."""
+    split has it) for ``run --viz``. Methods that relocalize against other references than the scene's
+    (``--references K``) get the AR check alone: their matches are with another image. A figure that cannot be
+    drawn is logged, never raised."""
     from ..viz import estimate_figure, save_png
 
     try:
@@ -384,7 +386,7 @@ def run_split(
     _check_depth_files(m, scene_list, split)
     check_scene_references(scene_list, m.to_dict())
     if todo:
-        check_available(m)
+        check_available(m, keep=workers <= 1 or len(todo) <= 1)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
     if fresh:
         jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
@@ -447,11 +449,15 @@ def _sigint_ignored() -> Iterator[None]:
         signal.signal(signal.SIGINT, old)
 
 
-def check_available(m: Any) -> None:
-    """Build ``m`` here (kept for this process's frames) and check its depth network can be loaded: weights or a
-    model that are neither on this machine nor downloadable are one clear error before any work, not a run in
-    which every frame fails."""
-    loc = _localizer(m.to_dict())
+def check_available(m: Any, keep: bool = True) -> None:
+    """Build ``m`` here and check its depth network can be loaded: weights or a model that are neither on this
+    machine nor downloadable are one clear error before any work, not a run in which every frame fails.
+    ``keep``: this process relocalizes the frames itself, so the built method is kept for them (else dropped,
+    leaving the memory to the worker processes)."""
+    md = m.to_dict()
+    loc = _localizer(md)
+    if not keep:
+        _LOCALIZERS.pop(json.dumps(md, sort_keys=True), None)
     check = getattr(getattr(loc, "depth_source", None), "check_available", None)
     if check is not None:
         check()

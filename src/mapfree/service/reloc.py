@@ -110,7 +110,8 @@ def needs_reference_depth(method: Any, *, scale_free_too: bool) -> bool:
         return False
     # Without a depth map, PnP/Procrustes give no pose at all, even in a method with no depth source ("none"),
     # which then uses a depth map uploaded with the reference.
-    return m.depth.startswith("files:") or (scale_free_too and m.depth == "none" and m.solver in methods.LIFTING_SOLVERS)
+    lifting = m.depth == "none" and m.solver in methods.LIFTING_SOLVERS
+    return m.depth.startswith("files:") or (scale_free_too and lifting)
 
 
 def check_runnable(name: str, has_reference_depth: bool) -> None:
