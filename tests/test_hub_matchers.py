@@ -255,7 +255,7 @@ def test_relocalize_command_with_a_superglue_preset(weights_dir, tmp_path, realm
     rc = main(["relocalize", str(scene / "seq0" / "frame_00000.jpg"), str(scene / "seq1" / "frame_00010.jpg"),
                "--method", str(cfg)])
     out = json.loads(capsys.readouterr().out)
-    assert rc == 0 and out["method"] == "sg"
+    assert out["method"] == "sg" and rc == (0 if out["ok"] else 3)  # 3: ran, no estimate
     assert out["ok"] or out["reason"]  # random weights at the paper's 0.2 threshold: usually no matches
 
 

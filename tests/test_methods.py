@@ -102,3 +102,12 @@ def test_unknown_method_suggests_close_names():
                         ("xfeat-pnp-sensor", "xfeat_pnp_sensor"), ("rpr-3d3", "rpr-3d3d")):
         with pytest.raises(KeyError, match=f"did you mean .*'{meant}'"):
             methods.get(typo)
+
+
+def test_every_registered_matcher_declares_its_options():
+    """A method YAML is checked against its matcher's options: a matcher missing from that table made every config
+    naming it fail with a bare KeyError."""
+    from mapfree import matching
+
+    for name in matching.names():
+        assert matching.option_names(name), name

@@ -327,8 +327,13 @@ def test_relocalize_bad_inputs_are_one_line_and_no_estimate_is_exit_3(synth, tmp
     assert main(["relocalize", ref, q, "--method", "sift_pnp_sensor", "--depth-ref", str(tmp_path / "no.png")]) == 1
     err = capfd.readouterr().err
     assert err.strip() == f"mapfree relocalize: error: {tmp_path / 'no.png'}: depth image not found", err
-    # Ran, but no estimate (the query is the reference image): exit 3, the JSON says why.
-    assert main(["relocalize", ref, ref, "--method", "sift_pnp_sensor"]) == 3
+    # Ran, but no estimate (a featureless grey query): exit 3, the JSON says why.
+    import cv2
+    import numpy as np
+
+    grey = tmp_path / "grey.png"
+    cv2.imwrite(str(grey), np.full(read_image(ref).shape, 127, np.uint8))
+    assert main(["relocalize", ref, str(grey), "--method", "sift_pnp_sensor", "--K-query", K]) == 3
     res = capfd.readouterr()
     assert json.loads(res.out)["ok"] is False and "no estimate" in res.err
     assert main(["relocalize", ref, q, "--method", "sift_pnp_sensor"]) == 0

@@ -123,7 +123,9 @@ def create(name: str, **options: object) -> Matcher:
 
 
 _OPTIONS = {"sift": ("sift", "SIFTOptions"), "xfeat": ("xfeat", "XFeatOptions"),
-            "lightglue": ("lightglue", "LightGlueOptions"), "loftr": ("loftr", "LoFTROptions")}
+            "lightglue": ("lightglue", "LightGlueOptions"), "loftr": ("loftr", "LoFTROptions"),
+            "superglue": ("superglue", "SuperGlueOptions"),
+            "efficientloftr": ("efficientloftr", "EfficientLoFTROptions")}
 
 
 def option_names(name: str) -> list[str]:
