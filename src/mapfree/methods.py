@@ -28,10 +28,11 @@ __all__ = [
 MATCHERS = ("sift", "xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "loftr",
             "superpoint-lightglue")
 OFFLINE_MATCHERS = MATCHERS[:6]
+MATCHERS += ("mast3r", "dust3r")  # two-view networks; weights are the user's download (docs/mast3r.md)
 #: Solver token in a preset name -> solver registry name.
 SOLVERS = {"emat": "essential", "essential": "essential", "pnp": "pnp", "procrustes": "procrustes"}
 #: Depth tokens that are not a file suffix.
-DEPTH_ALIASES = {"none": "none"}
+DEPTH_ALIASES = {"none": "none", "mast3r": "mast3r", "dust3r": "dust3r"}
 #: Ess.Mat RANSAC threshold (pixels) of the paper's rows: 3 px for SIFT, 2 px for learned matchers (SPEC §4).
 PAPER_THRESHOLD_PX = {"sift": 3.0}
 _LEARNED_THRESHOLD_PX = 2.0
@@ -252,4 +253,20 @@ def _register_builtins() -> None:
                                  "ranking confidence (files:sensor at the reference)"))
 
 
+def _register_two_view_presets() -> None:
+    # MASt3R / DUSt3R with their own pointmaps as depth: no depth files, one forward pass per pair (PnP).
+    needs = {"mast3r": "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth",
+             "dust3r": "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth"}
+    how = {"pnp": "PnP on the reference's depth (one forward pass per pair)",
+           "emat": "Ess.Mat scaled by both images' depth (a second, symmetric decoder pass for the query's depth)",
+           "procrustes": "3D-3D Procrustes on both images' depth (a second, symmetric decoder pass)"}
+    for net in needs:
+        for solver in how:
+            m = parse_name(preset_name(net, solver, net))
+            assert m is not None
+            register(replace(m, description=f"{net} matches and {net} metric depth, {how[solver]}; needs "
+                                            f"{needs[net]} in $MAPFREE_WEIGHTS_DIR (docs/mast3r.md)"))
+
+
 _register_builtins()
+_register_two_view_presets()

@@ -22,7 +22,7 @@ from ..matching.weights import WEIGHTS_ENV, MissingWeightsError
 from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs, parse_constructor
 from .model import AsymmetricModel
 
-__all__ = ["Published", "PUBLISHED", "find_checkpoint", "load_model", "read_checkpoint", "model_from_state_dict"]
+__all__ = ["Published", "PUBLISHED", "find_checkpoint", "checkpoint_available", "load_model", "read_checkpoint", "model_from_state_dict"]
 
 
 @dataclass(frozen=True)
@@ -75,6 +75,15 @@ def find_checkpoint(kind: str, explicit: str | os.PathLike | None = None) -> Pat
         f"{kind}: weights file '{pub.stem}.pth' not found. Place '{pub.stem}.pth' (or the hub folder '{pub.stem}/' "
         f"with config.json and model.safetensors) in {where}. It is published at {pub.url} and on the Hugging Face "
         f"hub as {pub.hub_id} (licence CC BY-NC-SA 4.0: mapfree does not ship it).")
+
+
+def checkpoint_available(kind: str) -> bool:
+    """Whether the published checkpoint of ``kind`` is in ``$MAPFREE_WEIGHTS_DIR``."""
+    try:
+        find_checkpoint(kind)
+    except MissingWeightsError:
+        return False
+    return True
 
 
 def _load_pth(path: Path) -> tuple[Mapping[str, torch.Tensor], str]:

@@ -18,17 +18,18 @@ __all__ = ["reciprocal_matches", "merge_pairs"]
 class _TorchNN:
     """Nearest neighbour in ``db`` for batches of queries, by blocks of brute force on ``device``."""
 
-    def __init__(self, db: torch.Tensor, dist: str = "l2", block: int = 8192) -> None:
-        self.db, self.dist, self.block = db, dist, block
+    def __init__(self, db: torch.Tensor, dist: str = "l2", block: tuple[int, int] = (1024, 16384)) -> None:
+        self.db, self.dist, self.block = db, dist, block  # (queries, database rows) per block: 64 MB of scores
 
     def query(self, q: np.ndarray | torch.Tensor) -> np.ndarray:
         q = torch.as_tensor(q, device=self.db.device)
         out = []
-        for i in range(0, len(q), self.block):
-            qb = q[i : i + self.block]
+        bq, bd = self.block
+        for i in range(0, len(q), bq):
+            qb = q[i : i + bq]
             best_val = best_idx = None
-            for j in range(0, len(self.db), self.block):
-                d = self.db[j : j + self.block]
+            for j in range(0, len(self.db), bd):
+                d = self.db[j : j + bd]
                 score = -(qb @ d.T) if self.dist == "dot" else torch.cdist(qb, d)
                 val, idx = score.min(dim=1)
                 idx = idx + j

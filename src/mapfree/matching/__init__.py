@@ -49,6 +49,15 @@ def _loftr(kind: str) -> Callable[..., Matcher]:
     return make
 
 
+def _mast3r(kind: str) -> Callable[..., Matcher]:
+    def make(**o: object) -> Matcher:
+        from .mast3r import Mast3rMatcher
+
+        return Mast3rMatcher(kind=kind, **o)
+
+    return make
+
+
 _REGISTRY: dict[str, Callable[..., Matcher]] = {
     "sift": _sift,
     "xfeat": _xfeat("sparse"),
@@ -60,6 +69,8 @@ _REGISTRY: dict[str, Callable[..., Matcher]] = {
     "loftr": _loftr("outdoor"),
     "loftr-outdoor": _loftr("outdoor"),
     "loftr-indoor": _loftr("indoor"),
+    "mast3r": _mast3r("mast3r"),
+    "dust3r": _mast3r("dust3r"),
 }
 
 
@@ -98,4 +109,7 @@ def available() -> list[str]:
         out += ["loftr", "loftr-outdoor"]
     if loftr_weights_available("indoor"):
         out.append("loftr-indoor")
+    from ..mast3r.checkpoint import checkpoint_available
+
+    out += [k for k in ("mast3r", "dust3r") if checkpoint_available(k)]
     return out
