@@ -32,15 +32,28 @@ class Published:
     stem: str
     hub_id: str
     url: str
+    expr: str  # the constructor call stored in the .pth (the architecture)
 
 
 PUBLISHED = {
     "mast3r": Published(
         "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric", "naver/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric",
-        "https://download.europe.naverlabs.com/ComputerVision/MASt3R/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth"),
+        "https://download.europe.naverlabs.com/ComputerVision/MASt3R/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth",
+        (
+        "AsymmetricMASt3R(pos_embed='RoPE100', patch_embed_cls='PatchEmbedDust3R', img_size=(512, 512), "
+        "head_type='catmlp+dpt', output_mode='pts3d+desc24', depth_mode=('exp', -inf, inf), conf_mode=('exp', "
+        "1, inf), enc_embed_dim=1024, enc_depth=24, enc_num_heads=16, dec_embed_dim=768, dec_depth=12, "
+        "dec_num_heads=12, two_confs=True, desc_conf_mode=('exp', 0, inf), landscape_only=False)"
+        )),
     "dust3r": Published(
         "DUSt3R_ViTLarge_BaseDecoder_512_dpt", "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt",
-        "https://download.europe.naverlabs.com/ComputerVision/DUSt3R/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth"),
+        "https://download.europe.naverlabs.com/ComputerVision/DUSt3R/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth",
+        (
+        "AsymmetricCroCo3DStereo(pos_embed='RoPE100', patch_embed_cls='PatchEmbedDust3R', img_size=(512, 512), "
+        "head_type='dpt', output_mode='pts3d', depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), "
+        "enc_embed_dim=1024, enc_depth=24, enc_num_heads=16, dec_embed_dim=768, dec_depth=12, "
+        "dec_num_heads=12, landscape_only=False)"
+        )),
 }
 _HUB_WEIGHTS = ("model.safetensors", "pytorch_model.bin")
 

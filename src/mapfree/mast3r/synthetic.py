@@ -19,7 +19,8 @@ import torch
 from .config import ModelConfig, parse_constructor
 from .model import AsymmetricModel
 
-__all__ = ["fill_value", "synthetic_state_dict", "iter_synthetic_state_dict", "save_pth", "save_hub"]
+__all__ = ["fill_value", "synthetic_state_dict", "iter_synthetic_state_dict", "save_pth", "save_hub",
+           "write_published_standin"]
 
 
 def fill_value(key: str, shape: tuple[int, ...]) -> np.ndarray:
@@ -74,3 +75,15 @@ def save_hub(folder: str | Path, expr: str, state_dict: dict[str, torch.Tensor])
     (folder / "config.json").write_text(json.dumps(kwargs, indent=1))
     save_file({k: v.contiguous() for k, v in state_dict.items()}, str(folder / "model.safetensors"))
     return folder
+
+
+def write_published_standin(folder: str | Path, kind: str, dtype: torch.dtype = torch.float32) -> Path:
+    """``<published stem>.pth`` in ``folder``: the published architecture of ``kind`` with fill-rule weights
+    (``dtype`` float16 halves the file; the loader computes in float32). For benchmarks without the real file."""
+    from .checkpoint import PUBLISHED
+    from .config import config_from_kwargs
+
+    pub = PUBLISHED[kind]
+    cfg = config_from_kwargs(*parse_constructor(pub.expr))
+    sd = {k: v.to(dtype) for k, v in iter_synthetic_state_dict(cfg)}
+    return save_pth(Path(folder) / f"{pub.stem}.pth", pub.expr, sd)
