@@ -63,11 +63,12 @@ def _check_estimate(est: Estimate, width: int, height: int) -> None:
 
 @pytest.mark.parametrize("kind, solver, forwards", [("mast3r", "pnp", 1), ("mast3r", "essential", 2),
                                                     ("dust3r", "pnp", 1)])
-def test_relocalizer_one_forward_per_pair_reference_encoded_once(weights, scene, kind, solver, forwards):
+def test_relocalizer_one_forward_per_pair_reference_encoded_once(weights, scene, kind, solver, forwards, monkeypatch):
     matcher = Mast3rMatcher(kind=kind, long_side=SMALL)
     loc = Relocalizer(matcher, kind, solver)
     assert loc.depth_source.engine is matcher.engine  # the same network serves matches and depth
     engine = matcher.engine
+    monkeypatch.setattr(engine._images, "size", 1)  # a busy engine (a service with many anchors): its image cache keeps nothing useful
     anchor = loc.set_reference(scene.reference)
     assert anchor.depth is None  # pair depth: asked for after matching
     enc0, fwd0 = engine.encodes, engine.forwards
@@ -130,3 +131,13 @@ def test_cli_relocalize_with_tiny_checkpoint(weights, scene, tmp_path, realmini)
                        capture_output=True, text=True, timeout=300, env={**os.environ, "MAPFREE_WEIGHTS_DIR": str(tmp_path)})
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth" in r.stderr and "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt" in r.stderr
+
+
+def test_list_methods_says_what_the_presets_need():
+    r = subprocess.run([sys.executable, "-m", "mapfree", "run", "--list-methods"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = {ln.split()[0]: ln for ln in r.stdout.splitlines() if ln.strip()}
+    assert "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth" in lines["mast3r_pnp_mast3r"]
+    assert "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth" in lines["dust3r_emat_dust3r"]
+    assert "sift_emat_dptkitti" in lines  # the existing names are still there

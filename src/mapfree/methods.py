@@ -20,7 +20,8 @@ from .yamlio import read_yaml
 __all__ = [
     "Method", "MATCHERS", "OFFLINE_MATCHERS", "SOLVERS", "DEPTH_ALIASES", "BEST_OFFLINE", "BEST_OFFLINE_REFERENCE_DEPTH",
     "PAPER_THRESHOLD_PX",
-    "get", "list_methods", "register", "register_kind", "factory", "parse_name", "preset_name", "load_yaml",
+    "get", "list_methods", "describe_methods", "register", "register_kind", "factory", "parse_name", "preset_name",
+    "load_yaml",
     "config_dirs",
 ]
 
@@ -29,6 +30,9 @@ MATCHERS = ("sift", "xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglu
             "superpoint-lightglue")
 OFFLINE_MATCHERS = MATCHERS[:6]
 MATCHERS += ("mast3r", "dust3r")  # two-view networks; weights are the user's download (docs/mast3r.md)
+#: What a matcher needs beyond the installed packages, said in its presets' descriptions.
+_MATCHER_NEEDS = {"mast3r": "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in $MAPFREE_WEIGHTS_DIR",
+                  "dust3r": "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in $MAPFREE_WEIGHTS_DIR"}
 #: Solver token in a preset name -> solver registry name.
 SOLVERS = {"emat": "essential", "essential": "essential", "pnp": "pnp", "procrustes": "procrustes"}
 #: Depth tokens that are not a file suffix.
@@ -146,7 +150,8 @@ def parse_name(name: str) -> Method | None:
     return Method(
         name=name, matcher=matcher, depth=_depth_spec(depth_tok), solver=solver, solver_opts=solver_opts,
         description=f"{matcher} matches, {solver} solver, depth {depth_tok} (paper settings"
-                    + (f", {threshold:g} px)" if solver == "essential" else ")"),
+                    + (f", {threshold:g} px)" if solver == "essential" else ")")
+                    + (f"; needs {_MATCHER_NEEDS[matcher]}" if matcher in _MATCHER_NEEDS else ""),
     )
 
 
@@ -239,6 +244,17 @@ def list_methods(depths: tuple[str, ...] = ("dptkitti", "dptnyu", "sensor", "mon
     return list(dict.fromkeys(names))
 
 
+def describe_methods() -> list[tuple[str, str]]:
+    """(name, description) of every listed method: what it runs and what it needs (depth files, weights)."""
+    out = []
+    for name in list_methods():
+        try:
+            out.append((name, get(name).description))
+        except (KeyError, ValueError, OSError) as e:  # a broken YAML config is listed with its error
+            out.append((name, f"(cannot load: {e})"))
+    return out
+
+
 def _register_builtins() -> None:
     # Chosen by measurement on realmini-dev val (README "Relocalization"): the highest AUC @ VCRE < 90px among
     # the offline presets, on the scored frames and on all frames, with the ranking confidence.
@@ -255,17 +271,15 @@ def _register_builtins() -> None:
 
 def _register_two_view_presets() -> None:
     # MASt3R / DUSt3R with their own pointmaps as depth: no depth files, one forward pass per pair (PnP).
-    needs = {"mast3r": "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth",
-             "dust3r": "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth"}
     how = {"pnp": "PnP on the reference's depth (one forward pass per pair)",
            "emat": "Ess.Mat scaled by both images' depth (a second, symmetric decoder pass for the query's depth)",
            "procrustes": "3D-3D Procrustes on both images' depth (a second, symmetric decoder pass)"}
-    for net in needs:
+    for net in ("mast3r", "dust3r"):
         for solver in how:
             m = parse_name(preset_name(net, solver, net))
             assert m is not None
             register(replace(m, description=f"{net} matches and {net} metric depth, {how[solver]}; needs "
-                                            f"{needs[net]} in $MAPFREE_WEIGHTS_DIR (docs/mast3r.md)"))
+                                            f"{_MATCHER_NEEDS[net]} (docs/mast3r.md)"))
 
 
 _register_builtins()

@@ -59,16 +59,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="trained checkpoint for a regression method (e.g. --method rpr --checkpoint best.ckpt)")
     p.add_argument("--evaluate", action="store_true", help="score the submission against the split's poses")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--list-methods", action="store_true", help="print the method names and exit")
+    p.add_argument("--list-methods", action="store_true", help="print the method names (with what each runs and needs) and exit")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..data import FormatError
-    from ..methods import list_methods
+    from ..methods import describe_methods
 
     if args.list_methods:
-        print("\n".join(list_methods()))
+        print("\n".join(f"{name:42s} {what}".rstrip() for name, what in describe_methods()))
         return 0
     if args.root is None or not args.method:
         print("mapfree run: error: ROOT and --method are required (or --list-methods)", file=sys.stderr)

@@ -10,6 +10,8 @@ already encoded), z of view 1's points. PnP needs the reference's depth only: on
 
 from __future__ import annotations
 
+from typing import Any
+
 import cv2
 import numpy as np
 
@@ -50,13 +52,18 @@ class Mast3rDepth:
         """No depth from one frame alone: see ``pair_depth``."""
         return None
 
-    def _encoded(self, image: np.ndarray) -> EncodedImage:
-        return self.engine.encode(image)
+    def _encoded(self, image: np.ndarray, features: Any) -> EncodedImage:
+        """The matcher's encoding when its features carry this engine's (a cached reference is never encoded
+        again), else the engine's own (cached on the image)."""
+        enc = getattr(features, "data", {}).get("encoded") if features is not None else None
+        mine = isinstance(enc, EncodedImage) and enc.engine_id == id(self.engine)
+        return enc if mine else self.engine.encode(image)
 
-    def pair_depth(self, reference: np.ndarray, query: np.ndarray,
-                   need_query: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-        """(reference depth, query depth or None) in metres at each image's original size."""
-        ref, q = self._encoded(reference), self._encoded(query)
+    def pair_depth(self, reference: np.ndarray, query: np.ndarray, need_query: bool = True,
+                   features: tuple[Any, Any] = (None, None)) -> tuple[np.ndarray, np.ndarray | None]:
+        """(reference depth, query depth or None) in metres at each image's original size. ``features``: the
+        matcher's features of both images, whose encodings are reused when they come from this engine."""
+        ref, q = self._encoded(reference, features[0]), self._encoded(query, features[1])
         fwd = self.engine.pair(ref, q)
         d_ref = depth_at_original(fwd.pts1[..., 2], fwd.conf1, ref.prepared, self.min_conf)
         if not need_query:

@@ -31,6 +31,7 @@ class EncodedImage:
 
     prepared: Prepared
     encoded: Encoded
+    engine_id: int = 0  # id() of the engine that made it (its network and input size)
 
 
 @dataclass
@@ -96,7 +97,7 @@ class PairEngine:
             with torch.inference_mode():
                 enc = self.model.encode(prep.tensor.to(self.device))
             self.encodes += 1
-            out = EncodedImage(prep, enc)
+            out = EncodedImage(prep, enc, id(self))
             self._images.put(out, image)
             return out
 

@@ -300,7 +300,7 @@ class Relocalizer:
         if prep.error is None and matches is not None:
             try:
                 t1 = time.perf_counter()
-                est = self._solve(anchor, prep.view, matches, prep.depth)
+                est = self._solve(anchor, prep.view, matches, prep.depth, prep.features)
                 pair_depth = est.timings.pop("pair_depth", 0.0)
                 timings["solve"] = time.perf_counter() - t1 - pair_depth
                 timings["depth"] = timings.get("depth", 0.0) + pair_depth
@@ -358,7 +358,8 @@ class Relocalizer:
             return Estimate.failure("no depth for the reference image", total=0.0)
         return None
 
-    def _solve(self, anchor: Anchor, view: View, matches: Matches, depth_q: np.ndarray | None) -> Estimate:
+    def _solve(self, anchor: Anchor, view: View, matches: Matches, depth_q: np.ndarray | None,
+               features_q: Features | None = None) -> Estimate:
         flow = np.linalg.norm(matches.kpts1 - matches.kpts0, axis=1)
         if len(matches) and float(np.median(flow)) <= MIN_PARALLAX_PX:
             return Estimate.failure("no parallax: the query is the reference image")
@@ -367,7 +368,8 @@ class Relocalizer:
         if self.pairwise_depth and needs and (depth_ref is None or ("query" in needs and depth_q is None)):
             t0 = time.perf_counter()
             pair_ref, pair_q = self.depth_source.pair_depth(anchor.view.image, view.image,
-                                                            need_query="query" in needs and depth_q is None)
+                                                            need_query="query" in needs and depth_q is None,
+                                                            features=(anchor.features, features_q))
             depth_ref = depth_ref if depth_ref is not None else _fit_depth(pair_ref, anchor.view.intrinsics, owned=True)
             depth_q = depth_q if depth_q is not None else _fit_depth(pair_q, view.intrinsics, owned=True)
             pair_s = time.perf_counter() - t0
