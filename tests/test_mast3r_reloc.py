@@ -141,3 +141,29 @@ def test_list_methods_says_what_the_presets_need():
     assert "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth" in lines["mast3r_pnp_mast3r"]
     assert "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth" in lines["dust3r_emat_dust3r"]
     assert "sift_emat_dptkitti" in lines  # the existing names are still there
+
+
+def test_service_anchor_cache_keeps_the_encoded_reference(weights, scene, monkeypatch):
+    """The service prepares an anchor once per method: later queries encode only themselves."""
+    from mapfree.mast3r.engine import shared_engine
+    from mapfree.service.reloc import Localizers, Photo
+
+    monkeypatch.setitem(methods._REGISTRY, "mast3r-small-test", methods.Method(
+        name="mast3r-small-test", matcher="mast3r", matcher_opts={"long_side": SMALL}, depth="mast3r", solver="pnp"))
+    engine = shared_engine("mast3r", long_side=SMALL)
+    locs = Localizers()
+    ref = Photo(scene.reference.image(), scene.reference.intrinsics)
+    calls = []
+
+    def photos():
+        calls.append(1)
+        return [ref]
+
+    enc0, fwd0 = engine.encodes, engine.forwards
+    for q in QUERIES:
+        f = scene.frame(q)
+        est = locs.localize_photos("a1", "mast3r-small-test", "v1", photos, f.image(), f.intrinsics)
+        _check_estimate(est, 540, 360)
+        assert est.extras["method"] == "mast3r-small-test"
+    assert len(calls) == 1  # the anchor was prepared once
+    assert engine.encodes - enc0 == 1 + len(QUERIES) and engine.forwards - fwd0 == len(QUERIES)
