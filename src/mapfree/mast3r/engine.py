@@ -72,7 +72,8 @@ class _IdentityCache:
 
 
 class PairEngine:
-    """A loaded network with its caches. Thread-safe (the batched pipeline solves in a thread pool)."""
+    """A loaded network with its caches. Thread-safe (the batched pipeline solves in a thread pool, the
+    relocalizer reads the next query ahead): the lock guards the caches, not the network's passes."""
 
     def __init__(self, model: AsymmetricModel, device: torch.device, name: str = "mast3r", long_side: int = 512,
                  cache_pairs: int = 32) -> None:
@@ -91,33 +92,35 @@ class PairEngine:
         """(H, W, 3) uint8 RGB -> preprocessed and encoded (cached on the array's identity)."""
         with self._lock:
             hit = self._images.get(image)
-            if hit is not None:
-                return hit
-            prep = prepare_array(image, self.long_side)
-            with torch.inference_mode():
-                enc = self.model.encode(prep.tensor.to(self.device))
+        if hit is not None:
+            return hit
+        prep = prepare_array(image, self.long_side)
+        with torch.inference_mode():  # outside the lock: another thread may use the cache meanwhile
+            enc = self.model.encode(prep.tensor.to(self.device))
+        out = EncodedImage(prep, enc, id(self))
+        with self._lock:
             self.encodes += 1
-            out = EncodedImage(prep, enc, id(self))
             self._images.put(out, image)
-            return out
+        return out
 
     def pair(self, first: EncodedImage, second: EncodedImage) -> PairOutput:
         """Decoders and heads on (first, second), once per pair; ``first`` is the frame of both pointmaps."""
         with self._lock:
             hit = self._pairs.get(first, second)
-            if hit is not None:
-                return hit
-            with torch.inference_mode():
-                r1, r2 = self.model.predict(first.encoded, second.encoded)
+        if hit is not None:
+            return hit
+        with torch.inference_mode():
+            r1, r2 = self.model.predict(first.encoded, second.encoded)
+
+        def cpu(t: torch.Tensor | None) -> np.ndarray | None:
+            return None if t is None else t[0].float().cpu().numpy()
+
+        out = PairOutput(cpu(r1["pts3d"]), cpu(r1["conf"]), cpu(r2["pts3d_in_other_view"]), cpu(r2["conf"]),
+                         cpu(r1.get("desc")), cpu(r2.get("desc")), cpu(r1.get("desc_conf")), cpu(r2.get("desc_conf")))
+        with self._lock:
             self.forwards += 1
-
-            def cpu(t: torch.Tensor | None) -> np.ndarray | None:
-                return None if t is None else t[0].float().cpu().numpy()
-
-            out = PairOutput(cpu(r1["pts3d"]), cpu(r1["conf"]), cpu(r2["pts3d_in_other_view"]), cpu(r2["conf"]),
-                             cpu(r1.get("desc")), cpu(r2.get("desc")), cpu(r1.get("desc_conf")), cpu(r2.get("desc_conf")))
             self._pairs.put(out, first, second)
-            return out
+        return out
 
 
 _ENGINES: dict[tuple[str, str, str, int], PairEngine] = {}
