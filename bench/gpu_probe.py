@@ -1,13 +1,14 @@
 """The GPU figures of issue 9 in one call, for a session that has a GPU (one H100 expected):
 
     MAPFREE_OFFLINE=1 python bench/gpu_probe.py [ROOT] --out DIR [--presets a,b] [--never-seen all|a,b|none]
-                                                [--no-depth] [--no-baseline] [--quick] [--train]
+                                                [--no-depth] [--no-two-view] [--no-baseline] [--quick] [--train]
 
 (``bench/gpu_session.sh`` runs it on the device machine from the kit ``bench/gpu_kit.py`` builds.)
 
 1. Never-seen inputs: every learned matcher that runs offline here, a full-size (randomly initialised)
    Depth Anything V2 network and full-size MASt3R / DUSt3R (fill-rule weights, their 512 input), each on new
-   images (two sizes): the first pass over a new input against the same input again. A ratio far above 1 means per-shape set-up (cuDNN graphs, autotuning) is back.
+   images (two sizes): the first pass over a new input against the same input again. A ratio far above 1
+   means per-shape set-up (cuDNN graphs, autotuning) is back.
 2. ``bench/bench_pipeline.py`` at the benchmark's 540x720 on every query of ROOT's val split with depth: each
    preset's ``mapfree run`` on never-seen pairs, the pairs again, GPU utilisation, the kornia loop baseline,
    and ``aliked-lightglue_emat_sensor:b0`` (one pair at a time) for the same-poses check.

@@ -35,7 +35,8 @@ def weights(mast3r_fixture, tmp_path_factory):
     root = tmp_path_factory.mktemp("weights")
     for kind in ("mast3r", "dust3r"):
         expr = spec["models"][f"{kind}-tiny"]["expr"]
-        save_pth(root / f"{PUBLISHED[kind].stem}.pth", expr, synthetic_state_dict(config_from_kwargs(*parse_constructor(expr))))
+        sd = synthetic_state_dict(config_from_kwargs(*parse_constructor(expr)))
+        save_pth(root / f"{PUBLISHED[kind].stem}.pth", expr, sd)
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("MAPFREE_WEIGHTS_DIR", str(root))
         yield root
@@ -68,7 +69,8 @@ def test_relocalizer_one_forward_per_pair_reference_encoded_once(weights, scene,
     loc = Relocalizer(matcher, kind, solver)
     assert loc.depth_source.engine is matcher.engine  # the same network serves matches and depth
     engine = matcher.engine
-    monkeypatch.setattr(engine._images, "size", 1)  # a busy engine (a service with many anchors): its image cache keeps nothing useful
+    # a busy engine (a service with many anchors): its image cache keeps nothing useful
+    monkeypatch.setattr(engine._images, "size", 1)
     anchor = loc.set_reference(scene.reference)
     assert anchor.depth is None  # pair depth: asked for after matching
     enc0, fwd0 = engine.encodes, engine.forwards
@@ -128,9 +130,11 @@ def test_cli_relocalize_with_tiny_checkpoint(weights, scene, tmp_path, realmini)
     assert out["ok"] or out["reason"]  # junk weights: a pose or a clean no-estimate, never a crash
     r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(ref), str(query), "--method",
                         "dust3r_emat_dust3r", "--intrinsics", str(realmini / "val" / "s00000" / "intrinsics.txt")],
-                       capture_output=True, text=True, timeout=300, env={**os.environ, "MAPFREE_WEIGHTS_DIR": str(tmp_path)})
+                       capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "MAPFREE_WEIGHTS_DIR": str(tmp_path)})
     assert r.returncode == 2 and "Traceback" not in r.stderr
-    assert "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth" in r.stderr and "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt" in r.stderr
+    assert "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth" in r.stderr
+    assert "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt" in r.stderr
 
 
 def test_list_methods_says_what_the_presets_need():

@@ -22,7 +22,8 @@ from ..matching.weights import WEIGHTS_ENV, MissingWeightsError
 from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs, parse_constructor
 from .model import AsymmetricModel
 
-__all__ = ["Published", "PUBLISHED", "find_checkpoint", "checkpoint_available", "load_model", "read_checkpoint", "model_from_state_dict"]
+__all__ = ["Published", "PUBLISHED", "find_checkpoint", "checkpoint_available", "load_model", "read_checkpoint",
+           "model_from_state_dict"]
 
 
 @dataclass(frozen=True)
@@ -38,7 +39,8 @@ class Published:
 PUBLISHED = {
     "mast3r": Published(
         "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric", "naver/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric",
-        "https://download.europe.naverlabs.com/ComputerVision/MASt3R/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth",
+        "https://download.europe.naverlabs.com/ComputerVision/MASt3R/"
+        "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth",
         (
         "AsymmetricMASt3R(pos_embed='RoPE100', patch_embed_cls='PatchEmbedDust3R', img_size=(512, 512), "
         "head_type='catmlp+dpt', output_mode='pts3d+desc24', depth_mode=('exp', -inf, inf), conf_mode=('exp', "
@@ -145,22 +147,26 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[ModelConfig, Mapping[str, 
         raise UnsupportedCheckpointError(f"{p}: {e}") from None
 
 
-def model_from_state_dict(cfg: ModelConfig, sd: Mapping[str, torch.Tensor], source: str = "checkpoint") -> AsymmetricModel:
+def model_from_state_dict(cfg: ModelConfig, sd: Mapping[str, torch.Tensor],
+                          source: str = "checkpoint") -> AsymmetricModel:
     """Build the network and load ``sd`` strictly (``dec_blocks2`` copied from ``dec_blocks`` when absent)."""
     sd = dict(sd)
     if not any(k.startswith("dec_blocks2.") for k in sd):
-        sd.update({"dec_blocks2." + k[len("dec_blocks."):]: v for k, v in list(sd.items()) if k.startswith("dec_blocks.")})
+        first = [(k, v) for k, v in sd.items() if k.startswith("dec_blocks.")]
+        sd.update({"dec_blocks2." + k[len("dec_blocks."):]: v for k, v in first})
     with torch.device("meta"):
         net = AsymmetricModel(cfg)
     missing = sorted(set(net.state_dict()) - set(sd))
     unexpected = sorted(set(sd) - set(net.state_dict()))
     if missing or unexpected:
         raise ValueError(f"{source}: state dict does not fit {cfg.class_name}: "
-                         f"{len(missing)} missing (e.g. {missing[:3]}), {len(unexpected)} unexpected (e.g. {unexpected[:3]})")
+                         f"{len(missing)} missing (e.g. {missing[:3]}), "
+                         f"{len(unexpected)} unexpected (e.g. {unexpected[:3]})")
     try:
         net.load_state_dict(sd, strict=True, assign=True)
     except RuntimeError as e:
-        raise ValueError(f"{source}: state dict does not fit {cfg.class_name} ({str(e).splitlines()[-1].strip()})") from None
+        why = str(e).splitlines()[-1].strip()
+        raise ValueError(f"{source}: state dict does not fit {cfg.class_name} ({why})") from None
     return net.float().eval()
 
 

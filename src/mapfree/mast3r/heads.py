@@ -21,7 +21,8 @@ __all__ = ["PointHead", "PointDescHead", "points_from_raw", "confidence_from_raw
 
 
 def points_from_raw(xyz: torch.Tensor, mode: Mode) -> torch.Tensor:
-    """3-D points from raw (…, 3): the direction is kept, the distance d becomes expm1(d) (``exp``) or d² (``square``)."""
+    """3-D points from raw (…, 3): the direction is kept, the distance d becomes expm1(d) (``exp``) or d²
+    (``square``)."""
     kind, vmin, vmax = mode
     if kind == "linear":
         return xyz if (vmin, vmax) == (-float("inf"), float("inf")) else xyz.clip(min=vmin, max=vmax)

@@ -101,5 +101,6 @@ class AsymmetricModel(nn.Module):
         res2["pts3d_in_other_view"] = res2.pop("pts3d")
         return res1, res2
 
-    def forward(self, img1: torch.Tensor, img2: torch.Tensor) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    def forward(self, img1: torch.Tensor,
+                img2: torch.Tensor) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         return self.predict(self.encode(img1), self.encode(img2))

@@ -64,6 +64,10 @@ class _TreeNN:
         return self.tree.query(q)[1]
 
 
+def _rows(points: np.ndarray | torch.Tensor, idx: np.ndarray) -> np.ndarray | torch.Tensor:
+    return points[torch.as_tensor(idx).long()] if isinstance(points, torch.Tensor) else points[idx]
+
+
 def merge_pairs(idx1: np.ndarray, idx2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unique (idx1, idx2) pairs sorted by idx1 then idx2."""
     key = np.unique((idx1.astype(np.int64) << 32) | idx2.astype(np.int64))
@@ -99,9 +103,9 @@ def reciprocal_matches(desc1: np.ndarray | torch.Tensor, desc2: np.ndarray | tor
     for _ in range(max_iter):
         if not moving.any():
             break
-        xy2[moving] = nn2.query(p1[torch.as_tensor(xy1[moving]).long() if isinstance(p1, torch.Tensor) else xy1[moving]])
+        xy2[moving] = nn2.query(_rows(p1, xy1[moving]))
         moving &= old2 != xy2
-        xy1[moving] = nn1.query(p2[torch.as_tensor(xy2[moving]).long() if isinstance(p2, torch.Tensor) else xy2[moving]])
+        xy1[moving] = nn1.query(_rows(p2, xy2[moving]))
         moving &= old1 != xy1
         old2[:] = xy2
         old1[:] = xy1
