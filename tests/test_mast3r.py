@@ -191,3 +191,18 @@ def test_full_size_models_reproduce_public_outputs(fixture, model):
         net.load_state_dict({key: value}, strict=False, assign=True)
     net.eval()
     _compare(net, arrays, model, inputs=("landscape_96x128",), step=4)
+
+
+class _NotAllowed:
+    """A class a checkpoint must not be able to make us construct."""
+
+
+def test_unreadable_or_unsafe_checkpoint_is_a_clear_error(tmp_path):
+    garbage = tmp_path / "garbage.pth"
+    garbage.write_bytes(b"not a checkpoint")
+    unsafe = tmp_path / "unsafe.pth"
+    torch.save({"model": {}, "args": _NotAllowed()}, unsafe)  # weights-only loading refuses other classes
+    for path in (garbage, unsafe):
+        with pytest.raises(ValueError, match="not a readable MASt3R/DUSt3R checkpoint") as e:
+            read_checkpoint(path)
+        assert str(path) in str(e.value) and "weights_only" not in str(e.value)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -101,12 +102,20 @@ def checkpoint_available(kind: str) -> bool:
     return True
 
 
+def _why(e: Exception) -> str:
+    """The gist of a ``torch.load`` failure (its weights-only errors bury it in advice that does not apply)."""
+    m = re.search(r"WeightsUnpickler error:\s*(.+?)(?:\n\s*\n|$)", str(e), re.S)
+    gist = m.group(1) if m else (str(e).strip().splitlines() or [""])[0]
+    return f"{type(e).__name__}: {' '.join(gist.split())[:200]}"
+
+
 def _load_pth(path: Path) -> tuple[Mapping[str, torch.Tensor], str]:
     try:
         with torch.serialization.safe_globals([argparse.Namespace]):
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
-        raise ValueError(f"{path}: not a readable MASt3R/DUSt3R checkpoint ({type(e).__name__}: {e})") from None
+        raise ValueError(f"{path}: not a readable MASt3R/DUSt3R checkpoint ({_why(e)}); expected the authors' "
+                         f".pth file or a hub folder (config.json + model.safetensors)") from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("model"), dict) or "args" not in ckpt:
         raise ValueError(f"{path}: not a MASt3R/DUSt3R checkpoint (expected the keys 'model' and 'args')")
     args = ckpt["args"]
