@@ -171,3 +171,17 @@ def test_service_anchor_cache_keeps_the_encoded_reference(weights, scene, monkey
         assert est.extras["method"] == "mast3r-small-test"
     assert len(calls) == 1  # the anchor was prepared once
     assert engine.encodes - enc0 == 1 + len(QUERIES) and engine.forwards - fwd0 == len(QUERIES)
+
+
+def test_batched_pipeline_one_forward_per_pair(weights, scene):
+    from mapfree.relocalize.batched import BatchOptions
+
+    matcher = Mast3rMatcher(long_side=SMALL, device="cpu")
+    loc = Relocalizer(matcher, "mast3r", "pnp")
+    loc.set_reference(scene.reference)
+    enc0, fwd0 = matcher.engine.encodes, matcher.engine.forwards
+    ests = list(loc.localize_batched([scene.frame(q) for q in QUERIES], options=BatchOptions(batch_size=2)))
+    assert len(ests) == len(QUERIES)
+    for est in ests:
+        _check_estimate(est, 540, 360)
+    assert matcher.engine.encodes - enc0 == len(QUERIES) and matcher.engine.forwards - fwd0 == len(QUERIES)

@@ -40,6 +40,7 @@ class Mast3rMatcher:
             raise ValueError(f"unknown kind {o.kind!r}; choose mast3r or dust3r")
         self.name = o.kind
         self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, resolve_device, o.long_side)
+        self.device = self.engine.device
 
     def extract(self, image: np.ndarray) -> Features:
         img = check_image(image)
