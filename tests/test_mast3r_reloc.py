@@ -171,6 +171,13 @@ def test_service_anchor_cache_keeps_the_encoded_reference(weights, scene, monkey
         assert est.extras["method"] == "mast3r-small-test"
     assert len(calls) == 1  # the anchor was prepared once
     assert engine.encodes - enc0 == 1 + len(QUERIES) and engine.forwards - fwd0 == len(QUERIES)
+    # Ess.Mat keeps its solver for a plain query photo: the network gives the query's depth (no PnP twin)
+    monkeypatch.setitem(methods._REGISTRY, "mast3r-small-emat", methods.Method(
+        name="mast3r-small-emat", matcher="mast3r", matcher_opts={"long_side": SMALL}, depth="mast3r",
+        solver="essential"))
+    f = scene.frame(QUERIES[0])
+    est = locs.localize_photos("a1", "mast3r-small-emat", "v1", photos, f.image(), f.intrinsics)
+    assert est.extras["method"] == "mast3r-small-emat" and "no depth for the query" not in est.reason
 
 
 def test_batched_pipeline_one_forward_per_pair(weights, scene):

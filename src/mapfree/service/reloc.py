@@ -144,8 +144,11 @@ def effective_method(name: str, has_query_depth: bool):
     would need one (so that the default preset answers for a plain photo, at the anchor's metric scale)."""
     from .. import methods
 
+    from ..depth import PAIR_MODELS  # their depth of the query comes from the network, with the pair
+
     m = methods.get(name)
-    if m.kind == "matching" and m.depth != "none" and not has_query_depth and m.solver in _QUERY_DEPTH_SOLVERS:
+    if m.kind == "matching" and m.depth not in ("none", *PAIR_MODELS) and not has_query_depth \
+            and m.solver in _QUERY_DEPTH_SOLVERS:
         m = replace(m, solver="pnp", solver_opts={}, name=f"{m.name}+pnp")
     return m
 
