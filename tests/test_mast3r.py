@@ -74,7 +74,7 @@ def _compare(net: torch.nn.Module, arrays: dict[str, np.ndarray], model: str, in
 
 
 @pytest.mark.parametrize("model", ["mast3r-tiny", "dust3r-tiny"])
-@pytest.mark.parametrize("form", ["pth", "hub"])
+@pytest.mark.parametrize("form", ["pth", "hub", "hub-bin"])
 def test_tiny_models_reproduce_public_outputs(fixture, tiny, model, form, tmp_path):
     spec, arrays = fixture
     m = spec["models"][model]
@@ -82,6 +82,9 @@ def test_tiny_models_reproduce_public_outputs(fixture, tiny, model, form, tmp_pa
     # our module names are exactly the published layout (strict loading accepts exactly these keys)
     assert {k: [str(v.dtype).replace("torch.", ""), list(v.shape)] for k, v in sd.items()} == m["state_dict"]
     path = save_pth(tmp_path / "m.pth", m["expr"], sd) if form == "pth" else save_hub(tmp_path / "hub", m["expr"], sd)
+    if form == "hub-bin":  # older hub pushes: pytorch_model.bin instead of model.safetensors
+        (path / "model.safetensors").unlink()
+        torch.save(sd, path / "pytorch_model.bin")
     net = load_model(path)
     assert net.cfg.has_descriptors == model.startswith("mast3r")
     _compare(net, arrays, model)

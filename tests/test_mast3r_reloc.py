@@ -110,6 +110,14 @@ def test_presets_are_registered_with_what_they_need():
             assert (m.matcher, m.depth, m.solver) == (net, net, name) and file in m.description
 
 
+def test_available_only_with_the_weights(weights, tmp_path, monkeypatch):
+    from mapfree import matching
+
+    assert {"mast3r", "dust3r"} <= set(matching.available())
+    monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(tmp_path))
+    assert not {"mast3r", "dust3r"} & set(matching.available())
+
+
 def test_missing_weights_fail_before_any_work(tmp_path, monkeypatch):
     monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(tmp_path))
     with pytest.raises(MissingWeightsError, match="MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth"):
