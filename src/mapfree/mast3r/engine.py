@@ -48,6 +48,10 @@ class PairOutput:
     desc_conf2: np.ndarray | None = None
     extras: dict[str, Any] = field(default_factory=dict)
 
+    def without_descriptors(self) -> "PairOutput":
+        """What the cache keeps (the depth source's part): two 24-D maps are 90% of a pair's output."""
+        return PairOutput(self.pts1, self.conf1, self.pts2, self.conf2)
+
 
 class _IdentityCache:
     """A small LRU keyed on the identity of objects (weakly held, so a recycled id never hits a dead entry)."""
@@ -103,11 +107,14 @@ class PairEngine:
             self._images.put(out, image)
         return out
 
-    def pair(self, first: EncodedImage, second: EncodedImage) -> PairOutput:
-        """Decoders and heads on (first, second), once per pair; ``first`` is the frame of both pointmaps."""
+    def pair(self, first: EncodedImage, second: EncodedImage, descriptors: bool = False) -> PairOutput:
+        """Decoders and heads on (first, second), once per pair; ``first`` is the frame of both pointmaps.
+
+        The cache keeps points and confidences: the matcher asks first (``descriptors`` True: a fresh pass) and
+        the depth source later finds the same pass's points here."""
         with self._lock:
             hit = self._pairs.get(first, second)
-        if hit is not None:
+        if hit is not None and not (descriptors and self.has_descriptors):
             return hit
         with torch.inference_mode():
             r1, r2 = self.model.predict(first.encoded, second.encoded)
@@ -119,7 +126,7 @@ class PairEngine:
                          cpu(r1.get("desc")), cpu(r2.get("desc")), cpu(r1.get("desc_conf")), cpu(r2.get("desc_conf")))
         with self._lock:
             self.forwards += 1
-            self._pairs.put(out, first, second)
+            self._pairs.put(out.without_descriptors(), first, second)
         return out
 
 

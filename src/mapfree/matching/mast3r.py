@@ -53,7 +53,7 @@ class Mast3rMatcher:
         e0, e1 = f0.data.get("encoded"), f1.data.get("encoded")
         if e0 is None or e1 is None:
             return Matches.empty()
-        out = self.engine.pair(e0, e1)
+        out = self.engine.pair(e0, e1, descriptors=True)
         if self.options.kind == "mast3r":
             # Unit descriptors: nearest by L2 = largest dot product, found by blocks of matrix products (the
             # public GPU path); a KD-tree in 24-D is ~20x slower on a 512x384 map and finds the same pixels.
