@@ -1,13 +1,15 @@
 """The GPU figures of issue 9 in one call, for a session that has a GPU (one H100 expected):
 
     MAPFREE_OFFLINE=1 python bench/gpu_probe.py [ROOT] --out DIR [--presets a,b] [--never-seen all|a,b|none]
-                                                [--no-depth] [--no-baseline] [--quick] [--train]
+                                                [--no-depth] [--no-two-view] [--no-baseline] [--quick] [--train]
 
 (``bench/gpu_session.sh`` runs it on the device machine from the kit ``bench/gpu_kit.py`` builds.)
 
 1. Never-seen inputs: every learned matcher that runs offline here, SuperGlue and EfficientLoFTR at their
-   published sizes and a full-size Depth Anything V2 network (these three randomly initialised), each on new images (two sizes): the first pass over a new input against the
-   same input again. A ratio far above 1 means per-shape set-up (cuDNN graphs, autotuning) is back.
+   published sizes and a full-size Depth Anything V2 network (these three randomly initialised), full-size
+   MASt3R / DUSt3R (fill-rule weights, their 512 input), each on new images (two sizes): the first pass over a
+   new input against the same input again. A ratio far above 1 means per-shape set-up (cuDNN graphs, autotuning)
+   is back.
 2. ``bench/bench_pipeline.py`` at the benchmark's 540x720 on every query of ROOT's val split with depth: each
    preset's ``mapfree run`` on never-seen pairs, the pairs again, GPU utilisation, the kornia loop baseline,
    and ``aliked-lightglue_emat_sensor:b0`` (one pair at a time) for the same-poses check.
@@ -123,6 +125,43 @@ def never_seen_depth(root: Path, n: int) -> list[dict]:
              "again_ms": statistics.median(again), "max_first_ms": max(first)}]
 
 
+def never_seen_two_view(root: Path, n: int, kinds: tuple[str, ...] = ("mast3r", "dust3r")) -> list[dict]:
+    """MASt3R / DUSt3R at the published ViT-L size with fill-rule weights (a float16 file, no download), through
+    the ``mast3r``/``dust3r`` matchers at their 512 input: the reference encoded once, then per query its
+    encoder, both decoders and heads, and the reciprocal matching. Each new image size is a new token count."""
+    import os
+
+    import torch
+
+    from mapfree import matching
+    from mapfree.mast3r.synthetic import write_published_standin
+
+    ref, queries = _images(root, n)
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        old = os.environ.get("MAPFREE_WEIGHTS_DIR")
+        os.environ["MAPFREE_WEIGHTS_DIR"] = d
+        try:
+            for kind in kinds:
+                write_published_standin(d, kind, dtype=torch.float16)
+                m = matching.create(kind)
+                f0 = m.extract(ref)
+                m.match(f0, m.extract(np.ascontiguousarray(ref[:, ::-1])))  # warm-up on a mirrored image
+                first, again = [], []
+                for q in queries:
+                    first.append(_timed(lambda: m.match(f0, m.extract(q.copy()))))  # a new array: not cached
+                    again.append(_timed(lambda: m.match(f0, m.extract(q.copy()))))
+                rows.append({"network": f"{kind} ViT-L 512 (fill-rule weights)", "first_ms": statistics.median(first),
+                             "again_ms": statistics.median(again), "max_first_ms": max(first)})
+                del m
+        finally:
+            if old is None:
+                os.environ.pop("MAPFREE_WEIGHTS_DIR", None)
+            else:
+                os.environ["MAPFREE_WEIGHTS_DIR"] = old
+    return rows
+
+
 def stream(cmd: list[str], timeout: float | None = None) -> str:
     """Run ``cmd``, echoing its output line by line as it comes (a run cut short still shows how far it got);
     killed after ``timeout`` seconds. Returns the output."""
@@ -161,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-depth", dest="depth", action="store_false", help="skip the depth network's check")
     ap.add_argument("--no-hub", dest="hub", action="store_false",
                     help="skip the never-seen check of SuperGlue and EfficientLoFTR (random weights, published size)")
+    ap.add_argument("--no-two-view", dest="two_view", action="store_false",
+                    help="skip MASt3R/DUSt3R (full size, fill-rule weights) in the never-seen check")
     ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the kornia loop")
     ap.add_argument("--size", default="540x720", help="image size of the pipeline bench (the benchmark's)")
     ap.add_argument("--quick", action="store_true",
@@ -185,6 +226,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = never_seen_matchers(args.root, queries, names) if names else []
     rows += never_seen_hub_matchers(args.root, queries) if args.hub else []
     rows += never_seen_depth(args.root, queries) if args.depth else []
+    rows += never_seen_two_view(args.root, queries) if args.two_view else []
     for r in rows:
         lines.append(f"| {r['network']} | {r['first_ms']:.1f} | {r['again_ms']:.1f} | "
                      f"{r['first_ms'] / r['again_ms']:.2f} | {r['max_first_ms']:.1f} |")

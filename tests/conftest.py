@@ -51,3 +51,14 @@ def official_rpr() -> Path:
     if OFFICIAL_RPR is None:
         pytest.fail("shared/fixtures/official-rpr not found beside the checkout")
     return OFFICIAL_RPR
+
+
+MAST3R_FIXTURE = _shared("fixtures/mast3r", "mast3r.json")
+
+
+@pytest.fixture(scope="session")
+def mast3r_fixture() -> Path:
+    """Folder with mast3r.json / mast3r_outputs.npz: the public MASt3R/DUSt3R outputs on fill-rule weights."""
+    if MAST3R_FIXTURE is None:
+        pytest.fail("shared/fixtures/mast3r not found beside the checkout")
+    return MAST3R_FIXTURE

@@ -20,7 +20,8 @@ def test_every_listed_method_parses_into_valid_components():
         assert m.matcher in known_matchers, name
         # The options must be ones the solver really has (raises TypeError otherwise).
         solvers.options_for(m.solver, **m.solver_opts)
-        assert m.depth == "none" or m.depth.startswith(("files:", "hf:")) or m.depth in depth.HUB_MODELS, name
+        assert m.depth == "none" or m.depth.startswith(("files:", "hf:")) or m.depth in depth.HUB_MODELS \
+            or m.depth in depth.PAIR_MODELS, name
 
 
 @pytest.mark.parametrize("matcher", methods.MATCHERS)

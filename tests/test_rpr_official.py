@@ -8,7 +8,6 @@ public-checkpoint path and compare R, t on the same inputs (binned variants exac
 from __future__ import annotations
 
 import json
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +16,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("pytorch_lightning")
 
+from mapfree.mast3r.synthetic import fill_value  # noqa: E402  (the same fill rule as the MASt3R fixture)
 from mapfree.regression.official import OFFICIAL_CONFIGS  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -29,17 +29,7 @@ def fill_state_dict(spec: dict[str, list]) -> dict[str, "torch.Tensor"]:
         if not dtype.startswith("float"):
             sd[key] = torch.zeros(shape, dtype=getattr(torch, dtype))
             continue
-        u = np.random.default_rng(zlib.crc32(key.encode())).random(int(np.prod(shape))) * 2 - 1
-        leaf = key.rsplit(".", 1)[-1]
-        if leaf == "running_var":
-            v = 1 + 0.25 * np.abs(u)
-        elif leaf in ("running_mean", "bias"):
-            v = 0.05 * u
-        elif len(shape) >= 2:
-            v = u * np.sqrt(3 / np.prod(shape[1:]))
-        else:
-            v = 1 + 0.1 * u
-        sd[key] = torch.from_numpy(v.reshape(shape).astype(np.float32))
+        sd[key] = torch.from_numpy(fill_value(key, tuple(shape)))
     return sd
 
 

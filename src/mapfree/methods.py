@@ -30,10 +30,14 @@ __all__ = [
 MATCHERS = ("sift", "xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "loftr",
             "superpoint-lightglue", "superglue", "superglue-indoor", "efficientloftr")
 OFFLINE_MATCHERS = MATCHERS[:6]
+MATCHERS += ("mast3r", "dust3r")  # two-view networks; weights are the user's download (docs/mast3r.md)
+#: What a matcher needs beyond the installed packages, said in its presets' descriptions.
+_MATCHER_NEEDS = {"mast3r": "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in $MAPFREE_WEIGHTS_DIR",
+                  "dust3r": "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in $MAPFREE_WEIGHTS_DIR"}
 #: Solver token in a preset name -> solver registry name.
 SOLVERS = {"emat": "essential", "essential": "essential", "pnp": "pnp", "procrustes": "procrustes"}
 #: Depth tokens that are not a file suffix.
-DEPTH_ALIASES = {"none": "none"}
+DEPTH_ALIASES = {"none": "none", "mast3r": "mast3r", "dust3r": "dust3r"}
 #: Ess.Mat RANSAC threshold (pixels) of the paper's rows: 3 px for SIFT, 2 px for learned matchers (SPEC §4).
 PAPER_THRESHOLD_PX = {"sift": 3.0}
 _LEARNED_THRESHOLD_PX = 2.0
@@ -143,7 +147,8 @@ def parse_name(name: str) -> Method | None:
     return Method(
         name=name, matcher=matcher, depth=_depth_spec(depth_tok), solver=solver, solver_opts=solver_opts,
         description=f"{matcher} matches, {solver} solver, depth {depth_tok} (paper settings"
-                    + (f", {threshold:g} px)" if solver == "essential" else ")"),
+                    + (f", {threshold:g} px)" if solver == "essential" else ")")
+                    + (f"; needs {_MATCHER_NEEDS[matcher]}" if matcher in _MATCHER_NEEDS else ""),
     )
 
 
@@ -188,7 +193,9 @@ def query_depth_fallback(method: Method) -> Method:
     """The method to run for a query without a depth map: ``method`` itself, or its PnP twin (reference depth
     only, at the reference's metric scale) when its solver would need the query's depth. The service and
     ``mapfree relocalize`` both answer a plain photo this way (the default ``best-offline`` is Procrustes)."""
-    if method.kind == "matching" and method.depth != "none" and method.solver in QUERY_DEPTH_SOLVERS:
+    from .depth import PAIR_MODELS  # their query depth comes from the network, with the pair: no fallback
+
+    if method.kind == "matching" and method.depth not in ("none", *PAIR_MODELS) and method.solver in QUERY_DEPTH_SOLVERS:
         return replace(method, solver="pnp", solver_opts={}, name=f"{method.name}+pnp")
     return method
 
@@ -290,8 +297,12 @@ def requirements(name: str) -> str:
     from .depth import HUB_MODELS
     from .matching import needs
 
+    from .depth import PAIR_MODELS
+
     if m.depth == "none":
         depth = "no depth (direction only)"
+    elif m.depth in PAIR_MODELS:
+        depth = f"depth from the {m.depth} network's own pointmaps (no depth files)"
     elif m.depth.startswith("files:"):
         depth = f"depth maps FRAME.{m.depth[len('files:'):]}.png"
     else:
@@ -313,4 +324,18 @@ def _register_builtins() -> None:
                                  "ranking confidence (files:sensor at the reference)"))
 
 
+def _register_two_view_presets() -> None:
+    # MASt3R / DUSt3R with their own pointmaps as depth: no depth files, one forward pass per pair (PnP).
+    how = {"pnp": "PnP on the reference's depth (one forward pass per pair)",
+           "emat": "Ess.Mat scaled by both images' depth (a second, symmetric decoder pass for the query's depth)",
+           "procrustes": "3D-3D Procrustes on both images' depth (a second, symmetric decoder pass)"}
+    for net in ("mast3r", "dust3r"):
+        for solver in how:
+            m = parse_name(preset_name(net, solver, net))
+            assert m is not None
+            register(replace(m, description=f"{net} matches and {net} metric depth, {how[solver]}; needs "
+                                            f"{_MATCHER_NEEDS[net]} (docs/mast3r.md)"))
+
+
 _register_builtins()
+_register_two_view_presets()

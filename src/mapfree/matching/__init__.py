@@ -66,6 +66,15 @@ def _efficientloftr(**o: object) -> Matcher:
     return EfficientLoFTRMatcher(**o)
 
 
+def _mast3r(kind: str) -> Callable[..., Matcher]:
+    def make(**o: object) -> Matcher:
+        from .mast3r import Mast3rMatcher
+
+        return Mast3rMatcher(kind=kind, **o)
+
+    return make
+
+
 _REGISTRY: dict[str, Callable[..., Matcher]] = {
     "sift": _sift,
     "xfeat": _xfeat("sparse"),
@@ -80,6 +89,8 @@ _REGISTRY: dict[str, Callable[..., Matcher]] = {
     "superglue": _superglue("outdoor"),
     "superglue-indoor": _superglue("indoor"),
     "efficientloftr": _efficientloftr,
+    "mast3r": _mast3r("mast3r"),
+    "dust3r": _mast3r("dust3r"),
 }
 
 
@@ -97,6 +108,8 @@ NEEDS: dict[str, str] = {
     "superglue": _HF.format("magic-leap-community/superglue_outdoor", "superglue_outdoor") + ", non-commercial",
     "superglue-indoor": _HF.format("magic-leap-community/superglue_indoor", "superglue_indoor") + ", non-commercial",
     "efficientloftr": _HF.format("zju-community/efficientloftr", "efficientloftr"),
+    "mast3r": "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in $MAPFREE_WEIGHTS_DIR, non-commercial",
+    "dust3r": "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in $MAPFREE_WEIGHTS_DIR, non-commercial",
 }
 
 
@@ -125,7 +138,8 @@ def create(name: str, **options: object) -> Matcher:
 _OPTIONS = {"sift": ("sift", "SIFTOptions"), "xfeat": ("xfeat", "XFeatOptions"),
             "lightglue": ("lightglue", "LightGlueOptions"), "loftr": ("loftr", "LoFTROptions"),
             "superglue": ("superglue", "SuperGlueOptions"),
-            "efficientloftr": ("efficientloftr", "EfficientLoFTROptions")}
+            "efficientloftr": ("efficientloftr", "EfficientLoFTROptions"),
+            "mast3r": ("mast3r", "Mast3rOptions"), "dust3r": ("mast3r", "Mast3rOptions")}
 
 
 def option_names(name: str) -> list[str]:
@@ -165,4 +179,7 @@ def available() -> list[str]:
     out += [n for n, kind in (("superglue", "outdoor"), ("superglue-indoor", "indoor")) if superglue_available(kind)]
     if efficientloftr_available():
         out.append("efficientloftr")
+    from ..mast3r.checkpoint import checkpoint_available
+
+    out += [k for k in ("mast3r", "dust3r") if checkpoint_available(k)]
     return out

@@ -211,7 +211,9 @@ class Relocalizer:
         if isinstance(depth, str):
             from .. import depth as depth_mod
 
-            depth = depth_mod.create(depth)
+            engine = getattr(matcher, "engine", None)  # a two-view network: its depth comes from the same passes
+            same = depth in depth_mod.PAIR_MODELS and getattr(engine, "name", None) == depth
+            depth = depth_mod.create(depth, **({"engine": engine} if same else {}))
         if isinstance(solver, str):
             from .. import solvers
 
@@ -236,10 +238,15 @@ class Relocalizer:
     def metric(self) -> bool:
         return bool(getattr(self.depth_source, "metric", True))
 
+    @property
+    def pairwise_depth(self) -> bool:
+        """Depth that comes from the pair (MASt3R's pointmaps): asked for after matching, in ``_solve``."""
+        return bool(getattr(self.depth_source, "pairwise", False))
+
     def _depth(self, view: View) -> np.ndarray | None:
         if view.depth is not None:
             return _fit_depth(view.depth, view.intrinsics)
-        if not self.metric:
+        if not self.metric or self.pairwise_depth:
             return None
         if view.frame is not None:
             d = self.depth_source.depth(view.frame)
@@ -316,8 +323,10 @@ class Relocalizer:
         if prep.error is None and matches is not None:
             try:
                 t1 = time.perf_counter()
-                est = self._solve(anchor, prep.view, matches, prep.depth)
-                timings["solve"] = time.perf_counter() - t1
+                est = self._solve(anchor, prep.view, matches, prep.depth, prep.features)
+                pair_depth = est.timings.pop("pair_depth", 0.0)
+                timings["solve"] = time.perf_counter() - t1 - pair_depth
+                timings["depth"] = timings.get("depth", 0.0) + pair_depth
                 timings["match"] = timings.pop("extract", 0.0) + match_s  # extraction counts as matching time
             except Exception as e:
                 est = Estimate.failure(_error(e))
@@ -368,20 +377,34 @@ class Relocalizer:
 
     def _precheck(self, anchor: Anchor) -> Estimate | None:
         """The failure every query of this anchor gets (a metric method without reference depth), else None."""
-        if "ref" in self._needs() and anchor.depth is None:
+        if "ref" in self._needs() and anchor.depth is None and not self.pairwise_depth:
             return Estimate.failure("no depth for the reference image", total=0.0)
         return None
 
-    def _solve(self, anchor: Anchor, view: View, matches: Matches, depth_q: np.ndarray | None) -> Estimate:
+    def _solve(self, anchor: Anchor, view: View, matches: Matches, depth_q: np.ndarray | None,
+               features_q: Features | None = None) -> Estimate:
         flow = np.linalg.norm(matches.kpts1 - matches.kpts0, axis=1)
         if len(matches) and float(np.median(flow)) <= MIN_PARALLAX_PX:
             return _same_viewpoint(flow, getattr(getattr(self.solver, "options", None), "confidence", "inliers"))
         needs = self._needs()
-        if "ref" in needs and anchor.depth is None:
+        depth_ref = anchor.depth
+        if self.pairwise_depth and needs and (depth_ref is None or ("query" in needs and depth_q is None)):
+            t0 = time.perf_counter()
+            pair_ref, pair_q = self.depth_source.pair_depth(anchor.view.image, view.image,
+                                                            need_query="query" in needs and depth_q is None,
+                                                            features=(anchor.features, features_q))
+            depth_ref = depth_ref if depth_ref is not None else _fit_depth(pair_ref, anchor.view.intrinsics, owned=True)
+            depth_q = depth_q if depth_q is not None else _fit_depth(pair_q, view.intrinsics, owned=True)
+            pair_s = time.perf_counter() - t0
+        else:
+            pair_s = 0.0
+        if "ref" in needs and depth_ref is None:
             return Estimate.failure("no depth for the reference image")
         if "query" in needs and depth_q is None:
             return Estimate.failure("no depth for the query image")
-        est = self.solver.solve(matches, anchor.view.intrinsics, view.intrinsics, anchor.depth, depth_q)
+        est = self.solver.solve(matches, anchor.view.intrinsics, view.intrinsics, depth_ref, depth_q)
+        if pair_s:
+            est.timings["pair_depth"] = pair_s  # moved from "solve" to "depth" by ``conclude``
         if est.pose is not None and not self.metric:
             est.extras.setdefault("scale_free", True)
         return est

@@ -1,0 +1,7 @@
+"""MASt3R and DUSt3R (Naver Labs, ECCV 2024 / CVPR 2024), ported: the asymmetric two-view network, its
+checkpoint reader, the 512 preprocessing and the fast reciprocal matcher. Weights are the user's download.
+
+Modules: ``config`` (constructor arguments, parsed not evaluated), ``rope``/``blocks``/``dpt``/``heads``/
+``model`` (the network), ``checkpoint`` (``.pth`` and hub folders, strict), ``preprocess``, ``reciprocal``,
+``engine`` (one forward per pair, shared by the matcher and the depth source), ``synthetic`` (fill-rule weights).
+"""

@@ -1,0 +1,185 @@
+"""Reading published MASt3R/DUSt3R checkpoints into ``AsymmetricModel`` with strict key matching.
+
+Two forms: the authors' ``.pth`` (``{"model": state_dict, "args": Namespace(model="AsymmetricMASt3R(…)")}``)
+and the hub's folder (``config.json`` of constructor arguments + ``model.safetensors``, or ``pytorch_model.bin``
+in older pushes). A checkpoint without the second decoder gets a copy of the first, as the public loader does.
+Weights are never shipped with mapfree (CC BY-NC-SA 4.0): the user downloads them and we find them by name in
+``$MAPFREE_WEIGHTS_DIR``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+
+from ..matching.weights import WEIGHTS_ENV, MissingWeightsError
+from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs, parse_constructor
+from .model import AsymmetricModel
+
+__all__ = ["Published", "PUBLISHED", "find_checkpoint", "checkpoint_available", "load_model", "read_checkpoint",
+           "model_from_state_dict"]
+
+
+@dataclass(frozen=True)
+class Published:
+    """A published checkpoint: the file stem we look for, its hub id, its direct download."""
+
+    stem: str
+    hub_id: str
+    url: str
+    expr: str  # the constructor call stored in the .pth (the architecture)
+
+
+PUBLISHED = {
+    "mast3r": Published(
+        "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric", "naver/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric",
+        "https://download.europe.naverlabs.com/ComputerVision/MASt3R/"
+        "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth",
+        (
+        "AsymmetricMASt3R(pos_embed='RoPE100', patch_embed_cls='PatchEmbedDust3R', img_size=(512, 512), "
+        "head_type='catmlp+dpt', output_mode='pts3d+desc24', depth_mode=('exp', -inf, inf), conf_mode=('exp', "
+        "1, inf), enc_embed_dim=1024, enc_depth=24, enc_num_heads=16, dec_embed_dim=768, dec_depth=12, "
+        "dec_num_heads=12, two_confs=True, desc_conf_mode=('exp', 0, inf), landscape_only=False)"
+        )),
+    "dust3r": Published(
+        "DUSt3R_ViTLarge_BaseDecoder_512_dpt", "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt",
+        "https://download.europe.naverlabs.com/ComputerVision/DUSt3R/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth",
+        (
+        "AsymmetricCroCo3DStereo(pos_embed='RoPE100', patch_embed_cls='PatchEmbedDust3R', img_size=(512, 512), "
+        "head_type='dpt', output_mode='pts3d', depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), "
+        "enc_embed_dim=1024, enc_depth=24, enc_num_heads=16, dec_embed_dim=768, dec_depth=12, "
+        "dec_num_heads=12, landscape_only=False)"
+        )),
+}
+_HUB_WEIGHTS = ("model.safetensors", "pytorch_model.bin")
+
+
+def _weights_dir() -> Path | None:
+    env = os.environ.get(WEIGHTS_ENV)
+    return Path(env).expanduser() if env else None
+
+
+def _is_hub_folder(p: Path) -> bool:
+    return (p / "config.json").is_file() and any((p / w).is_file() for w in _HUB_WEIGHTS)
+
+
+def find_checkpoint(kind: str, explicit: str | os.PathLike | None = None) -> Path:
+    """The checkpoint of ``kind`` (``mast3r`` | ``dust3r``): ``explicit`` (a ``.pth`` or a hub folder), else
+    ``$MAPFREE_WEIGHTS_DIR/<stem>.pth`` or ``$MAPFREE_WEIGHTS_DIR/<stem>/`` (a hub download); else a
+    ``MissingWeightsError`` saying which file to put where and where it is published."""
+    pub = PUBLISHED[kind]
+    if explicit is not None:
+        p = Path(explicit).expanduser()
+        if p.is_file() or _is_hub_folder(p):
+            return p
+        raise MissingWeightsError(f"{kind}: checkpoint {p} not found (expected a .pth file or a folder with "
+                                  f"config.json and model.safetensors)")
+    root = _weights_dir()
+    if root is not None:
+        for cand in (root / f"{pub.stem}.pth", root / pub.stem, root / pub.hub_id.replace("/", "--")):
+            if cand.is_file() or _is_hub_folder(cand):
+                return cand
+    where = f"${WEIGHTS_ENV} (now {root})" if root is not None else f"a folder named by ${WEIGHTS_ENV} (not set)"
+    raise MissingWeightsError(
+        f"{kind}: weights file '{pub.stem}.pth' not found. Place '{pub.stem}.pth' (or the hub folder '{pub.stem}/' "
+        f"with config.json and model.safetensors) in {where}. It is published at {pub.url} and on the Hugging Face "
+        f"hub as {pub.hub_id} (licence CC BY-NC-SA 4.0: mapfree does not ship it).")
+
+
+def checkpoint_available(kind: str) -> bool:
+    """Whether the published checkpoint of ``kind`` is in ``$MAPFREE_WEIGHTS_DIR``."""
+    try:
+        find_checkpoint(kind)
+    except MissingWeightsError:
+        return False
+    return True
+
+
+def _why(e: Exception) -> str:
+    """The gist of a ``torch.load`` failure (its weights-only errors bury it in advice that does not apply)."""
+    m = re.search(r"WeightsUnpickler error:\s*(.+?)(?:\n\s*\n|$)", str(e), re.S)
+    gist = m.group(1) if m else (str(e).strip().splitlines() or [""])[0]
+    return f"{type(e).__name__}: {' '.join(gist.split())[:200]}"
+
+
+def _load_pth(path: Path) -> tuple[Mapping[str, torch.Tensor], str]:
+    try:
+        with torch.serialization.safe_globals([argparse.Namespace]):
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
+        raise ValueError(f"{path}: not a readable MASt3R/DUSt3R checkpoint ({_why(e)}); expected the authors' "
+                         f".pth file or a hub folder (config.json + model.safetensors)") from None
+    if not isinstance(ckpt, dict) or not isinstance(ckpt.get("model"), dict) or "args" not in ckpt:
+        raise ValueError(f"{path}: not a MASt3R/DUSt3R checkpoint (expected the keys 'model' and 'args')")
+    args = ckpt["args"]
+    expr = getattr(args, "model", None) if not isinstance(args, dict) else args.get("model")
+    if not isinstance(expr, str):
+        raise ValueError(f"{path}: its 'args' has no model constructor string")
+    return ckpt["model"], expr
+
+
+def _load_hub(folder: Path) -> tuple[Mapping[str, torch.Tensor], dict[str, Any]]:
+    try:
+        kwargs = json.loads((folder / "config.json").read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{folder / 'config.json'}: not readable JSON ({e})") from None
+    if (folder / "model.safetensors").is_file():
+        from safetensors.torch import load_file
+
+        return load_file(str(folder / "model.safetensors")), kwargs
+    sd = torch.load(folder / "pytorch_model.bin", map_location="cpu", weights_only=True)
+    return sd, kwargs
+
+
+def _hub_class(kwargs: Mapping[str, Any]) -> str:
+    """The hub's config.json does not name the class; MASt3R's is the one with a descriptor head."""
+    return "AsymmetricMASt3R" if str(kwargs.get("head_type", "")).startswith("catmlp") else "AsymmetricCroCo3DStereo"
+
+
+def read_checkpoint(path: str | os.PathLike) -> tuple[ModelConfig, Mapping[str, torch.Tensor]]:
+    """(configuration, state dict) of a ``.pth`` file or hub folder; unsupported arguments raise, named."""
+    p = Path(path)
+    try:
+        if p.is_dir():
+            sd, kwargs = _load_hub(p)
+            return config_from_kwargs(_hub_class(kwargs), kwargs), sd
+        sd, expr = _load_pth(p)
+        return config_from_kwargs(*parse_constructor(expr)), sd
+    except UnsupportedCheckpointError as e:
+        raise UnsupportedCheckpointError(f"{p}: {e}") from None
+
+
+def model_from_state_dict(cfg: ModelConfig, sd: Mapping[str, torch.Tensor],
+                          source: str = "checkpoint") -> AsymmetricModel:
+    """Build the network and load ``sd`` strictly (``dec_blocks2`` copied from ``dec_blocks`` when absent)."""
+    sd = dict(sd)
+    if not any(k.startswith("dec_blocks2.") for k in sd):
+        first = [(k, v) for k, v in sd.items() if k.startswith("dec_blocks.")]
+        sd.update({"dec_blocks2." + k[len("dec_blocks."):]: v for k, v in first})
+    with torch.device("meta"):
+        net = AsymmetricModel(cfg)
+    missing = sorted(set(net.state_dict()) - set(sd))
+    unexpected = sorted(set(sd) - set(net.state_dict()))
+    if missing or unexpected:
+        raise ValueError(f"{source}: state dict does not fit {cfg.class_name}: "
+                         f"{len(missing)} missing (e.g. {missing[:3]}), "
+                         f"{len(unexpected)} unexpected (e.g. {unexpected[:3]})")
+    try:
+        net.load_state_dict(sd, strict=True, assign=True)
+    except RuntimeError as e:
+        why = str(e).splitlines()[-1].strip()
+        raise ValueError(f"{source}: state dict does not fit {cfg.class_name} ({why})") from None
+    return net.float().eval()
+
+
+def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> AsymmetricModel:
+    """A checkpoint file or hub folder -> the network in eval mode on ``device``."""
+    cfg, sd = read_checkpoint(path)
+    return model_from_state_dict(cfg, sd, str(path)).to(device)

@@ -1,0 +1,84 @@
+"""The public ``load_images(…, size=512)`` preprocessing, and the map from its pixels back to the original's.
+
+Long side resized to 512 with PIL (LANCZOS when shrinking, BICUBIC otherwise), centre crop to multiples of 16
+(a square image is cropped to 4:3 landscape), EXIF orientation applied, RGB scaled to [-1, 1]. Portrait images
+stay portrait: the network takes any orientation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import PIL.Image
+import torch
+from PIL.ImageOps import exif_transpose
+
+__all__ = ["Prepared", "prepare_image", "prepare_path", "resized_size", "crop_box"]
+
+PATCH = 16
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A network input (1, 3, H, W) and how its pixels sit in the original image."""
+
+    tensor: torch.Tensor
+    original_size: tuple[int, int]  # (width, height)
+    resized_size: tuple[int, int]  # (width, height) after the resize, before the crop
+    crop: tuple[int, int, int, int]  # (left, top, right, bottom) in the resized image
+
+    @property
+    def true_shape(self) -> tuple[int, int]:
+        """(H, W) of the network input."""
+        return int(self.tensor.shape[2]), int(self.tensor.shape[3])
+
+    def scale(self) -> tuple[float, float]:
+        """(sx, sy) = resized / original."""
+        return (self.resized_size[0] / self.original_size[0], self.resized_size[1] / self.original_size[1])
+
+    def to_original(self, xy: np.ndarray) -> np.ndarray:
+        """Network-input pixel coordinates (pixel centres at integers) -> original-image pixel coordinates."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2) + np.array(self.crop[:2], dtype=np.float64)
+        return (xy + 0.5) / np.asarray(self.scale()) - 0.5
+
+
+def resized_size(width: int, height: int, long_side: int = 512) -> tuple[int, int]:
+    s = max(width, height)
+    return int(round(width * long_side / s)), int(round(height * long_side / s))
+
+
+def crop_box(width: int, height: int, square_ok: bool = False) -> tuple[int, int, int, int]:
+    """Centre crop of a resized image to multiples of 16 (4:3 when square)."""
+    cx, cy = width // 2, height // 2
+    halfw, halfh = ((2 * cx) // PATCH) * PATCH / 2, ((2 * cy) // PATCH) * PATCH / 2
+    if not square_ok and width == height:
+        halfh = 3 * halfw / 4
+    box = (cx - halfw, cy - halfh, cx + halfw, cy + halfh)
+    return tuple(int(round(v)) for v in box)  # type: ignore[return-value]
+
+
+def prepare_image(img: PIL.Image.Image, long_side: int = 512) -> Prepared:
+    """An RGB PIL image (orientation already applied) -> the network input."""
+    img = img.convert("RGB")
+    w0, h0 = img.size
+    size = resized_size(w0, h0, long_side)
+    interp = PIL.Image.LANCZOS if max(w0, h0) > long_side else PIL.Image.BICUBIC
+    resized = img.resize(size, interp)
+    box = crop_box(*size)
+    arr = np.array(resized.crop(box))  # a writable copy for torch
+    t = torch.from_numpy(arr).permute(2, 0, 1).float().div(255)
+    t = t.sub(0.5).div(0.5)
+    return Prepared(t[None], (w0, h0), size, box)
+
+
+def prepare_array(image: np.ndarray, long_side: int = 512) -> Prepared:
+    """An (H, W, 3) uint8 RGB array -> the network input."""
+    return prepare_image(PIL.Image.fromarray(np.ascontiguousarray(image)), long_side)
+
+
+def prepare_path(path: str | Path, long_side: int = 512) -> Prepared:
+    """An image file (EXIF orientation applied, as the public loader does) -> the network input."""
+    with PIL.Image.open(path) as im:
+        return prepare_image(exif_transpose(im), long_side)

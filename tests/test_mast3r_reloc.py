@@ -1,0 +1,202 @@
+"""MASt3R/DUSt3R as mapfree methods on real photos, with tiny fill-rule checkpoints in a temporary
+``$MAPFREE_WEIGHTS_DIR``: random weights give junk poses, so these check the plumbing (matches in original
+pixels, depth maps at the image size, one forward pass per pair, the reference encoded once, clear errors)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapfree import methods
+from mapfree.data import Dataset
+from mapfree.depth.mast3r import Mast3rDepth
+from mapfree.estimate import Estimate
+from mapfree.mast3r.checkpoint import PUBLISHED
+from mapfree.mast3r.config import config_from_kwargs, parse_constructor
+from mapfree.mast3r.synthetic import save_pth, synthetic_state_dict
+from mapfree.matching import MissingWeightsError
+from mapfree.matching.mast3r import Mast3rMatcher
+from mapfree.relocalize import Relocalizer
+
+QUERIES = ("seq1/frame_00010.jpg", "seq1/frame_00020.jpg")
+SMALL = 160  # network input long side for speed (the published models take 512)
+
+
+@pytest.fixture(scope="module")
+def weights(mast3r_fixture, tmp_path_factory):
+    """A weights folder holding tiny fill-rule models under the published file names."""
+    spec = json.loads((mast3r_fixture / "mast3r.json").read_text())
+    root = tmp_path_factory.mktemp("weights")
+    for kind in ("mast3r", "dust3r"):
+        expr = spec["models"][f"{kind}-tiny"]["expr"]
+        sd = synthetic_state_dict(config_from_kwargs(*parse_constructor(expr)))
+        save_pth(root / f"{PUBLISHED[kind].stem}.pth", expr, sd)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MAPFREE_WEIGHTS_DIR", str(root))
+        yield root
+
+
+@pytest.fixture(scope="module")
+def scene(realmini):
+    return Dataset(realmini).scene("val", "s00000")
+
+
+@pytest.fixture(autouse=True)
+def _one_thread(one_torch_thread):
+    yield
+
+
+def _check_estimate(est: Estimate, width: int, height: int) -> None:
+    assert isinstance(est, Estimate)
+    assert est.ok or est.reason  # a pose, or a clean "no estimate" that says why
+    m = est.extras["matches"]
+    for k in (m.kpts0, m.kpts1):  # original pixels of these 540x360 photos, not the network's 160x96
+        assert np.all(k >= -0.5) and np.all(k[:, 0] <= width - 0.5) and np.all(k[:, 1] <= height - 0.5)
+    if len(m):
+        assert m.kpts0[:, 0].max() > 160 and np.all(m.scores > 0)  # confidences: exp(.) (+ 1 for points)
+
+
+@pytest.mark.parametrize("kind, solver, forwards", [("mast3r", "pnp", 1), ("mast3r", "essential", 2),
+                                                    ("dust3r", "pnp", 1)])
+def test_relocalizer_one_forward_per_pair_reference_encoded_once(weights, scene, kind, solver, forwards, monkeypatch):
+    matcher = Mast3rMatcher(kind=kind, long_side=SMALL)
+    loc = Relocalizer(matcher, kind, solver)
+    assert loc.depth_source.engine is matcher.engine  # the same network serves matches and depth
+    engine = matcher.engine
+    # a busy engine (a service with many anchors): its image cache keeps nothing useful
+    monkeypatch.setattr(engine._images, "size", 1)
+    anchor = loc.set_reference(scene.reference)
+    assert anchor.depth is None  # pair depth: asked for after matching
+    enc0, fwd0 = engine.encodes, engine.forwards
+    for q in QUERIES:
+        est = loc.localize(scene.frame(q))
+        _check_estimate(est, 540, 360)
+    assert engine.encodes - enc0 == len(QUERIES)  # each query encodes itself; the reference's output is reused
+    # PnP: the pass reference -> query serves matches and reference depth; Ess.Mat adds the symmetric pass
+    assert engine.forwards - fwd0 == forwards * len(QUERIES)
+
+
+def test_pair_depth_at_original_size_from_the_cached_pass(weights, scene):
+    matcher = Mast3rMatcher(long_side=SMALL)
+    depth = Mast3rDepth(engine=matcher.engine)
+    ref, query = scene.reference.image(), scene.frame(QUERIES[0]).image()
+    f0, f1 = matcher.extract(ref), matcher.extract(query)
+    matcher.match(f0, f1)
+    n = matcher.engine.forwards
+    d_ref, d_q = depth.pair_depth(ref, query, need_query=False)
+    assert matcher.engine.forwards == n and d_q is None  # no second pass for the reference's depth
+    assert d_ref.shape == ref.shape[:2] and d_ref.dtype == np.float32
+    assert np.all(d_ref >= 0) and np.all(np.isfinite(d_ref))
+    # outside the network's crop (540x360 -> 160x107 -> rows 5..100 of 107) there is no depth
+    assert not d_ref[:10].any() and not d_ref[-10:].any()
+    d_ref2, d_q = depth.pair_depth(ref, query)
+    assert matcher.engine.forwards == n + 1 and d_q.shape == query.shape[:2]
+    np.testing.assert_array_equal(d_ref, d_ref2)
+
+
+def test_presets_are_registered_with_what_they_need():
+    names = methods.list_methods(depths=())
+    for net, file in (("mast3r", "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth"),
+                      ("dust3r", "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth")):
+        for solver, name in (("pnp", "pnp"), ("emat", "essential"), ("procrustes", "procrustes")):
+            m = methods.get(f"{net}_{solver}_{net}")
+            assert f"{net}_{solver}_{net}" in names
+            assert (m.matcher, m.depth, m.solver) == (net, net, name) and file in m.description
+
+
+def test_available_only_with_the_weights(weights, tmp_path, monkeypatch):
+    from mapfree import matching
+
+    assert {"mast3r", "dust3r"} <= set(matching.available())
+    monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(tmp_path))
+    assert not {"mast3r", "dust3r"} & set(matching.available())
+
+
+def test_missing_weights_fail_before_any_work(tmp_path, monkeypatch):
+    monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(tmp_path))
+    with pytest.raises(MissingWeightsError, match="MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth"):
+        Relocalizer.from_method("mast3r_pnp_mast3r")
+
+
+def test_cli_relocalize_with_tiny_checkpoint(weights, scene, tmp_path, realmini):
+    cfg = tmp_path / "mast3r-small.yaml"
+    cfg.write_text(f"extends: mast3r_pnp_mast3r\nmatcher_opts:\n  long_side: {SMALL}\n")
+    ref = realmini / "val" / "s00000" / "seq0" / "frame_00000.jpg"
+    query = realmini / "val" / "s00000" / QUERIES[0]
+    r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(ref), str(query), "--method", str(cfg),
+                        "--intrinsics", str(realmini / "val" / "s00000" / "intrinsics.txt")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    out = json.loads(r.stdout)
+    assert out["method"] == "mast3r-small" and out["scores"]["num_matches"] > 0
+    assert out["ok"] or out["reason"]  # junk weights: a pose or a clean no-estimate, never a crash
+    r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(ref), str(query), "--method",
+                        "dust3r_emat_dust3r", "--intrinsics", str(realmini / "val" / "s00000" / "intrinsics.txt")],
+                       capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "MAPFREE_WEIGHTS_DIR": str(tmp_path)})
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth" in r.stderr
+    assert "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt" in r.stderr
+
+
+def test_list_methods_says_what_the_presets_need():
+    r = subprocess.run([sys.executable, "-m", "mapfree", "run", "--list-methods"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = {ln.split()[0]: ln for ln in r.stdout.splitlines() if ln.strip()}
+    assert "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth" in lines["mast3r_pnp_mast3r"]
+    assert "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth" in lines["dust3r_emat_dust3r"]
+    assert "sift_emat_dptkitti" in lines  # the existing names are still there
+
+
+def test_service_anchor_cache_keeps_the_encoded_reference(weights, scene, monkeypatch):
+    """The service prepares an anchor once per method: later queries encode only themselves."""
+    from mapfree.mast3r.engine import shared_engine
+    from mapfree.service.reloc import Localizers, Photo
+
+    monkeypatch.setitem(methods._REGISTRY, "mast3r-small-test", methods.Method(
+        name="mast3r-small-test", matcher="mast3r", matcher_opts={"long_side": SMALL}, depth="mast3r", solver="pnp"))
+    engine = shared_engine("mast3r", long_side=SMALL)
+    locs = Localizers()
+    ref = Photo(scene.reference.image(), scene.reference.intrinsics)
+    calls = []
+
+    def photos():
+        calls.append(1)
+        return [ref]
+
+    enc0, fwd0 = engine.encodes, engine.forwards
+    for q in QUERIES:
+        f = scene.frame(q)
+        est = locs.localize_photos("a1", "mast3r-small-test", "v1", photos, f.image(), f.intrinsics)
+        _check_estimate(est, 540, 360)
+        assert est.extras["method"] == "mast3r-small-test"
+    assert len(calls) == 1  # the anchor was prepared once
+    assert engine.encodes - enc0 == 1 + len(QUERIES) and engine.forwards - fwd0 == len(QUERIES)
+    # Ess.Mat keeps its solver for a plain query photo: the network gives the query's depth (no PnP twin)
+    monkeypatch.setitem(methods._REGISTRY, "mast3r-small-emat", methods.Method(
+        name="mast3r-small-emat", matcher="mast3r", matcher_opts={"long_side": SMALL}, depth="mast3r",
+        solver="essential"))
+    f = scene.frame(QUERIES[0])
+    est = locs.localize_photos("a1", "mast3r-small-emat", "v1", photos, f.image(), f.intrinsics)
+    assert est.extras["method"] == "mast3r-small-emat" and "no depth for the query" not in est.reason
+
+
+def test_batched_pipeline_one_forward_per_pair(weights, scene):
+    from mapfree.relocalize.batched import BatchOptions
+
+    matcher = Mast3rMatcher(long_side=SMALL, device="cpu")
+    loc = Relocalizer(matcher, "mast3r", "pnp")
+    loc.set_reference(scene.reference)
+    enc0, fwd0 = matcher.engine.encodes, matcher.engine.forwards
+    ests = list(loc.localize_batched([scene.frame(q) for q in QUERIES], options=BatchOptions(batch_size=2)))
+    assert len(ests) == len(QUERIES)
+    for est in ests:
+        _check_estimate(est, 540, 360)
+    assert matcher.engine.encodes - enc0 == len(QUERIES) and matcher.engine.forwards - fwd0 == len(QUERIES)
