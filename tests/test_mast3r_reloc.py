@@ -132,15 +132,16 @@ def test_cli_relocalize_with_tiny_checkpoint(weights, scene, tmp_path, realmini)
     r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(ref), str(query), "--method", str(cfg),
                         "--intrinsics", str(realmini / "val" / "s00000" / "intrinsics.txt")],
                        capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr, r.stderr
     out = json.loads(r.stdout)
+    assert r.returncode == (0 if out["ok"] else 3)  # 3: ran, no estimate
     assert out["method"] == "mast3r-small" and out["scores"]["num_matches"] > 0
     assert out["ok"] or out["reason"]  # junk weights: a pose or a clean no-estimate, never a crash
     r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(ref), str(query), "--method",
                         "dust3r_emat_dust3r", "--intrinsics", str(realmini / "val" / "s00000" / "intrinsics.txt")],
                        capture_output=True, text=True, timeout=300,
                        env={**os.environ, "MAPFREE_WEIGHTS_DIR": str(tmp_path)})
-    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.returncode == 1 and "Traceback" not in r.stderr
     assert "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth" in r.stderr
     assert "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt" in r.stderr
 
