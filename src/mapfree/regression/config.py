@@ -245,8 +245,10 @@ def apply_overrides(cfg: RPRConfig, overrides: list[str]) -> RPRConfig:
 
 
 def config_dir() -> Path:
-    """The repository's ``configs/rpr`` (one YAML per paper variant)."""
-    return Path(__file__).resolve().parents[3] / "configs" / "rpr"
+    """``configs/rpr`` (one YAML per paper variant): the repository's, else the copy an installed wheel carries."""
+    here = Path(__file__).resolve()
+    checkout, packaged = here.parents[3] / "configs" / "rpr", here.parents[1] / "configs" / "rpr"
+    return checkout if checkout.is_dir() or not packaged.is_dir() else packaged
 
 
 def resolve_config(name_or_path: str | os.PathLike) -> Path:
