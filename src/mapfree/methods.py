@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
+from .method_names import BEST_OFFLINE, BEST_OFFLINE_REFERENCE_DEPTH
 from .yamlio import read_yaml
 
 __all__ = [
@@ -36,10 +37,6 @@ DEPTH_ALIASES = {"none": "none"}
 PAPER_THRESHOLD_PX = {"sift": 3.0}
 _LEARNED_THRESHOLD_PX = 2.0
 
-#: The best preset that runs offline (measured on realmini-dev val, README "Relocalization" table).
-BEST_OFFLINE = "best-offline"
-#: The best offline preset that needs depth at the reference only (queries without depth: a service anchor).
-BEST_OFFLINE_REFERENCE_DEPTH = "best-offline-pnp"
 
 #: Lazily imported modules that register method kinds / presets on import.
 _KIND_MODULES = {"regression": "mapfree.regression"}

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
+from ..method_names import BEST_OFFLINE
 
 DESCRIPTION = """\
 Estimate the metric 6-DoF pose of QUERY relative to REF (X_query = R X_ref + t) and print it as JSON
@@ -27,8 +27,6 @@ examples:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from ..methods import BEST_OFFLINE
-
     p = subparsers.add_parser("relocalize", help="relative metric pose between two photos (JSON)",
                               description=DESCRIPTION, epilog=EPILOG,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -55,6 +53,8 @@ class InputError(Exception):
 
 
 def _floats(text: str, n: int, what: str) -> list[float]:
+    import numpy as np
+
     try:
         vals = [float(v) for v in text.replace(" ", "").split(",")]
     except ValueError:
@@ -127,6 +127,8 @@ def _gt_pose(args):
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from ..data import FormatError, check_depth_size, read_depth
     from ..methods import get
     from ..relocalize import Relocalizer, as_view

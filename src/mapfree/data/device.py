@@ -19,7 +19,6 @@ from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..geometry import Pose
 from .io import FormatError, iter_records, write_poses
@@ -76,6 +75,8 @@ def simulate_device_trajectory(poses: Sequence[Pose], up: np.ndarray, rng: np.ra
     """
     if not poses:
         return []
+    from scipy.spatial.transform import Rotation  # only simulation needs it, not reading poses
+
     up = np.asarray(up, dtype=np.float64)
     up = up / np.linalg.norm(up)
     centers = np.stack([p.center for p in poses])

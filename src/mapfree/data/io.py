@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Mapping, Sequence
 
-import cv2
 import numpy as np
 
 from ..geometry import Intrinsics, Pose
@@ -139,6 +138,8 @@ def depth_path_for(image_path: os.PathLike | str, suffix: str) -> Path:
 
 def read_depth(path: os.PathLike | str) -> np.ndarray:
     """uint16 millimetre PNG -> float32 metres, 0 = invalid."""
+    import cv2  # here, not at the top: reading poses and intrinsics needs no OpenCV
+
     d = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
     if d is None:
         raise FormatError(path, None, "cannot read depth image (missing or corrupt)")
@@ -166,6 +167,8 @@ def same_aspect(shape: tuple[int, ...], width: int, height: int) -> bool:
 
 def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:
     """float metres -> uint16 millimetre PNG (invalid, negative or > 65.535 m -> 0)."""
+    import cv2
+
     d = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     mm = np.rint(d * 1000.0)
     mm[(mm < 0) | (mm > 65535)] = 0
@@ -175,6 +178,8 @@ def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:
 
 def read_image(path: os.PathLike | str) -> np.ndarray:
     """Image file -> (H,W,3) uint8 RGB; a missing or corrupt file raises FormatError naming it."""
+    import cv2
+
     data = np.fromfile(str(path), dtype=np.uint8) if Path(path).is_file() else None
     if data is None:
         raise FormatError(path, None, "image file not found")
