@@ -20,7 +20,8 @@ class DefaultsHelpFormatter(HelpFormatter, argparse.ArgumentDefaultsHelpFormatte
 
 
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
-COMMANDS = ["demo", "synth", "evaluate", "relocalize", "run", "train", "serve", "admin", "sevenscenes", "scannet", "build"]
+COMMANDS = ["demo", "synth", "check", "evaluate", "relocalize", "run", "train", "serve", "admin", "sevenscenes", "scannet",
+            "build"]
 
 
 def build_parser() -> argparse.ArgumentParser:
