@@ -4,7 +4,7 @@ Every ```bash and ```python block of the tutorials (docs/tutorials/*.md) and of 
 order, in a fresh folder: shell blocks with ``bash -euo pipefail``, Python blocks in one shared namespace, so a
 page reads top to bottom like a session. A block that must not run is preceded by
 ``<!-- docs-test: skip (why) -->``; the reason is required. The README's Python example runs on the data
-``mapfree demo`` writes. Pages that train, build or serve are ``slow``.
+``mapfree demo`` writes. The pages that take a minute or more are ``slow``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 TUTORIALS = sorted((DOCS / "tutorials").glob("*.md"))
-SLOW_PAGES = {"training-rpr.md", "phone-scans.md", "serving.md"}
+SLOW_PAGES = {"training-rpr.md", "phone-scans.md", "serving.md", "k-references.md"}
 SKIP = re.compile(r"<!--\s*docs-test:\s*skip\s*\((?P<why>[^)]+)\)\s*-->")
 FENCE = re.compile(r"^(?P<indent>\s*)```(?P<lang>[\w-]*)\s*$")
 # The serving tutorial's port; each run takes a free one instead, so parallel runs cannot collide.
@@ -136,7 +136,7 @@ def test_block_parser_reads_fences_languages_lines_and_skip_markers():
     assert got[2].code == "print(1)\n"
 
 
-# The pages that train, build or serve take a minute or more on a shared CPU.
+# The pages that train, build, serve or describe images with DenseVLAD take a minute or more on a shared CPU.
 PAGES = [pytest.param(p, id=p.name, marks=[pytest.mark.slow] if p.name in SLOW_PAGES else []) for p in TUTORIALS]
 
 
