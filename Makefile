@@ -29,7 +29,7 @@ test: setup
 
 # The documentation site; --strict turns every warning (broken link, docstring that does not render) into an error.
 docs: setup
-	$(VENV)/bin/mkdocs build --strict --site-dir site
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
 
 # The wheel, installed into a fresh venv outside the checkout, runs `mapfree demo` (CI runs this).
 wheel-check: setup
