@@ -118,3 +118,15 @@ def test_train_split_needs_overlaps(tmp_path, capsys):
     overlaps.unlink()
     code, out = _check(capsys, str(tmp_path), "--subset")
     assert code == 1 and f"{overlaps}: file not found" in out
+
+
+def test_test_split_with_hidden_poses_passes_and_the_reference_is_required(tmp_path):
+    generate(tmp_path, "test", n_scenes=1, n_queries=5, seed=0, progress=False,
+             options=SynthOptions(width=120, height=160, texture_size=128, write_mono=False))
+    scene = tmp_path / "test" / "s00000"
+    assert set((scene / "poses.txt").read_text().split()[1:8]) == {"0"}  # all-zero lines: hidden ground truth
+    assert check_dataset(tmp_path, subset=True).ok
+    lines = [ln for ln in (scene / "intrinsics.txt").read_text().splitlines() if not ln.startswith("seq0/")]
+    (scene / "intrinsics.txt").write_text("\n".join(lines) + "\n")
+    found = [str(p) for p in check_dataset(tmp_path, subset=True).all_problems]
+    assert f"{scene / 'intrinsics.txt'}: no reference image seq0/frame_00000.jpg listed" in found
