@@ -202,6 +202,14 @@ def test_docs_reference_nothing_outside_the_repository():
             assert bad not in text, f"{page.relative_to(ROOT)}: {bad!r}"
 
 
+def test_api_docstrings_cite_nothing_outside_the_repository():
+    """The API reference renders the docstrings: they cite no document a reader of the repository cannot open."""
+    for path in (ROOT / "src" / "mapfree").rglob("*.py"):
+        text = path.read_text()
+        for bad in ("SPEC §", "../shared"):
+            assert bad not in text, f"{path.relative_to(ROOT)}: {bad!r}"
+
+
 def test_cli_reference_has_every_command():
     from mapfree.cli import COMMANDS
 

@@ -22,7 +22,7 @@ TRANSLATIONS = ("t", "s_tdir", "s_tbins")
 
 @dataclass
 class ModelConfig:
-    """Network shape and output parameterisation (SPEC §4; the public release's defaults)."""
+    """Network shape and output parameterisation (the public release's defaults)."""
 
     rotation: str = "6d"  # quat | 6d | euler_bins | 3d3d (joint: predicted points + Procrustes)
     translation: str = "t"  # t | s_tdir | s_tbins (ignored for 3d3d)
