@@ -1,5 +1,8 @@
-"""Load test of `mapfree serve` on loopback (bounded), in three phases, one table:
+"""Load test of `mapfree serve` on loopback (bounded), in phases, one table:
 
+0. memory: three of those 38 MB submissions uploaded at once, then evaluated; the peak RSS (sampled every 20 ms)
+   of the API process and of each worker process, separately, against their idle RSS: the workers parse the
+   pose text piece by piece, so their growth stays a small multiple of the ZIP's size.
 1. uploads: three streams each uploading a 38 MB submission (3 x 60 MB of pose lines each, within every limit)
    three times back to back (``--upload-rounds``), while the API process's memory (RSS, sampled every 20 ms)
    and `/health` latency (a dedicated client process polling every 10 ms, from the first upload to the last
@@ -9,8 +12,14 @@
    submission must end evaluated exactly once, none lost).
 3. `localize` latency and throughput under 8 concurrent clients, against in-process localization.
 
+Before / after phases (each against a server of this tree and one of ``--baseline``, a main checkout):
+``photo``: peak API RSS while localizing one 4096x4096 query, then three at once (three methods);
+``cache``: API RSS once three anchors of 16 photos of 4096x4096 are prepared;
+``flood``: `/login` latency while 45 localize calls run at once.
+
     python bench/bench_service.py [--db postgresql://...] [--submissions 200] [--clients 20] [--workers 4]
-                                  [--phases uploads,submissions,localize] [--upload-rounds 3]
+                                  [--phases memory,uploads,submissions,localize] [--upload-rounds 3]
+    python bench/bench_service.py --phases photo,cache,flood --baseline /tmp/mapfree-main
 """
 
 from __future__ import annotations
@@ -149,8 +158,348 @@ def upload_pressure(url: str, api_pid: int, tokens: list[str], payload: bytes, r
             "uploads": results, "window": t_end - t_start}
 
 
+def worker_pids(serve_pid: int) -> list[int]:
+    """The evaluation worker processes `mapfree serve` started (its children running mapfree.service.worker)."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        try:
+            if d.name.isdigit() and int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == serve_pid \
+                    and b"mapfree.service.worker" in (d / "cmdline").read_bytes():
+                pids.append(int(d.name))
+        except (OSError, ValueError, IndexError):
+            continue
+    return sorted(pids)
+
+
+def upload_memory(url: str, api_pid: int, tokens: list[str], payload: bytes, sessions, deadline: float) -> dict:
+    """Three uploads of ``payload`` at once, then their evaluation: peak RSS of the API process and of every
+    worker process, sampled every 20 ms from before the uploads until the workers have parsed and scored them."""
+    from sqlalchemy import func, select
+
+    from mapfree.service.db import Submission
+
+    workers = worker_pids(api_pid)
+    pids = [api_pid, *workers]
+    idle = {p: rss_mb(p) for p in pids}
+    peak = dict(idle)
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            for p in pids:
+                try:
+                    peak[p] = max(peak[p], rss_mb(p))
+                except (OSError, StopIteration):
+                    pass
+            done.wait(0.02)
+
+    def upload(token: str):
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=300) as c:
+            r = c.post("/api/submissions", files={"file": ("big.zip", payload)}, data={"split": "val", "name": "mem"})
+            return r.status_code, r.json().get("id")
+
+    sampler = threading.Thread(target=sample)
+    sampler.start()
+    t0 = time.perf_counter()
+    try:
+        with ThreadPoolExecutor(3) as ex:
+            results = list(ex.map(upload, tokens[:3]))
+        ids = [i for code, i in results if code == 202]
+        while time.time() < deadline:
+            with sessions() as db:
+                left = db.scalar(select(func.count()).select_from(Submission).where(
+                    Submission.id.in_(ids), Submission.status.in_(("queued", "running"))))
+            if not left:
+                break
+            time.sleep(0.2)
+    finally:
+        done.set()
+        sampler.join()
+    with sessions() as db:
+        statuses = [db.get(Submission, i).status for i in ids]
+    return {"codes": [c for c, _ in results], "statuses": statuses, "wall": time.perf_counter() - t0,
+            "api_idle": idle[api_pid], "api_peak": peak[api_pid], "worker_idle": max(idle[p] for p in workers),
+            "worker_peak": max(peak[p] for p in workers), "workers": len(workers),
+            "worker_peaks": sorted(peak[p] for p in workers)}
+
+
 def pct(xs, q) -> float:
     return float(np.percentile(np.asarray(xs) * 1000, q)) if xs else float("nan")
+
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Before / after phases of the relocalization API's memory and threads: each runs the same requests against a
+# server started from the current code and from a baseline source tree (``--baseline``, e.g. a
+# ``git worktree add --detach /tmp/mapfree-main main``), and prints both in one table.
+
+MINE = {"photo", "cache", "flood"}
+RELOC_METHODS = ("sift_pnp_sensor", "sift_procrustes_sensor", "sift_emat_sensor")
+
+
+def mem_available_mb() -> float:
+    with open("/proc/meminfo") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("MemAvailable")) / 1024
+
+
+class Serve:
+    """``mapfree serve`` of one source tree (``code/src`` first on the path) on a fresh SQLite file, no workers,
+    with accounts ``u0..u{n-1}``."""
+
+    def __init__(self, code: Path, tmp: Path, data: Path, users: int = 3, extra: tuple[str, ...] = ()):
+        self.tmp = Path(tempfile.mkdtemp(prefix="serve-", dir=tmp))
+        self.env = {**os.environ, "PYTHONPATH": str(code / "src"), "OMP_NUM_THREADS": "1"}
+        self.db = f"sqlite:///{self.tmp / 'bench.db'}"
+        admin = [sys.executable, "-m", "mapfree.cli.admin", "--db", self.db, "create-user"]
+        self.tokens = [subprocess.run([*admin, f"u{i}"], env=self.env, capture_output=True, text=True, check=True)
+                       .stdout.split()[-1] for i in range(users)]
+        self.url = f"http://127.0.0.1:{free_port()}"
+        self.log = open(self.tmp / "serve.log", "w")
+        self.proc = subprocess.Popen([sys.executable, "-m", "mapfree.cli.serve", "--db", self.db, "--data", str(data),
+                                      "--workers", "0", "--port", self.url.rsplit(":", 1)[1], "--log-level", "warning",
+                                      *extra], env=self.env, stdout=self.log, stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            try:
+                if httpx.get(self.url + "/health", timeout=2).status_code < 500:
+                    return
+            except httpx.HTTPError:
+                pass
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.3)
+        self.stop()
+        raise SystemExit("server did not start:\n" + (self.tmp / "serve.log").read_text()[-2000:])
+
+    def client(self, i: int = 0, timeout: float = 600) -> httpx.Client:
+        return httpx.Client(base_url=self.url, headers={"Authorization": f"Bearer {self.tokens[i]}"}, timeout=timeout)
+
+    def rss(self) -> float:
+        return rss_mb(self.proc.pid)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+
+
+def peak_rss(pid: int, fn) -> tuple[float, float, object]:
+    """(RSS before, peak RSS while ``fn()`` runs, its result), sampled every 20 ms."""
+    before, peak, done = rss_mb(pid), [0.0], threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            peak[0] = max(peak[0], rss_mb(pid))
+            done.wait(0.02)
+
+    t = threading.Thread(target=sample)
+    t.start()
+    try:
+        out = fn()
+    finally:
+        done.set()
+        t.join()
+    return before, max(peak[0], before), out
+
+
+def big_photo(frame, side: int, depth: bool = True):
+    """A realmini frame upscaled to a ``side``-pixel long side (a phone photo): JPEG, uint16 depth PNG, form."""
+    import cv2
+
+    img = frame.image()
+    h, w = img.shape[:2]
+    s = side / max(h, w)
+    nw, nh = round(w * s), round(h * s)
+    jpg = cv2.imencode(".jpg", cv2.cvtColor(cv2.resize(img, (nw, nh), interpolation=cv2.INTER_CUBIC),
+                                            cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+    png = None
+    if depth:
+        d = cv2.imread(str(frame.depth_path("sensor")), cv2.IMREAD_UNCHANGED)
+        png = cv2.imencode(".png", cv2.resize(d, (nw, nh), interpolation=cv2.INTER_NEAREST))[1].tobytes()
+    K = frame.intrinsics.resized(nw, nh)
+    return jpg, png, {"fx": repr(K.fx), "fy": repr(K.fy), "cx": repr(K.cx), "cy": repr(K.cy)}
+
+
+def photo_phase(srv: Serve, scene, side: int, three: bool) -> dict:
+    """Item 1: peak API RSS while localizing one ``side``-pixel query, then three at once (three methods,
+    each with its own pool of relocalizers), against anchors of a ``side``-pixel photo."""
+    ref_jpg, ref_png, ref_form = big_photo(scene.reference, side)
+    q_jpg, _, q_form = big_photo(scene.frame("seq1/frame_00009.jpg"), side, depth=False)
+    out: dict = {"idle": srv.rss()}
+    anchors = []
+    with srv.client() as c:
+        for m in RELOC_METHODS:
+            before, peak, r = peak_rss(srv.proc.pid, lambda m=m: c.post(
+                "/anchors", files={"image": ("r.jpg", ref_jpg), "depth": ("d.png", ref_png)},
+                data={**ref_form, "method": m}))
+            assert r.status_code == 201, r.text
+            anchors.append(r.json()["id"])
+            out["create"] = max(out.get("create", 0.0), peak)
+
+    def localize(i: int):
+        with srv.client(i) as c:
+            r = c.post(f"/anchors/{anchors[i]}/localize", files={"image": ("q.jpg", q_jpg)}, data=q_form)
+            return r.status_code, (r.json().get("ok") if r.status_code == 200 else r.text[:100])
+
+    out["before_one"], out["one"], res = peak_rss(srv.proc.pid, lambda: localize(0))
+    out["one_ok"] = res
+    if three:
+        with ThreadPoolExecutor(3) as ex:
+            out["before_three"], out["three"], res = peak_rss(srv.proc.pid, lambda: list(ex.map(localize, range(3))))
+        out["three_ok"] = res
+    return out
+
+
+def cache_phase(srv: Serve, scene, side: int, photos: int, anchors: int) -> dict:
+    """Item 2: API RSS once ``anchors`` anchors of ``photos`` ``side``-pixel photos each are prepared (localized
+    against once), and the peak while preparing them."""
+    frames = [scene.reference] + [f for f in scene.queries][: photos - 1]
+    ups = [big_photo(f, side) for f in frames]
+    q_jpg, _, q_form = big_photo(scene.frame("seq1/frame_00009.jpg"), 720, depth=False)
+    out = {"idle": srv.rss(), "peak": 0.0}
+    ids = []
+    with srv.client() as c:
+        for _ in range(anchors):
+            jpg, png, form = ups[0]
+            r = c.post("/anchors", files={"image": ("r.jpg", jpg), "depth": ("d.png", png)},
+                       data={**form, "method": "sift_pnp_sensor"})
+            assert r.status_code == 201, r.text
+            aid = r.json()["id"]
+            for f, (jpg, png, form) in zip(frames[1:], ups[1:]):
+                q, t = f.pose.qt()
+                pose = " ".join(f"{x:.9f}" for x in (*q, *t))
+                r = c.post(f"/anchors/{aid}/photos", files={"image": ("p.jpg", jpg), "depth": ("d.png", png)},
+                           data={**form, "pose": pose})
+                assert r.status_code == 201, r.text
+            ids.append(aid)
+        for aid in ids:
+            _, peak, r = peak_rss(srv.proc.pid, lambda aid=aid: c.post(f"/anchors/{aid}/localize",
+                                                                        files={"image": ("q.jpg", q_jpg)}, data=q_form))
+            assert r.status_code == 200, r.text
+            out["peak"] = max(out["peak"], peak)
+    out["after"] = srv.rss()
+    return out
+
+
+def flood_phase(srv: Serve, scene, calls: int) -> dict:
+    """Item 6: ``/login`` latency (one client, a request every 50 ms) while ``calls`` localize calls of a
+    1440x1920 query run at once; how the calls were answered."""
+    ref = scene.reference
+    jpg, png, form = big_photo(ref, 720)
+    q_jpg, _, q_form = big_photo(scene.frame("seq1/frame_00009.jpg"), 1920, depth=False)
+    with srv.client() as c:
+        r = c.post("/anchors", files={"image": ("r.jpg", ref.image_path.read_bytes()),
+                                      "depth": ("d.png", ref.depth_path("sensor").read_bytes())},
+                   data={**form, "method": "sift_pnp_sensor"})
+        assert r.status_code == 201, r.text
+        aid = r.json()["id"]
+    stop, lat = threading.Event(), []
+
+    def poll() -> None:
+        with httpx.Client(base_url=srv.url, timeout=120) as c:
+            c.get("/login")
+            while not stop.is_set():
+                t0 = time.perf_counter()
+                c.get("/login")
+                lat.append(time.perf_counter() - t0)
+                stop.wait(0.05)
+
+    def localize(_):
+        with srv.client(1) as c:
+            return c.post(f"/anchors/{aid}/localize", files={"image": ("q.jpg", q_jpg)}, data=q_form).status_code
+
+    poller = threading.Thread(target=poll)
+    poller.start()
+    time.sleep(1.0)
+    idle = list(lat)
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(calls) as ex:
+        codes = list(ex.map(localize, range(calls)))
+    wall = time.perf_counter() - t0
+    stop.set()
+    poller.join()
+    during = lat[len(idle):]
+    return {"idle": idle, "during": during, "codes": codes, "wall": wall}
+
+
+def before_after(a, phases: set[str]) -> list[tuple[str, str, str, str]]:
+    """Run the chosen phases on the baseline tree and on this one -> table rows (what, baseline, now, note)."""
+    from mapfree.data import Dataset
+    from mapfree.data.synth import SynthOptions, generate
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench-service-ba-"))
+    generate(tmp / "data", "val", 1, 2, seed=3, options=SynthOptions(first_scene=460, width=135, height=180,
+                                                                     texture_size=128, write_mono=False),
+             progress=False)
+    scene = Dataset(realmini()).scene("val", "s00000")
+    trees = {"baseline": Path(a.baseline).resolve(), "now": ROOT}
+    res: dict[str, dict] = {}
+    for label, code in trees.items():
+        r = res[label] = {}
+        if "photo" in phases:
+            srv = Serve(code, tmp, tmp / "data")
+            try:
+                three = label == "now" or mem_available_mb() > a.min_free_mb
+                r["photo"] = photo_phase(srv, scene, a.side, three)
+            finally:
+                srv.stop()
+        if "cache" in phases:
+            srv = Serve(code, tmp, tmp / "data")
+            try:
+                r["cache"] = cache_phase(srv, scene, a.side, a.anchor_photos, 3)
+            finally:
+                srv.stop()
+        if "flood" in phases:
+            srv = Serve(code, tmp, tmp / "data")
+            try:
+                r["flood"] = flood_phase(srv, scene, a.flood_calls)
+            finally:
+                srv.stop()
+    b, n = res["baseline"], res["now"]
+    mb = lambda x: f"{x:.0f}" if x else "-"  # noqa: E731
+    rows = []
+    if "photo" in phases:
+        p, q = b["photo"], n["photo"]
+        rows += [
+            ("API RSS idle (MB)", mb(p["idle"]), mb(q["idle"]), ""),
+            (f"peak RSS creating 3 anchors of a {a.side}² photo (MB)", mb(p["create"]), mb(q["create"]), ""),
+            (f"peak RSS, one {a.side}² localize (MB)", mb(p["one"]), mb(q["one"]),
+             f"from {mb(p['before_one'])} / {mb(q['before_one'])}; answers {p['one_ok']} / {q['one_ok']}"),
+            (f"peak RSS, three {a.side}² localize at once (MB)", mb(p.get("three")), mb(q.get("three")),
+             "three methods" + ("" if "three" in p else f"; baseline skipped: under {a.min_free_mb} MB free")),
+        ]
+    if "cache" in phases:
+        p, q = b["cache"], n["cache"]
+        rows += [
+            (f"API RSS after preparing 3 anchors of {a.anchor_photos} {a.side}² photos (MB)", mb(p["after"]),
+             mb(q["after"]), f"idle {mb(p['idle'])} / {mb(q['idle'])}"),
+            ("peak RSS while preparing them (MB)", mb(p["peak"]), mb(q["peak"]), ""),
+        ]
+    if "flood" in phases:
+        p, q = b["flood"], n["flood"]
+        code = lambda f: ", ".join(f"{c} x {f['codes'].count(c)}" for c in sorted(set(f["codes"])))  # noqa: E731
+        rows += [
+            (f"/login p50 / max during {a.flood_calls} localize calls (ms)",
+             f"{pct(p['during'], 50):.0f} / {pct(p['during'], 100):.0f}",
+             f"{pct(q['during'], 50):.0f} / {pct(q['during'], 100):.0f}",
+             f"idle p50 {pct(p['idle'], 50):.0f} / {pct(q['idle'], 50):.0f} ms"),
+            (f"the {a.flood_calls} localize calls (status x count; wall s)", f"{code(p)}; {p['wall']:.1f}",
+             f"{code(q)}; {q['wall']:.1f}", "429s carry Retry-After"),
+        ]
+    return rows
+
+
+def print_before_after(rows, baseline: str) -> None:
+    print(f"\nrelocalization API before / after (baseline: {baseline}; {os.cpu_count()} CPUs)")
+    w = max(len(r[0]) for r in rows)
+    print(f"  {'':<{w}}  {'baseline':>16}  {'now':>16}")
+    for name, before, now, note in rows:
+        print(f"  {name:<{w}}  {before:>16}  {now:>16}  {note}")
 
 
 def main() -> int:
@@ -164,10 +513,25 @@ def main() -> int:
     ap.add_argument("--upload-rounds", type=int, default=3, help="uploads of the big ZIP per stream (3 streams)")
     ap.add_argument("--health-interval", type=float, default=0.01, help="seconds between /health polls")
     ap.add_argument("--timeout", type=float, default=420.0, help="give up after this many seconds")
-    ap.add_argument("--phases", default="uploads,submissions,localize", help="which phases to run")
+    ap.add_argument("--phases", default="memory,uploads,submissions,localize",
+                    help="which phases to run; photo, cache and flood compare with --baseline")
+    ap.add_argument("--baseline", default="", help="source tree to compare photo/cache/flood with (a main checkout)")
+    ap.add_argument("--side", type=int, default=4096, help="long side of the big photos (photo, cache)")
+    ap.add_argument("--anchor-photos", type=int, default=16, help="photos per anchor (cache)")
+    ap.add_argument("--flood-calls", type=int, default=45, help="concurrent localize calls (flood)")
+    ap.add_argument("--min-free-mb", type=float, default=14000,
+                    help="run the baseline's three-at-once localize only with this much memory available")
     a = ap.parse_args()
     phases = set(a.phases.split(","))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    if phases & MINE:
+        if not a.baseline:
+            raise SystemExit("photo, cache and flood need --baseline DIR (e.g. git worktree add --detach "
+                             "/tmp/mapfree-main main)")
+        print_before_after(before_after(a, phases & MINE), a.baseline)
+        phases -= MINE
+        if not phases:
+            return 0
     from sqlalchemy import func, select
     from sqlalchemy.exc import OperationalError
 
@@ -190,18 +554,21 @@ def main() -> int:
     with S.begin() as db:
         for i in range(a.clients):
             tokens.append(auth.create_user(db, f"client{i}")[1])
-    big = big_submission([f"s{460 + i:05d}" for i in range(3)]) if "uploads" in phases else b""
+    big = big_submission([f"s{460 + i:05d}" for i in range(3)]) if phases & {"uploads", "memory"} else b""
     port = free_port()
+    operator = "mf_bench-" + os.urandom(8).hex()  # reads /health/detail (worker count)
     log = open(tmp / "serve.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "mapfree", "serve", "--db", db_url, "--data", str(tmp / "data"),
                              "--workers", str(a.workers), "--port", str(port), "--lease-seconds", "3",
-                             "--log-level", "warning"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+                             "--log-level", "warning"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                            env={**os.environ, "MAPFREE_OPERATOR_TOKEN": operator})
     url = f"http://127.0.0.1:{port}"
     deadline = time.time() + a.timeout
     try:
         while True:
             try:
-                if len(httpx.get(url + "/health", timeout=2).json()["workers"]) >= a.workers:
+                detail = httpx.get(url + "/health/detail", timeout=2, headers={"Authorization": f"Bearer {operator}"})
+                if len(detail.json()["workers"]) >= a.workers:
                     break
             except (httpx.HTTPError, ValueError, KeyError):
                 pass
@@ -210,6 +577,9 @@ def main() -> int:
             time.sleep(0.3)
 
         lock = threading.Lock()
+        mem = None
+        if "memory" in phases:  # first: the workers' RSS before it is their start-up RSS
+            mem = upload_memory(url, proc.pid, tokens, big, S, deadline)
         # ---------------------------------------------------------------- three 38 MB uploads at once
         up = None
         if "uploads" in phases:
@@ -353,6 +723,18 @@ def main() -> int:
         engine.dispose()
 
     rows = []
+    if mem is not None:
+        rows += [
+            (f"memory: 3 uploads of {len(big) / 1e6:.0f} MB at once, then parsed", f"{mem['wall']:.1f} s",
+             f"status {sorted(mem['codes'])}; " + ", ".join(f"{s} x {mem['statuses'].count(s)}"
+                                                             for s in sorted(set(mem["statuses"])))),
+            ("API process RSS idle / peak (MB)", f"{mem['api_idle']:.0f} / {mem['api_peak']:.0f}", ""),
+            (f"worker RSS idle / peak, largest of {mem['workers']} (MB)",
+             f"{mem['worker_idle']:.0f} / {mem['worker_peak']:.0f}",
+             f"peaks {', '.join(f'{x:.0f}' for x in mem['worker_peaks'])}; growth "
+             f"{(mem['worker_peak'] - mem['worker_idle']) / (len(big) / 2**20):.2f}x the ZIP"),
+        ]
+        ok = ok and all(c == 202 for c in mem["codes"]) and set(mem["statuses"]) == {"done"}
     if up is not None:
         h, ih = up["health"], up["idle_health"]
         codes = sorted(c for c, _, _ in up["uploads"])

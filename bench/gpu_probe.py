@@ -5,8 +5,8 @@
 
 (``bench/gpu_session.sh`` runs it on the device machine from the kit ``bench/gpu_kit.py`` builds.)
 
-1. Never-seen inputs: every learned matcher that runs offline here and a full-size (randomly initialised)
-   Depth Anything V2 network, each on new images (two sizes): the first pass over a new input against the
+1. Never-seen inputs: every learned matcher that runs offline here, SuperGlue and EfficientLoFTR at their
+   published sizes and a full-size Depth Anything V2 network (these three randomly initialised), each on new images (two sizes): the first pass over a new input against the
    same input again. A ratio far above 1 means per-shape set-up (cuDNN graphs, autotuning) is back.
 2. ``bench/bench_pipeline.py`` at the benchmark's 540x720 on every query of ROOT's val split with depth: each
    preset's ``mapfree run`` on never-seen pairs, the pairs again, GPU utilisation, the kornia loop baseline,
@@ -62,22 +62,35 @@ def _images(root: Path, n: int) -> tuple[np.ndarray, list[np.ndarray]]:
     return ref, [cv2.resize(q, (540, 720)) if i % 2 == 0 else q for i, q in enumerate(qs)]
 
 
-def never_seen_matchers(root: Path, n: int, names: list[str]) -> list[dict]:
+def never_seen_matchers(root: Path, n: int, names: list[str], options: dict[str, dict] | None = None,
+                        labels: dict[str, str] | None = None) -> list[dict]:
     from mapfree import matching
 
     ref, queries = _images(root, n)
     rows = []
     for name in names:
-        m = matching.create(name)
+        m = matching.create(name, **(options or {}).get(name, {}))
         f0 = m.extract(ref)
         m.match(f0, m.extract(np.ascontiguousarray(ref[:, ::-1])))  # warm-up on a mirrored (other) image
         first, again = [], []
         for q in queries:
             first.append(_timed(lambda: m.match(f0, m.extract(q))))
             again.append(_timed(lambda: m.match(f0, m.extract(q))))
-        rows.append({"network": name, "first_ms": statistics.median(first), "again_ms": statistics.median(again),
+        rows.append({"network": (labels or {}).get(name, name), "first_ms": statistics.median(first), "again_ms": statistics.median(again),
                      "max_first_ms": max(first)})
     return rows
+
+
+def never_seen_hub_matchers(root: Path, n: int) -> list[dict]:
+    """SuperGlue and EfficientLoFTR (transformers) at their published sizes with random weights (no download):
+    the same work per pair as the real weights (EfficientLoFTR's fine stage aside: few coarse matches)."""
+    from hub_random_models import write_models
+
+    with tempfile.TemporaryDirectory() as d:
+        write_models(Path(d))
+        opts = {"superglue": {"weights": f"{d}/superglue_outdoor"}, "efficientloftr": {"weights": f"{d}/efficientloftr"}}
+        labels = {k: f"{k} (random weights of the published size)" for k in opts}
+        return never_seen_matchers(root, n, list(opts), opts, labels)
 
 
 def never_seen_depth(root: Path, n: int) -> list[dict]:
@@ -146,6 +159,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="learned matchers for the never-seen check: 'all' (those whose weights are here), "
                          "a comma list, or 'none'")
     ap.add_argument("--no-depth", dest="depth", action="store_false", help="skip the depth network's check")
+    ap.add_argument("--no-hub", dest="hub", action="store_false",
+                    help="skip the never-seen check of SuperGlue and EfficientLoFTR (random weights, published size)")
     ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the kornia loop")
     ap.add_argument("--size", default="540x720", help="image size of the pipeline bench (the benchmark's)")
     ap.add_argument("--quick", action="store_true",
@@ -168,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     lines += ["", "| network | never-seen ms (median) | same input again ms | ratio | worst never-seen ms |",
               "|---|---|---|---|---|"]
     rows = never_seen_matchers(args.root, queries, names) if names else []
+    rows += never_seen_hub_matchers(args.root, queries) if args.hub else []
     rows += never_seen_depth(args.root, queries) if args.depth else []
     for r in rows:
         lines.append(f"| {r['network']} | {r['first_ms']:.1f} | {r['again_ms']:.1f} | "

@@ -313,7 +313,7 @@ def test_own_matcher_written_into_colmap_database(scans, tmp_path):
 
 
 def test_unknown_matcher_is_a_clear_error(scans, tmp_path, capsys):
-    assert cli_main(["build", str(scans / "scans"), "--out", str(tmp_path), "--matcher", "nope", "--quiet"]) == 2
+    assert cli_main(["build", str(scans / "scans"), "--out", str(tmp_path), "--matcher", "nope", "--quiet"]) == 1
     assert "unknown --matcher 'nope'" in capsys.readouterr().err
 
 

@@ -196,7 +196,7 @@ def test_bad_device_poses_are_a_clear_error(realmini, tmp_path, capsys):
         load_device_poses(Dataset(root).scene("val", "s00000"))
     code = cli_main(["run", str(root), "--track", "multi", "--method", "sift_pnp_sensor", "-o",
                      str(tmp_path / "m.zip"), "--no-progress"])
-    assert code == 2 and "poses_device.txt:2: non-finite" in capsys.readouterr().err
+    assert code == 1 and "poses_device.txt:2: non-finite" in capsys.readouterr().err
     bad.write_text(f"{_name(1)} 0 0 0 0 0 0 0\n")
     with pytest.raises(FormatError, match=r"poses_device.txt:1: zero quaternion"):
         load_device_poses(Dataset(root).scene("val", "s00000"))
@@ -212,7 +212,7 @@ def test_all_frames_with_the_multi_track_is_a_clear_error(realmini, tmp_path, ca
     code = cli_main(["run", str(realmini), "--track", "multi", "--all-frames", "--method", "sift_pnp_sensor",
                      "-o", str(out), "--no-progress"])
     err = capsys.readouterr().err
-    assert code == 2 and "mapfree run: error: --all-frames" in err and "--track multi" in err
+    assert code == 1 and "mapfree run: error: --all-frames" in err and "--track multi" in err
     assert not out.exists() and not frames_path(out).exists()
     with pytest.raises(ValueError, match="all_frames"):
         run_multi(realmini, "val", "sift_pnp_sensor", out, all_frames=True, progress=False)

@@ -38,7 +38,7 @@ def test_save_plots(realmini, tmp_path):
 def test_cli_plots_without_estimates(realmini, tmp_path):
     write_submission(tmp_path / "empty.zip", {})
     rc = cli_main(["evaluate", str(tmp_path / "empty.zip"), "--dataset", str(realmini), "--plots", str(tmp_path / "p")])
-    assert rc == 0
+    assert rc == 3  # scored and plotted, but nothing was estimated
     assert sorted(p.name for p in (tmp_path / "p").iterdir()) == sorted(
         f"{n}.{e}" for n in ("precision_ratio", "vcre_cdf", "scenes") for e in ("png", "pdf")
     )

@@ -54,10 +54,14 @@ def test_tuple_inputs_with_explicit_depth(scene, sift_sensor):
     assert est.ok and np.linalg.norm(est.pose.center - q.pose.center) < 0.25
 
 
-def test_identical_and_blank_images_give_no_estimate(scene, sift_sensor):
+def test_identical_images_give_the_identity_and_blank_ones_no_estimate(scene, sift_sensor):
     ref = scene.reference
-    same = sift_sensor.relocalize(ref, ref)
-    assert not same.ok and same.reason and same.confidence == 0.0
+    same = sift_sensor.relocalize(ref, ref)  # the query is the reference photo: it was taken from there
+    assert same.ok and same.extras["same_viewpoint"], same.reason
+    assert np.allclose(same.pose.R, np.eye(3)) and np.allclose(same.pose.t, 0)
+    assert same.inliers > 100 and same.confidence == same.inliers  # every match stayed put
+    scale_free = Relocalizer("sift", "none", "essential").relocalize(ref, ref)  # needs no depth either
+    assert scale_free.ok and np.allclose(scale_free.pose.t, 0)
     K = ref.intrinsics
     blank = View(np.full((K.height, K.width, 3), 127, np.uint8), K, np.ones((K.height, K.width), np.float32))
     tiny = View(np.zeros((4, 4, 3), np.uint8), Intrinsics(4, 4, 2, 2, 4, 4))  # the matcher rejects it
@@ -150,7 +154,7 @@ def test_localize_many_equals_localize(scene, sift_sensor):
         assert a.ok == b.ok and a.reason == b.reason
         if a.ok:
             assert np.allclose(a.pose.R, b.pose.R) and np.allclose(a.pose.t, b.pose.t)
-    assert not many[-1].ok  # the reference itself
+    assert many[-1].ok and np.allclose(many[-1].pose.t, 0)  # the reference itself: the identity
 
 
 def test_clean_depth_maps_are_not_copied_and_dirty_ones_are_cleaned(scene):

@@ -169,18 +169,18 @@ def test_run_with_k_references_cli(realmini, tmp_path, capsys):
     root = mapfree_multi_reference_scene(realmini, tmp_path / "data")
     out = tmp_path / "k4.zip"
     rc = main(["run", str(root), "--method", "sift_pnp_sensor", "--references", "4", "--all-frames",
-               "-o", str(out), "--no-progress", "--evaluate"])
+               "-o", str(out), "--no-progress", "--evaluate", "--json"])
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
     assert res["estimated"] == 6 and res["metrics"]["Precision @ Pose Error < (25.0cm, 5deg)"] == 1.0
     header, *recs = [json.loads(line) for line in (tmp_path / "k4.journal.jsonl").read_text().splitlines()]
     assert header["method"]["options"]["references"] == {"k": 4, "mode": "retrieval", "top": 1}
     assert all("retrieval_similarity" in r["scores"] for r in recs)
-    # A scene with one posed seq0 image cannot triangulate: every frame fails with the reason, no crash.
+    # A scene with one posed seq0 image cannot triangulate: refused before any work, naming the scene.
+    capsys.readouterr()
     rc = main(["run", str(realmini), "--method", "sift_emat_none", "--references", "2", "--reference-mode",
                "triangulation", "--scenes", "s00003", "-o", str(tmp_path / "tri.zip"), "--no-progress"])
-    assert rc == 0
-    fails = (tmp_path / "tri.failures.jsonl").read_text().splitlines()
-    assert fails and all("triangulation needs >= 2 posed seq0 frames" in json.loads(f)["reason"] for f in fails)
+    assert rc == 1 and "triangulation needs 2 posed seq0" in capsys.readouterr().err
+    assert not (tmp_path / "tri.zip").exists()
     assert main(["run", str(root), "--method", "sift_pnp_sensor", "--references", "0", "-o",
-                 str(tmp_path / "bad.zip")]) == 2
+                 str(tmp_path / "bad.zip")]) == 1

@@ -147,7 +147,7 @@ def test_depth_suffix_typo_is_refused_before_any_work(realmini, tmp_path, capsys
     out = tmp_path / "sub.zip"
     with pytest.raises(ValueError, match=r"\*\.sensr\.png.*suffixes there: sensor"):
         run_split(realmini, "val", "sift_emat_sensr", out, progress=False)
-    assert main(["run", str(realmini), "--method", "sift_pnp_sensr", "-o", str(out), "--no-progress"]) == 2
+    assert main(["run", str(realmini), "--method", "sift_pnp_sensr", "-o", str(out), "--no-progress"]) == 1
     assert "sensor" in capsys.readouterr().err and not out.exists()
 
 
@@ -165,18 +165,18 @@ def test_cli_relocalize_json_and_viz(realmini, tmp_path, capsys):
     rc = main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(scene / "seq0/frame_00000.jpg"),
                "--method", METHOD, "--K-ref", K, "--K-query", K])
     out = json.loads(capsys.readouterr().out)
-    assert rc == 0 and out["ok"] is False and out["reason"]
+    assert rc == 0 and out["ok"] and np.allclose(out["t"], 0)  # the reference itself: taken from there
 
     rc = main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(tmp_path / "missing.jpg"), "--method", METHOD])
-    assert rc == 2 and "missing.jpg" in capsys.readouterr().err
+    assert rc == 1 and "missing.jpg" in capsys.readouterr().err
 
 
 def test_cli_relocalize_bad_intrinsics_flag_is_named(realmini, capsys):
     scene = realmini / "val" / "s00000"
     ref, q = str(scene / "seq0/frame_00000.jpg"), str(scene / "seq1/frame_00010.jpg")
-    assert main(["relocalize", ref, q, "--K-ref", "500,500,270,180", "--K-query", "500,500"]) == 2
+    assert main(["relocalize", ref, q, "--K-ref", "500,500,270,180", "--K-query", "500,500"]) == 1
     assert "--K-query: expected 4" in capsys.readouterr().err
-    assert main(["relocalize", ref, q, "--K-ref", "0,500,270,180", "--K-query", "500,500,270,180"]) == 2
+    assert main(["relocalize", ref, q, "--K-ref", "0,500,270,180", "--K-query", "500,500,270,180"]) == 1
     assert "--K-ref: focal lengths must be positive" in capsys.readouterr().err
 
 
@@ -189,7 +189,7 @@ def test_run_evaluate_on_a_test_split_explains_instead_of_crashing(tmp_path, cap
     capsys.readouterr()
     out = tmp_path / "t.zip"
     assert main(["run", str(root), "--split", "test", "--method", "sift_pnp_sensor", "-o", str(out),
-                 "--no-progress", "--evaluate"]) == 2
+                 "--no-progress", "--evaluate", "--json"]) == 1
     res = capsys.readouterr()
     assert json.loads(res.out)["computed"] == 1 and out.is_file()
     assert "--gt-root" in res.err and "Traceback" not in res.err

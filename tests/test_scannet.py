@@ -84,4 +84,9 @@ def test_scannet_cli_scores_real_pairs(pair_list, tmp_path, capsys):
                  "--no-progress", "--limit", "2"]) == 0
     m2 = json.loads((tmp_path / "o2" / "report.json").read_text())["metrics"]
     assert m2["Pairs"] == 2 and m2["Median translation error (m)"] is None and m2["AUC @ 20°"] > 0
-    assert main(["scannet", str(tmp_path / "missing.txt"), "--out", str(tmp_path / "o3")]) == 2
+    assert main(["scannet", str(tmp_path / "missing.txt"), "--out", str(tmp_path / "o3")]) == 1
+    # Ran, but not a single pair estimated (PnP without any depth): exit 3, the report is still written.
+    capsys.readouterr()
+    assert main(["scannet", str(pair_list), "--method", "sift_pnp_none", "--out", str(tmp_path / "o4"),
+                 "--no-progress", "--limit", "1"]) == 3
+    assert "no pair got an estimate" in capsys.readouterr().err and (tmp_path / "o4" / "report.json").is_file()

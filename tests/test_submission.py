@@ -179,3 +179,47 @@ def test_bad_scene_file_counts_as_missing_in_evaluation(tmp_path):
     r = evaluate(zip_bytes({"pose_s00000.txt": b"\x00" * 10}), tmp_path, "val")
     assert not r.estimated.any() and r.problems
     assert r.to_json()  # serialisable, no NaN
+
+
+def test_a_file_read_in_pieces_gives_what_the_whole_file_gives(monkeypatch):
+    import mapfree.benchmark.submission as sub
+
+    rng = np.random.default_rng(4)
+    lines = [f"{NAMES[i % 10]} " + " ".join(repr(float(v)) for v in rng.normal(size=7)) + f" {i % 7}" for i in range(40)]
+    lines[3] = "seq1/frame_00099.jpg 1 0 0 0 0 0 0 1"  # unknown frame
+    lines[17] = "seq1/frame_00002.jpg 1 0 0 0 0 0 x 1"  # unparseable number
+    lines[25] = "seq1/frame_00004.jpg 0 0 0 0 0 0 0 1"  # zero quaternion
+    body = ("\ufeff" + "\r\n".join(lines[:20]) + "\r\n\n" + "\n".join(lines[20:])).encode()  # BOM, CRLF, blank line
+    files = {"pose_s00000.txt": body, "pose_s00001.txt": "\n".join(lines[5:]) + "\n"}
+    for compat in ("default", "official"):
+        whole = read_submission(zip_bytes(files), EXPECTED, compat=compat)
+        monkeypatch.setattr(sub, "CHUNK_BYTES", 97)  # pieces of a few lines, cut anywhere
+        pieces = read_submission(zip_bytes(files), EXPECTED, compat=compat)
+        monkeypatch.undo()
+        assert pieces[1] == whole[1] and len(whole[1]) > 20  # same problems, same scene:line, same words
+        assert any("duplicate" in p.reason and "line" in p.reason for p in whole[1])
+        for scene in ("s00000", "s00001"):
+            a, b = whole[0][scene], pieces[0][scene]
+            assert a.names == b.names and (a.lines == b.lines).all()
+            np.testing.assert_array_equal(np.c_[a.q, a.t, a.confidence], np.c_[b.q, b.t, b.confidence])
+
+
+def test_a_large_file_is_parsed_in_memory_bounded_by_its_compressed_size():
+    import tracemalloc
+
+    # 8 MB of pose lines (frames repeat: the first of each is kept, the rest reported), 4-5x compressible.
+    rng = np.random.default_rng(1)
+    block = "".join(f"{NAMES[i % 10]} 1.0 0.0 0.0 0.0 {a:.4f} {b:.4f} {c:.4f} {abs(d) * 10:.1f}\n"
+                    for i, (a, b, c, d) in enumerate(rng.normal(size=(20000, 4)))).encode()
+    text = block * (8_000_000 // len(block) + 1)
+    data = zip_bytes({"pose_s00000.txt": text})
+    tracemalloc.start()
+    try:
+        est, problems = read_submission(data, EXPECTED)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert est["s00000"].names == NAMES and "more problems not listed" in problems[-1].reason
+    # Reading it whole took over 5x the text (the text, then a Python object per number); in pieces the
+    # peak stays under the compressed size however large the file.
+    assert peak < len(data), (peak, len(data), len(text))

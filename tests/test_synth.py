@@ -224,6 +224,6 @@ def test_cli_writes_a_split_and_rejects_bad_options(tmp_path, capsys):
     assert len(scene.queries) == 2 and not scene.reference.has_depth(EST_DEPTH_SUFFIX)
     assert scene.reference.has_depth(GT_DEPTH_SUFFIX)
     assert "wrote 1 val scene" in capsys.readouterr().out
-    assert cli_main(["synth", str(tmp_path), "--size", "big"]) == 2
-    assert cli_main(["synth", str(tmp_path), "--split", "val", "--private-gt", str(tmp_path / "gt")]) == 2
+    assert cli_main(["synth", str(tmp_path), "--size", "big"]) == 1
+    assert cli_main(["synth", str(tmp_path), "--split", "val", "--private-gt", str(tmp_path / "gt")]) == 1
     assert "--private-gt" in capsys.readouterr().err

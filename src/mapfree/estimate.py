@@ -6,12 +6,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .geometry import Pose
+from .geometry import Pose, rotation_angle_deg
 
 __all__ = ["Estimate"]
 
 
-@dataclass
+@dataclass(repr=False)
 class Estimate:
     """A metric relative pose (query camera w.r.t. the reference camera) with a confidence.
 
@@ -30,6 +30,16 @@ class Estimate:
             self.pose, self.reason = None, self.reason or "non-finite pose"
         c = float(self.confidence)
         self.confidence = c if np.isfinite(c) and c > 0 else 0.0
+
+    def __repr__(self) -> str:
+        """One line: the pose as rotation angle and translation, or the reason; never the arrays of ``extras``."""
+        if self.pose is None:
+            return f"Estimate(no estimate: {self.reason or 'no reason given'})"
+
+        rot = rotation_angle_deg(self.pose.R, np.eye(3))
+        t = ", ".join(f"{v:.3f}" for v in self.pose.t)
+        return (f"Estimate(rotation {rot:.2f} deg, t=({t}) m, confidence {self.confidence:.3g}, "
+                f"inliers {self.inliers})")
 
     @classmethod
     def failure(cls, reason: str, **timings: float) -> "Estimate":

@@ -21,13 +21,14 @@ from .yamlio import read_yaml
 __all__ = [
     "Method", "MATCHERS", "OFFLINE_MATCHERS", "SOLVERS", "DEPTH_ALIASES", "BEST_OFFLINE", "BEST_OFFLINE_REFERENCE_DEPTH",
     "PAPER_THRESHOLD_PX",
-    "get", "list_methods", "register", "register_kind", "factory", "parse_name", "preset_name", "load_yaml",
-    "config_dirs",
+    "get", "list_methods", "requirements", "register", "register_kind", "factory", "parse_name", "preset_name",
+    "load_yaml", "config_dirs", "check_options", "query_depth_fallback", "depth_free_problem", "QUERY_DEPTH_SOLVERS",
+    "LIFTING_SOLVERS",
 ]
 
 #: Matchers whose presets exist; ``OFFLINE_MATCHERS`` run without downloading weights.
 MATCHERS = ("sift", "xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "loftr",
-            "superpoint-lightglue")
+            "superpoint-lightglue", "superglue", "superglue-indoor", "efficientloftr")
 OFFLINE_MATCHERS = MATCHERS[:6]
 #: Solver token in a preset name -> solver registry name.
 SOLVERS = {"emat": "essential", "essential": "essential", "pnp": "pnp", "procrustes": "procrustes"}
@@ -172,7 +173,51 @@ def load_yaml(path: os.PathLike | str) -> Method:
         data["depth"] = _depth_spec(str(data["depth"]))
     merged.update(data)
     merged["name"] = data.get("name", path.stem)
-    return Method(**merged)
+    method = Method(**merged)
+    check_options(method, where=str(path))
+    return method
+
+
+#: Solvers that need a depth map of the query too; without one a method falls back to PnP (``query_depth_fallback``).
+QUERY_DEPTH_SOLVERS = ("essential", "procrustes")
+#: Solvers that lift the reference's pixels to 3D with its depth: without any depth map they give no pose.
+LIFTING_SOLVERS = ("pnp", "procrustes")
+
+
+def query_depth_fallback(method: Method) -> Method:
+    """The method to run for a query without a depth map: ``method`` itself, or its PnP twin (reference depth
+    only, at the reference's metric scale) when its solver would need the query's depth. The service and
+    ``mapfree relocalize`` both answer a plain photo this way (the default ``best-offline`` is Procrustes)."""
+    if method.kind == "matching" and method.depth != "none" and method.solver in QUERY_DEPTH_SOLVERS:
+        return replace(method, solver="pnp", solver_opts={}, name=f"{method.name}+pnp")
+    return method
+
+
+def depth_free_problem(method: Method) -> str | None:
+    """Why ``method`` cannot estimate anything from images alone (PnP or Procrustes with depth ``none``: they run
+    only on depth maps handed to them with the images, as the service's anchors do), else None."""
+    if method.kind != "matching" or method.depth != "none" or method.solver not in LIFTING_SOLVERS:
+        return None
+    where = "the reference" if method.solver == "pnp" else "both images"
+    return (f"method {method.name!r} has no depth source, and its {method.solver} solver needs a depth map of "
+            f"{where}: choose a depth suffix or network (e.g. {method.matcher}_{method.solver}_sensor) or Ess.Mat "
+            f"without depth ({method.matcher}_emat_none, up to scale)")
+
+
+def check_options(method: Method, where: str = "") -> None:
+    """Refuse a matcher or solver option the component does not have (a misspelt key would otherwise surface as a
+    TypeError when the method is built, or as every frame of a run failing), suggesting the nearest known one."""
+    if method.kind != "matching":
+        return
+    from . import matching, solvers
+
+    for key, component, known in (("matcher_opts", method.matcher, matching.option_names(method.matcher)),
+                                  ("solver_opts", method.solver, solvers.option_names(method.solver))):
+        for opt in sorted(set(getattr(method, key)) - set(known)):
+            close = difflib.get_close_matches(opt, known, n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise ValueError(f"{where or method.name}: unknown option {key}.{opt} for {component!r}: {hint}"
+                             f"known: {', '.join(sorted(known))}")
 
 
 def _yaml_named(name: str) -> Path | None:
@@ -227,12 +272,31 @@ def get(name_or_path: str | os.PathLike) -> Method:
 
 def list_methods(depths: tuple[str, ...] = ("dptkitti", "dptnyu", "sensor", "mono", "none")) -> list[str]:
     """Every preset name for the given depth tokens, the YAML configs, and registered methods."""
-    names = [preset_name(m, s, d) for d in depths for m in MATCHERS for s in ("emat", "pnp", "procrustes")]
+    # Without depth only Ess.Mat estimates anything (PnP/Procrustes need maps: ``depth_free_problem``).
+    names = [preset_name(m, s, d) for d in depths for m in MATCHERS
+             for s in (("emat",) if d == "none" else ("emat", "pnp", "procrustes"))]
     for d in config_dirs():
         names += sorted(p.stem for p in d.glob("*.y*ml"))
     _load_plugins()
     names += sorted(_REGISTRY)
     return list(dict.fromkeys(names))
+
+
+def requirements(name: str) -> str:
+    """What running method ``name`` needs: the matcher's weights or packages and where depth comes from."""
+    m = get(name)
+    if m.kind != "matching":
+        return m.description or f"a {m.kind} method"
+    from .depth import HUB_MODELS
+    from .matching import needs
+
+    if m.depth == "none":
+        depth = "no depth (direction only)"
+    elif m.depth.startswith("files:"):
+        depth = f"depth maps FRAME.{m.depth[len('files:'):]}.png"
+    else:
+        depth = f"depth network {HUB_MODELS.get(m.depth, m.depth.removeprefix('hf:'))}"
+    return f"{needs(m.matcher)}; {depth}"
 
 
 def _register_builtins() -> None:

@@ -18,7 +18,7 @@ from .geometry import Intrinsics, Pose, project
 
 __all__ = [
     "vcre_grid", "epipolar_inliers", "draw_matches", "draw_grid", "ar_panels", "relocalization_figure", "save_png",
-    "vcre_px",
+    "vcre_px", "estimate_figure", "png_bytes",
 ]
 
 GREEN, RED, ORANGE, CYAN, WHITE = (40, 200, 60), (230, 40, 40), (255, 150, 0), (0, 200, 255), (255, 255, 255)
@@ -143,17 +143,31 @@ def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_q
 
 
 def relocalization_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
-                          kpts0: np.ndarray, kpts1: np.ndarray, pose: Pose | None, gt_pose: Pose | None = None,
-                          threshold_px: float = 3.0, title: str = "", reason: str = "") -> np.ndarray:
-    """Matches on top, AR check below, one RGB image; ``reason``: why there is no pose, when there is none."""
+                          kpts0: np.ndarray | None, kpts1: np.ndarray | None, pose: Pose | None,
+                          gt_pose: Pose | None = None, threshold_px: float = 3.0, title: str = "",
+                          reason: str = "") -> np.ndarray:
+    """Matches on top, AR check below, one RGB image; ``reason``: why there is no pose, when there is none.
+    ``kpts0 = None``: a method without correspondences (pose regression): the AR check alone."""
+    bottom = ar_panels(ref_img, query_img, K_ref, K_query, pose, gt_pose, reason)
+    if kpts0 is None or kpts1 is None:
+        if title:
+            _label(bottom, title, row=2)
+        return bottom
     inl = epipolar_inliers(kpts0, kpts1, K_ref, K_query, pose, threshold_px) if pose is not None else None
     top = draw_matches(ref_img, query_img, kpts0, kpts1, inl)
-    bottom = ar_panels(ref_img, query_img, K_ref, K_query, pose, gt_pose, reason)
     if title:
         _label(top, title, row=1)
     w = max(top.shape[1], bottom.shape[1])
     pad = lambda im: np.pad(im, ((0, 0), (0, w - im.shape[1]), (0, 0)))  # noqa: E731
     return np.concatenate([pad(top), np.full((6, w, 3), 255, np.uint8), pad(bottom)], axis=0)
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """An RGB image encoded as PNG (to embed in a page)."""
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError("could not encode the image as PNG")
+    return buf.tobytes()
 
 
 def save_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:
@@ -163,3 +177,13 @@ def save_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:
     if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
         raise OSError(f"{path}: could not write PNG")
     return path
+
+
+def estimate_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
+                    estimate, gt_pose: Pose | None = None, threshold_px: float = 3.0, title: str = "") -> np.ndarray:
+    """``relocalization_figure`` of an ``Estimate``: its matches when the method has any (a regression method's
+    estimate has none: no empty matches panel), its pose or reason."""
+    m = estimate.extras.get("matches")
+    k0, k1 = (m.kpts0, m.kpts1) if m is not None else (None, None)
+    return relocalization_figure(ref_img, query_img, K_ref, K_query, k0, k1, estimate.pose, gt_pose,
+                                 threshold_px=threshold_px, title=title, reason=estimate.reason)

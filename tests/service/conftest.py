@@ -28,6 +28,14 @@ PG_URL = os.environ.get("MAPFREE_TEST_PG", "")
 BACKENDS = ["sqlite", pytest.param("postgresql", marks=pytest.mark.skipif(
     not PG_URL, reason="MAPFREE_TEST_PG is not set (run .ci/services.sh to start PostgreSQL)"))]
 VAL_SCENES, TEST_SCENES, QUERIES = 2, 2, 20
+#: The monitoring token the test servers get (``MAPFREE_OPERATOR_TOKEN``): it reads /health/detail and /metrics.
+OPERATOR_TOKEN = "mf_operator-" + uuid.uuid4().hex
+OPERATOR = {"Authorization": f"Bearer {OPERATOR_TOKEN}"}
+
+
+def health_detail(url: str, timeout: float = 2) -> dict:
+    """The detailed health (queue, live workers) of the server at ``url``, read with the operator token."""
+    return httpx.get(url + "/health/detail", headers=OPERATOR, timeout=timeout).json()
 
 
 def _realmini() -> Path:
@@ -132,10 +140,12 @@ def zip_of(entries: dict[str, bytes], method: int = zipfile.ZIP_DEFLATED) -> byt
 
 
 def png_of(h: int, w: int, channels: int = 3, dtype=np.uint8) -> bytes:
-    """A blank PNG of that size, channel count and bit depth."""
+    """A blank PNG of that size, channel count and bit depth; a single-channel 16-bit one is a depth map of 1 m
+    everywhere (an all-zero map is refused as an anchor's depth)."""
     import cv2
 
-    ok, buf = cv2.imencode(".png", np.zeros((h, w, channels) if channels > 1 else (h, w), dtype))
+    fill = 1000 if channels == 1 and dtype == np.uint16 else 0
+    ok, buf = cv2.imencode(".png", np.full((h, w, channels) if channels > 1 else (h, w), fill, dtype))
     assert ok
     return buf.tobytes()
 
@@ -180,6 +190,8 @@ def fresh_postgres(tag: str) -> str:
     except Exception:
         engine = make_engine(PG_URL)
         Base.metadata.drop_all(engine)
+        with engine.begin() as c:  # and the schema version with the tables
+            c.execute(text("DROP TABLE IF EXISTS alembic_version"))
         engine.dispose()
         return PG_URL
     finally:
@@ -248,10 +260,10 @@ def create_users(db_url: str, users: dict[str, int | None], admin: bool = False)
 
 
 def start_server(db_url: str, backend: str, data: Split, workdir: Path, workers: int = 2,
-                 extra: tuple[str, ...] = ()) -> Server:
-    port = free_port()
+                 extra: tuple[str, ...] = (), port: int | None = None) -> Server:
+    port = port or free_port()
     log_path = workdir / f"serve-{backend}-{port}.log"
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MAPFREE_DB": db_url}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MAPFREE_DB": db_url, "MAPFREE_OPERATOR_TOKEN": OPERATOR_TOKEN}
     tokens = {"alice": mapfree("admin", "--db", db_url, "create-user", "alice", env=env).splitlines()[-1]}
     tokens.update(create_users(db_url, {"bob": None, "carol": 2}))
     # `python -m mapfree.cli.serve` is `mapfree serve` without importing every other subcommand (faster start)
@@ -266,7 +278,7 @@ def start_server(db_url: str, backend: str, data: Split, workdir: Path, workers:
         if proc.poll() is not None:
             raise RuntimeError(f"server exited:\n{log_path.read_text()[-3000:]}")
         try:
-            h = httpx.get(url + "/health", timeout=2).json()
+            h = health_detail(url)
             if len(h.get("workers", [])) >= workers:
                 break
         except (httpx.HTTPError, ValueError):

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from .conftest import make_submission
+from .conftest import OPERATOR, make_submission
 
 VCRE_AUC = "AUC @ VCRE < 90px"
 
@@ -29,7 +29,7 @@ def expected_metrics(server, data: bytes, split: str, tmp_path) -> dict:
 
 def test_health_and_openapi(server):
     with server.client() as c:
-        h = c.get("/health").json()
+        h = c.get("/health/detail", headers=OPERATOR).json()
         assert h["status"] == "ok" and h["db"] == server.backend and len(h["workers"]) >= 2
         paths = c.get("/openapi.json").json()["paths"]
     for p in ("/api/submissions", "/api/leaderboard/{split}", "/anchors", "/anchors/{aid}/localize",

@@ -100,7 +100,7 @@ def vcre(
     K: np.ndarray,
     W: np.ndarray,
     H: np.ndarray,
-    chunk: int = 1024,
+    chunk: int = 256,
 ) -> np.ndarray:
     """Virtual correspondence reprojection error (pixels), (N,).
 
@@ -112,50 +112,52 @@ def vcre(
     """
     n = len(q_gt)
     out = np.empty(n)
+    if n == 0:
+        return out
+    fx, fy, cx, cy = K.astype(np.float64).T
+    Rg, Re = _rotmat(_unit(q_gt)), _rotmat(_unit(q_est))
+    cg = -np.einsum("nji,nj->ni", Rg, t_gt)
+    ce = -np.einsum("nji,nj->ni", Re, t_est)
+    # Homogeneous pixels of the moved points: K [R_e R_g^T | R_e (c_g - c_e)] X, one 3x4 matrix per frame.
+    A = np.empty((n, 3, 4))
+    A[:, :, :3] = Re @ np.swapaxes(Rg, 1, 2)
+    A[:, :, 3] = np.einsum("nij,nj->ni", Re, cg - ce)
+    A[:, 0] = fx[:, None] * A[:, 0] + cx[:, None] * A[:, 2]
+    A[:, 1] = fy[:, None] * A[:, 1] + cy[:, None] * A[:, 2]
     P = _POINTS
     Ph = np.vstack([P.T, np.ones(len(P))])
     a, b = P[:, 0] / P[:, 2], P[:, 1] / P[:, 2]
-    Kf = K.astype(np.float64)
+    one_size = bool(np.all(W == W[0]) and np.all(H == H[0]))  # scalar bounds clip much faster
+    # Buffers reused chunk after chunk: every pass stays in cache and nothing is allocated per chunk. A stacked
+    # matmul, not one big GEMM: BLAS threads spinning on a busy machine cost more than they save.
+    m = min(chunk, n)
+    uvw, u, v, g = np.empty((m, 3, len(P))), np.empty((m, len(P))), np.empty((m, len(P))), np.empty((m, len(P)))
     for s in range(0, n, chunk):
-        sl = slice(s, min(s + chunk, n))
-        m = sl.stop - sl.start
-        Rg, Re = _rotmat(_unit(q_gt[sl])), _rotmat(_unit(q_est[sl]))
-        cg = -np.einsum("nji,nj->ni", Rg, t_gt[sl])
-        ce = -np.einsum("nji,nj->ni", Re, t_est[sl])
-        # Homogeneous pixels of the moved points: K [R_e R_g^T | R_e (c_g - c_e)] X. A stacked matmul, not
-        # one big (3m,4) x (4,196) GEMM: BLAS threads spinning on a busy machine cost more than they save.
-        fx, fy, cx, cy = Kf[sl].T
-        Km = np.zeros((m, 3, 3))
-        Km[:, 0, 0], Km[:, 0, 2], Km[:, 1, 1], Km[:, 1, 2], Km[:, 2, 2] = fx, cx, fy, cy, 1.0
-        A = np.empty((m, 3, 4))
-        A[:, :, :3] = Re @ np.swapaxes(Rg, 1, 2)
-        A[:, :, 3] = np.einsum("nij,nj->ni", Re, cg - ce)
-        uvw = (Km @ A) @ Ph
-        w_, h_ = W[sl, None], H[sl, None]
-        if np.all(w_ == w_[0]) and np.all(h_ == h_[0]):  # one image size: scalar bounds clip much faster
-            w_, h_ = float(w_[0, 0]), float(h_[0, 0])
+        e = min(s + chunk, n)
+        k = e - s
+        X, U, V, G = uvw[:k], u[:k], v[:k], g[:k]
+        np.matmul(A[s:e], Ph, out=X)
         with np.errstate(divide="ignore", invalid="ignore"):
-            u1 = np.divide(uvw[:, 0], uvw[:, 2])
-            v1 = np.divide(uvw[:, 1], uvw[:, 2])
-        np.clip(u1, 0.0, w_, out=u1)  # NaN (0/0) propagates; handled below
-        np.clip(v1, 0.0, h_, out=v1)
-        u0 = np.clip(fx[:, None] * a + cx[:, None], 0.0, w_)
-        v0 = np.clip(fy[:, None] * b + cy[:, None], 0.0, h_)
-        u1 -= u0
-        v1 -= v0
-        u1 *= u1
-        v1 *= v1
-        u1 += v1
-        err = np.sqrt(u1, out=u1).mean(axis=1)
-        bad = np.flatnonzero(np.isnan(err))
-        if len(bad):  # rare: a 0/0 projection counts as the corner (0, 0), so its offset is -uv_gt
-            du = uvw[bad, 0] / uvw[bad, 2]
-            dv = uvw[bad, 1] / uvw[bad, 2]
-            wb, hb = (w_, h_) if isinstance(w_, float) else (w_[bad], h_[bad])
-            du = np.where(np.isnan(du), 0.0, np.clip(du, 0.0, wb)) - u0[bad]
-            dv = np.where(np.isnan(dv), 0.0, np.clip(dv, 0.0, hb)) - v0[bad]
-            err[bad] = np.hypot(du, dv).mean(axis=1)
-        out[sl] = err
+            np.divide(X[:, 0], X[:, 2], out=U)
+            np.divide(X[:, 1], X[:, 2], out=V)
+        w_, h_ = (float(W[s]), float(H[s])) if one_size else (W[s:e, None], H[s:e, None])
+        np.clip(U, 0.0, w_, out=U)  # NaN (0/0) propagates; handled below
+        np.clip(V, 0.0, h_, out=V)
+        U -= np.clip(np.add(np.multiply(fx[s:e, None], a, out=G), cx[s:e, None], out=G), 0.0, w_, out=G)
+        V -= np.clip(np.add(np.multiply(fy[s:e, None], b, out=G), cy[s:e, None], out=G), 0.0, h_, out=G)
+        U *= U
+        V *= V
+        U += V
+        out[s:e] = np.sqrt(U, out=U).mean(axis=1)
+    bad = np.flatnonzero(np.isnan(out))
+    if len(bad):  # rare: a 0/0 projection counts as the corner (0, 0), so its offset is -uv_gt
+        X = A[bad] @ Ph
+        wb, hb = W[bad, None], H[bad, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            du, dv = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]
+        du = np.where(np.isnan(du), 0.0, np.clip(du, 0.0, wb)) - np.clip(fx[bad, None] * a + cx[bad, None], 0.0, wb)
+        dv = np.where(np.isnan(dv), 0.0, np.clip(dv, 0.0, hb)) - np.clip(fy[bad, None] * b + cy[bad, None], 0.0, hb)
+        out[bad] = np.hypot(du, dv).mean(axis=1)
     return out
 
 

@@ -31,6 +31,14 @@ class _PlainLogFormatter(LogFormatter):
     def _num_to_string(self, x, vmin, vmax):
         return f"{x:g}"
 
+    def set_locs(self, locs=None):
+        # Over more than a decade matplotlib labels 2, 3, 4 and 6 of each: 0.3 and 0.4 then overlap on a
+        # figure-sized axis. 2 and 5 keep every decade labelled without touching.
+        super().set_locs(locs)
+        lo, hi = sorted(self.axis.get_view_interval())
+        if self._sublabels is not None and len(self._sublabels) > 3 and lo > 0 and np.log10(hi / lo) > 1:
+            self._sublabels = {1, 2, 5}
+
 
 def _figure(size=(5.5, 4.2)) -> Figure:
     fig = Figure(figsize=size, dpi=120, layout="constrained")
@@ -130,7 +138,12 @@ def scene_scatter_figure(report: Report) -> Figure:
     ax.axhline(tm, color="0.4", ls="--", lw=1)
     ax.set_xlabel("median rotation error (°)")
     ax.set_ylabel("median translation error (m)")
-    ax.set_title(f"Per-scene median errors ({len(rows)} scenes)")
+    missing = [s for s, m in report.per_scene.items() if m.get("Average Median Rotation Error") is None]
+    if missing:  # a scene without a single estimate has no point: say so instead of dropping it silently
+        names = ", ".join(missing[:4]) + (f" and {len(missing) - 4} more" if len(missing) > 4 else "")
+        ax.text(0.99, 0.01, f"no estimates: {names}", ha="right", va="bottom", fontsize=8, color="tab:red",
+                transform=ax.transAxes)
+    ax.set_title(f"Per-scene median errors ({len(rows)} of {len(report.per_scene)} scenes)")
     ax.grid(alpha=0.3, which="both")
     return fig
 

@@ -11,6 +11,7 @@ evaluator to 1e-6.
 from __future__ import annotations
 
 import os
+import re
 from typing import BinaryIO, Mapping
 
 import numpy as np
@@ -128,6 +129,9 @@ def score(
             conf[idx], lines[idx] = e.confidence[rows[ok]], e.lines[rows[ok]]
         offset += len(rows)
     estimated = np.isfinite(conf)
+    unscored = _unscored_track_problem(estimates, int(estimated.sum()), track)
+    if unscored is not None:
+        problems.append(unscored)
     if compat == "official":
         neg = np.flatnonzero(estimated & (conf < 0))
         if len(neg):
@@ -167,6 +171,23 @@ def score(
         thresholds=thresholds,
         extra_failures=sum(extra.values()),
     )
+
+
+def _unscored_track_problem(estimates: Mapping[str, SceneEstimates], matched: int, track: str) -> Problem | None:
+    """A submission whose estimates are all for frames this track does not score (a multi-frame submission scored
+    on the single-frame track, or the reverse) would score zero without a word: say so, and which track fits."""
+    names = [n for e in estimates.values() for n in e.names]
+    if matched or not names:
+        return None
+    numbers = [int(m.group(1)) for n in names if (m := re.search(r"(\d+)\.\w+$", n))]
+    multi_like = bool(numbers) and all(k % 10 == 9 for k in numbers)
+    single_like = bool(numbers) and all(k % 5 == 0 for k in numbers)
+    hint = ("they are the multi-frame track's frames (9, 19, 29, ...): score it with --track multi"
+            if track == "single" and multi_like else
+            "they are the single-frame track's frames (every 5th): score it with --track single"
+            if track == "multi" and single_like else "check the split and the frame names")
+    return Problem(None, None, f"none of the submission's {len(names)} estimates is for a frame the {track}-frame "
+                               f"track scores, so every frame counts as a failure; {hint}")
 
 
 def scene_medians(values: np.ndarray, bounds: np.ndarray, estimated: np.ndarray) -> np.ndarray:

@@ -12,7 +12,6 @@ import io
 import os
 import re
 import struct
-import tempfile
 import zipfile
 import zlib
 from dataclasses import dataclass, field
@@ -39,6 +38,7 @@ COMPAT_MODES = ("default", "official")
 _ENTRY_RE = re.compile(r"^pose_(s\d{5})\.txt$")
 _BOM = b"\xef\xbb\xbf"
 _FIELDS = ("name", "qw", "qx", "qy", "qz", "tx", "ty", "tz", "confidence")
+_EMPTY = (np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
 
 
 @dataclass(frozen=True)
@@ -93,6 +93,13 @@ class SceneEstimates:
             self.lines[idx], self.keys[idx],
         )
 
+    @classmethod
+    def concat(cls, parts: list["SceneEstimates"]) -> "SceneEstimates":
+        if len(parts) == 1:
+            return parts[0]
+        return cls([n for p in parts for n in p.names], *(np.concatenate([getattr(p, f) for p in parts])
+                                                           for f in ("q", "t", "confidence", "lines", "keys")))
+
     def to_list(self) -> list[tuple[str, Pose, float]]:
         return [(n, Pose.from_qt(q, t), float(c)) for n, q, t, c in zip(self.names, self.q, self.t, self.confidence)]
 
@@ -117,6 +124,16 @@ class _Problems(list):
         else:
             self.dropped += 1
 
+    @property
+    def full(self) -> bool:
+        """Further (non-fatal) problems are only counted."""
+        return len(self) >= self.limit
+
+    def merge(self, other: "_Problems") -> None:
+        for p in other:
+            self.add(p.scene, p.line, p.reason, p.fatal)
+        self.dropped += other.dropped
+
     def finish(self) -> list[Problem]:
         out = sorted(self, key=lambda p: (p.scene or "", p.line or 0))
         if self.dropped:
@@ -134,11 +151,13 @@ def _split_lines(text: str) -> list[str]:
     return lines
 
 
-def _parse_file_slow(scene: str, data: bytes, compat: str, problems: _Problems):
-    """Line-by-line parse of a file that is not clean: (names, vals, bad, lines)."""
+def _parse_file_slow(scene: str, data: bytes, compat: str, problems: _Problems, line0: int = 0):
+    """Line-by-line parse of a file (or a piece of one after ``line0`` lines) that is not clean:
+    (names, keys, vals, bad, lines, number of lines)."""
     text = data.decode("utf-8", errors="surrogateescape")
     names, tokens, lines = [], [], []
-    for lineno, line in enumerate(_split_lines(text), 1):
+    all_lines = _split_lines(text)
+    for lineno, line in enumerate(all_lines, line0 + 1):
         try:
             line.encode("utf-8")
         except UnicodeEncodeError:
@@ -160,22 +179,23 @@ def _parse_file_slow(scene: str, data: bytes, compat: str, problems: _Problems):
         lines.append(lineno)
     vals, bad = parse_numbers(tokens)
     keys = np.array([_frame_key(n) for n in names], dtype=np.int64)
-    return names, keys, vals.reshape(-1, 8), bad.reshape(-1, 8), np.array(lines, dtype=np.int64)
+    return names, keys, vals.reshape(-1, 8), bad.reshape(-1, 8), np.array(lines, dtype=np.int64), len(all_lines)
 
 
-def _parse_file(scene: str, data: bytes, compat: str, problems: _Problems):
-    """(names, frame numbers, (n,8) values, (n,8) rejected-token mask, line numbers) of one pose file.
-    A UTF-8 byte-order mark (Windows editors write one) is not part of the first frame's name."""
-    if data.startswith(_BOM):
+def _parse_file(scene: str, data: bytes, compat: str, problems: _Problems, line0: int = 0):
+    """(names, frame numbers, (n,8) values, (n,8) rejected-token mask, line numbers, number of lines) of a
+    pose file, or of whole lines of one after its first ``line0`` lines. A UTF-8 byte-order mark (Windows
+    editors write one) is not part of the first frame's name."""
+    if line0 == 0 and data.startswith(_BOM):
         data = data[len(_BOM):]
     table = scan_table(data, 8)
     if table is None:
-        return _parse_file_slow(scene, data, compat, problems)
+        return _parse_file_slow(scene, data, compat, problems, line0)
     vals, bad = table.values()
-    return table.names(), table.keys, vals, bad, table.line_numbers
+    return table.names(), table.keys, vals, bad, table.line_numbers + line0, len(table)
 
 
-def _check_rows(
+def _validate_rows(
     scene: str,
     est: SceneEstimates,
     bad: np.ndarray | None,
@@ -183,12 +203,16 @@ def _check_rows(
     known: Collection[str] | None,
     problems: _Problems,
 ) -> SceneEstimates:
-    """Drop (and report) rows a scorer must not use; resolve duplicates as the mode says."""
+    """Drop (and report) rows a scorer must not use, each on its own (duplicates are ``_drop_duplicates``')."""
     n = len(est)
     keep = np.ones(n, dtype=bool)
 
     def report(mask: np.ndarray, reason, drop: bool = True) -> None:
-        for i in np.flatnonzero(mask & keep).tolist():
+        rows = np.flatnonzero(mask & keep).tolist()
+        for k, i in enumerate(rows):
+            if problems.full:  # counted, not worded
+                problems.dropped += len(rows) - k
+                break
             problems.add(scene, int(est.lines[i]) or None, reason(i) if callable(reason) else reason)
         if drop:
             keep[mask] = False
@@ -216,23 +240,31 @@ def _check_rows(
                 np.array([not n.startswith("seq1/") for n in est.names]),
                 lambda i: f"{est.names[i]!r} is not a query frame",
             )
-    if not keep.all():
-        est = est.take(np.flatnonzero(keep))
-    # Duplicates: the first estimate wins (default); the public evaluator keys by number, the last wins.
+    return est if keep.all() else est.take(np.flatnonzero(keep))
+
+
+def _drop_duplicates(scene: str, est: SceneEstimates, compat: str, problems: _Problems,
+                     used: dict) -> SceneEstimates:
+    """Drop (and report) repeated frames: the first estimate wins (default); the public evaluator keys by
+    number, the last wins. ``used`` maps each frame kept from earlier pieces of the file to its line
+    (default mode, read piece by piece); it is updated."""
     ids = est.keys.tolist() if compat == "official" else est.names
-    if len(set(ids)) == len(ids):
+    if len(set(ids)) == len(ids) and used.keys().isdisjoint(ids):
+        used.update(zip(ids, est.lines.tolist()))
         return est
     order = range(len(est) - 1, -1, -1) if compat == "official" else range(len(est))
-    first_of: dict = {}
     dup = np.zeros(len(est), dtype=bool)
     for i in order:
         k = ids[i]
-        if k in first_of:
+        if k in used:
             dup[i] = True
-            j = first_of[k]
-            problems.add(scene, int(est.lines[i]) or None, f"duplicate frame {est.names[i]!r} (line {int(est.lines[j]) or '?'} is used)")
+            if problems.full:
+                problems.dropped += 1
+            else:
+                problems.add(scene, int(est.lines[i]) or None,
+                             f"duplicate frame {est.names[i]!r} (line {used[k] or '?'} is used)")
         else:
-            first_of[k] = i
+            used[k] = int(est.lines[i])
     return est.take(np.flatnonzero(~dup)) if dup.any() else est
 
 
@@ -355,21 +387,59 @@ def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) 
             problems.add(scene, None, f"{name} unpacks to {info.file_size} bytes, over the limit "
                                       f"({_limit_name(limits, budget)}); ignored")
             continue
+        known = expected.get(scene) if expected is not None else None
+        local = _Problems(max(0, problems.limit - len(problems)))  # kept only if the whole entry is read
         try:
             with zf.open(info) as member:
-                data = member.read(cap + 1)
+                est, size = _read_member(scene, member, cap, compat, known, local)
         except (zipfile.BadZipFile, zlib.error, RuntimeError, NotImplementedError, OSError, EOFError, ValueError) as e:
             problems.add(scene, None, f"cannot read {name} ({e}); ignored")
             continue
-        if len(data) > cap:
+        if est is None:
             problems.add(scene, None, f"{name} unpacks to more than {cap} bytes, over the limit "
                                       f"({_limit_name(limits, budget)}; the size in the ZIP directory is wrong); ignored")
             continue
-        budget -= len(data)
-        names, keys, vals, bad, lines = _parse_file(scene, data, compat, problems)
-        est = SceneEstimates(names, vals[:, :4], vals[:, 4:7], vals[:, 7], lines, keys)
-        known = expected.get(scene) if expected is not None else None
-        out[scene] = _check_rows(scene, est, bad, compat, known, problems)
+        budget -= size
+        problems.merge(local)
+        out[scene] = est
+
+
+#: A pose file is read and parsed this many bytes at a time (whole lines), so memory stays a small multiple of
+#: this plus the rows kept (known frames, each once) however large the file is.
+CHUNK_BYTES = 1 << 16
+
+
+def _read_member(scene: str, member: BinaryIO, cap: int, compat: str, known: Collection[str] | None,
+                 problems: _Problems) -> tuple[SceneEstimates | None, int]:
+    """Read, parse and check one pose file piece by piece -> (its estimates, or None when it unpacks to more
+    than ``cap`` bytes; the bytes read). Rows that are dropped (unknown frames, repeats) never accumulate."""
+    parts: list[SceneEstimates] = []
+    used: dict | None = None if compat == "official" else {}  # official: the last repeat wins, known at the end
+    size, line0, carry = 0, 0, b""
+    while True:
+        block = member.read(min(CHUNK_BYTES, cap + 1 - size))
+        size += len(block)
+        if size > cap:
+            return None, size
+        if block:
+            data = carry + block
+            cut = data.rfind(b"\n") + 1
+            if cut == 0:
+                carry = data
+                continue
+            data, carry = data[:cut], data[cut:]
+        else:
+            data, carry = carry, b""
+        if data:
+            names, keys, vals, bad, lines, nlines = _parse_file(scene, data, compat, problems, line0)
+            line0 += nlines
+            est = SceneEstimates(names, vals[:, :4], vals[:, 4:7], vals[:, 7], lines, keys)
+            est = _validate_rows(scene, est, bad, compat, known, problems)
+            parts.append(est if used is None else _drop_duplicates(scene, est, compat, problems, used))
+        if not block:
+            break
+    est = SceneEstimates.concat(parts) if parts else SceneEstimates([], *_EMPTY)
+    return (est if used is not None else _drop_duplicates(scene, est, compat, problems, {})), size
 
 
 def from_estimates(
@@ -403,7 +473,8 @@ def from_estimates(
             conf = np.array([float(c) for _, _, c in rows], dtype=np.float64)
             est = SceneEstimates([n for n, _, _ in rows], q, t, conf, np.zeros(len(rows), dtype=np.int64))
         known = expected.get(scene) if expected is not None else None
-        out[scene] = _check_rows(scene, est, None, compat, known, problems)
+        out[scene] = _drop_duplicates(scene, _validate_rows(scene, est, None, compat, known, problems), compat,
+                                      problems, {})
     return out, problems.finish()
 
 
@@ -438,6 +509,8 @@ def write_submission(
             q, t = pose.qt()
             lines.append(name + " " + " ".join(repr(float(v)) for v in (*q, *t, conf)) + "\n")
         files[f"pose_{scene}.txt"] = "".join(lines)
+    import tempfile
+
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".part", dir=path.parent)
     try:

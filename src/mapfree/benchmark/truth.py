@@ -160,9 +160,10 @@ def _load_intrinsics(path: Path, keys: np.ndarray) -> tuple[np.ndarray, float, f
         sorter = np.argsort(ukeys)
         pos = sorter[np.minimum(np.searchsorted(ukeys, keys, sorter=sorter), len(ukeys) - 1)]
         if np.all(ukeys[pos] == keys):
-            vals, bad = table.values(np.append(last[pos], len(table) - 1))
-            if not bad.any() and np.all(np.isfinite(vals)):
-                return vals[:-1, :4].astype(np.float32), float(vals[-1, 4]), float(vals[-1, 5])
+            vals, bad = table.values(last[pos], ncols=4)
+            size, bad_size = table.values(np.array([len(table) - 1]))
+            if not (bad.any() or bad_size.any()) and np.all(np.isfinite(vals)) and np.all(np.isfinite(size)):
+                return vals.astype(np.float32), float(size[0, 4]), float(size[0, 5])
     ikeys, vals = _intrinsics_slow(path)
     if len(ikeys) == 0:
         raise FormatError(path, None, "no intrinsics")
@@ -217,6 +218,6 @@ def load_truth(
     if all(t.n_keys == 0 for t in out.values()):
         raise FormatError(
             root / split, None,
-            "no ground-truth poses (all-zero lines, as in the public test split): pass gt_root (--gt-root)"
+            "no ground-truth poses (all-zero lines, as in the public test split): pass the private ground truth with --gt-root DIR (in Python: gt_root=DIR)"
         )
     return out

@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..data.io import FormatError, iter_records, read_intrinsics
+from ..data.orientation import ROTATIONS, orient_intrinsics
 from ..geometry import Intrinsics, Pose
 
 __all__ = ["ScanFrame", "Scan", "Place", "read_place", "read_tum", "interpolate_track", "exif_intrinsics", "DEVICE_AXES"]
@@ -114,19 +115,22 @@ def interpolate_track(times: np.ndarray, centres: np.ndarray, rots: np.ndarray, 
 
 
 def exif_intrinsics(path: Path) -> Intrinsics | None:
-    """Pinhole intrinsics from the EXIF 35 mm-equivalent focal length (principal point at the centre)."""
+    """Pinhole intrinsics from the EXIF 35 mm-equivalent focal length (principal point at the centre), for the
+    photo as displayed (its EXIF orientation applied, as every reader of ours does)."""
     from PIL import Image  # pillow comes with matplotlib
 
     try:
         with Image.open(path) as im:
             width, height = im.size
-            f35 = im.getexif().get_ifd(0x8769).get(0xA405)  # Exif sub-IFD: FocalLengthIn35mmFilm
+            exif = im.getexif()
+            f35 = exif.get_ifd(0x8769).get(0xA405)  # Exif sub-IFD: FocalLengthIn35mmFilm
+            orientation = int(exif.get(0x0112, 1))
     except Exception:
         return None
-    if not f35:
+    if not f35 or orientation not in ROTATIONS:
         return None
     f = float(f35) / 36.0 * max(width, height)  # 36 mm = the long side of a full frame
-    return Intrinsics(f, f, (width - 1) / 2, (height - 1) / 2, width, height)
+    return orient_intrinsics(Intrinsics(f, f, (width - 1) / 2, (height - 1) / 2, width, height), orientation)
 
 
 def _sample_video(video: Path, fps: float, cache: Path) -> list[ScanFrame]:

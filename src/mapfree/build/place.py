@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 
 from ..data.device import DEVICE_FILE, multiframe_bursts, rebase_bursts, write_device_poses
-from ..data.io import FormatError, depth_path_for, read_depth, write_depth, write_intrinsics, write_poses
+from ..data.io import (FormatError, depth_path_for, read_depth, read_image, write_depth, write_intrinsics,
+                       write_poses)
 from ..data.overlaps import Overlaps, write_overlaps
 from ..data.scene import REFERENCE_NAME, frame_number
 from ..geometry import Intrinsics, Pose
@@ -79,9 +80,7 @@ def _stage(place: Place, images: Path) -> tuple[dict[str, Path], dict[str, Intri
             if f.path.suffix.lower() in (".jpg", ".jpeg"):
                 os.symlink(f.path.resolve(), dst)
             else:
-                img = cv2.imread(str(f.path), cv2.IMREAD_COLOR)
-                if img is None:
-                    raise FormatError(f.path, None, "cannot decode image")
+                img = cv2.cvtColor(read_image(f.path), cv2.COLOR_RGB2BGR)  # upright, like every reader of ours
                 cv2.imwrite(str(dst), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
             src[name], intr[name], dev[name], seq_of[name] = f.path, f.intrinsics, f.device, k
     return src, intr, dev, seq_of

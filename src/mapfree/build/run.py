@@ -28,6 +28,9 @@ def list_places(scans_root: Path, first_scene: int = 0) -> list[tuple[Path, str]
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: scans folder not found")
     places = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not places:
+        raise FileNotFoundError(f"{root}: no place folders, so nothing to build (expected one sub-folder per place "
+                                f"holding its scans: a video or images per scan)")
     if all(_SCENE_RE.match(p.name) for p in places):
         return [(p, p.name) for p in places]
     return [(p, f"s{first_scene + i:05d}") for i, p in enumerate(places)]
@@ -68,9 +71,10 @@ def build_all(scans_root: Path, out_root: Path, options: BuildOptions = BuildOpt
     from tqdm.auto import tqdm
 
     split_dir = Path(out_root) / options.split
+    places = list_places(scans_root, first_scene)  # before creating anything: an empty folder is refused
     split_dir.mkdir(parents=True, exist_ok=True)
     gt = Path(private_gt) / options.split if private_gt else None
-    jobs = [(place, split_dir / scene, options, gt, force) for place, scene in list_places(scans_root, first_scene)]
+    jobs = [(place, split_dir / scene, options, gt, force) for place, scene in places]
     results: list[PlaceResult | None] = [None] * len(jobs)
     bar = tqdm(total=len(jobs), desc=f"build {options.split}", unit="place", disable=not progress)
 

@@ -70,9 +70,9 @@ def _indices(kpts: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def _write_matches(db: Path, image_root: Path, names: list[str], pairs_file: Path, options: SfmOptions) -> None:
     """Keypoints and exhaustive pairwise matches of ``options.matcher`` into the database (COLMAP's ids)."""
-    import cv2
     import pycolmap
 
+    from ..data.io import read_image
     from ..matching import create
 
     matcher = create(options.matcher, device="cpu")
@@ -81,10 +81,7 @@ def _write_matches(db: Path, image_root: Path, names: list[str], pairs_file: Pat
         ids = {im.name: im.image_id for im in d.read_all_images()}
         feats = {}
         for n in names:
-            bgr = cv2.imread(str(image_root / n), cv2.IMREAD_COLOR)
-            if bgr is None:
-                raise ValueError(f"{image_root / n}: cannot decode image")
-            feats[n] = matcher.extract(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+            feats[n] = matcher.extract(read_image(image_root / n))  # upright, like every reader of ours
             d.write_keypoints(ids[n], np.asarray(feats[n].kpts, np.float32).reshape(-1, 2))
         for i, a in enumerate(names):
             for b in names[i + 1 :]:

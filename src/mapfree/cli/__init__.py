@@ -19,12 +19,18 @@ class DefaultsHelpFormatter(HelpFormatter, argparse.ArgumentDefaultsHelpFormatte
     """``HelpFormatter`` that also prints every option's default."""
 
 
+#: Exit statuses of every command: results written; an error (a message on stderr says what); argparse's own
+#: usage errors; the command ran but estimated nothing (with ``--strict``: not everything).
+EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_NOTHING = 0, 1, 2, 3
+
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
-COMMANDS = ["demo", "synth", "check", "evaluate", "relocalize", "run", "train", "serve", "admin", "sevenscenes", "scannet",
-            "build"]
+COMMANDS = ["demo", "synth", "check", "evaluate", "relocalize", "match", "run", "train", "serve", "admin", "sevenscenes",
+            "scannet", "build"]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``mapfree`` parser; with ``only`` (a command name) just that subcommand's parser is built, so a
+    command imports and builds nothing of the others."""
     from .. import __version__
 
     parser = argparse.ArgumentParser(
@@ -33,7 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"mapfree {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
+    for name in [only] if only in COMMANDS else COMMANDS:
         try:
             module = importlib.import_module(f"{__name__}.{name}")
         except ModuleNotFoundError as e:
@@ -45,7 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv[0] if argv else None)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

@@ -9,42 +9,110 @@ import sys
 from . import HelpFormatter
 
 
+def _limit(text: str) -> int | None:
+    """A daily test limit: a count (0: none), ``unlimited``, or ``default`` (the server's, None)."""
+    if text.strip().lower() == "default":
+        return None
+    from ..service.config import parse_daily_limit
+
+    try:
+        return parse_daily_limit(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"{e}, or 'default'") from None
+
+
+def _shown(limit: int | None) -> str:
+    return "default" if limit is None else ("unlimited" if limit < 0 else str(limit))
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("admin", help="manage service accounts and API tokens",
+    p = sub.add_parser("admin", help="manage service accounts, tokens, sessions, the schema and backups",
                        description="Manage accounts of `mapfree serve`. Tokens are printed once and stored hashed.",
                        epilog="examples:\n"
-                              "  mapfree admin --db sqlite:///mapfree.db create-user alice\n"
-                              "  mapfree admin --db sqlite:///mapfree.db new-token alice\n"
+                              "  mapfree admin --db sqlite:///mapfree.db create-user alice --expires-in 90d\n"
+                              "  mapfree admin --db sqlite:///mapfree.db new-token alice --expires-in 30d --label ci\n"
+                              "  mapfree admin --db sqlite:///mapfree.db list-tokens alice\n"
+                              "  mapfree admin --db sqlite:///mapfree.db revoke-token 12\n"
                               "  mapfree admin --db sqlite:///mapfree.db revoke-tokens alice\n"
-                              "  mapfree admin --db sqlite:///mapfree.db list-users\n",
+                              "  mapfree admin --db sqlite:///mapfree.db set-limit alice 0   # no test evaluations\n"
+                              "  mapfree admin --db sqlite:///mapfree.db set-limit alice unlimited\n"
+                              "  mapfree admin --db sqlite:///mapfree.db list-users\n"
+                              "  mapfree admin --db sqlite:///mapfree.db delete-user alice --yes\n"
+                              "  mapfree admin --db sqlite:///mapfree.db migrate\n"
+                              "  mapfree admin --db sqlite:///mapfree.db backup /backups/mapfree-2026-01-31.db\n",
                        formatter_class=HelpFormatter)
     p.add_argument("--db", default=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
                    help="database URL (default: $MAPFREE_DB or sqlite:///mapfree.db)")
     s = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    expires = {"metavar": "DURATION", "help": "the token expires after this long (90d, 12h, 30m or seconds; "
+                                              "default: never)"}
     c = s.add_parser("create-user", help="create an account and print its API token")
     c.add_argument("name")
     c.add_argument("--admin", action="store_true", help="may see every submission and delete any anchor")
-    c.add_argument("--test-daily-limit", type=int, default=None, help="override the server's daily test limit")
+    c.add_argument("--test-daily-limit", type=_limit, default=None, metavar="N|unlimited|default",
+                   help="override the server's daily test limit: a count (0: no test evaluations at all), "
+                        "'unlimited', or 'default' (the server's, the default)")
+    c.add_argument("--expires-in", **expires)
     t = s.add_parser("new-token", help="issue another token for an account")
     t.add_argument("name")
-    r = s.add_parser("revoke-tokens", help="revoke every token of an account")
+    t.add_argument("--expires-in", **expires)
+    t.add_argument("--label", default="", help="what the token is for (shown by list-tokens)")
+    r = s.add_parser("revoke-tokens", help="revoke every token of an account (and end its browser sessions)")
     r.add_argument("name")
+    s.add_parser("list-tokens", help="an account's tokens: id, prefix, label, created, expires, state").add_argument(
+        "name")
+    s.add_parser("revoke-token", help="revoke one token (by the id list-tokens shows)").add_argument("id", type=int)
+    s.add_parser("list-sessions", help="an account's open browser sessions").add_argument("name")
+    s.add_parser("revoke-session", help="end one browser session (by its id)").add_argument("id", type=int)
+    d = s.add_parser("delete-user", help="delete an account with its tokens, sessions, anchors and submissions")
+    d.add_argument("name")
+    d.add_argument("--yes", action="store_true", help="really delete (without it: say what would go)")
     lim = s.add_parser("set-limit", help="set an account's daily test-evaluation limit")
     lim.add_argument("name")
-    lim.add_argument("limit", type=int)
+    lim.add_argument("limit", type=_limit, metavar="N|unlimited|default",
+                     help="test evaluations per 24 h: a count (0: none at all), 'unlimited', or 'default' (the "
+                          "server's --test-daily-limit)")
     s.add_parser("list-users", help="list accounts")
-    s.add_parser("init-db", help="create the tables (serve does this too)")
+    s.add_parser("init-db", help="create the tables or upgrade them (serve does this too)")
+    s.add_parser("migrate", help="upgrade the schema to this version's (serve does this at start) and say so")
+    b = s.add_parser("backup", help="consistent copy of the live database (SQLite); pg_dump advice (PostgreSQL)")
+    b.add_argument("dest", help="new file to write (never overwritten)")
     p.set_defaults(func=run)
+
+
+def _when(t: float | None) -> str:
+    from ..service.auth import utc
+
+    return utc(t) if t else "never"
 
 
 def run(a: argparse.Namespace) -> int:
     from sqlalchemy import select
 
     from ..service import auth
-    from ..service.db import ApiToken, User, init_db, make_engine, session_factory
+    from ..service.db import ApiToken, User, WebSession, make_engine, session_factory
 
+    if a.action == "backup":  # before any upgrade: a backup is what one takes before upgrading
+        from ..service.backup import backup
+
+        try:
+            print(backup(a.db, a.dest))
+        except (OSError, ValueError, RuntimeError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+        return 0
     engine = make_engine(a.db)
-    init_db(engine)
+    from ..service.migrations import SchemaVersion, upgrade
+
+    try:
+        before, after = upgrade(engine)
+    except SchemaVersion as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    if a.action == "migrate":
+        print(f"schema version {after}" + (" (already)" if before == after else
+                                            f" (was {before or 'unversioned'})"))
+        return 0
     sessions = session_factory(engine)
 
     def user(db, name):
@@ -53,28 +121,89 @@ def run(a: argparse.Namespace) -> int:
             raise SystemExit(f"error: no user {name!r}")
         return u
 
+    def lifetime() -> float | None:
+        try:
+            return auth.parse_duration(a.expires_in) if a.expires_in else None
+        except ValueError as e:
+            raise SystemExit(f"error: --expires-in: {e}") from None
+
     with sessions.begin() as db:
         if a.action == "create-user":
+            expires_in = lifetime()
             try:
                 u, token = auth.create_user(db, a.name, admin=a.admin)
             except ValueError as e:
                 print(f"error: {e}", file=sys.stderr)
                 return 1
             u.test_daily_limit = a.test_daily_limit
+            if expires_in is not None:  # the first token gets the lifetime too
+                db.flush()
+                db.scalar(select(ApiToken).where(ApiToken.user_id == u.id)).expires_at = auth.now() + expires_in
             print(token)
             print(f"created user {a.name!r}; the token above is shown only once", file=sys.stderr)
         elif a.action == "new-token":
-            print(auth.issue_token(db, user(db, a.name)))
+            print(auth.issue_token(db, user(db, a.name), lifetime(), a.label))
         elif a.action == "revoke-tokens":
             print(f"revoked {auth.revoke_tokens(db, user(db, a.name))} token(s)", file=sys.stderr)
+        elif a.action == "list-tokens":
+            from ..service.accounts import list_tokens, token_json
+
+            print("id\tprefix\tlabel\tcreated\texpires\tstate")
+            for t in map(token_json, list_tokens(db, user(db, a.name).id)):
+                state = "revoked" if t["revoked"] else "expired" if t["expired"] else "active"
+                print(f"{t['id']}\t{t['prefix']}…\t{t['label'] or '-'}\t{_when(t['created_at'])}\t"
+                      f"{_when(t['expires_at'])}\t{state}")
+        elif a.action == "revoke-token":
+            row = db.get(ApiToken, a.id)
+            if row is None:
+                print(f"error: no token {a.id}", file=sys.stderr)
+                return 1
+            row.revoked = True
+            print(f"revoked token {a.id} ({row.prefix}…)", file=sys.stderr)
+        elif a.action == "list-sessions":
+            from ..service.accounts import list_sessions
+
+            print("id\topened\texpires")
+            for w in list_sessions(db, user(db, a.name).id):
+                print(f"{w.id}\t{_when(w.created_at)}\t{_when(w.expires_at)}")
+        elif a.action == "revoke-session":
+            row = db.get(WebSession, a.id)
+            if row is None:
+                print(f"error: no session {a.id}", file=sys.stderr)
+                return 1
+            db.delete(row)
+            print(f"ended session {a.id}", file=sys.stderr)
+        elif a.action == "delete-user":
+            return _delete_user(db, user(db, a.name), a.yes)
         elif a.action == "set-limit":
             user(db, a.name).test_daily_limit = a.limit
+            print(f"{a.name}: daily test limit {_shown(a.limit)}", file=sys.stderr)
         elif a.action == "list-users":
             for u in db.scalars(select(User).order_by(User.id)):
                 n = len(db.scalars(select(ApiToken.id).where(ApiToken.user_id == u.id,
                                                             ApiToken.revoked.is_(False))).all())
-                print(f"{u.name}\tadmin={u.is_admin}\ttokens={n}\ttest_limit={u.test_daily_limit}")
+                print(f"{u.name}\tadmin={u.is_admin}\ttokens={n}\ttest_limit={_shown(u.test_daily_limit)}")
     engine.dispose()
+    return 0
+
+
+def _delete_user(db, u, yes: bool) -> int:
+    from sqlalchemy import func, select
+
+    from ..service.accounts import delete_user
+    from ..service.db import User
+
+    if u.is_admin and db.scalar(select(func.count()).select_from(User).where(User.is_admin.is_(True))) == 1:
+        print(f"error: {u.name!r} is the only admin; make another admin first", file=sys.stderr)
+        return 1
+    name = u.name
+    gone = delete_user(db, u, dry_run=not yes)
+    what = ", ".join(f"{n} {k}" for k, n in gone.items())
+    if not yes:
+        print(f"would delete user {name!r} with {what} (their leaderboard entries too); add --yes to delete",
+              file=sys.stderr)
+        return 1
+    print(f"deleted user {name!r} with {what}", file=sys.stderr)
     return 0
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -64,8 +65,15 @@ def run(args: argparse.Namespace) -> int:
 
     sub = out / "submission.zip"
     print(f"[2/4] relocalizing with {args.method!r}")
-    res = run_split(data, "val", args.method, sub, workers=args.workers, all_frames=args.all_frames,
-                    overwrite=True)
+    from ..data import FormatError
+    from . import EXIT_ERROR, EXIT_NOTHING
+
+    try:
+        res = run_split(data, "val", args.method, sub, workers=args.workers, all_frames=args.all_frames,
+                        overwrite=True)
+    except (FileNotFoundError, FormatError, KeyError, ValueError) as e:
+        print(f"mapfree demo: error: {e.args[0] if isinstance(e, KeyError) and e.args else e}", file=sys.stderr)
+        return EXIT_ERROR
     print(f"      {res.estimated} estimates, {res.failed} without estimate, {res.seconds:.1f} s "
           f"(failures logged in {res.failures})")
 
@@ -81,4 +89,4 @@ def run(args: argparse.Namespace) -> int:
     print(f"  scores:     {out / 'scores.json'}")
     for p in plots:
         print(f"  plot:       {p}")
-    return 0
+    return EXIT_NOTHING if res.estimated == 0 else 0

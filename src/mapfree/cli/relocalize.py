@@ -12,6 +12,7 @@ from ..method_names import BEST_OFFLINE
 DESCRIPTION = """\
 Estimate the metric 6-DoF pose of QUERY relative to REF (X_query = R X_ref + t) and print it as JSON
 (pose, confidence, inliers, per-stage timings, or the reason there is no estimate).
+Exit status: 0 pose estimated, 1 error, 3 no estimate (the JSON says why).
 
 Intrinsics come from --K-ref/--K-query, from --intrinsics (a Map-free intrinsics.txt), or, for images
 inside a Map-free scene folder, from that scene's intrinsics.txt. Depth comes from --depth-ref/--depth-query
@@ -98,6 +99,8 @@ def _intrinsics(args, image: Path, flag: str | None, optional: bool = False, wha
         if fx <= 0 or fy <= 0:
             raise InputError(f"{what}: focal lengths must be positive")
         return Intrinsics(fx, fy, cx, cy, w, h)
+    if args.intrinsics is not None and not args.intrinsics.is_file():
+        raise InputError(f"intrinsics file {args.intrinsics} not found")
     source = args.intrinsics or _scene_dir(image) / "intrinsics.txt"
     if not source.is_file():
         raise InputError(f"no intrinsics for {image}: pass --K-ref/--K-query or --intrinsics FILE")
@@ -126,12 +129,22 @@ def _gt_pose(args):
         raise InputError(f"--gt-pose: {e}") from None
 
 
+def _query_has_depth(method, args) -> bool:
+    """Whether the query will have a depth map: given, predicted by a network, or a ``files:`` map beside it."""
+    if args.depth_query is not None or method.kind != "matching" or not method.depth.startswith("files:"):
+        return True
+    from ..data.io import depth_path_for
+
+    return depth_path_for(args.query, method.depth.split(":", 1)[1]).is_file()
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..data import FormatError, check_depth_size, read_depth
     from ..methods import get
     from ..relocalize import Relocalizer, as_view
+    from . import EXIT_ERROR, EXIT_NOTHING
 
     try:
         if args.checkpoint is not None:
@@ -142,6 +155,17 @@ def run(args: argparse.Namespace) -> int:
             method = get(args.method)
         if args.depth:
             method = method.with_depth(args.depth)
+        from ..methods import depth_free_problem, query_depth_fallback
+
+        problem = depth_free_problem(method)
+        if problem and (args.depth_ref is None or (method.solver == "procrustes" and args.depth_query is None)):
+            raise InputError(f"{problem}; or pass the maps with --depth-ref/--depth-query")
+        if not _query_has_depth(method, args):
+            fallback = query_depth_fallback(method)
+            if fallback is not method:
+                print(f"mapfree relocalize: {args.query} has no depth map ({method.depth}): {method.name} runs with "
+                      f"PnP instead (reference depth only)", file=sys.stderr)
+                method = fallback
         for p in (args.reference, args.query):
             if not p.is_file():
                 raise InputError(f"{p}: image not found")
@@ -153,16 +177,19 @@ def run(args: argparse.Namespace) -> int:
             if depth is not None and K is not None:
                 check_depth_size(dpath, depth.shape, K.width, K.height)
             v = as_view((image, K, depth))
-            if v.image.shape[:2] != (K.height, K.width):
+            if v.image.shape[:2] != (v.intrinsics.height, v.intrinsics.width):
                 raise InputError(f"{image}: image is {v.image.shape[1]}x{v.image.shape[0]} but its intrinsics "
                                  f"say {K.width}x{K.height}")
             views.append(v)
         gt = _gt_pose(args)
         loc = Relocalizer.from_method(method)
+        check = getattr(getattr(loc, "depth_source", None), "check_available", None)
+        if check is not None and (args.depth_ref is None or args.depth_query is None):
+            check()  # a depth network that cannot be loaded: one clear error, not a "no estimate"
     except (InputError, FormatError, FileNotFoundError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree relocalize: error: {msg}", file=sys.stderr)
-        return 2
+        return EXIT_ERROR
 
     ref, query = views
     est = loc.relocalize(ref, query)
@@ -178,13 +205,14 @@ def run(args: argparse.Namespace) -> int:
                         "rotation_deg": float(rotation_angle_deg(est.pose.R, gt.R)),
                         "vcre_px": vcre_px(est.pose, gt, query.intrinsics)}
     if args.viz:
-        from ..matching.base import Matches
-        from ..viz import relocalization_figure, save_png
+        from ..viz import estimate_figure, save_png
 
-        m = est.extras.get("matches", Matches.empty())
         thr = float(method.solver_opts.get("ransac_threshold_px", 3.0))
-        fig = relocalization_figure(ref.image, query.image, ref.intrinsics, query.intrinsics, m.kpts0, m.kpts1,
-                                    est.pose, gt, threshold_px=thr, title=method.name, reason=est.reason)
+        fig = estimate_figure(ref.image, query.image, ref.intrinsics, query.intrinsics, est, gt, threshold_px=thr,
+                              title=method.name)
         out["viz"] = str(save_png(args.viz, fig))
     print(json.dumps(out, indent=2, allow_nan=False))
+    if est.pose is None:
+        print(f"mapfree relocalize: no estimate: {est.reason}", file=sys.stderr)
+        return EXIT_NOTHING
     return 0

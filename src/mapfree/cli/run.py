@@ -15,12 +15,16 @@ Reference features and depth are computed once per scene; scenes run in parallel
 Every finished frame is appended to OUTPUT's journal (submission.journal.jsonl): after a crash or
 Ctrl-C, run the same command with --resume and only the missing frames are computed. Frames without an
 estimate are listed with their reason in submission.failures.jsonl. Nothing non-finite is ever written.
+A resumed scene whose data changed since it was journaled is computed again.
+
+Exit status: 0 results written, 1 error, 3 nothing estimated (with --strict: a frame without an estimate).
 """
 
 EPILOG = """\
 examples:
   mapfree run data/ --split val --method sift_emat_dptkitti -o sift.zip --workers 2
-  mapfree run data/ --split val --method configs/methods/best-offline.yaml -o best.zip --resume --evaluate
+  mapfree run data/ --split val --method best-offline -o best.zip --resume --evaluate
+  mapfree run data/ --method configs/methods/xfeat-pnp-poselib.yaml --scenes s00000,s00001 --viz figures/
   mapfree run --list-methods
 """
 
@@ -57,32 +61,44 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                         "(e.g. confidence_inliers, confidence_score)")
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="trained checkpoint for a regression method (e.g. --method rpr --checkpoint best.ckpt)")
-    p.add_argument("--evaluate", action="store_true", help="score the submission against the split's poses")
+    p.add_argument("--evaluate", action="store_true",
+                   help="score the submission against the split's poses (the table of `mapfree evaluate`)")
+    p.add_argument("--json", action="store_true", help="print the run's summary (and scores) as JSON")
+    p.add_argument("--strict", action="store_true", help="exit 3 unless every frame got an estimate")
+    p.add_argument("--viz", type=Path, default=None, metavar="DIR",
+                   help="draw each frame computed (matches + AR check) as DIR/SCENE/seq1_frame_NNNNN.png")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--list-methods", action="store_true", help="print the method names and exit")
+    p.add_argument("--list-methods", action="store_true", help="print the method names, each with what it needs, and exit")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..data import FormatError
     from ..methods import list_methods
+    from . import EXIT_ERROR, EXIT_NOTHING
 
     if args.list_methods:
-        print("\n".join(list_methods()))
+        from ..methods import requirements
+
+        names = list_methods()
+        width = max(map(len, names))
+        print("\n".join(f"{n:<{width}}  {requirements(n)}" for n in names))
         return 0
+    problem = None
     if args.root is None or not args.method:
-        print("mapfree run: error: ROOT and --method are required (or --list-methods)", file=sys.stderr)
-        return 2
-    if args.workers < 1:
-        print("mapfree run: error: --workers must be >= 1", file=sys.stderr)
-        return 2
-    if args.batch is not None and args.batch < 0:
-        print("mapfree run: error: --batch must be >= 0", file=sys.stderr)
-        return 2
-    if args.track == "multi" and args.all_frames:
-        print("mapfree run: error: --all-frames cannot be combined with --track multi (the multi-frame track "
-              "runs the 9-frame bursts of the scored queries)", file=sys.stderr)
-        return 2
+        problem = "ROOT and --method are required (or --list-methods)"
+    elif args.workers < 1:
+        problem = "--workers must be >= 1"
+    elif args.batch is not None and args.batch < 0:
+        problem = "--batch must be >= 0"
+    elif args.track == "multi" and args.all_frames:
+        problem = ("--all-frames cannot be combined with --track multi (the multi-frame track runs the 9-frame "
+                   "bursts of the scored queries)")
+    elif args.viz is not None and args.viz.exists() and not args.viz.is_dir():
+        problem = f"--viz {args.viz}: not a folder (it names a file)"
+    if problem:
+        print(f"mapfree run: error: {problem}", file=sys.stderr)
+        return EXIT_ERROR
     from ..relocalize import run_split
 
     try:
@@ -99,11 +115,11 @@ def run(args: argparse.Namespace) -> int:
         res = run(args.root, args.split, method, args.output, workers=args.workers,
                   all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
                   confidence=args.confidence, progress=not args.no_progress,
-                  scenes=args.scenes.split(",") if args.scenes else None, batch_size=args.batch)
+                  scenes=args.scenes.split(",") if args.scenes else None, batch_size=args.batch, viz_dir=args.viz)
     except (FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree run: error: {msg}", file=sys.stderr)
-        return 2
+        return EXIT_ERROR
     except KeyboardInterrupt:
         from ..relocalize import journal_path, read_journal
         from ..relocalize.multiframe import frames_path
@@ -113,21 +129,49 @@ def run(args: argparse.Namespace) -> int:
               f"run the same command with --resume to continue", file=sys.stderr)
         return 130
     out = res.to_dict()
-    error = None
+    frames = getattr(res, "frames", res)  # the multi-frame track: the per-frame run behind the fused poses
+    if frames.stale_scenes:
+        print(f"mapfree run: the data of {', '.join(frames.stale_scenes)} changed since the journal was written: "
+              f"computed again", file=sys.stderr)
+    report, error = None, None
     if args.evaluate:
         from ..benchmark import EvaluationError, evaluate
 
         try:
-            out["metrics"] = evaluate(res.submission, args.root, args.split, track=args.track).metrics
+            report = evaluate(res.submission, args.root, args.split, track=args.track)
+            out["metrics"] = report.metrics
         except (EvaluationError, FormatError, FileNotFoundError, ValueError) as e:
             error = (f"mapfree run: error: the submission {res.submission} was written but cannot be scored here: "
                      f"{e}; score it with `mapfree evaluate {res.submission} --dataset {args.root} --split "
                      f"{args.split} --gt-root GT` when you hold the ground truth")
-    print(json.dumps(out, indent=2, allow_nan=False))
+    if args.json:
+        print(json.dumps(out, indent=2, allow_nan=False))
+    else:
+        _print_summary(res, frames, args)
+        if report is not None:
+            from ..benchmark import format_table
+
+            print(format_table(report), end="")
     if error:
         print(error, file=sys.stderr)
-        return 2
+        return EXIT_ERROR
+    if res.estimated == 0 or (args.strict and res.failed):
+        why = "no frame got an estimate" if res.estimated == 0 else f"{res.failed} frame(s) without an estimate"
+        print(f"mapfree run: {why} (reasons in {res.failures})", file=sys.stderr)
+        return EXIT_NOTHING
     return 0
+
+
+def _print_summary(res, frames, args: argparse.Namespace) -> None:
+    """What the run wrote, in a few lines (``--json`` prints everything)."""
+    total = res.estimated + res.failed
+    print(f"wrote {res.submission}: {res.estimated} of {total} frames estimated "
+          f"({frames.computed} computed, {frames.skipped} from the journal, {frames.scenes} scenes, "
+          f"{frames.seconds:.1f} s)")
+    if res.failed:
+        print(f"frames without an estimate and why: {res.failures}")
+    if args.viz is not None and frames.computed:
+        print(f"figures of the computed frames: {args.viz}/SCENE/")
 
 
 def _with_checkpoint(name: str, checkpoint: Path):

@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     except (FileNotFoundError, FormatError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree scannet: error: {msg}", file=sys.stderr)
-        return 2
+        return 1
     nan_R, nan_t = np.full((3, 3), np.nan), np.full(3, np.nan)
     report = relpose_report(
         [p.name for p in pairs], [p.T_0to1.R for p in pairs], [p.T_0to1.t for p in pairs],
@@ -64,4 +64,11 @@ def run(args: argparse.Namespace) -> int:
     (args.out / "table.txt").write_text(table)
     cumulative_error_figure(report).savefig(args.out / "pose_error_cdf.png")
     print(table)
+    if not any(e.ok for e in ests):
+        from . import EXIT_NOTHING
+
+        reasons = sorted({e.reason for e in ests if e.reason})
+        print(f"mapfree scannet: no pair got an estimate ({'; '.join(reasons[:3]) or 'no reason given'})",
+              file=sys.stderr)
+        return EXIT_NOTHING
     return 0

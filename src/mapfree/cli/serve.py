@@ -18,6 +18,15 @@ from . import HelpFormatter
 log = logging.getLogger("mapfree.serve")
 
 
+def _daily_limit(text: str) -> int:
+    from ..service.config import parse_daily_limit
+
+    try:
+        return parse_daily_limit(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "serve", help="run the evaluation server + relocalization API (FastAPI) with evaluation workers",
@@ -45,7 +54,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-api", action="store_true", help="run only the evaluation workers (scale-out hosts)")
     p.add_argument("--lease-seconds", type=float, default=60.0,
                    help="a job whose worker stops renewing for this long is retried (default 60)")
-    p.add_argument("--test-daily-limit", type=int, default=5, help="test evaluations per account per 24 h (default 5)")
+    p.add_argument("--test-daily-limit", type=_daily_limit, default=5, metavar="N|unlimited",
+                   help="test evaluations per account per 24 h (default 5; 0: none at all; 'unlimited': no limit)")
     p.add_argument("--max-upload-mb", type=float, default=50.0, help="largest submission ZIP (default 50 MB)")
     p.add_argument("--max-entry-mb", type=float, default=64.0,
                    help="largest pose file inside a ZIP, uncompressed (default 64 MiB)")
@@ -65,6 +75,29 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--method", default="", help="relocalization method of new anchors that name none "
                                                 "(default: best-offline)")
     p.add_argument("--secure-cookies", action="store_true", help="mark cookies Secure (behind HTTPS)")
+    g = p.add_argument_group("memory and concurrency of the relocalization API (per API process)")
+    g.add_argument("--work-max-side", type=int, default=1024,
+                   help="photos are downscaled to this long side before a method runs (default 1024; 0: never)")
+    g.add_argument("--heavy-threads", type=int, default=0,
+                   help="localize / anchor computations at once (default 0: one per CPU, at most 4)")
+    g.add_argument("--heavy-queue", type=int, default=8,
+                   help="such requests waiting for a thread; more get 429 with Retry-After (default 8)")
+    g.add_argument("--anchor-cache-mb", type=float, default=256.0,
+                   help="prepared anchors (features, depth at the working size) kept in memory (default 256 MiB)")
+    g = p.add_argument_group("connections (uvicorn)")
+    g.add_argument("--forwarded-allow-ips", default="",
+                   help="comma-separated addresses of trusted reverse proxies whose X-Forwarded-For/-Proto are "
+                        "believed ('*': any); default: none, the client address is the TCP peer's")
+    g.add_argument("--timeout-keep-alive", type=float, default=5.0,
+                   help="close a connection idle this long between requests (default 5 s)")
+    g.add_argument("--header-timeout", type=float, default=10.0,
+                   help="close a connection whose request line and headers take longer (default 10 s; 0: off)")
+    g.add_argument("--body-timeout", type=float, default=30.0,
+                   help="answer 408 when the next piece of a request body takes longer (default 30 s; 0: off)")
+    g.add_argument("--limit-concurrency", type=int, default=1000,
+                   help="connections per API process before new requests get 503 (default 1000; 0: no limit)")
+    g.add_argument("--h11-max-incomplete-event-size", type=int, default=16 * 1024,
+                   help="largest request line + headers in bytes (default 16 KiB)")
     p.add_argument("--log-level", default="info", help="debug, info, warning or error (default: info)")
     p.set_defaults(func=run)
 
@@ -74,13 +107,27 @@ def settings_from_args(a: argparse.Namespace):
 
     mb = 1 << 20
     limits = Limits(max_submission_bytes=int(a.max_upload_mb * mb), max_zip_entry_bytes=int(a.max_entry_mb * mb),
-                    max_zip_uncompressed_bytes=int(a.max_unpacked_mb * mb))
+                    max_zip_uncompressed_bytes=int(a.max_unpacked_mb * mb), work_max_side=a.work_max_side)
     limits.max_request_bytes = max(limits.max_request_bytes, limits.max_submission_bytes + mb)
     return Settings(db_url=a.db, data_root=a.data, gt_root=a.gt, test_daily_limit=a.test_daily_limit,
                     lease_seconds=a.lease_seconds, default_method=a.method, secure_cookies=a.secure_cookies,
                     methods_dir=a.methods_dir, val_hourly_limit=a.val_hourly_limit,
                     storage_quota_bytes=int(a.storage_quota_mb * mb), zip_retention_days=a.zip_retention_days,
-                    auth_failures_per_minute=a.auth_failures_per_minute, limits=limits)
+                    auth_failures_per_minute=a.auth_failures_per_minute,
+                    heavy_threads=a.heavy_threads, heavy_queue=a.heavy_queue, anchor_cache_mb=a.anchor_cache_mb,
+                    body_timeout=a.body_timeout, limits=limits,
+                    operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""))
+
+
+def uvicorn_options(a: argparse.Namespace) -> dict:
+    """uvicorn's connection settings from the flags: timeouts, concurrency, header size, trusted proxies (none
+    unless named: uvicorn would otherwise believe X-Forwarded-For from 127.0.0.1, a per-request new address)."""
+    from ..service.timeouts import head_timeout_protocol
+
+    return {"http": head_timeout_protocol(a.header_timeout), "timeout_keep_alive": a.timeout_keep_alive,
+            "limit_concurrency": a.limit_concurrency or None, "timeout_graceful_shutdown": 10,
+            "h11_max_incomplete_event_size": a.h11_max_incomplete_event_size,
+            "proxy_headers": bool(a.forwarded_allow_ips), "forwarded_allow_ips": a.forwarded_allow_ips or None}
 
 
 #: Start workers without the working directory on their module path (``-P``; ``-I`` before Python 3.11): a
@@ -90,7 +137,7 @@ ISOLATED = "-P" if sys.version_info >= (3, 11) else "-I"
 
 def worker_command(a: argparse.Namespace) -> list[str]:
     limits = dataclasses.asdict(settings_from_args(a).limits)
-    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.worker", "--db", a.db,
+    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.worker",  # the database URL: worker_env
            "--lease-seconds", str(a.lease_seconds), "--zip-retention-days", str(a.zip_retention_days),
            "--limits", json.dumps(limits), "--log-level", a.log_level, "--exit-with-parent"]
     if a.data:
@@ -100,14 +147,21 @@ def worker_command(a: argparse.Namespace) -> list[str]:
     return cmd
 
 
+def worker_env(a: argparse.Namespace) -> dict[str, str]:
+    """The workers' environment: the database URL goes there, never on their command line, where ``ps`` would
+    show its password to every user of the host (a process's environment is readable by its owner only)."""
+    return {**os.environ, "MAPFREE_DB": a.db}
+
+
 class Supervisor:
     """Keeps ``n`` worker processes alive until ``stop()``. A worker that exits is replaced; one that keeps dying
     soon after its start is replaced after a growing pause (``backoff`` doubling up to ``max_backoff`` s), so a
     broken installation does not spin, and a worker that ran ``stable_s`` seconds starts the count afresh."""
 
     def __init__(self, cmd: list[str], n: int, backoff: float = 1.0, max_backoff: float = 60.0,
-                 stable_s: float = 30.0):
+                 stable_s: float = 30.0, env: dict[str, str] | None = None):
         self.cmd, self.n, self.procs, self.stopping = cmd, n, [], threading.Event()
+        self.env = env
         self.backoff, self.max_backoff, self.stable_s = backoff, max_backoff, stable_s
         self.started: list[float] = []
         self.failures: list[int] = []  # consecutive quick deaths per slot
@@ -117,7 +171,7 @@ class Supervisor:
 
     def _spawn(self) -> subprocess.Popen:
         self.spawned += 1
-        return subprocess.Popen(self.cmd)
+        return subprocess.Popen(self.cmd, env=self.env)
 
     def start(self) -> None:
         self.procs = [self._spawn() for _ in range(self.n)]
@@ -156,15 +210,30 @@ class Supervisor:
 
 
 def run(a: argparse.Namespace) -> int:
-    from ..service.db import init_db, make_engine
+    from ..service.db import make_engine
+    from ..service.evaluation import check_ground_truth
     from ..service.logs import setup_logging
 
     setup_logging(a.log_level)
     settings = settings_from_args(a)
+    try:
+        check_ground_truth(settings)
+    except ValueError as e:
+        print(f"mapfree serve: error: {e}", file=sys.stderr)
+        return 2
+    from ..service.migrations import SchemaVersion, upgrade
+
     engine = make_engine(settings.db_url)
-    init_db(engine)  # once, before several processes race to create tables
-    engine.dispose()
-    sup = Supervisor(worker_command(a), a.workers) if a.workers > 0 else None
+    try:  # create the tables or upgrade the schema, once, before the API processes and workers start
+        before, after = upgrade(engine)
+    except SchemaVersion as e:
+        print(f"mapfree serve: error: {e}", file=sys.stderr)
+        return 2
+    finally:
+        engine.dispose()
+    if before != after:
+        log.info("database schema upgraded", extra={"from": before or "unversioned", "to": after})
+    sup = Supervisor(worker_command(a), a.workers, env=worker_env(a)) if a.workers > 0 else None
     if sup:
         sup.start()
     try:
@@ -179,17 +248,21 @@ def run(a: argparse.Namespace) -> int:
         import uvicorn
 
         log.info("serving", extra={"host": a.host, "port": a.port, "db": settings.db_url.split("://")[0]})
+        conn = uvicorn_options(a)
         if a.api_processes > 1:
+            from ..service.lifeline import PARENT_PID_ENV
+
             os.environ["MAPFREE_SETTINGS"] = json.dumps(dataclasses.asdict(settings), default=str)
+            os.environ[PARENT_PID_ENV] = str(os.getpid())  # they end with this process, even on kill -9
             uvicorn.run("mapfree.service.app:app_from_env", factory=True, host=a.host, port=a.port,
-                        workers=a.api_processes, log_config=None, access_log=False)
+                        workers=a.api_processes, log_config=None, access_log=False, **conn)
         else:
             from ..service import create_app
             from ..service.gcpause import freeze_long_lived
 
             app = create_app(settings)
             freeze_long_lived()
-            uvicorn.run(app, host=a.host, port=a.port, log_config=None, access_log=False)
+            uvicorn.run(app, host=a.host, port=a.port, log_config=None, access_log=False, **conn)
         return 0
     finally:
         if sup:

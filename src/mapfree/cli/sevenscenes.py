@@ -60,8 +60,13 @@ def run(args: argparse.Namespace) -> int:
     except (FileNotFoundError, FormatError, KeyError, ValueError) as e:
         msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
         print(f"mapfree sevenscenes: error: {msg}", file=sys.stderr)
-        return 2
+        return 1
     print(write_reports(reports, args.out, plots=not args.no_plots))
+    if not any(r.estimated.any() for r in reports.values()):
+        from . import EXIT_NOTHING
+
+        print("mapfree sevenscenes: no frame got an estimate", file=sys.stderr)
+        return EXIT_NOTHING
     return 0
 
 

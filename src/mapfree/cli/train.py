@@ -58,12 +58,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        from ..regression.config import apply_overrides, load_config
-        from ..regression.train import TrainerOptions, fit, resolve_config
-    except ImportError as e:
-        print(f"mapfree train needs the training extra (pip install 'mapfree[train]'): {e}", file=sys.stderr)
-        return 2
+    # The config and the flags are checked before Lightning is imported (seconds, and its banner lines): a typo
+    # in the command line is answered at once.
+    from ..regression.config import apply_overrides, load_config, resolve_config
+
     try:
         path = resolve_config(args.config)
         cfg = load_config(path)
@@ -80,8 +78,17 @@ def run(args: argparse.Namespace) -> int:
             overrides.append(f"train.freeze={args.freeze}")
         cfg = apply_overrides(cfg, overrides) if overrides else cfg
     except (FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        print(f"mapfree train: error: {e}", file=sys.stderr)
+        return 1
+    if args.resume is not None and not args.resume.is_file():
+        print(f"mapfree train: error: --resume checkpoint {args.resume} not found", file=sys.stderr)
+        return 1
+    try:
+        from ..regression.train import TrainerOptions, fit
+    except ImportError as e:
+        print(f"mapfree train needs the training extra (pip install 'mapfree[train]'): {e}", file=sys.stderr)
+        return 1
+    _quiet_lightning()
     lvb = args.limit_val_batches
     opts = TrainerOptions(
         accelerator=args.accelerator, devices=args.devices, num_nodes=args.num_nodes, strategy=args.strategy,
@@ -93,10 +100,25 @@ def run(args: argparse.Namespace) -> int:
     try:
         trainer, _ = fit(cfg, out, opts, resume=args.resume)
     except (FileNotFoundError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        print(f"mapfree train: error: {e}", file=sys.stderr)
+        return 1
     ck = trainer.checkpoint_callback
     if trainer.is_global_zero:
         best = getattr(ck, "best_model_path", "") or "none yet: no validation ran, use last.ckpt"
         print(f"checkpoints: {out / 'checkpoints'} (best: {best}); logs: {out / 'logs' / 'metrics.csv'}")
     return 0
+
+
+def _quiet_lightning() -> None:
+    """Lightning's start-up lines (available accelerators, tips, the model summary's preamble) at INFO go away;
+    its warnings stay."""
+    import logging
+    import warnings
+
+    for name in ("pytorch_lightning.utilities.rank_zero", "lightning.pytorch.utilities.rank_zero",
+                 "pytorch_lightning.accelerators.cuda", "lightning.pytorch.accelerators.cuda"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    # Two warnings every run prints that ask nothing of the user: a deprecation inside Lightning itself, and
+    # the frozen pretrained encoder being (deliberately) in eval mode.
+    warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\)")
+    warnings.filterwarnings("ignore", message=r"Found \d+ module\(s\) in eval mode")

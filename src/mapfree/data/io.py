@@ -15,6 +15,7 @@ from typing import Iterator, Mapping, Sequence
 import numpy as np
 
 from ..geometry import Intrinsics, Pose
+from .orientation import OrientationError, exif_orientation, orient_pixels
 
 __all__ = [
     "FormatError",
@@ -140,9 +141,16 @@ def read_depth(path: os.PathLike | str) -> np.ndarray:
     """uint16 millimetre PNG -> float32 metres, 0 = invalid."""
     import cv2  # here, not at the top: reading poses and intrinsics needs no OpenCV
 
-    d = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+    # Decoded from bytes: cv2.imread prints its own "[ WARN ] can't open/read file" line before our error.
+    if not Path(path).is_file():
+        raise FormatError(path, None, "depth image not found")
+    data = np.fromfile(str(path), dtype=np.uint8)
+    try:
+        d = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH) if data.size else None
+    except cv2.error:
+        d = None
     if d is None:
-        raise FormatError(path, None, "cannot read depth image (missing or corrupt)")
+        raise FormatError(path, None, "cannot read depth image (empty or corrupt)")
     if d.ndim != 2:
         raise FormatError(path, None, f"depth must be single-channel, got shape {d.shape}")
     if d.dtype == np.uint8:
@@ -177,13 +185,28 @@ def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:
 
 
 def read_image(path: os.PathLike | str) -> np.ndarray:
-    """Image file -> (H,W,3) uint8 RGB; a missing or corrupt file raises FormatError naming it."""
+    """Image file -> (H,W,3) uint8 RGB, turned upright by its EXIF orientation; a missing or corrupt file raises
+    FormatError naming it."""
     import cv2
 
     data = np.fromfile(str(path), dtype=np.uint8) if Path(path).is_file() else None
     if data is None:
         raise FormatError(path, None, "image file not found")
-    img = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    if data.size == 0:
+        raise FormatError(path, None, "image file is empty (0 bytes)")
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    except cv2.error:  # OpenCV asserts on some truncated headers instead of returning None
+        img = None
     if img is None:
         raise FormatError(path, None, "cannot decode image (corrupt or unsupported format)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return upright(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), path)
+
+
+def upright(img: np.ndarray, path: os.PathLike | str) -> np.ndarray:
+    """The decoded stored pixels of ``path`` -> the photo as displayed (EXIF orientation applied); a mirrored one is
+    refused."""
+    try:
+        return orient_pixels(img, exif_orientation(path))
+    except OrientationError as e:
+        raise FormatError(path, None, str(e).split(": ", 1)[1]) from None

@@ -14,6 +14,7 @@ class FileDepth:
     """``files:SUFFIX``: reads ``frame.SUFFIX.png``; None when the frame has no such file."""
 
     metric = True
+    reads_files = True  # its maps are stored like the photo's pixel grid (turned with a tagged photo)
 
     def __init__(self, suffix: str) -> None:
         if not suffix or "/" in suffix:

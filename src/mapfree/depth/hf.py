@@ -75,6 +75,23 @@ class HFDepth:
         self.predictions = 0  # images run through the network (cache misses)
 
     # ------------------------------------------------------------------ loading
+    def check_available(self) -> None:
+        """Raise ``MissingModelError`` now if the model could not be loaded (not cached, hub unreachable), without
+        loading it: a run refuses before any work instead of failing every frame."""
+        if self._model is not None or Path(self.model_id).is_dir():
+            return
+        from huggingface_hub import try_to_load_from_cache
+
+        if isinstance(try_to_load_from_cache(self.model_id, "config.json"), str) or _hub_reachable():
+            return
+        raise MissingModelError(self._missing_message())
+
+    def _missing_message(self) -> str:
+        return (f"depth model '{self.model_id}' is not in the local Hugging Face cache and huggingface.co is "
+                f"unreachable. On a machine with internet run `huggingface-cli download {self.model_id} "
+                f"--local-dir DIR`, copy DIR here and use the depth spec 'hf:DIR' (or point HF_HOME at a "
+                f"cache that holds it).")
+
     def load(self) -> None:
         """Load model + processor now (otherwise on first use); ``MissingModelError`` when unavailable."""
         if self._model is not None:
@@ -97,12 +114,7 @@ class HFDepth:
             if local:
                 raise MissingModelError(f"{self.model_id}: not a transformers depth model folder ({e})") from None
             if not _hub_reachable():
-                raise MissingModelError(
-                    f"depth model '{self.model_id}' is not in the local Hugging Face cache and huggingface.co is "
-                    f"unreachable. On a machine with internet run `huggingface-cli download {self.model_id} "
-                    f"--local-dir DIR`, copy DIR here and use the depth spec 'hf:DIR' (or point HF_HOME at a "
-                    f"cache that holds it)."
-                ) from None
+                raise MissingModelError(self._missing_message()) from None
             proc, net = load(False)
         self._processor, self._model = proc, net.to(self.device).eval()
 

@@ -17,10 +17,9 @@ from .attention import steady_kernels
 from .base import Features, Matches
 from .utils import (
     autocast,
-    check_image,
+    checked_or_blank,
     image_tensor,
     inside,
-    is_textureless,
     resize_for_matching,
     resolve_device,
     to_original,
@@ -87,10 +86,10 @@ class LoFTRMatcher:
 
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> Features:
-        image = check_image(image)
+        image, blank = checked_or_blank(image)
+        if blank is not None:
+            return blank
         size = (image.shape[1], image.shape[0])
-        if is_textureless(image):
-            return Features(np.zeros((0, 2)), size, {"empty": True})
         small, scale = resize_for_matching(image, self.options.max_size, multiple=8)
         x = image_tensor(small, self.device, gray=True)
         with autocast(self.device, self.options.mixed_precision), steady_kernels():

@@ -13,11 +13,13 @@ __all__ = [
     "resolve_device",
     "check_image",
     "resize_for_matching",
+    "matching_size",
     "to_original",
     "image_tensor",
     "mutual_nearest",
     "autocast",
     "is_textureless",
+    "checked_or_blank",
     "inside",
 ]
 
@@ -49,13 +51,19 @@ def resize_for_matching(
     Returns the image and the scale ``(sx, sy)`` = new size / old size; ``to_original`` undoes it.
     """
     h, w = image.shape[:2]
-    s = 1.0 if not max_size or max(h, w) <= max_size else max_size / max(h, w)
-    nw = max(multiple, int(round(w * s / multiple)) * multiple)
-    nh = max(multiple, int(round(h * s / multiple)) * multiple)
+    nw, nh = matching_size(w, h, max_size, multiple)
     if (nw, nh) == (w, h):
         return image, (1.0, 1.0)
     interp = cv2.INTER_AREA if nw < w else cv2.INTER_LINEAR
     return cv2.resize(image, (nw, nh), interpolation=interp), (nw / w, nh / h)
+
+
+def matching_size(width: int, height: int, max_size: int | None = None, multiple: int = 1) -> tuple[int, int]:
+    """(width, height) that ``resize_for_matching`` resizes a ``width`` x ``height`` image to."""
+    s = 1.0 if not max_size or max(height, width) <= max_size else max_size / max(height, width)
+    nw = max(multiple, int(round(width * s / multiple)) * multiple)
+    nh = max(multiple, int(round(height * s / multiple)) * multiple)
+    return nw, nh
 
 
 def to_original(kpts: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
@@ -108,6 +116,16 @@ def is_textureless(image: np.ndarray, min_std: float = 1.0) -> bool:
     Dense matchers would otherwise pair arbitrary cells of a blank image whose descriptors all tie.
     """
     return float(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).std()) < min_std
+
+
+def checked_or_blank(image: np.ndarray) -> tuple[np.ndarray, "Features | None"]:
+    """``check_image(image)``, and the empty feature set to return for it when it is textureless (else None)."""
+    from .base import Features
+
+    image = check_image(image)
+    if is_textureless(image):
+        return image, Features(np.zeros((0, 2)), (image.shape[1], image.shape[0]), {"empty": True})
+    return image, None
 
 
 def inside(kpts: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:

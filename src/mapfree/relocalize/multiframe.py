@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 from ..data import Dataset, DevicePoses, Scene, load_device_poses, scene_bursts
 from ..estimate import Estimate
 from ..geometry import Pose
-from .run import RunResult, failures_path, read_journal, run_split
+from .run import RunResult, _pick_scenes, failures_path, read_journal, run_split
 
 __all__ = ["FusionOptions", "Hypothesis", "hypotheses", "fuse", "frames_path", "MultiRunResult", "run_multi"]
 
@@ -193,6 +193,8 @@ def run_multi(
                          "scored queries)")
     output = Path(output)
     wanted = set(scenes) if scenes else None
+    if scenes:
+        _pick_scenes(Dataset(root).scenes(split), scenes, split)  # an unknown name is refused, not ignored
     plan: dict[str, tuple[list, DevicePoses]] = {}
     for s in Dataset(root).scenes(split):
         if wanted is None or s.name in wanted:

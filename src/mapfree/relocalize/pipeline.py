@@ -21,6 +21,7 @@ import numpy as np
 
 from ..data import Frame, read_image
 from ..data.io import same_aspect
+from ..data.orientation import exif_orientation, fit_intrinsics, orient_pixels
 from ..estimate import Estimate
 from ..geometry import Intrinsics
 from ..matching.base import Features, Matcher, Matches
@@ -33,7 +34,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["View", "Anchor", "Localizer", "Relocalizer", "as_view", "ViewLike", "MIN_PARALLAX_PX"]
 
-#: Median keypoint displacement (px) below which the query is taken for the reference image itself.
+#: Median keypoint displacement (px) below which the query is seen from the reference's viewpoint (identity pose).
 MIN_PARALLAX_PX = 0.5
 #: Which depth maps each solver needs (anything else: both).
 _DEPTH_NEEDS = {"essential": ("ref", "query"), "pnp": ("ref",), "procrustes": ("ref", "query")}
@@ -48,6 +49,8 @@ class View:
     depth: np.ndarray | None = None
     frame: Frame | None = None
     name: str = ""
+    #: EXIF orientation by which the frame's stored files (its intrinsics, depth maps) were turned upright.
+    orientation: int = 1
 
 
 ViewLike = Union[View, Frame, tuple]
@@ -79,14 +82,31 @@ def as_view(x: ViewLike) -> View:
     if isinstance(x, View):
         return x
     if isinstance(x, Frame):
-        return View(x.image(), x.intrinsics, None, x, x.name)
+        image = x.image()
+        K, _, turned = _upright(image, x.intrinsics, x.image_path, None)
+        return View(image, K, None, x, x.name, turned)
     if isinstance(x, tuple) and len(x) in (2, 3):
         image, path = _read_image_any(x[0])
-        K = _as_intrinsics(x[1], image)
         depth = None if len(x) == 2 or x[2] is None else np.asarray(x[2], dtype=np.float32)
-        frame = Frame(path.name, path, K) if path is not None else None
-        return View(image, K, depth, frame, path.name if path is not None else "")
+        K0 = _as_intrinsics(x[1], image)
+        K, depth, turned = _upright(image, K0, path, depth)
+        frame = Frame(path.name, path, K0) if path is not None else None  # its files keep the stored grid's K
+        return View(image, K, depth, frame, path.name if path is not None else "", turned)
     raise TypeError(f"expected a Frame, a View or (image, intrinsics[, depth]); got {type(x).__name__}")
+
+
+def _upright(image: np.ndarray, K: Intrinsics, path: Path | None,
+             depth: np.ndarray | None) -> tuple[Intrinsics, np.ndarray | None, int]:
+    """Intrinsics and depth for the upright pixels of an image file: given for its stored grid (a tagged phone
+    photo), they are turned with it. Returns them and the orientation applied to them (1: none)."""
+    o = exif_orientation(path) if path is not None else 1
+    if o == 1:
+        return K, depth, 1
+    h, w = image.shape[:2]
+    K2 = fit_intrinsics(K, w, h, o, str(path))
+    if K2 is K:
+        return K, depth, 1
+    return K2, (orient_pixels(depth, o) if depth is not None else None), o
 
 
 def _fit_depth(depth: np.ndarray | None, K: Intrinsics, owned: bool = False) -> np.ndarray | None:
@@ -222,7 +242,10 @@ class Relocalizer:
         if not self.metric:
             return None
         if view.frame is not None:
-            return _fit_depth(self.depth_source.depth(view.frame), view.intrinsics, owned=True)
+            d = self.depth_source.depth(view.frame)
+            if view.orientation != 1 and d is not None and getattr(self.depth_source, "reads_files", False):
+                d = orient_pixels(d, view.orientation)  # a stored map of a tagged photo: turned like its pixels
+            return _fit_depth(d, view.intrinsics, owned=True)
         if hasattr(self.depth_source, "predict"):  # a network: predict from the pixels themselves
             return _fit_depth(self.depth_source.predict([view.image], [view.intrinsics.fx])[0], view.intrinsics,
                               owned=True)
@@ -352,7 +375,7 @@ class Relocalizer:
     def _solve(self, anchor: Anchor, view: View, matches: Matches, depth_q: np.ndarray | None) -> Estimate:
         flow = np.linalg.norm(matches.kpts1 - matches.kpts0, axis=1)
         if len(matches) and float(np.median(flow)) <= MIN_PARALLAX_PX:
-            return Estimate.failure("no parallax: the query is the reference image")
+            return _same_viewpoint(flow, getattr(getattr(self.solver, "options", None), "confidence", "inliers"))
         needs = self._needs()
         if "ref" in needs and anchor.depth is None:
             return Estimate.failure("no depth for the reference image")
@@ -362,6 +385,18 @@ class Relocalizer:
         if est.pose is not None and not self.metric:
             est.extras.setdefault("scale_free", True)
         return est
+
+
+def _same_viewpoint(flow: np.ndarray, mode: str) -> Estimate:
+    """The query shows the scene from the reference's viewpoint (its keypoints have not moved): the identity
+    pose, which needs no depth and no solver (an essential matrix is undefined without parallax, a rotation
+    would have moved the keypoints). Inliers: the matches that stayed within a pixel, ranked like a solver's."""
+    from ..geometry import Pose
+    from ..solvers.confidence import choose, confidences
+
+    n = int(np.count_nonzero(flow <= 2 * MIN_PARALLAX_PX))
+    values = confidences(n, n / len(flow))
+    return Estimate(Pose.identity(), choose(mode, values), n, extras={**values, "same_viewpoint": True})
 
 
 def build_matching(method: Any) -> Relocalizer:

@@ -25,7 +25,7 @@ from .pipeline import View, ViewLike, ahead, as_view
 log = logging.getLogger(__name__)
 
 __all__ = ["MODES", "ReferenceOptions", "ReferenceSet", "ReferencedLocalizer", "mapping_frames",
-           "scene_references"]
+           "scene_references", "check_scene_references"]
 
 MODES = ("retrieval", "triangulation")
 
@@ -261,6 +261,24 @@ def with_references(method: Any, k: int, mode: str = "retrieval", top: int = 1) 
     spec = {"k": int(k), "mode": mode, "top": int(top)}
     suffix = f"+K{k}" + ("-triangulation" if mode == "triangulation" else "")
     return replace(m, name=m.name + suffix, options={**m.options, REFERENCES_OPTION: spec})
+
+
+def check_scene_references(scenes: Sequence[Scene], method_dict: dict) -> None:
+    """Refuse up front a K no scene can honour: K references need K posed ``seq0`` frames in every scene (else
+    the run would quietly use fewer), triangulation needs two; names the scenes short of them."""
+    spec = (method_dict.get("options") or {}).get(REFERENCES_OPTION)
+    if not spec:
+        return
+    k, mode = int(spec.get("k", 1)), spec.get("mode", "retrieval")
+    need = max(k, 2) if mode == "triangulation" else k
+    short = [(s.name, len(mapping_frames(s))) for s in scenes]
+    short = [(n, c) for n, c in short if c < need]
+    if short:
+        listed = ", ".join(f"{n} ({c})" for n, c in short[:5]) + (f" and {len(short) - 5} more" if len(short) > 5 else "")
+        what = "pose triangulation needs" if mode == "triangulation" else f"--references {k} needs"
+        raise ValueError(f"{what} {need} posed seq0 (mapping) frames per scene; these scenes have fewer: {listed}. "
+                         f"Use --references {min(c for _, c in short) or 1} or fewer, or leave those scenes out "
+                         f"with --scenes")
 
 
 def bind_scene_references(loc: Any, scene: Scene, method_dict: dict, ref_pose: Pose) -> tuple[Any, Pose]:

@@ -7,7 +7,9 @@ there. The submission ZIP and the failure log (``submission.failures.jsonl``) ar
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 import multiprocessing as mp
 import os
 import signal
@@ -21,12 +23,15 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
+from ..benchmark.html import frame_figure_path
 from ..data import REFERENCE_NAME, Dataset, Scene
 from ..estimate import Estimate
 from ..geometry import Pose
-from .references import bind_scene_references
+from .references import bind_scene_references, check_scene_references
 
-__all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
+log = logging.getLogger(__name__)
+
+__all__ = ["RunResult", "scene_fingerprint", "check_available", "frame_figure_path", "write_frame_figure", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run", "estimate_scores"]
 
 JOURNAL_VERSION = 1
 
@@ -59,6 +64,7 @@ class RunResult:
     seconds: float = 0.0
     scenes: int = 0
     timings: dict[str, float] = field(default_factory=dict)
+    stale_scenes: list[str] = field(default_factory=list)  # resumed scenes whose data changed: recomputed
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in self.__dict__.items()}
@@ -125,6 +131,43 @@ def _repair_tail(path: Path) -> None:
             f.truncate(data.rfind(b"\n") + 1)
 
 
+def scene_fingerprint(scene_dir: os.PathLike | str) -> str:
+    """What a scene's data looked like: a hash of its text files' bytes and of every other file's name, size and
+    modification time (images and depth maps are not read). A resumed run recomputes a scene whose print changed."""
+    h = hashlib.sha1()
+    root = Path(scene_dir)
+    for p in sorted(root.rglob("*")):
+        if not p.is_file():
+            continue
+        rel = p.relative_to(root).as_posix()
+        if p.suffix == ".txt":
+            h.update(f"{rel}\0".encode() + p.read_bytes() + b"\0")
+        else:
+            st = p.stat()
+            h.update(f"{rel}\0{st.st_size}\0{st.st_mtime_ns}\0".encode())
+    return h.hexdigest()
+
+
+def _drop_stale(jpath: Path, header: dict | None, recs: list[dict],
+                fingerprints: dict[str, str]) -> tuple[list[dict], list[str]]:
+    """Journal records of scenes whose data is unchanged since they were computed, and the names of those that
+    changed (or have no recorded print: a journal of an older version), whose records are dropped."""
+    known = (header or {}).get("data", {})
+    stale = sorted({r["scene"] for r in recs if r["scene"] in fingerprints
+                    and known.get(r["scene"]) != fingerprints[r["scene"]]})
+    if stale:
+        log.warning("%s: the data of %d scene(s) changed since they were journaled (%s): recomputing them",
+                    jpath, len(stale), ", ".join(stale))
+    return [r for r in recs if r["scene"] not in stale], stale
+
+
+def _rewrite_journal(jpath: Path, header: dict, recs: list[dict]) -> None:
+    """Replace the journal by ``header`` + ``recs`` (atomically: a kill meanwhile leaves the old one)."""
+    tmp = jpath.with_name(jpath.name + ".tmp")
+    tmp.write_text("".join(json.dumps(r, allow_nan=False) + "\n" for r in [header, *recs]))
+    os.replace(tmp, jpath)
+
+
 def _same_method(a: dict, b: dict) -> bool:
     keys = ("kind", "matcher", "matcher_opts", "depth", "solver", "solver_opts", "options")
     return all(a.get(k) == b.get(k) for k in keys)
@@ -153,7 +196,8 @@ def _localizer(method_dict: dict) -> Any:
 
 
 def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: str,
-               on_frame: Callable[[dict], None] | None = None, batch_size: int | None = None) -> int:
+               on_frame: Callable[[dict], None] | None = None, batch_size: int | None = None,
+               viz_dir: str | None = None) -> int:
     """Relocalize ``frames`` of one scene against its reference, appending each result to the journal."""
     if _stopping():  # a scene already handed to this worker when the parent asked to stop: not started
         return 0
@@ -177,10 +221,35 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
         world = est.pose @ ref_pose if est.pose is not None else None
         rec = _record(scene.name, name, est, world)
         _append(journal_p, [rec])
+        if viz_dir is not None:
+            write_frame_figure(Path(viz_dir), scene, name, est, world, method_dict)
         on_frame and on_frame(rec)
         if _stopping():  # asked to stop: the frame in flight is journaled, no more
             break
     return len(frames)
+
+
+def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, world: Pose | None,
+                       method_dict: dict) -> Path | None:
+    """Draw one frame's figure (matches + AR check against the scene's reference image, ground truth when the
+    split has it) for ``run --viz``. Methods that relocalize against other references than the scene's (``--references
+    K``) get the AR check alone: their matches are with another image. A figure that cannot be drawn is logged."""
+    from ..viz import estimate_figure, save_png
+
+    try:
+        ref, query = scene.reference, scene.frame(frame)
+        ref_pose = ref.pose if ref.pose is not None else Pose.identity()
+        rel = world @ ref_pose.inverse() if world is not None else None
+        gt = query.pose @ ref_pose.inverse() if query.pose is not None and ref.pose is not None else None
+        extras = {} if (method_dict.get("options") or {}).get("references") else est.extras
+        shown = Estimate(rel, est.confidence, est.inliers, est.reason, extras=extras)
+        thr = float((method_dict.get("solver_opts") or {}).get("ransac_threshold_px", 3.0))
+        fig = estimate_figure(ref.image(), query.image(), ref.intrinsics, query.intrinsics, shown, gt,
+                              threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
+        return save_png(frame_figure_path(viz_dir, scene.name, frame), fig)
+    except Exception as e:  # a figure is a by-product: the frame's result is journaled already
+        log.warning("no figure for %s %s: %s", scene.name, frame, e)
+        return None
 
 
 def _stopping() -> bool:
@@ -264,6 +333,7 @@ def run_split(
     progress: bool = True,
     select: Callable[[Scene], list[str]] | None = None,
     batch_size: int | None = None,
+    viz_dir: os.PathLike | str | None = None,
 ) -> RunResult:
     """Relocalize every (scored) query of ``split`` and write a submission ZIP at ``output``.
 
@@ -271,7 +341,8 @@ def run_split(
     as the submission confidence instead of the method's own. With ``resume`` the journal's frames are kept.
     ``select`` (optional) names the frames to run in a scene instead (the multi-frame track's bursts).
     ``batch_size``: queries per device pass of the batched pipeline (0: one pair at a time; ``None``: 16 when
-    the matcher runs on a GPU, else 0).
+    the matcher runs on a GPU, else 0). ``viz_dir``: draw each frame computed by this call there
+    (``frame_figure_path``: matches + AR check).
     """
     from ..methods import Method, get
 
@@ -282,8 +353,8 @@ def run_split(
     jpath = journal_path(output)
     header, recs = read_journal(jpath)
     if recs and not resume and not overwrite:
-        raise FileExistsError(f"{jpath} already holds {len(recs)} results: pass resume=True (--resume) to "
-                              f"continue that run or overwrite=True (--overwrite) to start again")
+        raise FileExistsError(f"{jpath} already holds {len(recs)} results: run again with --resume to continue "
+                              f"that run or --overwrite to start again (in Python: resume=True, overwrite=True)")
     if resume and header is not None and not _same_method(header["method"], m.to_dict()):
         raise ValueError(f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
                          f"use another output path or --overwrite")
@@ -294,8 +365,11 @@ def run_split(
     ds = Dataset(root)
     scene_list = ds.scenes(split)
     if scenes:
-        wanted = set(scenes)
-        scene_list = [s for s in scene_list if s.name in wanted]
+        scene_list = _pick_scenes(scene_list, scenes, split)
+    fingerprints = {s.name: scene_fingerprint(s.path) for s in scene_list}
+    stale: list[str] = []
+    if not fresh:
+        recs, stale = _drop_stale(jpath, header, recs, fingerprints)
     done = {(r["scene"], r["frame"]) for r in recs}
     todo: list[tuple[Scene, list[str]]] = []
     for s in scene_list:
@@ -303,23 +377,33 @@ def run_split(
         names = [f for f in wanted_frames if (s.name, f) not in done]
         if names:
             todo.append((s, names))
+    from ..methods import depth_free_problem
+
+    if depth_free_problem(m):  # a split's frames come without depth maps of their own: nothing could succeed
+        raise ValueError(depth_free_problem(m))
     _check_depth_files(m, scene_list, split)
+    check_scene_references(scene_list, m.to_dict())
+    if todo:
+        check_available(m)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
     if fresh:
         jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
-                                     "root": str(root), "split": split, "all_frames": all_frames}) + "\n")
+                                     "root": str(root), "split": split, "all_frames": all_frames,
+                                     "data": fingerprints}) + "\n")
     else:
         _repair_tail(jpath)
+        _rewrite_journal(jpath, {**header, "data": {**header.get("data", {}), **fingerprints}}, recs)
     total = sum(len(f) for _, f in todo)
     bar = _progress(total, len(done), progress, m.name)
     md = m.to_dict()
+    viz = str(viz_dir) if viz_dir is not None else None
     try:
         if workers <= 1 or len(todo) <= 1:
             for s, names in todo:
                 _run_scene(md, str(s.path), names, str(jpath), on_frame=lambda r: bar.update(1),
-                           batch_size=batch_size)
+                           batch_size=batch_size, viz_dir=viz)
         else:
-            _run_parallel(md, todo, jpath, workers, bar, batch_size)
+            _run_parallel(md, todo, jpath, workers, bar, batch_size, viz)
     finally:
         bar.close()
     _, recs = read_journal(jpath)
@@ -330,7 +414,24 @@ def run_split(
             timing_sums[k] = timing_sums.get(k, 0.0) + v
     return RunResult(output, jpath, failures_path(output), computed=total, skipped=len(done), estimated=estimated,
                      failed=failed, seconds=time.perf_counter() - t_start, scenes=len(scene_list),
-                     timings=timing_sums)
+                     timings=timing_sums, stale_scenes=stale)
+
+
+def _pick_scenes(scene_list: list[Scene], names: Sequence[str], split: str) -> list[Scene]:
+    """The scenes named, in split order; a name the split does not hold is refused (with the nearest ones)."""
+    import difflib
+
+    have = [s.name for s in scene_list]
+    unknown = [n for n in dict.fromkeys(names) if n not in have]
+    if unknown:
+        hints = []
+        for n in unknown:
+            close = difflib.get_close_matches(n, have, n=2, cutoff=0.6)
+            hints.append(f"{n} (did you mean {' or '.join(close)}?)" if close else n)
+        raise ValueError(f"the {split} split has no scene {', '.join(hints)}; it holds {len(have)} scene(s)"
+                         + (f": {', '.join(have[:8])}{' …' if len(have) > 8 else ''}" if have else ""))
+    wanted = set(names)
+    return [s for s in scene_list if s.name in wanted]
 
 
 @contextmanager
@@ -344,6 +445,16 @@ def _sigint_ignored() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, old)
+
+
+def check_available(m: Any) -> None:
+    """Build ``m`` here (kept for this process's frames) and check its depth network can be loaded: weights or a
+    model that are neither on this machine nor downloadable are one clear error before any work, not a run in
+    which every frame fails."""
+    loc = _localizer(m.to_dict())
+    check = getattr(getattr(loc, "depth_source", None), "check_available", None)
+    if check is not None:
+        check()
 
 
 def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
@@ -362,7 +473,8 @@ def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
                      f"{', '.join(found) or 'none'} (pick one with NAME@SUFFIX or the method's last part)")
 
 
-def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, batch_size: int | None = None) -> None:
+def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, batch_size: int | None = None,
+                  viz_dir: str | None = None) -> None:
     threads = max(1, (os.cpu_count() or 1) // workers)
     offset = jpath.stat().st_size
     ctx = mp.get_context("spawn")  # torch and OpenCV threads do not survive fork reliably
@@ -373,7 +485,7 @@ def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, bat
         # spawned here, while Ctrl-C is ignored: they inherit that, so one pressed while a worker still imports
         # (seconds, before ``_init_worker``) no longer prints a KeyboardInterrupt traceback from it.
         with _sigint_ignored():
-            futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size)
+            futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size, viz_dir)
                        for s, names in sorted(todo, key=lambda x: -len(x[1]))]
         pending = set(futures)
         try:

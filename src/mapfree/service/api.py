@@ -16,15 +16,19 @@ from sqlalchemy.orm import Session
 from ..estimate import Estimate
 from ..geometry import Pose
 from . import jobs
+from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, RetiredPhotoIndex, Submission, User, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
-from .deps import db_session, identify, require_writer
+from .deps import db_session, identify, require_operator, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
 from .manage import own_submission, test_quota
 from .storage import check_quota, stored_bytes
 from .submissions import accept, to_json, visible_submission
 from .submissions import plot_png as render_plot
-from .uploads import UploadError, check_name, decode_depth, decode_image, parse_intrinsics, parse_pose
+from .metrics import CONTENT_TYPE_LATEST
+from .exif import clean_photo, depth_png, stored_shape, upright_depth, upright_intrinsics
+from .uploads import UploadError, check_name, decode_depth, decode_image, decode_photo, parse_intrinsics, parse_pose
+from .worksize import fit_image
 
 log = logging.getLogger("mapfree.api")
 router = APIRouter()
@@ -53,17 +57,38 @@ def spooled_upload(f: UploadFile | None, what: str) -> BinaryIO:
 
 @router.get("/health", tags=["operations"])
 async def health(request: Request):
-    """Liveness and readiness: database reachable, queue length, live workers. ``degraded`` when no worker is
-    alive (submissions would wait forever); workers count as alive while they report every few seconds. Answered
-    on the event loop from the state a background thread reads every 0.25 s (``age_ms`` old; ``db_ms``: how long
-    that read took), so that a probe never waits behind the database while uploads are copied in; a killed
-    worker on this host drops out at once."""
+    """Public liveness: ``ok``, ``degraded`` (no evaluation worker alive: submissions would wait) or ``error``
+    (503: the database cannot be read). Nothing else: host names, process ids and queue counts are in
+    ``/health/detail`` for admins and the monitoring token."""
+    status, body = await _health(request)
+    return JSONResponse({"status": body["status"]}, status_code=status)
+
+
+@router.get("/health/detail", tags=["operations"])
+async def health_detail(request: Request):
+    """Readiness in detail (an admin's token or session, or the operator token): database, queue counts, live
+    workers. Answered on the event loop from the state a background thread reads every 0.25 s (``age_ms`` old;
+    ``db_ms``: how long that read took), so that a probe never waits behind the database while uploads are copied
+    in; a killed worker on this host drops out at once."""
+    await run_in_threadpool(require_operator, request)
+    status, body = await _health(request)
+    return JSONResponse(body, status_code=status)
+
+
+@router.get("/metrics", tags=["operations"], response_class=Response)
+def metrics(request: Request):
+    """Prometheus metrics (admins and the operator token): request latency of this API process, queue depth and
+    oldest job age, worker liveness, scoring time."""
+    require_operator(request)
+    return Response(request.app.state.metrics.render(), media_type=CONTENT_TYPE_LATEST)
+
+
+async def _health(request: Request) -> tuple[int, dict]:
     monitor = request.app.state.health
     snap = monitor.current()
     if snap is None:
         snap = await run_in_threadpool(monitor.refresh)
-    status, body = monitor.answer(snap)
-    return JSONResponse(body, status_code=status) if status != 200 else body
+    return monitor.answer(snap)
 
 
 # ------------------------------------------------------------------------------------------ submissions
@@ -77,7 +102,7 @@ def me(request: Request, db: Session = Depends(db_session)):
     u = caller.user
     quota = test_quota(db, request.app.state.settings, u)
     return {"name": u.name, "admin": u.is_admin, "test_evaluations_left_today": quota.left,
-            "test_daily_limit": quota.limit, "storage_used_bytes": stored_bytes(db, u.id),
+            "test_daily_limit": quota.shown_limit, "storage_used_bytes": stored_bytes(db, u.id),
             "storage_quota_bytes": request.app.state.settings.storage_quota_bytes}
 
 
@@ -184,18 +209,21 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
     photos = [{"index": 0, "intrinsics": a.intrinsics, "has_depth": a.depth is not None, "pose": IDENTITY}]
     photos += [{"index": r.seq, "intrinsics": r.intrinsics, "has_depth": r.depth is not None, "pose": r.pose}
                for r in rows]
-    return {"id": a.id, "name": a.name, "method": a.method, "intrinsics": a.intrinsics,
+    return {"id": a.id, "name": a.name, "method": a.method, "intrinsics": a.intrinsics, "private": bool(a.private),
             "has_depth": a.depth is not None, "num_photos": len(photos), "photos": photos,
             "created_at": a.created_at, "url": f"/anchors/{a.id}"}
 
 
-def _intr(fx, fy, cx, cy, img, what) -> dict:
-    return parse_intrinsics({"fx": fx, "fy": fy, "cx": cx, "cy": cy}, img.shape[1], img.shape[0], what)
+def _intr(fx, fy, cx, cy, img, what, orientation: int = 1) -> dict:
+    """Intrinsics the client gave for the photo's stored pixel grid, checked there, for the upright photo."""
+    h, w = stored_shape(img, orientation)
+    return upright_intrinsics(parse_intrinsics({"fx": fx, "fy": fy, "cx": cx, "cy": cy}, w, h, what), orientation)
 
 
 @dataclass
 class PhotoUpload:
-    """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays."""
+    """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays at the
+    working size (``Limits.work_max_side``)."""
 
     image: bytes
     intrinsics: dict
@@ -217,15 +245,22 @@ def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth
         img_bytes = read_upload(image, lim.max_image_bytes, "image")
         if img_bytes is None:
             raise UploadError(400, "image: no file uploaded")
-        img = decode_image(img_bytes, lim, "image")
-        intr = _intr(fx, fy, cx, cy, img, "intrinsics")
+        img, o = decode_photo(img_bytes, lim, "image")
+        intr = _intr(fx, fy, cx, cy, img, "intrinsics", o)
         depth_bytes = read_upload(depth, lim.max_image_bytes, "depth")
-        d = decode_depth(depth_bytes, lim, img.shape[:2]) if depth_bytes is not None else None
+        d = decode_depth(depth_bytes, lim, stored_shape(img, o)) if depth_bytes is not None else None
+        if d is not None and not d.any():
+            raise UploadError(422, "depth: every pixel is 0 (no measurement), so the photo could never give a "
+                                   "metric pose; send its real depth map, or none with a method that needs none")
+        if d is not None and o != 1:  # stored upright, like its photo
+            d = upright_depth(d, o)
+            depth_bytes = depth_png(d)
         q = IDENTITY if pose is None else parse_pose(pose)
     except UploadError as e:
         raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
-    return PhotoUpload(img_bytes, intr, depth_bytes, q, Photo(img, intrinsics_of(intr), d,
-                                                              Pose.from_qt(q[:4], q[4:])))
+    stored = clean_photo(img_bytes, img)  # no metadata, upright: what is kept and served
+    img, K, d = fit_image(img, intrinsics_of(intr), d, lim.work_max_side)  # the decoded 4096² photo goes now
+    return PhotoUpload(stored, intr, depth_bytes, q, Photo(img, K, d, Pose.from_qt(q[:4], q[4:])))
 
 
 def photo_name(i: int, f: UploadFile | None) -> str:
@@ -315,6 +350,7 @@ def make_anchor(request: Request, db: Session, user: User, name: str, method: st
 
 
 @router.post("/anchors", status_code=201, tags=["relocalization"])
+@heavy
 def create_anchor(request: Request, image: UploadFile = File(..., description="reference photo (JPEG/PNG)"),
                   fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
                   depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
@@ -325,6 +361,8 @@ def create_anchor(request: Request, image: UploadFile = File(..., description="r
                   photo_pose: list[str] = Form([], description="one per photo_image: 'qw qx qy qz tx ty tz', "
                                                "world-to-camera from the first photo's camera, metres"),
                   photo_depth: list[UploadFile] = File([], description="none, or one per photo_image, in order"),
+                  private: bool = Form(False, description="its photos are served to you (and admins) only; "
+                                                          "others may still localize against it"),
                   db: Session = Depends(db_session)):
     """Register a place (user A) that anyone signed in can localize against: its first photo (``image``, whose
     camera is the anchor's frame) and optionally further photos (``photo_*``, repeated, one per photo, each
@@ -339,6 +377,9 @@ def create_anchor(request: Request, image: UploadFile = File(..., description="r
     first = photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
     extra, names = _extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
     a, rows = make_anchor(request, db, caller.user, name, method, [first, *extra], [name0, *names])
+    if private:
+        a.private = True
+        db.commit()
     return anchor_json(a, rows)
 
 
@@ -351,6 +392,11 @@ def find_anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
     if a is None:
         raise HTTPException(404, "no such anchor")
     return a
+
+
+def may_see_photos(a: Anchor, user: User | None) -> bool:
+    """Whether ``user`` may see the anchor's photos: anyone signed in, unless the anchor is private."""
+    return user is not None and (not a.private or a.user_id == user.id or user.is_admin)
 
 
 def _own_anchor(a: Anchor, user: User, what: str) -> None:
@@ -415,6 +461,7 @@ def add_photo(request: Request, db: Session, user: User, aid: str, image: Upload
 
 
 @router.post("/anchors/{aid}/photos", status_code=201, tags=["relocalization"])
+@heavy
 def add_anchor_photo(aid: str, request: Request, image: UploadFile = File(..., description="photo (JPEG/PNG)"),
                      fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
                      pose: str = Form(..., description="'qw qx qy qz tx ty tz': world-to-camera from the anchor's "
@@ -463,16 +510,21 @@ def delete_anchor_photo(aid: str, k: int, request: Request, db: Session = Depend
 
 @router.get("/anchors/{aid}/photos/{k}", tags=["relocalization"], response_class=Response)
 def anchor_photo_image(aid: str, k: int, request: Request, db: Session = Depends(db_session)):
-    """The stored image of photo ``k`` (as uploaded, JPEG or PNG), for anyone signed in."""
-    if identify(request, db).user is None:
+    """The stored image of photo ``k`` (JPEG or PNG, upright, without EXIF metadata), for anyone signed in; a
+    private anchor's for its owner and admins only."""
+    caller = identify(request, db)
+    if caller.user is None:
         raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
     a = find_anchor(db, aid)
+    if not may_see_photos(a, caller.user):
+        raise HTTPException(403, "this anchor's photos are private to its owner")
     data = a.image if k == 0 else None
     if 0 < k <= MAX_PHOTO_INDEX:  # a larger int would not fit the database's integer (SQLite: OverflowError)
         data = db.scalar(select(AnchorPhoto.image).where(AnchorPhoto.anchor_id == a.id, AnchorPhoto.seq == k))
     if data is None:
         raise HTTPException(404, f"anchor {a.id} has no photo {k}")
     kind = "image/png" if data.startswith(b"\x89PNG") else "image/jpeg"  # decoded as one of them at upload
+    data = clean_photo(data)  # rows stored before photos were cleaned at upload still hold their metadata
     return Response(data, media_type=kind, headers={"Cache-Control": "private, max-age=3600"})
 
 
@@ -488,13 +540,15 @@ def delete_anchor(aid: str, request: Request, db: Session = Depends(db_session))
 
 
 def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim) -> Photo:
-    """Photo ``k`` of the anchor (0: the anchor row's; else the row with that index) decoded from the database."""
+    """Photo ``k`` of the anchor (0: the anchor row's; else the row with that index) decoded from the database,
+    at the working size."""
     row = next(r for r in rows if r.seq == k) if k else None
     img_b, intr, depth_b, q = ((a.image, a.intrinsics, a.depth, IDENTITY) if row is None else
                                (row.image, row.intrinsics, row.depth, row.pose))
     img = decode_image(img_b, lim, f"anchor photo {k}")
     d = decode_depth(depth_b, lim, img.shape[:2], f"anchor photo {k} depth") if depth_b is not None else None
-    return Photo(img, intrinsics_of(intr), d, Pose.from_qt(q[:4], q[4:]))
+    img, K, d = fit_image(img, intrinsics_of(intr), d, lim.work_max_side)  # one native photo in memory at a time
+    return Photo(img, K, d, Pose.from_qt(q[:4], q[4:]))
 
 
 def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img, q_K,
@@ -504,7 +558,7 @@ def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img,
     lim = request.app.state.settings.limits
     indices = photo_indices(rows)
     est = request.app.state.localizers.localize_photos(
-        a.id, a.method, anchor_version(rows), lambda: [stored_photo(a, rows, k, lim) for k in indices],
+        a.id, a.method, anchor_version(rows), lambda: (stored_photo(a, rows, k, lim) for k in indices),
         q_img, q_K, q_depth)
     if est.extras.get("photo") is not None:  # the position among the photos prepared -> its index
         est.extras["photo"] = indices[est.extras["photo"]]
@@ -512,6 +566,7 @@ def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img,
 
 
 @router.post("/anchors/{aid}/localize", tags=["relocalization"])
+@heavy
 def localize(aid: str, request: Request, image: UploadFile = File(..., description="query photo (JPEG/PNG)"),
              fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
              depth: UploadFile | None = File(None), csrf_token: str | None = Form(None),
@@ -528,11 +583,13 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     q_bytes = image.file.read(lim.max_image_bytes + 1)
     if len(q_bytes) > lim.max_image_bytes:
         raise UploadError(413, f"image: larger than the limit of {lim.max_image_bytes} bytes")
-    q_img = decode_image(q_bytes, lim, "image")
-    q_K = intrinsics_of(_intr(fx, fy, cx, cy, q_img, "intrinsics"))
+    q_img, o = decode_photo(q_bytes, lim, "image")
+    q_K = intrinsics_of(_intr(fx, fy, cx, cy, q_img, "intrinsics", o))
     q_depth = None
     if depth is not None and depth.filename:
-        q_depth = decode_depth(depth.file.read(lim.max_image_bytes + 1), lim, q_img.shape[:2])
+        q_depth = upright_depth(decode_depth(depth.file.read(lim.max_image_bytes + 1), lim,
+                                             stored_shape(q_img, o)), o)
+    q_img, q_K, q_depth = fit_image(q_img, q_K, q_depth, lim.work_max_side)
     out = estimate_json(localize_anchor(request, a, rows, q_img, q_K, q_depth), a.method)
     out["anchor"] = a.id
     return out

@@ -18,17 +18,23 @@ from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .. import __version__
-from .config import Settings
+from .concurrency import HeavyPool
+from .config import Settings, parse_daily_limit
 from .db import init_db, make_engine, session_factory
 from .gcpause import freeze_long_lived
-from .guard import AuthThrottle, request_id
+from .guard import AuthThrottle, client_address, request_id
+from .head import HeadAsGet
 from .health import HealthMonitor
+from .lifeline import die_with_parent, parent_from_env
 from .manage import Withdrawn
+from .metrics import Metrics
 from .reloc import Localizers, register_methods_dir
+from .storage import drop_interrupted_uploads
+from .timeouts import BodyTimeout
 from .uploads import UploadError
 
 log = logging.getLogger("mapfree.http")
-_API_PREFIXES = ("/api/", "/anchors", "/health", "/openapi.json")
+_API_PREFIXES = ("/api/", "/anchors", "/health", "/metrics", "/openapi.json")
 CSP = "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; frame-ancestors 'none'"
 
 
@@ -57,13 +63,21 @@ def _validation_message(exc: RequestValidationError) -> str:
 def create_app(settings: Settings) -> FastAPI:
     engine = make_engine(settings.db_url)
     init_db(engine)
+    with session_factory(engine).begin() as db:  # uploads cut off when a server was killed: refund them now
+        if (n := drop_interrupted_uploads(db)):
+            log.warning("interrupted uploads removed; their quota and test evaluations refunded",
+                        extra={"submissions": n})
     # /docs and /redoc with their assets served from /docs-assets (fastapi-offline): no CDN, so they work offline
     app = FastAPIOffline(title="mapfree service", version=__version__, static_url="/docs-assets",
                          max_body_size=settings.limits.max_request_bytes,
                          description="Map-free benchmark evaluation server and metric relocalization API.")
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
     app.state.health = HealthMonitor(engine)
-    app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)))
+    app.state.metrics = Metrics(engine)
+    app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue)
+    app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)),
+                                      cache_bytes=int(settings.anchor_cache_mb * (1 << 20)),
+                                      max_side=settings.limits.work_max_side)
     if settings.methods_dir is not None:
         register_methods_dir(settings.methods_dir)
 
@@ -100,42 +114,44 @@ def create_app(settings: Settings) -> FastAPI:
     @app.middleware("http")
     async def _access_log(request: Request, call_next):
         """Every request gets an id (``X-Request-ID``) and one JSON access-log line, unexpected 500s included;
-        token guessing is cut off per client address."""
+        failed token checks are counted per client address (``guard.AuthThrottle``)."""
         t0 = time.perf_counter()
         rid = request.state.request_id = request_id(request)
-        client = request.client.host if request.client else "?"
-        wait = throttle.retry_after(client) if throttle.credentialed(request) else 0
-        if wait:
-            response = _error(request, 429, f"too many failed token checks from this address; try again in "
-                                            f"{wait} s", {"Retry-After": str(wait)})
-        else:
-            try:
-                response = await call_next(request)
-            except Exception as exc:
-                log.error("unhandled error", exc_info=exc, extra={"request_id": rid, "method": request.method,
-                                                                  "path": request.url.path})
-                response = _error(request, 500, f"internal server error (request id {rid})")
-            if response.status_code == 401 and throttle.credentialed(request):
-                throttle.failed(client)
+        try:
+            response = await call_next(request)
+        except Exception as exc:
+            log.error("unhandled error", exc_info=exc, extra={"request_id": rid, "method": request.method,
+                                                              "path": request.url.path})
+            response = _error(request, 500, f"internal server error (request id {rid})")
+        client = client_address(request)
+        if response.status_code == 401 and throttle.credentialed(request):
+            throttle.failed(client)
         route = request.scope.get("route")
+        seconds = time.perf_counter() - t0
+        method = "HEAD" if getattr(request.state, "head", False) else request.method
+        app.state.metrics.observe(method, getattr(route, "path", "unmatched"), response.status_code, seconds)
         response.headers["X-Request-ID"] = rid
         response.headers.setdefault("X-Content-Type-Options", "nosniff")
         response.headers.setdefault("Referrer-Policy", "same-origin")
         if not request.url.path.startswith(("/docs", "/redoc")):
             response.headers.setdefault("Content-Security-Policy", CSP)
-        log.info("request", extra={"method": request.method, "route": getattr(route, "path", "?"),
-                                   "status": response.status_code,
-                                   "ms": round((time.perf_counter() - t0) * 1000, 2), "request_id": rid,
+        log.info("request", extra={"method": method, "route": getattr(route, "path", "?"),
+                                   "status": response.status_code, "ms": round(seconds * 1000, 2),
+                                   "request_id": rid, "client": client,
                                    "user_id": getattr(request.state, "user_id", None)})
         return response
 
-    from . import api, leaderboard, manage, web
+    app.add_middleware(BodyTimeout, seconds=settings.body_timeout)
+
+    from . import accounts, api, leaderboard, manage, web
 
     app.include_router(api.router)
+    app.include_router(accounts.router)
     app.include_router(leaderboard.router)
     app.include_router(manage.router)
     app.include_router(web.router)
     app.mount("/static", StaticFiles(directory=str(Path(__file__).parent / "static")), name="static")
+    app.add_middleware(HeadAsGet)
     return app
 
 
@@ -145,6 +161,9 @@ def app_from_env() -> FastAPI:
 
     setup_logging(os.environ.get("MAPFREE_LOG_LEVEL", "info"))
     raw = os.environ.get("MAPFREE_SETTINGS")
+    parent = parent_from_env()
+    if parent is not None:  # an API process of `mapfree serve --api-processes N`: it ends with that process
+        die_with_parent(parent)
     if raw:  # written by `mapfree serve --api-processes N`
         from .config import Limits
 
@@ -156,8 +175,9 @@ def app_from_env() -> FastAPI:
         s = Settings(db_url=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
                      data_root=os.environ.get("MAPFREE_DATA") or None, gt_root=os.environ.get("MAPFREE_GT") or None,
                      default_method=os.environ.get("MAPFREE_METHOD", ""),
-                     test_daily_limit=int(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
-                     secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1")
+                     test_daily_limit=parse_daily_limit(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
+                     secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1",
+                     operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""))
     app = create_app(s)
     freeze_long_lived()
     return app

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import math
 import secrets
+import time
 
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
@@ -39,17 +41,51 @@ def create_user(db: Session, name: str, admin: bool = False) -> tuple[User, str]
     return user, issue_token(db, user)
 
 
-def issue_token(db: Session, user: User) -> str:
+def issue_token(db: Session, user: User, expires_in: float | None = None, label: str = "") -> str:
+    """A new token of ``user`` (valid ``expires_in`` seconds; None: until revoked); the plain token is returned
+    once and only its hash stored."""
+    if expires_in is not None and not (math.isfinite(expires_in) and expires_in > 0):
+        raise ValueError(f"a token's lifetime must be positive, got {expires_in} s")
     token = new_token()
-    db.add(ApiToken(user_id=user.id, token_hash=hash_secret(token), prefix=token[:10]))
+    db.add(ApiToken(user_id=user.id, token_hash=hash_secret(token), prefix=token[:10], label=label[:64],
+                    expires_at=now() + expires_in if expires_in is not None else None))
     return token
 
 
-def user_for_token(db: Session, token: str) -> User | None:
+def check_token(db: Session, token: str) -> tuple[User | None, str]:
+    """(the token's user, "") or (None, why it is refused: unknown, revoked or expired, with when)."""
     if not token or len(token) > 200:
-        return None
+        return None, "invalid or revoked API token"
     row = db.scalar(select(ApiToken).where(ApiToken.token_hash == hash_secret(token), ApiToken.revoked.is_(False)))
-    return db.get(User, row.user_id) if row else None
+    if row is None:
+        return None, "invalid or revoked API token"
+    if row.expires_at is not None and row.expires_at <= now():
+        return None, (f"API token {row.prefix}… expired on {utc(row.expires_at)}; ask for a new one (mapfree "
+                      "admin new-token) or create one while signed in (POST /api/tokens)")
+    return db.get(User, row.user_id), ""
+
+
+def user_for_token(db: Session, token: str) -> User | None:
+    return check_token(db, token)[0]
+
+
+def utc(t: float) -> str:
+    return time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(t))
+
+
+_UNITS = {"s": 1, "m": 60, "h": 3600, "d": 86400, "w": 7 * 86400}
+
+
+def parse_duration(text: str) -> float:
+    """``"90d"``, ``"12h"``, ``"30m"``, ``"45s"``, ``"2w"`` or plain seconds -> seconds (positive)."""
+    t = text.strip().lower()
+    try:
+        seconds = float(t[:-1]) * _UNITS[t[-1]] if t and t[-1] in _UNITS else float(t)
+    except ValueError:
+        raise ValueError(f"not a duration: {text!r} (e.g. 90d, 12h, 30m or seconds)") from None
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise ValueError(f"a duration must be positive: {text!r}")
+    return seconds
 
 
 def revoke_tokens(db: Session, user: User) -> int:

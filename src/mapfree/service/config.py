@@ -6,6 +6,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 
+#: A daily test limit (the server's or one account's) meaning "no limit"; 0 means none at all.
+UNLIMITED = -1
+
+
+def parse_daily_limit(text: str | int) -> int:
+    """A test-evaluation limit as typed by an operator: a count (0: no test evaluation at all) or ``unlimited``
+    (a negative number means the same) -> the count, or ``UNLIMITED``."""
+    word = str(text).strip().lower()
+    if word == "unlimited":
+        return UNLIMITED
+    try:
+        n = int(word)
+    except ValueError:
+        raise ValueError(f"expected a number of evaluations (0: none) or 'unlimited'; got {str(text)[:40]!r}") from None
+    return UNLIMITED if n < 0 else n
+
+
 @dataclass
 class Limits:
     """Hostile-input limits. Sizes in bytes."""
@@ -20,6 +37,7 @@ class Limits:
     max_image_pixels: int = 4096 * 4096
     max_name_chars: int = 120
     max_anchor_photos: int = 16  # photos of one anchor's place, the first included
+    work_max_side: int = 1024  # decoded photos are downscaled to this long side at once (0: never)
 
 
 @dataclass
@@ -31,7 +49,7 @@ class Settings:
     data_root: Path | None = None
     gt_root: Path | None = None
     splits: tuple[str, ...] = ("val", "test")
-    test_daily_limit: int = 5
+    test_daily_limit: int = 5  # per account and 24 h; 0: no test evaluations, UNLIMITED (-1): no limit
     lease_seconds: float = 60.0
     max_attempts: int = 3
     poll_seconds: float = 0.5
@@ -43,6 +61,11 @@ class Settings:
     storage_quota_bytes: int = 1 << 30  # stored submission ZIPs and anchor photos per account (0: unlimited)
     zip_retention_days: float = 90.0  # stored ZIPs of finished submissions are deleted after this (0: kept)
     auth_failures_per_minute: int = 20  # failed token checks per client address before a 429 (0: unlimited)
+    operator_token: str = ""  # bearer token of monitoring (/health/detail, /metrics) besides admins' own
+    heavy_threads: int = 0  # localize / anchor computations at once per API process (0: min(4, CPUs))
+    heavy_queue: int = 8  # heavy requests waiting for one of those threads; past that a 429 with Retry-After
+    anchor_cache_mb: float = 256.0  # prepared anchors kept per API process (features and depth, no pixels)
+    body_timeout: float = 30.0  # seconds for the next piece of a request body before a 408 (0: no limit)
     limits: Limits = field(default_factory=Limits)
 
     def __post_init__(self) -> None:

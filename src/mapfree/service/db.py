@@ -11,7 +11,7 @@ import time
 import uuid
 
 from sqlalchemy import (JSON, Boolean, Float, ForeignKey, Integer, LargeBinary, String, Text, UniqueConstraint,
-                        create_engine, event)
+                        create_engine, event, false)
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
@@ -47,6 +47,8 @@ class ApiToken(Base):
     prefix: Mapped[str] = mapped_column(String(16))
     revoked: Mapped[bool] = mapped_column(Boolean, default=False)
     created_at: Mapped[float] = mapped_column(Float, default=now)
+    expires_at: Mapped[float | None] = mapped_column(Float, nullable=True)  # None: never (schema 0002)
+    label: Mapped[str] = mapped_column(String(64), default="", server_default="")  # what it is for (0002)
 
 
 class WebSession(Base):
@@ -56,6 +58,7 @@ class WebSession(Base):
     user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), index=True)
     csrf: Mapped[str] = mapped_column(String(64))
     expires_at: Mapped[float] = mapped_column(Float)
+    created_at: Mapped[float | None] = mapped_column(Float, nullable=True, default=now)  # schema 0002
 
 
 class Submission(Base):
@@ -146,6 +149,8 @@ class Anchor(Base):
     image: Mapped[bytes] = mapped_column(LargeBinary)
     depth: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
     created_at: Mapped[float] = mapped_column(Float, default=now)
+    #: Only the owner (and admins) see it, its photos and localize against it (schema 0003).
+    private: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
 
 
 class AnchorPhoto(Base):
@@ -241,11 +246,11 @@ def make_engine(url: str) -> Engine:
 
 
 def init_db(engine: Engine) -> None:
-    """Create missing tables (idempotent; safe to run from several processes)."""
-    try:
-        Base.metadata.create_all(engine)
-    except Exception:  # another process created them at the same moment
-        Base.metadata.create_all(engine)
+    """Create the tables or upgrade them to this code's schema version (``migrations.upgrade``; idempotent and
+    safe to run from several processes at once)."""
+    from .migrations import upgrade
+
+    upgrade(engine)
 
 
 def session_factory(engine: Engine) -> sessionmaker:

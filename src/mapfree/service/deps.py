@@ -39,9 +39,11 @@ def identify(request: Request, db: Session) -> Caller:
     header = request.headers.get("authorization")
     if header is not None:
         scheme, _, token = header.partition(" ")
-        user = auth.user_for_token(db, token.strip()) if scheme.lower() == "bearer" else None
+        user, why = (auth.check_token(db, token.strip()) if scheme.lower() == "bearer" else
+                     (None, "invalid or revoked API token"))
         if user is None:
-            raise HTTPException(401, "invalid or revoked API token", headers={"WWW-Authenticate": "Bearer"})
+            request.app.state.auth_throttle.refuse(request)  # 429 past the failures allowed from this address
+            raise HTTPException(401, why, headers={"WWW-Authenticate": "Bearer"})
         request.state.user_id = user.id
         db.commit()  # end the read transaction (on SQLite it holds the write lock)
         return Caller(user, None, True)
@@ -65,3 +67,18 @@ def require_writer(request: Request, db: Session, form_csrf: str | None = None) 
         if not auth.same_secret(given, caller.csrf):
             raise HTTPException(403, "CSRF check failed: reload the page and submit the form again")
     return caller
+
+
+def require_operator(request: Request) -> None:
+    """Monitoring endpoints: the operator token (``Settings.operator_token``) or an admin's token or session."""
+    expected = request.app.state.settings.operator_token
+    scheme, _, given = request.headers.get("authorization", "").partition(" ")
+    if expected and scheme.lower() == "bearer" and auth.same_secret(given.strip(), expected):
+        return
+    with request.app.state.sessions() as db:
+        caller = identify(request, db)
+    if caller.user is None:
+        raise HTTPException(401, "authentication required: the operator token or an admin's",
+                            headers={"WWW-Authenticate": "Bearer"})
+    if not caller.user.is_admin:
+        raise HTTPException(403, "only admins and the operator token may read this")

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from .config import Settings
+from .testmetrics import public_test_metrics
 
 #: The benchmark's aggregate keys; for ``test`` nothing else leaves the server.
 METRIC_KEYS = (
@@ -55,14 +56,16 @@ def _problems(report: Any) -> list[str]:
 
 
 def redact(report_dict: dict, problems: list[str], split: str) -> dict:
-    """What may be stored and shown. For ``test`` only the aggregate metrics and submission-format problems:
-    no per-scene or per-frame numbers, so the private ground truth cannot be inferred from responses."""
+    """What may be stored and shown. For ``test`` only the aggregate metrics, coarsened (``testmetrics.py``),
+    and submission-format problems: no per-scene or per-frame numbers, so that responses do not reveal the
+    private ground truth."""
     raw = report_dict.get("metrics", {}) or {}
-    metrics = {**{k: raw.get(k) for k in METRIC_KEYS}, **{str(k): v for k, v in raw.items()}}
-    out = {"metrics": _finite(metrics), "problems": problems}
-    if split != "test":
-        out["per_scene"] = _finite(report_dict.get("per_scene") or {})
-    return out
+    metrics = _finite({**{k: raw.get(k) for k in METRIC_KEYS}, **{str(k): v for k, v in raw.items()}})
+    per_scene = _finite(report_dict.get("per_scene") or {})
+    if split == "test":  # coarsened, medians withheld below a coverage (testmetrics.py)
+        metrics, notes = public_test_metrics(metrics, per_scene)
+        return {"metrics": metrics, "problems": notes + problems}
+    return {"metrics": metrics, "problems": problems, "per_scene": per_scene}
 
 
 _TRUTH: dict[tuple, Any] = {}
@@ -170,3 +173,21 @@ def known_scenes(settings: Settings, split: str) -> set[str] | None:
     if settings.data_root is None or not (settings.data_root / split).is_dir():
         return None
     return {p.name for p in (settings.data_root / split).iterdir() if p.is_dir()}
+
+
+def missing_ground_truth(settings: Settings) -> list[str]:
+    """Test scenes of the dataset whose private ground truth (``gt_root/test/sNNNNN/poses.txt``) is missing: a
+    submission for them could never be scored, so a server with any is refused at start."""
+    scenes = known_scenes(settings, "test")
+    if settings.gt_root is None or not scenes:
+        return []
+    return sorted(s for s in scenes if not (settings.gt_root / "test" / s / "poses.txt").is_file())
+
+
+def check_ground_truth(settings: Settings) -> None:
+    """``ValueError`` naming the test scenes without ground truth under ``gt_root`` (see ``missing_ground_truth``)."""
+    missing = missing_ground_truth(settings)
+    if missing:
+        shown = ", ".join(missing[:20]) + (f" and {len(missing) - 20} more" if len(missing) > 20 else "")
+        raise ValueError(f"the ground-truth folder {settings.gt_root} lacks {len(missing)} of the dataset's test "
+                         f"scenes ({shown}): expected {settings.gt_root}/test/SCENE/poses.txt for each")

@@ -1,4 +1,5 @@
-"""Per-request guards of the HTTP layer: request ids for logs and error bodies, and a limit on token guessing."""
+"""Per-request guards of the HTTP layer: request ids for logs and error bodies, the client address, and a
+limit on failed token checks."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import time
 import uuid
 from collections import OrderedDict, deque
 
-from fastapi import Request
+from fastapi import HTTPException, Request
 
 _RID_RE = re.compile(r"[A-Za-z0-9._-]{1,64}")
 
@@ -19,9 +20,18 @@ def request_id(request: Request) -> str:
     return given if _RID_RE.fullmatch(given) else uuid.uuid4().hex[:16]
 
 
+def client_address(request: Request) -> str:
+    """The caller's address: the TCP peer's, or a trusted proxy's ``X-Forwarded-For`` (uvicorn applies it only
+    for the proxies ``serve --forwarded-allow-ips`` names)."""
+    return request.client.host if request.client else "?"
+
+
 class AuthThrottle:
-    """Failed token checks per client address in a sliding minute. Over the limit, every request from that
-    address that carries credentials is a 429 until the oldest failure is a minute old (per API process)."""
+    """Failed token checks per client address in a sliding minute. Over the limit, a wrong token (API or
+    sign-in form) from that address is answered 429 instead of 401 until the oldest failure is a minute old
+    (per API process). A valid token always goes through: the failures of others behind the same address (a
+    NAT, a proxy) never lock its owner out. Tokens are 256-bit random strings, so no guessing rate could find
+    one; what the 429 adds is a signal to back off, and quieter logs."""
 
     def __init__(self, per_minute: int, max_clients: int = 100_000):
         self.per_minute, self.max_clients = per_minute, max_clients
@@ -44,6 +54,14 @@ class AuthThrottle:
             while q and q[0] < time.monotonic() - 60:
                 q.popleft()
             return int(q[0] + 60 - time.monotonic()) + 1 if len(q) >= self.per_minute else 0
+
+    def refuse(self, request: Request) -> None:
+        """For a wrong token: a 429 (with ``Retry-After``) when its address is over the limit; else nothing
+        (the caller answers 401, which the access-log middleware counts)."""
+        wait = self.retry_after(client_address(request))
+        if wait:
+            raise HTTPException(429, f"too many failed token checks from this address; try again in {wait} s",
+                                headers={"Retry-After": str(wait)})
 
     def failed(self, client: str) -> None:
         if self.per_minute <= 0:

@@ -10,10 +10,11 @@ import math
 import re
 import time
 from dataclasses import asdict, dataclass
+from typing import Iterator
 from urllib.parse import urlsplit
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -21,7 +22,7 @@ from .db import MethodInfo, Result, Submission, User
 from .deps import db_session, identify
 from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT
 from .reference import REFERENCE_ROWS
-from .submissions import to_json, visible_submission
+from .submissions import shown_metrics, to_json, visible_submission
 from .uploads import UploadError
 
 VIEWS = ("all", "best")
@@ -124,46 +125,81 @@ def competition_ranks(values: list[float | None]) -> list[int | None]:
     return ranks
 
 
-def _ordered(entries: list[dict], sort: str) -> list[dict]:
-    lower = sort in LOWER_IS_BETTER
-
-    def key(e):
-        v = e["metrics"].get(sort)
-        return (v is None, 0.0 if v is None else (v if lower else -v), e["created_at"], e["id"])
-
-    return sorted(entries, key=key)
+#: Rows per leaderboard page: the default, and the most a request may ask for.
+PER_PAGE, MAX_PER_PAGE = 50, 200
 
 
-def board(db: Session, split: str, sort: str = "vcre_auc", view: str = "all", scene: str | None = None) -> list[dict]:
-    """Public finished submissions of ``split``, best first by ``sort``; ``view="best"`` keeps each account's
-    best entry; ``scene`` ranks by that scene's scores (not for ``test``: it has no per-scene results)."""
+def ranking(db: Session, split: str, sort: str = "vcre_auc", view: str = "all",
+            scene: str | None = None) -> list[tuple[str, int | None]]:
+    """Public finished submissions of ``split`` as (id, rank), best first by ``sort`` (ties by age); ``view="best"``
+    keeps each account's best entry; ``scene`` ranks by that scene's scores (not for ``test``: it has no
+    per-scene results). Only ids, dates and the one sort value are read (the database extracts it from the
+    stored JSON), so that a board of 20,000 entries costs milliseconds, not the decoding of every result."""
     check_sort(sort)
     if view not in VIEWS:
         raise UploadError(422, f"view must be one of {', '.join(VIEWS)}; got {view!r}")
     if scene is not None and split == "test":
         raise UploadError(422, "the test split has no per-scene results")
+    key = SHORT[sort]
+    query = (select(Submission.id, Submission.created_at, Submission.user_id,
+                    (Result.metrics[key] if scene is None else Result.per_scene[(scene, key)]).as_float())
+             .join(Result, Result.submission_id == Submission.id)
+             .where(Submission.split == split, Submission.public.is_(True), Submission.status == "done"))
+    if scene is not None:  # submissions with results for that scene (every scored scene has an estimate ratio)
+        query = query.where(Result.per_scene[(scene, SHORT["estimates"])].as_float().is_not(None))
+    rows = [(sid, created, uid, shown_metrics(split, {key: v})[key] if v is not None else None)
+            for sid, created, uid, v in db.execute(query).all()]
+    lower = sort in LOWER_IS_BETTER
+    rows.sort(key=lambda r: (r[3] is None, 0.0 if r[3] is None else (r[3] if lower else -r[3]), r[1], r[0]))
+    if view == "best":
+        seen: set[int] = set()
+        rows = [r for r in rows if not (r[2] in seen or seen.add(r[2]))]
+    return list(zip((r[0] for r in rows), competition_ranks([r[3] for r in rows])))
+
+
+def entries_of(db: Session, split: str, ranked: list[tuple[str, int | None]], scene: str | None = None) -> list[dict]:
+    """The board rows of ``ranked`` (a slice of ``ranking``), in its order: name, author, method, metrics."""
     scores = Result.metrics if scene is None else Result.per_scene  # only the column needed (per_scene is big)
     rows = db.execute(
         select(Submission.id, Submission.name, Submission.created_at, User.name, scores, MethodInfo)
         .join(Result, Result.submission_id == Submission.id).join(User, User.id == Submission.user_id)
         .outerjoin(MethodInfo, MethodInfo.submission_id == Submission.id)
-        .where(Submission.split == split, Submission.public.is_(True), Submission.status == "done")
+        .where(Submission.id.in_([sid for sid, _ in ranked]))
     ).all()
+    by_id = {r[0]: r for r in rows}
     entries = []
-    for sid, name, created_at, uname, values, info in rows:
-        values = values if scene is None else (values or {}).get(scene)
-        if values is None:
+    for sid, rank in ranked:
+        if sid not in by_id:  # withdrawn meanwhile
             continue
-        entries.append({"id": sid, "name": name, "user": uname, "created_at": created_at,
+        _, name, created_at, uname, values, info = by_id[sid]
+        values = shown_metrics(split, values) if scene is None else (values or {}).get(scene) or {}
+        entries.append({"id": sid, "name": name, "user": uname, "created_at": created_at, "rank": rank,
                         "url": f"/submissions/{sid}", "method": meta_json(info),
                         "metrics": {short: values.get(long) for short, long in SHORT.items()}})
-    entries = _ordered(entries, sort)
-    if view == "best":
-        seen: set[str] = set()
-        entries = [e for e in entries if not (e["user"] in seen or seen.add(e["user"]))]
-    for e, r in zip(entries, competition_ranks([e["metrics"].get(sort) for e in entries])):
-        e["rank"] = r
     return entries
+
+
+@dataclass
+class Page:
+    """One page of a board: its entries, and where it sits among ``total`` entries."""
+
+    entries: list[dict]
+    total: int
+    page: int
+    per_page: int
+
+    @property
+    def pages(self) -> int:
+        return max(1, -(-self.total // self.per_page))
+
+
+def board(db: Session, split: str, sort: str = "vcre_auc", view: str = "all", scene: str | None = None,
+          page: int = 1, per_page: int = PER_PAGE) -> Page:
+    """Page ``page`` (from 1) of the board, ``per_page`` rows (at most ``MAX_PER_PAGE``)."""
+    per_page = max(1, min(MAX_PER_PAGE, per_page))
+    ranked = ranking(db, split, sort, view, scene)
+    first = (max(1, page) - 1) * per_page
+    return Page(entries_of(db, split, ranked[first:first + per_page], scene), len(ranked), max(1, page), per_page)
 
 
 def reference_rows() -> list[dict]:
@@ -173,9 +209,13 @@ def reference_rows() -> list[dict]:
     return sorted(rows, key=lambda r: (r["dataset"], -(r["metrics"]["vcre_auc"] or 0)))
 
 
-def to_csv(entries: list[dict]) -> str:
-    """The board as CSV (full metric names as headers). Text cells that a spreadsheet would run as a formula
-    get a leading apostrophe."""
+CSV_HEADER = ["rank", "name", "user", "submitted_utc", *METRIC_KEYS, "runtime_ms", "extra_data", "paper_url",
+              "code_url", "url"]
+
+
+def csv_rows(entries: list[dict]) -> str:
+    """Board rows as CSV lines (full metric names as headers: ``CSV_HEADER``). Text cells that a spreadsheet
+    would run as a formula get a leading apostrophe."""
     def cell(v):
         if isinstance(v, str) and v[:1] in ("=", "+", "-", "@", "\t", "\r"):
             return "'" + v
@@ -183,8 +223,6 @@ def to_csv(entries: list[dict]) -> str:
 
     out = io.StringIO()
     w = csv.writer(out, lineterminator="\n")
-    w.writerow(["rank", "name", "user", "submitted_utc", *METRIC_KEYS, "runtime_ms", "extra_data", "paper_url",
-                "code_url", "url"])
     for e in entries:
         date = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(e["created_at"]))
         w.writerow([cell(x) for x in (e["rank"], e["name"], e["user"], date,
@@ -192,6 +230,15 @@ def to_csv(entries: list[dict]) -> str:
                                       e["method"]["extra_data"], e["method"]["paper_url"], e["method"]["code_url"],
                                       e["url"])])
     return out.getvalue()
+
+
+def stream_csv(sessions, split: str, ranked: list[tuple[str, int | None]], scene: str | None,
+               chunk: int = 500) -> Iterator[str]:
+    """The CSV of a ranked board, ``chunk`` rows at a time, each read in a short transaction of its own."""
+    yield ",".join(CSV_HEADER) + "\n"
+    for i in range(0, len(ranked), chunk):
+        with sessions() as db:
+            yield csv_rows(entries_of(db, split, ranked[i:i + chunk], scene))
 
 
 # ----------------------------------------------------------------------------------------------- compare
@@ -242,25 +289,32 @@ def check_split(request: Request, split: str) -> None:
 @router.get("/api/leaderboard/{split}.csv", response_class=Response)
 def leaderboard_csv(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
                     scene: str | None = Query(None), db: Session = Depends(db_session)):
-    """The leaderboard as a CSV file (same parameters as the JSON board)."""
+    """The whole leaderboard as a CSV file (same parameters as the JSON board, no paging), streamed."""
     check_split(request, split)
-    body = to_csv(board(db, split, sort, view, scene))
+    ranked = ranking(db, split, sort, view, scene)
+    db.commit()
     fname = f"mapfree-{split}{'-' + scene if scene else ''}-{view}-{sort}.csv"
-    return Response(body, media_type="text/csv; charset=utf-8",
-                    headers={"Content-Disposition": f'attachment; filename="{re.sub("[^A-Za-z0-9_.-]", "", fname)}"'})
+    return StreamingResponse(
+        stream_csv(request.app.state.sessions, split, ranked, scene),  # a plain iterator: run in the thread pool
+        media_type="text/csv; charset=utf-8",
+        headers={"Content-Disposition": f'attachment; filename="{re.sub("[^A-Za-z0-9_.-]", "", fname)}"'})
 
 
 @router.get("/api/leaderboard/{split}")
 def leaderboard(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
-                     scene: str | None = Query(None), reference: bool = Query(True),
-                     db: Session = Depends(db_session)):
+                scene: str | None = Query(None), reference: bool = Query(True),
+                page: int = Query(1, ge=1, description="page number, from 1"),
+                per_page: int = Query(PER_PAGE, ge=1, le=MAX_PER_PAGE, description="rows per page"),
+                db: Session = Depends(db_session)):
     """Public results of a split, best first by ``sort`` (vcre_auc, vcre_prec, pose_auc, pose_prec, med_trans,
     med_rot, med_vcre, estimates); equal scores share a rank. ``view=best``: each account's best entry;
-    ``scene``: one scene's scores (val only). Published results on the real Map-free data come apart, under
-    ``reference``."""
+    ``scene``: one scene's scores (val only). Paged: ``page`` (from 1) of ``per_page`` rows (at most
+    200); ``total`` and ``pages`` say how many there are. Published results on the real Map-free data come
+    apart, under ``reference``."""
     check_split(request, split)
-    out = {"split": split, "sort": sort, "view": view, "scene": scene,
-           "entries": board(db, split, sort, view, scene)}
+    b = board(db, split, sort, view, scene, page, per_page)
+    out = {"split": split, "sort": sort, "view": view, "scene": scene, "entries": b.entries, "page": b.page,
+           "per_page": b.per_page, "total": b.total, "pages": b.pages}
     if reference:
         out["reference"] = reference_rows()
     return out

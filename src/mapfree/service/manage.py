@@ -28,14 +28,19 @@ WITHDRAWN = "withdrawn"
 
 @dataclass
 class Quota:
-    """Test evaluations: used in the last 24 h (withdrawn ones included), the limit, and what is left."""
+    """Test evaluations: used in the last 24 h (withdrawn ones included), the limit, and what is left; both
+    ``"unlimited"`` when the account has no limit."""
 
     used: int
-    limit: int
+    limit: int  # UNLIMITED (negative): no limit
 
     @property
-    def left(self) -> int:
-        return max(0, self.limit - self.used)
+    def left(self) -> int | str:
+        return "unlimited" if self.limit < 0 else max(0, self.limit - self.used)
+
+    @property
+    def shown_limit(self) -> int | str:
+        return "unlimited" if self.limit < 0 else self.limit
 
 
 def test_quota(db: Session, settings: Settings, user: User) -> Quota:

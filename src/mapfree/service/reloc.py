@@ -7,10 +7,9 @@ import logging
 import queue
 import re
 import threading
-from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Hashable
+from typing import Any, Callable, Hashable, Iterable
 
 import cv2
 import numpy as np
@@ -18,7 +17,9 @@ import numpy as np
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose
 from .gcpause import after_load
+from .prepared import ByteLRU, PreparedAnchor, localize_prepared, prepare_anchor
 from .uploads import UploadError
+from .worksize import DEFAULT_MAX_SIDE, fit_image
 
 log = logging.getLogger("mapfree.service")
 FALLBACK_METHOD = "sift_pnp_sensor"  # reference depth only: what an anchor with a depth map can always use
@@ -92,9 +93,6 @@ class MethodUnavailable(UploadError):
         super().__init__(422, message)
 
 
-#: Solvers that lift the reference's pixels to 3D with its depth: without a depth map they give no pose at all,
-#: even in a method with no depth source ("none"), which then uses a depth map uploaded with the reference.
-_LIFTING_SOLVERS = ("pnp", "procrustes")
 
 
 def needs_reference_depth(method: Any, *, scale_free_too: bool) -> bool:
@@ -110,7 +108,9 @@ def needs_reference_depth(method: Any, *, scale_free_too: bool) -> bool:
     m = method if isinstance(method, methods.Method) else methods.get(method)
     if m.kind != "matching":
         return False
-    return m.depth.startswith("files:") or (scale_free_too and m.depth == "none" and m.solver in _LIFTING_SOLVERS)
+    # Without a depth map, PnP/Procrustes give no pose at all, even in a method with no depth source ("none"),
+    # which then uses a depth map uploaded with the reference.
+    return m.depth.startswith("files:") or (scale_free_too and m.depth == "none" and m.solver in methods.LIFTING_SOLVERS)
 
 
 def check_runnable(name: str, has_reference_depth: bool) -> None:
@@ -135,19 +135,13 @@ def _unavailable(name: str, e: Exception) -> MethodUnavailable:
     return MethodUnavailable(f"method {name} cannot run on this server: {msg}")
 
 
-#: Solvers that need a depth map of the query too; without one the service swaps in PnP (reference depth only).
-_QUERY_DEPTH_SOLVERS = ("essential", "procrustes")
-
-
 def effective_method(name: str, has_query_depth: bool):
     """The ``Method`` to run: ``name``, or its PnP twin when the query has no depth map but the method's solver
     would need one (so that the default preset answers for a plain photo, at the anchor's metric scale)."""
     from .. import methods
 
     m = methods.get(name)
-    if m.kind == "matching" and m.depth != "none" and not has_query_depth and m.solver in _QUERY_DEPTH_SOLVERS:
-        m = replace(m, solver="pnp", solver_opts={}, name=f"{m.name}+pnp")
-    return m
+    return m if has_query_depth else methods.query_depth_fallback(m)
 
 
 def intrinsics_of(d: dict) -> Intrinsics:
@@ -168,17 +162,23 @@ class Photo:
 class Localizers:
     """Thread-safe access to relocalizers: at most ``per_method`` concurrent computations per method.
 
-    Prepared anchors are kept per (anchor, method, version): for one photo the method's prepared reference,
-    for several a ``ReferenceSet`` (DenseVLAD retrieval over the photos, each prepared on first use). The
-    version names the anchor's current photos (``api.anchor_version``: it changes when one is added or
-    deleted), so a change made through another process is never answered from a stale cache."""
+    Every photo is brought to the working size (long side at most ``max_side``, ``worksize.py``) before a method
+    sees it. Prepared anchors (``prepared.py``: features and depth per photo, no pixels) are kept per (anchor,
+    method, version) in an LRU of at most ``cache_bytes``. The version names the anchor's current photos
+    (``api.anchor_version``: it changes when one is added or deleted), so a change made through another
+    process is never answered from a stale cache."""
 
-    def __init__(self, per_method: int = 2, max_anchors: int = 32):
-        self.per_method, self.max_anchors = per_method, max_anchors
+    def __init__(self, per_method: int = 2, cache_bytes: int = 256 << 20, max_side: int = DEFAULT_MAX_SIDE):
+        self.per_method, self.max_side = per_method, max_side
         self._pools: dict[str, queue.Queue] = {}
         self._made: dict[str, int] = {}
-        self._anchors: OrderedDict[tuple, Any] = OrderedDict()
+        self.anchors = ByteLRU(cache_bytes)
         self._lock = threading.Lock()
+
+    def fit(self, photo: Photo) -> Photo:
+        """``photo`` at the working size (intrinsics and depth scaled with it)."""
+        image, K, depth = fit_image(photo.image, photo.K, photo.depth, self.max_side)
+        return photo if image is photo.image else Photo(image, K, depth, photo.pose)
 
     def _take(self, method):
         from ..relocalize import Relocalizer
@@ -203,60 +203,31 @@ class Localizers:
     def _give(self, method, loc) -> None:
         self._pools[method.name].put(loc)
 
-    def _cached(self, key: tuple) -> Any:
-        with self._lock:
-            prepared = self._anchors.get(key)
-            if prepared is not None:
-                self._anchors.move_to_end(key)
-            return prepared
-
-    def _store(self, key: tuple, prepared: Any) -> None:
-        with self._lock:
-            self._anchors[key] = prepared
-            while len(self._anchors) > self.max_anchors:
-                self._anchors.popitem(last=False)
-
-    @staticmethod
-    def _prepare(loc, name: str, photos: list[Photo]) -> Any:
-        """What localizing against these photos reuses: the prepared reference (one photo, a method that
-        prepares), the reference ``View`` (other kinds), or a ``ReferenceSet`` (several photos)."""
-        from ..relocalize import View
-        from ..relocalize.references import ReferenceSet
-
-        views = [View(p.image, p.K, p.depth, name=f"photo {i}") for i, p in enumerate(photos)]
+    def _prepare(self, loc, name: str, photos: Iterable[Photo]) -> PreparedAnchor:
+        """Every photo prepared at the working size (``prepared.prepare_anchor``; each one fitted as it comes,
+        so that a generator of decoded photos holds one at its native size at a time); a method that cannot
+        run here is a 422, not a 500."""
         try:
-            if len(views) > 1:  # every photo kept; the most similar one (DenseVLAD) answers each query
-                return ReferenceSet.build(views, [p.pose for p in photos], k=len(views), top=1)
-            return loc.prepare(views[0]) if hasattr(loc, "prepare") else views[0]
-        except Exception as e:  # e.g. a depth network whose weights are gone: a 422, not a 500
+            return prepare_anchor(loc, [self.fit(p) for p in photos])
+        except Exception as e:  # e.g. a depth network whose weights are gone
             raise _unavailable(name, e) from e
 
     def check(self, anchor_id: str, method: str, photos: list[Photo], version: Hashable = ()) -> None:
         """Build the method and prepare the anchor now (both kept for the first ``localize``), so that an
         anchor whose method cannot run here is refused at creation (``MethodUnavailable``), not at use."""
-        from ..relocalize import View
-
         plain, with_depth = effective_method(method, False), effective_method(method, True)
         for i, m in enumerate([plain] if plain.name == with_depth.name else [plain, with_depth]):
             loc = self._take(m)
             try:
-                if i > 0 or not hasattr(loc, "prepare"):
+                if i > 0:
                     continue  # built (weights present); the reference is prepared once, by the usual variant
                 prepared = self._prepare(loc, m.name, photos)
-                if len(photos) > 1:  # the set prepares lazily: run the method once on the first photo now
-                    p = photos[0]
-                    try:
-                        loc.prepare(View(p.image, p.K, p.depth))
-                    except Exception as e:
-                        raise _unavailable(m.name, e) from e
-                self._store((anchor_id, m.name, version), prepared)
+                self.anchors.put((anchor_id, m.name, version), prepared, prepared.nbytes)
             finally:
                 self._give(m, loc)
 
     def forget(self, anchor_id: str) -> None:
-        with self._lock:
-            for k in [k for k in self._anchors if k[0] == anchor_id]:
-                del self._anchors[k]
+        self.anchors.drop(lambda k: k[0] == anchor_id)
 
     def localize(self, anchor_id: str, method: str, ref_image: np.ndarray, ref_K: Intrinsics,
                  ref_depth: np.ndarray | None, query_image: np.ndarray, query_K: Intrinsics,
@@ -265,37 +236,30 @@ class Localizers:
         return self.localize_photos(anchor_id, method, (), lambda: [Photo(ref_image, ref_K, ref_depth)],
                                     query_image, query_K, query_depth)
 
-    def localize_photos(self, anchor_id: str, method: str, version: Hashable, photos: Callable[[], list[Photo]],
+    def localize_photos(self, anchor_id: str, method: str, version: Hashable, photos: Callable[[], Iterable[Photo]],
                         query_image: np.ndarray, query_K: Intrinsics,
                         query_depth: np.ndarray | None = None) -> Estimate:
         """World-to-camera pose of the query in the anchor's frame. ``photos`` is called (decoding the stored
         images) only when this process has not prepared this version of the anchor yet. With several photos
-        ``est.extras`` names the retrieved one (``photo``, ``retrieval_similarity``)."""
+        ``est.extras`` names the retrieved one (``photo``, ``retrieval_similarity``). Keypoints in
+        ``extras["matches"]`` are in the working-size pixels (``fit``)."""
         from ..relocalize import View
-        from ..relocalize.references import ReferenceSet
 
         method = effective_method(method, query_depth is not None)
         loc = self._take(method)
         try:
             key = (anchor_id, method.name, version)
-            prepared = self._cached(key)
+            prepared = self.anchors.get(key)
             if prepared is None:
                 prepared = self._prepare(loc, method.name, photos())
-                self._store(key, prepared)
-            query = View(query_image, query_K, query_depth)
-            if isinstance(prepared, ReferenceSet):
-                try:
-                    est = prepared.localize(loc, query)
-                except Exception as e:  # a photo prepared on first use, by a method that cannot run here
-                    raise _unavailable(method.name, e) from e
-                name = str(est.extras.get("reference", ""))  # "photo I" (the set may reorder its views)
-                est.extras["photo"] = int(name[6:]) if name.startswith("photo ") else None
-            elif isinstance(prepared, View):
-                loc.set_reference(prepared)
-                est = loc.localize(query)
-            else:
-                est = loc.localize(query, prepared)
-            est.extras.setdefault("photo", 0)
+                self.anchors.put(key, prepared, prepared.nbytes)
+            q = self.fit(Photo(query_image, query_K, query_depth))
+            try:
+                est = localize_prepared(loc, prepared, View(q.image, q.K, q.depth))
+            except MethodUnavailable:
+                raise
+            except Exception as e:  # a method that fails outright on this input (not a "no pose")
+                raise _unavailable(method.name, e) from e
             est.extras["method"] = method.name
             return est
         finally:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import hashlib
 from typing import Any, BinaryIO, Iterator
 
-from sqlalchemy import delete, func, insert, select
+from sqlalchemy import and_, delete, exists, func, insert, or_, select, update
 from sqlalchemy.orm import Session
 
 from .config import Settings
@@ -17,8 +17,12 @@ from .uploads import UploadError
 
 CHUNK_BYTES = 1 << 20
 CHUNKS_PER_TRANSACTION = 4
-#: An upload still being copied after this long was cut off (its API process died): swept with its rows.
+#: An upload still being copied after this long was cut off (its API process died): swept with its rows. Rows
+#: written since uploads hold a lease are swept as soon as it lapses.
 STALE_UPLOAD_SECONDS = 3600.0
+#: An upload renews its lease (``Submission.lease_until``) with every few chunks it stores; one whose lease
+#: lapsed was cut off (its API process killed mid-copy) and is removed, which refunds its test evaluation.
+UPLOAD_LEASE_SECONDS = 120.0
 
 
 def copy_in(db: Session, sid: str, f: BinaryIO) -> tuple[int, str]:
@@ -37,6 +41,8 @@ def copy_in(db: Session, sid: str, f: BinaryIO) -> tuple[int, str]:
                    insert(ZipChunk).values(submission_id=sid, seq=seq, data=chunk))
         seq += 1
         if seq % CHUNKS_PER_TRANSACTION == 0 or len(chunk) < CHUNK_BYTES:
+            db.execute(update(Submission).where(Submission.id == sid).values(
+                lease_until=now() + UPLOAD_LEASE_SECONDS))
             db.commit()
         if len(chunk) < CHUNK_BYTES:
             break
@@ -73,11 +79,13 @@ def _blob_bytes(table) -> Any:
 
 
 def stored_bytes(db: Session, user_id: int) -> int:
-    """Bytes ``user_id`` keeps stored, what the storage quota counts: submission ZIPs still stored, and the
-    image and depth bytes of every photo of their anchors."""
+    """Bytes ``user_id`` keeps stored, what the storage quota counts: submission ZIPs still stored or being
+    copied in (an upload's bytes are reserved by its row, written in the transaction that checks the quota,
+    and released with that row when the copy fails), and the image and depth bytes of every photo of their
+    anchors."""
+    stored = exists().where(SubmissionFile.submission_id == Submission.id)
     zips = db.scalar(select(func.coalesce(func.sum(Submission.size_bytes), 0))
-                     .join(SubmissionFile, SubmissionFile.submission_id == Submission.id)
-                     .where(Submission.user_id == user_id))
+                     .where(Submission.user_id == user_id, or_(stored, Submission.status == "uploading")))
     firsts = db.scalar(select(func.coalesce(func.sum(_blob_bytes(Anchor)), 0)).where(Anchor.user_id == user_id))
     photos = db.scalar(select(func.coalesce(func.sum(_blob_bytes(AnchorPhoto)), 0))
                        .join(Anchor, Anchor.id == AnchorPhoto.anchor_id).where(Anchor.user_id == user_id))
@@ -117,7 +125,14 @@ def sweep(db: Session, retention_days: float) -> int:
         old = select(Submission.id).where(Submission.status.in_(("done", "failed")),
                                           Submission.finished_at < t - retention_days * 86400)
         gone += db.execute(delete(SubmissionFile).where(SubmissionFile.submission_id.in_(old))).rowcount or 0
-    stale = select(Submission.id).where(Submission.status == "uploading",
-                                        Submission.created_at < t - STALE_UPLOAD_SECONDS)
-    gone += db.execute(delete(Submission).where(Submission.id.in_(stale))).rowcount or 0
-    return gone
+    return gone + drop_interrupted_uploads(db)
+
+
+def drop_interrupted_uploads(db: Session) -> int:
+    """Delete the submissions whose upload was cut off mid-copy (lease lapsed; rows from before upload leases:
+    an hour old), with their chunks: the quota and the test evaluation they counted against are refunded."""
+    t = now()
+    stale = select(Submission.id).where(Submission.status == "uploading", or_(
+        Submission.lease_until < t, and_(Submission.lease_until.is_(None),
+                                         Submission.created_at < t - STALE_UPLOAD_SECONDS)))
+    return db.execute(delete(Submission).where(Submission.id.in_(stale))).rowcount or 0

@@ -12,15 +12,18 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from .config import Settings
+from .config import UNLIMITED, Settings
 from .db import Plot, Result, Submission, User, now
 from .evaluation import PLOT_NAMES, known_scenes, render_plots, unpack_report
-from .storage import check_quota, copy_in, lock_user
+from .storage import UPLOAD_LEASE_SECONDS, check_quota, copy_in, lock_user
+from .testmetrics import coarsen
 from .uploads import UploadError, check_name, check_submission_zip
 
 
 def daily_test_limit(settings: Settings, user: User) -> int:
-    return user.test_daily_limit if user.test_daily_limit is not None else settings.test_daily_limit
+    """The account's own limit when set, else the server's; ``UNLIMITED`` (negative): no limit, 0: none."""
+    limit = user.test_daily_limit if user.test_daily_limit is not None else settings.test_daily_limit
+    return UNLIMITED if limit < 0 else limit
 
 
 def recent_count(db: Session, user: User, split: str, window_s: float) -> int:
@@ -30,9 +33,15 @@ def recent_count(db: Session, user: User, split: str, window_s: float) -> int:
 
 
 def _limit_reached(db: Session, user: User, split: str, window_s: float, limit: int, what: str) -> None:
-    """A 429 when ``user`` already made ``limit`` submissions to ``split`` in the last ``window_s`` (0: none)."""
+    """A 429 when ``user`` already made ``limit`` submissions to ``split`` in the last ``window_s`` (0: any
+    submission is refused; ``UNLIMITED``: no limit)."""
+    if limit < 0:
+        return
+    if limit == 0:
+        raise UploadError(429, f"{what} limit: this account may make no {split} submissions (its limit is 0; "
+                               "ask the operator)")
     since = now() - window_s
-    if limit > 0 and recent_count(db, user, split, window_s) >= limit:
+    if recent_count(db, user, split, window_s) >= limit:
         first = db.scalar(select(func.min(Submission.created_at)).where(
             Submission.user_id == user.id, Submission.split == split, Submission.created_at > since))
         wait = max(1, int((first or now()) + window_s - now()) + 1)
@@ -54,10 +63,11 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
     if split == "test":
         _limit_reached(db, user, "test", 86400, daily_test_limit(settings, user), "daily")
     else:
-        _limit_reached(db, user, split, 3600, settings.val_hourly_limit, "hourly")
+        hourly = settings.val_hourly_limit if settings.val_hourly_limit > 0 else UNLIMITED  # 0: no limit
+        _limit_reached(db, user, split, 3600, hourly, "hourly")
     check_quota(db, settings, user.id, size, "this submission")
     sub = Submission(user_id=user.id, split=split, name=name, public=bool(public), status="uploading",
-                     size_bytes=size, sha256="", created_at=now())
+                     size_bytes=size, sha256="", created_at=now(), lease_until=now() + UPLOAD_LEASE_SECONDS)
     db.add(sub)
     db.commit()
     try:
@@ -67,9 +77,14 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
         db.execute(delete(Submission).where(Submission.id == sub.id))
         db.commit()
         raise
-    sub.sha256, sub.status = sha, "queued"
+    sub.sha256, sub.status, sub.lease_until = sha, "queued", None
     db.commit()
     return sub
+
+
+def shown_metrics(split: str, metrics: dict | None) -> dict | None:
+    """Stored metrics as shown: for ``test`` rounded again (results stored before coarsening was introduced)."""
+    return coarsen(metrics) if split == "test" and metrics else metrics
 
 
 def visible(sub: Submission | None, user: User | None, withdrawn: bool = False) -> bool:
@@ -109,7 +124,7 @@ def to_json(db: Session, sub: Submission, owner_name: str | None = None) -> dict
         "withdrawn_at": sub.finished_at if sub.status == "withdrawn" else None,
         "size_bytes": sub.size_bytes, "sha256": sub.sha256,
         "url": f"/submissions/{sub.id}", "api_url": f"/api/submissions/{sub.id}",
-        "metrics": res.metrics if res else None, "problems": res.problems if res else [],
+        "metrics": shown_metrics(sub.split, res.metrics) if res else None, "problems": res.problems if res else [],
         "plots": [f"/submissions/{sub.id}/plots/{n}.png" for n in sorted(plots)],
     }
     if sub.split != "test":

@@ -15,11 +15,16 @@ from typing import BinaryIO
 import cv2
 import numpy as np
 
+from ..data.orientation import orient_pixels
 from .config import Limits
+from .exif import photo_orientation
 
 ENTRY_RE = re.compile(r"^pose_(s\d{5})\.txt$")
 #: A focal length beyond this many times the image's longest side is not a camera (a ~0.6 degree field of view).
 MAX_FOCAL_FACTOR = 100
+#: Smallest focal length, per pixel of the longest side: 0.1 is a 157-degree field of view across it, past any
+#: pinhole lens (fisheyes need another camera model); 0.5 px or 1e-300 are unit mistakes, not cameras.
+MIN_FOCAL_FACTOR = 0.1
 
 
 class UploadError(Exception):
@@ -115,8 +120,13 @@ def _sniff(zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> None:
 
 
 def decode_image(data: bytes, limits: Limits, what: str) -> np.ndarray:
-    """Uploaded bytes -> (H,W,3) uint8 RGB. The header is read first, so that a decompression bomb is refused
-    before decoding."""
+    """``decode_photo`` without the orientation."""
+    return decode_photo(data, limits, what)[0]
+
+
+def decode_photo(data: bytes, limits: Limits, what: str) -> tuple[np.ndarray, int]:
+    """Uploaded bytes -> (H,W,3) uint8 RGB upright (its EXIF orientation applied; a mirrored photo is refused),
+    and that orientation. The header is read first, so that a decompression bomb is refused before decoding."""
     if not data:
         raise UploadError(400, f"{what}: empty file")
     if len(data) > limits.max_image_bytes:
@@ -124,10 +134,11 @@ def decode_image(data: bytes, limits: Limits, what: str) -> np.ndarray:
     w, h = _image_size(data, what)
     if w * h > limits.max_image_pixels:
         raise UploadError(413, f"{what}: {w}x{h} pixels; the limit is {limits.max_image_pixels} pixels")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    orientation = photo_orientation(data, what)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None or img.shape[0] != h or img.shape[1] != w:
         raise UploadError(422, f"{what}: corrupt or unsupported image (JPEG or PNG expected)")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return orient_pixels(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), orientation), orientation
 
 
 def decode_depth(data: bytes, limits: Limits, shape: tuple[int, int], what: str = "depth") -> np.ndarray:
@@ -188,10 +199,11 @@ def parse_intrinsics(values: dict, width: int, height: int, what: str = "intrins
         if not math.isfinite(f):
             raise UploadError(422, f"{what}: {k} must be finite")
         out[k] = f
-    fmax = MAX_FOCAL_FACTOR * max(width, height)
-    if not (0 < out["fx"] < fmax and 0 < out["fy"] < fmax):
-        raise UploadError(422, f"{what}: focal lengths must be positive and below {fmax:g} px "
-                               f"({MAX_FOCAL_FACTOR} x the image's longest side); got fx={out['fx']:g}, fy={out['fy']:g}")
+    fmin, fmax = MIN_FOCAL_FACTOR * max(width, height), MAX_FOCAL_FACTOR * max(width, height)
+    if not (fmin <= out["fx"] < fmax and fmin <= out["fy"] < fmax):
+        raise UploadError(422, f"{what}: focal lengths must lie between {fmin:g} and {fmax:g} px "
+                               f"({MIN_FOCAL_FACTOR} to {MAX_FOCAL_FACTOR} x the image's longest side, {max(width, height)} "
+                               f"px; in pixels, not millimetres); got fx={out['fx']:g}, fy={out['fy']:g}")
     if not (0 <= out["cx"] <= width and 0 <= out["cy"] <= height):
         raise UploadError(422, f"{what}: principal point ({out['cx']:g}, {out['cy']:g}) must lie inside the "
                                f"{width}x{height} image")

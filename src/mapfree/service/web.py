@@ -21,16 +21,18 @@ from sqlalchemy.orm import Session
 
 from . import auth
 from .api import (PhotoUpload, add_photo, anchor_json, check_photo_count, find_anchor, localize_anchor, make_anchor,
-                  photo_name, photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
+                  may_see_photos, photo_name, photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
+from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
-from .leaderboard import (VIEWS, board, check_sort, check_split, compare, meta_json, ordered_metrics,
-                          parse_meta, reference_rows, save_meta, visible_json)
+from .leaderboard import (MAX_PER_PAGE, PER_PAGE, VIEWS, board, check_sort, check_split, compare, meta_json,
+                          ordered_metrics, parse_meta, reference_rows, save_meta, visible_json)
 from .manage import Withdrawn, own_submission, test_quota, withdraw, zip_response
-from .reloc import check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
+from .reloc import Photo, check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
 from .submissions import accept, to_json, visible_submission
-from .uploads import UploadError, decode_depth, decode_image, parse_intrinsics
+from .exif import stored_shape, upright_depth, upright_intrinsics
+from .uploads import UploadError, decode_depth, decode_photo, parse_intrinsics
 
 router = APIRouter(include_in_schema=False)
 templates = Jinja2Templates(directory=str(Path(__file__).parent / "templates"))
@@ -116,6 +118,12 @@ def login(request: Request, token: str = Form(...), csrf_token: str = Form(""), 
         raise HTTPException(403, "CSRF check failed: reload the sign-in page and try again")
     user = auth.user_for_token(db, token.strip())
     if user is None:  # the sign-in form again, with the error above it
+        try:
+            request.app.state.auth_throttle.refuse(request)
+        except HTTPException as e:
+            resp = _login_page(request, db, e.status_code, str(e.detail))
+            resp.headers.update(e.headers or {})
+            return resp
         return _login_page(request, db, 401, "invalid or revoked API token")
     settings = request.app.state.settings
     sid, _ = auth.open_session(db, user, settings.session_hours)
@@ -268,14 +276,19 @@ def leaderboard_default(request: Request):
 
 @router.get("/leaderboard/{split}", response_class=HTMLResponse)
 def leaderboard_page(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
-                     scene: str = Query(""), db: Session = Depends(db_session)):
+                     scene: str = Query(""), page_no: int = Query(1, ge=1, alias="page"),
+                     per_page: int = Query(PER_PAGE, ge=1, le=MAX_PER_PAGE), db: Session = Depends(db_session)):
     check_split(request, split)
     check_sort(sort)
-    entries = board(db, split, sort, view, scene or None)
+    b = board(db, split, sort, view, scene or None, page_no, per_page)
     query = urlencode({"sort": sort, "view": view, **({"scene": scene} if scene else {})})
+    pages = {"prev": b.page - 1 if b.page > 1 else None, "next": b.page + 1 if b.page < b.pages else None,
+             "first": 1, "last": b.pages}
+    page_url = {k: f"?{query}&page={n}" + (f"&per_page={b.per_page}" if b.per_page != PER_PAGE else "")
+                for k, n in pages.items() if n is not None}
     return page(request, "leaderboard.html", db, split=split, sort=sort, view=view, views=VIEWS, scene=scene,
                 scenes=[] if split == "test" else sorted(known_scenes(request.app.state.settings, split) or ()),
-                entries=entries, labels=LABELS, lower=LOWER_IS_BETTER,
+                entries=b.entries, board=b, page_url=page_url, labels=LABELS, lower=LOWER_IS_BETTER,
                 reference=reference_rows(), csv_url=f"/api/leaderboard/{split}.csv?{query}")
 
 
@@ -318,16 +331,18 @@ def relocalize_form(request: Request, db: Session = Depends(db_session)):
     return _reloc_page(request, db)
 
 
-def _guess_intrinsics(fields: dict, img, what: str) -> dict:
-    """Intrinsics from the form, or a guess (focal 0.8 x longest side, centred) when left empty."""
-    h, w = img.shape[:2]
+def _guess_intrinsics(fields: dict, img, what: str, orientation: int = 1) -> dict:
+    """Intrinsics from the form (for the photo's stored pixel grid), or a guess (focal 0.8 x longest side,
+    centred) when left empty; for the upright photo."""
+    h, w = stored_shape(img, orientation)
     if all(str(fields.get(k, "")).strip() == "" for k in ("fx", "fy", "cx", "cy")):
         f = 0.8 * max(w, h)
         fields = {"fx": f, "fy": f, "cx": (w - 1) / 2, "cy": (h - 1) / 2}
-    return parse_intrinsics(fields, w, h, what)
+    return upright_intrinsics(parse_intrinsics(fields, w, h, what), orientation)
 
 
 @router.post("/relocalize", response_class=HTMLResponse)
+@heavy
 def relocalize_try(request: Request, reference: UploadFile = File(...), query: UploadFile = File(...),
                    reference_depth: UploadFile | None = File(None), method: str = Form(""),
                    ref_fx: str = Form(""), ref_fy: str = Form(""), ref_cx: str = Form(""), ref_cy: str = Form(""),
@@ -342,16 +357,16 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
     m = method.strip() or default_method(request.app.state.settings.default_method)
     try:
         m = check_method(m)
-        ref_img = decode_image(reference.file.read(lim.max_image_bytes + 1), lim, "reference photo")
-        q_img = decode_image(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
+        ref_img, ref_o = decode_photo(reference.file.read(lim.max_image_bytes + 1), lim, "reference photo")
+        q_img, q_o = decode_photo(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
         ref_K = intrinsics_of(_guess_intrinsics({k[4:]: v for k, v in form.items() if k.startswith("ref_")},
-                                                ref_img, "reference intrinsics"))
+                                                ref_img, "reference intrinsics", ref_o))
         q_K = intrinsics_of(_guess_intrinsics({k[2:]: v for k, v in form.items() if k.startswith("q_")}, q_img,
-                                              "query intrinsics"))
+                                              "query intrinsics", q_o))
         ref_depth = None
         if reference_depth is not None and reference_depth.filename:
-            ref_depth = decode_depth(reference_depth.file.read(lim.max_image_bytes + 1), lim, ref_img.shape[:2],
-                                     "reference depth")
+            ref_depth = upright_depth(decode_depth(reference_depth.file.read(lim.max_image_bytes + 1), lim,
+                                                   stored_shape(ref_img, ref_o), "reference depth"), ref_o)
         elif needs_reference_depth(m, scale_free_too=False):
             raise UploadError(422, f"method {m} needs the reference depth map (a uint16 PNG in millimetres, the "
                                    "size of the reference photo) for a metric pose; choose one, or a method "
@@ -362,34 +377,40 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
     loc = request.app.state.localizers
     est = loc.localize(key, m, ref_img, ref_K, ref_depth, q_img, q_K)
     loc.forget(key)
-    png = figure_png(ref_img, q_img, ref_K, q_K, est, title=m)
+    ref, q = loc.fit(Photo(ref_img, ref_K)), loc.fit(Photo(q_img, q_K))  # the sizes the matches are in
+    png = figure_png(ref.image, q.image, ref.K, q.K, est, title=m)
     return _reloc_page(request, db, method=m, form=form, result=estimate_json(est, m),
                        figure="data:image/png;base64," + base64.b64encode(png).decode())
 
 
 @router.post("/relocalize/anchor", response_class=HTMLResponse)
+@heavy
 def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFile = File(...),
                       q_fx: str = Form(""), q_fy: str = Form(""), q_cx: str = Form(""), q_cy: str = Form(""),
                       csrf_token: str = Form(""), db: Session = Depends(db_session)):
     """A query photo against a stored anchor (one or several photos): the pose in the anchor's frame, which
     photo answered, and the figure drawn against that photo."""
-    require_writer(request, db, csrf_token)
+    caller = require_writer(request, db, csrf_token)
     form = {"q_fx": q_fx, "q_fy": q_fy, "q_cx": q_cx, "q_cy": q_cy, "anchor": anchor}
     a = find_anchor(db, anchor)
     rows = photo_rows(db, a.id)
     db.commit()  # release the read transaction before the long computation
     lim = request.app.state.settings.limits
     try:
-        q_img = decode_image(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
+        q_img, q_o = decode_photo(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
         q_K = intrinsics_of(_guess_intrinsics({k[2:]: v for k, v in form.items() if k.startswith("q_")}, q_img,
-                                              "query intrinsics"))
+                                              "query intrinsics", q_o))
     except UploadError as e:
         return _reloc_page(request, db, e.status, method=a.method, form=form, error=e.message)
     est = localize_anchor(request, a, rows, q_img, q_K)
     result = estimate_json(est, a.method)
+    if not may_see_photos(a, caller.user):  # the figure would show the anchor's photo
+        return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8])
     photo = stored_photo(a, rows, result.get("photo") or 0, lim)  # only the one drawn, not every photo again
     shown = replace(est, pose=est.pose @ photo.pose.inverse()) if est.pose is not None else est  # vs that photo
-    png = figure_png(photo.image, q_img, photo.K, q_K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
+    loc = request.app.state.localizers
+    photo, q = loc.fit(photo), loc.fit(Photo(q_img, q_K))  # the sizes the matches are in
+    png = figure_png(photo.image, q.image, photo.K, q.K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
     return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8],
                        figure="data:image/png;base64," + base64.b64encode(png).decode())
 
@@ -477,16 +498,20 @@ def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
 
 
 @router.post("/relocalize/anchors")
+@heavy
 def create_anchor_form(request: Request, photos: list[UploadFile] = File([]), depths: list[UploadFile] = File([]),
                        cameras: str = Form(""), name: str = Form(""), method: str = Form(""),
-                       csrf_token: str = Form(""), db: Session = Depends(db_session)):
+                       private: str = Form(""), csrf_token: str = Form(""), db: Session = Depends(db_session)):
     """Create an anchor from the page (what ``POST /anchors`` does, same limits and errors): on success its page;
     on a problem the relocalize page with the error above this form, its values kept."""
     caller = require_writer(request, db, csrf_token)
-    form = {"new_name": name, "new_method": method, "cameras": cameras}
+    form = {"new_name": name, "new_method": method, "cameras": cameras, "new_private": bool(private)}
     try:
         ups, names = _form_photos(request.app.state.settings.limits, photos, depths, cameras)
         a, _ = make_anchor(request, db, caller.user, name, method, ups, names)
+        if private:
+            a.private = True
+            db.commit()
     except (UploadError, HTTPException) as e:
         db.rollback()
         status, message = _problem(e)
@@ -510,6 +535,7 @@ def anchor_page(aid: str, request: Request, db: Session = Depends(db_session)):
 
 
 @router.post("/relocalize/anchors/{aid}/photos")
+@heavy
 def add_photo_form(aid: str, request: Request, image: UploadFile | None = File(None),
                    depth: UploadFile | None = File(None), fx: str = Form(""), fy: str = Form(""),
                    cx: str = Form(""), cy: str = Form(""), pose: str = Form(""), csrf_token: str = Form(""),

@@ -23,7 +23,7 @@ from sqlalchemy import delete, update
 from . import jobs, storage
 from .config import Limits, Settings
 from .db import WorkerRow, init_db, make_engine, new_id, now, session_factory
-from .evaluation import SubmissionRejected, score
+from .evaluation import SubmissionRejected, check_ground_truth, score
 
 log = logging.getLogger("mapfree.worker")
 
@@ -143,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     from .logs import setup_logging
 
     p = argparse.ArgumentParser(prog="python -m mapfree.service.worker", description=__doc__)
-    p.add_argument("--db", required=True)
+    p.add_argument("--db", default=os.environ.get("MAPFREE_DB"),
+                   help="database URL (default: $MAPFREE_DB, which keeps a password off the command line)")
     p.add_argument("--data", type=Path)
     p.add_argument("--gt", type=Path)
     p.add_argument("--lease-seconds", type=float, default=60.0)
@@ -155,12 +156,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--exit-with-parent", action="store_true", help="stop when the launching process dies")
     a = p.parse_args(argv)
     setup_logging(a.log_level)
+    if not a.db:
+        p.error("no database: pass --db or set MAPFREE_DB")
     settings = Settings(db_url=a.db, data_root=a.data, gt_root=a.gt, lease_seconds=a.lease_seconds,
                         max_attempts=a.max_attempts, poll_seconds=a.poll_seconds,
                         zip_retention_days=a.zip_retention_days, limits=Limits(**json.loads(a.limits)))
+    try:
+        check_ground_truth(settings)
+    except ValueError as e:
+        p.error(str(e))
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
+    if a.exit_with_parent:  # also mid-job: the kernel signals it (SIGTERM: the job is handed back)
+        from .lifeline import die_with_parent
+
+        die_with_parent(None)
     run(settings, stop=stop, parent_pid=os.getppid() if a.exit_with_parent else None)
     return 0
 

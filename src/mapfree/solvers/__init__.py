@@ -19,7 +19,7 @@ from .procrustes import ProcrustesOptions, ProcrustesSolver
 from .scale import scale_vote, scale_vote_bruteforce
 
 __all__ = [
-    "Solver", "create", "available", "options_for", "PRESETS", "CONFIDENCE_MODES",
+    "Solver", "create", "available", "options_for", "option_names", "PRESETS", "CONFIDENCE_MODES",
     "EssentialOptions", "EssentialSolver", "PnPOptions", "PnPSolver", "ProcrustesOptions", "ProcrustesSolver",
     "scale_vote", "scale_vote_bruteforce",
 ]
@@ -44,6 +44,11 @@ def _canonical(name: str) -> str:
 def available() -> list[str]:
     """Solver names a user can type (aliases included)."""
     return sorted(SOLVERS) + sorted(ALIASES)
+
+
+def option_names(name: str) -> list[str]:
+    """The options solver ``name`` accepts (the fields of its options dataclass)."""
+    return [f.name for f in fields(SOLVERS[_canonical(name)][1])]
 
 
 def options_for(name: str, preset: str = "paper", **options):

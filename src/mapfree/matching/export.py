@@ -1,0 +1,98 @@
+"""Correspondences between two image files with any registered matcher, and the ``.npz`` layout they are saved in
+(the same keys for every matcher, so that a downstream tool reads SIFT's and SuperGlue's files alike)."""
+
+from __future__ import annotations
+
+import difflib
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import create, names
+from .base import Matches
+
+__all__ = ["NPZ_KEYS", "PairMatches", "match_files", "save_npz", "load_npz", "resolve_name"]
+
+#: Keys of a matches file, each with its meaning (written in this order).
+NPZ_KEYS = {
+    "kpts0": "(N,2) float32: x, y in image0's original pixels (pixel centres at integer coordinates)",
+    "kpts1": "(N,2) float32: the corresponding x, y in image1's original pixels",
+    "scores": "(N,) float32: the matcher's confidence per match, higher is better (its own scale)",
+    "image0": "str: path of image0 as given",
+    "image1": "str: path of image1 as given",
+    "size0": "(2,) int32: width, height of image0",
+    "size1": "(2,) int32: width, height of image1",
+    "matcher": "str: the matcher's registry name",
+    "seconds": "float64: wall time of feature extraction and matching (model loading excluded)",
+}
+
+
+@dataclass
+class PairMatches:
+    """What ``match_files`` found: the matches with the images they come from and what it cost."""
+
+    matches: Matches
+    image0: str
+    image1: str
+    size0: tuple[int, int]
+    size1: tuple[int, int]
+    matcher: str
+    seconds: float
+    load_seconds: float
+    keypoints: tuple[int, int]  # candidate points per image (a dense matcher's grid cells)
+
+
+def resolve_name(name: str) -> str:
+    """The registry key of ``name`` (case and ``_``/``-`` as ``create`` accepts); ``KeyError`` with the nearest
+    names for an unknown one."""
+    key = name.strip().lower().replace("_", "-")
+    known = names()
+    if key in known:
+        return key
+    close = difflib.get_close_matches(key, known, n=3, cutoff=0.6)
+    hint = f"did you mean {' or '.join(map(repr, close))}? " if close else ""
+    raise KeyError(f"unknown matcher {name!r}: {hint}known: {', '.join(known)}")
+
+
+def match_files(image0: os.PathLike | str, image1: os.PathLike | str, matcher: str,
+                **options: object) -> PairMatches:
+    """Read both images (``FormatError`` naming an unreadable one), build ``matcher`` (``KeyError``,
+    ``MissingWeightsError``, or ``TypeError`` for an option it does not have) and match them."""
+    from ..data import read_image
+
+    name = resolve_name(matcher)
+    im0, im1 = read_image(image0), read_image(image1)
+    t0 = time.perf_counter()
+    mt = create(name, **options)
+    t1 = time.perf_counter()
+    f0, f1 = mt.extract(im0), mt.extract(im1)
+    m = mt.match(f0, f1)
+    t2 = time.perf_counter()
+    return PairMatches(m, str(image0), str(image1), (im0.shape[1], im0.shape[0]), (im1.shape[1], im1.shape[0]),
+                       name, t2 - t1, t1 - t0, (len(f0), len(f1)))
+
+
+def save_npz(path: os.PathLike | str, r: PairMatches) -> Path:
+    """Write ``r`` with the keys of ``NPZ_KEYS`` (no pickled objects: ``np.load`` needs no ``allow_pickle``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    m = r.matches
+    arrays = {
+        "kpts0": m.kpts0.astype(np.float32), "kpts1": m.kpts1.astype(np.float32),
+        "scores": m.scores.astype(np.float32), "image0": np.str_(r.image0), "image1": np.str_(r.image1),
+        "size0": np.asarray(r.size0, np.int32), "size1": np.asarray(r.size1, np.int32),
+        "matcher": np.str_(r.matcher), "seconds": np.float64(r.seconds),
+    }
+    assert list(arrays) == list(NPZ_KEYS)
+    with open(path, "wb") as f:  # np.savez would append .npz to a name without it
+        np.savez(f, **arrays)
+    return path
+
+
+def load_npz(path: os.PathLike | str) -> dict[str, np.ndarray]:
+    """A matches file as a dict of arrays (strings as 0-d str arrays: ``str(d["matcher"])``)."""
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}

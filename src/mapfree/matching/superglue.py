@@ -1,0 +1,127 @@
+"""SuperPoint + SuperGlue (Sarlin et al., CVPR 2020), the paper's headline matcher, through transformers'
+``SuperGlueForKeypointMatching`` with the published indoor or outdoor weights.
+
+``extract`` runs SuperPoint once per image (a reference is described once per scene); ``match`` runs the
+SuperGlue graph network and Sinkhorn on the pair. Defaults are the paper's: 1024 keypoints, keypoint threshold
+0.005, NMS radius 4, 20 Sinkhorn iterations, match threshold 0.2, images matched at their native 540x720."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from .attention import steady_kernels
+from .base import Features, Matches
+from .hub import HubModel, find_hub_model, grey_pixels, load_hub_model, transformers_classes
+from .utils import autocast, checked_or_blank, resolve_device, to_original
+
+__all__ = ["SuperGlueOptions", "SuperGlueMatcher", "SUPERGLUE_MODELS", "superglue_available"]
+
+_LICENCE = "Magic Leap licence: academic or non-profit non-commercial research use only"
+SUPERGLUE_MODELS = {
+    "outdoor": HubModel("magic-leap-community/superglue_outdoor", "SuperPoint + SuperGlue (outdoor)", _LICENCE),
+    "indoor": HubModel("magic-leap-community/superglue_indoor", "SuperPoint + SuperGlue (indoor)", _LICENCE),
+}
+
+
+@dataclass
+class SuperGlueOptions:
+    weights_kind: str = "outdoor"  # outdoor | indoor
+    weights: str | None = None  # a model folder (config.json + model.safetensors) instead of the hub's
+    max_keypoints: int = 1024
+    keypoint_threshold: float = 0.005
+    nms_radius: int = 4
+    sinkhorn_iterations: int = 20
+    match_threshold: float = 0.2
+    max_size: int | None = 720  # long side; the dataset's 540x720 images are matched as they are
+    mixed_precision: bool = False  # CUDA autocast; off until validated on a GPU
+    device: str | None = None
+
+
+def superglue_available(kind: str = "outdoor", weights: str | None = None) -> bool:
+    return find_hub_model(SUPERGLUE_MODELS[kind], weights) is not None
+
+
+def _normalised_into(kpts: torch.Tensor, size: tuple[int, int], target: tuple[int, int]) -> torch.Tensor:
+    """Keypoints of an image of ``size`` (w, h) moved so that SuperGlue's normalisation with ``target``'s size
+    gives what normalising with their own size gives (centre, and 0.7 x the long side, per image)."""
+    if size == target:
+        return kpts
+    c, s = kpts.new_tensor(size) / 2, max(size) * 0.7
+    ct, st = kpts.new_tensor(target) / 2, max(target) * 0.7
+    return (kpts - c) * (st / s) + ct
+
+
+class SuperGlueMatcher:
+    """``superglue`` (outdoor weights) / ``superglue-indoor``."""
+
+    def __init__(self, options: SuperGlueOptions | None = None, **overrides: object) -> None:
+        SuperGlueConfig, SuperGlueForKeypointMatching = transformers_classes("SuperGlueConfig",
+                                                                            "SuperGlueForKeypointMatching")
+
+        self.options = o = options or SuperGlueOptions(**overrides)  # type: ignore[arg-type]
+        if o.weights_kind not in SUPERGLUE_MODELS:
+            raise ValueError(f"unknown SuperGlue weights {o.weights_kind!r}; choose from {sorted(SUPERGLUE_MODELS)}")
+        self.name = "superglue" if o.weights_kind == "outdoor" else f"superglue-{o.weights_kind}"
+        self.device = resolve_device(o.device)
+
+        def configure(cfg: Any) -> None:
+            # the configs are strict dataclasses: an int where a float belongs (e.g. from YAML "0") is refused
+            cfg.sinkhorn_iterations = int(o.sinkhorn_iterations)
+            cfg.matching_threshold = float(o.match_threshold)
+            sp = cfg.keypoint_detector_config
+            sp.max_keypoints, sp.nms_radius = int(o.max_keypoints), int(o.nms_radius)
+            sp.keypoint_threshold = float(o.keypoint_threshold)
+
+        net = load_hub_model(SuperGlueForKeypointMatching, SuperGlueConfig, SUPERGLUE_MODELS[o.weights_kind],
+                             o.weights, configure)
+        self.net = net.to(self.device)
+
+    @torch.inference_mode()
+    def extract(self, image: np.ndarray) -> Features:
+        image, blank = checked_or_blank(image)
+        if blank is not None:
+            return blank
+        x, scale = grey_pixels(image, self.options.max_size, 1, self.device)
+        h, w = x.shape[-2:]
+        with autocast(self.device, self.options.mixed_precision), steady_kernels():
+            det = self.net.keypoint_detector(x)
+        n = int(det.mask[0].sum())
+        # SuperPoint reports keypoints relative to the input size; times (w, h) they are its integer pixels.
+        kp = det.keypoints[0, :n].float() * det.keypoints.new_tensor([w, h]).float()
+        data = {"keypoints": kp, "scores": det.scores[0, :n].float(), "descriptors": det.descriptors[0, :n].float(),
+                "resized": (w, h)}
+        return Features(to_original(kp.cpu().numpy(), scale), (image.shape[1], image.shape[0]), data)
+
+    @torch.inference_mode()
+    def match(self, f0: Features, f1: Features) -> Matches:
+        if len(f0) == 0 or len(f1) == 0:
+            return Matches.empty()
+        d0, d1 = f0.data, f1.data
+        n0, n1 = len(f0), len(f1)
+        n = max(n0, n1)
+        w, h = d0["resized"]
+        kp = torch.zeros((1, 2, n, 2), device=self.device)
+        desc = torch.zeros((1, 2, n, d0["descriptors"].shape[1]), device=self.device)
+        scores = torch.zeros((1, 2, n), device=self.device)
+        mask = torch.zeros((1, 2, n), dtype=torch.int, device=self.device)
+        kp[0, 0, :n0] = d0["keypoints"]
+        kp[0, 1, :n1] = _normalised_into(d1["keypoints"], d1["resized"], d0["resized"])
+        for i, (d, k) in enumerate(((d0, n0), (d1, n1))):
+            desc[0, i, :k], scores[0, i, :k], mask[0, i, :k] = d["descriptors"], d["scores"], 1
+        with autocast(self.device, self.options.mixed_precision), steady_kernels():
+            matches, match_scores, _, _ = self.net._match_image_pair(kp, desc, scores, h, w, mask=mask)
+        m0 = matches[0, 0, :n0].cpu().numpy()
+        s0 = match_scores[0, 0, :n0].float().cpu().numpy()
+        ok = (m0 > -1) & (m0 < n1)
+        return Matches(f0.kpts[ok], f1.kpts[m0[ok]], s0[ok])
+
+    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
+        return [self.extract(im) for im in images]
+
+    def match_many(self, f0: Features, f1s: Sequence[Features]) -> list[Matches]:
+        return [self.match(f0, f1) for f1 in f1s]
+

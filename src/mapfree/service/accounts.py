@@ -1,0 +1,160 @@
+"""A user's own API tokens and browser sessions: list them, create a token with an expiry, revoke one at a time
+(``mapfree admin`` does the same for any account). Only hashes are stored: a listing shows each token's prefix
+and label, never the token."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Form, HTTPException, Request
+from fastapi.responses import HTMLResponse, RedirectResponse
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from . import auth
+from .db import ApiToken, WebSession, now
+from .deps import SESSION_COOKIE, db_session, identify, require_writer
+
+router = APIRouter()
+#: The longest lifetime a user may give a token they create themselves (an admin's CLI may give any).
+MAX_SELF_SERVICE_DAYS = 365.0
+
+
+def token_json(t: ApiToken, current_hash: str = "") -> dict:
+    expired = t.expires_at is not None and t.expires_at <= now()
+    return {"id": t.id, "prefix": t.prefix, "label": t.label, "created_at": t.created_at,
+            "expires_at": t.expires_at, "revoked": t.revoked, "expired": expired,
+            "current": t.token_hash == current_hash}
+
+
+def session_json(s: WebSession, current_hash: str = "") -> dict:
+    return {"id": s.id, "created_at": s.created_at, "expires_at": s.expires_at,
+            "current": s.sid_hash == current_hash}
+
+
+def list_tokens(db: Session, user_id: int) -> list[ApiToken]:
+    return list(db.scalars(select(ApiToken).where(ApiToken.user_id == user_id).order_by(ApiToken.id)))
+
+
+def list_sessions(db: Session, user_id: int) -> list[WebSession]:
+    return list(db.scalars(select(WebSession).where(WebSession.user_id == user_id, WebSession.expires_at > now())
+                           .order_by(WebSession.id)))
+
+
+def _signed_in(request: Request, db: Session):
+    caller = identify(request, db)
+    if caller.user is None:
+        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    return caller
+
+
+def _current_token_hash(request: Request) -> str:
+    scheme, _, token = request.headers.get("authorization", "").partition(" ")
+    return auth.hash_secret(token.strip()) if scheme.lower() == "bearer" and token.strip() else ""
+
+
+def _own_row(request: Request, db: Session, model, row_id: int, what: str, csrf: str | None = None):
+    """Row ``row_id`` of ``model`` if it belongs to the signed-in writer; a 404 otherwise (another's included)."""
+    caller = require_writer(request, db, csrf or request.headers.get("x-csrf-token"))
+    row = db.get(model, row_id)
+    if row is None or row.user_id != caller.user.id:
+        raise HTTPException(404, f"no such {what} of yours")
+    return row
+
+
+@router.get("/api/tokens", tags=["accounts"])
+def my_tokens(request: Request, db: Session = Depends(db_session)):
+    """Your API tokens (prefix, label, creation, expiry, revoked); ``current``: the one this request used."""
+    caller = _signed_in(request, db)
+    return [token_json(t, _current_token_hash(request)) for t in list_tokens(db, caller.user.id)]
+
+
+@router.post("/api/tokens", status_code=201, tags=["accounts"])
+def create_token(request: Request, expires_in_days: float = Form(..., description="lifetime in days (max 365)"),
+                 label: str = Form("", description="what the token is for"), csrf_token: str | None = Form(None),
+                 db: Session = Depends(db_session)):
+    """A new API token of yours that expires (shown once, in ``token``)."""
+    caller = require_writer(request, db, csrf_token)
+    if not 0 < expires_in_days <= MAX_SELF_SERVICE_DAYS:
+        raise HTTPException(422, f"expires_in_days must lie in (0, {MAX_SELF_SERVICE_DAYS:g}]")
+    from .uploads import check_name
+
+    token = auth.issue_token(db, caller.user, expires_in_days * 86400, check_name(label, 64, "label"))
+    db.commit()
+    row = db.scalar(select(ApiToken).where(ApiToken.token_hash == auth.hash_secret(token)))
+    return {"token": token, **token_json(row)}
+
+
+@router.delete("/api/tokens/{tid}", tags=["accounts"])
+def revoke_token(tid: int, request: Request, db: Session = Depends(db_session)):
+    """Revoke one of your tokens (the one this request uses too: it stops working at once)."""
+    row = _own_row(request, db, ApiToken, tid, "token")
+    row.revoked = True
+    db.commit()
+    return token_json(row)
+
+
+@router.get("/api/sessions", tags=["accounts"])
+def my_sessions(request: Request, db: Session = Depends(db_session)):
+    """Your open browser sessions; ``current``: the one this request came with."""
+    caller = _signed_in(request, db)
+    sid = request.cookies.get(SESSION_COOKIE)
+    current = auth.hash_secret(sid) if sid else ""
+    return [session_json(s, current) for s in list_sessions(db, caller.user.id)]
+
+
+@router.delete("/api/sessions/{session_id}", tags=["accounts"])
+def end_session(session_id: int, request: Request, db: Session = Depends(db_session)):
+    """Sign one of your browser sessions out (e.g. a lost phone's)."""
+    db.delete(_own_row(request, db, WebSession, session_id, "session"))
+    db.commit()
+    return {"id": session_id, "ended": True}
+
+
+# ------------------------------------------------------------------------------------------------ the page
+
+
+@router.get("/me/access", response_class=HTMLResponse)
+def access_page(request: Request, db: Session = Depends(db_session)):
+    """Your tokens and browser sessions, each with a button that revokes it."""
+    from .web import page
+
+    caller = _signed_in(request, db)
+    sid = request.cookies.get(SESSION_COOKIE)
+    current = auth.hash_secret(sid) if sid else ""
+    return page(request, "access.html", db, tokens=[token_json(t, _current_token_hash(request))
+                                                    for t in list_tokens(db, caller.user.id)],
+                sessions=[session_json(s, current) for s in list_sessions(db, caller.user.id)])
+
+
+@router.post("/me/tokens/{tid}/revoke")
+def revoke_token_form(tid: int, request: Request, csrf_token: str = Form(""), db: Session = Depends(db_session)):
+    _own_row(request, db, ApiToken, tid, "token", csrf_token).revoked = True
+    db.commit()
+    return RedirectResponse("/me/access", status_code=303)
+
+
+@router.post("/me/sessions/{session_id}/end")
+def end_session_form(session_id: int, request: Request, csrf_token: str = Form(""),
+                     db: Session = Depends(db_session)):
+    db.delete(_own_row(request, db, WebSession, session_id, "session", csrf_token))
+    db.commit()
+    return RedirectResponse("/me/access", status_code=303)
+
+
+def delete_user(db: Session, user, dry_run: bool = False) -> dict[str, int]:
+    """Delete an account with everything it owns: tokens, sessions, anchors with their photos, submissions with
+    their ZIPs, results and plots (their leaderboard entries go with them). The database's cascades do the
+    deleting; returns what was there, by kind (``dry_run``: only that)."""
+    from sqlalchemy import func
+
+    from .db import Anchor, Submission
+
+    counts = {
+        "tokens": db.scalar(select(func.count()).select_from(ApiToken).where(ApiToken.user_id == user.id)),
+        "sessions": db.scalar(select(func.count()).select_from(WebSession).where(WebSession.user_id == user.id)),
+        "anchors": db.scalar(select(func.count()).select_from(Anchor).where(Anchor.user_id == user.id)),
+        "submissions": db.scalar(select(func.count()).select_from(Submission).where(Submission.user_id == user.id)),
+    }
+    if not dry_run:
+        db.delete(user)
+        db.flush()
+    return {k: int(v or 0) for k, v in counts.items()}

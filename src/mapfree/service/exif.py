@@ -1,0 +1,131 @@
+"""Uploaded photos: turned upright by their EXIF orientation (with the intrinsics and depth the client gave for
+the stored grid), and stored without metadata (GPS position, camera serial, time, software...).
+
+A photo whose orientation is 1 keeps its pixels byte for byte: only the metadata segments (JPEG APP1-APP13,
+APP15, comments; PNG text, time and eXIf chunks) are dropped. A turned photo is re-encoded upright (JPEG at
+quality 95, PNG losslessly), so that every reader, ours and a browser, shows the same pixels.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import cv2
+import numpy as np
+
+from ..data.orientation import (ROTATIONS, OrientationError, check_orientation, displayed_size, exif_orientation,
+                                orient_intrinsics, orient_pixels)
+from ..geometry import Intrinsics
+
+__all__ = ["strip_metadata", "clean_photo", "photo_orientation", "stored_shape", "upright_intrinsics",
+           "upright_depth", "depth_png"]
+
+#: JPEG segments kept: APP0 (JFIF) and APP14 (Adobe colour transform, needed to decode some files right).
+_JPEG_KEEP_APP = {0xE0, 0xEE}
+#: PNG chunks dropped: free text, time stamps, EXIF, colour profiles (which name the device that made them).
+_PNG_DROP = {b"tEXt", b"zTXt", b"iTXt", b"tIME", b"eXIf", b"iCCP"}
+_PNG_SIG = b"\x89PNG\r\n\x1a\n"
+
+
+def photo_orientation(data: bytes, what: str) -> int:
+    """The EXIF orientation of uploaded bytes, refused with a 422 naming ``what`` when it is mirrored."""
+    from .uploads import UploadError
+
+    try:
+        return check_orientation(exif_orientation(data), what)
+    except OrientationError as e:
+        raise UploadError(422, str(e)) from None
+
+
+def stored_shape(upright: np.ndarray, orientation: int) -> tuple[int, int]:
+    """(rows, cols) of the stored grid of an upright photo: what the client's intrinsics and depth describe."""
+    w, h = displayed_size(upright.shape[1], upright.shape[0], orientation)  # a quarter turn is its own size swap
+    return h, w
+
+
+def upright_intrinsics(intr: dict, orientation: int) -> dict:
+    """Checked intrinsics of the stored grid (``parse_intrinsics``) -> those of the upright photo."""
+    if orientation == 1:
+        return intr
+    k = orient_intrinsics(Intrinsics(intr["fx"], intr["fy"], intr["cx"], intr["cy"], intr["width"], intr["height"]),
+                          orientation)
+    return {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "width": k.width, "height": k.height}
+
+
+def depth_png(depth_m: np.ndarray) -> bytes:
+    """A decoded (turned) depth map back to the uint16 millimetre PNG it came from."""
+    ok, buf = cv2.imencode(".png", np.rint(depth_m * 1000.0).astype(np.uint16))
+    if not ok:  # pragma: no cover
+        raise ValueError("could not encode the depth map")
+    return buf.tobytes()
+
+
+def upright_depth(depth: np.ndarray | None, orientation: int) -> np.ndarray | None:
+    """A depth map given for the stored grid, turned like its photo."""
+    return None if depth is None else orient_pixels(depth, orientation)
+
+
+def _strip_jpeg(data: bytes) -> bytes | None:
+    out, i = [data[:2]], 2
+    while i + 4 <= len(data) and data[i] == 0xFF:
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker == 0xDA:  # start of scan: the rest is image data
+            out.append(data[i:])
+            return b"".join(out)
+        (length,) = struct.unpack(">H", data[i + 2:i + 4])
+        if length < 2 or i + 2 + length > len(data):
+            return None
+        if not ((0xE1 <= marker <= 0xEF and marker not in _JPEG_KEEP_APP) or marker == 0xFE):
+            out.append(data[i:i + 2 + length])
+        i += 2 + length
+    return None  # not a layout we walk: the caller re-encodes
+
+
+def _strip_png(data: bytes) -> bytes | None:
+    out, i = [_PNG_SIG], len(_PNG_SIG)
+    while i + 12 <= len(data):
+        (length,) = struct.unpack(">I", data[i:i + 4])
+        kind = data[i + 4:i + 8]
+        end = i + 12 + length
+        if end > len(data):
+            return None
+        if kind not in _PNG_DROP:
+            out.append(data[i:end])
+        i = end
+        if kind == b"IEND":
+            return b"".join(out)
+    return None
+
+
+def strip_metadata(data: bytes) -> bytes | None:
+    """JPEG or PNG bytes without their metadata segments, pixels untouched; None when the file's layout is not
+    one we can walk (then re-encode it)."""
+    if data.startswith(b"\xff\xd8"):
+        return _strip_jpeg(data)
+    if data.startswith(_PNG_SIG):
+        return _strip_png(data)
+    return None
+
+
+def clean_photo(data: bytes, upright: np.ndarray | None = None) -> bytes:
+    """What is stored and served for an uploaded photo: upright, without metadata. ``upright`` (RGB) saves
+    decoding again when the caller has it."""
+    orientation = exif_orientation(data)
+    if orientation not in ROTATIONS:  # mirrored (stored before those were refused): shown as stored
+        orientation = 1
+    if orientation == 1 and (stripped := strip_metadata(data)) is not None:
+        return stripped
+    if upright is None:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+        if img is None:
+            raise ValueError("not a decodable photo")  # never stored: uploads are decoded before
+        upright = orient_pixels(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), orientation)
+    png = data.startswith(_PNG_SIG)
+    ok, buf = cv2.imencode(".png" if png else ".jpg", cv2.cvtColor(upright, cv2.COLOR_RGB2BGR),
+                           [] if png else [cv2.IMWRITE_JPEG_QUALITY, 95])
+    if not ok:  # pragma: no cover - encoding a decoded image does not fail
+        raise ValueError("could not re-encode the photo")
+    return buf.tobytes()

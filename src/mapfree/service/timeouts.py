@@ -1,0 +1,114 @@
+"""Read timeouts for ``mapfree serve``: half-sent requests must not hold a connection for ever (slowloris).
+
+uvicorn closes a connection idle between requests (``timeout_keep_alive``), but not one that sends part of a
+request: its keep-alive timer stops at the first byte, and nothing limits how long the rest of the request head
+or the body may take. Here the request line and headers must arrive within ``header_timeout`` seconds of the
+connection (or of the previous response), and each piece of a body within ``body_timeout`` seconds of the
+last (408 otherwise)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+from typing import Any
+
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+DEFAULT_HEADER_TIMEOUT = 10.0
+DEFAULT_BODY_TIMEOUT = 30.0
+HEADER_TIMEOUT_ENV = "MAPFREE_HEADER_TIMEOUT"
+
+
+def _header_timeout() -> float:
+    return float(os.environ.get(HEADER_TIMEOUT_ENV, DEFAULT_HEADER_TIMEOUT))
+
+
+
+class HeadTimeoutProtocol(H11Protocol):
+    """uvicorn's h11 protocol, closing a connection whose request head takes longer than ``header_timeout``."""
+
+    _head_timer: asyncio.TimerHandle | None = None
+
+    def _arm(self) -> None:
+        self._disarm()
+        self._head_timer = self.loop.call_later(_header_timeout(), self._head_timed_out)
+
+    def _disarm(self) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+            self._head_timer = None
+
+    def _head_timed_out(self) -> None:
+        self._head_timer = None
+        if not self.transport.is_closing():
+            self.logger.info("request head not received within %g s; connection closed", _header_timeout())
+            self.transport.close()
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._arm()
+
+    def handle_events(self) -> None:
+        before = self.cycle
+        super().handle_events()
+        if self.cycle is not before:  # a request's head arrived
+            self._disarm()
+
+    def on_response_complete(self) -> None:
+        self._arm()  # the next request's head (a pipelined one is handled below, and disarms it)
+        super().on_response_complete()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        super().connection_lost(exc)
+
+
+def head_timeout_protocol(header_timeout: float) -> str:
+    """What to give uvicorn as ``http=`` for this head timeout (0: uvicorn's h11 as it is). The value travels in
+    ``MAPFREE_HEADER_TIMEOUT``, so that the API processes of ``--api-processes N`` read it too."""
+    if header_timeout <= 0:
+        return "h11"
+    os.environ[HEADER_TIMEOUT_ENV] = repr(float(header_timeout))
+    return f"{__name__}:HeadTimeoutProtocol"
+
+
+class BodyTimeout:
+    """ASGI middleware: a request body whose next piece takes longer than ``seconds`` is answered 408 and its
+    connection closed (0: no limit). Only reads of the body are timed, not a wait for a disconnect after it;
+    the application sees a disconnect, and whatever it answers then is dropped."""
+
+    def __init__(self, app: Any, seconds: float):
+        self.app, self.seconds = app, seconds
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or self.seconds <= 0:
+            return await self.app(scope, receive, send)
+        body_done = timed_out = started = False
+
+        async def timed_receive():
+            nonlocal body_done, timed_out
+            if body_done or timed_out:
+                return await receive() if not timed_out else {"type": "http.disconnect"}
+            try:
+                message = await asyncio.wait_for(receive(), self.seconds)
+            except asyncio.TimeoutError:
+                timed_out = True
+                if not started:
+                    body = f'{{"detail": "request body not received: nothing came for {self.seconds:g} s", ' \
+                           f'"status": 408}}'.encode()
+                    await send({"type": "http.response.start", "status": 408,
+                                "headers": [(b"content-type", b"application/json"), (b"connection", b"close"),
+                                            (b"content-length", str(len(body)).encode())]})
+                    await send({"type": "http.response.body", "body": body})
+                return {"type": "http.disconnect"}
+            body_done = message.get("type") != "http.request" or not message.get("more_body", False)
+            return message
+
+        async def guarded_send(message):
+            nonlocal started
+            if timed_out:
+                return  # the 408 went out already
+            started = started or message.get("type") == "http.response.start"
+            await send(message)
+
+        return await self.app(scope, timed_receive, guarded_send)

@@ -1,0 +1,172 @@
+"""`mapfree serve` as a process: the heavy pool, dying with its parent, read timeouts. Each test here failed on
+the service before its fix. Loopback only, every wait bounded."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import cv2
+import httpx
+import pytest
+
+from mapfree.data import Dataset
+
+from .conftest import db_url_for, start_server, stop_server
+
+
+def _form(K) -> dict:
+    return {"fx": repr(K.fx), "fy": repr(K.fy), "cx": repr(K.cx), "cy": repr(K.cy)}
+
+
+def test_localize_flood_does_not_stall_sign_in_or_the_leaderboard(split_data, realmini_dir, tmp_path):
+    """45 concurrent localize calls (large photos) used to take every thread of the shared pool: sign-in and
+    the leaderboard waited seconds. Now they run on the heavy pool, the overflow gets 429 + Retry-After, and
+    the light pages answer at once."""
+    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
+                       extra=("--heavy-threads", "1", "--heavy-queue", "2"))
+    try:
+        scene = Dataset(realmini_dir).scene("val", "s00000")
+        ref, q = scene.reference, scene.frame("seq1/frame_00009.jpg")
+        with srv.client("alice") as c:
+            r = c.post("/anchors", data={**_form(ref.intrinsics), "method": "sift_pnp_sensor"},
+                       files={"image": ("r.jpg", ref.image_path.read_bytes()),
+                              "depth": ("d.png", ref.depth_path("sensor").read_bytes())})
+            assert r.status_code == 201, r.text
+            aid = r.json()["id"]
+        img = q.image()
+        big = cv2.resize(img, (img.shape[1] * 8 // 3, img.shape[0] * 8 // 3), interpolation=cv2.INTER_CUBIC)
+        jpg = cv2.imencode(".jpg", cv2.cvtColor(big, cv2.COLOR_RGB2BGR))[1].tobytes()
+        K = q.intrinsics.resized(big.shape[1], big.shape[0])
+
+        def localize(_):
+            with srv.client("bob") as c:
+                r = c.post(f"/anchors/{aid}/localize", data=_form(K), files={"image": ("q.jpg", jpg)})
+                return r.status_code, r.headers.get("retry-after")
+
+        with ThreadPoolExecutor(45) as ex:
+            flood = [ex.submit(localize, i) for i in range(45)]
+            time.sleep(1.0)  # the flood is in
+            light = {}
+            with httpx.Client(base_url=srv.url, timeout=30) as c:
+                for path in ("/login", "/api/leaderboard/val", "/leaderboard/val", "/health"):
+                    t0 = time.perf_counter()
+                    assert c.get(path).status_code == 200, path
+                    light[path] = time.perf_counter() - t0
+            results = [f.result(timeout=300) for f in flood]
+    finally:
+        stop_server(srv.proc)
+    assert max(light.values()) < 1.0, light
+    codes = [c for c, _ in results]
+    assert codes.count(200) >= 3 and set(codes) <= {200, 429}, codes
+    assert all(int(ra) >= 1 for c, ra in results if c == 429)
+
+
+def _children(pid: int) -> set[int]:
+    out: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out |= {int(x) for x in (task / "children").read_text().split()}
+        except OSError:
+            pass
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
+def test_api_processes_and_workers_die_with_a_killed_server(split_data, tmp_path):
+    """``kill -9`` of ``serve --api-processes 2`` used to leave its API processes serving the port (no workers)
+    and a restart failed with "Address already in use"; now every child ends and the port is free again."""
+    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=1,
+                       extra=("--api-processes", "2"))
+    port = int(srv.url.rsplit(":", 1)[1])
+    kids = _children(srv.proc.pid)
+    try:
+        assert len(kids) >= 3, kids  # two API processes and a worker (uvicorn may add a helper)
+        os.kill(srv.proc.pid, signal.SIGKILL)
+        srv.proc.wait(10)
+        deadline = time.time() + 20
+        while time.time() < deadline and any(_alive(k) for k in kids):
+            time.sleep(0.2)
+        left = [k for k in kids if _alive(k)]
+        assert not left, f"children still running after their parent's kill -9: {left}"
+        again = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=1,
+                             extra=("--api-processes", "2"), port=port)
+        try:
+            assert httpx.get(again.url + "/health", timeout=10).status_code == 200
+            assert "address already in use" not in again.log().lower()
+        finally:
+            stop_server(again.proc)
+    finally:
+        try:
+            os.killpg(srv.proc.pid, signal.SIGKILL)  # whatever the old code left running
+        except ProcessLookupError:
+            pass
+
+
+def test_half_sent_requests_are_closed(split_data, tmp_path):
+    """A request whose head or body stops half-way used to hold its connection for ever (slowloris); now the
+    head must arrive within --header-timeout and each piece of the body within --body-timeout."""
+    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
+                       extra=("--header-timeout", "1", "--body-timeout", "1"))
+    host, port = "127.0.0.1", int(srv.url.rsplit(":", 1)[1])
+    socks = []
+    try:
+        for i in range(16):
+            s = socket.create_connection((host, port), timeout=10)
+            if i % 2:  # half a head
+                s.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
+            else:  # a whole head, half a body
+                s.sendall(b"POST /login HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/x-www-form-"
+                          b"urlencoded\r\nContent-Length: 1000\r\n\r\ntoken=mf_")
+            socks.append(s)
+        t0 = time.time()
+        answers = []
+        for s in socks:
+            s.settimeout(max(0.1, t0 + 8 - time.time()))
+            data = b""
+            try:
+                while chunk := s.recv(65536):
+                    data += chunk
+            except socket.timeout:
+                pytest.fail(f"a half-sent request was still open after {time.time() - t0:.1f} s")
+            answers.append(data)
+        assert time.time() - t0 < 8
+        for i, data in enumerate(answers):
+            if i % 2 == 0:
+                assert data.startswith(b"HTTP/1.1 408"), data[:200]
+        with httpx.Client(base_url=srv.url, timeout=10) as c:  # and the server serves on
+            assert c.get("/health").status_code == 200
+    finally:
+        for s in socks:
+            s.close()
+        stop_server(srv.proc)
+
+
+def test_x_forwarded_for_is_believed_only_from_configured_proxies(split_data, tmp_path):
+    """uvicorn believed X-Forwarded-For from 127.0.0.1 by default, so a new made-up address per request escaped
+    the failed-token limit. Now the header counts only with --forwarded-allow-ips."""
+
+    def statuses(srv) -> list[int]:
+        with httpx.Client(base_url=srv.url, timeout=10) as c:
+            return [c.get("/api/me", headers={"Authorization": f"Bearer mf_guess{i}",
+                                              "X-Forwarded-For": f"203.0.113.{i}"}).status_code for i in range(5)]
+
+    for trusted, want in (((), [401, 401, 401, 429, 429]),
+                          (("--forwarded-allow-ips", "127.0.0.1"), [401] * 5)):
+        srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
+                           extra=("--auth-failures-per-minute", "3", *trusted))
+        try:
+            assert statuses(srv) == want, trusted
+        finally:
+            stop_server(srv.proc)
