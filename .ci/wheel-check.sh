@@ -17,7 +17,8 @@ echo "built $(basename "$wheel")"
 "$PY" - "$wheel" <<'PYEOF'
 import sys, zipfile
 names = set(zipfile.ZipFile(sys.argv[1]).namelist())
-need = ["mapfree/configs/", "mapfree/service/templates/", "mapfree/service/static/"]
+need = ["mapfree/configs/methods/", "mapfree/configs/rpr/", "mapfree/service/templates/", "mapfree/service/static/",
+        "mapfree/service/migrations/versions/"]
 missing = [n for n in need if not any(x.startswith(n) for x in names)]
 if missing:
     sys.exit(f"wheel lacks package data: {missing}")
@@ -30,7 +31,7 @@ echo "installed into a fresh venv (${SECONDS} s so far)"
 cd "$work"   # outside the checkout: only the installed wheel can be imported
 "$work/venv/bin/python" -c "import mapfree, sys; assert 'site-packages' in mapfree.__file__, mapfree.__file__"
 # Named configs come from the packaged configs/ folder: method presets and the RPR configurations.
-methods=$("$work/venv/bin/mapfree" run --list-methods)
+methods=$("$work/venv/bin/mapfree" run --list-methods | awk '{print $1}')  # name, then what it needs
 for name in sift-emat-score rpr-3d3d; do
   grep -qx "$name" <<< "$methods" || { echo "wheel: method $name missing (configs not packaged?)"; exit 1; }
 done

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import HelpFormatter
+from . import EXIT_ERROR, EXIT_OK, EXIT_USAGE, HelpFormatter
 
 DESCRIPTION = """\
 Verify a Map-free dataset folder: the split folders and their scenes (the release: 460 train s00000-s00459,
@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.workers < 1:
         print("mapfree check: error: --workers must be >= 1", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     err = Console(stderr=True)
     show = not args.json and err.is_terminal
     report = check_dataset(args.root, args.split, subset=args.subset, deep=args.deep, workers=args.workers,
@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
                                                          transient=True)) if show else None)
     if args.json:
         print(json.dumps(report.to_dict(), indent=2))
-        return 0 if report.ok else 1
+        return EXIT_OK if report.ok else EXIT_ERROR
 
     out = Console(soft_wrap=False)
     mode = ("deep: every image decoded" if report.deep else "image headers") + (", subset" if report.subset else "")
@@ -83,4 +83,4 @@ def run(args: argparse.Namespace) -> int:
               style="green" if report.ok else "red")
     if not report.subset and any(s.expected is not None and s.scenes != s.expected for s in report.splits):
         out.print("(a partial copy, or scenes of your own? --subset checks only the scenes that are there)")
-    return 0 if report.ok else 1
+    return EXIT_OK if report.ok else EXIT_ERROR
