@@ -24,6 +24,8 @@ if missing:
     sys.exit(f"wheel lacks package data: {missing}")
 print(f"{len(names)} files in the wheel, package data present")
 PYEOF
+# Only the installed wheel may be importable: no source folder on the path.
+unset PYTHONPATH
 python3 -m venv "$work/venv"
 # --no-compile: byte-compiling torch's tens of thousands of files is most of an install's time.
 "$work/venv/bin/python" -m pip install -q --no-compile --disable-pip-version-check "$wheel[learned]" "$TORCH"
