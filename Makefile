@@ -5,7 +5,7 @@ PIP := $(PY) -m pip install -q --disable-pip-version-check
 # torch is pinned to the CPU wheel on this platform's disk; an open range could pull a multi-GB CUDA build.
 TORCH ?= torch==2.13.0
 
-.PHONY: setup setup-learned demo test bench clean
+.PHONY: setup setup-learned demo test docs wheel-check bench clean
 
 $(VENV)/.learned: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -15,7 +15,7 @@ $(VENV)/.learned: pyproject.toml
 	touch $@
 
 $(VENV)/.installed: $(VENV)/.learned
-	$(PIP) -e '.[all,dev]' '$(TORCH)'
+	$(PIP) -e '.[all,dev,docs]' '$(TORCH)'
 	touch $@
 
 setup-learned: $(VENV)/.learned
@@ -27,8 +27,16 @@ demo: setup-learned
 test: setup
 	$(PY) -m pytest
 
+# The documentation site; --strict turns every warning (broken link, docstring that does not render) into an error.
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
+
+# The wheel, installed into a fresh venv outside the checkout, runs `mapfree demo` (CI runs this).
+wheel-check: setup
+	bash .ci/wheel-check.sh $(PY) '$(TORCH)'
+
 bench: setup
 	for b in bench/bench_*.py; do $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) demo-out .pytest_cache
+	rm -rf $(VENV) demo-out .pytest_cache site dist

@@ -9,7 +9,7 @@
 3. a torch profile of five steps before and after at the large batch: the operators that take the CUDA time;
 4. the step rows again with a torch.compile row, at both batches (last: compiling takes minutes).
 Everything printed also lands in DIR/probe_train.md, rewritten after each section; paste the tables into the
-README's RPR training section.
+the training throughput section of docs/regression.md.
 ``--quick`` is a rehearsal of every step on any device (CPU included): batches 2 and 3 at 128×176, one timed
 step, no compile row; its numbers are not figures.
 """

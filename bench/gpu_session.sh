@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Fill issue 9's GPU figures on the device machine, from the kit that bench/gpu_kit.py builds (README "GPU speed").
+# Fill the GPU figures on the device machine, from the kit that bench/gpu_kit.py builds
+# (bench/README.md, "Measuring on a GPU").
 #
 #   bash bench/gpu_session.sh [--quick] PART [PART...]      PART: match | disk | train
 #

@@ -1,4 +1,4 @@
-"""The README's 7-Scenes table: realmini-dev's three HoloLens scenes in the 7-Scenes layout, K = 1 vs 10.
+"""The 7-Scenes table of docs/benchmarks.md: realmini-dev's three HoloLens scenes in the 7-Scenes layout, K = 1 vs 10.
 
     python bench/sevenscenes_realmini.py ../shared/data/realmini-dev OUT
 """

@@ -1,6 +1,6 @@
 """Rigid poses, rotations, intrinsics and pinhole projection, vectorised over numpy arrays.
 
-Conventions (SPEC §1): OpenCV camera axes, metres, world-to-camera poses ``X_cam = R X_world + t``,
+Conventions: OpenCV camera axes, metres, world-to-camera poses ``X_cam = R X_world + t``,
 quaternions in ``w x y z`` order. Nothing here imports anything else from mapfree.
 """
 
@@ -144,7 +144,7 @@ class Pose:
         return np.asarray(X) @ self.R.T + self.t
 
     def relative_to(self, first: "Pose") -> "Pose":
-        """Pose of this camera relative to ``first`` (SPEC: q12 = q2 q1^-1, t12 = t2 - R12 t1)."""
+        """Pose of this camera relative to ``first`` (q12 = q2 q1^-1, t12 = t2 - R12 t1)."""
         return self @ first.inverse()
 
     def is_finite(self) -> bool:
@@ -223,7 +223,7 @@ class Intrinsics:
         return float(np.hypot(self.width, self.height))
 
     def scaled(self, sx: float, sy: float | None = None) -> "Intrinsics":
-        """Intrinsics after resizing the image by (sx, sy), half-pixel-centre convention (SPEC §1)."""
+        """Intrinsics after resizing the image by (sx, sy), half-pixel-centre convention."""
         sy = sx if sy is None else sy
         return Intrinsics(
             self.fx * sx,

@@ -38,7 +38,7 @@ _MATCHER_NEEDS = {"mast3r": "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pt
 SOLVERS = {"emat": "essential", "essential": "essential", "pnp": "pnp", "procrustes": "procrustes"}
 #: Depth tokens that are not a file suffix.
 DEPTH_ALIASES = {"none": "none", "mast3r": "mast3r", "dust3r": "dust3r"}
-#: Ess.Mat RANSAC threshold (pixels) of the paper's rows: 3 px for SIFT, 2 px for learned matchers (SPEC §4).
+#: Ess.Mat RANSAC threshold (pixels) of the paper's rows: 3 px for SIFT, 2 px for learned matchers.
 PAPER_THRESHOLD_PX = {"sift": 3.0}
 _LEARNED_THRESHOLD_PX = 2.0
 
@@ -311,7 +311,7 @@ def requirements(name: str) -> str:
 
 
 def _register_builtins() -> None:
-    # Chosen by measurement on realmini-dev val (README "Relocalization"): the highest AUC @ VCRE < 90px among
+    # Chosen by measurement on realmini-dev val (docs/benchmarks.md): the highest AUC @ VCRE < 90px among
     # the offline presets, on the scored frames and on all frames, with the ranking confidence.
     best = parse_name("xfeat_procrustes_sensor")
     pnp = parse_name("xfeat_pnp_sensor")

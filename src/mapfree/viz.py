@@ -25,7 +25,7 @@ GREEN, RED, ORANGE, CYAN, WHITE = (40, 200, 60), (230, 40, 40), (255, 150, 0), (
 
 
 def vcre_grid() -> np.ndarray:
-    """(196,3) virtual points of the VCRE metric (SPEC §3): 7 x 4 x 7 in front of a camera, metres."""
+    """(196,3) virtual points of the VCRE metric: 7 x 4 x 7 in front of a camera, metres."""
     x = np.linspace(-0.9, 0.9, 7)
     y = np.array([-0.45, -0.15, 0.15, 0.45])
     z = np.linspace(1.8, 3.6, 7)
@@ -34,7 +34,7 @@ def vcre_grid() -> np.ndarray:
 
 
 def vcre_px(pose_est: Pose, pose_gt: Pose, K: Intrinsics) -> float:
-    """Virtual correspondence reprojection error (px) of a relative pose, clipped to the image (SPEC §3)."""
+    """Virtual correspondence reprojection error (px) of a relative pose, clipped to the image."""
     X_q = vcre_grid()  # in the ground-truth query camera
     X_ref = pose_gt.inverse().transform(X_q)
     size = np.array([K.width, K.height], dtype=np.float64)

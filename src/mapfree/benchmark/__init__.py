@@ -1,4 +1,4 @@
-"""The Map-free benchmark: exact scoring (SPEC §3), submission ZIPs, reports and plots.
+"""The Map-free benchmark: exact scoring, submission ZIPs, reports and plots.
 
     from mapfree.benchmark import evaluate, format_table
     report = evaluate("submission.zip", "data/mapfree", split="val")

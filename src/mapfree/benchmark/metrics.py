@@ -1,4 +1,4 @@
-"""Per-frame errors and aggregate scores of the Map-free benchmark (SPEC §3), vectorised over frames.
+"""Per-frame errors and aggregate scores of the Map-free benchmark, vectorised over frames.
 
 Every function takes stacked arrays for N frames: world-to-camera quaternions ``q`` (N,4, wxyz, any
 non-zero norm) and translations ``t`` (N,3), as written in ``poses.txt`` and submissions.
@@ -25,7 +25,7 @@ __all__ = [
 
 @dataclass(frozen=True)
 class Thresholds:
-    """Acceptance thresholds; the first of each tuple is the benchmark's headline (SPEC §3)."""
+    """Acceptance thresholds; the first of each tuple is the benchmark's headline."""
 
     pose: tuple[tuple[float, float], ...] = ((0.25, 5), (0.5, 10))  # (metres, degrees)
     vcre: tuple[float, ...] = (90, 45)  # pixels: 10 % and 5 % of a 540x720 image's diagonal
@@ -188,7 +188,7 @@ def precision_ratio_curve(
 
 
 def auc(confidence: np.ndarray, accepted: np.ndarray, failures: int):
-    """Area under the precision-ratio curve: ``sum (r_k - r_{k-1}) p_k`` with ``r_0 = 0`` (SPEC §3).
+    """Area under the precision-ratio curve: ``sum (r_k - r_{k-1}) p_k`` with ``r_0 = 0``.
 
     A float for (N,) ``accepted``; an array of k areas for (k, N).
     """

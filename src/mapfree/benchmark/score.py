@@ -1,4 +1,4 @@
-"""``evaluate``: score a submission against a split's ground truth, vectorised over every frame (SPEC §3).
+"""``evaluate``: score a submission against a split's ground truth, vectorised over every frame.
 
 Two modes. ``compat="default"`` fixes the public evaluator's quirks: a missing scene costs exactly its
 evaluated frames, a negative confidence is a per-line problem (line skipped), frames are matched by

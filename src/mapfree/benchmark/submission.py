@@ -1,7 +1,7 @@
 """Submission ZIPs: writing them, and reading them defensively with every problem reported.
 
 A submission is a ZIP whose root holds ``pose_sNNNNN.txt``, one per scene, with lines
-``seq1/frame_00000.jpg qw qx qy qz tx ty tz confidence`` (world-to-camera, SPEC §3).
+``seq1/frame_00000.jpg qw qx qy qz tx ty tz confidence`` (world-to-camera).
 Reading never crashes and never extracts anything to disk: each bad line, file or entry becomes a
 ``Problem(scene, line, reason)`` and reading goes on; only an unreadable archive is fatal.
 """

@@ -3,7 +3,7 @@
 Parsing a benchmark's worth of text line by line in Python costs more than scoring it, so clean files
 are read with numpy over their bytes. A file is *clean* when it is ASCII, every line holds exactly N+1
 fields separated by single spaces, no line is blank or a comment (``#``), and every name has five digits
-at ``name[-9:-4]`` (the frame number, SPEC §3). Anything else makes ``scan_table`` return None and the
+at ``name[-9:-4]`` (the frame number). Anything else makes ``scan_table`` return None and the
 caller falls back to its line-by-line path, which reports problems precisely.
 Numbers are parsed with ``float()`` (as the public evaluator does), and only for the rows and columns asked for.
 """

@@ -4,7 +4,7 @@ Frames are keyed by their number (``int(name[-9:-4])``) in insertion order: a la
 number replaces the value but keeps the first line's position, so the reference ``seq0/frame_00000.jpg``
 gives its slot to ``seq1/frame_00000.jpg``; lines with a zero quaternion (private test poses) are
 skipped; every 5th position is evaluated. Intrinsics are keyed the same way (the last line wins), held
-in float32, and the image size comes from the last line of ``intrinsics.txt`` (SPEC §3).
+in float32, and the image size comes from the last line of ``intrinsics.txt``.
 
 The multi-frame track (``track="multi"``) evaluates instead the queries its leaderboard scores: linear
 index 9, 19, 29, … of the ``seq1`` frames sorted by number (``mapfree.data.multiframe_bursts``).

@@ -234,7 +234,7 @@ def _overlaps(model: SfmModel, keep: list[str], poses: list[Pose], intr: list[In
 
 def _write_device(out: Path, keep: list[str], rename: dict[str, str], device: dict[str, Pose | None],
                   seq_of: dict[str, int], split: str) -> None:
-    """``poses_device.txt``: val/test re-based per multi-frame burst (SPEC §2); train per scan (first frame = I)."""
+    """``poses_device.txt``: val/test re-based per multi-frame burst; train per scan (first frame = I)."""
     dev = {rename[n]: device[n] for n in keep if device.get(n) is not None}
     if not dev:
         return

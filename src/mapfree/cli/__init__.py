@@ -24,7 +24,8 @@ class DefaultsHelpFormatter(HelpFormatter, argparse.ArgumentDefaultsHelpFormatte
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_NOTHING = 0, 1, 2, 3
 
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
-COMMANDS = ["demo", "synth", "evaluate", "relocalize", "match", "run", "train", "serve", "admin", "sevenscenes", "scannet", "build"]
+COMMANDS = ["demo", "synth", "check", "evaluate", "relocalize", "match", "run", "train", "serve", "admin", "sevenscenes",
+            "scannet", "build"]
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:

@@ -1,4 +1,4 @@
-"""The Map-free dataset on disk: lazy scenes and frames, readers and writers, overlaps."""
+"""The Map-free dataset on disk: lazy scenes and frames, readers and writers, overlaps, the download check."""
 
 from .io import (
     FormatError,
@@ -16,6 +16,7 @@ from .io import (
 from .overlaps import Overlaps, read_overlaps, write_overlaps
 from .scene import REFERENCE_NAME, SPLITS, Dataset, Frame, Scene, frame_number, scored_query_names
 from .device import DevicePoses, DriftModel, load_device_poses, multiframe_bursts, scene_bursts
+from .check import CheckReport, check_dataset, check_scene
 
 __all__ = [
     "FormatError", "PoseTable", "check_depth_size", "depth_path_for", "read_depth", "read_image", "read_intrinsics",
@@ -23,4 +24,5 @@ __all__ = [
     "write_depth", "write_intrinsics", "write_poses", "Overlaps", "read_overlaps", "write_overlaps",
     "REFERENCE_NAME", "SPLITS", "Dataset", "Frame", "Scene", "frame_number", "scored_query_names",
     "DevicePoses", "DriftModel", "load_device_poses", "multiframe_bursts", "scene_bursts",
+    "CheckReport", "check_dataset", "check_scene",
 ]

@@ -3,7 +3,7 @@
 The multi-frame leaderboard scores the queries at linear index 9, 19, 29, … of a scene's query list
 (``seq1`` frames sorted by number) and lets a method use each one's *burst*: that query and the 8 frames
 before it, with the phone's tracking poses. ``poses_device.txt`` holds those poses re-based burst by burst
-so that the burst's query is the identity (SPEC §2). Frames outside every burst are not listed.
+so that the burst's query is the identity. Frames outside every burst are not listed.
 
 Real tracking drifts: ``DriftModel`` turns a true trajectory into a plausible VIO one (a few cm per metre of
 travel, a heading error that grows slowly about gravity). Synthetic scenes are written with it; a scene with

@@ -1,7 +1,7 @@
 """Readers and writers for the Map-free text, depth and overlap files.
 
 Every reader names the file and the line of the first malformed entry it meets (``FormatError``).
-Lines whose first field contains ``#`` are comments (SPEC §2).
+Lines whose first field contains ``#`` are comments.
 """
 
 from __future__ import annotations

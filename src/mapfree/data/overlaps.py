@@ -1,4 +1,4 @@
-"""``overlaps.npz`` of train scenes and pair sampling within overlap bounds (SPEC §2)."""
+"""``overlaps.npz`` of train scenes and pair sampling within overlap bounds."""
 
 from __future__ import annotations
 

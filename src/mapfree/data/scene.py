@@ -32,7 +32,7 @@ def frame_number(name: str) -> int:
 
 
 def scored_query_names(pose_names: Sequence[str], every: int = 5) -> list[str]:
-    """Names of the frames the benchmark scores, from a scene's ``poses.txt`` order (SPEC §3).
+    """Names of the frames the benchmark scores, from a scene's ``poses.txt`` order.
 
     Frames are keyed by their number; a later name with the same number replaces the value but keeps the
     first position (so ``seq1/frame_00000.jpg`` takes the reference's slot); every ``every``-th position counts.
@@ -142,7 +142,7 @@ class Scene:
         return [f for n, f in self.frames.items() if n.startswith("seq1/")]
 
     def scored_queries(self) -> list[Frame]:
-        """The queries the benchmark scores (every 5th, SPEC §3), in file order; one without intrinsics is a
+        """The queries the benchmark scores (every 5th), in file order; one without intrinsics is a
         ``FormatError`` naming ``intrinsics.txt`` (the evaluator needs them too)."""
         order = self.poses.names if self.poses is not None else list(self.intrinsics)
         return [self.frame(n) for n in scored_query_names(order) if n.startswith("seq1/")]

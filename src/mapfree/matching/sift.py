@@ -16,7 +16,7 @@ __all__ = ["SIFTOptions", "SIFTMatcher", "root_sift", "squared_distances", "two_
 
 @dataclass
 class SIFTOptions:
-    """Defaults = the paper's SIFT row (SPEC §4): 2048 features, RootSIFT, ratio 0.8, at 540x720."""
+    """Defaults = the paper's SIFT row: 2048 features, RootSIFT, ratio 0.8, at 540x720."""
 
     max_features: int = 2048
     ratio: float = 0.8

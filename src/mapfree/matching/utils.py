@@ -67,7 +67,7 @@ def matching_size(width: int, height: int, max_size: int | None = None, multiple
 
 
 def to_original(kpts: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
-    """Map pixel coordinates of a resized image back to the original (half-pixel rule, SPEC §1)."""
+    """Map pixel coordinates of a resized image back to the original (half-pixel rule)."""
     kpts = np.asarray(kpts, dtype=np.float64).reshape(-1, 2)
     if scale == (1.0, 1.0):
         return kpts

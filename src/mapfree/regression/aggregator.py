@@ -1,4 +1,5 @@
-"""Aggregation of the two feature maps into one volume for the pose head (SPEC §4, public Map-free release).
+"""Aggregation of the two feature maps into one volume for the pose head (the paper's, as in the public
+Map-free release).
 
 ``warp``: every position of image 0 gets a softmax over all positions of image 1 (the correlation volume of raw
 dot products); it warps image-1 features onto image 0 and, as soft-argmax, image 1's pixel grid (2 position
@@ -31,7 +32,7 @@ def _grid(h: int, w: int, like: torch.Tensor) -> torch.Tensor:
     return torch.stack(torch.meshgrid(u, v, indexing="ij"), 0).reshape(2, h * w)
 
 
-#: Attention kernels for the warping: never cuDNN attention, which builds a graph per new shape (issue 9).
+#: Attention kernels for the warping: never cuDNN attention, which builds a graph per new shape.
 _SDPA_BACKENDS = [SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH]
 #: Logit elements per chunk of the argmax pass (64 Mi: 256 MiB in float32), whatever the batch and image size.
 _ARGMAX_CHUNK = 1 << 26

@@ -22,7 +22,7 @@ TRANSLATIONS = ("t", "s_tdir", "s_tbins")
 
 @dataclass
 class ModelConfig:
-    """Network shape and output parameterisation (SPEC §4; the public release's defaults)."""
+    """Network shape and output parameterisation (the public release's defaults)."""
 
     rotation: str = "6d"  # quat | 6d | euler_bins | 3d3d (joint: predicted points + Procrustes)
     translation: str = "t"  # t | s_tdir | s_tbins (ignored for 3d3d)
@@ -245,8 +245,10 @@ def apply_overrides(cfg: RPRConfig, overrides: list[str]) -> RPRConfig:
 
 
 def config_dir() -> Path:
-    """The repository's ``configs/rpr`` (one YAML per paper variant)."""
-    return Path(__file__).resolve().parents[3] / "configs" / "rpr"
+    """``configs/rpr`` (one YAML per paper variant): the repository's, else the copy an installed wheel carries."""
+    here = Path(__file__).resolve()
+    checkout, packaged = here.parents[3] / "configs" / "rpr", here.parents[1] / "configs" / "rpr"
+    return checkout if checkout.is_dir() or not packaged.is_dir() else packaged
 
 
 def resolve_config(name_or_path: str | os.PathLike) -> Path:

@@ -4,7 +4,7 @@ Train: ``pairs_per_scene`` pairs per scene per epoch (scene-balanced), drawn fro
 inside the overlap bounds, resampled every epoch. Val: every (scored) query against its scene's reference.
 Images are resized to 360×270 (in the frames' orientation) and the intrinsics follow via ``Intrinsics.resized``.
 
-Throughput (issue 9): with ``data.cache_dir`` every frame is decoded and resized once, then read back as raw
+Throughput: with ``data.cache_dir`` every frame is decoded and resized once, then read back as raw
 uint8 (no JPEG decode); un-augmented batches stay uint8 until the device (``RPRModule`` divides by 255 there,
 bit-identical to the CPU conversion); ``TrainPairs`` + ``EpochSampler`` resample the pairs every epoch inside
 one dataset, so loader workers persist across epochs and batches come pinned.

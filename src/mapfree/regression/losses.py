@@ -1,4 +1,4 @@
-"""Pose losses of SPEC §4 (per sample), their weighting, and the uncertainty NLL (beyond the paper)."""
+"""The paper's pose losses (per sample), their weighting, and the uncertainty NLL (beyond the paper)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Training-time metrics (numpy): pose errors, VCRE and AUC as SPEC §3 defines them, and the confidence.
+"""Training-time metrics (numpy): pose errors, VCRE and AUC as the benchmark defines them, and the confidence.
 
 A small self-contained copy for validation curves; the benchmark package is the reference scorer.
 """
@@ -51,7 +51,7 @@ def pose_errors(R_est, t_est, R_gt, t_gt) -> tuple[np.ndarray, np.ndarray]:
 
 
 def auc(confidence: np.ndarray, accepted: np.ndarray, failures: int = 0) -> float:
-    """Area under precision vs ratio of estimates as the confidence threshold sweeps (SPEC §3)."""
+    """Area under precision vs ratio of estimates as the confidence threshold sweeps."""
     conf = np.asarray(confidence, dtype=np.float64)
     ok = np.asarray(accepted, dtype=bool)
     if len(conf) == 0:

@@ -1,4 +1,4 @@
-"""Output parameterisations: the pose head's output vector -> (R, t), plus what each loss needs (SPEC §4).
+"""Output parameterisations: the pose head's output vector -> (R, t), plus what each loss needs.
 
 Layouts and decodings are those of the public Map-free release, so its checkpoints give its poses:
 rotation first — R(q) 4 (normalised, w x y z), R(6D) 6 (Gram–Schmidt), R(α,β,γ) 900 bin logits

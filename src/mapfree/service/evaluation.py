@@ -13,7 +13,7 @@ import numpy as np
 from .config import Settings
 from .testmetrics import public_test_metrics
 
-#: The benchmark's aggregate keys (SPEC §3); for ``test`` nothing else leaves the server.
+#: The benchmark's aggregate keys; for ``test`` nothing else leaves the server.
 METRIC_KEYS = (
     "AUC @ VCRE < 90px",
     "Precision @ VCRE < 90px",

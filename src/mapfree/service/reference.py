@@ -1,4 +1,4 @@
-"""Published results (SPEC §5), shown beside the leaderboards but never ranked with submissions: they were
+"""Published results (the papers' tables), beside the leaderboards but never ranked with submissions: they were
 measured on the real Map-free dataset, which this server's ground truth need not be. Only numbers the papers
 state are filled in; the rest stay empty."""
 

@@ -1,4 +1,4 @@
-"""Ess.Mat + D.Scale (SPEC §4): 5-point essential matrix in MAGSAC++, cheirality, metric scale by depth vote.
+"""Ess.Mat + D.Scale: 5-point essential matrix in MAGSAC++, cheirality, metric scale by depth vote.
 
 Points are normalised with each frame's own intrinsics (phones refocus), so the robust estimation runs
 with an identity camera and a threshold of ``px / mean focal``. The unit translation ``t̂`` is scaled by the
@@ -35,7 +35,7 @@ BACKENDS = ("opencv", "poselib")
 
 @dataclass
 class EssentialOptions:
-    """Defaults are the paper's (SPEC §4); use ``ransac_threshold_px=2`` for learned matchers."""
+    """Defaults are the paper's; use ``ransac_threshold_px=2`` for learned matchers."""
 
     ransac_threshold_px: float = 3.0
     ransac_confidence: float = 0.9999

@@ -1,4 +1,4 @@
-"""PnP (SPEC §4): reference keypoints lifted to 3D with the reference depth, P3P in RANSAC, refined on inliers."""
+"""PnP: reference keypoints lifted to 3D with the reference depth, P3P in RANSAC, refined on inliers."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ BACKENDS = ("opencv", "poselib")
 
 @dataclass
 class PnPOptions:
-    """Defaults are the paper's (SPEC §4)."""
+    """Defaults are the paper's."""
 
     ransac_iterations: int = 1000
     reprojection_threshold_px: float = 3.0

@@ -1,4 +1,4 @@
-"""Procrustes (SPEC §4): both sides lifted to 3D, rigid Kabsch alignment in RANSAC, optional ICP.
+"""Procrustes: both sides lifted to 3D, rigid Kabsch alignment in RANSAC, optional ICP.
 
 The RANSAC draws batches of 3-point samples and scores them all at once (numpy), stops adaptively at
 the paper's confidence, then refits on the inliers until the inlier set stops growing.

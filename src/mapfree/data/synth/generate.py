@@ -1,4 +1,4 @@
-"""Write synthetic scenes in the exact Map-free layout (SPEC §2): train scans with overlaps, val/test pairs.
+"""Write synthetic scenes in the exact Map-free layout: train scans with overlaps, val/test pairs.
 
 Every scene is drawn from its own seed (``seed``, split, scene number), with separate streams for the world,
 the cameras, the lighting and the noise, so the same seed always writes byte-identical files.

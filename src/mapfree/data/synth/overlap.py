@@ -1,6 +1,6 @@
 """Co-visibility between frames: the overlap stored in ``overlaps.npz`` and a dense depth-based check.
 
-``overlap = shared visible points / max(points visible in either frame)`` (SPEC §2), over a fixed set of
+``overlap = shared visible points / max(points visible in either frame)``, over a fixed set of
 surface points of the scene standing in for the SfM points of the real dataset: like features, they are
 spread evenly over the images (a few hundred per frame, back-projected with the exact depth), so near and far
 surfaces weigh as they do in real reconstructions.
