@@ -12,23 +12,18 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
 
-def _shared(rel: str, marker: str) -> Path | None:
-    """``shared/REL`` beside the checkout (or at /work/shared), when it holds ``marker``."""
+def _shared(rel: str, marker: str) -> Path:
+    """``shared/REL`` beside the checkout (or at /work/shared), holding ``marker``; the test fails without it."""
     for cand in (Path(__file__).resolve().parents[2] / "shared" / rel, Path("/work/shared") / rel):
         if (cand / marker).exists():
             return cand
-    return None
-
-
-REALMINI = _shared("data/realmini-dev", "val")
+    pytest.fail(f"shared/{rel} not found beside the checkout")
 
 
 @pytest.fixture(scope="session")
 def realmini() -> Path:
     """Root of the real-image sample split (val/s00000..s00003, depth suffix ``sensor``)."""
-    if REALMINI is None:
-        pytest.fail("shared/data/realmini-dev not found beside the checkout")
-    return REALMINI
+    return _shared("data/realmini-dev", "val")
 
 
 @pytest.fixture
@@ -42,23 +37,13 @@ def one_torch_thread():
     torch.set_num_threads(n)
 
 
-OFFICIAL_RPR = _shared("fixtures/official-rpr", "official_rpr.json")
-
-
 @pytest.fixture(scope="session")
 def official_rpr() -> Path:
     """Folder with official_rpr.json: the public RPR networks' outputs on fill-rule weights (README.md there)."""
-    if OFFICIAL_RPR is None:
-        pytest.fail("shared/fixtures/official-rpr not found beside the checkout")
-    return OFFICIAL_RPR
-
-
-MAST3R_FIXTURE = _shared("fixtures/mast3r", "mast3r.json")
+    return _shared("fixtures/official-rpr", "official_rpr.json")
 
 
 @pytest.fixture(scope="session")
 def mast3r_fixture() -> Path:
     """Folder with mast3r.json / mast3r_outputs.npz: the public MASt3R/DUSt3R outputs on fill-rule weights."""
-    if MAST3R_FIXTURE is None:
-        pytest.fail("shared/fixtures/mast3r not found beside the checkout")
-    return MAST3R_FIXTURE
+    return _shared("fixtures/mast3r", "mast3r.json")
