@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import BinaryIO
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
@@ -26,8 +26,9 @@ from .storage import check_quota, stored_bytes
 from .submissions import accept, to_json, visible_submission
 from .submissions import plot_png as render_plot
 from .metrics import CONTENT_TYPE_LATEST
-from .exif import clean_photo, depth_png, stored_shape, upright_depth, upright_intrinsics
-from .uploads import UploadError, check_name, decode_depth, decode_image, decode_photo, parse_intrinsics, parse_pose
+from .exif import clean_photo, depth_png
+from .photos import read_photo
+from .uploads import UploadError, check_name, decode_depth, decode_image, parse_pose
 from .worksize import fit_image
 
 log = logging.getLogger("mapfree.api")
@@ -214,12 +215,6 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
             "created_at": a.created_at, "url": f"/anchors/{a.id}"}
 
 
-def _intr(fx, fy, cx, cy, img, what, orientation: int = 1) -> dict:
-    """Intrinsics the client gave for the photo's stored pixel grid, checked there, for the upright photo."""
-    h, w = stored_shape(img, orientation)
-    return upright_intrinsics(parse_intrinsics({"fx": fx, "fy": fy, "cx": cx, "cy": cy}, w, h, what), orientation)
-
-
 @dataclass
 class PhotoUpload:
     """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays at the
@@ -245,22 +240,20 @@ def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth
         img_bytes = read_upload(image, lim.max_image_bytes, "image")
         if img_bytes is None:
             raise UploadError(400, "image: no file uploaded")
-        img, o = decode_photo(img_bytes, lim, "image")
-        intr = _intr(fx, fy, cx, cy, img, "intrinsics", o)
+        up = read_photo(img_bytes, lim, {"fx": fx, "fy": fy, "cx": cx, "cy": cy})
         depth_bytes = read_upload(depth, lim.max_image_bytes, "depth")
-        d = decode_depth(depth_bytes, lim, stored_shape(img, o)) if depth_bytes is not None else None
+        d = up.depth(depth_bytes, lim) if depth_bytes is not None else None
         if d is not None and not d.any():
             raise UploadError(422, "depth: every pixel is 0 (no measurement), so the photo could never give a "
                                    "metric pose; send its real depth map, or none with a method that needs none")
-        if d is not None and o != 1:  # stored upright, like its photo
-            d = upright_depth(d, o)
+        if d is not None and up.orientation != 1:  # stored upright, like its photo
             depth_bytes = depth_png(d)
         q = IDENTITY if pose is None else parse_pose(pose)
     except UploadError as e:
         raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
-    stored = clean_photo(img_bytes, img)  # no metadata, upright: what is kept and served
-    img, K, d = fit_image(img, intrinsics_of(intr), d, lim.work_max_side)  # the decoded 4096² photo goes now
-    return PhotoUpload(stored, intr, depth_bytes, q, Photo(img, K, d, Pose.from_qt(q[:4], q[4:])))
+    stored = clean_photo(img_bytes, up.image)  # no metadata, upright: what is kept and served
+    photo = up.fit(lim.work_max_side, d)  # the decoded 4096² photo goes now
+    return PhotoUpload(stored, up.intrinsics, depth_bytes, q, replace(photo, pose=Pose.from_qt(q[:4], q[4:])))
 
 
 def photo_name(i: int, f: UploadFile | None) -> str:
@@ -583,13 +576,9 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     q_bytes = image.file.read(lim.max_image_bytes + 1)
     if len(q_bytes) > lim.max_image_bytes:
         raise UploadError(413, f"image: larger than the limit of {lim.max_image_bytes} bytes")
-    q_img, o = decode_photo(q_bytes, lim, "image")
-    q_K = intrinsics_of(_intr(fx, fy, cx, cy, q_img, "intrinsics", o))
-    q_depth = None
-    if depth is not None and depth.filename:
-        q_depth = upright_depth(decode_depth(depth.file.read(lim.max_image_bytes + 1), lim,
-                                             stored_shape(q_img, o)), o)
-    q_img, q_K, q_depth = fit_image(q_img, q_K, q_depth, lim.work_max_side)
-    out = estimate_json(localize_anchor(request, a, rows, q_img, q_K, q_depth), a.method)
+    up = read_photo(q_bytes, lim, {"fx": fx, "fy": fy, "cx": cx, "cy": cy})
+    q_depth = up.depth(depth.file.read(lim.max_image_bytes + 1), lim) if depth is not None and depth.filename else None
+    q = up.fit(lim.work_max_side, q_depth)
+    out = estimate_json(localize_anchor(request, a, rows, q.image, q.K, q.depth), a.method)
     out["anchor"] = a.id
     return out
