@@ -310,10 +310,11 @@ def check_photo_count(lim, n: int) -> None:
 
 
 def make_anchor(request: Request, db: Session, user: User, name: str, method: str, ups: list[PhotoUpload],
-                names: list[str]) -> tuple[Anchor, list[AnchorPhoto]]:
+                names: list[str], private: bool = False) -> tuple[Anchor, list[AnchorPhoto]]:
     """Store a new anchor of ``user`` from checked photos (``ups[0]``: the anchor's frame; ``names``: how errors
     name them, "" for a lone photo), refused (4xx) past the photo limit or the storage quota, or when its method
-    cannot run on it here. Shared by ``POST /anchors`` and the relocalize page."""
+    cannot run on it here; ``private``: its photos are served to its owner and admins only, from the start.
+    Shared by ``POST /anchors`` and the relocalize page."""
     settings = request.app.state.settings
     lim = settings.limits
     check_photo_count(lim, len(ups))
@@ -334,7 +335,7 @@ def make_anchor(request: Request, db: Session, user: User, name: str, method: st
         raise
     first = ups[0]
     a = Anchor(id=aid, user_id=user.id, name=name, method=m, intrinsics=first.intrinsics, image=first.image,
-               depth=first.depth, created_at=now())
+               depth=first.depth, private=bool(private), created_at=now())
     db.add(a)
     db.flush()
     db.add_all(rows)
@@ -369,10 +370,7 @@ def create_anchor(request: Request, image: UploadFile = File(..., description="r
     name0 = photo_name(0, image) if several else ""
     first = photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
     extra, names = _extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
-    a, rows = make_anchor(request, db, caller.user, name, method, [first, *extra], [name0, *names])
-    if private:
-        a.private = True
-        db.commit()
+    a, rows = make_anchor(request, db, caller.user, name, method, [first, *extra], [name0, *names], private)
     return anchor_json(a, rows)
 
 

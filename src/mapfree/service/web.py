@@ -502,10 +502,7 @@ def create_anchor_form(request: Request, photos: list[UploadFile] = File([]), de
     form = {"new_name": name, "new_method": method, "cameras": cameras, "new_private": bool(private)}
     try:
         ups, names = _form_photos(request.app.state.settings.limits, photos, depths, cameras)
-        a, _ = make_anchor(request, db, caller.user, name, method, ups, names)
-        if private:
-            a.private = True
-            db.commit()
+        a, _ = make_anchor(request, db, caller.user, name, method, ups, names, bool(private))
     except (UploadError, HTTPException) as e:
         db.rollback()
         status, message = _problem(e)
