@@ -37,7 +37,9 @@ class Limits:
     max_image_pixels: int = 4096 * 4096
     max_name_chars: int = 120
     max_anchor_photos: int = 16  # photos of one anchor's place, the first included
-    work_max_side: int = 1024  # decoded photos are downscaled to this long side at once (0: never)
+    # decoded photos are downscaled to this long side at once (0: never); the benchmark's photos are 540x720,
+    # every method is tuned at about that size
+    work_max_side: int = 1024
 
 
 @dataclass
