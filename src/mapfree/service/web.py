@@ -516,7 +516,8 @@ def _anchor_page(request: Request, db: Session, aid: str, status: int = 200, err
     a = find_anchor(db, aid)
     data = anchor_json(a, photo_rows(db, a.id))
     return page(request, "anchor.html", db, status, anchor=data, error=error, form=form or {},
-                owner=user.id == a.user_id or user.is_admin, max_photos=request.app.state.settings.limits.max_anchor_photos)
+                owner=user.id == a.user_id or user.is_admin, show_photos=may_see_photos(a, user),
+                max_photos=request.app.state.settings.limits.max_anchor_photos)
 
 
 @router.get("/relocalize/anchors/{aid}", response_class=HTMLResponse)
