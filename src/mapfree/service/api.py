@@ -19,7 +19,7 @@ from . import jobs
 from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, RetiredPhotoIndex, Submission, User, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
-from .deps import db_session, identify, require_operator, require_writer
+from .deps import db_session, identify, require_operator, require_user, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
 from .manage import own_submission, test_quota
 from .storage import check_quota, stored_bytes
@@ -97,9 +97,7 @@ async def _health(request: Request) -> tuple[int, dict]:
 
 @router.get("/api/me", tags=["accounts"])
 def me(request: Request, db: Session = Depends(db_session)):
-    caller = identify(request, db)
-    if caller.user is None:
-        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    caller = require_user(request, db)
     u = caller.user
     quota = test_quota(db, request.app.state.settings, u)
     return {"name": u.name, "admin": u.is_admin, "test_evaluations_left_today": quota.left,
@@ -135,9 +133,7 @@ def create_submission(request: Request, file: UploadFile = File(..., description
 @router.get("/api/submissions", tags=["submissions"])
 def my_submissions(request: Request, db: Session = Depends(db_session)):
     """The caller's own submissions (private history), newest first."""
-    caller = identify(request, db)
-    if caller.user is None:
-        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    caller = require_user(request, db)
     subs = db.scalars(select(Submission).where(Submission.user_id == caller.user.id)
                       .order_by(Submission.created_at.desc()).limit(500)).all()
     return [to_json(db, s, caller.user.name) for s in subs]
@@ -398,9 +394,7 @@ def _own_anchor(a: Anchor, user: User, what: str) -> None:
 
 @router.get("/anchors/{aid}", tags=["relocalization"])
 def get_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
-    caller = identify(request, db)
-    if caller.user is None:
-        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    require_user(request, db)
     a = find_anchor(db, aid)
     return anchor_json(a, photo_rows(db, a.id))
 
@@ -503,9 +497,7 @@ def delete_anchor_photo(aid: str, k: int, request: Request, db: Session = Depend
 def anchor_photo_image(aid: str, k: int, request: Request, db: Session = Depends(db_session)):
     """The stored image of photo ``k`` (JPEG or PNG, upright, without EXIF metadata), for anyone signed in; a
     private anchor's for its owner and admins only."""
-    caller = identify(request, db)
-    if caller.user is None:
-        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    caller = require_user(request, db)
     a = find_anchor(db, aid)
     if not may_see_photos(a, caller.user):
         raise HTTPException(403, "this anchor's photos are private to its owner")
