@@ -15,7 +15,6 @@ from sqlalchemy.orm import Session
 
 from ..estimate import Estimate
 from ..geometry import Pose
-from . import jobs
 from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, RetiredPhotoIndex, Submission, User, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
