@@ -22,7 +22,9 @@ def _limit(text: str) -> int | None:
 
 
 def _shown(limit: int | None) -> str:
-    return "default" if limit is None else ("unlimited" if limit < 0 else str(limit))
+    from ..service.config import shown_limit
+
+    return "default" if limit is None else str(shown_limit(limit))
 
 
 def register(sub: argparse._SubParsersAction) -> None:

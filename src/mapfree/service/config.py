@@ -23,6 +23,11 @@ def parse_daily_limit(text: str | int) -> int:
     return UNLIMITED if n < 0 else n
 
 
+def shown_limit(limit: int) -> int | str:
+    """A daily test limit as accounts and operators read it: the count, or ``"unlimited"``."""
+    return "unlimited" if limit < 0 else limit
+
+
 @dataclass
 class Limits:
     """Hostile-input limits. Sizes in bytes."""

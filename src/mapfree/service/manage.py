@@ -16,7 +16,7 @@ from pydantic import BaseModel, Field
 from sqlalchemy import delete
 from sqlalchemy.orm import Session
 
-from .config import Settings
+from .config import Settings, shown_limit
 from .db import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
 from .deps import db_session, require_user, require_writer
 from .leaderboard import meta_json, parse_meta, save_meta
@@ -36,11 +36,11 @@ class Quota:
 
     @property
     def left(self) -> int | str:
-        return "unlimited" if self.limit < 0 else max(0, self.limit - self.used)
+        return shown_limit(self.limit) if self.limit < 0 else max(0, self.limit - self.used)
 
     @property
     def shown_limit(self) -> int | str:
-        return "unlimited" if self.limit < 0 else self.limit
+        return shown_limit(self.limit)
 
 
 def test_quota(db: Session, settings: Settings, user: User) -> Quota:
