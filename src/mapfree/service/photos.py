@@ -8,13 +8,27 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..data.orientation import displayed_size, orient_intrinsics, orient_pixels
 from .config import Limits
-from .exif import stored_shape, upright_depth, upright_intrinsics
 from .reloc import Photo, intrinsics_of
 from .uploads import decode_depth, decode_photo, parse_intrinsics
 from .worksize import fit_image
 
 _FIELDS = ("fx", "fy", "cx", "cy")
+
+
+def stored_shape(upright: np.ndarray, orientation: int) -> tuple[int, int]:
+    """(rows, cols) of the stored grid of an upright photo: what the client's intrinsics and depth describe."""
+    w, h = displayed_size(upright.shape[1], upright.shape[0], orientation)  # a quarter turn is its own size swap
+    return h, w
+
+
+def upright_intrinsics(intr: dict, orientation: int) -> dict:
+    """Checked intrinsics of the stored grid (``parse_intrinsics``) -> those of the upright photo."""
+    if orientation == 1:
+        return intr
+    k = orient_intrinsics(intrinsics_of(intr), orientation)
+    return {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "width": k.width, "height": k.height}
 
 
 @dataclass
@@ -33,7 +47,7 @@ class UprightPhoto:
 
     def depth(self, data: bytes, lim: Limits, what: str = "depth") -> np.ndarray:
         """A depth map uploaded for the stored grid (``decode_depth``), turned upright like the photo."""
-        return upright_depth(decode_depth(data, lim, self.stored_shape, what), self.orientation)
+        return orient_pixels(decode_depth(data, lim, self.stored_shape, what), self.orientation)
 
     def fit(self, max_side: int, depth: np.ndarray | None = None) -> Photo:
         """The photo (and its upright ``depth``) at the working size: what a method sees."""
