@@ -171,11 +171,31 @@ def worker_pids(serve_pid: int) -> list[int]:
     return sorted(pids)
 
 
+def wait_evaluated(sessions, deadline: float, ids: list[str] | None = None, poll: float = 0.25) -> None:
+    """Until no submission (of ``ids``; else none at all) is queued or running, or ``deadline`` (a busy SQLite
+    database is asked again)."""
+    from sqlalchemy import func, select
+    from sqlalchemy.exc import OperationalError
+
+    from mapfree.service.db import Submission
+
+    pending = Submission.status.in_(("queued", "running"))
+    if ids is not None:
+        pending = pending & Submission.id.in_(ids)
+    while time.time() < deadline:
+        try:
+            with sessions() as db:
+                left = db.scalar(select(func.count()).select_from(Submission).where(pending))
+        except OperationalError:
+            continue
+        if not left:
+            return
+        time.sleep(poll)
+
+
 def upload_memory(url: str, api_pid: int, tokens: list[str], payload: bytes, sessions, deadline: float) -> dict:
     """Three uploads of ``payload`` at once, then their evaluation: peak RSS of the API process and of every
     worker process, sampled every 20 ms from before the uploads until the workers have parsed and scored them."""
-    from sqlalchemy import func, select
-
     from mapfree.service.db import Submission
 
     workers = worker_pids(api_pid)
@@ -205,13 +225,7 @@ def upload_memory(url: str, api_pid: int, tokens: list[str], payload: bytes, ses
         with ThreadPoolExecutor(3) as ex:
             results = list(ex.map(upload, tokens[:3]))
         ids = [i for code, i in results if code == 202]
-        while time.time() < deadline:
-            with sessions() as db:
-                left = db.scalar(select(func.count()).select_from(Submission).where(
-                    Submission.id.in_(ids), Submission.status.in_(("queued", "running"))))
-            if not left:
-                break
-            time.sleep(0.2)
+        wait_evaluated(sessions, deadline, ids, poll=0.2)
     finally:
         done.set()
         sampler.join()
@@ -586,13 +600,7 @@ def main() -> int:
             up = upload_pressure(url, proc.pid, tokens, big, a.upload_rounds, a.health_interval)
             big_ids = [r[2] for r in up["uploads"] if r[0] == 202]
             t0 = time.perf_counter()
-            while time.time() < deadline:  # the workers parse them (not the API): wait before the next phase
-                with S() as db:
-                    left = db.scalar(select(func.count()).select_from(Submission).where(
-                        Submission.id.in_(big_ids), Submission.status.in_(("queued", "running"))))
-                if not left:
-                    break
-                time.sleep(0.5)
+            wait_evaluated(S, deadline, big_ids, poll=0.5)  # the workers parse them (not the API): wait for it
             up["eval_wall"] = time.perf_counter() - t0
             with S() as db:
                 up["statuses"] = [db.get(Submission, i).status for i in big_ids]
@@ -647,16 +655,7 @@ def main() -> int:
                     f.result()
             kt.join()
             t_uploaded = time.perf_counter()
-            while time.time() < deadline:
-                try:
-                    with S() as db:
-                        pending = db.scalar(select(func.count()).select_from(Submission).where(
-                            Submission.status.in_(("queued", "running"))))
-                except OperationalError:
-                    continue
-                if pending == 0:
-                    break
-                time.sleep(0.25)
+            wait_evaluated(S, deadline)
             t_done = time.perf_counter()
             with S() as db:
                 mine = Submission.id.in_(ids)  # this phase's submissions only (not the big uploads before)

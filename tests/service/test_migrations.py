@@ -103,23 +103,30 @@ def test_a_database_newer_than_the_code_is_refused(tmp_path):
     assert r.returncode == 2 and "schema version 9999" in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
-def test_processes_starting_together_upgrade_once(tmp_path):
-    url = old_database(tmp_path / "old.db")
+def _upgrade_together(url: str, n: int) -> tuple[list, list]:
+    """``upgrade`` of the database at ``url`` from ``n`` threads at once, each with its own engine (as processes
+    starting together) -> what each returned, and the errors raised."""
     results, errors = [], []
 
     def start():
         engine = make_engine(url)
         try:
             results.append(upgrade(engine))
-        except Exception as e:  # pragma: no cover - the assertion below shows it
+        except Exception as e:  # pragma: no cover - the callers' assertions show it
             errors.append(e)
         engine.dispose()
 
-    threads = [threading.Thread(target=start) for _ in range(4)]
+    threads = [threading.Thread(target=start) for _ in range(n)]
     for t in threads:
         t.start()
     for t in threads:
         t.join(60)
+    return results, errors
+
+
+def test_processes_starting_together_upgrade_once(tmp_path):
+    url = old_database(tmp_path / "old.db")
+    results, errors = _upgrade_together(url, 4)
     assert not errors, errors
     assert sorted(results, key=str) == sorted([(None, head())] + [(head(), head())] * 3, key=str)
 
@@ -142,18 +149,7 @@ def test_upgrading_from_the_first_revision_gives_the_models_schema_on_each_backe
         conn.execute(text("INSERT INTO users (name, is_admin, created_at) VALUES ('old', false, 1.0)"))
         conn.execute(text("DROP TABLE alembic_version"))  # as a database from before migrations has none
     engine.dispose()
-    results = []
-
-    def start():
-        e = make_engine(old)
-        results.append(upgrade(e))
-        e.dispose()
-
-    threads = [threading.Thread(target=start) for _ in range(3)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(60)
+    results, _ = _upgrade_together(old, 3)
     assert sorted(results, key=str) == sorted([(None, head())] + [(head(), head())] * 2, key=str)
     fresh = make_engine(new)
     upgrade(fresh)  # empty: made from the models, stamped

@@ -22,7 +22,9 @@ def _limit(text: str) -> int | None:
 
 
 def _shown(limit: int | None) -> str:
-    return "default" if limit is None else ("unlimited" if limit < 0 else str(limit))
+    from ..service.config import shown_limit
+
+    return "default" if limit is None else str(shown_limit(limit))
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -129,16 +131,13 @@ def run(a: argparse.Namespace) -> int:
 
     with sessions.begin() as db:
         if a.action == "create-user":
-            expires_in = lifetime()
+            expires_in = lifetime()  # the first token's
             try:
-                u, token = auth.create_user(db, a.name, admin=a.admin)
+                u, token = auth.create_user(db, a.name, admin=a.admin, expires_in=expires_in)
             except ValueError as e:
                 print(f"error: {e}", file=sys.stderr)
                 return 1
             u.test_daily_limit = a.test_daily_limit
-            if expires_in is not None:  # the first token gets the lifetime too
-                db.flush()
-                db.scalar(select(ApiToken).where(ApiToken.user_id == u.id)).expires_at = auth.now() + expires_in
             print(token)
             print(f"created user {a.name!r}; the token above is shown only once", file=sys.stderr)
         elif a.action == "new-token":

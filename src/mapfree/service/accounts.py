@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 
 from . import auth
 from .db import ApiToken, WebSession, now
-from .deps import SESSION_COOKIE, db_session, identify, require_writer
+from .deps import SESSION_COOKIE, db_session, require_user, require_writer
 
 router = APIRouter()
 #: The longest lifetime a user may give a token they create themselves (an admin's CLI may give any).
@@ -39,13 +39,6 @@ def list_sessions(db: Session, user_id: int) -> list[WebSession]:
                            .order_by(WebSession.id)))
 
 
-def _signed_in(request: Request, db: Session):
-    caller = identify(request, db)
-    if caller.user is None:
-        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
-    return caller
-
-
 def _current_token_hash(request: Request) -> str:
     scheme, _, token = request.headers.get("authorization", "").partition(" ")
     return auth.hash_secret(token.strip()) if scheme.lower() == "bearer" and token.strip() else ""
@@ -63,7 +56,7 @@ def _own_row(request: Request, db: Session, model, row_id: int, what: str, csrf:
 @router.get("/api/tokens", tags=["accounts"])
 def my_tokens(request: Request, db: Session = Depends(db_session)):
     """Your API tokens (prefix, label, creation, expiry, revoked); ``current``: the one this request used."""
-    caller = _signed_in(request, db)
+    caller = require_user(request, db)
     return [token_json(t, _current_token_hash(request)) for t in list_tokens(db, caller.user.id)]
 
 
@@ -95,7 +88,7 @@ def revoke_token(tid: int, request: Request, db: Session = Depends(db_session)):
 @router.get("/api/sessions", tags=["accounts"])
 def my_sessions(request: Request, db: Session = Depends(db_session)):
     """Your open browser sessions; ``current``: the one this request came with."""
-    caller = _signed_in(request, db)
+    caller = require_user(request, db)
     sid = request.cookies.get(SESSION_COOKIE)
     current = auth.hash_secret(sid) if sid else ""
     return [session_json(s, current) for s in list_sessions(db, caller.user.id)]
@@ -117,7 +110,7 @@ def access_page(request: Request, db: Session = Depends(db_session)):
     """Your tokens and browser sessions, each with a button that revokes it."""
     from .web import page
 
-    caller = _signed_in(request, db)
+    caller = require_user(request, db)
     sid = request.cookies.get(SESSION_COOKIE)
     current = auth.hash_secret(sid) if sid else ""
     return page(request, "access.html", db, tokens=[token_json(t, _current_token_hash(request))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import BinaryIO
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Request, UploadFile
@@ -15,19 +15,19 @@ from sqlalchemy.orm import Session
 
 from ..estimate import Estimate
 from ..geometry import Pose
-from . import jobs
 from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, RetiredPhotoIndex, Submission, User, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
-from .deps import db_session, identify, require_operator, require_writer
+from .deps import db_session, identify, require_operator, require_user, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
 from .manage import own_submission, test_quota
 from .storage import check_quota, stored_bytes
 from .submissions import accept, to_json, visible_submission
 from .submissions import plot_png as render_plot
 from .metrics import CONTENT_TYPE_LATEST
-from .exif import clean_photo, depth_png, stored_shape, upright_depth, upright_intrinsics
-from .uploads import UploadError, check_name, decode_depth, decode_image, decode_photo, parse_intrinsics, parse_pose
+from .exif import clean_photo, depth_png
+from .photos import read_photo
+from .uploads import UploadError, check_name, decode_depth, decode_image, parse_pose
 from .worksize import fit_image
 
 log = logging.getLogger("mapfree.api")
@@ -96,9 +96,7 @@ async def _health(request: Request) -> tuple[int, dict]:
 
 @router.get("/api/me", tags=["accounts"])
 def me(request: Request, db: Session = Depends(db_session)):
-    caller = identify(request, db)
-    if caller.user is None:
-        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    caller = require_user(request, db)
     u = caller.user
     quota = test_quota(db, request.app.state.settings, u)
     return {"name": u.name, "admin": u.is_admin, "test_evaluations_left_today": quota.left,
@@ -134,9 +132,7 @@ def create_submission(request: Request, file: UploadFile = File(..., description
 @router.get("/api/submissions", tags=["submissions"])
 def my_submissions(request: Request, db: Session = Depends(db_session)):
     """The caller's own submissions (private history), newest first."""
-    caller = identify(request, db)
-    if caller.user is None:
-        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    caller = require_user(request, db)
     subs = db.scalars(select(Submission).where(Submission.user_id == caller.user.id)
                       .order_by(Submission.created_at.desc()).limit(500)).all()
     return [to_json(db, s, caller.user.name) for s in subs]
@@ -214,12 +210,6 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
             "created_at": a.created_at, "url": f"/anchors/{a.id}"}
 
 
-def _intr(fx, fy, cx, cy, img, what, orientation: int = 1) -> dict:
-    """Intrinsics the client gave for the photo's stored pixel grid, checked there, for the upright photo."""
-    h, w = stored_shape(img, orientation)
-    return upright_intrinsics(parse_intrinsics({"fx": fx, "fy": fy, "cx": cx, "cy": cy}, w, h, what), orientation)
-
-
 @dataclass
 class PhotoUpload:
     """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays at the
@@ -245,22 +235,20 @@ def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth
         img_bytes = read_upload(image, lim.max_image_bytes, "image")
         if img_bytes is None:
             raise UploadError(400, "image: no file uploaded")
-        img, o = decode_photo(img_bytes, lim, "image")
-        intr = _intr(fx, fy, cx, cy, img, "intrinsics", o)
+        up = read_photo(img_bytes, lim, {"fx": fx, "fy": fy, "cx": cx, "cy": cy})
         depth_bytes = read_upload(depth, lim.max_image_bytes, "depth")
-        d = decode_depth(depth_bytes, lim, stored_shape(img, o)) if depth_bytes is not None else None
+        d = up.depth(depth_bytes, lim) if depth_bytes is not None else None
         if d is not None and not d.any():
             raise UploadError(422, "depth: every pixel is 0 (no measurement), so the photo could never give a "
                                    "metric pose; send its real depth map, or none with a method that needs none")
-        if d is not None and o != 1:  # stored upright, like its photo
-            d = upright_depth(d, o)
+        if d is not None and up.orientation != 1:  # stored upright, like its photo
             depth_bytes = depth_png(d)
         q = IDENTITY if pose is None else parse_pose(pose)
     except UploadError as e:
         raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
-    stored = clean_photo(img_bytes, img)  # no metadata, upright: what is kept and served
-    img, K, d = fit_image(img, intrinsics_of(intr), d, lim.work_max_side)  # the decoded 4096² photo goes now
-    return PhotoUpload(stored, intr, depth_bytes, q, Photo(img, K, d, Pose.from_qt(q[:4], q[4:])))
+    stored = clean_photo(img_bytes, up.image)  # no metadata, upright: what is kept and served
+    photo = up.fit(lim.work_max_side, d)  # the decoded 4096² photo goes now
+    return PhotoUpload(stored, up.intrinsics, depth_bytes, q, replace(photo, pose=Pose.from_qt(q[:4], q[4:])))
 
 
 def photo_name(i: int, f: UploadFile | None) -> str:
@@ -317,10 +305,11 @@ def check_photo_count(lim, n: int) -> None:
 
 
 def make_anchor(request: Request, db: Session, user: User, name: str, method: str, ups: list[PhotoUpload],
-                names: list[str]) -> tuple[Anchor, list[AnchorPhoto]]:
+                names: list[str], private: bool = False) -> tuple[Anchor, list[AnchorPhoto]]:
     """Store a new anchor of ``user`` from checked photos (``ups[0]``: the anchor's frame; ``names``: how errors
     name them, "" for a lone photo), refused (4xx) past the photo limit or the storage quota, or when its method
-    cannot run on it here. Shared by ``POST /anchors`` and the relocalize page."""
+    cannot run on it here; ``private``: its photos are served to its owner and admins only, from the start.
+    Shared by ``POST /anchors`` and the relocalize page."""
     settings = request.app.state.settings
     lim = settings.limits
     check_photo_count(lim, len(ups))
@@ -341,7 +330,7 @@ def make_anchor(request: Request, db: Session, user: User, name: str, method: st
         raise
     first = ups[0]
     a = Anchor(id=aid, user_id=user.id, name=name, method=m, intrinsics=first.intrinsics, image=first.image,
-               depth=first.depth, created_at=now())
+               depth=first.depth, private=bool(private), created_at=now())
     db.add(a)
     db.flush()
     db.add_all(rows)
@@ -376,10 +365,7 @@ def create_anchor(request: Request, image: UploadFile = File(..., description="r
     name0 = photo_name(0, image) if several else ""
     first = photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
     extra, names = _extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
-    a, rows = make_anchor(request, db, caller.user, name, method, [first, *extra], [name0, *names])
-    if private:
-        a.private = True
-        db.commit()
+    a, rows = make_anchor(request, db, caller.user, name, method, [first, *extra], [name0, *names], private)
     return anchor_json(a, rows)
 
 
@@ -407,9 +393,7 @@ def _own_anchor(a: Anchor, user: User, what: str) -> None:
 
 @router.get("/anchors/{aid}", tags=["relocalization"])
 def get_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
-    caller = identify(request, db)
-    if caller.user is None:
-        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    require_user(request, db)
     a = find_anchor(db, aid)
     return anchor_json(a, photo_rows(db, a.id))
 
@@ -512,9 +496,7 @@ def delete_anchor_photo(aid: str, k: int, request: Request, db: Session = Depend
 def anchor_photo_image(aid: str, k: int, request: Request, db: Session = Depends(db_session)):
     """The stored image of photo ``k`` (JPEG or PNG, upright, without EXIF metadata), for anyone signed in; a
     private anchor's for its owner and admins only."""
-    caller = identify(request, db)
-    if caller.user is None:
-        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    caller = require_user(request, db)
     a = find_anchor(db, aid)
     if not may_see_photos(a, caller.user):
         raise HTTPException(403, "this anchor's photos are private to its owner")
@@ -583,13 +565,9 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     q_bytes = image.file.read(lim.max_image_bytes + 1)
     if len(q_bytes) > lim.max_image_bytes:
         raise UploadError(413, f"image: larger than the limit of {lim.max_image_bytes} bytes")
-    q_img, o = decode_photo(q_bytes, lim, "image")
-    q_K = intrinsics_of(_intr(fx, fy, cx, cy, q_img, "intrinsics", o))
-    q_depth = None
-    if depth is not None and depth.filename:
-        q_depth = upright_depth(decode_depth(depth.file.read(lim.max_image_bytes + 1), lim,
-                                             stored_shape(q_img, o)), o)
-    q_img, q_K, q_depth = fit_image(q_img, q_K, q_depth, lim.work_max_side)
-    out = estimate_json(localize_anchor(request, a, rows, q_img, q_K, q_depth), a.method)
+    up = read_photo(q_bytes, lim, {"fx": fx, "fy": fy, "cx": cx, "cy": cy})
+    q_depth = up.depth(depth.file.read(lim.max_image_bytes + 1), lim) if depth is not None and depth.filename else None
+    q = up.fit(lim.work_max_side, q_depth)
+    out = estimate_json(localize_anchor(request, a, rows, q.image, q.K, q.depth), a.method)
     out["anchor"] = a.id
     return out

@@ -18,7 +18,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .. import __version__
-from .concurrency import HeavyPool
+from .concurrency import HeavyPool, default_threads
 from .config import Settings, parse_daily_limit
 from .db import init_db, make_engine, session_factory
 from .gcpause import freeze_long_lived
@@ -75,7 +75,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.health = HealthMonitor(engine)
     app.state.metrics = Metrics(engine)
     app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue)
-    app.state.localizers = Localizers(per_method=max(1, min(4, os.cpu_count() or 1)),
+    app.state.localizers = Localizers(per_method=default_threads(),
                                       cache_bytes=int(settings.anchor_cache_mb * (1 << 20)),
                                       max_side=settings.limits.work_max_side)
     if settings.methods_dir is not None:

@@ -28,8 +28,9 @@ def new_token() -> str:
     return TOKEN_PREFIX + secrets.token_urlsafe(32)
 
 
-def create_user(db: Session, name: str, admin: bool = False) -> tuple[User, str]:
-    """A new account and its first token (the only time the plain token is seen)."""
+def create_user(db: Session, name: str, admin: bool = False, expires_in: float | None = None) -> tuple[User, str]:
+    """A new account and its first token (the only time the plain token is seen; ``expires_in`` as for
+    ``issue_token``)."""
     name = name.strip()
     if not name or len(name) > 64 or not name.replace("-", "").replace("_", "").replace(".", "").isalnum():
         raise ValueError("user name must be 1-64 letters, digits, '-', '_' or '.'")
@@ -38,7 +39,7 @@ def create_user(db: Session, name: str, admin: bool = False) -> tuple[User, str]
     user = User(name=name, is_admin=admin)
     db.add(user)
     db.flush()
-    return user, issue_token(db, user)
+    return user, issue_token(db, user, expires_in)
 
 
 def issue_token(db: Session, user: User, expires_in: float | None = None, label: str = "") -> str:

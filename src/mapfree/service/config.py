@@ -23,6 +23,11 @@ def parse_daily_limit(text: str | int) -> int:
     return UNLIMITED if n < 0 else n
 
 
+def shown_limit(limit: int) -> int | str:
+    """A daily test limit as accounts and operators read it: the count, or ``"unlimited"``."""
+    return "unlimited" if limit < 0 else limit
+
+
 @dataclass
 class Limits:
     """Hostile-input limits. Sizes in bytes."""
@@ -37,7 +42,9 @@ class Limits:
     max_image_pixels: int = 4096 * 4096
     max_name_chars: int = 120
     max_anchor_photos: int = 16  # photos of one anchor's place, the first included
-    work_max_side: int = 1024  # decoded photos are downscaled to this long side at once (0: never)
+    # decoded photos are downscaled to this long side at once (0: never); the benchmark's photos are 540x720,
+    # every method is tuned at about that size
+    work_max_side: int = 1024
 
 
 @dataclass

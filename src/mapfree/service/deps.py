@@ -56,6 +56,14 @@ def identify(request: Request, db: Session) -> Caller:
     return Caller(None)
 
 
+def require_user(request: Request, db: Session) -> Caller:
+    """A signed-in caller (token or session), for reading what needs an account; a 401 otherwise."""
+    caller = identify(request, db)
+    if caller.user is None:
+        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    return caller
+
+
 def require_writer(request: Request, db: Session, form_csrf: str | None = None) -> Caller:
     """A signed-in caller allowed to write: token callers, or cookie callers with the right CSRF token."""
     caller = identify(request, db)

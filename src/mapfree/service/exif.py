@@ -1,5 +1,5 @@
-"""Uploaded photos: turned upright by their EXIF orientation (with the intrinsics and depth the client gave for
-the stored grid), and stored without metadata (GPS position, camera serial, time, software...).
+"""Uploaded photos stored upright (``photos.py`` turns them) and without metadata (GPS position, camera serial,
+time, software...).
 
 A photo whose orientation is 1 keeps its pixels byte for byte: only the metadata segments (JPEG APP1-APP13,
 APP15, comments; PNG text, time and eXIf chunks) are dropped. A turned photo is re-encoded upright (JPEG at
@@ -13,12 +13,9 @@ import struct
 import cv2
 import numpy as np
 
-from ..data.orientation import (ROTATIONS, OrientationError, check_orientation, displayed_size, exif_orientation,
-                                orient_intrinsics, orient_pixels)
-from ..geometry import Intrinsics
+from ..data.orientation import ROTATIONS, OrientationError, check_orientation, exif_orientation, orient_pixels
 
-__all__ = ["strip_metadata", "clean_photo", "photo_orientation", "stored_shape", "upright_intrinsics",
-           "upright_depth", "depth_png"]
+__all__ = ["strip_metadata", "clean_photo", "photo_orientation", "depth_png"]
 
 #: JPEG segments kept: APP0 (JFIF) and APP14 (Adobe colour transform, needed to decode some files right).
 _JPEG_KEEP_APP = {0xE0, 0xEE}
@@ -37,32 +34,12 @@ def photo_orientation(data: bytes, what: str) -> int:
         raise UploadError(422, str(e)) from None
 
 
-def stored_shape(upright: np.ndarray, orientation: int) -> tuple[int, int]:
-    """(rows, cols) of the stored grid of an upright photo: what the client's intrinsics and depth describe."""
-    w, h = displayed_size(upright.shape[1], upright.shape[0], orientation)  # a quarter turn is its own size swap
-    return h, w
-
-
-def upright_intrinsics(intr: dict, orientation: int) -> dict:
-    """Checked intrinsics of the stored grid (``parse_intrinsics``) -> those of the upright photo."""
-    if orientation == 1:
-        return intr
-    k = orient_intrinsics(Intrinsics(intr["fx"], intr["fy"], intr["cx"], intr["cy"], intr["width"], intr["height"]),
-                          orientation)
-    return {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "width": k.width, "height": k.height}
-
-
 def depth_png(depth_m: np.ndarray) -> bytes:
     """A decoded (turned) depth map back to the uint16 millimetre PNG it came from."""
     ok, buf = cv2.imencode(".png", np.rint(depth_m * 1000.0).astype(np.uint16))
     if not ok:  # pragma: no cover
         raise ValueError("could not encode the depth map")
     return buf.tobytes()
-
-
-def upright_depth(depth: np.ndarray | None, orientation: int) -> np.ndarray | None:
-    """A depth map given for the stored grid, turned like its photo."""
-    return None if depth is None else orient_pixels(depth, orientation)
 
 
 def _strip_jpeg(data: bytes) -> bytes | None:

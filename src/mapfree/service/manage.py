@@ -16,9 +16,9 @@ from pydantic import BaseModel, Field
 from sqlalchemy import delete
 from sqlalchemy.orm import Session
 
-from .config import Settings
+from .config import Settings, shown_limit
 from .db import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
-from .deps import db_session, identify, require_writer
+from .deps import db_session, require_user, require_writer
 from .leaderboard import meta_json, parse_meta, save_meta
 from .storage import read_zip
 from .submissions import daily_test_limit, recent_count
@@ -36,11 +36,11 @@ class Quota:
 
     @property
     def left(self) -> int | str:
-        return "unlimited" if self.limit < 0 else max(0, self.limit - self.used)
+        return shown_limit(self.limit) if self.limit < 0 else max(0, self.limit - self.used)
 
     @property
     def shown_limit(self) -> int | str:
-        return "unlimited" if self.limit < 0 else self.limit
+        return shown_limit(self.limit)
 
 
 def test_quota(db: Session, settings: Settings, user: User) -> Quota:
@@ -110,9 +110,7 @@ def withdraw_submission(sid: str, request: Request, db: Session = Depends(db_ses
 @router.get("/api/submissions/{sid}/zip", response_class=Response)
 def download_zip(sid: str, request: Request, db: Session = Depends(db_session)):
     """The ZIP you uploaded (owner or admin only; 409 once withdrawn, 410 once past the retention time)."""
-    caller = identify(request, db)
-    if caller.user is None:
-        raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
+    caller = require_user(request, db)
     return zip_response(db, own_submission(db, caller.user, sid))
 
 

@@ -29,10 +29,10 @@ from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
 from .leaderboard import (MAX_PER_PAGE, PER_PAGE, VIEWS, board, check_sort, check_split, compare, meta_json,
                           ordered_metrics, parse_meta, reference_rows, save_meta, visible_json)
 from .manage import Withdrawn, own_submission, test_quota, withdraw, zip_response
-from .reloc import Photo, check_method, default_method, estimate_json, figure_png, intrinsics_of, needs_reference_depth
+from .reloc import check_method, default_method, estimate_json, figure_png, needs_reference_depth
 from .submissions import accept, to_json, visible_submission
-from .exif import stored_shape, upright_depth, upright_intrinsics
-from .uploads import UploadError, decode_depth, decode_photo, parse_intrinsics
+from .photos import UprightPhoto, read_photo
+from .uploads import UploadError
 
 router = APIRouter(include_in_schema=False)
 templates = Jinja2Templates(directory=str(Path(__file__).parent / "templates"))
@@ -331,14 +331,15 @@ def relocalize_form(request: Request, db: Session = Depends(db_session)):
     return _reloc_page(request, db)
 
 
-def _guess_intrinsics(fields: dict, img, what: str, orientation: int = 1) -> dict:
-    """Intrinsics from the form (for the photo's stored pixel grid), or a guess (focal 0.8 x longest side,
-    centred) when left empty; for the upright photo."""
-    h, w = stored_shape(img, orientation)
-    if all(str(fields.get(k, "")).strip() == "" for k in ("fx", "fy", "cx", "cy")):
-        f = 0.8 * max(w, h)
-        fields = {"fx": f, "fy": f, "cx": (w - 1) / 2, "cy": (h - 1) / 2}
-    return upright_intrinsics(parse_intrinsics(fields, w, h, what), orientation)
+def _form_fields(form: dict, prefix: str) -> dict:
+    """The form's ``{prefix}fx`` ... fields as ``fx`` ...."""
+    return {k[len(prefix):]: v for k, v in form.items() if k.startswith(prefix)}
+
+
+def _query_photo(query: UploadFile, lim, form: dict) -> UprightPhoto:
+    """The page's query photo with its ``q_*`` intrinsics (guessed when left empty)."""
+    return read_photo(query.file.read(lim.max_image_bytes + 1), lim, _form_fields(form, "q_"), "query photo",
+                      "query intrinsics", guess=True)
 
 
 @router.post("/relocalize", response_class=HTMLResponse)
@@ -357,27 +358,24 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
     m = method.strip() or default_method(request.app.state.settings.default_method)
     try:
         m = check_method(m)
-        ref_img, ref_o = decode_photo(reference.file.read(lim.max_image_bytes + 1), lim, "reference photo")
-        q_img, q_o = decode_photo(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
-        ref_K = intrinsics_of(_guess_intrinsics({k[4:]: v for k, v in form.items() if k.startswith("ref_")},
-                                                ref_img, "reference intrinsics", ref_o))
-        q_K = intrinsics_of(_guess_intrinsics({k[2:]: v for k, v in form.items() if k.startswith("q_")}, q_img,
-                                              "query intrinsics", q_o))
+        ref_up = read_photo(reference.file.read(lim.max_image_bytes + 1), lim, _form_fields(form, "ref_"),
+                            "reference photo", "reference intrinsics", guess=True)
+        q_up = _query_photo(query, lim, form)
         ref_depth = None
         if reference_depth is not None and reference_depth.filename:
-            ref_depth = upright_depth(decode_depth(reference_depth.file.read(lim.max_image_bytes + 1), lim,
-                                                   stored_shape(ref_img, ref_o), "reference depth"), ref_o)
+            ref_depth = ref_up.depth(reference_depth.file.read(lim.max_image_bytes + 1), lim, "reference depth")
         elif needs_reference_depth(m, scale_free_too=False):
             raise UploadError(422, f"method {m} needs the reference depth map (a uint16 PNG in millimetres, the "
                                    "size of the reference photo) for a metric pose; choose one, or a method "
                                    "without depth such as sift_emat_none (direction only, no metric scale)")
     except UploadError as e:
         return _reloc_page(request, db, e.status, method=m, form=form, error=e.message)
+    ref, q = ref_up.fit(lim.work_max_side, ref_depth), q_up.fit(lim.work_max_side)  # the sizes the matches are in
+    del ref_up, q_up, ref_depth  # the full-size pixels go before the method runs
     key = "try-" + secrets.token_hex(8)
     loc = request.app.state.localizers
-    est = loc.localize(key, m, ref_img, ref_K, ref_depth, q_img, q_K)
+    est = loc.localize(key, m, ref.image, ref.K, ref.depth, q.image, q.K)
     loc.forget(key)
-    ref, q = loc.fit(Photo(ref_img, ref_K)), loc.fit(Photo(q_img, q_K))  # the sizes the matches are in
     png = figure_png(ref.image, q.image, ref.K, q.K, est, title=m)
     return _reloc_page(request, db, method=m, form=form, result=estimate_json(est, m),
                        figure="data:image/png;base64," + base64.b64encode(png).decode())
@@ -397,19 +395,15 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
     db.commit()  # release the read transaction before the long computation
     lim = request.app.state.settings.limits
     try:
-        q_img, q_o = decode_photo(query.file.read(lim.max_image_bytes + 1), lim, "query photo")
-        q_K = intrinsics_of(_guess_intrinsics({k[2:]: v for k, v in form.items() if k.startswith("q_")}, q_img,
-                                              "query intrinsics", q_o))
+        q = _query_photo(query, lim, form).fit(lim.work_max_side)  # the size the matches are in
     except UploadError as e:
         return _reloc_page(request, db, e.status, method=a.method, form=form, error=e.message)
-    est = localize_anchor(request, a, rows, q_img, q_K)
+    est = localize_anchor(request, a, rows, q.image, q.K)
     result = estimate_json(est, a.method)
     if not may_see_photos(a, caller.user):  # the figure would show the anchor's photo
         return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8])
     photo = stored_photo(a, rows, result.get("photo") or 0, lim)  # only the one drawn, not every photo again
     shown = replace(est, pose=est.pose @ photo.pose.inverse()) if est.pose is not None else est  # vs that photo
-    loc = request.app.state.localizers
-    photo, q = loc.fit(photo), loc.fit(Photo(q_img, q_K))  # the sizes the matches are in
     png = figure_png(photo.image, q.image, photo.K, q.K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
     return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8],
                        figure="data:image/png;base64," + base64.b64encode(png).decode())
@@ -508,10 +502,7 @@ def create_anchor_form(request: Request, photos: list[UploadFile] = File([]), de
     form = {"new_name": name, "new_method": method, "cameras": cameras, "new_private": bool(private)}
     try:
         ups, names = _form_photos(request.app.state.settings.limits, photos, depths, cameras)
-        a, _ = make_anchor(request, db, caller.user, name, method, ups, names)
-        if private:
-            a.private = True
-            db.commit()
+        a, _ = make_anchor(request, db, caller.user, name, method, ups, names, bool(private))
     except (UploadError, HTTPException) as e:
         db.rollback()
         status, message = _problem(e)
@@ -525,7 +516,8 @@ def _anchor_page(request: Request, db: Session, aid: str, status: int = 200, err
     a = find_anchor(db, aid)
     data = anchor_json(a, photo_rows(db, a.id))
     return page(request, "anchor.html", db, status, anchor=data, error=error, form=form or {},
-                owner=user.id == a.user_id or user.is_admin, max_photos=request.app.state.settings.limits.max_anchor_photos)
+                owner=user.id == a.user_id or user.is_admin, show_photos=may_see_photos(a, user),
+                max_photos=request.app.state.settings.limits.max_anchor_photos)
 
 
 @router.get("/relocalize/anchors/{aid}", response_class=HTMLResponse)

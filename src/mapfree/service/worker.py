@@ -87,9 +87,8 @@ def process(sessions, settings: Settings, claim: jobs.Claim, worker_id: str) -> 
 
 
 def run(settings: Settings, worker_id: str | None = None, stop: threading.Event | None = None,
-        max_jobs: int | None = None, parent_pid: int | None = None) -> int:
-    """Work until ``stop`` is set (or ``max_jobs`` are done, or process ``parent_pid`` is gone); returns the
-    number of jobs processed."""
+        max_jobs: int | None = None) -> int:
+    """Work until ``stop`` is set (or ``max_jobs`` are done); returns the number of jobs processed."""
     engine = make_engine(settings.db_url)
     init_db(engine)
     sessions = session_factory(engine)
@@ -101,9 +100,6 @@ def run(settings: Settings, worker_id: str | None = None, stop: threading.Event 
     log.info("worker started", extra={"worker": worker_id, "pid": os.getpid()})
     done, last_seen, last_sweep = 0, 0.0, 0.0
     while not stop.is_set() and (max_jobs is None or done < max_jobs):
-        if parent_pid is not None and os.getppid() != parent_pid:
-            log.warning("parent process is gone; stopping", extra={"worker": worker_id})
-            break
         if time.time() - last_sweep > SWEEP_SECONDS:
             last_sweep = time.time()
             try:
@@ -168,11 +164,11 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    if a.exit_with_parent:  # also mid-job: the kernel signals it (SIGTERM: the job is handed back)
+    if a.exit_with_parent:  # SIGTERM when it dies, also mid-job (the job is finished first, as on any SIGTERM)
         from .lifeline import die_with_parent
 
-        die_with_parent(None)
-    run(settings, stop=stop, parent_pid=os.getppid() if a.exit_with_parent else None)
+        die_with_parent(os.getppid())
+    run(settings, stop=stop)
     return 0
 
 

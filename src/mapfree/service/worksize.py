@@ -9,9 +9,10 @@ import cv2
 import numpy as np
 
 from ..geometry import Intrinsics
+from .config import Limits
 
-#: The default long side: the benchmark's photos are 540x720, every method is tuned at about that size.
-DEFAULT_MAX_SIDE = 1024
+#: The default long side (``Limits.work_max_side``).
+DEFAULT_MAX_SIDE = Limits.work_max_side
 
 
 def work_scale(width: int, height: int, max_side: int) -> float:

@@ -1,4 +1,5 @@
-"""Anchors may be private: only their owner (and admins) see them, their photos and localize against them.
+"""Anchors may be private: their photos are served to their owner (and admins) only; anyone signed in may still
+localize against them.
 
 Revision ID: 0003
 """
