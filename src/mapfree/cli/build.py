@@ -86,8 +86,9 @@ def run(args: argparse.Namespace) -> int:
         results = build_all(args.scans, args.out, opts, args.workers, args.ray, args.private_gt, args.force,
                             args.first_scene, progress=not args.quiet)
     except FileNotFoundError as e:
-        print(f"mapfree build: error: {e}", file=sys.stderr)
-        return 1
+        from . import fail
+
+        return fail("build", e)
     for r in results:
         line = f"{r.place} -> {args.split}/{r.scene}: {r.status}"
         if r.status == "ok":
