@@ -7,6 +7,7 @@ there. The submission ZIP and the failure log (``submission.failures.jsonl``) ar
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -32,7 +33,7 @@ from .references import bind_scene_references, check_scene_references
 log = logging.getLogger(__name__)
 
 __all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run",
-           "estimate_scores", "scene_fingerprint", "check_available", "frame_figure_path", "write_frame_figure"]
+           "estimate_scores", "scene_fingerprint", "check_available", "write_frame_figure"]
 
 JOURNAL_VERSION = 1
 
@@ -217,13 +218,14 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
         for r in recs:
             on_frame and on_frame(r)
         return len(recs)
+    ref_image = functools.cache(ref.image)  # --viz: the reference decoded once for all the scene's figures
     for name, est in zip(frames, _estimates(loc, scene, frames, batch_size)):
         # Relative pose (query w.r.t. reference) -> world-to-camera in the scene's frame.
         world = est.pose @ ref_pose if est.pose is not None else None
         rec = _record(scene.name, name, est, world)
         _append(journal_p, [rec])
         if viz_dir is not None:
-            write_frame_figure(Path(viz_dir), scene, name, est, world, method_dict)
+            write_frame_figure(Path(viz_dir), scene, name, est, world, method_dict, ref_image)
         on_frame and on_frame(rec)
         if _stopping():  # asked to stop: the frame in flight is journaled, no more
             break
@@ -231,11 +233,11 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
 
 
 def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, world: Pose | None,
-                       method_dict: dict) -> Path | None:
+                       method_dict: dict, ref_image: Callable[[], np.ndarray] | None = None) -> Path | None:
     """Draw one frame's figure (matches + AR check against the scene's reference image, ground truth when the
     split has it) for ``run --viz``. Methods that relocalize against other references than the scene's
     (``--references K``) get the AR check alone: their matches are with another image. A figure that cannot be
-    drawn is logged, never raised."""
+    drawn is logged, never raised. ``ref_image``: the reference image's reader, when the caller caches it."""
     from ..viz import estimate_figure, save_png
 
     try:
@@ -246,8 +248,8 @@ def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, w
         extras = {} if (method_dict.get("options") or {}).get("references") else est.extras
         shown = Estimate(rel, est.confidence, est.inliers, est.reason, extras=extras)
         thr = float((method_dict.get("solver_opts") or {}).get("ransac_threshold_px", 3.0))
-        fig = estimate_figure(ref.image(), query.image(), ref.intrinsics, query.intrinsics, shown, gt,
-                              threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
+        fig = estimate_figure((ref_image or ref.image)(), query.image(), ref.intrinsics, query.intrinsics, shown,
+                              gt, threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
         return save_png(frame_figure_path(viz_dir, scene.name, frame), fig)
     except Exception as e:  # a figure is a by-product: the frame's result is journaled already
         log.warning("no figure for %s %s: %s", scene.name, frame, e)
