@@ -147,3 +147,8 @@ def test_exif_turned_photos_are_checked_as_displayed_in_both_modes(copy):
         found = {p.path: p.reason for p in check_dataset(copy, subset=True, deep=deep).all_problems}
         assert str(turned) not in found, found[str(turned)]
         assert "mirrored" in found[str(mirrored)]
+
+
+def test_a_bad_workers_value_is_an_error_line_and_status_1_as_in_every_command(realmini, capsys):
+    assert main(["check", str(realmini), "--subset", "--workers", "0"]) == 1  # 2 is argparse's own usage errors
+    assert capsys.readouterr().err.strip() == "mapfree check: error: --workers must be >= 1"
