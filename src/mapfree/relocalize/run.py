@@ -125,14 +125,6 @@ def read_journal(path: os.PathLike | str) -> tuple[dict | None, list[dict]]:
     return header, recs
 
 
-def _repair_tail(path: Path) -> None:
-    """Drop a partial last line so appended records start on a line of their own."""
-    data = path.read_bytes()
-    if data and not data.endswith(b"\n"):
-        with open(path, "r+b") as f:
-            f.truncate(data.rfind(b"\n") + 1)
-
-
 def scene_fingerprint(scene_dir: os.PathLike | str) -> str:
     """What a scene's data looked like: a hash of its text files' bytes and of every other file's name, size and
     modification time (images and depth maps are not read). A resumed run recomputes a scene whose print changed."""
@@ -150,16 +142,13 @@ def scene_fingerprint(scene_dir: os.PathLike | str) -> str:
     return h.hexdigest()
 
 
-def _drop_stale(jpath: Path, header: dict | None, recs: list[dict],
-                fingerprints: dict[str, str]) -> tuple[list[dict], list[str]]:
+def _drop_stale(header: dict | None, recs: list[dict], fingerprints: dict[str, str]) -> tuple[list[dict], list[str]]:
     """Journal records of scenes whose data is unchanged since they were computed, and the names of those that
-    changed (or have no recorded print: a journal of an older version), whose records are dropped."""
+    changed (or have no recorded print: a journal of an older version), whose records are dropped (the run's
+    ``stale_scenes``: the CLI says so)."""
     known = (header or {}).get("data", {})
     stale = sorted({r["scene"] for r in recs if r["scene"] in fingerprints
                     and known.get(r["scene"]) != fingerprints[r["scene"]]})
-    if stale:
-        log.warning("%s: the data of %d scene(s) changed since they were journaled (%s): recomputing them",
-                    jpath, len(stale), ", ".join(stale))
     return [r for r in recs if r["scene"] not in stale], stale
 
 
@@ -373,7 +362,7 @@ def run_split(
     fingerprints = {s.name: scene_fingerprint(s.path) for s in scene_list}
     stale: list[str] = []
     if not fresh:
-        recs, stale = _drop_stale(jpath, header, recs, fingerprints)
+        recs, stale = _drop_stale(header, recs, fingerprints)
     done = {(r["scene"], r["frame"]) for r in recs}
     todo: list[tuple[Scene, list[str]]] = []
     for s in scene_list:
@@ -394,8 +383,7 @@ def run_split(
         jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
                                      "root": str(root), "split": split, "all_frames": all_frames,
                                      "data": fingerprints}) + "\n")
-    else:
-        _repair_tail(jpath)
+    else:  # the records read back whole: a torn last line goes with the rewrite
         _rewrite_journal(jpath, {**header, "data": {**header.get("data", {}), **fingerprints}}, recs)
     total = sum(len(f) for _, f in todo)
     bar = _progress(total, len(done), progress, m.name)
