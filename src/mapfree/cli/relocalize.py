@@ -183,9 +183,10 @@ def run(args: argparse.Namespace) -> int:
             views.append(v)
         gt = _gt_pose(args)
         loc = Relocalizer.from_method(method)
-        check = getattr(getattr(loc, "depth_source", None), "check_available", None)
-        if check is not None and (args.depth_ref is None or args.depth_query is None):
-            check()  # a depth network that cannot be loaded: one clear error, not a "no estimate"
+        if args.depth_ref is None or args.depth_query is None:
+            from ..relocalize.run import check_depth_source
+
+            check_depth_source(loc)  # a depth network that cannot be loaded: one clear error, not a "no estimate"
     except (InputError, FormatError, FileNotFoundError, KeyError, ValueError) as e:
         return fail("relocalize", e)
 

@@ -33,7 +33,7 @@ from .references import bind_scene_references, check_scene_references
 log = logging.getLogger(__name__)
 
 __all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run",
-           "estimate_scores", "scene_fingerprint", "check_available", "write_frame_figure"]
+           "estimate_scores", "scene_fingerprint", "check_available", "check_depth_source", "write_frame_figure"]
 
 JOURNAL_VERSION = 1
 
@@ -448,6 +448,12 @@ def check_available(m: Any, keep: bool = True) -> None:
     loc = _localizer(md)
     if not keep:
         _LOCALIZERS.pop(json.dumps(md, sort_keys=True), None)
+    check_depth_source(loc)
+
+
+def check_depth_source(loc: Any) -> None:
+    """Raise the clear error of a localizer's depth network that can be neither found nor downloaded (nothing
+    for a method without one)."""
     check = getattr(getattr(loc, "depth_source", None), "check_available", None)
     if check is not None:
         check()
