@@ -372,8 +372,9 @@ def run_split(
             todo.append((s, names))
     from ..methods import depth_free_problem
 
-    if depth_free_problem(m):  # a split's frames come without depth maps of their own: nothing could succeed
-        raise ValueError(depth_free_problem(m))
+    problem = depth_free_problem(m)
+    if problem:  # a split's frames come without depth maps of their own: nothing could succeed
+        raise ValueError(problem)
     _check_depth_files(m, scene_list, split)
     check_scene_references(scene_list, m.to_dict())
     if todo:
