@@ -130,3 +130,25 @@ def test_test_split_with_hidden_poses_passes_and_the_reference_is_required(tmp_p
     (scene / "intrinsics.txt").write_text("\n".join(lines) + "\n")
     found = [str(p) for p in check_dataset(tmp_path, subset=True).all_problems]
     assert f"{scene / 'intrinsics.txt'}: no reference image seq0/frame_00000.jpg listed" in found
+
+
+def test_exif_turned_photos_are_checked_as_displayed_in_both_modes(copy):
+    from PIL import Image
+
+    seq1 = copy / "val" / "s00000" / "seq1"
+    turned, mirrored = sorted(seq1.glob("*.jpg"))[:2]
+    for path, orientation in ((turned, 6), (mirrored, 2)):
+        upright = np.asarray(Image.open(path).convert("RGB"))
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        stored = np.rot90(upright, 1) if orientation == 6 else upright  # 6: the stored grid turned back
+        Image.fromarray(np.ascontiguousarray(stored)).save(path, exif=exif, quality=95)
+    for deep in (False, True):  # the header check agrees with decoding (read_image turns the photo upright)
+        found = {p.path: p.reason for p in check_dataset(copy, subset=True, deep=deep).all_problems}
+        assert str(turned) not in found, found[str(turned)]
+        assert "mirrored" in found[str(mirrored)]
+
+
+def test_a_bad_workers_value_is_an_error_line_and_status_1_as_in_every_command(realmini, capsys):
+    assert main(["check", str(realmini), "--subset", "--workers", "0"]) == 1  # 2 is argparse's own usage errors
+    assert capsys.readouterr().err.strip() == "mapfree check: error: --workers must be >= 1"

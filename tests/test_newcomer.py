@@ -443,6 +443,19 @@ def test_build_on_an_empty_folder_is_an_error(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("argv", [["synth", "ROOT", "--size", "big"],
+                                  ["synth", "ROOT", "--split", "val", "--private-gt", "G"],
+                                  ["build", "SCANS", "--out", "OUT", "--matcher", "nope"],
+                                  ["build", "SCANS", "--out", "OUT", "--workers", "0"]])
+def test_synth_and_build_flag_checks_say_error_like_every_command(argv, tmp_path, capsys):
+    from mapfree.cli import main
+
+    argv = [str(tmp_path / a) if a.isupper() else a for a in argv]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"mapfree {argv[0]}: error: ") and err.count("\n") == 1
+
+
 # --------------------------------------------------------------------------- mapfree train
 
 

@@ -67,7 +67,7 @@ def _num(v: float, fmt: str) -> str:
 def write_html(report: Report, path: os.PathLike | str, *, title: str = "Map-free evaluation",
                figure: FigureSource | None = None, worst: int = 8, source_note: str = "") -> Path:
     """Write the report page at ``path`` (parent folders created) and return it."""
-    from .plots import precision_ratio_figure, scene_scatter_figure, vcre_cdf_figure
+    from .plots import FIGURES
 
     n = len(report.estimated)
     parts = [f"<h1>{html.escape(title)}</h1>",
@@ -81,10 +81,8 @@ def write_html(report: Report, path: os.PathLike | str, *, title: str = "Map-fre
                 ("AUC @ VCRE < 90px", "AUC VCRE")]
         rows = [[s, *[_fmt(k, m.get(k)) for k, _ in keys]] for s, m in report.per_scene.items()]
         parts += ["<h2>Per scene</h2>", _table(["scene", *[h for _, h in keys]], rows)]
-    plots = [(name, make(report)) for name, make in (("precision against ratio", precision_ratio_figure),
-                                                       ("VCRE distribution", vcre_cdf_figure),
-                                                       ("per-scene errors", scene_scatter_figure))]
-    parts += ["<h2>Figures</h2><div class='plots'>", *[_img(_fig_png(f), name) for name, f in plots], "</div>"]
+    parts += ["<h2>Figures</h2><div class='plots'>", *[_img(_fig_png(make(report)), caption)
+                                                        for _, caption, make in FIGURES], "</div>"]
     idx = worst_frames(report, worst)
     if idx:
         parts.append(f"<h2>Worst {len(idx)} estimated frames (largest VCRE)</h2>")

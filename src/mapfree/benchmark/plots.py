@@ -21,7 +21,7 @@ from matplotlib.ticker import LogFormatter
 from .metrics import Thresholds, precision_ratio_curve
 from .report import Report
 
-__all__ = ["save_plots", "precision_ratio_figure", "vcre_cdf_figure", "scene_scatter_figure"]
+__all__ = ["FIGURES", "save_plots", "precision_ratio_figure", "vcre_cdf_figure", "scene_scatter_figure"]
 
 
 class _PlainLogFormatter(LogFormatter):
@@ -148,13 +148,18 @@ def scene_scatter_figure(report: Report) -> Figure:
     return fig
 
 
+#: The evaluation figures: (file stem, caption, maker), for ``save_plots`` and the HTML report.
+FIGURES = (("precision_ratio", "precision against ratio", precision_ratio_figure),
+           ("vcre_cdf", "VCRE distribution", vcre_cdf_figure),
+           ("scenes", "per-scene errors", scene_scatter_figure))
+
+
 def save_plots(report: Report, outdir: os.PathLike | str, formats=("png", "pdf")) -> list[Path]:
     """Write the three figures as ``outdir/{precision_ratio,vcre_cdf,scenes}.{png,pdf}``."""
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     paths = []
-    for name, make in (("precision_ratio", precision_ratio_figure), ("vcre_cdf", vcre_cdf_figure),
-                       ("scenes", scene_scatter_figure)):
+    for name, _, make in FIGURES:
         fig = make(report)
         for fmt in formats:
             p = outdir / f"{name}.{fmt}"

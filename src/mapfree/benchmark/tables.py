@@ -38,10 +38,7 @@ class RawTable:
     @property
     def starts(self) -> np.ndarray:
         """(n,) offset of each line."""
-        starts = np.empty(len(self), dtype=np.int64)
-        starts[:1] = 0
-        starts[1:] = self.sep[:-1, -1] + 1
-        return starts
+        return _line_starts(self.sep)
 
     def names(self, rows: np.ndarray | None = None) -> list[str]:
         starts, name_ends = self.starts, self.sep[:, 0]
@@ -77,6 +74,15 @@ class RawTable:
         return b.tobytes()
 
 
+def _line_starts(sep: np.ndarray) -> np.ndarray:
+    """(n,) offset of each line of a table, from its separator offsets (each line starts after the last one's
+    newline)."""
+    starts = np.empty(len(sep), dtype=np.int64)
+    starts[:1] = 0
+    starts[1:] = sep[:-1, -1] + 1
+    return starts
+
+
 def _fast_numbers(text: bytes, count: int) -> np.ndarray | None:
     """``count`` whitespace-separated finite numbers parsed in C with Python's own correctly rounded
     conversion (the values of ``float()``), without a Python object per token; None when there are not
@@ -110,9 +116,7 @@ def scan_table(data: bytes, nvalues: int) -> RawTable | None:
         return None  # wrong field count, tabs, carriage returns, other control characters
     if sep[0, 0] == 0 or np.any(np.diff(sep.ravel()) == 1):
         return None  # an empty field: double, leading or trailing space, blank line
-    starts = np.empty(n, dtype=np.int64)
-    starts[0] = 0
-    starts[1:] = sep[:-1, -1] + 1
+    starts = _line_starts(sep)
     name_end = sep[:, 0]
     if np.any(name_end - starts < 9):
         return None

@@ -23,6 +23,15 @@ class DefaultsHelpFormatter(HelpFormatter, argparse.ArgumentDefaultsHelpFormatte
 #: usage errors; the command ran but estimated nothing (with ``--strict``: not everything).
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_NOTHING = 0, 1, 2, 3
 
+
+def fail(command: str, error: BaseException | str) -> int:
+    """Print the one line every command words an error with, ``mapfree COMMAND: error: MESSAGE`` (a KeyError's
+    message without the quotes its ``str`` adds), on stderr; returns ``EXIT_ERROR``."""
+    msg = error.args[0] if isinstance(error, KeyError) and error.args else error
+    print(f"mapfree {command}: error: {msg}", file=sys.stderr)
+    return EXIT_ERROR
+
+
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
 COMMANDS = ["demo", "synth", "check", "evaluate", "relocalize", "match", "run", "train", "serve", "admin", "sevenscenes",
             "scannet", "build"]
@@ -56,13 +65,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
-        return 2
+        return EXIT_USAGE
     try:
-        return int(args.func(args) or 0)
+        return int(args.func(args) or EXIT_OK)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
     except OSError as e:  # an output that cannot be written (read-only, full disk, a file in the way): one line
-        print(f"mapfree {args.command}: error: {e}", file=sys.stderr)
-        return 1
+        return fail(args.command, e)
 

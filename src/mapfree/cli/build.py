@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from dataclasses import replace
 
@@ -64,18 +63,14 @@ def run(args: argparse.Namespace) -> int:
     from ..build.run import build_all
 
     from ..matching import names as matcher_names
+    from . import fail
 
     if args.matcher != "colmap" and args.matcher.strip().lower().replace("_", "-") not in matcher_names():
-        print(f"mapfree build: unknown --matcher {args.matcher!r}; colmap or one of {', '.join(matcher_names())}",
-              file=sys.stderr)
-        return 1
+        return fail("build", f"unknown --matcher {args.matcher!r}; colmap or one of {', '.join(matcher_names())}")
     if args.workers < 1 or args.fps <= 0 or not 0 < args.min_registered <= 1 or args.max_features < 64:
-        print("mapfree build: --workers >= 1, --fps > 0, 0 < --min-registered <= 1, --max-features >= 64",
-              file=sys.stderr)
-        return 1
+        return fail("build", "--workers >= 1, --fps > 0, 0 < --min-registered <= 1, --max-features >= 64")
     if args.private_gt and args.split != "test":
-        print("mapfree build: --private-gt only applies to --split test", file=sys.stderr)
-        return 1
+        return fail("build", "--private-gt only applies to --split test")
     opts = BuildOptions(split=args.split, fps=args.fps, device_axes=args.device_axes, min_registered=args.min_registered,
                         allow_unscaled=args.allow_unscaled, sfm_depth=args.sfm_depth,
                         correspondences=args.correspondences, keep_work=args.keep_work,
@@ -86,8 +81,7 @@ def run(args: argparse.Namespace) -> int:
         results = build_all(args.scans, args.out, opts, args.workers, args.ray, args.private_gt, args.force,
                             args.first_scene, progress=not args.quiet)
     except FileNotFoundError as e:
-        print(f"mapfree build: error: {e}", file=sys.stderr)
-        return 1
+        return fail("build", e)
     for r in results:
         line = f"{r.place} -> {args.split}/{r.scene}: {r.status}"
         if r.status == "ok":

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from . import EXIT_ERROR, EXIT_OK, EXIT_USAGE, HelpFormatter
+from . import EXIT_ERROR, EXIT_OK, HelpFormatter, fail
 
 DESCRIPTION = """\
 Verify a Map-free dataset folder: the split folders and their scenes (the release: 460 train s00000-s00459,
@@ -51,8 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from ..data.check import check_dataset
 
     if args.workers < 1:
-        print("mapfree check: error: --workers must be >= 1", file=sys.stderr)
-        return EXIT_USAGE
+        return fail("check", "--workers must be >= 1")
     err = Console(stderr=True)
     show = not args.json and err.is_terminal
     report = check_dataset(args.root, args.split, subset=args.subset, deep=args.deep, workers=args.workers,

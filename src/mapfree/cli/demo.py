@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -66,14 +65,13 @@ def run(args: argparse.Namespace) -> int:
     sub = out / "submission.zip"
     print(f"[2/4] relocalizing with {args.method!r}")
     from ..data import FormatError
-    from . import EXIT_ERROR, EXIT_NOTHING
+    from . import EXIT_NOTHING, fail
 
     try:
         res = run_split(data, "val", args.method, sub, workers=args.workers, all_frames=args.all_frames,
                         overwrite=True)
     except (FileNotFoundError, FormatError, KeyError, ValueError) as e:
-        print(f"mapfree demo: error: {e.args[0] if isinstance(e, KeyError) and e.args else e}", file=sys.stderr)
-        return EXIT_ERROR
+        return fail("demo", e)
     print(f"      {res.estimated} estimates, {res.failed} without estimate, {res.seconds:.1f} s "
           f"(failures logged in {res.failures})")
 

@@ -56,19 +56,15 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from . import EXIT_ERROR, EXIT_NOTHING
-
-    def fail(msg: str) -> int:
-        print(f"mapfree evaluate: error: {msg}", file=sys.stderr)
-        return EXIT_ERROR
+    from . import EXIT_ERROR, EXIT_NOTHING, fail
 
     if args.dataset is None and args.gt_root is None:
-        return fail("give --dataset (and/or --gt-root)")
+        return fail("evaluate", "give --dataset (and/or --gt-root)")
     for flag, value in (("--plots", args.plots), ("--viz", args.viz)):
         if value is not None and Path(value).exists() and not Path(value).is_dir():
-            return fail(f"{flag} {value}: not a folder (it names a file)")
+            return fail("evaluate", f"{flag} {value}: not a folder (it names a file)")
     if args.html is not None and Path(args.html).is_dir():
-        return fail(f"--html {args.html}: a folder; give the report's file name (e.g. report.html)")
+        return fail("evaluate", f"--html {args.html}: a folder; give the report's file name (e.g. report.html)")
     from ..benchmark import EvaluationError, evaluate, format_table
     from ..data import FormatError
 
@@ -76,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         report = evaluate(args.submission, args.dataset, args.split, compat=args.compat, gt_root=args.gt_root,
                           track=args.track)
     except (EvaluationError, FormatError, FileNotFoundError, ValueError) as e:
-        return fail(str(e))
+        return fail("evaluate", e)
     if args.json:
         print(report.to_json(frames=args.frames))
     elif report.fatal:

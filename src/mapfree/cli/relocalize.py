@@ -144,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
     from ..data import FormatError, check_depth_size, read_depth
     from ..methods import get
     from ..relocalize import Relocalizer, as_view
-    from . import EXIT_ERROR, EXIT_NOTHING
+    from . import EXIT_NOTHING, fail
 
     try:
         if args.checkpoint is not None:
@@ -183,13 +183,12 @@ def run(args: argparse.Namespace) -> int:
             views.append(v)
         gt = _gt_pose(args)
         loc = Relocalizer.from_method(method)
-        check = getattr(getattr(loc, "depth_source", None), "check_available", None)
-        if check is not None and (args.depth_ref is None or args.depth_query is None):
-            check()  # a depth network that cannot be loaded: one clear error, not a "no estimate"
+        if args.depth_ref is None or args.depth_query is None:
+            from ..relocalize.run import check_depth_source
+
+            check_depth_source(loc)  # a depth network that cannot be loaded: one clear error, not a "no estimate"
     except (InputError, FormatError, FileNotFoundError, KeyError, ValueError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
-        print(f"mapfree relocalize: error: {msg}", file=sys.stderr)
-        return EXIT_ERROR
+        return fail("relocalize", e)
 
     ref, query = views
     est = loc.relocalize(ref, query)

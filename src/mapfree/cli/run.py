@@ -75,7 +75,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..data import FormatError
     from ..methods import list_methods
-    from . import EXIT_ERROR, EXIT_NOTHING
+    from . import EXIT_ERROR, EXIT_NOTHING, fail
 
     if args.list_methods:
         from ..methods import requirements
@@ -97,8 +97,7 @@ def run(args: argparse.Namespace) -> int:
     elif args.viz is not None and args.viz.exists() and not args.viz.is_dir():
         problem = f"--viz {args.viz}: not a folder (it names a file)"
     if problem:
-        print(f"mapfree run: error: {problem}", file=sys.stderr)
-        return EXIT_ERROR
+        return fail("run", problem)
     from ..relocalize import run_split
 
     try:
@@ -117,9 +116,7 @@ def run(args: argparse.Namespace) -> int:
                   confidence=args.confidence, progress=not args.no_progress,
                   scenes=args.scenes.split(",") if args.scenes else None, batch_size=args.batch, viz_dir=args.viz)
     except (FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
-        print(f"mapfree run: error: {msg}", file=sys.stderr)
-        return EXIT_ERROR
+        return fail("run", e)
     except KeyboardInterrupt:
         from ..relocalize import journal_path, read_journal
         from ..relocalize.multiframe import frames_path

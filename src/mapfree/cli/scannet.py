@@ -50,9 +50,9 @@ def run(args: argparse.Namespace) -> int:
             pairs = pairs[: args.limit]
         ests = relocalize_pairs(args.method, [(p.frame0, p.frame1) for p in pairs], progress=not args.no_progress)
     except (FileNotFoundError, FormatError, KeyError, ValueError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
-        print(f"mapfree scannet: error: {msg}", file=sys.stderr)
-        return 1
+        from . import fail
+
+        return fail("scannet", e)
     nan_R, nan_t = np.full((3, 3), np.nan), np.full(3, np.nan)
     report = relpose_report(
         [p.name for p in pairs], [p.T_0to1.R for p in pairs], [p.T_0to1.t for p in pairs],

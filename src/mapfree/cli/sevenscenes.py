@@ -58,9 +58,9 @@ def run(args: argparse.Namespace) -> int:
         reports = evaluate_sevenscenes(args.root, args.method, ks, args.mode, args.scenes, args.mapping_stride,
                                        args.query_stride, args.intrinsics, progress=not args.no_progress)
     except (FileNotFoundError, FormatError, KeyError, ValueError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
-        print(f"mapfree sevenscenes: error: {msg}", file=sys.stderr)
-        return 1
+        from . import fail
+
+        return fail("sevenscenes", e)
     print(write_reports(reports, args.out, plots=not args.no_plots))
     if not any(r.estimated.any() for r in reports.values()):
         from . import EXIT_NOTHING

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 
 DESCRIPTION = """\
@@ -52,20 +51,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..data.synth import SynthOptions, generate
+    from . import fail
 
     try:
         w, h = (int(x) for x in args.size.lower().split("x"))
     except ValueError:
-        print(f"mapfree synth: --size must look like 540x720, got {args.size!r}", file=sys.stderr)
-        return 1
+        return fail("synth", f"--size must look like 540x720, got {args.size!r}")
     if args.private_gt and args.split not in ("test", "scans"):
-        print("mapfree synth: --private-gt only applies to --split test or scans", file=sys.stderr)
-        return 1
+        return fail("synth", "--private-gt only applies to --split test or scans")
     if w < 32 or h < 32 or args.scenes < 0 or args.queries < 1 or args.train_frames < 1 \
             or not 0 <= args.no_overlap < 1 or args.workers < 1:
-        print("mapfree synth: sizes must be >= 32 px, --queries/--train-frames/--workers >= 1, "
-              "--scenes >= 0 and 0 <= --no-overlap < 1", file=sys.stderr)
-        return 1
+        return fail("synth", "sizes must be >= 32 px, --queries/--train-frames/--workers >= 1, --scenes >= 0 and "
+                             "0 <= --no-overlap < 1")
     opts = SynthOptions(
         queries=args.queries, train_frames=args.train_frames, width=w, height=h,
         no_overlap_fraction=args.no_overlap, first_scene=args.first_scene, write_mono=not args.no_mono,
@@ -85,10 +82,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _scans(args: argparse.Namespace, opts, t0: float) -> int:
     from ..data.synth.scans import ScanOptions, generate_scans
+    from . import fail
 
     if args.scan_frames < 3:
-        print("mapfree synth: --scan-frames must be >= 3", file=sys.stderr)
-        return 1
+        return fail("synth", "--scan-frames must be >= 3")
     dirs = generate_scans(args.root, args.scenes, args.seed, ScanOptions(frames=args.scan_frames, synth=opts),
                           args.private_gt, args.first_scene, progress=not args.quiet)
     print(f"wrote {len(dirs)} place(s) of raw scans under {args.root}/scans in {time.perf_counter() - t0:.1f} s")

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from . import HelpFormatter
+from . import HelpFormatter, fail
 
 
 def _devices(v: str):
@@ -78,11 +78,9 @@ def run(args: argparse.Namespace) -> int:
             overrides.append(f"train.freeze={args.freeze}")
         cfg = apply_overrides(cfg, overrides) if overrides else cfg
     except (FileNotFoundError, ValueError) as e:
-        print(f"mapfree train: error: {e}", file=sys.stderr)
-        return 1
+        return fail("train", e)
     if args.resume is not None and not args.resume.is_file():
-        print(f"mapfree train: error: --resume checkpoint {args.resume} not found", file=sys.stderr)
-        return 1
+        return fail("train", f"--resume checkpoint {args.resume} not found")
     try:
         from ..regression.train import TrainerOptions, fit
     except ImportError as e:
@@ -100,8 +98,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         trainer, _ = fit(cfg, out, opts, resume=args.resume)
     except (FileNotFoundError, ValueError) as e:
-        print(f"mapfree train: error: {e}", file=sys.stderr)
-        return 1
+        return fail("train", e)
     ck = trainer.checkpoint_callback
     if trainer.is_global_zero:
         best = getattr(ck, "best_model_path", "") or "none yet: no validation ran, use last.ckpt"

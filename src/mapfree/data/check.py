@@ -19,6 +19,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from .io import FormatError, check_depth_size, read_depth, read_image, read_intrinsics, read_poses
+from .orientation import OrientationError, displayed_size, exif_orientation
 from .overlaps import read_overlaps
 from .scene import REFERENCE_NAME, SPLITS
 
@@ -106,7 +107,8 @@ class CheckReport:
 
 
 def _image_header(path: Path) -> tuple[int, int]:
-    """(width, height) from the file's header, without decoding; ValueError when it is not a readable image."""
+    """(width, height) of the photo as displayed (its EXIF orientation applied, as ``read_image`` does) from the
+    file's header, without decoding; ValueError when it is not a readable image (or a mirrored one)."""
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -120,7 +122,10 @@ def _image_header(path: Path) -> tuple[int, int]:
             f.seek(max(0, path.stat().st_size - 64))
             if b"\xff\xd9" not in f.read():
                 raise ValueError("truncated JPEG (no end-of-image marker)")
-    return w, h
+    try:
+        return displayed_size(w, h, exif_orientation(path))
+    except OrientationError as e:  # worded as the decoding reader words it
+        raise ValueError(str(e).split(": ", 1)[1]) from None
 
 
 def _depth_header(path: Path) -> tuple[int, int]:

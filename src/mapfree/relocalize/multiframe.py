@@ -192,15 +192,14 @@ def run_multi(
         raise ValueError("all_frames does not apply to the multi-frame track (it runs the bursts of the "
                          "scored queries)")
     output = Path(output)
-    wanted = set(scenes) if scenes else None
+    scene_list = Dataset(root).scenes(split)
     if scenes:
-        _pick_scenes(Dataset(root).scenes(split), scenes, split)  # an unknown name is refused, not ignored
+        scene_list = _pick_scenes(scene_list, scenes, split)  # an unknown name is refused, not ignored
     plan: dict[str, tuple[list, DevicePoses]] = {}
-    for s in Dataset(root).scenes(split):
-        if wanted is None or s.name in wanted:
-            bursts = scene_bursts(s)
-            plan[s.name] = (bursts, load_device_poses(s, derive=derive_device_poses) if bursts else
-                            DevicePoses({}, False, "no bursts"))
+    for s in scene_list:
+        bursts = scene_bursts(s)
+        plan[s.name] = (bursts, load_device_poses(s, derive=derive_device_poses) if bursts else
+                        DevicePoses({}, False, "no bursts"))
 
     def select(scene: Scene) -> list[str]:
         return [n for _, burst in plan[scene.name][0] for n in burst if n in scene.intrinsics]

@@ -7,6 +7,7 @@ there. The submission ZIP and the failure log (``submission.failures.jsonl``) ar
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -32,7 +33,7 @@ from .references import bind_scene_references, check_scene_references
 log = logging.getLogger(__name__)
 
 __all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run",
-           "estimate_scores", "scene_fingerprint", "check_available", "frame_figure_path", "write_frame_figure"]
+           "estimate_scores", "scene_fingerprint", "check_available", "check_depth_source", "write_frame_figure"]
 
 JOURNAL_VERSION = 1
 
@@ -124,14 +125,6 @@ def read_journal(path: os.PathLike | str) -> tuple[dict | None, list[dict]]:
     return header, recs
 
 
-def _repair_tail(path: Path) -> None:
-    """Drop a partial last line so appended records start on a line of their own."""
-    data = path.read_bytes()
-    if data and not data.endswith(b"\n"):
-        with open(path, "r+b") as f:
-            f.truncate(data.rfind(b"\n") + 1)
-
-
 def scene_fingerprint(scene_dir: os.PathLike | str) -> str:
     """What a scene's data looked like: a hash of its text files' bytes and of every other file's name, size and
     modification time (images and depth maps are not read). A resumed run recomputes a scene whose print changed."""
@@ -149,16 +142,13 @@ def scene_fingerprint(scene_dir: os.PathLike | str) -> str:
     return h.hexdigest()
 
 
-def _drop_stale(jpath: Path, header: dict | None, recs: list[dict],
-                fingerprints: dict[str, str]) -> tuple[list[dict], list[str]]:
+def _drop_stale(header: dict | None, recs: list[dict], fingerprints: dict[str, str]) -> tuple[list[dict], list[str]]:
     """Journal records of scenes whose data is unchanged since they were computed, and the names of those that
-    changed (or have no recorded print: a journal of an older version), whose records are dropped."""
+    changed (or have no recorded print: a journal of an older version), whose records are dropped (the run's
+    ``stale_scenes``: the CLI says so)."""
     known = (header or {}).get("data", {})
     stale = sorted({r["scene"] for r in recs if r["scene"] in fingerprints
                     and known.get(r["scene"]) != fingerprints[r["scene"]]})
-    if stale:
-        log.warning("%s: the data of %d scene(s) changed since they were journaled (%s): recomputing them",
-                    jpath, len(stale), ", ".join(stale))
     return [r for r in recs if r["scene"] not in stale], stale
 
 
@@ -217,13 +207,14 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
         for r in recs:
             on_frame and on_frame(r)
         return len(recs)
+    ref_image = functools.cache(ref.image)  # --viz: the reference decoded once for all the scene's figures
     for name, est in zip(frames, _estimates(loc, scene, frames, batch_size)):
         # Relative pose (query w.r.t. reference) -> world-to-camera in the scene's frame.
         world = est.pose @ ref_pose if est.pose is not None else None
         rec = _record(scene.name, name, est, world)
         _append(journal_p, [rec])
         if viz_dir is not None:
-            write_frame_figure(Path(viz_dir), scene, name, est, world, method_dict)
+            write_frame_figure(Path(viz_dir), scene, name, est, world, method_dict, ref_image)
         on_frame and on_frame(rec)
         if _stopping():  # asked to stop: the frame in flight is journaled, no more
             break
@@ -231,11 +222,11 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
 
 
 def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, world: Pose | None,
-                       method_dict: dict) -> Path | None:
+                       method_dict: dict, ref_image: Callable[[], np.ndarray] | None = None) -> Path | None:
     """Draw one frame's figure (matches + AR check against the scene's reference image, ground truth when the
     split has it) for ``run --viz``. Methods that relocalize against other references than the scene's
     (``--references K``) get the AR check alone: their matches are with another image. A figure that cannot be
-    drawn is logged, never raised."""
+    drawn is logged, never raised. ``ref_image``: the reference image's reader, when the caller caches it."""
     from ..viz import estimate_figure, save_png
 
     try:
@@ -246,8 +237,8 @@ def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, w
         extras = {} if (method_dict.get("options") or {}).get("references") else est.extras
         shown = Estimate(rel, est.confidence, est.inliers, est.reason, extras=extras)
         thr = float((method_dict.get("solver_opts") or {}).get("ransac_threshold_px", 3.0))
-        fig = estimate_figure(ref.image(), query.image(), ref.intrinsics, query.intrinsics, shown, gt,
-                              threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
+        fig = estimate_figure((ref_image or ref.image)(), query.image(), ref.intrinsics, query.intrinsics, shown,
+                              gt, threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
         return save_png(frame_figure_path(viz_dir, scene.name, frame), fig)
     except Exception as e:  # a figure is a by-product: the frame's result is journaled already
         log.warning("no figure for %s %s: %s", scene.name, frame, e)
@@ -371,7 +362,7 @@ def run_split(
     fingerprints = {s.name: scene_fingerprint(s.path) for s in scene_list}
     stale: list[str] = []
     if not fresh:
-        recs, stale = _drop_stale(jpath, header, recs, fingerprints)
+        recs, stale = _drop_stale(header, recs, fingerprints)
     done = {(r["scene"], r["frame"]) for r in recs}
     todo: list[tuple[Scene, list[str]]] = []
     for s in scene_list:
@@ -381,8 +372,9 @@ def run_split(
             todo.append((s, names))
     from ..methods import depth_free_problem
 
-    if depth_free_problem(m):  # a split's frames come without depth maps of their own: nothing could succeed
-        raise ValueError(depth_free_problem(m))
+    problem = depth_free_problem(m)
+    if problem:  # a split's frames come without depth maps of their own: nothing could succeed
+        raise ValueError(problem)
     _check_depth_files(m, scene_list, split)
     check_scene_references(scene_list, m.to_dict())
     if todo:
@@ -392,8 +384,7 @@ def run_split(
         jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
                                      "root": str(root), "split": split, "all_frames": all_frames,
                                      "data": fingerprints}) + "\n")
-    else:
-        _repair_tail(jpath)
+    else:  # the records read back whole: a torn last line goes with the rewrite
         _rewrite_journal(jpath, {**header, "data": {**header.get("data", {}), **fingerprints}}, recs)
     total = sum(len(f) for _, f in todo)
     bar = _progress(total, len(done), progress, m.name)
@@ -458,6 +449,12 @@ def check_available(m: Any, keep: bool = True) -> None:
     loc = _localizer(md)
     if not keep:
         _LOCALIZERS.pop(json.dumps(md, sort_keys=True), None)
+    check_depth_source(loc)
+
+
+def check_depth_source(loc: Any) -> None:
+    """Raise the clear error of a localizer's depth network that can be neither found nor downloaded (nothing
+    for a method without one)."""
     check = getattr(getattr(loc, "depth_source", None), "check_available", None)
     if check is not None:
         check()
