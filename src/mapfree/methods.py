@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
+from .matching import needs as matcher_needs
 from .method_names import BEST_OFFLINE, BEST_OFFLINE_REFERENCE_DEPTH
 from .yamlio import read_yaml
 
@@ -31,9 +32,8 @@ MATCHERS = ("sift", "xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglu
             "superpoint-lightglue", "superglue", "superglue-indoor", "efficientloftr")
 OFFLINE_MATCHERS = MATCHERS[:6]
 MATCHERS += ("mast3r", "dust3r")  # two-view networks; weights are the user's download (docs/mast3r.md)
-#: What a matcher needs beyond the installed packages, said in its presets' descriptions.
-_MATCHER_NEEDS = {"mast3r": "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in $MAPFREE_WEIGHTS_DIR",
-                  "dust3r": "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in $MAPFREE_WEIGHTS_DIR"}
+#: Matchers whose presets' descriptions say what they need (``matching.needs``): weights the user places.
+_NEEDS_IN_DESCRIPTION = ("mast3r", "dust3r")
 #: Solver token in a preset name -> solver registry name.
 SOLVERS = {"emat": "essential", "essential": "essential", "pnp": "pnp", "procrustes": "procrustes"}
 #: Depth tokens that are not a file suffix.
@@ -148,7 +148,7 @@ def parse_name(name: str) -> Method | None:
         name=name, matcher=matcher, depth=_depth_spec(depth_tok), solver=solver, solver_opts=solver_opts,
         description=f"{matcher} matches, {solver} solver, depth {depth_tok} (paper settings"
                     + (f", {threshold:g} px)" if solver == "essential" else ")")
-                    + (f"; needs {_MATCHER_NEEDS[matcher]}" if matcher in _MATCHER_NEEDS else ""),
+                    + (f"; needs {matcher_needs(matcher)}" if matcher in _NEEDS_IN_DESCRIPTION else ""),
     )
 
 
@@ -294,10 +294,7 @@ def requirements(name: str) -> str:
     m = get(name)
     if m.kind != "matching":
         return m.description or f"a {m.kind} method"
-    from .depth import HUB_MODELS
-    from .matching import needs
-
-    from .depth import PAIR_MODELS
+    from .depth import HUB_MODELS, PAIR_MODELS
 
     if m.depth == "none":
         depth = "no depth (direction only)"
@@ -307,7 +304,7 @@ def requirements(name: str) -> str:
         depth = f"depth maps FRAME.{m.depth[len('files:'):]}.png"
     else:
         depth = f"depth network {HUB_MODELS.get(m.depth, m.depth.removeprefix('hf:'))}"
-    return f"{needs(m.matcher)}; {depth}"
+    return f"{matcher_needs(m.matcher)}; {depth}"
 
 
 def _register_builtins() -> None:
@@ -334,7 +331,7 @@ def _register_two_view_presets() -> None:
             m = parse_name(preset_name(net, solver, net))
             assert m is not None
             register(replace(m, description=f"{net} matches and {net} metric depth, {how[solver]}; needs "
-                                            f"{_MATCHER_NEEDS[net]} (docs/mast3r.md)"))
+                                            f"{matcher_needs(net)} (docs/mast3r.md)"))
 
 
 _register_builtins()

@@ -12,8 +12,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlparse
 
-import torch
-
 __all__ = [
     "MissingWeightsError",
     "WeightFile",
@@ -45,6 +43,8 @@ class WeightFile:
 
 
 def _hub_dir() -> Path:
+    import torch  # only here: listing matchers and their needs must not load torch
+
     return Path(torch.hub.get_dir()) / "checkpoints"
 
 
@@ -149,6 +149,8 @@ def shipped_weights(package: str, filename: str, what: str, folder: str = "pretr
 
 def load_checkpoint(path: str | os.PathLike, key: str | None = None) -> dict:
     """``torch.load`` a state dict (tensors only), unwrapping ``key`` (e.g. ``state_dict``) when present."""
+    import torch
+
     sd = torch.load(str(path), map_location="cpu", weights_only=True)
     if key is not None and isinstance(sd, dict) and key in sd:
         sd = sd[key]
