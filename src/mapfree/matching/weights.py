@@ -22,6 +22,8 @@ __all__ = [
     "package_file",
     "shipped_weights",
     "load_checkpoint",
+    "reachable",
+    "in_hf_cache",
 ]
 
 WEIGHTS_ENV = "MAPFREE_WEIGHTS_DIR"
@@ -81,7 +83,8 @@ def _message(wf: WeightFile, explicit: str | os.PathLike | None, why: str) -> st
     return f"{wf.what}: weights file '{wf.filename}' not found ({why}). Place '{wf.filename}' in {where}.{src}"
 
 
-def _reachable(url: str, timeout: float = 3.0) -> bool:
+def reachable(url: str, timeout: float = 3.0) -> bool:
+    """Whether ``url``'s host answers on 443 within ``timeout`` s; False at once when told to stay offline."""
     host = urlparse(url).hostname
     if not host or os.environ.get(OFFLINE_ENV) or os.environ.get("HF_HUB_OFFLINE"):
         return False
@@ -90,6 +93,15 @@ def _reachable(url: str, timeout: float = 3.0) -> bool:
             return True
     except OSError:
         return False
+
+
+def in_hf_cache(repo_id: str) -> bool:
+    """Whether the Hugging Face cache holds model ``repo_id`` (its config.json), without any network access."""
+    try:
+        from huggingface_hub import try_to_load_from_cache
+    except ImportError:  # pragma: no cover - transformers depends on huggingface_hub
+        return False
+    return isinstance(try_to_load_from_cache(repo_id, "config.json"), str)
 
 
 def resolve_weights(wf: WeightFile, explicit: str | os.PathLike | None = None, download: bool = True) -> Path:
@@ -103,7 +115,7 @@ def resolve_weights(wf: WeightFile, explicit: str | os.PathLike | None = None, d
         raise MissingWeightsError(_message(wf, None, "downloads disabled"))
     errors = []
     for url in wf.urls:
-        if not _reachable(url):  # fail in seconds offline instead of waiting out retries
+        if not reachable(url):  # fail in seconds offline instead of waiting out retries
             errors.append(f"{urlparse(url).hostname} unreachable")
             continue
         dst = _hub_dir() / wf.filename
