@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from .utils import matching_size
-from .weights import OFFLINE_ENV, WEIGHTS_ENV, MissingWeightsError, in_hf_cache, reachable
+from .weights import OFFLINE_ENV, WEIGHTS_ENV, MissingWeightsError, in_hf_cache, reachable, weights_dir
 
 __all__ = ["HubModel", "find_hub_model", "load_hub_model", "transformers_classes", "grey_pixels", "GREY_WEIGHTS"]
 
@@ -52,20 +52,20 @@ def find_hub_model(hm: HubModel, explicit: str | os.PathLike | None = None) -> s
     if explicit is not None:
         p = Path(explicit).expanduser()
         return str(p) if _is_model_dir(p) else None
-    env = os.environ.get(WEIGHTS_ENV)
-    if env:
-        for cand in (Path(env).expanduser() / hm.folder, Path(env).expanduser() / hm.repo_id):
+    root = weights_dir()
+    if root is not None:
+        for cand in (root / hm.folder, root / hm.repo_id):
             if _is_model_dir(cand):
                 return str(cand)
     return hm.repo_id if in_hf_cache(hm.repo_id) else None
 
 
 def _missing(hm: HubModel, explicit: str | os.PathLike | None, why: str) -> MissingWeightsError:
-    env = os.environ.get(WEIGHTS_ENV)
+    root = weights_dir()
     if explicit is not None:
         where = f"the folder given as weights= ({explicit})"
     else:
-        where = f"${WEIGHTS_ENV}/{hm.folder}" + (f" ({Path(env).expanduser() / hm.folder})" if env else "")
+        where = f"${WEIGHTS_ENV}/{hm.folder}" + (f" ({root / hm.folder})" if root is not None else "")
         where += ", or into the Hugging Face cache"
     return MissingWeightsError(
         f"{hm.what}: model '{hm.repo_id}' not found ({why}). Place its folder (config.json, model.safetensors; "

@@ -24,6 +24,7 @@ __all__ = [
     "load_checkpoint",
     "reachable",
     "in_hf_cache",
+    "weights_dir",
 ]
 
 WEIGHTS_ENV = "MAPFREE_WEIGHTS_DIR"
@@ -44,6 +45,12 @@ class WeightFile:
     aliases: tuple[str, ...] = field(default=())
 
 
+def weights_dir() -> Path | None:
+    """The folder named by ``$MAPFREE_WEIGHTS_DIR``, or None when it is not set."""
+    env = os.environ.get(WEIGHTS_ENV)
+    return Path(env).expanduser() if env else None
+
+
 def _hub_dir() -> Path:
     import torch  # only here: listing matchers and their needs must not load torch
 
@@ -51,11 +58,7 @@ def _hub_dir() -> Path:
 
 
 def _search_dirs() -> list[Path]:
-    dirs = []
-    if os.environ.get(WEIGHTS_ENV):
-        dirs.append(Path(os.environ[WEIGHTS_ENV]).expanduser())
-    dirs.append(_hub_dir())
-    return dirs
+    return [d for d in (weights_dir(), _hub_dir()) if d is not None]
 
 
 def find_local(wf: WeightFile, explicit: str | os.PathLike | None = None) -> Path | None:
@@ -148,9 +151,9 @@ def package_file(package: str, *parts: str) -> Path:
 def shipped_weights(package: str, filename: str, what: str, folder: str = "pretrained_weights") -> Path:
     """A weight file that ``package`` ships: ``$MAPFREE_WEIGHTS_DIR/filename`` first (a copy on a machine without
     the package, e.g. the GPU kit's fp16 copies), then the installed package, then torch's hub cache."""
-    env = os.environ.get(WEIGHTS_ENV)
-    if env and (Path(env).expanduser() / filename).is_file():
-        return Path(env).expanduser() / filename
+    root = weights_dir()
+    if root is not None and (root / filename).is_file():
+        return root / filename
     try:
         return package_file(package, folder, filename)
     except MissingWeightsError as e:
