@@ -14,7 +14,7 @@ from .base import Features, Matcher, Matches
 from .weights import WEIGHTS_ENV, MissingWeightsError
 
 __all__ = ["Features", "Matches", "Matcher", "MissingWeightsError", "WEIGHTS_ENV", "create", "available", "names",
-           "needs", "option_names"]
+           "needs", "option_names", "registry_key"]
 
 
 def _sift(**o: object) -> Matcher:
@@ -119,8 +119,13 @@ _REGISTRY: dict[str, _Entry] = {
 }
 
 
+def registry_key(name: str) -> str:
+    """The registry key a user's spelling of a matcher name stands for (any case, ``_`` or ``-``)."""
+    return name.strip().lower().replace("_", "-")
+
+
 def _entry(name: str) -> _Entry:
-    key = name.strip().lower().replace("_", "-")
+    key = registry_key(name)
     if key not in _REGISTRY:
         raise KeyError(f"unknown matcher {name!r}; available: {', '.join(_REGISTRY)}")
     return _REGISTRY[key]
@@ -128,7 +133,7 @@ def _entry(name: str) -> _Entry:
 
 def needs(name: str) -> str:
     """What matcher ``name`` needs beyond the base install (weights, packages), in a few words."""
-    key = name.strip().lower().replace("_", "-")
+    key = registry_key(name)
     return _REGISTRY[key].needs if key in _REGISTRY else "see its documentation"
 
 
