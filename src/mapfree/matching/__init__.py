@@ -1,8 +1,8 @@
 """Matchers by name: ``create("aliked-lightglue")`` -> a ``Matcher`` whose keypoints are in original pixels.
 
 Every matcher has ``extract(image) -> Features`` (run once per reference image) and
-``match(f0, f1) -> Matches``; most add ``match_many(f0, [f1, ...])`` (and the LightGlue family
-``extract_many``) for batched, mixed-precision use on a GPU.
+``match(f0, f1) -> Matches``; the LightGlue and XFeat families add ``extract_many`` and
+``match_many(f0, [f1, ...])`` for batched, mixed-precision use on a GPU (the batched pipeline loops over the others).
 """
 
 from __future__ import annotations
