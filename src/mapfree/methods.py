@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
+from .depth import HUB_MODELS, PAIR_MODELS
 from .matching import needs as matcher_needs
 from .method_names import BEST_OFFLINE, BEST_OFFLINE_REFERENCE_DEPTH
 from .yamlio import read_yaml
@@ -31,13 +32,13 @@ __all__ = [
 MATCHERS = ("sift", "xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "loftr",
             "superpoint-lightglue", "superglue", "superglue-indoor", "efficientloftr")
 OFFLINE_MATCHERS = MATCHERS[:6]
-MATCHERS += ("mast3r", "dust3r")  # two-view networks; weights are the user's download (docs/mast3r.md)
+MATCHERS += PAIR_MODELS  # two-view networks; weights are the user's download (docs/mast3r.md)
 #: Matchers whose presets' descriptions say what they need (``matching.needs``): weights the user places.
-_NEEDS_IN_DESCRIPTION = ("mast3r", "dust3r")
+_NEEDS_IN_DESCRIPTION = PAIR_MODELS
 #: Solver token in a preset name -> solver registry name.
 SOLVERS = {"emat": "essential", "essential": "essential", "pnp": "pnp", "procrustes": "procrustes"}
 #: Depth tokens that are not a file suffix.
-DEPTH_ALIASES = {"none": "none", "mast3r": "mast3r", "dust3r": "dust3r"}
+DEPTH_ALIASES = {"none": "none", **{net: net for net in PAIR_MODELS}}
 #: Ess.Mat RANSAC threshold (pixels) of the paper's rows: 3 px for SIFT, 2 px for learned matchers.
 PAPER_THRESHOLD_PX = {"sift": 3.0}
 _LEARNED_THRESHOLD_PX = 2.0
@@ -123,8 +124,6 @@ def _depth_spec(token: str) -> str:
         return token
     if token in DEPTH_ALIASES:
         return DEPTH_ALIASES[token]
-    from .depth import HUB_MODELS
-
     return token if token in HUB_MODELS else f"files:{token}"
 
 
@@ -193,8 +192,7 @@ def query_depth_fallback(method: Method) -> Method:
     """The method to run for a query without a depth map: ``method`` itself, or its PnP twin (reference depth
     only, at the reference's metric scale) when its solver would need the query's depth. The service and
     ``mapfree relocalize`` both answer a plain photo this way (the default ``best-offline`` is Procrustes)."""
-    from .depth import PAIR_MODELS  # their query depth comes from the network, with the pair: no fallback
-
+    # a pair network's query depth comes from the network, with the pair: no fallback
     if method.kind == "matching" and method.depth not in ("none", *PAIR_MODELS) and method.solver in QUERY_DEPTH_SOLVERS:
         return replace(method, solver="pnp", solver_opts={}, name=f"{method.name}+pnp")
     return method
@@ -294,8 +292,6 @@ def requirements(name: str) -> str:
     m = get(name)
     if m.kind != "matching":
         return m.description or f"a {m.kind} method"
-    from .depth import HUB_MODELS, PAIR_MODELS
-
     if m.depth == "none":
         depth = "no depth (direction only)"
     elif m.depth in PAIR_MODELS:
@@ -326,7 +322,7 @@ def _register_two_view_presets() -> None:
     how = {"pnp": "PnP on the reference's depth (one forward pass per pair)",
            "emat": "Ess.Mat scaled by both images' depth (a second, symmetric decoder pass for the query's depth)",
            "procrustes": "3D-3D Procrustes on both images' depth (a second, symmetric decoder pass)"}
-    for net in ("mast3r", "dust3r"):
+    for net in PAIR_MODELS:
         for solver in how:
             m = parse_name(preset_name(net, solver, net))
             assert m is not None
