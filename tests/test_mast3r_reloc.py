@@ -8,7 +8,6 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -201,3 +200,14 @@ def test_batched_pipeline_one_forward_per_pair(weights, scene):
     for est in ests:
         _check_estimate(est, 540, 360)
     assert matcher.engine.encodes - enc0 == len(QUERIES) and matcher.engine.forwards - fwd0 == len(QUERIES)
+
+
+def test_shared_engine_resolves_the_device_as_the_matcher_does(weights):
+    """``shared_engine(kind)`` is the engine of a matcher and depth source with the same options, "auto" and
+    None included (one engine per network: counters and caches read on it see their passes)."""
+    from mapfree.mast3r.engine import shared_engine
+
+    for device in (None, "auto"):
+        engine = shared_engine("mast3r", device=device, long_side=SMALL)
+        assert Mast3rMatcher(long_side=SMALL, device=device).engine is engine
+        assert Mast3rDepth("mast3r", device=device, long_side=SMALL).engine is engine

@@ -15,6 +15,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
+from .depth import HUB_MODELS, PAIR_MODELS
+from .matching import needs as matcher_needs
 from .method_names import BEST_OFFLINE, BEST_OFFLINE_REFERENCE_DEPTH
 from .yamlio import read_yaml
 
@@ -30,14 +32,13 @@ __all__ = [
 MATCHERS = ("sift", "xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "loftr",
             "superpoint-lightglue", "superglue", "superglue-indoor", "efficientloftr")
 OFFLINE_MATCHERS = MATCHERS[:6]
-MATCHERS += ("mast3r", "dust3r")  # two-view networks; weights are the user's download (docs/mast3r.md)
-#: What a matcher needs beyond the installed packages, said in its presets' descriptions.
-_MATCHER_NEEDS = {"mast3r": "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in $MAPFREE_WEIGHTS_DIR",
-                  "dust3r": "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in $MAPFREE_WEIGHTS_DIR"}
+MATCHERS += PAIR_MODELS  # two-view networks; weights are the user's download (docs/mast3r.md)
+#: Matchers whose presets' descriptions say what they need (``matching.needs``): weights the user places.
+_NEEDS_IN_DESCRIPTION = PAIR_MODELS
 #: Solver token in a preset name -> solver registry name.
 SOLVERS = {"emat": "essential", "essential": "essential", "pnp": "pnp", "procrustes": "procrustes"}
 #: Depth tokens that are not a file suffix.
-DEPTH_ALIASES = {"none": "none", "mast3r": "mast3r", "dust3r": "dust3r"}
+DEPTH_ALIASES = {"none": "none", **{net: net for net in PAIR_MODELS}}
 #: Ess.Mat RANSAC threshold (pixels) of the paper's rows: 3 px for SIFT, 2 px for learned matchers.
 PAPER_THRESHOLD_PX = {"sift": 3.0}
 _LEARNED_THRESHOLD_PX = 2.0
@@ -123,8 +124,6 @@ def _depth_spec(token: str) -> str:
         return token
     if token in DEPTH_ALIASES:
         return DEPTH_ALIASES[token]
-    from .depth import HUB_MODELS
-
     return token if token in HUB_MODELS else f"files:{token}"
 
 
@@ -148,7 +147,7 @@ def parse_name(name: str) -> Method | None:
         name=name, matcher=matcher, depth=_depth_spec(depth_tok), solver=solver, solver_opts=solver_opts,
         description=f"{matcher} matches, {solver} solver, depth {depth_tok} (paper settings"
                     + (f", {threshold:g} px)" if solver == "essential" else ")")
-                    + (f"; needs {_MATCHER_NEEDS[matcher]}" if matcher in _MATCHER_NEEDS else ""),
+                    + (f"; needs {matcher_needs(matcher)}" if matcher in _NEEDS_IN_DESCRIPTION else ""),
     )
 
 
@@ -193,8 +192,7 @@ def query_depth_fallback(method: Method) -> Method:
     """The method to run for a query without a depth map: ``method`` itself, or its PnP twin (reference depth
     only, at the reference's metric scale) when its solver would need the query's depth. The service and
     ``mapfree relocalize`` both answer a plain photo this way (the default ``best-offline`` is Procrustes)."""
-    from .depth import PAIR_MODELS  # their query depth comes from the network, with the pair: no fallback
-
+    # a pair network's query depth comes from the network, with the pair: no fallback
     if method.kind == "matching" and method.depth not in ("none", *PAIR_MODELS) and method.solver in QUERY_DEPTH_SOLVERS:
         return replace(method, solver="pnp", solver_opts={}, name=f"{method.name}+pnp")
     return method
@@ -294,11 +292,6 @@ def requirements(name: str) -> str:
     m = get(name)
     if m.kind != "matching":
         return m.description or f"a {m.kind} method"
-    from .depth import HUB_MODELS
-    from .matching import needs
-
-    from .depth import PAIR_MODELS
-
     if m.depth == "none":
         depth = "no depth (direction only)"
     elif m.depth in PAIR_MODELS:
@@ -307,7 +300,7 @@ def requirements(name: str) -> str:
         depth = f"depth maps FRAME.{m.depth[len('files:'):]}.png"
     else:
         depth = f"depth network {HUB_MODELS.get(m.depth, m.depth.removeprefix('hf:'))}"
-    return f"{needs(m.matcher)}; {depth}"
+    return f"{matcher_needs(m.matcher)}; {depth}"
 
 
 def _register_builtins() -> None:
@@ -329,12 +322,12 @@ def _register_two_view_presets() -> None:
     how = {"pnp": "PnP on the reference's depth (one forward pass per pair)",
            "emat": "Ess.Mat scaled by both images' depth (a second, symmetric decoder pass for the query's depth)",
            "procrustes": "3D-3D Procrustes on both images' depth (a second, symmetric decoder pass)"}
-    for net in ("mast3r", "dust3r"):
+    for net in PAIR_MODELS:
         for solver in how:
             m = parse_name(preset_name(net, solver, net))
             assert m is not None
             register(replace(m, description=f"{net} matches and {net} metric depth, {how[solver]}; needs "
-                                            f"{_MATCHER_NEEDS[net]} (docs/mast3r.md)"))
+                                            f"{matcher_needs(net)} (docs/mast3r.md)"))
 
 
 _register_builtins()

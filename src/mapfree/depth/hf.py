@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import inspect
 import math
-import os
-import socket
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -16,6 +14,7 @@ import torch
 
 from ..data import Frame
 from ..matching.attention import steady_kernels
+from ..matching.weights import in_hf_cache, reachable
 from .cache import DepthCache
 from .hub import HUB_MODELS
 
@@ -49,14 +48,7 @@ class HFDepthOptions:
     use_intrinsics: bool = True  # Depth Pro: take the focal length from the frame instead of estimating it
 
 
-def _hub_reachable(timeout: float = 3.0) -> bool:
-    if os.environ.get("HF_HUB_OFFLINE") or os.environ.get("MAPFREE_OFFLINE"):
-        return False
-    try:
-        with socket.create_connection(("huggingface.co", 443), timeout=timeout):
-            return True
-    except OSError:
-        return False
+_HUB_URL = "https://huggingface.co"
 
 
 class HFDepth:
@@ -80,9 +72,7 @@ class HFDepth:
         loading it: a run refuses before any work instead of failing every frame."""
         if self._model is not None or Path(self.model_id).is_dir():
             return
-        from huggingface_hub import try_to_load_from_cache
-
-        if isinstance(try_to_load_from_cache(self.model_id, "config.json"), str) or _hub_reachable():
+        if in_hf_cache(self.model_id) or reachable(_HUB_URL):
             return
         raise MissingModelError(self._missing_message())
 
@@ -113,7 +103,7 @@ class HFDepth:
         except (OSError, ValueError) as e:
             if local:
                 raise MissingModelError(f"{self.model_id}: not a transformers depth model folder ({e})") from None
-            if not _hub_reachable():
+            if not reachable(_HUB_URL):
                 raise MissingModelError(self._missing_message()) from None
             proc, net = load(False)
         self._processor, self._model = proc, net.to(self.device).eval()

@@ -42,11 +42,9 @@ class Mast3rDepth:
     def __init__(self, kind: str = "mast3r", weights: str | None = None, device: str | None = None,
                  min_conf: float = 0.0, long_side: int = 512, engine: PairEngine | None = None) -> None:
         """``engine``: the matcher's (same network, same checkpoint and input size), else the shared one."""
-        from ..matching.utils import resolve_device
-
         self.name = kind
         self.min_conf = min_conf
-        self.engine = engine if engine is not None else shared_engine(kind, weights, device, resolve_device, long_side)
+        self.engine = engine if engine is not None else shared_engine(kind, weights, device, long_side)
 
     def depth(self, frame: object) -> None:
         """No depth from one frame alone: see ``pair_depth``."""

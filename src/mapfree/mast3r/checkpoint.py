@@ -19,7 +19,7 @@ from typing import Any, Mapping
 
 import torch
 
-from ..matching.weights import WEIGHTS_ENV, MissingWeightsError
+from ..matching.weights import WEIGHTS_ENV, MissingWeightsError, weights_dir
 from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs, parse_constructor
 from .model import AsymmetricModel
 
@@ -61,11 +61,6 @@ PUBLISHED = {
 _HUB_WEIGHTS = ("model.safetensors", "pytorch_model.bin")
 
 
-def _weights_dir() -> Path | None:
-    env = os.environ.get(WEIGHTS_ENV)
-    return Path(env).expanduser() if env else None
-
-
 def _is_hub_folder(p: Path) -> bool:
     return (p / "config.json").is_file() and any((p / w).is_file() for w in _HUB_WEIGHTS)
 
@@ -81,7 +76,7 @@ def find_checkpoint(kind: str, explicit: str | os.PathLike | None = None) -> Pat
             return p
         raise MissingWeightsError(f"{kind}: checkpoint {p} not found (expected a .pth file or a folder with "
                                   f"config.json and model.safetensors)")
-    root = _weights_dir()
+    root = weights_dir()
     if root is not None:
         for cand in (root / f"{pub.stem}.pth", root / pub.stem, root / pub.hub_id.replace("/", "--")):
             if cand.is_file() or _is_hub_folder(cand):

@@ -13,11 +13,12 @@ import weakref
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
 
+from ..matching.utils import resolve_device
 from .checkpoint import find_checkpoint, load_model
 from .model import AsymmetricModel, Encoded
 from .preprocess import Prepared, prepare_array
@@ -135,13 +136,13 @@ _ENGINES_LOCK = threading.Lock()
 
 
 def shared_engine(kind: str, weights: str | Path | None = None, device: str | torch.device | None = None,
-                  resolve_device: Callable[[Any], torch.device] | None = None, long_side: int = 512) -> PairEngine:
+                  long_side: int = 512) -> PairEngine:
     """The one engine per (kind, checkpoint, device, input size): a method's matcher and depth source share it.
 
     The checkpoint is found first, so a missing file fails before any image is read. ``long_side`` 512 is the
     published models' input; smaller sizes are for quick checks only."""
     path = find_checkpoint(kind, weights)
-    dev = resolve_device(device) if resolve_device else torch.device(device or "cpu")
+    dev = resolve_device(device)  # as the matcher and depth source resolve theirs: None/"auto" -> cuda if any
     key = (kind, str(path.resolve()), str(dev), int(long_side))
     with _ENGINES_LOCK:
         if key not in _ENGINES:

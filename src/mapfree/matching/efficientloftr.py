@@ -11,7 +11,7 @@ along the wrong axis, so every match gets the window's first offset instead of i
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -159,9 +159,3 @@ class EfficientLoFTRMatcher:
         m = Matches(to_original(kp0.cpu().numpy(), f0.data["scale"]), to_original(kp1.cpu().numpy(), scale1),
                     score.float().cpu().numpy())
         return m.subset(inside(m.kpts0, f0.image_size) & inside(m.kpts1, f1.image_size))
-
-    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        return [self.extract(im) for im in images]
-
-    def match_many(self, f0: Features, f1s: Sequence[Features]) -> list[Matches]:
-        return [self.match(f0, f1) for f1 in f1s]

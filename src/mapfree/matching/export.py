@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import create, names
+from . import create, names, registry_key
 from .base import Matches
 
 __all__ = ["NPZ_KEYS", "PairMatches", "match_files", "save_npz", "load_npz", "resolve_name"]
@@ -48,7 +48,7 @@ class PairMatches:
 def resolve_name(name: str) -> str:
     """The registry key of ``name`` (case and ``_``/``-`` as ``create`` accepts); ``KeyError`` with the nearest
     names for an unknown one."""
-    key = name.strip().lower().replace("_", "-")
+    key = registry_key(name)
     known = names()
     if key in known:
         return key

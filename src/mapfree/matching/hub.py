@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from .utils import matching_size
-from .weights import OFFLINE_ENV, WEIGHTS_ENV, MissingWeightsError, _reachable
+from .weights import OFFLINE_ENV, WEIGHTS_ENV, MissingWeightsError, in_hf_cache, reachable, weights_dir
 
 __all__ = ["HubModel", "find_hub_model", "load_hub_model", "transformers_classes", "grey_pixels", "GREY_WEIGHTS"]
 
@@ -47,33 +47,25 @@ def _is_model_dir(p: Path) -> bool:
     return (p / "config.json").is_file()
 
 
-def _in_hf_cache(repo_id: str) -> bool:
-    try:
-        from huggingface_hub import try_to_load_from_cache
-    except ImportError:  # pragma: no cover - transformers depends on huggingface_hub
-        return False
-    return isinstance(try_to_load_from_cache(repo_id, "config.json"), str)
-
-
 def find_hub_model(hm: HubModel, explicit: str | os.PathLike | None = None) -> str | None:
     """A local source for ``hm``: a folder path, or the hub id when the Hugging Face cache holds it; else None."""
     if explicit is not None:
         p = Path(explicit).expanduser()
         return str(p) if _is_model_dir(p) else None
-    env = os.environ.get(WEIGHTS_ENV)
-    if env:
-        for cand in (Path(env).expanduser() / hm.folder, Path(env).expanduser() / hm.repo_id):
+    root = weights_dir()
+    if root is not None:
+        for cand in (root / hm.folder, root / hm.repo_id):
             if _is_model_dir(cand):
                 return str(cand)
-    return hm.repo_id if _in_hf_cache(hm.repo_id) else None
+    return hm.repo_id if in_hf_cache(hm.repo_id) else None
 
 
 def _missing(hm: HubModel, explicit: str | os.PathLike | None, why: str) -> MissingWeightsError:
-    env = os.environ.get(WEIGHTS_ENV)
+    root = weights_dir()
     if explicit is not None:
         where = f"the folder given as weights= ({explicit})"
     else:
-        where = f"${WEIGHTS_ENV}/{hm.folder}" + (f" ({Path(env).expanduser() / hm.folder})" if env else "")
+        where = f"${WEIGHTS_ENV}/{hm.folder}" + (f" ({root / hm.folder})" if root is not None else "")
         where += ", or into the Hugging Face cache"
     return MissingWeightsError(
         f"{hm.what}: model '{hm.repo_id}' not found ({why}). Place its folder (config.json, model.safetensors; "
@@ -107,7 +99,7 @@ def load_hub_model(
     if src is None:
         if explicit is not None:
             raise _missing(hm, explicit, f"{explicit} holds no config.json")
-        if not _reachable(hm.url):
+        if not reachable(hm.url):
             flag = next((v for v in (OFFLINE_ENV, "HF_HUB_OFFLINE") if os.environ.get(v)), None)
             why = f"${flag} is set" if flag else "offline: huggingface.co unreachable"
             raise _missing(hm, None, why)

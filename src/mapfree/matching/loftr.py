@@ -6,7 +6,6 @@ Dense: ``extract`` runs the CNN backbone once per image (so a reference is encod
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -112,9 +111,3 @@ class LoFTRMatcher:
         keep = inside(m.kpts0, f0.image_size) & inside(m.kpts1, f1.image_size)
         keep &= m.scores >= self.options.min_confidence
         return m.subset(keep)
-
-    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        return [self.extract(im) for im in images]
-
-    def match_many(self, f0: Features, f1s: Sequence[Features]) -> list[Matches]:
-        return [self.match(f0, f1) for f1 in f1s]

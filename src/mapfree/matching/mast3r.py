@@ -15,7 +15,7 @@ import numpy as np
 from ..mast3r.engine import PairEngine, shared_engine
 from ..mast3r.reciprocal import reciprocal_matches
 from .base import Features, Matches
-from .utils import check_image, is_textureless, resolve_device
+from .utils import checked_or_blank
 
 __all__ = ["Mast3rOptions", "Mast3rMatcher"]
 
@@ -39,14 +39,15 @@ class Mast3rMatcher:
         if o.kind not in ("mast3r", "dust3r"):
             raise ValueError(f"unknown kind {o.kind!r}; choose mast3r or dust3r")
         self.name = o.kind
-        self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, resolve_device, o.long_side)
+        self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, o.long_side)
         self.device = self.engine.device
 
     def extract(self, image: np.ndarray) -> Features:
-        img = check_image(image)
+        img, blank = checked_or_blank(image)
+        if blank is not None:
+            return blank
         h, w = img.shape[:2]
-        if is_textureless(img):
-            return Features(np.zeros((0, 2)), (w, h), {"textureless": True})
+        # the caller's array, not the checked copy: the depth source finds this encoding by the array's identity
         return Features(np.zeros((0, 2)), (w, h), {"encoded": self.engine.encode(image)})
 
     def match(self, f0: Features, f1: Features) -> Matches:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -117,9 +116,3 @@ class SIFTMatcher:
             keep &= np.argmin(sq, axis=0)[i1] == np.arange(len(d0))
         i0 = np.flatnonzero(keep)
         return Matches(f0.kpts[i0], f1.kpts[i1[i0]], 1.0 - ratio[keep])
-
-    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        return [self.extract(im) for im in images]
-
-    def match_many(self, f0: Features, f1s: Sequence[Features]) -> list[Matches]:
-        return [self.match(f0, f1) for f1 in f1s]

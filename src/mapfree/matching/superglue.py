@@ -8,7 +8,7 @@ SuperGlue graph network and Sinkhorn on the pair. Defaults are the paper's: 1024
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -118,10 +118,4 @@ class SuperGlueMatcher:
         s0 = match_scores[0, 0, :n0].float().cpu().numpy()
         ok = (m0 > -1) & (m0 < n1)
         return Matches(f0.kpts[ok], f1.kpts[m0[ok]], s0[ok])
-
-    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        return [self.extract(im) for im in images]
-
-    def match_many(self, f0: Features, f1s: Sequence[Features]) -> list[Matches]:
-        return [self.match(f0, f1) for f1 in f1s]
 

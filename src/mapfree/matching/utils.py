@@ -9,6 +9,8 @@ import cv2
 import numpy as np
 import torch
 
+from .base import Features
+
 __all__ = [
     "resolve_device",
     "check_image",
@@ -118,10 +120,8 @@ def is_textureless(image: np.ndarray, min_std: float = 1.0) -> bool:
     return float(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).std()) < min_std
 
 
-def checked_or_blank(image: np.ndarray) -> tuple[np.ndarray, "Features | None"]:
+def checked_or_blank(image: np.ndarray) -> tuple[np.ndarray, Features | None]:
     """``check_image(image)``, and the empty feature set to return for it when it is textureless (else None)."""
-    from .base import Features
-
     image = check_image(image)
     if is_textureless(image):
         return image, Features(np.zeros((0, 2)), (image.shape[1], image.shape[0]), {"empty": True})

@@ -12,8 +12,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import urlparse
 
-import torch
-
 __all__ = [
     "MissingWeightsError",
     "WeightFile",
@@ -24,6 +22,9 @@ __all__ = [
     "package_file",
     "shipped_weights",
     "load_checkpoint",
+    "reachable",
+    "in_hf_cache",
+    "weights_dir",
 ]
 
 WEIGHTS_ENV = "MAPFREE_WEIGHTS_DIR"
@@ -44,16 +45,20 @@ class WeightFile:
     aliases: tuple[str, ...] = field(default=())
 
 
+def weights_dir() -> Path | None:
+    """The folder named by ``$MAPFREE_WEIGHTS_DIR``, or None when it is not set."""
+    env = os.environ.get(WEIGHTS_ENV)
+    return Path(env).expanduser() if env else None
+
+
 def _hub_dir() -> Path:
+    import torch  # only here: listing matchers and their needs must not load torch
+
     return Path(torch.hub.get_dir()) / "checkpoints"
 
 
 def _search_dirs() -> list[Path]:
-    dirs = []
-    if os.environ.get(WEIGHTS_ENV):
-        dirs.append(Path(os.environ[WEIGHTS_ENV]).expanduser())
-    dirs.append(_hub_dir())
-    return dirs
+    return [d for d in (weights_dir(), _hub_dir()) if d is not None]
 
 
 def find_local(wf: WeightFile, explicit: str | os.PathLike | None = None) -> Path | None:
@@ -81,7 +86,8 @@ def _message(wf: WeightFile, explicit: str | os.PathLike | None, why: str) -> st
     return f"{wf.what}: weights file '{wf.filename}' not found ({why}). Place '{wf.filename}' in {where}.{src}"
 
 
-def _reachable(url: str, timeout: float = 3.0) -> bool:
+def reachable(url: str, timeout: float = 3.0) -> bool:
+    """Whether ``url``'s host answers on 443 within ``timeout`` s; False at once when told to stay offline."""
     host = urlparse(url).hostname
     if not host or os.environ.get(OFFLINE_ENV) or os.environ.get("HF_HUB_OFFLINE"):
         return False
@@ -90,6 +96,15 @@ def _reachable(url: str, timeout: float = 3.0) -> bool:
             return True
     except OSError:
         return False
+
+
+def in_hf_cache(repo_id: str) -> bool:
+    """Whether the Hugging Face cache holds model ``repo_id`` (its config.json), without any network access."""
+    try:
+        from huggingface_hub import try_to_load_from_cache
+    except ImportError:  # pragma: no cover - transformers depends on huggingface_hub
+        return False
+    return isinstance(try_to_load_from_cache(repo_id, "config.json"), str)
 
 
 def resolve_weights(wf: WeightFile, explicit: str | os.PathLike | None = None, download: bool = True) -> Path:
@@ -103,7 +118,7 @@ def resolve_weights(wf: WeightFile, explicit: str | os.PathLike | None = None, d
         raise MissingWeightsError(_message(wf, None, "downloads disabled"))
     errors = []
     for url in wf.urls:
-        if not _reachable(url):  # fail in seconds offline instead of waiting out retries
+        if not reachable(url):  # fail in seconds offline instead of waiting out retries
             errors.append(f"{urlparse(url).hostname} unreachable")
             continue
         dst = _hub_dir() / wf.filename
@@ -136,9 +151,9 @@ def package_file(package: str, *parts: str) -> Path:
 def shipped_weights(package: str, filename: str, what: str, folder: str = "pretrained_weights") -> Path:
     """A weight file that ``package`` ships: ``$MAPFREE_WEIGHTS_DIR/filename`` first (a copy on a machine without
     the package, e.g. the GPU kit's fp16 copies), then the installed package, then torch's hub cache."""
-    env = os.environ.get(WEIGHTS_ENV)
-    if env and (Path(env).expanduser() / filename).is_file():
-        return Path(env).expanduser() / filename
+    root = weights_dir()
+    if root is not None and (root / filename).is_file():
+        return root / filename
     try:
         return package_file(package, folder, filename)
     except MissingWeightsError as e:
@@ -149,6 +164,8 @@ def shipped_weights(package: str, filename: str, what: str, folder: str = "pretr
 
 def load_checkpoint(path: str | os.PathLike, key: str | None = None) -> dict:
     """``torch.load`` a state dict (tensors only), unwrapping ``key`` (e.g. ``state_dict``) when present."""
+    import torch
+
     sd = torch.load(str(path), map_location="cpu", weights_only=True)
     if key is not None and isinstance(sd, dict) and key in sd:
         sd = sd[key]

@@ -323,8 +323,7 @@ class Relocalizer:
         if prep.error is None and matches is not None:
             try:
                 t1 = time.perf_counter()
-                est = self._solve(anchor, prep.view, matches, prep.depth, prep.features)
-                pair_depth = est.timings.pop("pair_depth", 0.0)
+                est, pair_depth = self._solve(anchor, prep.view, matches, prep.depth, prep.features)
                 timings["solve"] = time.perf_counter() - t1 - pair_depth
                 timings["depth"] = timings.get("depth", 0.0) + pair_depth
                 timings["match"] = timings.pop("extract", 0.0) + match_s  # extraction counts as matching time
@@ -382,10 +381,12 @@ class Relocalizer:
         return None
 
     def _solve(self, anchor: Anchor, view: View, matches: Matches, depth_q: np.ndarray | None,
-               features_q: Features | None = None) -> Estimate:
+               features_q: Features | None = None) -> tuple[Estimate, float]:
+        """The estimate, and the seconds spent on depth from the pair (a two-view network's; counted as depth)."""
         flow = np.linalg.norm(matches.kpts1 - matches.kpts0, axis=1)
         if len(matches) and float(np.median(flow)) <= MIN_PARALLAX_PX:
-            return _same_viewpoint(flow, getattr(getattr(self.solver, "options", None), "confidence", "inliers"))
+            mode = getattr(getattr(self.solver, "options", None), "confidence", "inliers")
+            return _same_viewpoint(flow, mode), 0.0
         needs = self._needs()
         depth_ref = anchor.depth
         if self.pairwise_depth and needs and (depth_ref is None or ("query" in needs and depth_q is None)):
@@ -399,15 +400,13 @@ class Relocalizer:
         else:
             pair_s = 0.0
         if "ref" in needs and depth_ref is None:
-            return Estimate.failure("no depth for the reference image")
+            return Estimate.failure("no depth for the reference image"), pair_s
         if "query" in needs and depth_q is None:
-            return Estimate.failure("no depth for the query image")
+            return Estimate.failure("no depth for the query image"), pair_s
         est = self.solver.solve(matches, anchor.view.intrinsics, view.intrinsics, depth_ref, depth_q)
-        if pair_s:
-            est.timings["pair_depth"] = pair_s  # moved from "solve" to "depth" by ``conclude``
         if est.pose is not None and not self.metric:
             est.extras.setdefault("scale_free", True)
-        return est
+        return est, pair_s
 
 
 def _same_viewpoint(flow: np.ndarray, mode: str) -> Estimate:
