@@ -211,3 +211,28 @@ def test_shared_engine_resolves_the_device_as_the_matcher_does(weights):
         engine = shared_engine("mast3r", device=device, long_side=SMALL)
         assert Mast3rMatcher(long_side=SMALL, device=device).engine is engine
         assert Mast3rDepth("mast3r", device=device, long_side=SMALL).engine is engine
+
+
+def test_batched_pairs_equal_pairs_alone(weights, scene):
+    """Queries encoded together and decoded as one batch against the reference give each pair what it gets
+    alone: the same pointmaps and confidences (to float rounding) and the same matches."""
+    ref = scene.reference.image()
+    images = [scene.frame(q).image() for q in QUERIES]
+    alone = Mast3rMatcher(long_side=SMALL, device="cpu", weights=str(weights / f"{PUBLISHED['mast3r'].stem}.pth"))
+    f0 = alone.extract(ref)
+    singles = [alone.engine.pair(f0.data["encoded"], alone.extract(im).data["encoded"], descriptors=True)
+               for im in images]
+    single_matches = [alone.match(f0, alone.extract(im)) for im in images]
+    alone.engine._images.size = alone.engine._pairs.size = 0  # nothing cached: the batch computes everything
+    feats = alone.extract_many(images)
+    enc0, fwd0 = alone.engine.encodes, alone.engine.forwards
+    batch = alone.engine.pair_many(f0.data["encoded"], [f.data["encoded"] for f in feats], descriptors=True)
+    assert alone.engine.forwards - fwd0 == len(images) and alone.engine.encodes == enc0
+    for one, many in zip(singles, batch):
+        for key in ("pts1", "conf1", "pts2", "conf2", "desc1", "desc2", "desc_conf1", "desc_conf2"):
+            want = getattr(one, key)  # relative to the map's scale: exp() of fill-rule outputs spans decades
+            np.testing.assert_allclose(getattr(many, key), want, rtol=1e-4, atol=1e-4 * np.abs(want).max(), err_msg=key)
+    for one, many in zip(single_matches, alone.match_many(f0, feats, batch_size=len(feats))):
+        assert len(one) > 0
+        np.testing.assert_array_equal(many.kpts0, one.kpts0)
+        np.testing.assert_array_equal(many.kpts1, one.kpts1)

@@ -4,6 +4,7 @@ other image's tokens in the decoder) with 2-D RoPE on queries and keys, and a GE
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from .rope import RoPE2D
@@ -30,9 +31,11 @@ class Mlp(nn.Module):
 
 
 def _attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, scale: float) -> torch.Tensor:
-    """softmax(q k^T * scale) v over (B, heads, N, head_dim), then heads merged back to (B, N, C)."""
-    w = ((q @ k.transpose(-2, -1)) * scale).softmax(dim=-1)
-    out = w @ v
+    """softmax(q k^T * scale) v over (B, heads, N, head_dim), then heads merged back to (B, N, C).
+
+    Through ``scaled_dot_product_attention``: on a GPU a fused kernel that never writes the N x N weights (the
+    public code materialises them); the same function to float rounding."""
+    out = F.scaled_dot_product_attention(q, k, v, scale=scale)
     return out.transpose(1, 2).reshape(out.shape[0], out.shape[2], -1)
 
 

@@ -11,13 +11,15 @@ from __future__ import annotations
 import threading
 import weakref
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Hashable, Sequence
 
 import numpy as np
 import torch
 
+from ..matching.attention import steady_kernels
 from ..matching.utils import resolve_device
 from .checkpoint import find_checkpoint, load_model
 from .model import AsymmetricModel, Encoded
@@ -43,8 +45,8 @@ class PairOutput:
     conf1: np.ndarray  # (H1, W1)
     pts2: np.ndarray  # (H2, W2, 3) view 2's points in view 1's frame
     conf2: np.ndarray
-    desc1: np.ndarray | None = None  # (H1, W1, D) unit descriptors (MASt3R)
-    desc2: np.ndarray | None = None
+    desc1: np.ndarray | torch.Tensor | None = None  # (H1, W1, D) unit descriptors (MASt3R); on the device if asked
+    desc2: np.ndarray | torch.Tensor | None = None
     desc_conf1: np.ndarray | None = None
     desc_conf2: np.ndarray | None = None
     extras: dict[str, Any] = field(default_factory=dict)
@@ -95,40 +97,89 @@ class PairEngine:
 
     def encode(self, image: np.ndarray) -> EncodedImage:
         """(H, W, 3) uint8 RGB -> preprocessed and encoded (cached on the array's identity)."""
+        return self.encode_many([image])[0]
+
+    def encode_many(self, images: Sequence[np.ndarray]) -> list[EncodedImage]:
+        """``encode`` for several images: those of one network input size go through the encoder together."""
         with self._lock:
-            hit = self._images.get(image)
-        if hit is not None:
-            return hit
-        prep = prepare_array(image, self.long_side)
-        with torch.inference_mode():  # outside the lock: another thread may use the cache meanwhile
-            enc = self.model.encode(prep.tensor.to(self.device))
-        out = EncodedImage(prep, enc, id(self))
+            out: list[EncodedImage | None] = [self._images.get(im) for im in images]
+        todo = [i for i, hit in enumerate(out) if hit is None]
+        preps = dict(zip(todo, _prepare_all([images[i] for i in todo], self.long_side)))
+        for group in _groups(todo, lambda i: preps[i].true_shape):
+            with torch.inference_mode(), steady_kernels():  # outside the lock: others may use the cache meanwhile
+                enc = self.model.encode(torch.cat([preps[i].tensor for i in group]).to(self.device))
+            for j, i in enumerate(group):
+                out[i] = EncodedImage(preps[i], Encoded(enc.tokens[j : j + 1], enc.positions[j : j + 1], enc.hw),
+                                      id(self))
         with self._lock:
-            self.encodes += 1
-            self._images.put(out, image)
-        return out
+            self.encodes += len(todo)
+            for i in todo:
+                self._images.put(out[i], images[i])
+        return out  # type: ignore[return-value]
 
     def pair(self, first: EncodedImage, second: EncodedImage, descriptors: bool = False) -> PairOutput:
         """Decoders and heads on (first, second), once per pair; ``first`` is the frame of both pointmaps.
 
         The cache keeps points and confidences: the matcher asks first (``descriptors`` True: a fresh pass) and
         the depth source later finds the same pass's points here."""
-        with self._lock:
-            hit = self._pairs.get(first, second)
-        if hit is not None and not (descriptors and self.has_descriptors):
-            return hit
-        with torch.inference_mode():
-            r1, r2 = self.model.predict(first.encoded, second.encoded)
+        return self.pair_many(first, [second], descriptors)[0]
 
-        def cpu(t: torch.Tensor | None) -> np.ndarray | None:
-            return None if t is None else t[0].float().cpu().numpy()
-
-        out = PairOutput(cpu(r1["pts3d"]), cpu(r1["conf"]), cpu(r2["pts3d_in_other_view"]), cpu(r2["conf"]),
-                         cpu(r1.get("desc")), cpu(r2.get("desc")), cpu(r1.get("desc_conf")), cpu(r2.get("desc_conf")))
+    def pair_many(self, first: EncodedImage, seconds: Sequence[EncodedImage], descriptors: bool = False,
+                  on_device: bool = False) -> list[PairOutput]:
+        """``pair`` of ``first`` with each of ``seconds``: the pairs whose second images share a size go through
+        the decoders and heads as one batch (``first``'s tokens repeated), each pair's output as it is alone.
+        ``on_device``: descriptors stay on the network's device (the matcher searches them there)."""
+        want_desc = descriptors and self.has_descriptors
         with self._lock:
-            self.forwards += 1
-            self._pairs.put(out.without_descriptors(), first, second)
-        return out
+            hits = [self._pairs.get(first, s) for s in seconds]
+        out: list[PairOutput | None] = [None if want_desc else h for h in hits]
+        todo = [i for i, o in enumerate(out) if o is None]
+        for group in _groups(todo, lambda i: seconds[i].encoded.hw):
+            b, e1 = len(group), first.encoded
+            e1 = Encoded(e1.tokens.expand(b, -1, -1), e1.positions.expand(b, -1, -1), e1.hw)
+            e2 = Encoded(torch.cat([seconds[i].encoded.tokens for i in group]),
+                         torch.cat([seconds[i].encoded.positions for i in group]), seconds[group[0]].encoded.hw)
+            with torch.inference_mode(), steady_kernels():
+                r1, r2 = self.model.predict(e1, e2)
+            host = {k: v.float().cpu().numpy() for k, v in (("pts1", r1["pts3d"]), ("conf1", r1["conf"]),
+                                                           ("pts2", r2["pts3d_in_other_view"]), ("conf2", r2["conf"]),
+                                                           ("desc_conf1", r1.get("desc_conf")),
+                                                           ("desc_conf2", r2.get("desc_conf"))) if v is not None}
+            desc = {k: r.get("desc") for k, r in (("desc1", r1), ("desc2", r2))}
+            for j, i in enumerate(group):
+                def d(key: str) -> Any:
+                    t = desc[key]
+                    return None if t is None else t[j] if on_device else t[j].float().cpu().numpy()
+
+                out[i] = PairOutput(host["pts1"][j], host["conf1"][j], host["pts2"][j], host["conf2"][j],
+                                    d("desc1"), d("desc2"), _row(host.get("desc_conf1"), j),
+                                    _row(host.get("desc_conf2"), j))
+        with self._lock:
+            self.forwards += len(todo)
+            for i in todo:
+                self._pairs.put(out[i].without_descriptors(), first, seconds[i])  # type: ignore[union-attr]
+        return out  # type: ignore[return-value]
+
+
+def _prepare_all(images: Sequence[np.ndarray], long_side: int) -> list[Prepared]:
+    """``prepare_array`` of each image; several at once in threads (PIL's resampling releases the GIL, and on a
+    GPU this work is on the path between two network passes)."""
+    if len(images) <= 1:
+        return [prepare_array(im, long_side) for im in images]
+    with ThreadPoolExecutor(min(4, len(images)), thread_name_prefix="mapfree-mast3r-prepare") as pool:
+        return list(pool.map(lambda im: prepare_array(im, long_side), images))
+
+
+def _row(a: np.ndarray | None, j: int) -> np.ndarray | None:
+    return None if a is None else a[j]
+
+
+def _groups(indices: Sequence[int], key: Callable[[int], Hashable]) -> list[list[int]]:
+    """``indices`` grouped by ``key`` (first-seen order of the groups and within them)."""
+    groups: dict[Hashable, list[int]] = {}
+    for i in indices:
+        groups.setdefault(key(i), []).append(i)
+    return list(groups.values())
 
 
 _ENGINES: dict[tuple[str, str, str, int], PairEngine] = {}

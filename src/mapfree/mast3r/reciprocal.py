@@ -21,8 +21,11 @@ class _TorchNN:
     Dot products go through one reused score buffer: with 24-D descriptors the products are cheap and writing
     fresh score matrices (page faults, memory traffic) is what costs."""
 
-    def __init__(self, db: torch.Tensor, dist: str = "l2", block: tuple[int, int] = (2048, 4096)) -> None:
-        self.db, self.dist, self.block = db, dist, block  # (queries, database rows) per block: 32 MB of scores
+    def __init__(self, db: torch.Tensor, dist: str = "l2", block: tuple[int, int] | None = None) -> None:
+        # (queries, database rows) per block: 32 MB of scores on the CPU (cache-sized); 512 MB on a GPU, where
+        # each block costs kernel launches and a 512x384 map is then searched in six blocks, not 48
+        cuda = db.device.type == "cuda"
+        self.db, self.dist, self.block = db, dist, block or ((4096, 32768) if cuda else (2048, 4096))
 
     def _best(self, qb: torch.Tensor, buf: torch.Tensor) -> torch.Tensor:
         best_val = best_idx = None

@@ -9,10 +9,11 @@ pixels' confidences. The same forward pass serves the ``mast3r``/``dust3r`` dept
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
-from ..mast3r.engine import PairEngine, shared_engine
+from ..mast3r.engine import EncodedImage, PairEngine, PairOutput, shared_engine
 from ..mast3r.reciprocal import reciprocal_matches
 from .base import Features, Matches
 from .utils import checked_or_blank
@@ -43,18 +44,42 @@ class Mast3rMatcher:
         self.device = self.engine.device
 
     def extract(self, image: np.ndarray) -> Features:
-        img, blank = checked_or_blank(image)
-        if blank is not None:
-            return blank
-        h, w = img.shape[:2]
-        # the caller's array, not the checked copy: the depth source finds this encoding by the array's identity
-        return Features(np.zeros((0, 2)), (w, h), {"encoded": self.engine.encode(image)})
+        return self.extract_many([image])[0]
+
+    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
+        """Encode several images (one encoder pass per input size); a blank image gets empty features."""
+        checked = [checked_or_blank(im) for im in images]
+        good = [i for i, (_, blank) in enumerate(checked) if blank is None]
+        # the caller's arrays, not the checked copies: the depth source finds an encoding by the array's identity
+        encoded = dict(zip(good, self.engine.encode_many([images[i] for i in good])))
+        out = []
+        for i, (img, blank) in enumerate(checked):
+            if blank is not None:
+                out.append(blank)
+                continue
+            h, w = img.shape[:2]
+            out.append(Features(np.zeros((0, 2)), (w, h), {"encoded": encoded[i]}))
+        return out
 
     def match(self, f0: Features, f1: Features) -> Matches:
-        e0, e1 = f0.data.get("encoded"), f1.data.get("encoded")
-        if e0 is None or e1 is None:
-            return Matches.empty()
-        out = self.engine.pair(e0, e1, descriptors=True)
+        return self.match_many(f0, [f1], batch_size=1)[0]
+
+    def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
+        """Match one (reference) image against many: ``batch_size`` pairs per pass through the decoders and heads
+        (default 8 on a GPU, 1 elsewhere); each pair gets the matches it gets alone."""
+        e0 = f0.data.get("encoded")
+        encs = [f.data.get("encoded") for f in f1s]
+        out: list[Matches] = [Matches.empty() for _ in f1s]
+        todo = [i for i, e in enumerate(encs) if e is not None] if e0 is not None else []
+        step = max(1, batch_size or (8 if self.device.type == "cuda" else 1))
+        for start in range(0, len(todo), step):
+            chunk = todo[start : start + step]
+            pairs = self.engine.pair_many(e0, [encs[i] for i in chunk], descriptors=True, on_device=True)
+            for i, pair in zip(chunk, pairs):
+                out[i] = self._matches(e0, encs[i], pair)
+        return out
+
+    def _matches(self, e0: EncodedImage, e1: EncodedImage, out: PairOutput) -> Matches:
         if self.options.kind == "mast3r":
             # Unit descriptors: nearest by L2 = largest dot product, found by blocks of matrix products (the
             # public GPU path); a KD-tree in 24-D is ~20x slower on a 512x384 map and finds the same pixels.
