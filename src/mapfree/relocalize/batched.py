@@ -44,6 +44,12 @@ def default_batch_size(matcher: object) -> int:
     return 16 if getattr(device, "type", "cpu") == "cuda" else 0
 
 
+def _depth_in_workers(source: object) -> bool:
+    """Depth the decode workers can produce: files (``reads_files``) and sources without a batched network pass.
+    Depth networks (``depth_many``) run on the device stage, a batch at a time."""
+    return bool(getattr(source, "reads_files", False)) or not hasattr(source, "depth_many")
+
+
 def _read(loc: "Relocalizer", query: "ViewLike") -> "_Prepared":
     """Decode one query and read its depth file (no network work): a decode worker's job."""
     from .pipeline import _error, _fit_depth, _Prepared, as_view
@@ -53,7 +59,7 @@ def _read(loc: "Relocalizer", query: "ViewLike") -> "_Prepared":
         view = as_view(query)
         t1 = time.perf_counter()
         depth = None
-        if not hasattr(loc.depth_source, "depth_many"):  # depth networks run batched on the device stage
+        if _depth_in_workers(loc.depth_source):  # a depth file is decoded here, beside its photo
             depth = loc._depth(view)
         elif view.depth is not None:
             depth = _fit_depth(view.depth, view.intrinsics)
@@ -69,7 +75,7 @@ def _network_depth(loc: "Relocalizer", batch: list["_Prepared"]) -> None:
 
     src = loc.depth_source
     todo = [p for p in batch if p.error is None and p.depth is None and p.view.frame is not None]
-    if not todo or not hasattr(src, "depth_many") or not loc.metric:
+    if not todo or _depth_in_workers(src) or not loc.metric:
         return
     t0 = time.perf_counter()
     deps = src.depth_many([p.view.frame for p in todo])
