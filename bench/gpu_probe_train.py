@@ -108,6 +108,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--large", type=int, default=64, help="the large batch")
     ap.add_argument("--workers", type=int, default=12)
     ap.add_argument("--quick", action="store_true", help="rehearse every step on any device, in a few minutes")
+    ap.add_argument("--profile-only", action="store_true",
+                    help="only the fused-warp check and the CUDA profile (a call that already has the step rows)")
+    ap.add_argument("--no-compile", dest="compile", action="store_false",
+                    help="skip the torch.compile rows (compiling takes minutes of a short device lease)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     import torch
@@ -140,17 +144,17 @@ def main(argv: list[str] | None = None) -> int:
         save()
 
     # The compile rows come last: compiling takes minutes and must not cost the other rows if the call runs out.
-    for batch in batches:
+    for batch in () if args.profile_only else batches:
         bench(batch, "step,loader,loop" if have_images else "step", ["--size", QUICK_SIZE] if args.quick else [], 240)
     lines += ["## fused warping vs the explicit volume on this device", "",
               equivalence(1, (44, 32)) if args.quick else equivalence(), ""]
     print("\n".join(lines[-4:]), flush=True)
     quick_size = tuple(int(v) for v in QUICK_SIZE.split("x"))
     lines += ["## where the CUDA time goes", "",
-              profile(2, 1, quick_size) if args.quick else profile(min(args.large, 32))]
+              profile(2, 1, quick_size) if args.quick else profile(args.large)]
     print(lines[-1], flush=True)
     save()
-    if not args.quick:
+    if not args.quick and args.compile and not args.profile_only:
         for batch in batches:
             bench(batch, "step", ["--compile"], 150)
     return 0

@@ -2,7 +2,11 @@
 # Fill the GPU figures on the device machine, from the kit that bench/gpu_kit.py builds
 # (bench/README.md, "Measuring on a GPU").
 #
-#   bash bench/gpu_session.sh [--quick] PART [PART...]      PART: match | disk | train
+#   bash bench/gpu_session.sh [--quick] PART [PART...]      PART: pairs | profile | match | disk | train
+#
+# pairs: the headline rows (ALIKED+LightGlue, XFeat+LighterGlue, MASt3R, SuperGlue, EfficientLoFTR through
+# `mapfree run`, each beside its straightforward loop where it has one); the stand-in weights it needs (full-size
+# MASt3R by the fill rule, random SuperGlue/EfficientLoFTR of the published sizes) are written on the machine.
 #
 # Installs the kit's wheels into $MAPFREE_GPU_SITE (/tmp/site), puts src/ and them on PYTHONPATH, points
 # $MAPFREE_WEIGHTS_DIR at the kit's fp16 weights, runs offline, and writes per part $OUT/PART.log (everything
@@ -18,13 +22,13 @@ parts=()
 for arg in "$@"; do
   case "$arg" in
     --quick) quick=(--quick) ;;
-    match | disk | train) parts+=("$arg") ;;
-    -h | --help) sed -n '2,11p' "$0"; exit 0 ;;
-    *) echo "gpu_session.sh: unknown argument '$arg' (parts: match, disk, train; option: --quick)" >&2; exit 2 ;;
+    pairs | profile | match | disk | train) parts+=("$arg") ;;
+    -h | --help) sed -n '2,15p' "$0"; exit 0 ;;
+    *) echo "gpu_session.sh: unknown argument '$arg' (parts: pairs, profile, match, disk, train; option: --quick)" >&2; exit 2 ;;
   esac
 done
 if [ ${#parts[@]} -eq 0 ]; then
-  echo "usage: bash bench/gpu_session.sh [--quick] PART [PART...]   (PART: match | disk | train)" >&2
+  echo "usage: bash bench/gpu_session.sh [--quick] PART [PART...]   (PART: pairs | profile | match | disk | train)" >&2
   exit 2
 fi
 
@@ -80,7 +84,19 @@ status=0
 for part in "${parts[@]}"; do
   dir="$OUT/$part"
   mkdir -p "$dir"
+  prepare=()
   case "$part" in
+    pairs)
+      presets=${MAPFREE_GPU_PRESETS:-aliked-lightglue_emat_sensor,xfeat-lighterglue_emat_sensor,mast3r_pnp_mast3r,superglue_emat_sensor,efficientloftr_emat_sensor}
+      prepare=("$PY" -c "import sys, torch; sys.path.insert(0, 'bench'); from pathlib import Path
+from hub_random_models import write_models
+from mapfree.mast3r.synthetic import write_published_standin
+write_models(Path('$weights'))
+print(write_published_standin('$weights', 'mast3r', dtype=torch.float16), 'written (fill-rule weights, fp16)')")
+      cmd=("$PY" bench/gpu_probe.py "$ROOT" --out "$dir" --threads 8 --presets "$presets" --never-seen none
+           --no-depth --no-hub --no-two-view) ;;
+    profile)
+      cmd=("$PY" bench/gpu_profile_pipeline.py "$ROOT" --out "$dir") ;;
     match)
       presets=${MAPFREE_GPU_PRESETS:-aliked-lightglue_emat_sensor,xfeat-lighterglue_emat_sensor,xfeat_emat_sensor,xfeat-star_emat_sensor,loftr_emat_sensor,sift_emat_sensor,aliked-lightglue_emat_sensor:b0}
       cmd=("$PY" bench/gpu_probe.py "$ROOT" --out "$dir" --threads 8 --presets "$presets") ;;
@@ -88,15 +104,20 @@ for part in "${parts[@]}"; do
       cmd=("$PY" bench/gpu_probe.py "$ROOT" --out "$dir" --threads 8 --presets disk-lightglue_emat_sensor
            --never-seen disk-lightglue --no-depth --no-baseline) ;;
     train)
-      cmd=("$PY" bench/gpu_probe_train.py --root "$ROOT" --out "$dir") ;;
+      cmd=("$PY" bench/gpu_probe_train.py --root "$ROOT" --out "$dir")
+      [ -n "${MAPFREE_GPU_TRAIN_COMPILE:-}" ] || cmd+=(--no-compile)
+      [ -z "${MAPFREE_GPU_TRAIN_PROFILE_ONLY:-}" ] || cmd+=(--profile-only) ;;
   esac
   start=$SECONDS
   {
     echo "# gpu_session.sh $part${quick:+ --quick}"
     environment
+    rc=0
+    if [ ${#prepare[@]} -gt 0 ]; then
+      "${prepare[@]}" || rc=$?
+    fi
     echo "\$ ${cmd[*]} ${quick[*]}"
-    "${cmd[@]}" "${quick[@]}"
-    rc=$?
+    "${cmd[@]}" "${quick[@]}" || rc=$?
     echo "# part $part: exit status $rc after $((SECONDS - start)) s"
     exit $rc
   } 2>&1 | tee "$OUT/$part.log"
