@@ -23,7 +23,7 @@ from typing import Any, Mapping
 
 import torch
 
-from ..mast3r.checkpoint import _why
+from ..mast3r.checkpoint import load_error_gist
 from ..matching.weights import WEIGHTS_ENV, MissingWeightsError, WeightFile, resolve_weights, weights_dir
 from .config import MickeyConfig, config_from_yaml
 from .dinov2 import ViTShape
@@ -159,7 +159,7 @@ def _load_tensors(path: Path, what: str, expected: str) -> Any:
             break
     else:  # pragma: no cover - 64 distinct foreign classes
         raise ValueError(f"{path}: not a readable {what} (too many non-tensor objects); expected {expected}")
-    raise ValueError(f"{path}: not a readable {what} ({_why(err)}); expected {expected}") from None
+    raise ValueError(f"{path}: not a readable {what} ({load_error_gist(err)}); expected {expected}") from None
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, torch.Tensor]:

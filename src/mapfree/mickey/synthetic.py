@@ -45,8 +45,11 @@ def published_layout(vit: ViTShape, cfg: MickeyConfig | None = None) -> dict[str
         return {published_key(k): v for k, v in MickeyNet(cfg or MickeyConfig(), vit).state_dict().items()}
 
 
+StateDict = dict[str, torch.Tensor]
+
+
 def synthetic_state_dicts(vit: ViTShape, cfg: MickeyConfig | None = None,
-                          dtype: torch.dtype = torch.float32) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+                          dtype: torch.dtype = torch.float32) -> tuple[StateDict, StateDict]:
     """(checkpoint state dict, DINOv2 state dict), published key names, filled by the rule."""
     heads: dict[str, torch.Tensor] = {}
     dino: dict[str, torch.Tensor] = {}

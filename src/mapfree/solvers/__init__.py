@@ -23,7 +23,8 @@ from .scale import scale_vote, scale_vote_bruteforce
 
 __all__ = [
     "Solver", "create", "available", "options_for", "option_names", "PRESETS", "CONFIDENCE_MODES",
-    "EssentialOptions", "EssentialSolver", "MickeySolver", "MickeySolverOptions", "PnPOptions", "PnPSolver", "ProcrustesOptions", "ProcrustesSolver",
+    "EssentialOptions", "EssentialSolver", "MickeySolver", "MickeySolverOptions", "PnPOptions", "PnPSolver",
+    "ProcrustesOptions", "ProcrustesSolver",
     "scale_vote", "scale_vote_bruteforce",
 ]
 
