@@ -47,3 +47,9 @@ def official_rpr() -> Path:
 def mast3r_fixture() -> Path:
     """Folder with mast3r.json / mast3r_outputs.npz: the public MASt3R/DUSt3R outputs on fill-rule weights."""
     return _shared("fixtures/mast3r", "mast3r.json")
+
+
+@pytest.fixture(scope="session")
+def mickey_fixture() -> Path:
+    """Folder with mickey.json / mickey_outputs.npz: the public MicKey network and solver on fill-rule weights."""
+    return _shared("fixtures/mickey", "mickey.json")

@@ -32,7 +32,7 @@ __all__ = [
 MATCHERS = ("sift", "xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "loftr",
             "superpoint-lightglue", "superglue", "superglue-indoor", "efficientloftr")
 OFFLINE_MATCHERS = MATCHERS[:6]
-MATCHERS += PAIR_MODELS  # two-view networks; weights are the user's download (docs/mast3r.md)
+MATCHERS += PAIR_MODELS  # networks with their own depth; weights are the user's download (docs/mast3r.md, mickey.md)
 #: Matchers whose presets' descriptions say what they need (``matching.needs``): weights the user places.
 _NEEDS_IN_DESCRIPTION = PAIR_MODELS
 #: Solver token in a preset name -> solver registry name.
@@ -201,6 +201,9 @@ def query_depth_fallback(method: Method) -> Method:
 def depth_free_problem(method: Method) -> str | None:
     """Why ``method`` cannot estimate anything from images alone (PnP or Procrustes with depth ``none``: they run
     only on depth maps handed to them with the images, as the service's anchors do), else None."""
+    if method.kind == "matching" and method.matcher != "mickey" and "mickey" in (method.depth, method.solver):
+        return (f"method {method.name!r}: the mickey depth and solver read the keypoints of the mickey matcher, "
+                f"not {method.matcher}'s: use the mickey matcher (e.g. mickey or mickey_pnp_mickey)")
     if method.kind != "matching" or method.depth != "none" or method.solver not in LIFTING_SOLVERS:
         return None
     where = "the reference" if method.solver == "pnp" else "both images"
@@ -294,6 +297,8 @@ def requirements(name: str) -> str:
         return m.description or f"a {m.kind} method"
     if m.depth == "none":
         depth = "no depth (direction only)"
+    elif m.depth == "mickey":
+        depth = "depth of the mickey network's own keypoints (no depth files)"
     elif m.depth in PAIR_MODELS:
         depth = f"depth from the {m.depth} network's own pointmaps (no depth files)"
     elif m.depth.startswith("files:"):
@@ -322,7 +327,7 @@ def _register_two_view_presets() -> None:
     how = {"pnp": "PnP on the reference's depth (one forward pass per pair)",
            "emat": "Ess.Mat scaled by both images' depth (a second, symmetric decoder pass for the query's depth)",
            "procrustes": "3D-3D Procrustes on both images' depth (a second, symmetric decoder pass)"}
-    for net in PAIR_MODELS:
+    for net in PAIR_MODELS[:2]:
         for solver in how:
             m = parse_name(preset_name(net, solver, net))
             assert m is not None
@@ -330,5 +335,23 @@ def _register_two_view_presets() -> None:
                                             f"{matcher_needs(net)} (docs/mast3r.md)"))
 
 
+def _register_mickey_presets() -> None:
+    # MicKey: its own solver on its scored candidates (the public pipeline), and our solvers on its mutual
+    # matches with each keypoint's metric depth. Procrustes takes MicKey's inlier threshold (0.15 m; not tuned).
+    needs = f"needs {matcher_needs('mickey')} (docs/mickey.md)"
+    register(Method(name="mickey", matcher="mickey", depth="mickey", solver="mickey",
+                    description=f"MicKey end to end: metric keypoints, dual-softmax matching, its probabilistic "
+                                f"Procrustes RANSAC and confidence (soft inlier count); {needs}"))
+    how = {"pnp": ("PnP on the reference keypoints' depth", {}),
+           "emat": ("Ess.Mat scaled by the keypoints' depth", {}),
+           "procrustes": ("3D-3D Procrustes on both images' keypoint depths, 0.15 m", {"inlier_threshold": 0.15})}
+    for solver, (what, opts) in how.items():
+        m = parse_name(preset_name("mickey", solver, "mickey"))
+        assert m is not None
+        register(replace(m, solver_opts={**m.solver_opts, **opts},
+                         description=f"mickey mutual matches, {what}; {needs}"))
+
+
 _register_builtins()
 _register_two_view_presets()
+_register_mickey_presets()

@@ -1,6 +1,7 @@
 """Depth sources by spec: ``files:SUFFIX``, ``none``, a short model name (``dav2-indoor``, ``dpt-kitti``,
-``zoedepth``, ``depth-pro``, ...), ``hf:HUB_ID_OR_LOCAL_DIR``, or a two-view network (``mast3r``, ``dust3r``)
-whose depth comes with the pair. Each answers ``depth(frame)`` (or ``pair_depth``) in metres."""
+``zoedepth``, ``depth-pro``, ...), ``hf:HUB_ID_OR_LOCAL_DIR``, or a network whose depth comes with the pair's
+matches (``mast3r``, ``dust3r``: pointmaps; ``mickey``: its keypoints' depths). Each answers ``depth(frame)`` (or
+``pair_depth``) in metres."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ __all__ = ["DepthSource", "FileDepth", "NoDepth", "create", "names", "HUB_MODELS
 
 from .hub import HUB_MODELS  # noqa: E402  (torch and transformers load only with a network source)
 
-#: Two-view networks whose pointmaps give both images' depth after matching (``depth/mast3r.py``).
-PAIR_MODELS = ("mast3r", "dust3r")
+#: Networks whose depth of both images comes with the pair's matching: two-view pointmaps (``depth/mast3r.py``)
+#: and MicKey's metric keypoints (``depth/mickey.py``).
+PAIR_MODELS = ("mast3r", "dust3r", "mickey")
 
 
 def names() -> list[str]:
@@ -32,6 +34,10 @@ def create(spec: str, **options: object) -> DepthSource:
         from .hf import HFDepth
 
         return HFDepth(s[len("hf:") :], **options)
+    if s == "mickey":
+        from .mickey import MickeyDepth
+
+        return MickeyDepth(**options)  # type: ignore[arg-type]
     if s in PAIR_MODELS:
         from .mast3r import Mast3rDepth
 

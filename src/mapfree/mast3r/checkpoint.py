@@ -24,7 +24,7 @@ from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs,
 from .model import AsymmetricModel
 
 __all__ = ["Published", "PUBLISHED", "find_checkpoint", "checkpoint_available", "load_model", "read_checkpoint",
-           "model_from_state_dict"]
+           "model_from_state_dict", "load_error_gist"]
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,7 @@ def checkpoint_available(kind: str) -> bool:
     return True
 
 
-def _why(e: Exception) -> str:
+def load_error_gist(e: Exception) -> str:
     """The gist of a ``torch.load`` failure (its weights-only errors bury it in advice that does not apply)."""
     m = re.search(r"WeightsUnpickler error:\s*(.+?)(?:\n\s*\n|$)", str(e), re.S)
     gist = m.group(1) if m else (str(e).strip().splitlines() or [""])[0]
@@ -109,8 +109,8 @@ def _load_pth(path: Path) -> tuple[Mapping[str, torch.Tensor], str]:
         with torch.serialization.safe_globals([argparse.Namespace]):
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
-        raise ValueError(f"{path}: not a readable MASt3R/DUSt3R checkpoint ({_why(e)}); expected the authors' "
-                         f".pth file or a hub folder (config.json + model.safetensors)") from None
+        raise ValueError(f"{path}: not a readable MASt3R/DUSt3R checkpoint ({load_error_gist(e)}); expected the "
+                         f"authors' .pth file or a hub folder (config.json + model.safetensors)") from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("model"), dict) or "args" not in ckpt:
         raise ValueError(f"{path}: not a MASt3R/DUSt3R checkpoint (expected the keys 'model' and 'args')")
     args = ckpt["args"]

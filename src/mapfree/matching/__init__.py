@@ -76,6 +76,12 @@ def _mast3r(kind: str) -> Callable[..., Matcher]:
     return make
 
 
+def _mickey(**o: object) -> Matcher:
+    from .mickey import MickeyMatcher
+
+    return MickeyMatcher(**o)
+
+
 @dataclass(frozen=True)
 class _Entry:
     """A registered matcher: how to build it, its options dataclass and what it needs beyond the base install."""
@@ -116,6 +122,9 @@ _REGISTRY: dict[str, _Entry] = {
         "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in $MAPFREE_WEIGHTS_DIR, non-commercial"),
     "dust3r": _Entry(_mast3r("dust3r"), "mast3r.Mast3rOptions",
                      "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in $MAPFREE_WEIGHTS_DIR, non-commercial"),
+    "mickey": _Entry(_mickey, "mickey.MickeyOptions",
+                     "weights: mickey.ckpt + dinov2_vitl14_pretrain.pth in $MAPFREE_WEIGHTS_DIR/mickey/, "
+                     "non-commercial"),
 }
 
 
@@ -186,4 +195,8 @@ def available() -> list[str]:
     from ..mast3r.checkpoint import checkpoint_available
 
     out += [k for k in ("mast3r", "dust3r") if checkpoint_available(k)]
+    from ..mickey.checkpoint import files_available
+
+    if files_available():
+        out.append("mickey")
     return out

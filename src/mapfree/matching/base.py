@@ -7,7 +7,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["Features", "Matches", "Matcher"]
+__all__ = ["Features", "Matches", "Matcher", "MatchCandidates", "CandidateMatches"]
 
 
 @dataclass
@@ -50,6 +50,26 @@ class Matches:
 
     def subset(self, mask: np.ndarray) -> "Matches":
         return Matches(self.kpts0[mask], self.kpts1[mask], self.scores[mask])
+
+
+@dataclass
+class MatchCandidates:
+    """Every keypoint of both images with its metric depth, and a score for every pair of them: what a
+    probabilistic solver draws correspondences from (MicKey's). Torch tensors on the matcher's device."""
+
+    kpts0: Any  # (N0, 2) original-image pixels of image 0 (reference)
+    kpts1: Any  # (N1, 2) of image 1 (query)
+    depth0: Any  # (N0,) metres along the optical axis
+    depth1: Any  # (N1,)
+    scores: Any  # (N0, N1) >= 0, not normalised
+
+
+@dataclass
+class CandidateMatches(Matches):
+    """Matches (the usual one-to-one correspondences) that also carry the scored candidates they were picked
+    from; ``subset`` keeps only the matches."""
+
+    candidates: MatchCandidates | None = None
 
 
 @runtime_checkable

@@ -37,7 +37,8 @@ __all__ = ["View", "Anchor", "Localizer", "Relocalizer", "as_view", "ViewLike", 
 #: Median keypoint displacement (px) below which the query is seen from the reference's viewpoint (identity pose).
 MIN_PARALLAX_PX = 0.5
 #: Which depth maps each solver needs (anything else: both).
-_DEPTH_NEEDS = {"essential": ("ref", "query"), "pnp": ("ref",), "procrustes": ("ref", "query")}
+_DEPTH_NEEDS = {"essential": ("ref", "query"), "pnp": ("ref",), "procrustes": ("ref", "query"),
+                "mickey": ()}  # MicKey's solver lifts with the depths its matcher's candidates carry
 
 
 @dataclass

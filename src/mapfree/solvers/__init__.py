@@ -3,6 +3,8 @@
     solver = mapfree.solvers.create("essential", ransac_threshold_px=2.0)   # or "emat", "pnp", "procrustes"
     est = solver.solve(matches, K_ref, K_query, depth_ref, depth_query)
 
+``mickey`` is MicKey's probabilistic Procrustes, which runs on the ``mickey`` matcher's candidates.
+
 Options default to the paper's values (preset ``paper``); preset ``best`` switches to our ranking
 confidence (``confidence="score"``). Explicit options override the preset.
 """
@@ -14,13 +16,15 @@ from dataclasses import fields
 from .base import Solver
 from .confidence import CONFIDENCE_MODES
 from .essential import EssentialOptions, EssentialSolver
+from .mickey import MickeySolver, MickeySolverOptions
 from .pnp import PnPOptions, PnPSolver
 from .procrustes import ProcrustesOptions, ProcrustesSolver
 from .scale import scale_vote, scale_vote_bruteforce
 
 __all__ = [
     "Solver", "create", "available", "options_for", "option_names", "PRESETS", "CONFIDENCE_MODES",
-    "EssentialOptions", "EssentialSolver", "PnPOptions", "PnPSolver", "ProcrustesOptions", "ProcrustesSolver",
+    "EssentialOptions", "EssentialSolver", "MickeySolver", "MickeySolverOptions", "PnPOptions", "PnPSolver",
+    "ProcrustesOptions", "ProcrustesSolver",
     "scale_vote", "scale_vote_bruteforce",
 ]
 
@@ -28,6 +32,7 @@ SOLVERS: dict[str, tuple[type, type]] = {
     "essential": (EssentialSolver, EssentialOptions),
     "pnp": (PnPSolver, PnPOptions),
     "procrustes": (ProcrustesSolver, ProcrustesOptions),
+    "mickey": (MickeySolver, MickeySolverOptions),  # on the mickey matcher's scored candidates only
 }
 ALIASES = {"emat": "essential", "ess": "essential", "essential-matrix": "essential", "3d3d": "procrustes"}
 PRESETS: dict[str, dict] = {"paper": {}, "best": {"confidence": "score"}}

@@ -1,0 +1,95 @@
+"""``mickey`` matcher: MicKey's metric keypoints (one per 14-pixel cell of the 540x720 input) and their matching.
+
+``extract`` runs the network on one image (a reference once per scene or anchor); ``match`` scores every pair of
+keypoints (dual softmax with the learned dustbin, times both keypoint scores: MicKey's final scores) and returns
+the mutual best pairs with a positive score, in original pixels, scored by their final score. The matches also
+carry every keypoint with its metric depth and the full score matrix (``CandidateMatches``): the ``mickey``
+solver draws from it, and the ``mickey`` depth source reads the keypoints' depths.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..mickey.engine import MickeyEngine, MickeyImage, shared_engine
+from .base import CandidateMatches, Features, MatchCandidates, Matches
+from .utils import checked_or_blank
+
+__all__ = ["MickeyOptions", "MickeyMatcher", "mutual_best"]
+
+
+@dataclass
+class MickeyOptions:
+    checkpoint: str = "mickey"  # mickey | mickey_sc: the file in $MAPFREE_WEIGHTS_DIR/mickey/
+    weights: str | None = None  # a checkpoint file elsewhere (or a folder holding <checkpoint>.ckpt)
+    dinov2: str | None = None  # the DINOv2 ViT-L/14 file elsewhere
+    config: str | None = None  # the config YAML elsewhere (default: the one beside the checkpoint, if any)
+    fp16: bool | None = None  # DINOv2 in float16: None = as the config says (published: yes) on a GPU, no on CPU
+    min_score: float = 0.0  # keep mutual matches whose final score is above this
+    batch_size: int = 8  # images (extract_many) or pairs (match_many) per network pass
+    device: str | None = None
+
+
+def mutual_best(scores: torch.Tensor, min_score: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(i, j, score) of the pairs that are each other's best in an (N0, N1) score matrix with a score above
+    ``min_score``, sorted by score, best first."""
+    best0, j = scores.max(dim=1)
+    i_of_j = scores.max(dim=0).indices
+    i = torch.arange(scores.shape[0], device=scores.device)
+    keep = (i_of_j[j] == i) & (best0 > min_score)
+    i, j, s = i[keep], j[keep], best0[keep]
+    order = torch.argsort(s, descending=True)
+    return i[order], j[order], s[order]
+
+
+class MickeyMatcher:
+    """MicKey keypoints and matches; keypoints in original pixels."""
+
+    name = "mickey"
+
+    def __init__(self, options: MickeyOptions | None = None, **overrides: object) -> None:
+        self.options = o = options or MickeyOptions(**overrides)  # type: ignore[arg-type]
+        if o.batch_size < 1:
+            raise ValueError(f"batch_size must be at least 1, got {o.batch_size}")
+        self.engine: MickeyEngine = shared_engine(o.checkpoint, o.weights, o.dinov2, o.config, o.device, o.fp16)
+        self.device = self.engine.device
+
+    @staticmethod
+    def _features(out: MickeyImage) -> Features:
+        return Features(out.xy_original().cpu().numpy(), out.original_size, {"mickey": out})
+
+    def extract(self, image: np.ndarray) -> Features:
+        return self.extract_many([image])[0]
+
+    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
+        """Features of several images, ``batch_size`` per network pass (textureless ones: no keypoints)."""
+        checked = [checked_or_blank(im) for im in images]
+        todo = [img for img, blank in checked if blank is None]
+        outs = iter(self.engine.extract(todo, self.options.batch_size)) if todo else iter(())
+        return [blank if blank is not None else self._features(next(outs)) for _, blank in checked]
+
+    def match(self, f0: Features, f1: Features) -> Matches:
+        return self.match_many(f0, [f1])[0]
+
+    def match_many(self, f0: Features, others: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
+        """``f0`` (the reference) against each of ``others``: the pairs' score matrices in batches."""
+        ref = f0.data.get("mickey")
+        todo = [i for i, f in enumerate(others) if f.data.get("mickey") is not None]
+        out: list[Matches] = [Matches.empty() for _ in others]
+        if ref is None or not todo:
+            return out
+        step = batch_size or self.options.batch_size
+        finals = self.engine.scores(ref, [others[i].data["mickey"] for i in todo], step)
+        for i, final in zip(todo, finals):
+            out[i] = self._matches(ref, others[i].data["mickey"], final)
+        return out
+
+    def _matches(self, ref: MickeyImage, query: MickeyImage, final: torch.Tensor) -> CandidateMatches:
+        i, j, s = mutual_best(final, self.options.min_score)
+        xy0, xy1 = ref.xy_original(), query.xy_original()
+        cand = MatchCandidates(xy0, xy1, ref.keypoints.depth[0], query.keypoints.depth[0], final)
+        return CandidateMatches(xy0[i].cpu().numpy(), xy1[j].cpu().numpy(), s.double().cpu().numpy(), cand)

@@ -1,0 +1,9 @@
+"""MicKey (Barroso-Laguna et al., CVPR 2024: *Matching 2D Images in 3D*), ported: metric keypoints from a frozen
+DINOv2, their matching by a dual softmax, and the probabilistic Procrustes solver. Weights are the user's download.
+
+Modules: ``config`` (the shipped YAML, read not trusted), ``dinov2`` (the ViT/14 backbone, its size read from
+the weight file), ``heads`` (the four keypoint heads), ``model`` (network and matching matrix), ``preprocess``
+(540x720 input, intrinsics scaled), ``checkpoint`` (files in ``$MAPFREE_WEIGHTS_DIR/mickey/``, strict),
+``engine`` (one network shared by the matcher and the depth source), ``synthetic`` (fill-rule weights).
+The solver is ``mapfree.solvers.mickey``.
+"""

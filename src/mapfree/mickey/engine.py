@@ -1,0 +1,104 @@
+"""One loaded MicKey network, shared by the ``mickey`` matcher and depth source (and every method built with the
+same files, device and precision): images go through it in batches, pairs are scored from their outputs.
+
+An image's output (``MickeyImage``) is all that matching it ever needs: whoever holds a reference's ``Features``
+(``Relocalizer.set_reference``, ``mapfree run``'s scene reference, the service's prepared anchors) matches every
+query against it without running the network on the reference again.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ..matching.utils import resolve_device
+from .checkpoint import MickeyFiles, find_files, load_network
+from .model import Keypoints, MickeyNet
+from .preprocess import Prepared, prepare_array
+
+__all__ = ["MickeyImage", "MickeyEngine", "shared_engine"]
+
+
+@dataclass
+class MickeyImage:
+    """One image after the network: its keypoints (a batch of one, on the engine's device) and its geometry."""
+
+    keypoints: Keypoints
+    original_size: tuple[int, int]  # (width, height)
+    scale: tuple[float, float]  # network input / original
+    engine_id: int
+
+    def xy_original(self) -> torch.Tensor:
+        """(N, 2) keypoints in original-image pixels, float64 on the engine's device."""
+        s = torch.tensor(self.scale, dtype=torch.float64, device=self.keypoints.xy.device)
+        return (self.keypoints.xy[0].double() + 0.5) / s - 0.5
+
+
+class MickeyEngine:
+    """A network on a device. ``extract`` runs the network on images (in batches), ``scores`` matches one image's
+    output against others'. Thread-safe for inference (the relocalizer prepares the next query in a thread)."""
+
+    name = "mickey"
+
+    def __init__(self, net: MickeyNet, device: torch.device, files: MickeyFiles | None = None) -> None:
+        self.net, self.device, self.files = net, device, files
+        self._lock = threading.Lock()
+        self.images = 0  # images run through the network (tests and benchmarks read it)
+        self.pairs = 0
+
+    @property
+    def input_size(self) -> tuple[int, int]:
+        return self.net.cfg.width, self.net.cfg.height
+
+    def extract(self, images: Sequence[np.ndarray], batch_size: int = 8) -> list[MickeyImage]:
+        """(H, W, 3) uint8 RGB images -> their outputs, ``batch_size`` images per network pass."""
+        out: list[MickeyImage] = []
+        step = max(1, int(batch_size))
+        for i in range(0, len(images), step):
+            preps: list[Prepared] = [prepare_array(im, self.input_size) for im in images[i:i + step]]
+            x = torch.stack([p.tensor for p in preps]).to(self.device)
+            with torch.inference_mode():
+                k = self.net.extract(x)
+            out += [MickeyImage(k.item(j), p.original_size, p.scale(), id(self)) for j, p in enumerate(preps)]
+        with self._lock:
+            self.images += len(images)
+        return out
+
+    def scores(self, ref: MickeyImage, others: Sequence[MickeyImage], batch_size: int = 8) -> list[torch.Tensor]:
+        """Final scores (N_ref, N_other) of ``ref`` against each of ``others``, ``batch_size`` pairs per pass."""
+        out: list[torch.Tensor] = []
+        step = max(1, int(batch_size))
+        for i in range(0, len(others), step):
+            chunk = others[i:i + step]
+            k1 = Keypoints(*(torch.cat([getattr(o.keypoints, f) for o in chunk]) for f in ("xy", "depth", "score",
+                                                                                              "desc")),
+                           chunk[0].keypoints.grid)
+            with torch.inference_mode():
+                _, final = self.net.scores(ref.keypoints, k1)
+            out += list(final)
+        with self._lock:
+            self.pairs += len(others)
+        return out
+
+
+_ENGINES: dict[tuple, MickeyEngine] = {}
+_ENGINES_LOCK = threading.Lock()
+
+
+def shared_engine(checkpoint: str = "mickey", weights: str | None = None, dinov2: str | None = None,
+                  config: str | None = None, device: str | torch.device | None = None,
+                  fp16: bool | None = None) -> MickeyEngine:
+    """The one engine per (files, device, precision). Files are found first, so a missing one fails before any
+    image is read. ``fp16`` None: DINOv2 in float16 where the config says so and the device is a GPU (CPU half
+    kernels are slow), float32 elsewhere."""
+    files = find_files(checkpoint, weights, dinov2, config)
+    dev = resolve_device(device)
+    key = (str(files.checkpoint.resolve()), str(files.dinov2.resolve()), str(files.config), str(dev), fp16)
+    with _ENGINES_LOCK:
+        if key not in _ENGINES:
+            _ENGINES[key] = MickeyEngine(load_network(files, dev, fp16), dev, files)
+        return _ENGINES[key]
