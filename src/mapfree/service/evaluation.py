@@ -62,8 +62,8 @@ def redact(report_dict: dict, problems: list[str], split: str) -> dict:
     raw = report_dict.get("metrics", {}) or {}
     metrics = _finite({**{k: raw.get(k) for k in METRIC_KEYS}, **{str(k): v for k, v in raw.items()}})
     per_scene = _finite(report_dict.get("per_scene") or {})
-    if split == "test":  # coarsened, medians withheld below a coverage (testmetrics.py)
-        metrics, notes = public_test_metrics(metrics, per_scene)
+    if split == "test":  # no medians, rounded (the threat model: testmetrics.py)
+        metrics, notes = public_test_metrics(metrics)
         return {"metrics": metrics, "problems": notes + problems}
     return {"metrics": metrics, "problems": problems, "per_scene": per_scene}
 

@@ -16,7 +16,7 @@ from .config import UNLIMITED, Settings
 from .db import Plot, Result, Submission, User, now
 from .evaluation import PLOT_NAMES, known_scenes, render_plots, unpack_report
 from .storage import UPLOAD_LEASE_SECONDS, check_quota, copy_in, lock_user
-from .testmetrics import coarsen
+from .testmetrics import without_medians
 from .uploads import UploadError, check_name, check_submission_zip
 
 
@@ -83,8 +83,9 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
 
 
 def shown_metrics(split: str, metrics: dict | None) -> dict | None:
-    """Stored metrics as shown: for ``test`` rounded again (results stored before coarsening was introduced)."""
-    return coarsen(metrics) if split == "test" and metrics else metrics
+    """Stored metrics as shown: for ``test`` without medians and rounded, also where a result was stored before
+    either (``testmetrics.py``)."""
+    return without_medians(metrics) if split == "test" and metrics else metrics
 
 
 def visible(sub: Submission | None, user: User | None, withdrawn: bool = False) -> bool:
