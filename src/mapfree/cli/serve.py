@@ -84,6 +84,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="such requests waiting for a thread; more get 429 with Retry-After (default 8)")
     g.add_argument("--anchor-cache-mb", type=float, default=256.0,
                    help="prepared anchors (features, depth at the working size) kept in memory (default 256 MiB)")
+    g.add_argument("--method-pool-mb", type=float, default=1024.0,
+                   help="built relocalizers (their models) kept in memory, least recently used dropped first "
+                        "(default 1024 MiB)")
     g = p.add_argument_group("connections (uvicorn)")
     g.add_argument("--forwarded-allow-ips", default="",
                    help="comma-separated addresses of trusted reverse proxies whose X-Forwarded-For/-Proto are "
@@ -115,6 +118,7 @@ def settings_from_args(a: argparse.Namespace):
                     storage_quota_bytes=int(a.storage_quota_mb * mb), zip_retention_days=a.zip_retention_days,
                     auth_failures_per_minute=a.auth_failures_per_minute,
                     heavy_threads=a.heavy_threads, heavy_queue=a.heavy_queue, anchor_cache_mb=a.anchor_cache_mb,
+                    method_pool_mb=a.method_pool_mb,
                     body_timeout=a.body_timeout, limits=limits,
                     operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""))
 

@@ -77,7 +77,8 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue)
     app.state.localizers = Localizers(per_method=default_threads(),
                                       cache_bytes=int(settings.anchor_cache_mb * (1 << 20)),
-                                      max_side=settings.limits.work_max_side)
+                                      max_side=settings.limits.work_max_side,
+                                      pool_bytes=int(settings.method_pool_mb * (1 << 20)))
     if settings.methods_dir is not None:
         register_methods_dir(settings.methods_dir)
 

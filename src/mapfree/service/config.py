@@ -72,6 +72,7 @@ class Settings:
     heavy_threads: int = 0  # localize / anchor computations at once per API process (0: min(4, CPUs))
     heavy_queue: int = 8  # heavy requests waiting for one of those threads; past that a 429 with Retry-After
     anchor_cache_mb: float = 256.0  # prepared anchors kept per API process (features and depth, no pixels)
+    method_pool_mb: float = 1024.0  # built relocalizers (models) kept per API process, shared by equal configs
     body_timeout: float = 30.0  # seconds for the next piece of a request body before a 408 (0: no limit)
     limits: Limits = field(default_factory=Limits)
 

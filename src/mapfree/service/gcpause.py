@@ -25,3 +25,12 @@ def after_load() -> None:
     process only."""
     if _enabled:
         gc.freeze()
+
+
+def after_unload() -> None:
+    """Long-lived structures were dropped (an evicted relocalizer): frozen objects are never collected, so thaw,
+    collect what is garbage now, and freeze the rest again, in a serving process only."""
+    if _enabled:
+        gc.unfreeze()
+        gc.collect()
+        gc.freeze()

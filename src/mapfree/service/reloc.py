@@ -4,9 +4,7 @@ prepared anchors (reference features and depth are computed once per anchor and 
 from __future__ import annotations
 
 import logging
-import queue
 import re
-import threading
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Hashable, Iterable
@@ -16,7 +14,7 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose
-from .gcpause import after_load
+from .methodpool import MethodPool
 from .prepared import ByteLRU, PreparedAnchor, localize_prepared, prepare_anchor
 from .uploads import UploadError
 from .worksize import DEFAULT_MAX_SIDE, fit_image
@@ -43,6 +41,9 @@ def default_method(configured: str = "") -> str:
 #: What a method name sent over HTTP may look like: never a path, a ``NAME@DEPTH`` override or a depth spec
 #: with a colon (those would make the server read files the client chooses).
 METHOD_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
+#: Depth-file suffixes a preset name may carry: in the service every one of them means the depth map uploaded
+#: with the photo (the dataset's files are never read), so any other suffix names no depth a request can have.
+DEPTH_SUFFIXES = ("sensor", "dptkitti", "dptnyu", "mono")
 
 
 def allowed_methods() -> str:
@@ -64,9 +65,17 @@ def check_method(name: str) -> str:
     ok = METHOD_NAME_RE.fullmatch(name) is not None and not name.lower().endswith((".yaml", ".yml"))
     if ok:
         try:
-            return methods.get(name).name
+            m = methods.get(name)
         except (KeyError, ValueError, FileNotFoundError, OSError):
             pass
+        else:
+            suffix = m.depth[len("files:"):] if m.kind == "matching" and m.depth.startswith("files:") else ""
+            if suffix and suffix not in DEPTH_SUFFIXES:
+                raise UploadError(422, f"method: {name[:64]!r} names depth files '.{suffix[:20]}.png', which a "
+                                       "request cannot carry: the depth here is the map uploaded with the photo; "
+                                       f"use the suffix {' or '.join(DEPTH_SUFFIXES)} (e.g. "
+                                       f"{m.matcher}_{m.solver.replace('essential', 'emat')}_sensor)")
+            return m.name
     raise UploadError(422, f"method: unknown method {name[:64]!r}; allowed: {allowed_methods()}")
 
 
@@ -167,42 +176,34 @@ class Localizers:
     sees it. Prepared anchors (``prepared.py``: features and depth per photo, no pixels) are kept per (anchor,
     method, version) in an LRU of at most ``cache_bytes``. The version names the anchor's current photos
     (``api.anchor_version``: it changes when one is added or deleted), so a change made through another
-    process is never answered from a stale cache."""
+    process is never answered from a stale cache. Built relocalizers live in a ``MethodPool`` of at most
+    ``pool_bytes``, shared by equal configurations (``methodpool.py``)."""
 
-    def __init__(self, per_method: int = 2, cache_bytes: int = 256 << 20, max_side: int = DEFAULT_MAX_SIDE):
-        self.per_method, self.max_side = per_method, max_side
-        self._pools: dict[str, queue.Queue] = {}
-        self._made: dict[str, int] = {}
+    def __init__(self, per_method: int = 2, cache_bytes: int = 256 << 20, max_side: int = DEFAULT_MAX_SIDE,
+                 pool_bytes: int = 1 << 30):
+        self.max_side = max_side
+        self.pool = MethodPool(self._build, per_method, pool_bytes)
         self.anchors = ByteLRU(cache_bytes)
-        self._lock = threading.Lock()
 
     def fit(self, photo: Photo) -> Photo:
         """``photo`` at the working size (intrinsics and depth scaled with it)."""
         image, K, depth = fit_image(photo.image, photo.K, photo.depth, self.max_side)
         return photo if image is photo.image else Photo(image, K, depth, photo.pose)
 
-    def _take(self, method):
+    @staticmethod
+    def _build(method):
         from ..relocalize import Relocalizer
 
-        key = method.name
-        with self._lock:
-            pool = self._pools.setdefault(key, queue.Queue())
-            make = pool.empty() and self._made.get(key, 0) < self.per_method
-            if make:
-                self._made[key] = self._made.get(key, 0) + 1
-        if make:
-            try:
-                loc = Relocalizer.from_method(method)
-            except Exception as e:
-                with self._lock:
-                    self._made[key] -= 1
-                raise _unavailable(method.name, e) from e
-            after_load()  # its model stays for the process's life: out of the garbage collector's walks
-            return loc
-        return pool.get()
+        try:
+            return Relocalizer.from_method(method)
+        except Exception as e:
+            raise _unavailable(method.name, e) from e
+
+    def _take(self, method):
+        return self.pool.take(method)
 
     def _give(self, method, loc) -> None:
-        self._pools[method.name].put(loc)
+        self.pool.give(method, loc)
 
     def _prepare(self, loc, name: str, photos: Iterable[Photo]) -> PreparedAnchor:
         """Every photo prepared at the working size (``prepared.prepare_anchor``; each one fitted as it comes,
