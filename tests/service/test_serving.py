@@ -170,3 +170,55 @@ def test_x_forwarded_for_is_believed_only_from_configured_proxies(split_data, tm
             assert statuses(srv) == want, trusted
         finally:
             stop_server(srv.proc)
+
+
+def _answer(s: socket.socket, within: float) -> bytes:
+    """What the server sends on ``s`` within ``within`` seconds (until it closes or stops sending)."""
+    s.settimeout(within)
+    data = b""
+    try:
+        while chunk := s.recv(65536):
+            data += chunk
+            if b"\r\n\r\n" in data and b'"status"' in data:
+                break
+    except (socket.timeout, ConnectionResetError):
+        pass
+    return data
+
+
+def test_uploads_without_good_credentials_are_refused_unread_and_a_body_has_a_total_time(split_data, tmp_path):
+    """An anonymous 60 MB upload used to be read whole (spooled to disk) and then answered 401, and a trickle of
+    a byte every few seconds (under the gap timeout) held its connection and file for as long as it liked. Now
+    missing or bad credentials are refused from the headers, before the body, and a body that is not all in
+    within --body-total-timeout gets 408."""
+    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
+                       extra=("--body-timeout", "30", "--body-total-timeout", "3"))
+    host, port = "127.0.0.1", int(srv.url.rsplit(":", 1)[1])
+    head = ("POST /api/submissions HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; boundary=xx"
+            "\r\nContent-Length: 60000000\r\n{auth}\r\n")
+    try:
+        for auth, want in (("", b"HTTP/1.1 401"), ("Authorization: Bearer mf_wrong\r\n", b"HTTP/1.1 401")):
+            with socket.create_connection((host, port), timeout=10) as s:
+                s.sendall(head.format(auth=auth).encode() + b"--xx\r\n" + b"x" * 100_000)
+                t0 = time.time()
+                data = _answer(s, 5)
+                assert data.startswith(want), (auth, data[:200])
+                assert time.time() - t0 < 3
+        with socket.create_connection((host, port), timeout=10) as s:  # a good token, then a trickle
+            s.sendall(head.format(auth=f"Authorization: Bearer {srv.tokens['alice']}\r\n").encode()
+                      + b'--xx\r\nContent-Disposition: form-data; name="file"; filename="s.zip"\r\n\r\n')
+            t0, data = time.time(), b""
+            s.settimeout(0.5)
+            while time.time() - t0 < 10 and not data:
+                try:
+                    s.sendall(b"x")
+                    data = s.recv(65536)
+                except socket.timeout:
+                    continue
+                except (BrokenPipeError, ConnectionResetError):
+                    break
+            data += _answer(s, 2)
+            assert data.startswith(b"HTTP/1.1 408") and b"within 3 s" in data, data[:300]
+            assert time.time() - t0 < 6
+    finally:
+        stop_server(srv.proc)

@@ -97,6 +97,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="close a connection whose request line and headers take longer (default 10 s; 0: off)")
     g.add_argument("--body-timeout", type=float, default=30.0,
                    help="answer 408 when the next piece of a request body takes longer (default 30 s; 0: off)")
+    g.add_argument("--body-total-timeout", type=float, default=600.0,
+                   help="answer 408 when a whole request body takes longer (default 600 s: 64 MiB at 1 Mbit/s; "
+                        "0: off)")
     g.add_argument("--limit-concurrency", type=int, default=1000,
                    help="connections per API process before new requests get 503 (default 1000; 0: no limit)")
     g.add_argument("--h11-max-incomplete-event-size", type=int, default=16 * 1024,
@@ -119,7 +122,7 @@ def settings_from_args(a: argparse.Namespace):
                     auth_failures_per_minute=a.auth_failures_per_minute,
                     heavy_threads=a.heavy_threads, heavy_queue=a.heavy_queue, anchor_cache_mb=a.anchor_cache_mb,
                     method_pool_mb=a.method_pool_mb,
-                    body_timeout=a.body_timeout, limits=limits,
+                    body_timeout=a.body_timeout, body_total_timeout=a.body_total_timeout, limits=limits,
                     operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""))
 
 

@@ -22,7 +22,7 @@ from .concurrency import HeavyPool, default_threads
 from .config import Settings, parse_daily_limit
 from .db import init_db, make_engine, session_factory
 from .gcpause import freeze_long_lived
-from .guard import AuthThrottle, client_address, request_id
+from .guard import AuthThrottle, CredentialGate, client_address, request_id
 from .head import HeadAsGet
 from .health import HealthMonitor
 from .lifeline import die_with_parent, parent_from_env
@@ -43,7 +43,8 @@ def _wants_html(request: Request) -> bool:
     return not p.startswith(_API_PREFIXES) and "text/html" in request.headers.get("accept", "")
 
 
-def _error(request: Request, status: int, message: str, headers: dict | None = None):
+def error_response(request: Request, status: int, message: str, headers: dict | None = None):
+    """A request's error: the HTML error page for a browser, else JSON ``{detail, status, request_id}``."""
     if _wants_html(request):
         from .web import error_page
 
@@ -84,7 +85,7 @@ def create_app(settings: Settings) -> FastAPI:
 
     @app.exception_handler(UploadError)
     async def _upload_error(request: Request, exc: UploadError):
-        return _error(request, exc.status, exc.message)
+        return error_response(request, exc.status, exc.message)
 
     @app.exception_handler(Withdrawn)
     async def _withdrawn(request: Request, exc: Withdrawn):
@@ -92,25 +93,26 @@ def create_app(settings: Settings) -> FastAPI:
             from .web import withdrawn_page
 
             return await run_in_threadpool(withdrawn_page, request, exc)
-        return _error(request, exc.status_code, str(exc.detail))
+        return error_response(request, exc.status_code, str(exc.detail))
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException):
         msg = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
         if exc.status_code == 413 and "too large" in msg.lower():
             msg = f"request body larger than {settings.limits.max_request_bytes} bytes"
-        return _error(request, exc.status_code, msg, getattr(exc, "headers", None))
+        return error_response(request, exc.status_code, msg, getattr(exc, "headers", None))
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
-        return _error(request, 422, _validation_message(exc))
+        return error_response(request, 422, _validation_message(exc))
 
     @app.exception_handler(Exception)
     async def _crash(request: Request, exc: Exception):  # only reached when the middleware below did not answer
         log.error("unhandled error", exc_info=exc, extra={"path": request.url.path})
-        return _error(request, 500, "internal server error")
+        return error_response(request, 500, "internal server error")
 
     throttle = app.state.auth_throttle = AuthThrottle(settings.auth_failures_per_minute)
+    app.add_middleware(CredentialGate)  # inside the access log below: its 401s are logged and counted
 
     @app.middleware("http")
     async def _access_log(request: Request, call_next):
@@ -123,7 +125,7 @@ def create_app(settings: Settings) -> FastAPI:
         except Exception as exc:
             log.error("unhandled error", exc_info=exc, extra={"request_id": rid, "method": request.method,
                                                               "path": request.url.path})
-            response = _error(request, 500, f"internal server error (request id {rid})")
+            response = error_response(request, 500, f"internal server error (request id {rid})")
         client = client_address(request)
         if response.status_code == 401 and throttle.credentialed(request):
             throttle.failed(client)
@@ -142,7 +144,7 @@ def create_app(settings: Settings) -> FastAPI:
                                    "user_id": getattr(request.state, "user_id", None)})
         return response
 
-    app.add_middleware(BodyTimeout, seconds=settings.body_timeout)
+    app.add_middleware(BodyTimeout, seconds=settings.body_timeout, total_seconds=settings.body_total_timeout)
 
     from . import accounts, api, leaderboard, manage, web
 

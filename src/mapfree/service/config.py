@@ -74,6 +74,7 @@ class Settings:
     anchor_cache_mb: float = 256.0  # prepared anchors kept per API process (features and depth, no pixels)
     method_pool_mb: float = 1024.0  # built relocalizers (models) kept per API process, shared by equal configs
     body_timeout: float = 30.0  # seconds for the next piece of a request body before a 408 (0: no limit)
+    body_total_timeout: float = 600.0  # seconds for a whole request body before a 408 (0: no limit)
     limits: Limits = field(default_factory=Limits)
 
     def __post_init__(self) -> None:

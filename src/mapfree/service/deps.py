@@ -34,16 +34,40 @@ def db_session(request: Request):
         yield db
 
 
+#: The 401 of a write without credentials.
+SIGN_IN = "authentication required: send 'Authorization: Bearer <token>' or sign in"
+
+
+def token_user(request: Request, db: Session, header: str) -> User:
+    """The account of an ``Authorization`` header's bearer token; a 401 naming why not (unknown, revoked,
+    expired), or a 429 past the failures allowed from the caller's address."""
+    scheme, _, token = header.partition(" ")
+    user, why = (auth.check_token(db, token.strip()) if scheme.lower() == "bearer" else
+                 (None, "invalid or revoked API token"))
+    if user is None:
+        request.app.state.auth_throttle.refuse(request)
+        raise HTTPException(401, why, headers={"WWW-Authenticate": "Bearer"})
+    return user
+
+
+def check_credentials(request: Request) -> int:
+    """The account id of a request's credentials, from its headers alone (``guard.CredentialGate``): a bearer
+    token, else the browser session cookie; 401 (or 429) when there are none or they are bad."""
+    with request.app.state.sessions() as db:
+        header = request.headers.get("authorization")
+        if header is not None:
+            return token_user(request, db, header).id
+        sess = auth.session_for(db, request.cookies.get(SESSION_COOKIE))
+        if sess is None:
+            raise HTTPException(401, SIGN_IN, headers={"WWW-Authenticate": "Bearer"})
+        return sess.user_id
+
+
 def identify(request: Request, db: Session) -> Caller:
     """Who is calling (possibly nobody). A malformed or unknown bearer token is a 401, not anonymous."""
     header = request.headers.get("authorization")
     if header is not None:
-        scheme, _, token = header.partition(" ")
-        user, why = (auth.check_token(db, token.strip()) if scheme.lower() == "bearer" else
-                     (None, "invalid or revoked API token"))
-        if user is None:
-            request.app.state.auth_throttle.refuse(request)  # 429 past the failures allowed from this address
-            raise HTTPException(401, why, headers={"WWW-Authenticate": "Bearer"})
+        user = token_user(request, db, header)
         request.state.user_id = user.id
         db.commit()  # end the read transaction (on SQLite it holds the write lock)
         return Caller(user, None, True)
@@ -68,8 +92,7 @@ def require_writer(request: Request, db: Session, form_csrf: str | None = None) 
     """A signed-in caller allowed to write: token callers, or cookie callers with the right CSRF token."""
     caller = identify(request, db)
     if caller.user is None:
-        raise HTTPException(401, "authentication required: send 'Authorization: Bearer <token>' or sign in",
-                            headers={"WWW-Authenticate": "Bearer"})
+        raise HTTPException(401, SIGN_IN, headers={"WWW-Authenticate": "Bearer"})
     if not caller.via_token:
         given = form_csrf or request.headers.get("x-csrf-token")
         if not auth.same_secret(given, caller.csrf):

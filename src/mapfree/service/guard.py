@@ -72,3 +72,37 @@ class AuthThrottle:
             self._failures.move_to_end(client)
             while len(self._failures) > self.max_clients:  # a flood of addresses: forget the quietest
                 self._failures.popitem(last=False)
+
+
+#: Requests that carry a body but no credentials by design: the sign-in form.
+_ANONYMOUS_WRITES = {("POST", "/login")}
+_BODY_METHODS = ("POST", "PUT", "PATCH", "DELETE")
+
+
+class CredentialGate:
+    """ASGI middleware: a request that may carry a body (every write but the sign-in form) is refused 401 from
+    its headers, before a byte of its body is read, when its credentials are missing or bad. An anonymous
+    upload used to be read whole (spooled to disk) and only then refused. The account found is kept in
+    ``request.state.account`` (the heavy pool's fair share is per account)."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["method"] not in _BODY_METHODS \
+                or (scope["method"], scope["path"]) in _ANONYMOUS_WRITES:
+            return await self.app(scope, receive, send)
+        from starlette.concurrency import run_in_threadpool
+
+        from .deps import check_credentials
+
+        request = Request(scope)
+        try:
+            scope.setdefault("state", {})["account"] = await run_in_threadpool(check_credentials, request)
+        except HTTPException as e:
+            from .app import error_response
+
+            headers = {**(e.headers or {}), "Connection": "close"}  # the unread body ends the connection
+            response = await run_in_threadpool(error_response, request, e.status_code, str(e.detail), headers)
+            return await response(scope, receive, send)
+        return await self.app(scope, receive, send)

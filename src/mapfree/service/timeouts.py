@@ -73,29 +73,38 @@ def head_timeout_protocol(header_timeout: float) -> str:
 
 
 class BodyTimeout:
-    """ASGI middleware: a request body whose next piece takes longer than ``seconds`` is answered 408 and its
-    connection closed (0: no limit). Only reads of the body are timed, not a wait for a disconnect after it;
-    the application sees a disconnect, and whatever it answers then is dropped."""
+    """ASGI middleware: a request body whose next piece takes longer than ``seconds``, or that is not all in
+    ``total_seconds`` after its first read, is answered 408 and its connection closed (0: no limit). A trickle
+    of a byte every few seconds no longer holds a connection and its spooled file for as long as it likes.
+    Only reads of the body are timed, not a wait for a disconnect after it; the application sees a disconnect,
+    and whatever it answers then is dropped."""
 
-    def __init__(self, app: Any, seconds: float):
-        self.app, self.seconds = app, seconds
+    def __init__(self, app: Any, seconds: float, total_seconds: float = 0.0):
+        self.app, self.seconds, self.total_seconds = app, seconds, total_seconds
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or self.seconds <= 0:
+        if scope["type"] != "http" or (self.seconds <= 0 and self.total_seconds <= 0):
             return await self.app(scope, receive, send)
         body_done = timed_out = started = False
+        deadline: float | None = None
+        loop = asyncio.get_running_loop()
 
         async def timed_receive():
-            nonlocal body_done, timed_out
+            nonlocal body_done, timed_out, deadline
             if body_done or timed_out:
                 return await receive() if not timed_out else {"type": "http.disconnect"}
+            if deadline is None and self.total_seconds > 0:
+                deadline = loop.time() + self.total_seconds
+            waits = [w for w in (self.seconds if self.seconds > 0 else None,
+                                 None if deadline is None else max(0.0, deadline - loop.time())) if w is not None]
             try:
-                message = await asyncio.wait_for(receive(), self.seconds)
+                message = await asyncio.wait_for(receive(), min(waits))
             except asyncio.TimeoutError:
                 timed_out = True
                 if not started:
-                    body = f'{{"detail": "request body not received: nothing came for {self.seconds:g} s", ' \
-                           f'"status": 408}}'.encode()
+                    why = (f"not all in within {self.total_seconds:g} s" if deadline is not None
+                           and loop.time() >= deadline else f"nothing came for {self.seconds:g} s")
+                    body = f'{{"detail": "request body not received: {why}", "status": 408}}'.encode()
                     await send({"type": "http.response.start", "status": 408,
                                 "headers": [(b"content-type", b"application/json"), (b"connection", b"close"),
                                             (b"content-length", str(len(body)).encode())]})
