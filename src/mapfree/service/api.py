@@ -321,7 +321,8 @@ def make_anchor(request: Request, db: Session, user: User, name: str, method: st
     db.commit()  # no transaction (SQLite: the write lock; PostgreSQL: the user's row) held while preparing
     aid = new_id()
     rows = _photo_rows_of(aid, ups[1:], 1)
-    request.app.state.localizers.check(aid, m, [u.photo for u in ups], anchor_version(rows))  # 422: cannot run
+    # 422 when it cannot run; what it prepares counts against the owner's share of the cache
+    request.app.state.localizers.check(aid, m, [u.photo for u in ups], anchor_version(rows), user.id)
     try:  # counted again, locked, in the transaction that stores them: another upload may have come meanwhile
         check_quota(db, settings, user.id, nbytes, "this anchor's photos")
     except UploadError:
@@ -533,15 +534,16 @@ def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim) -> Photo:
     return Photo(img, K, d, Pose.from_qt(q[:4], q[4:]))
 
 
-def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img, q_K,
-                    q_depth=None) -> Estimate:
+def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img, q_K, q_depth=None,
+                    owner: int | None = None) -> Estimate:
     """The query's pose in the anchor's frame against its current photos (decoded from ``rows`` only when this
-    process has not prepared this version of the anchor); ``extras["photo"]`` is the answering photo's index."""
+    process has not prepared this version of the anchor, and then counted against ``owner``'s share of the
+    cache: the account asking); ``extras["photo"]`` is the answering photo's index."""
     lim = request.app.state.settings.limits
     indices = photo_indices(rows)
     est = request.app.state.localizers.localize_photos(
         a.id, a.method, anchor_version(rows), lambda: (stored_photo(a, rows, k, lim) for k in indices),
-        q_img, q_K, q_depth)
+        q_img, q_K, q_depth, owner)
     if est.extras.get("photo") is not None:  # the position among the photos prepared -> its index
         est.extras["photo"] = indices[est.extras["photo"]]
     return est
@@ -557,7 +559,7 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     (``X_query = R X_anchor + t``), with confidence and timings. With several photos the most similar one
     (DenseVLAD) answers: ``photo`` says which (its index), ``retrieval_similarity`` how similar. ``ok: false``
     with a ``reason`` when the method finds no pose."""
-    require_writer(request, db, csrf_token)
+    caller = require_writer(request, db, csrf_token)
     a = find_anchor(db, aid)
     rows = photo_rows(db, a.id)
     db.commit()  # release the read transaction before the long computation
@@ -568,6 +570,6 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     up = read_photo(q_bytes, lim, {"fx": fx, "fy": fy, "cx": cx, "cy": cy})
     q_depth = up.depth(depth.file.read(lim.max_image_bytes + 1), lim) if depth is not None and depth.filename else None
     q = up.fit(lim.work_max_side, q_depth)
-    out = estimate_json(localize_anchor(request, a, rows, q.image, q.K, q.depth), a.method)
+    out = estimate_json(localize_anchor(request, a, rows, q.image, q.K, q.depth, caller.user.id), a.method)
     out["anchor"] = a.id
     return out

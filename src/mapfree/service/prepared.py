@@ -139,12 +139,15 @@ def localize_prepared(loc: Any, prepared: PreparedAnchor, query: Any) -> Estimat
 
 
 class ByteLRU:
-    """A thread-safe LRU whose entries have a size (``nbytes``): the least recently used ones are dropped while
-    the total is over ``max_bytes``; an entry larger than the whole budget is not kept at all."""
+    """A thread-safe LRU whose entries have a size (``nbytes``) and an owner (the account whose request put
+    them): while the total is over ``max_bytes``, the least recently used entry *of the owner holding the most
+    bytes* is dropped, so that one account cannot evict everyone else's entries, only its own once it holds the
+    most. An entry larger than the whole budget is not kept at all."""
 
     def __init__(self, max_bytes: int):
         self.max_bytes = int(max_bytes)
-        self._items: OrderedDict[Hashable, tuple[Any, int]] = OrderedDict()
+        self._items: OrderedDict[Hashable, tuple[Any, int, Hashable]] = OrderedDict()
+        self._owned: dict[Hashable, int] = {}  # bytes per owner
         self._lock = threading.Lock()
         self.total = 0
 
@@ -156,24 +159,36 @@ class ByteLRU:
             self._items.move_to_end(key)
             return item[0]
 
-    def put(self, key: Hashable, value: Any, nbytes: int) -> None:
+    def _pop(self, key: Hashable) -> None:
+        _, n, owner = self._items.pop(key)
+        self.total -= n
+        self._owned[owner] -= n
+        if not self._owned[owner]:
+            del self._owned[owner]
+
+    def put(self, key: Hashable, value: Any, nbytes: int, owner: Hashable = None) -> None:
         with self._lock:
-            old = self._items.pop(key, None)
-            if old is not None:
-                self.total -= old[1]
+            if key in self._items:
+                self._pop(key)
             if nbytes > self.max_bytes:
                 return
-            self._items[key] = (value, nbytes)
+            self._items[key] = (value, nbytes, owner)
             self.total += nbytes
+            self._owned[owner] = self._owned.get(owner, 0) + nbytes
             while self.total > self.max_bytes and self._items:
-                _, (_, n) = self._items.popitem(last=False)
-                self.total -= n
+                heaviest = max(self._owned, key=self._owned.__getitem__)
+                self._pop(next(k for k, item in self._items.items() if item[2] == heaviest))
+
+    def owned(self, owner: Hashable) -> int:
+        """Bytes held by ``owner``'s entries."""
+        with self._lock:
+            return self._owned.get(owner, 0)
 
     def drop(self, match) -> None:
         """Forget every entry whose key ``match(key)`` is true."""
         with self._lock:
             for k in [k for k in self._items if match(k)]:
-                self.total -= self._items.pop(k)[1]
+                self._pop(k)
 
     def __len__(self) -> int:
         return len(self._items)

@@ -214,7 +214,8 @@ class Localizers:
         except Exception as e:  # e.g. a depth network whose weights are gone
             raise _unavailable(name, e) from e
 
-    def check(self, anchor_id: str, method: str, photos: list[Photo], version: Hashable = ()) -> None:
+    def check(self, anchor_id: str, method: str, photos: list[Photo], version: Hashable = (),
+              owner: Hashable = None) -> None:
         """Build the method and prepare the anchor now (both kept for the first ``localize``), so that an
         anchor whose method cannot run here is refused at creation (``MethodUnavailable``), not at use."""
         plain, with_depth = effective_method(method, False), effective_method(method, True)
@@ -224,7 +225,7 @@ class Localizers:
                 if i > 0:
                     continue  # built (weights present); the reference is prepared once, by the usual variant
                 prepared = self._prepare(loc, m.name, photos)
-                self.anchors.put((anchor_id, m.name, version), prepared, prepared.nbytes)
+                self.anchors.put((anchor_id, m.name, version), prepared, prepared.nbytes, owner)
             finally:
                 self._give(m, loc)
 
@@ -233,16 +234,17 @@ class Localizers:
 
     def localize(self, anchor_id: str, method: str, ref_image: np.ndarray, ref_K: Intrinsics,
                  ref_depth: np.ndarray | None, query_image: np.ndarray, query_K: Intrinsics,
-                 query_depth: np.ndarray | None = None) -> Estimate:
+                 query_depth: np.ndarray | None = None, owner: Hashable = None) -> Estimate:
         """Pose of the query relative to one reference photo; ``est.extras["method"]`` names what ran."""
         return self.localize_photos(anchor_id, method, (), lambda: [Photo(ref_image, ref_K, ref_depth)],
-                                    query_image, query_K, query_depth)
+                                    query_image, query_K, query_depth, owner)
 
     def localize_photos(self, anchor_id: str, method: str, version: Hashable, photos: Callable[[], Iterable[Photo]],
                         query_image: np.ndarray, query_K: Intrinsics,
-                        query_depth: np.ndarray | None = None) -> Estimate:
+                        query_depth: np.ndarray | None = None, owner: Hashable = None) -> Estimate:
         """World-to-camera pose of the query in the anchor's frame. ``photos`` is called (decoding the stored
-        images) only when this process has not prepared this version of the anchor yet. With several photos
+        images) only when this process has not prepared this version of the anchor yet; what it prepares counts
+        against ``owner``'s share of the cache (the account asking: ``prepared.ByteLRU``). With several photos
         ``est.extras`` names the retrieved one (``photo``, ``retrieval_similarity``). Keypoints in
         ``extras["matches"]`` are in the working-size pixels (``fit``)."""
         from ..relocalize import View
@@ -254,7 +256,7 @@ class Localizers:
             prepared = self.anchors.get(key)
             if prepared is None:
                 prepared = self._prepare(loc, method.name, photos())
-                self.anchors.put(key, prepared, prepared.nbytes)
+                self.anchors.put(key, prepared, prepared.nbytes, owner)
             q = self.fit(Photo(query_image, query_K, query_depth))
             try:
                 est = localize_prepared(loc, prepared, View(q.image, q.K, q.depth))

@@ -351,7 +351,7 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
                    csrf_token: str = Form(""), db: Session = Depends(db_session)):
     """Two photos in, the matches and the virtual grid at the estimated pose out (nothing is stored). A method
     that needs the reference depth is refused without one, before anything runs."""
-    require_writer(request, db, csrf_token)
+    caller = require_writer(request, db, csrf_token)
     form = {"ref_fx": ref_fx, "ref_fy": ref_fy, "ref_cx": ref_cx, "ref_cy": ref_cy,
             "q_fx": q_fx, "q_fy": q_fy, "q_cx": q_cx, "q_cy": q_cy}
     lim = request.app.state.settings.limits
@@ -374,7 +374,7 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
     del ref_up, q_up, ref_depth  # the full-size pixels go before the method runs
     key = "try-" + secrets.token_hex(8)
     loc = request.app.state.localizers
-    est = loc.localize(key, m, ref.image, ref.K, ref.depth, q.image, q.K)
+    est = loc.localize(key, m, ref.image, ref.K, ref.depth, q.image, q.K, owner=caller.user.id)
     loc.forget(key)
     png = figure_png(ref.image, q.image, ref.K, q.K, est, title=m)
     return _reloc_page(request, db, method=m, form=form, result=estimate_json(est, m),
@@ -398,7 +398,7 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
         q = _query_photo(query, lim, form).fit(lim.work_max_side)  # the size the matches are in
     except UploadError as e:
         return _reloc_page(request, db, e.status, method=a.method, form=form, error=e.message)
-    est = localize_anchor(request, a, rows, q.image, q.K)
+    est = localize_anchor(request, a, rows, q.image, q.K, owner=caller.user.id)
     result = estimate_json(est, a.method)
     if not may_see_photos(a, caller.user):  # the figure would show the anchor's photo
         return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8])
