@@ -489,3 +489,51 @@ def test_operator_methods_folder_and_old_anchors_whose_method_cannot_run(make_ap
     r = app.client.post(f"/anchors/{old.id}/localize", headers=app.auth("ben"),
                         files={"image": ("q.png", _png(48, 64))}, data=form)
     assert r.status_code == 422 and "loftr_outdoor.ckpt" in r.json()["detail"], r.text
+
+
+def test_tokens_and_sessions_never_outlive_the_token_they_were_made_with(server):
+    """A 3-second token minted a 365-day token that kept working, and a session signed in with a token outlived
+    its revocation by 12 h. Now a token made with another expires with it at the latest, and revoking a token
+    ends the tokens and sessions made with it (and says which)."""
+    from mapfree.service import auth
+    from mapfree.service.db import User, make_engine, session_factory
+
+    create_users(server.db_url, {"erin": None})
+    engine = make_engine(server.db_url)
+    with session_factory(engine).begin() as db:
+        short = auth.issue_token(db, db.query(User).filter_by(name="erin").one(), expires_in=3)
+    engine.dispose()
+    t0 = time.time()
+    with server.client(headers={"Authorization": f"Bearer {short}"}) as c:
+        r = c.post("/api/tokens", data={"expires_in_days": "365", "label": "long"})
+        assert r.status_code == 201, r.text
+        child = r.json()
+        assert child["expires_at"] <= t0 + 4
+    with server.client(headers={"Authorization": f"Bearer {child['token']}"}) as c:
+        assert c.get("/api/me").status_code == 200
+        time.sleep(max(0.0, t0 + 4 - time.time()))
+        assert c.get("/api/me").status_code == 401
+
+    token = create_users(server.db_url, {"fay": None})["fay"]
+    with server.client(follow_redirects=False) as web, server.client(headers={"Authorization": f"Bearer {token}"}) \
+            as api:
+        csrf = web.get("/login").text.split('name="csrf_token" value="')[1].split('"')[0]
+        assert web.post("/login", data={"token": token, "csrf_token": csrf}).status_code == 303
+        page = web.get("/submit").text
+        session_csrf = page.split('name="csrf_token" value="')[1].split('"')[0]
+        made = web.post("/api/tokens", data={"expires_in_days": "365", "csrf_token": session_csrf}).json()
+        assert web.get("/api/me").status_code == 200
+        tid = next(t["id"] for t in api.get("/api/tokens").json() if t["current"])
+        r = api.delete(f"/api/tokens/{tid}")
+        assert r.status_code == 200 and r.json()["ended"]["tokens"] == [made["id"]], r.text
+        assert len(r.json()["ended"]["sessions"]) == 1
+        assert web.get("/api/me").status_code == 401
+        assert httpx.get(server.url + "/api/me", headers={"Authorization": f"Bearer {made['token']}"}).status_code \
+            == 401
+    with server.client(headers={"Authorization": f"Bearer {server.tokens['alice']}"}) as c:  # the admin's word
+        parent = c.post("/api/tokens", data={"expires_in_days": "1"}).json()
+        with server.client(headers={"Authorization": f"Bearer {parent['token']}"}) as p:
+            grandchild = p.post("/api/tokens", data={"expires_in_days": "1"}).json()
+    out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", server.db_url, "revoke-token",
+                          str(parent["id"])], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and f"and ended 1 tokens made with it ({grandchild['id']})" in out.stderr, out.stderr

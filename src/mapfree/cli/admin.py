@@ -63,7 +63,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("name")
     s.add_parser("list-tokens", help="an account's tokens: id, prefix, label, created, expires, state").add_argument(
         "name")
-    s.add_parser("revoke-token", help="revoke one token (by the id list-tokens shows)").add_argument("id", type=int)
+    s.add_parser("revoke-token", help="revoke one token (by the id list-tokens shows), and the tokens and "
+                                      "sessions made with it").add_argument("id", type=int)
     s.add_parser("list-sessions", help="an account's open browser sessions").add_argument("name")
     s.add_parser("revoke-session", help="end one browser session (by its id)").add_argument("id", type=int)
     d = s.add_parser("delete-user", help="delete an account with its tokens, sessions, anchors and submissions")
@@ -157,8 +158,10 @@ def run(a: argparse.Namespace) -> int:
             if row is None:
                 print(f"error: no token {a.id}", file=sys.stderr)
                 return 1
-            row.revoked = True
-            print(f"revoked token {a.id} ({row.prefix}…)", file=sys.stderr)
+            ended = auth.revoke_token(db, row)
+            also = [f"{len(v)} {k} made with it ({', '.join(map(str, v))})" for k, v in ended.items() if v]
+            print(f"revoked token {a.id} ({row.prefix}…)" + (f" and ended {' and '.join(also)}" if also else ""),
+                  file=sys.stderr)
         elif a.action == "list-sessions":
             from ..service.accounts import list_sessions
 

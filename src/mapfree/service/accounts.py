@@ -44,6 +44,13 @@ def _current_token_hash(request: Request) -> str:
     return auth.hash_secret(token.strip()) if scheme.lower() == "bearer" and token.strip() else ""
 
 
+def current_token(request: Request, db: Session, caller) -> ApiToken | None:
+    """The token a request is made with: its bearer token, or the one its browser session was signed in with."""
+    if caller.via_token:
+        return db.scalar(select(ApiToken).where(ApiToken.token_hash == _current_token_hash(request)))
+    return db.get(ApiToken, caller.session.token_id) if caller.session and caller.session.token_id else None
+
+
 def _own_row(request: Request, db: Session, model, row_id: int, what: str, csrf: str | None = None):
     """Row ``row_id`` of ``model`` if it belongs to the signed-in writer; a 404 otherwise (another's included)."""
     caller = require_writer(request, db, csrf or request.headers.get("x-csrf-token"))
@@ -64,13 +71,15 @@ def my_tokens(request: Request, db: Session = Depends(db_session)):
 def create_token(request: Request, expires_in_days: float = Form(..., description="lifetime in days (max 365)"),
                  label: str = Form("", description="what the token is for"), csrf_token: str | None = Form(None),
                  db: Session = Depends(db_session)):
-    """A new API token of yours that expires (shown once, in ``token``)."""
+    """A new API token of yours that expires (shown once, in ``token``). It never outlives the token this request
+    is made with (or that its browser session was signed in with), and revoking that one revokes it."""
     caller = require_writer(request, db, csrf_token)
     if not 0 < expires_in_days <= MAX_SELF_SERVICE_DAYS:
         raise HTTPException(422, f"expires_in_days must lie in (0, {MAX_SELF_SERVICE_DAYS:g}]")
     from .uploads import check_name
 
-    token = auth.issue_token(db, caller.user, expires_in_days * 86400, check_name(label, 64, "label"))
+    token = auth.issue_token(db, caller.user, expires_in_days * 86400, check_name(label, 64, "label"),
+                             parent=current_token(request, db, caller))
     db.commit()
     row = db.scalar(select(ApiToken).where(ApiToken.token_hash == auth.hash_secret(token)))
     return {"token": token, **token_json(row)}
@@ -78,11 +87,13 @@ def create_token(request: Request, expires_in_days: float = Form(..., descriptio
 
 @router.delete("/api/tokens/{tid}", tags=["accounts"])
 def revoke_token(tid: int, request: Request, db: Session = Depends(db_session)):
-    """Revoke one of your tokens (the one this request uses too: it stops working at once)."""
+    """Revoke one of your tokens (the one this request uses too: it stops working at once), with everything
+    made with it: ``ended`` lists the ids of the tokens created with it and of the browser sessions signed in
+    with any of those."""
     row = _own_row(request, db, ApiToken, tid, "token")
-    row.revoked = True
+    ended = auth.revoke_token(db, row)
     db.commit()
-    return token_json(row)
+    return {**token_json(row), "ended": ended}
 
 
 @router.get("/api/sessions", tags=["accounts"])
@@ -120,7 +131,7 @@ def access_page(request: Request, db: Session = Depends(db_session)):
 
 @router.post("/me/tokens/{tid}/revoke")
 def revoke_token_form(tid: int, request: Request, csrf_token: str = Form(""), db: Session = Depends(db_session)):
-    _own_row(request, db, ApiToken, tid, "token", csrf_token).revoked = True
+    auth.revoke_token(db, _own_row(request, db, ApiToken, tid, "token", csrf_token))
     db.commit()
     return RedirectResponse("/me/access", status_code=303)
 

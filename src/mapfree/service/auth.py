@@ -42,19 +42,29 @@ def create_user(db: Session, name: str, admin: bool = False, expires_in: float |
     return user, issue_token(db, user, expires_in)
 
 
-def issue_token(db: Session, user: User, expires_in: float | None = None, label: str = "") -> str:
+def _ends(lifetime: float | None, parent: ApiToken | None) -> float | None:
+    """When a token or session that lives ``lifetime`` seconds (None: for ever) ends, never after ``parent``."""
+    ends = now() + lifetime if lifetime is not None else None
+    if parent is not None and parent.expires_at is not None:
+        ends = parent.expires_at if ends is None else min(ends, parent.expires_at)
+    return ends
+
+
+def issue_token(db: Session, user: User, expires_in: float | None = None, label: str = "",
+                parent: ApiToken | None = None) -> str:
     """A new token of ``user`` (valid ``expires_in`` seconds; None: until revoked); the plain token is returned
-    once and only its hash stored."""
+    once and only its hash stored. ``parent``: the token it is created with; it never outlives that one, and
+    revoking that one revokes it."""
     if expires_in is not None and not (math.isfinite(expires_in) and expires_in > 0):
         raise ValueError(f"a token's lifetime must be positive, got {expires_in} s")
     token = new_token()
     db.add(ApiToken(user_id=user.id, token_hash=hash_secret(token), prefix=token[:10], label=label[:64],
-                    expires_at=now() + expires_in if expires_in is not None else None))
+                    expires_at=_ends(expires_in, parent), parent_id=parent.id if parent is not None else None))
     return token
 
 
-def check_token(db: Session, token: str) -> tuple[User | None, str]:
-    """(the token's user, "") or (None, why it is refused: unknown, revoked or expired, with when)."""
+def find_token(db: Session, token: str) -> tuple[ApiToken | None, str]:
+    """(the token's row, "") or (None, why it is refused: unknown, revoked or expired, with when)."""
     if not token or len(token) > 200:
         return None, "invalid or revoked API token"
     row = db.scalar(select(ApiToken).where(ApiToken.token_hash == hash_secret(token), ApiToken.revoked.is_(False)))
@@ -63,11 +73,28 @@ def check_token(db: Session, token: str) -> tuple[User | None, str]:
     if row.expires_at is not None and row.expires_at <= now():
         return None, (f"API token {row.prefix}… expired on {utc(row.expires_at)}; ask for a new one (mapfree "
                       "admin new-token) or create one while signed in (POST /api/tokens)")
-    return db.get(User, row.user_id), ""
+    return row, ""
 
 
-def user_for_token(db: Session, token: str) -> User | None:
-    return check_token(db, token)[0]
+def check_token(db: Session, token: str) -> tuple[User | None, str]:
+    """(the token's user, "") or (None, why it is refused: unknown, revoked or expired, with when)."""
+    row, why = find_token(db, token)
+    return (db.get(User, row.user_id) if row is not None else None), why
+
+
+def revoke_token(db: Session, row: ApiToken) -> dict[str, list[int]]:
+    """Revoke ``row`` and everything made with it: the tokens created with it (and with those, …) and the
+    browser sessions signed in with any of them -> the ids of the other tokens and of the sessions ended."""
+    revoked, frontier = [row.id], [row.id]
+    while frontier:
+        children = db.scalars(select(ApiToken).where(ApiToken.parent_id.in_(frontier))).all()
+        frontier = [c.id for c in children if c.id not in revoked]
+        revoked += frontier
+    for t in db.scalars(select(ApiToken).where(ApiToken.id.in_(revoked), ApiToken.revoked.is_(False))):
+        t.revoked = True
+    sessions = list(db.scalars(select(WebSession.id).where(WebSession.token_id.in_(revoked))))
+    db.execute(delete(WebSession).where(WebSession.id.in_(sessions)))
+    return {"tokens": revoked[1:], "sessions": sessions}
 
 
 def utc(t: float) -> str:
@@ -98,10 +125,12 @@ def revoke_tokens(db: Session, user: User) -> int:
     return len(rows)
 
 
-def open_session(db: Session, user: User, hours: float) -> tuple[str, str]:
-    """A new browser session -> (session id for the cookie, its CSRF token)."""
+def open_session(db: Session, token: ApiToken, hours: float) -> tuple[str, str]:
+    """A new browser session signed in with ``token`` -> (session id for the cookie, its CSRF token). It ends
+    after ``hours``, when the token expires, or when the token is revoked, whichever comes first."""
     sid, csrf = secrets.token_urlsafe(32), secrets.token_urlsafe(24)
-    db.add(WebSession(sid_hash=hash_secret(sid), user_id=user.id, csrf=csrf, expires_at=now() + hours * 3600))
+    db.add(WebSession(sid_hash=hash_secret(sid), user_id=token.user_id, csrf=csrf,
+                      expires_at=_ends(hours * 3600, token), token_id=token.id))
     return sid, csrf
 
 

@@ -49,6 +49,8 @@ class ApiToken(Base):
     created_at: Mapped[float] = mapped_column(Float, default=now)
     expires_at: Mapped[float | None] = mapped_column(Float, nullable=True)  # None: never (schema 0002)
     label: Mapped[str] = mapped_column(String(64), default="", server_default="")  # what it is for (0002)
+    #: The token it was created with (None: issued by an admin); revoking that one revokes this (0004).
+    parent_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
 class WebSession(Base):
@@ -59,6 +61,8 @@ class WebSession(Base):
     csrf: Mapped[str] = mapped_column(String(64))
     expires_at: Mapped[float] = mapped_column(Float)
     created_at: Mapped[float | None] = mapped_column(Float, nullable=True, default=now)  # schema 0002
+    #: The token it was signed in with; the session ends when that token is revoked (0004).
+    token_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
 class Submission(Base):

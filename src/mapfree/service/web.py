@@ -116,8 +116,8 @@ def _login_page(request: Request, db: Session, status: int = 200, error: str = "
 def login(request: Request, token: str = Form(...), csrf_token: str = Form(""), db: Session = Depends(db_session)):
     if not auth.same_secret(csrf_token, request.cookies.get(LOGIN_CSRF_COOKIE)):
         raise HTTPException(403, "CSRF check failed: reload the sign-in page and try again")
-    user = auth.user_for_token(db, token.strip())
-    if user is None:  # the sign-in form again, with the error above it
+    row, _ = auth.find_token(db, token.strip())
+    if row is None:  # the sign-in form again, with the error above it
         try:
             request.app.state.auth_throttle.refuse(request)
         except HTTPException as e:
@@ -126,7 +126,7 @@ def login(request: Request, token: str = Form(...), csrf_token: str = Form(""), 
             return resp
         return _login_page(request, db, 401, "invalid or revoked API token")
     settings = request.app.state.settings
-    sid, _ = auth.open_session(db, user, settings.session_hours)
+    sid, _ = auth.open_session(db, row, settings.session_hours)  # ends with the token, at the latest
     db.commit()
     resp = RedirectResponse("/me", status_code=303)
     resp.set_cookie(SESSION_COOKIE, sid, httponly=True, samesite="lax", secure=settings.secure_cookies,
