@@ -222,3 +222,41 @@ def test_uploads_without_good_credentials_are_refused_unread_and_a_body_has_a_to
             assert time.time() - t0 < 6
     finally:
         stop_server(srv.proc)
+
+
+def test_one_address_cannot_take_every_connection(split_data, tmp_path):
+    """Half-open requests from one address (a header byte a second, reopened as the head timeout closes them)
+    used to fill --limit-concurrency and make other clients' /health fail with 503. Now one address holds at
+    most --max-connections-per-address; past that its new connections are closed at once, others are served."""
+    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
+                       extra=("--max-connections-per-address", "5", "--limit-concurrency", "8",
+                              "--header-timeout", "30"))
+    host, port = "127.0.0.1", int(srv.url.rsplit(":", 1)[1])
+    held = []
+    try:
+        for _ in range(5):
+            s = socket.create_connection((host, port), timeout=5)
+            s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nX-Slow: ")
+            held.append(s)
+        time.sleep(0.3)
+        for _ in range(5):  # the sixth and later from this address: closed without an answer
+            with socket.create_connection((host, port), timeout=5) as s:
+                s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n")
+                s.settimeout(5)
+                try:
+                    assert s.recv(100) == b""
+                except ConnectionResetError:
+                    pass
+        other = socket.create_connection((host, port), timeout=5, source_address=("127.0.0.2", 0))
+        with other:  # another address is served (uvicorn would answer 503 past --limit-concurrency 8)
+            other.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+            assert _answer(other, 5).startswith(b"HTTP/1.1 200")
+        held.pop().close()
+        time.sleep(0.3)
+        with socket.create_connection((host, port), timeout=5) as s:  # a freed place is taken again
+            s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+            assert _answer(s, 5).startswith(b"HTTP/1.1 200")
+    finally:
+        for s in held:
+            s.close()
+        stop_server(srv.proc)

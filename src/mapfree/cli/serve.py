@@ -100,6 +100,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--body-total-timeout", type=float, default=600.0,
                    help="answer 408 when a whole request body takes longer (default 600 s: 64 MiB at 1 Mbit/s; "
                         "0: off)")
+    g.add_argument("--max-connections-per-address", type=int, default=64,
+                   help="open connections one client address may hold per API process; more are closed at once "
+                        "(default 64; 0: no cap; the --forwarded-allow-ips proxies have none)")
     g.add_argument("--limit-concurrency", type=int, default=1000,
                    help="connections per API process before new requests get 503 (default 1000; 0: no limit)")
     g.add_argument("--h11-max-incomplete-event-size", type=int, default=16 * 1024,
@@ -131,7 +134,8 @@ def uvicorn_options(a: argparse.Namespace) -> dict:
     unless named: uvicorn would otherwise believe X-Forwarded-For from 127.0.0.1, a per-request new address)."""
     from ..service.timeouts import head_timeout_protocol
 
-    return {"http": head_timeout_protocol(a.header_timeout), "timeout_keep_alive": a.timeout_keep_alive,
+    return {"http": head_timeout_protocol(a.header_timeout, a.max_connections_per_address, a.forwarded_allow_ips),
+            "timeout_keep_alive": a.timeout_keep_alive,
             "limit_concurrency": a.limit_concurrency or None, "timeout_graceful_shutdown": 10,
             "h11_max_incomplete_event_size": a.h11_max_incomplete_event_size,
             "proxy_headers": bool(a.forwarded_allow_ips), "forwarded_allow_ips": a.forwarded_allow_ips or None}

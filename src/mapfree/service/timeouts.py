@@ -16,22 +16,39 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 DEFAULT_HEADER_TIMEOUT = 10.0
 DEFAULT_BODY_TIMEOUT = 30.0
+DEFAULT_PER_ADDRESS = 64
 HEADER_TIMEOUT_ENV = "MAPFREE_HEADER_TIMEOUT"
+PER_ADDRESS_ENV = "MAPFREE_CONNECTIONS_PER_ADDRESS"
+EXEMPT_ENV = "MAPFREE_CONNECTION_CAP_EXEMPT"
 
 
 def _header_timeout() -> float:
     return float(os.environ.get(HEADER_TIMEOUT_ENV, DEFAULT_HEADER_TIMEOUT))
 
 
+def _per_address() -> int:
+    return int(os.environ.get(PER_ADDRESS_ENV, DEFAULT_PER_ADDRESS))
+
+
+def _exempt() -> set[str]:
+    return {a.strip() for a in os.environ.get(EXEMPT_ENV, "").split(",") if a.strip()}
+
+
 
 class HeadTimeoutProtocol(H11Protocol):
-    """uvicorn's h11 protocol, closing a connection whose request head takes longer than ``header_timeout``."""
+    """uvicorn's h11 protocol, closing a connection whose request head takes longer than ``header_timeout``, and
+    one from an address that holds ``MAPFREE_CONNECTIONS_PER_ADDRESS`` open already (per API process; 0: no
+    cap; the trusted proxies are exempt): ~1,100 half-open requests from one address had taken the whole
+    ``--limit-concurrency`` and every other client's ``/health`` got 503."""
 
     _head_timer: asyncio.TimerHandle | None = None
+    _peer: str | None = None  # counted in ``_open`` while this connection lasts
+    _open: dict[str, int] = {}  # open connections per client address, this process (one event loop)
 
     def _arm(self) -> None:
         self._disarm()
-        self._head_timer = self.loop.call_later(_header_timeout(), self._head_timed_out)
+        if _header_timeout() > 0:
+            self._head_timer = self.loop.call_later(_header_timeout(), self._head_timed_out)
 
     def _disarm(self) -> None:
         if self._head_timer is not None:
@@ -46,6 +63,15 @@ class HeadTimeoutProtocol(H11Protocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        peer = (transport.get_extra_info("peername") or ("?",))[0]
+        cap = _per_address()
+        if cap > 0 and peer not in _exempt() and "*" not in _exempt():
+            if self._open.get(peer, 0) >= cap:
+                self.logger.info("%s holds %d connections already; connection closed", peer, cap)
+                transport.close()
+                return
+            self._open[peer] = self._open.get(peer, 0) + 1
+            self._peer = peer
         self._arm()
 
     def handle_events(self) -> None:
@@ -60,15 +86,22 @@ class HeadTimeoutProtocol(H11Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
+        if self._peer is not None:
+            self._open[self._peer] -= 1
+            if not self._open[self._peer]:
+                del self._open[self._peer]
+            self._peer = None
         super().connection_lost(exc)
 
 
-def head_timeout_protocol(header_timeout: float) -> str:
-    """What to give uvicorn as ``http=`` for this head timeout (0: uvicorn's h11 as it is). The value travels in
-    ``MAPFREE_HEADER_TIMEOUT``, so that the API processes of ``--api-processes N`` read it too."""
-    if header_timeout <= 0:
-        return "h11"
-    os.environ[HEADER_TIMEOUT_ENV] = repr(float(header_timeout))
+def head_timeout_protocol(header_timeout: float, per_address: int = DEFAULT_PER_ADDRESS,
+                          exempt: str = "") -> str:
+    """What to give uvicorn as ``http=`` for this head timeout (0: none) and cap of connections per client
+    address (0: none; ``exempt``: comma-separated addresses without a cap, the trusted proxies). The values
+    travel in the environment, so that the API processes of ``--api-processes N`` read them too."""
+    os.environ[HEADER_TIMEOUT_ENV] = repr(max(0.0, float(header_timeout)))
+    os.environ[PER_ADDRESS_ENV] = str(max(0, int(per_address)))
+    os.environ[EXEMPT_ENV] = exempt
     return f"{__name__}:HeadTimeoutProtocol"
 
 
