@@ -537,3 +537,19 @@ def test_tokens_and_sessions_never_outlive_the_token_they_were_made_with(server)
     out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", server.db_url, "revoke-token",
                           str(parent["id"])], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and f"and ended 1 tokens made with it ({grandchild['id']})" in out.stderr, out.stderr
+
+
+def test_out_of_range_ids_are_refused_not_a_500(server):
+    """An id past the database's integer (2^63 on SQLite, 2^31 on PostgreSQL) in a path used to be a 500 from
+    the driver; now a 422 naming the largest id (JSON for the API, the error page for forms)."""
+    huge = "99999999999999999999"
+    with server.client("bob") as c:
+        for method, path in (("DELETE", f"/api/tokens/{huge}"), ("DELETE", f"/api/sessions/{2**31}"),
+                             ("POST", f"/me/tokens/{huge}/revoke"), ("POST", f"/me/sessions/{2**31}/end"),
+                             ("GET", f"/anchors/x/photos/{huge}"), ("DELETE", f"/anchors/x/photos/{2**40}")):
+            r = c.request(method, path)
+            assert r.status_code == 422 and "2147483647" in r.text, (method, path, r.status_code, r.text[:200])
+        assert c.delete("/api/tokens/2147483647").status_code == 404
+    out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", server.db_url, "revoke-token", huge],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "no such id" in out.stderr and "Traceback" not in out.stderr, out.stderr

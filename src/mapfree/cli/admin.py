@@ -21,6 +21,19 @@ def _limit(text: str) -> int | None:
         raise argparse.ArgumentTypeError(f"{e}, or 'default'") from None
 
 
+def _row_id(text: str) -> int:
+    """A token's or session's id as listed: a number from 0 to 2^31 - 1 (the database's integer)."""
+    from ..service.deps import MAX_ROW_ID
+
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an id: {text[:40]!r}") from None
+    if not 0 <= n <= MAX_ROW_ID:
+        raise argparse.ArgumentTypeError(f"no such id: {text[:40]} (ids run from 0 to {MAX_ROW_ID})")
+    return n
+
+
 def _shown(limit: int | None) -> str:
     from ..service.config import shown_limit
 
@@ -64,9 +77,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_parser("list-tokens", help="an account's tokens: id, prefix, label, created, expires, state").add_argument(
         "name")
     s.add_parser("revoke-token", help="revoke one token (by the id list-tokens shows), and the tokens and "
-                                      "sessions made with it").add_argument("id", type=int)
+                                      "sessions made with it").add_argument("id", type=_row_id)
     s.add_parser("list-sessions", help="an account's open browser sessions").add_argument("name")
-    s.add_parser("revoke-session", help="end one browser session (by its id)").add_argument("id", type=int)
+    s.add_parser("revoke-session", help="end one browser session (by its id)").add_argument("id", type=_row_id)
     d = s.add_parser("delete-user", help="delete an account with its tokens, sessions, anchors and submissions")
     d.add_argument("name")
     d.add_argument("--yes", action="store_true", help="really delete (without it: say what would go)")

@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 
 from . import auth
 from .db import ApiToken, WebSession, now
-from .deps import SESSION_COOKIE, db_session, require_user, require_writer
+from .deps import SESSION_COOKIE, RowId, db_session, require_user, require_writer
 
 router = APIRouter()
 #: The longest lifetime a user may give a token they create themselves (an admin's CLI may give any).
@@ -86,7 +86,7 @@ def create_token(request: Request, expires_in_days: float = Form(..., descriptio
 
 
 @router.delete("/api/tokens/{tid}", tags=["accounts"])
-def revoke_token(tid: int, request: Request, db: Session = Depends(db_session)):
+def revoke_token(tid: RowId, request: Request, db: Session = Depends(db_session)):
     """Revoke one of your tokens (the one this request uses too: it stops working at once), with everything
     made with it: ``ended`` lists the ids of the tokens created with it and of the browser sessions signed in
     with any of those."""
@@ -106,7 +106,7 @@ def my_sessions(request: Request, db: Session = Depends(db_session)):
 
 
 @router.delete("/api/sessions/{session_id}", tags=["accounts"])
-def end_session(session_id: int, request: Request, db: Session = Depends(db_session)):
+def end_session(session_id: RowId, request: Request, db: Session = Depends(db_session)):
     """Sign one of your browser sessions out (e.g. a lost phone's)."""
     db.delete(_own_row(request, db, WebSession, session_id, "session"))
     db.commit()
@@ -130,14 +130,14 @@ def access_page(request: Request, db: Session = Depends(db_session)):
 
 
 @router.post("/me/tokens/{tid}/revoke")
-def revoke_token_form(tid: int, request: Request, csrf_token: str = Form(""), db: Session = Depends(db_session)):
+def revoke_token_form(tid: RowId, request: Request, csrf_token: str = Form(""), db: Session = Depends(db_session)):
     auth.revoke_token(db, _own_row(request, db, ApiToken, tid, "token", csrf_token))
     db.commit()
     return RedirectResponse("/me/access", status_code=303)
 
 
 @router.post("/me/sessions/{session_id}/end")
-def end_session_form(session_id: int, request: Request, csrf_token: str = Form(""),
+def end_session_form(session_id: RowId, request: Request, csrf_token: str = Form(""),
                      db: Session = Depends(db_session)):
     db.delete(_own_row(request, db, WebSession, session_id, "session", csrf_token))
     db.commit()

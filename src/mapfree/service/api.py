@@ -18,7 +18,7 @@ from ..geometry import Pose
 from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, RetiredPhotoIndex, Submission, User, new_id, now
 from .leaderboard import meta_json, parse_meta, save_meta
-from .deps import db_session, identify, require_operator, require_user, require_writer
+from .deps import RowId, db_session, identify, require_operator, require_user, require_writer
 from .reloc import Photo, check_method, check_runnable, default_method, estimate_json, intrinsics_of
 from .manage import own_submission, test_quota
 from .storage import check_quota, stored_bytes
@@ -177,8 +177,6 @@ def plot_png(sid: str, name: str, request: Request, db: Session = Depends(db_ses
 
 #: The pose of an anchor's first photo in the anchor's frame (``[qw, qx, qy, qz, tx, ty, tz]``).
 IDENTITY = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
-#: The highest photo index the database can hold (``anchor_photos.seq``: a 32-bit integer on PostgreSQL).
-MAX_PHOTO_INDEX = 2**31 - 1
 
 
 def photo_rows(db: Session, aid: str) -> list[AnchorPhoto]:
@@ -485,7 +483,7 @@ def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) ->
 
 
 @router.delete("/anchors/{aid}/photos/{k}", tags=["relocalization"])
-def delete_anchor_photo(aid: str, k: int, request: Request, db: Session = Depends(db_session)):
+def delete_anchor_photo(aid: str, k: RowId, request: Request, db: Session = Depends(db_session)):
     """Delete photo ``k`` of one of your anchors (its owner, or an admin) -> the anchor. Indices stay as they
     are (deleting photo 1 of 0, 1, 2 leaves 0, 2); the next localize uses the photos left; the bytes no longer
     count against the storage quota. Photo 0, the anchor's frame, cannot be deleted (409): delete the anchor."""
@@ -494,7 +492,7 @@ def delete_anchor_photo(aid: str, k: int, request: Request, db: Session = Depend
 
 
 @router.get("/anchors/{aid}/photos/{k}", tags=["relocalization"], response_class=Response)
-def anchor_photo_image(aid: str, k: int, request: Request, db: Session = Depends(db_session)):
+def anchor_photo_image(aid: str, k: RowId, request: Request, db: Session = Depends(db_session)):
     """The stored image of photo ``k`` (JPEG or PNG, upright, without EXIF metadata), for anyone signed in; a
     private anchor's for its owner and admins only."""
     caller = require_user(request, db)
@@ -502,7 +500,7 @@ def anchor_photo_image(aid: str, k: int, request: Request, db: Session = Depends
     if not may_see_photos(a, caller.user):
         raise HTTPException(403, "this anchor's photos are private to its owner")
     data = a.image if k == 0 else None
-    if 0 < k <= MAX_PHOTO_INDEX:  # a larger int would not fit the database's integer (SQLite: OverflowError)
+    if k > 0:
         data = db.scalar(select(AnchorPhoto.image).where(AnchorPhoto.anchor_id == a.id, AnchorPhoto.seq == k))
     if data is None:
         raise HTTPException(404, f"anchor {a.id} has no photo {k}")

@@ -7,12 +7,19 @@ browser session cookie plus that session's CSRF token (form field ``csrf_token``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
-from fastapi import HTTPException, Request
+from fastapi import HTTPException, Path, Request
 from sqlalchemy.orm import Session
 
 from . import auth
 from .db import User, WebSession
+
+#: The largest row id the database holds (a 32-bit integer on PostgreSQL): a larger one in a path is a 422,
+#: not a query that overflows (a 500 from 2^63 on SQLite, from 2^31 on PostgreSQL).
+MAX_ROW_ID = 2**31 - 1
+#: A row id in a path: a token's, a session's, an anchor photo's index.
+RowId = Annotated[int, Path(ge=0, le=MAX_ROW_ID, description="an id as listed (0 to 2^31 - 1)")]
 
 SESSION_COOKIE = "mapfree_session"
 LOGIN_CSRF_COOKIE = "mapfree_login_csrf"

@@ -24,7 +24,7 @@ from .api import (PhotoUpload, add_photo, anchor_json, check_photo_count, find_a
                   may_see_photos, photo_name, photo_rows, photo_upload, remove_photo, spooled_upload, stored_photo)
 from .concurrency import heavy
 from .db import Anchor, AnchorPhoto, MethodInfo, Submission, User
-from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, db_session, identify, require_writer
+from .deps import LOGIN_CSRF_COOKIE, SESSION_COOKIE, RowId, db_session, identify, require_writer
 from .evaluation import LOWER_IS_BETTER, SHORT, known_scenes
 from .leaderboard import (MAX_PER_PAGE, PER_PAGE, VIEWS, board, check_sort, check_split, compare, meta_json,
                           ordered_metrics, parse_meta, reference_rows, save_meta, visible_json)
@@ -545,7 +545,7 @@ def add_photo_form(aid: str, request: Request, image: UploadFile | None = File(N
 
 
 @router.post("/relocalize/anchors/{aid}/photos/{k}/delete")
-def delete_photo_form(aid: str, k: int, request: Request, csrf_token: str = Form(""),
+def delete_photo_form(aid: str, k: RowId, request: Request, csrf_token: str = Form(""),
                       db: Session = Depends(db_session)):
     """``DELETE /anchors/{id}/photos/{k}`` from the anchor's page; a refusal shows on the page."""
     caller = require_writer(request, db, csrf_token)
