@@ -556,3 +556,38 @@ def test_a_photo_is_decoded_without_holding_the_database_write_lock(make_app, sc
                data={**_form(second.intrinsics), "pose": _pose_text(second.pose)})
     assert r.status_code == 201, r.text
     assert seen == ["free"] and [p["index"] for p in r.json()["photos"]] == [0, 1]
+
+
+def test_bytes_after_a_jpegs_end_are_not_stored_or_served(server, realmini_dir):
+    """Phones append a motion photo's MP4 clip or a vendor trailer after the JPEG's end-of-image marker; those
+    bytes used to be stored and served to every other user. Now the stored photo ends at the marker, baseline
+    and progressive alike, its pixels unchanged."""
+    import io
+
+    import cv2
+    from PIL import Image
+
+    from mapfree.data import Dataset
+    from mapfree.service.exif import clean_photo
+
+    ref = Dataset(realmini_dir).scene("val", "s00000").reference
+    trailer = b"\x00\x00\x00\x18ftypmp42" + b"MotionPhoto_Data SECRET-CLIP " * 50 + b"\xff\xd9tail"
+    baseline = ref.image_path.read_bytes()
+    progressive = io.BytesIO()
+    Image.open(ref.image_path).save(progressive, format="JPEG", progressive=True, quality=90)
+    for jpeg in (baseline, progressive.getvalue()):
+        assert jpeg.endswith(b"\xff\xd9")
+        cleaned = clean_photo(jpeg + trailer)
+        assert b"SECRET-CLIP" not in cleaned and b"ftyp" not in cleaned and cleaned.endswith(b"\xff\xd9")
+        decode = lambda b: cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)  # noqa: E731
+        assert np.array_equal(decode(cleaned), decode(jpeg))
+    K = ref.intrinsics
+    with server.client("alice") as c:
+        r = c.post("/anchors", files={"image": ("ref.jpg", baseline + trailer, "image/jpeg"),
+                                      "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")},
+                   data={"fx": str(K.fx), "fy": str(K.fy), "cx": str(K.cx), "cy": str(K.cy),
+                         "method": "sift_pnp_sensor"})
+        assert r.status_code == 201, r.text
+        served = c.get(f"/anchors/{r.json()['id']}/photos/0").content
+        assert served.endswith(b"\xff\xd9") and b"SECRET-CLIP" not in served and b"ftyp" not in served
+        assert c.delete(f"/anchors/{r.json()['id']}").status_code == 204

@@ -2,7 +2,8 @@
 time, software...).
 
 A photo whose orientation is 1 keeps its pixels byte for byte: only the metadata segments (JPEG APP1-APP13,
-APP15, comments; PNG text, time and eXIf chunks) are dropped. A turned photo is re-encoded upright (JPEG at
+APP15, comments; PNG text, time and eXIf chunks) and whatever follows the image's end (a motion photo's MP4
+clip, vendor trailers) are dropped. A turned photo is re-encoded upright (JPEG at
 quality 95, PNG losslessly), so that every reader, ours and a browser, shows the same pixels.
 """
 
@@ -42,19 +43,42 @@ def depth_png(depth_m: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
+def _scan_end(data: bytes, i: int) -> int:
+    """The end of the entropy-coded data that starts at ``i``: the position of the next marker (an 0xFF not
+    followed by a stuffed 0x00 or a restart marker), or -1 when there is none."""
+    while True:
+        i = data.find(b"\xff", i)
+        if i < 0 or i + 1 >= len(data):
+            return -1
+        nxt = data[i + 1]
+        if nxt == 0x00 or 0xD0 <= nxt <= 0xD7 or nxt == 0xFF:
+            i += 1 if nxt == 0xFF else 2
+            continue
+        return i
+
+
 def _strip_jpeg(data: bytes) -> bytes | None:
+    """The JPEG up to its end-of-image marker without metadata segments: whatever a phone appends after it (a
+    motion photo's MP4 clip, a vendor trailer) goes too. None when the layout is not one we walk."""
     out, i = [data[:2]], 2
     while i + 4 <= len(data) and data[i] == 0xFF:
         marker = data[i + 1]
         if marker == 0xFF:  # fill byte
             i += 1
             continue
-        if marker == 0xDA:  # start of scan: the rest is image data
-            out.append(data[i:])
+        if marker == 0xD9:  # end of image: nothing after it is kept
+            out.append(data[i:i + 2])
             return b"".join(out)
         (length,) = struct.unpack(">H", data[i + 2:i + 4])
         if length < 2 or i + 2 + length > len(data):
             return None
+        if marker == 0xDA:  # start of scan: its header, then entropy-coded data up to the next marker
+            end = _scan_end(data, i + 2 + length)
+            if end < 0:
+                return None
+            out.append(data[i:end])
+            i = end
+            continue
         if not ((0xE1 <= marker <= 0xEF and marker not in _JPEG_KEEP_APP) or marker == 0xFE):
             out.append(data[i:i + 2 + length])
         i += 2 + length
