@@ -11,7 +11,7 @@ import time
 from dataclasses import dataclass
 
 from fastapi import APIRouter, Depends, HTTPException, Request
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
 from pydantic import BaseModel, Field
 from sqlalchemy import delete
 from sqlalchemy.orm import Session
@@ -20,7 +20,7 @@ from .config import Settings, shown_limit
 from .db import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
 from .deps import db_session, require_user, require_writer
 from .leaderboard import meta_json, parse_meta, save_meta
-from .storage import read_zip
+from .storage import is_stored, stream_zip
 from .submissions import daily_test_limit, recent_count
 
 WITHDRAWN = "withdrawn"
@@ -80,17 +80,15 @@ def withdraw(db: Session, sub: Submission) -> None:
     db.commit()
 
 
-def zip_bytes(db: Session, sub: Submission) -> bytes:
-    data = read_zip(db, sub.id)  # stored in chunks (storage.py)
-    if data is None:
+def zip_response(request: Request, db: Session, sub: Submission) -> Response:
+    """The stored ZIP as a download, streamed chunk by chunk (``storage.stream_zip``); 410 once it is gone."""
+    if not is_stored(db, sub.id):
         raise HTTPException(410, "the ZIP of this submission is no longer stored")
-    return data
-
-
-def zip_response(db: Session, sub: Submission) -> Response:
+    db.commit()
     name = f"mapfree-{sub.split}-{sub.id}.zip"
-    return Response(zip_bytes(db, sub), media_type="application/zip",
-                    headers={"Content-Disposition": f'attachment; filename="{name}"', "Cache-Control": "private"})
+    return StreamingResponse(stream_zip(request.app.state.sessions, sub.id), media_type="application/zip",
+                             headers={"Content-Disposition": f'attachment; filename="{name}"',
+                                      "Content-Length": str(sub.size_bytes), "Cache-Control": "private"})
 
 
 # --------------------------------------------------------------------------------------------- JSON API
@@ -111,7 +109,7 @@ def withdraw_submission(sid: str, request: Request, db: Session = Depends(db_ses
 def download_zip(sid: str, request: Request, db: Session = Depends(db_session)):
     """The ZIP you uploaded (owner or admin only; 409 once withdrawn, 410 once past the retention time)."""
     caller = require_user(request, db)
-    return zip_response(db, own_submission(db, caller.user, sid))
+    return zip_response(request, db, own_submission(db, caller.user, sid))
 
 
 class MethodBody(BaseModel):

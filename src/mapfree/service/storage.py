@@ -67,10 +67,17 @@ def chunks(db: Session, sid: str) -> Iterator[bytes]:
     db.commit()
 
 
-def read_zip(db: Session, sid: str) -> bytes | None:
-    """The whole stored ZIP (to download it), or None when it is no longer stored."""
-    parts = list(chunks(db, sid))
-    return b"".join(parts) if parts else None
+def is_stored(db: Session, sid: str) -> bool:
+    """Whether submission ``sid``'s ZIP is still stored."""
+    return db.scalar(select(exists().where(SubmissionFile.submission_id == sid))) or False
+
+
+def stream_zip(sessions, sid: str) -> Iterator[bytes]:
+    """The stored ZIP of ``sid`` for a download, chunk by chunk, each read in a session of its own: a download
+    holds one chunk in memory, not the ZIP (40 parallel downloads of one 49 MB submission took the API to
+    1.9 GB when each was joined whole)."""
+    with sessions() as db:
+        yield from chunks(db, sid)
 
 
 def _blob_bytes(table) -> Any:

@@ -263,7 +263,7 @@ def withdraw_form(sid: str, request: Request, csrf_token: str = Form(""), db: Se
 
 @router.get("/submissions/{sid}/zip")
 def download(sid: str, request: Request, db: Session = Depends(db_session)) -> Response:
-    return zip_response(db, own_submission(db, _signed_in(request, db), sid))
+    return zip_response(request, db, own_submission(db, _signed_in(request, db), sid))
 
 
 # ------------------------------------------------------------------------------------------ leaderboards
