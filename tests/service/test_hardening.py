@@ -561,3 +561,91 @@ def test_out_of_range_ids_are_refused_not_a_500(server):
     out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", server.db_url, "revoke-token", huge],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "no such id" in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def _worker_rows(db_url: str) -> int:
+    from mapfree.service.db import WorkerRow, make_engine, session_factory
+
+    engine = make_engine(db_url)
+    with session_factory(engine)() as db:
+        n = db.scalar(select(func.count()).select_from(WorkerRow))
+    engine.dispose()
+    return int(n or 0)
+
+
+@pytest.mark.parametrize("when", ["idle", "mid-job"])
+def test_a_burst_of_sigterms_stops_a_worker(split_data, tmp_path, when):
+    """The worker's SIGTERM handler called ``Event.set()``; a second SIGTERM landing while the first handler
+    held the event's lock (``serve`` stopping it and the parent-death signal, close together) blocked the
+    nested handler for ever: the worker outlived ``serve``. Now a handler only wakes a thread. SIGTERMs are
+    sent every millisecond from the moment the worker is idle (or scoring a job) until it has exited, so
+    that they also land during its final database delete."""
+    from mapfree.service.db import User, init_db, make_engine, session_factory
+    from mapfree.service.submissions import accept
+
+    db_url = f"sqlite:///{tmp_path / 'w.db'}"
+    create_users(db_url, {"ann": None})
+    if when == "mid-job":
+        engine = make_engine(db_url)
+        init_db(engine)
+        with session_factory(engine)() as db:
+            user = db.scalar(select(User).where(User.name == "ann"))
+            data = _zip({f"pose_{s.name}.txt": _pose_text(s, 20_000, i)
+                         for i, s in enumerate(sorted((split_data.root / "val").iterdir()))}, zipfile.ZIP_DEFLATED)
+            accept(db, Settings(db_url=db_url, data_root=split_data.root), user, "val", "slow", False, data)
+        engine.dispose()
+    proc = subprocess.Popen([sys.executable, "-m", "mapfree.service.worker", "--db", db_url, "--data",
+                             str(split_data.root), "--poll-seconds", "0.05"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and _worker_rows(db_url) == 0:
+            assert proc.poll() is None
+            time.sleep(0.05)
+        if when == "mid-job":
+            while time.time() < deadline and "running" not in _statuses(db_url):
+                time.sleep(0.01)
+            assert "running" in _statuses(db_url)
+        t0, sent = time.time(), 0
+        while proc.poll() is None and time.time() - t0 < 20:
+            for _ in range(200):  # back to back: one lands while the handler of another runs
+                try:
+                    os.kill(proc.pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    break
+            sent += 200
+            time.sleep(0.001)
+        assert proc.poll() is not None, f"the worker still runs {time.time() - t0:.0f} s after {sent} SIGTERMs"
+        assert _worker_rows(db_url) == 0 or proc.returncode != 0  # a clean stop removed its row
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _statuses(db_url: str) -> set[str]:
+    from mapfree.service.db import Submission, make_engine, session_factory
+
+    engine = make_engine(db_url)
+    with session_factory(engine)() as db:
+        out = set(db.scalars(select(Submission.status)))
+    engine.dispose()
+    return out
+
+
+def test_a_signal_during_the_stop_handler_cannot_deadlock():
+    """The nested-handler deadlock, made certain: the main thread holds the stop event's lock (as a first
+    handler inside ``Event.set()`` does) when two SIGTERMs arrive. A handler that called ``stop.set()`` blocked
+    on that lock for ever; ``stop_on_signals``' handlers return at once and a thread sets the event."""
+    script = (
+        "import os, signal, threading, sys\n"
+        "from mapfree.service.lifeline import stop_on_signals\n"
+        "stop = threading.Event()\n"
+        "stop_on_signals(stop)\n"
+        "with stop._cond:\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    sum(range(1000))\n"
+        "sys.exit(0 if stop.wait(10) else 1)\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0, out.stderr

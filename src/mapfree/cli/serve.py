@@ -249,12 +249,11 @@ def run(a: argparse.Namespace) -> int:
         sup.start()
     try:
         if a.no_api:
+            from ..service.lifeline import stop_on_signals
+
             stop = threading.Event()
-            signal.signal(signal.SIGTERM, lambda *_: stop.set())
-            try:
-                stop.wait()
-            except KeyboardInterrupt:
-                pass
+            stop_on_signals(stop)
+            stop.wait()
             return 0
         import uvicorn
 

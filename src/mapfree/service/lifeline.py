@@ -39,6 +39,30 @@ def die_with_parent(parent_pid: int | None, sig: int = signal.SIGTERM, poll_s: f
     threading.Thread(target=watch, name="mapfree-lifeline", daemon=True).start()
 
 
+def stop_on_signals(stop: threading.Event, signals: tuple[int, ...] = (signal.SIGTERM, signal.SIGINT)) -> None:
+    """Set ``stop`` when one of ``signals`` arrives (call from the main thread). A Python signal handler runs
+    between two bytecodes of the main thread, possibly inside a handler that is itself inside ``stop.set()``,
+    holding the event's lock: a handler that called ``stop.set()`` then waited on that lock for ever (two
+    SIGTERMs close together, ``serve``'s and the parent-death signal, left a worker alive after ``serve`` had
+    stopped). So the handlers do nothing; the signal's number reaches a wake-up pipe
+    (``signal.set_wakeup_fd``), and a thread that reads it sets ``stop``."""
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    for sig in signals:
+        signal.signal(sig, _ignore)
+    signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+
+    def watch() -> None:
+        while os.read(r, 64):
+            stop.set()
+
+    threading.Thread(target=watch, name="mapfree-signals", daemon=True).start()
+
+
+def _ignore(signum, frame) -> None:  # the wake-up pipe carries the signal (stop_on_signals)
+    return None
+
+
 def parent_from_env() -> int | None:
     """The serving process's pid, as ``mapfree serve`` passes it to its API processes."""
     value = os.environ.get(PARENT_PID_ENV, "")

@@ -11,7 +11,6 @@ import argparse
 import json
 import logging
 import os
-import signal
 import socket
 import tempfile
 import threading
@@ -161,12 +160,11 @@ def main(argv: list[str] | None = None) -> int:
         check_ground_truth(settings)
     except ValueError as e:
         p.error(str(e))
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    if a.exit_with_parent:  # SIGTERM when it dies, also mid-job (the job is finished first, as on any SIGTERM)
-        from .lifeline import die_with_parent
+    from .lifeline import die_with_parent, stop_on_signals
 
+    stop = threading.Event()
+    stop_on_signals(stop)  # SIGTERM / SIGINT: the job is finished first, then the worker stops
+    if a.exit_with_parent:  # SIGTERM when it dies, also mid-job
         die_with_parent(os.getppid())
     run(settings, stop=stop)
     return 0
