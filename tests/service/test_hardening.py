@@ -649,3 +649,26 @@ def test_a_signal_during_the_stop_handler_cannot_deadlock():
         "sys.exit(0 if stop.wait(10) else 1)\n")
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0, out.stderr
+
+
+def test_look_alike_names_and_endless_tokens_are_refused(make_app, tmp_path):
+    """'аlice' (Cyrillic а) beside 'alice' were two accounts the boards showed alike, and one account minted
+    2,000 tokens in 20 s. Now names are ASCII and unique ignoring case, and an account holds at most
+    ``MAX_TOKENS`` active tokens (a revoked one frees its place)."""
+    from mapfree.service import auth
+
+    db = ["--db", f"sqlite:///{tmp_path / 'names.db'}"]
+    mapfree("admin", *db, "create-user", "alice")
+    for name, why in (("\u0430lice", "ASCII"), ("Alice", "only in case"), (".x", "ASCII")):
+        out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", *db, "create-user", name],
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == 1 and why in out.stderr and "Traceback" not in out.stderr, (name, out.stderr)
+    app = make_app()
+    with app.client as c:
+        h = app.auth("ann")
+        made = [c.post("/api/tokens", data={"expires_in_days": "1"}, headers=h) for _ in range(auth.MAX_TOKENS - 1)]
+        assert {r.status_code for r in made} == {201}  # ann's first token and these: the limit
+        r = c.post("/api/tokens", data={"expires_in_days": "1"}, headers=h)
+        assert r.status_code == 409 and "revoke some" in r.json()["detail"], r.text
+        assert c.delete(f"/api/tokens/{made[0].json()['id']}", headers=h).status_code == 200
+        assert c.post("/api/tokens", data={"expires_in_days": "1"}, headers=h).status_code == 201

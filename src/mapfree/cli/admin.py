@@ -155,7 +155,11 @@ def run(a: argparse.Namespace) -> int:
             print(token)
             print(f"created user {a.name!r}; the token above is shown only once", file=sys.stderr)
         elif a.action == "new-token":
-            print(auth.issue_token(db, user(db, a.name), lifetime(), a.label))
+            try:
+                print(auth.issue_token(db, user(db, a.name), lifetime(), a.label))
+            except auth.TokenLimit as e:
+                print(f"error: {e}", file=sys.stderr)
+                return 1
         elif a.action == "revoke-tokens":
             print(f"revoked {auth.revoke_tokens(db, user(db, a.name))} token(s)", file=sys.stderr)
         elif a.action == "list-tokens":

@@ -78,8 +78,11 @@ def create_token(request: Request, expires_in_days: float = Form(..., descriptio
         raise HTTPException(422, f"expires_in_days must lie in (0, {MAX_SELF_SERVICE_DAYS:g}]")
     from .uploads import check_name
 
-    token = auth.issue_token(db, caller.user, expires_in_days * 86400, check_name(label, 64, "label"),
-                             parent=current_token(request, db, caller))
+    try:
+        token = auth.issue_token(db, caller.user, expires_in_days * 86400, check_name(label, 64, "label"),
+                                 parent=current_token(request, db, caller))
+    except auth.TokenLimit as e:
+        raise HTTPException(409, str(e)) from None
     db.commit()
     row = db.scalar(select(ApiToken).where(ApiToken.token_hash == auth.hash_secret(token)))
     return {"token": token, **token_json(row)}

@@ -9,15 +9,26 @@ from __future__ import annotations
 import hashlib
 import hmac
 import math
+import re
 import secrets
 import time
 
-from sqlalchemy import delete, select
+from sqlalchemy import delete, func, or_, select
 from sqlalchemy.orm import Session
 
 from .db import ApiToken, User, WebSession, now
 
 TOKEN_PREFIX = "mf_"
+#: Account names: ASCII letters, digits, '-', '_', '.'; no look-alike of another name can be made from them
+#: (Cyrillic 'а' beside Latin 'a' were two accounts the boards showed alike), and names differing only in
+#: case are refused as the same name.
+USER_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+#: Active (not revoked, not expired) tokens one account may hold.
+MAX_TOKENS = 100
+
+
+class TokenLimit(ValueError):
+    """The account holds ``MAX_TOKENS`` active tokens already."""
 
 
 def hash_secret(secret: str) -> str:
@@ -32,10 +43,13 @@ def create_user(db: Session, name: str, admin: bool = False, expires_in: float |
     """A new account and its first token (the only time the plain token is seen; ``expires_in`` as for
     ``issue_token``)."""
     name = name.strip()
-    if not name or len(name) > 64 or not name.replace("-", "").replace("_", "").replace(".", "").isalnum():
-        raise ValueError("user name must be 1-64 letters, digits, '-', '_' or '.'")
-    if db.scalar(select(User).where(User.name == name)) is not None:
-        raise ValueError(f"user {name!r} already exists")
+    if not USER_NAME_RE.fullmatch(name):
+        raise ValueError("user name must be 1-64 ASCII letters, digits, '-', '_' or '.', starting with a letter or "
+                         "digit (so that no name can pass for another with look-alike letters)")
+    same = db.scalar(select(User.name).where(func.lower(User.name) == name.lower()))
+    if same is not None:
+        raise ValueError(f"user {name!r} already exists" if same == name else
+                         f"user name {name!r} differs from the existing {same!r} only in case")
     user = User(name=name, is_admin=admin)
     db.add(user)
     db.flush()
@@ -57,6 +71,12 @@ def issue_token(db: Session, user: User, expires_in: float | None = None, label:
     revoking that one revokes it."""
     if expires_in is not None and not (math.isfinite(expires_in) and expires_in > 0):
         raise ValueError(f"a token's lifetime must be positive, got {expires_in} s")
+    active = db.scalar(select(func.count()).select_from(ApiToken).where(
+        ApiToken.user_id == user.id, ApiToken.revoked.is_(False),
+        or_(ApiToken.expires_at.is_(None), ApiToken.expires_at > now())))
+    if active >= MAX_TOKENS:
+        raise TokenLimit(f"account {user.name!r} holds {active} active tokens, the most it may; revoke some first "
+                         "(DELETE /api/tokens/{id}, the access page, or mapfree admin revoke-token)")
     token = new_token()
     db.add(ApiToken(user_id=user.id, token_hash=hash_secret(token), prefix=token[:10], label=label[:64],
                     expires_at=_ends(expires_in, parent), parent_id=parent.id if parent is not None else None))
