@@ -260,3 +260,37 @@ def test_one_address_cannot_take_every_connection(split_data, tmp_path):
         for s in held:
             s.close()
         stop_server(srv.proc)
+
+
+def test_operator_mistakes_get_one_line_each(split_data, tmp_path):
+    """A port in use exited 3 (the documented "nothing estimated") with the cause in ~30 JSON lines; a --data
+    folder that does not exist started silently; an unreachable or malformed database printed 100+ lines of
+    tracebacks (serve and admin). Now each is one line naming the problem, exit 1 (2 for a bad flag value)."""
+    import subprocess
+    import sys
+
+    def run(module: str, *args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", f"mapfree.cli.{module}", *args], capture_output=True,
+                              text=True, timeout=120)
+
+    db = f"sqlite:///{tmp_path / 'ops.db'}"
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = str(busy.getsockname()[1])
+        cases = [
+            (run("serve", "--db", db, "--port", port, "--workers", "0"), 1, f"port {port} on 127.0.0.1 is in use"),
+            (run("serve", "--db", db, "--data", str(tmp_path / "nope"), "--workers", "0"), 2, "no such folder"),
+            (run("serve", "--db", "postgresql://svc:s3cret@127.0.0.1:1/mf", "--workers", "0", "--port", "0"), 1,
+             "cannot open the database postgresql"),
+            (run("serve", "--db", "nosuchdriver://x/y", "--workers", "0", "--port", "0"), 1,
+             "not a database URL"),
+            (run("admin", "--db", "postgresql://svc:s3cret@127.0.0.1:1/mf", "list-users"), 1,
+             "cannot open the database"),
+            (run("admin", "--db", f"sqlite:///{tmp_path / 'no' / 'dir.db'}", "list-users"), 1,
+             "cannot open the database"),
+        ]
+    for out, code, words in cases:
+        lines = [x for x in out.stderr.splitlines() if x.strip()]
+        assert out.returncode == code and words in out.stderr, (out.args, out.returncode, out.stderr[-2000:])
+        assert len(lines) == 1 and "Traceback" not in out.stderr and "s3cret" not in out.stderr, out.stderr

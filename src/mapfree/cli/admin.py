@@ -106,7 +106,7 @@ def run(a: argparse.Namespace) -> int:
     from sqlalchemy import select
 
     from ..service import auth
-    from ..service.db import ApiToken, User, WebSession, make_engine, session_factory
+    from ..service.db import ApiToken, User, WebSession, session_factory
 
     if a.action == "backup":  # before any upgrade: a backup is what one takes before upgrading
         from ..service.backup import backup
@@ -117,12 +117,12 @@ def run(a: argparse.Namespace) -> int:
             print(f"error: {e}", file=sys.stderr)
             return 1
         return 0
-    engine = make_engine(a.db)
-    from ..service.migrations import SchemaVersion, upgrade
+    from ..service.db import DatabaseUnavailable, open_database
+    from ..service.migrations import SchemaVersion
 
     try:
-        before, after = upgrade(engine)
-    except SchemaVersion as e:
+        engine, (before, after) = open_database(a.db)
+    except (SchemaVersion, DatabaseUnavailable) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     if a.action == "migrate":

@@ -220,28 +220,64 @@ class Supervisor:
                 p.wait()
 
 
+def port_problem(host: str, port: int) -> str | None:
+    """Why ``host:port`` cannot be served (in use, or not an address of this host), or None."""
+    import errno
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError as e:
+        return f"--host {host}: {e.strerror or e}"
+    family, _, _, _, addr = infos[0]
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds it
+        try:
+            s.bind(addr)
+        except OSError as e:
+            if e.errno == errno.EADDRINUSE:
+                return (f"port {port} on {host} is in use (another mapfree serve? its server.pid says which); stop "
+                        "it or choose another --port")
+            return f"cannot listen on {host}:{port}: {e.strerror or e}"
+    return None
+
+
+def check_folders(a: argparse.Namespace) -> str | None:
+    """Why ``--data`` or ``--gt`` cannot be used (not a folder), or None."""
+    from pathlib import Path
+
+    for flag, value in (("--data", a.data), ("--gt", a.gt)):
+        if value and not Path(value).is_dir():
+            return f"{flag} {value}: no such folder"
+    return None
+
+
 def run(a: argparse.Namespace) -> int:
-    from ..service.db import make_engine
+    from ..service.db import DatabaseUnavailable, open_database
     from ..service.evaluation import check_ground_truth
     from ..service.logs import setup_logging
 
-    setup_logging(a.log_level)
+    if (problem := check_folders(a)) is not None:
+        print(f"mapfree serve: error: {problem}", file=sys.stderr)
+        return 2
+    if not a.no_api and (problem := port_problem(a.host, a.port)) is not None:
+        print(f"mapfree serve: error: {problem}", file=sys.stderr)
+        return 1
     settings = settings_from_args(a)
     try:
         check_ground_truth(settings)
     except ValueError as e:
         print(f"mapfree serve: error: {e}", file=sys.stderr)
         return 2
-    from ..service.migrations import SchemaVersion, upgrade
+    from ..service.migrations import SchemaVersion
 
-    engine = make_engine(settings.db_url)
     try:  # create the tables or upgrade the schema, once, before the API processes and workers start
-        before, after = upgrade(engine)
-    except SchemaVersion as e:
-        print(f"mapfree serve: error: {e}", file=sys.stderr)
-        return 2
-    finally:
+        engine, (before, after) = open_database(settings.db_url)
         engine.dispose()
+    except (SchemaVersion, DatabaseUnavailable) as e:
+        print(f"mapfree serve: error: {e}", file=sys.stderr)
+        return 1
+    setup_logging(a.log_level)  # JSON lines from here on (the checks above say what is wrong in one line)
     if before != after:
         log.info("database schema upgraded", extra={"from": before or "unversioned", "to": after})
     sup = Supervisor(worker_command(a), a.workers, env=worker_env(a)) if a.workers > 0 else None

@@ -249,6 +249,44 @@ def make_engine(url: str) -> Engine:
     return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=10)
 
 
+class DatabaseUnavailable(RuntimeError):
+    """The database URL is malformed, names a driver that is not installed, or the database cannot be reached
+    or opened; the message says which in one line, without the password."""
+
+
+def shown_url(url: str) -> str:
+    """A database URL as it may be printed: without its password."""
+    try:
+        return make_url(normalize_url(url)).render_as_string(hide_password=True)
+    except Exception:  # malformed: show only its scheme
+        return url.split("://", 1)[0] + "://…"
+
+
+def open_database(url: str) -> tuple[Engine, tuple[str | None, str]]:
+    """An engine on ``url`` with the schema brought to this code's version -> (engine, (revision before,
+    after)); ``DatabaseUnavailable`` in one line for a malformed URL, a missing driver or a database that
+    cannot be reached (``mapfree serve`` and ``mapfree admin`` print it instead of a traceback)."""
+    from sqlalchemy.exc import ArgumentError, NoSuchModuleError, SQLAlchemyError
+
+    from .migrations import upgrade
+
+    try:
+        engine = make_engine(url)
+    except (ArgumentError, NoSuchModuleError, ValueError) as e:
+        raise DatabaseUnavailable(f"not a database URL this server can use: {shown_url(url)} "
+                                  f"({str(e).splitlines()[0][:200]}); expected sqlite:///PATH or "
+                                  "postgresql://USER:PASSWORD@HOST:PORT/NAME") from None
+    except (ImportError, OSError) as e:
+        raise DatabaseUnavailable(f"cannot open the database {shown_url(url)}: {str(e).splitlines()[0][:200]}") \
+            from None
+    try:
+        return engine, upgrade(engine)
+    except SQLAlchemyError as e:
+        engine.dispose()
+        reason = str(getattr(e, "orig", None) or e).strip().splitlines()[0][:300]
+        raise DatabaseUnavailable(f"cannot open the database {shown_url(url)}: {reason}") from None
+
+
 def init_db(engine: Engine) -> None:
     """Create the tables or upgrade them to this code's schema version (``migrations.upgrade``; idempotent and
     safe to run from several processes at once)."""
