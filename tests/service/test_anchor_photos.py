@@ -578,7 +578,7 @@ def test_bytes_after_a_jpegs_end_are_not_stored_or_served(server, realmini_dir):
     for jpeg in (baseline, progressive.getvalue()):
         assert jpeg.endswith(b"\xff\xd9")
         cleaned = clean_photo(jpeg + trailer)
-        assert b"SECRET-CLIP" not in cleaned and b"ftyp" not in cleaned and cleaned.endswith(b"\xff\xd9")
+        assert cleaned == jpeg  # cut at the marker, nothing re-encoded
         decode = lambda b: cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)  # noqa: E731
         assert np.array_equal(decode(cleaned), decode(jpeg))
     K = ref.intrinsics
@@ -589,5 +589,5 @@ def test_bytes_after_a_jpegs_end_are_not_stored_or_served(server, realmini_dir):
                          "method": "sift_pnp_sensor"})
         assert r.status_code == 201, r.text
         served = c.get(f"/anchors/{r.json()['id']}/photos/0").content
-        assert served.endswith(b"\xff\xd9") and b"SECRET-CLIP" not in served and b"ftyp" not in served
+        assert served == baseline  # the photo byte for byte (it has no metadata), without the trailer
         assert c.delete(f"/anchors/{r.json()['id']}").status_code == 204

@@ -61,7 +61,7 @@ def _strip_jpeg(data: bytes) -> bytes | None:
     """The JPEG up to its end-of-image marker without metadata segments: whatever a phone appends after it (a
     motion photo's MP4 clip, a vendor trailer) goes too. None when the layout is not one we walk."""
     out, i = [data[:2]], 2
-    while i + 4 <= len(data) and data[i] == 0xFF:
+    while i + 2 <= len(data) and data[i] == 0xFF:
         marker = data[i + 1]
         if marker == 0xFF:  # fill byte
             i += 1
@@ -69,7 +69,7 @@ def _strip_jpeg(data: bytes) -> bytes | None:
         if marker == 0xD9:  # end of image: nothing after it is kept
             out.append(data[i:i + 2])
             return b"".join(out)
-        (length,) = struct.unpack(">H", data[i + 2:i + 4])
+        length = struct.unpack(">H", data[i + 2:i + 4])[0] if i + 4 <= len(data) else 0
         if length < 2 or i + 2 + length > len(data):
             return None
         if marker == 0xDA:  # start of scan: its header, then entropy-coded data up to the next marker
