@@ -99,7 +99,7 @@ def test_heavy_requests_past_the_cap_get_429_with_retry_after(make_app, realmini
     assert r.status_code == 201, r.text
     aid = r.json()["id"]
     pool = app.client.app.state.heavy
-    pool._admit()  # one request in: the pool is full
+    pool._admit("someone")  # one request in: the pool is full
     try:
         r = app.client.post(f"/anchors/{aid}/localize", headers=app.auth("ben"), data=_form(ref.intrinsics),
                             files={"image": ("q.jpg", ref.image_path.read_bytes())})
@@ -107,7 +107,7 @@ def test_heavy_requests_past_the_cap_get_429_with_retry_after(make_app, realmini
         assert "busy" in r.json()["detail"]
         assert app.client.get("/api/me", headers=app.auth("ben")).status_code == 200
     finally:
-        pool._done(0.0)
+        pool._done("someone", 0.0)
     r = app.client.post(f"/anchors/{aid}/localize", headers=app.auth("ben"), data=_form(ref.intrinsics),
                         files={"image": ("q.jpg", ref.image_path.read_bytes())})
     assert r.status_code == 200, r.text
