@@ -468,8 +468,9 @@ def _web_session(app) -> tuple[TestClient, str]:
     return web, web.get("/relocalize").text.split('name="csrf_token" value="')[1].split('"')[0]
 
 
-def test_a_photo_index_past_the_database_integer_is_a_404_not_a_500(make_app, scene):  # noqa: F811
-    """``GET /anchors/{id}/photos/{k}`` with ``k`` beyond a 64-bit integer used to crash SQLite's driver (a 500)."""
+def test_a_photo_index_past_the_database_integer_is_a_422_not_a_500(make_app, scene):  # noqa: F811
+    """``GET /anchors/{id}/photos/{k}`` with ``k`` beyond a 64-bit integer used to crash SQLite's driver (a 500);
+    an index the database cannot hold is a 422 naming the largest, one it can but the anchor lacks a 404."""
     app = make_app()
     auth = app.auth("ann")
     r = app.client.post("/anchors", headers=auth, files=_files(scene.reference),
@@ -478,8 +479,12 @@ def test_a_photo_index_past_the_database_integer_is_a_404_not_a_500(make_app, sc
     aid = r.json()["id"]
     for k in (2**63, 10**20, 2**31, -1):
         r = app.client.get(f"/anchors/{aid}/photos/{k}", headers=app.auth("ben"))
-        assert r.status_code == 404 and f"has no photo {k}" in r.json()["detail"], (k, r.text)
-        assert app.client.delete(f"/anchors/{aid}/photos/{k}", headers=auth).status_code == 404
+        assert r.status_code == 422 and "k: Input should be" in r.json()["detail"], (k, r.text)
+        assert app.client.delete(f"/anchors/{aid}/photos/{k}", headers=auth).status_code == 422
+    k = 2**31 - 1
+    r = app.client.get(f"/anchors/{aid}/photos/{k}", headers=app.auth("ben"))
+    assert r.status_code == 404 and f"has no photo {k}" in r.json()["detail"], (k, r.text)
+    assert app.client.delete(f"/anchors/{aid}/photos/{k}", headers=auth).status_code == 404
     assert app.client.get(f"/anchors/{aid}/photos/0", headers=app.auth("ben")).content == \
         scene.reference.image_path.read_bytes()
 
