@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 
 from . import auth
 from .db import ApiToken, WebSession, now
+from .schemas import NewTokenOut, RevokedTokenOut, SessionEndedOut, SessionOut, TokenOut
 from .deps import SESSION_COOKIE, RowId, db_session, require_user, require_writer
 
 router = APIRouter()
@@ -60,14 +61,14 @@ def _own_row(request: Request, db: Session, model, row_id: int, what: str, csrf:
     return row
 
 
-@router.get("/api/tokens", tags=["accounts"])
+@router.get("/api/tokens", tags=["accounts"], response_model=list[TokenOut])
 def my_tokens(request: Request, db: Session = Depends(db_session)):
     """Your API tokens (prefix, label, creation, expiry, revoked); ``current``: the one this request used."""
     caller = require_user(request, db)
     return [token_json(t, _current_token_hash(request)) for t in list_tokens(db, caller.user.id)]
 
 
-@router.post("/api/tokens", status_code=201, tags=["accounts"])
+@router.post("/api/tokens", status_code=201, tags=["accounts"], response_model=NewTokenOut)
 def create_token(request: Request, expires_in_days: float = Form(..., description="lifetime in days (max 365)"),
                  label: str = Form("", description="what the token is for"), csrf_token: str | None = Form(None),
                  db: Session = Depends(db_session)):
@@ -88,7 +89,7 @@ def create_token(request: Request, expires_in_days: float = Form(..., descriptio
     return {"token": token, **token_json(row)}
 
 
-@router.delete("/api/tokens/{tid}", tags=["accounts"])
+@router.delete("/api/tokens/{tid}", tags=["accounts"], response_model=RevokedTokenOut)
 def revoke_token(tid: RowId, request: Request, db: Session = Depends(db_session)):
     """Revoke one of your tokens (the one this request uses too: it stops working at once), with everything
     made with it: ``ended`` lists the ids of the tokens created with it and of the browser sessions signed in
@@ -99,7 +100,7 @@ def revoke_token(tid: RowId, request: Request, db: Session = Depends(db_session)
     return {**token_json(row), "ended": ended}
 
 
-@router.get("/api/sessions", tags=["accounts"])
+@router.get("/api/sessions", tags=["accounts"], response_model=list[SessionOut])
 def my_sessions(request: Request, db: Session = Depends(db_session)):
     """Your open browser sessions; ``current``: the one this request came with."""
     caller = require_user(request, db)
@@ -108,7 +109,7 @@ def my_sessions(request: Request, db: Session = Depends(db_session)):
     return [session_json(s, current) for s in list_sessions(db, caller.user.id)]
 
 
-@router.delete("/api/sessions/{session_id}", tags=["accounts"])
+@router.delete("/api/sessions/{session_id}", tags=["accounts"], response_model=SessionEndedOut)
 def end_session(session_id: RowId, request: Request, db: Session = Depends(db_session)):
     """Sign one of your browser sessions out (e.g. a lost phone's)."""
     db.delete(_own_row(request, db, WebSession, session_id, "session"))
@@ -119,7 +120,7 @@ def end_session(session_id: RowId, request: Request, db: Session = Depends(db_se
 # ------------------------------------------------------------------------------------------------ the page
 
 
-@router.get("/me/access", response_class=HTMLResponse)
+@router.get("/me/access", response_class=HTMLResponse, include_in_schema=False)
 def access_page(request: Request, db: Session = Depends(db_session)):
     """Your tokens and browser sessions, each with a button that revokes it."""
     from .web import page
@@ -132,14 +133,14 @@ def access_page(request: Request, db: Session = Depends(db_session)):
                 sessions=[session_json(s, current) for s in list_sessions(db, caller.user.id)])
 
 
-@router.post("/me/tokens/{tid}/revoke")
+@router.post("/me/tokens/{tid}/revoke", include_in_schema=False)
 def revoke_token_form(tid: RowId, request: Request, csrf_token: str = Form(""), db: Session = Depends(db_session)):
     auth.revoke_token(db, _own_row(request, db, ApiToken, tid, "token", csrf_token))
     db.commit()
     return RedirectResponse("/me/access", status_code=303)
 
 
-@router.post("/me/sessions/{session_id}/end")
+@router.post("/me/sessions/{session_id}/end", include_in_schema=False)
 def end_session_form(session_id: RowId, request: Request, csrf_token: str = Form(""),
                      db: Session = Depends(db_session)):
     db.delete(_own_row(request, db, WebSession, session_id, "session", csrf_token))

@@ -25,6 +25,7 @@ from .storage import check_quota, stored_bytes
 from .submissions import accept, to_json, visible_submission
 from .submissions import plot_png as render_plot
 from .metrics import CONTENT_TYPE_LATEST
+from .schemas import AnchorOut, HealthDetailOut, HealthOut, LocalizeOut, MeOut, SubmissionOut
 from .exif import clean_photo, depth_png
 from .photos import read_photo
 from .uploads import UploadError, check_name, decode_depth, decode_image, parse_pose
@@ -55,7 +56,8 @@ def spooled_upload(f: UploadFile | None, what: str) -> BinaryIO:
 # ----------------------------------------------------------------------------------------------- health
 
 
-@router.get("/health", tags=["operations"])
+@router.get("/health", tags=["operations"], response_model=HealthOut,
+            responses={503: {"model": HealthOut}})
 async def health(request: Request):
     """Public liveness: ``ok``, ``degraded`` (no evaluation worker alive: submissions would wait) or ``error``
     (503: the database cannot be read). Nothing else: host names, process ids and queue counts are in
@@ -64,7 +66,8 @@ async def health(request: Request):
     return JSONResponse({"status": body["status"]}, status_code=status)
 
 
-@router.get("/health/detail", tags=["operations"])
+@router.get("/health/detail", tags=["operations"], response_model=HealthDetailOut, response_model_exclude_unset=True,
+            responses={503: {"model": HealthDetailOut}})
 async def health_detail(request: Request):
     """Readiness in detail (an admin's token or session, or the operator token): database, queue counts, live
     workers. Answered on the event loop from the state a background thread reads every 0.25 s (``age_ms`` old;
@@ -75,7 +78,8 @@ async def health_detail(request: Request):
     return JSONResponse(body, status_code=status)
 
 
-@router.get("/metrics", tags=["operations"], response_class=Response)
+@router.get("/metrics", tags=["operations"], response_class=Response,
+            responses={200: {"content": {CONTENT_TYPE_LATEST: {}}, "description": "Prometheus text format"}})
 def metrics(request: Request):
     """Prometheus metrics (admins and the operator token): request latency of this API process, queue depth and
     oldest job age, worker liveness, scoring time."""
@@ -94,7 +98,7 @@ async def _health(request: Request) -> tuple[int, dict]:
 # ------------------------------------------------------------------------------------------ submissions
 
 
-@router.get("/api/me", tags=["accounts"])
+@router.get("/api/me", tags=["accounts"], response_model=MeOut)
 def me(request: Request, db: Session = Depends(db_session)):
     caller = require_user(request, db)
     u = caller.user
@@ -104,7 +108,7 @@ def me(request: Request, db: Session = Depends(db_session)):
             "storage_quota_bytes": request.app.state.settings.storage_quota_bytes}
 
 
-@router.post("/api/submissions", status_code=202, tags=["submissions"])
+@router.post("/api/submissions", status_code=202, tags=["submissions"], response_model=SubmissionOut, response_model_exclude_unset=True)
 def create_submission(request: Request, file: UploadFile = File(..., description="submission ZIP"),
                             split: str = Form(..., description="val or test"), name: str = Form(""),
                             public: bool = Form(False), csrf_token: str | None = Form(None),
@@ -129,7 +133,7 @@ def create_submission(request: Request, file: UploadFile = File(..., description
     return {**to_json(db, sub, caller.user.name), "method": meta_json(db.get(MethodInfo, sub.id))}
 
 
-@router.get("/api/submissions", tags=["submissions"])
+@router.get("/api/submissions", tags=["submissions"], response_model=list[SubmissionOut], response_model_exclude_unset=True)
 def my_submissions(request: Request, db: Session = Depends(db_session)):
     """The caller's own submissions (private history), newest first."""
     caller = require_user(request, db)
@@ -142,7 +146,7 @@ def _visible_submission(request: Request, db: Session, sid: str) -> Submission:
     return visible_submission(db, identify(request, db).user, sid)
 
 
-@router.get("/api/submissions/{sid}", tags=["submissions"])
+@router.get("/api/submissions/{sid}", tags=["submissions"], response_model=SubmissionOut, response_model_exclude_unset=True)
 def get_submission(sid: str, request: Request, db: Session = Depends(db_session)):
     """A submission you may see. Once withdrawn, its owner (and admins) still get it, as their list shows it:
     status ``withdrawn``, ``withdrawn_at``, no results; everyone else gets 404."""
@@ -153,7 +157,7 @@ class Visibility(BaseModel):
     public: bool
 
 
-@router.patch("/api/submissions/{sid}", tags=["submissions"])
+@router.patch("/api/submissions/{sid}", tags=["submissions"], response_model=SubmissionOut, response_model_exclude_unset=True)
 def set_visibility(sid: str, body: Visibility, request: Request, db: Session = Depends(db_session)):
     """Make one of your submissions public or private (409 once it is withdrawn: it stays hidden for good)."""
     caller = require_writer(request, db)
@@ -163,7 +167,8 @@ def set_visibility(sid: str, body: Visibility, request: Request, db: Session = D
     return to_json(db, sub)
 
 
-@router.get("/submissions/{sid}/plots/{name}.png", tags=["submissions"], response_class=Response)
+@router.get("/submissions/{sid}/plots/{name}.png", tags=["submissions"], response_class=Response,
+            responses={200: {"content": {"image/png": {}}, "description": "the figure"}})
 def plot_png(sid: str, name: str, request: Request, db: Session = Depends(db_session)):
     sub = _visible_submission(request, db, sid)
     png = render_plot(db, sub, name)
@@ -337,7 +342,7 @@ def make_anchor(request: Request, db: Session, user: User, name: str, method: st
     return a, rows
 
 
-@router.post("/anchors", status_code=201, tags=["relocalization"])
+@router.post("/anchors", status_code=201, tags=["relocalization"], response_model=AnchorOut)
 @heavy
 def create_anchor(request: Request, image: UploadFile = File(..., description="reference photo (JPEG/PNG)"),
                   fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
@@ -390,7 +395,7 @@ def _own_anchor(a: Anchor, user: User, what: str) -> None:
         raise HTTPException(403, f"only the anchor's owner can {what}")
 
 
-@router.get("/anchors/{aid}", tags=["relocalization"])
+@router.get("/anchors/{aid}", tags=["relocalization"], response_model=AnchorOut)
 def get_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
     require_user(request, db)
     a = find_anchor(db, aid)
@@ -443,7 +448,7 @@ def add_photo(request: Request, db: Session, user: User, aid: str, image: Upload
     return a, photo_rows(db, a.id)
 
 
-@router.post("/anchors/{aid}/photos", status_code=201, tags=["relocalization"])
+@router.post("/anchors/{aid}/photos", status_code=201, tags=["relocalization"], response_model=AnchorOut)
 @heavy
 def add_anchor_photo(aid: str, request: Request, image: UploadFile = File(..., description="photo (JPEG/PNG)"),
                      fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
@@ -482,7 +487,7 @@ def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) ->
     return a, photo_rows(db, a.id)
 
 
-@router.delete("/anchors/{aid}/photos/{k}", tags=["relocalization"])
+@router.delete("/anchors/{aid}/photos/{k}", tags=["relocalization"], response_model=AnchorOut)
 def delete_anchor_photo(aid: str, k: RowId, request: Request, db: Session = Depends(db_session)):
     """Delete photo ``k`` of one of your anchors (its owner, or an admin) -> the anchor. Indices stay as they
     are (deleting photo 1 of 0, 1, 2 leaves 0, 2); the next localize uses the photos left; the bytes no longer
@@ -491,7 +496,8 @@ def delete_anchor_photo(aid: str, k: RowId, request: Request, db: Session = Depe
     return anchor_json(*remove_photo(request, db, caller.user, aid, k))
 
 
-@router.get("/anchors/{aid}/photos/{k}", tags=["relocalization"], response_class=Response)
+@router.get("/anchors/{aid}/photos/{k}", tags=["relocalization"], response_class=Response,
+            responses={200: {"content": {"image/jpeg": {}, "image/png": {}}, "description": "the photo"}})
 def anchor_photo_image(aid: str, k: RowId, request: Request, db: Session = Depends(db_session)):
     """The stored image of photo ``k`` (JPEG or PNG, upright, without EXIF metadata), for anyone signed in; a
     private anchor's for its owner and admins only."""
@@ -547,7 +553,7 @@ def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img,
     return est
 
 
-@router.post("/anchors/{aid}/localize", tags=["relocalization"])
+@router.post("/anchors/{aid}/localize", tags=["relocalization"], response_model=LocalizeOut, response_model_exclude_unset=True)
 @heavy
 def localize(aid: str, request: Request, image: UploadFile = File(..., description="query photo (JPEG/PNG)"),
              fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),

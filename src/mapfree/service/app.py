@@ -29,6 +29,7 @@ from .lifeline import die_with_parent, parent_from_env
 from .manage import Withdrawn
 from .metrics import Metrics
 from .reloc import Localizers, register_methods_dir
+from .schemas import ERRORS
 from .storage import drop_interrupted_uploads
 from .timeouts import BodyTimeout
 from .uploads import UploadError
@@ -70,7 +71,7 @@ def create_app(settings: Settings) -> FastAPI:
                         extra={"submissions": n})
     # /docs and /redoc with their assets served from /docs-assets (fastapi-offline): no CDN, so they work offline
     app = FastAPIOffline(title="mapfree service", version=__version__, static_url="/docs-assets",
-                         max_body_size=settings.limits.max_request_bytes,
+                         max_body_size=settings.limits.max_request_bytes, responses=ERRORS,
                          description="Map-free benchmark evaluation server and metric relocalization API.")
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
     app.state.health = HealthMonitor(engine)

@@ -22,6 +22,7 @@ from .db import MethodInfo, Result, Submission, User
 from .deps import db_session, identify
 from .evaluation import LOWER_IS_BETTER, METRIC_KEYS, SHORT
 from .reference import REFERENCE_ROWS
+from .schemas import BoardOut, CompareOut
 from .submissions import shown_metrics, to_json, visible_submission
 from .uploads import UploadError
 
@@ -286,7 +287,8 @@ def check_split(request: Request, split: str) -> None:
         raise HTTPException(404, f"no leaderboard for split {split!r}")
 
 
-@router.get("/api/leaderboard/{split}.csv", response_class=Response)
+@router.get("/api/leaderboard/{split}.csv", response_class=Response,
+            responses={200: {"content": {"text/csv": {}}, "description": "the whole board"}})
 def leaderboard_csv(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
                     scene: str | None = Query(None), db: Session = Depends(db_session)):
     """The whole leaderboard as a CSV file (same parameters as the JSON board, no paging), streamed."""
@@ -300,7 +302,7 @@ def leaderboard_csv(split: str, request: Request, sort: str = Query("vcre_auc"),
         headers={"Content-Disposition": f'attachment; filename="{re.sub("[^A-Za-z0-9_.-]", "", fname)}"'})
 
 
-@router.get("/api/leaderboard/{split}")
+@router.get("/api/leaderboard/{split}", response_model=BoardOut, response_model_exclude_unset=True)
 def leaderboard(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
                 scene: str | None = Query(None), reference: bool = Query(True),
                 page: int = Query(1, ge=1, description="page number, from 1"),
@@ -325,7 +327,7 @@ def visible_json(request: Request, db: Session, sid: str) -> dict:
     return to_json(db, visible_submission(db, identify(request, db).user, sid, f"no such submission {sid[:40]!r}"))
 
 
-@router.get("/api/compare")
+@router.get("/api/compare", response_model=CompareOut)
 def compare_submissions(request: Request, a: str = Query(..., description="submission id"),
                  b: str = Query(..., description="submission id"), db: Session = Depends(db_session)):
     """Two submissions side by side: each metric, b − a, and which is better (per scene too, except test)."""

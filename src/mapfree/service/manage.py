@@ -20,6 +20,7 @@ from .config import Settings, shown_limit
 from .db import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
 from .deps import db_session, require_user, require_writer
 from .leaderboard import meta_json, parse_meta, save_meta
+from .schemas import MethodMetaOut
 from .storage import is_stored, stream_zip
 from .submissions import daily_test_limit, recent_count
 
@@ -105,7 +106,8 @@ def withdraw_submission(sid: str, request: Request, db: Session = Depends(db_ses
     return Response(status_code=204)
 
 
-@router.get("/api/submissions/{sid}/zip", response_class=Response)
+@router.get("/api/submissions/{sid}/zip", response_class=Response,
+            responses={200: {"content": {"application/zip": {}}, "description": "the ZIP as uploaded"}})
 def download_zip(sid: str, request: Request, db: Session = Depends(db_session)):
     """The ZIP you uploaded (owner or admin only; 409 once withdrawn, 410 once past the retention time)."""
     caller = require_user(request, db)
@@ -120,7 +122,7 @@ class MethodBody(BaseModel):
     extra_data: bool = False
 
 
-@router.put("/api/submissions/{sid}/method")
+@router.put("/api/submissions/{sid}/method", response_model=MethodMetaOut)
 def describe_method(sid: str, body: MethodBody, request: Request, db: Session = Depends(db_session)):
     """Describe the method behind one of your submissions (shown on the leaderboard): description, paper and
     code links (http/https), runtime per query in ms, and whether it uses data beyond the train split."""
