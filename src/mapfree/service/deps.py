@@ -74,7 +74,9 @@ def identify(request: Request, db: Session) -> Caller:
     """Who is calling (possibly nobody). A malformed or unknown bearer token is a 401, not anonymous."""
     header = request.headers.get("authorization")
     if header is not None:
-        user = token_user(request, db, header)
+        account = getattr(request.state, "account", None)  # this header, checked by CredentialGate already
+        user = db.get(User, account) if account is not None else None
+        user = user if user is not None else token_user(request, db, header)
         request.state.user_id = user.id
         db.commit()  # end the read transaction (on SQLite it holds the write lock)
         return Caller(user, None, True)
