@@ -159,12 +159,13 @@ def upload_pressure(url: str, api_pid: int, tokens: list[str], payload: bytes, r
 
 
 def worker_pids(serve_pid: int) -> list[int]:
-    """The evaluation worker processes `mapfree serve` started (its children running mapfree.service.worker)."""
+    """The evaluation worker processes `mapfree serve` started (its children running the module
+    mapfree.service.leaderboard.worker)."""
     pids = []
     for d in Path("/proc").iterdir():
         try:
             if d.name.isdigit() and int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == serve_pid \
-                    and b"mapfree.service.worker" in (d / "cmdline").read_bytes():
+                    and b"mapfree.service.leaderboard.worker" in (d / "cmdline").read_bytes():
                 pids.append(int(d.name))
         except (OSError, ValueError, IndexError):
             continue
@@ -177,7 +178,7 @@ def wait_evaluated(sessions, deadline: float, ids: list[str] | None = None, poll
     from sqlalchemy import func, select
     from sqlalchemy.exc import OperationalError
 
-    from mapfree.service.db import Submission
+    from mapfree.service.database.models import Submission
 
     pending = Submission.status.in_(("queued", "running"))
     if ids is not None:
@@ -196,7 +197,7 @@ def wait_evaluated(sessions, deadline: float, ids: list[str] | None = None, poll
 def upload_memory(url: str, api_pid: int, tokens: list[str], payload: bytes, sessions, deadline: float) -> dict:
     """Three uploads of ``payload`` at once, then their evaluation: peak RSS of the API process and of every
     worker process, sampled every 20 ms from before the uploads until the workers have parsed and scored them."""
-    from mapfree.service.db import Submission
+    from mapfree.service.database.models import Submission
 
     workers = worker_pids(api_pid)
     pids = [api_pid, *workers]
@@ -551,8 +552,8 @@ def main() -> int:
 
     from mapfree.data import Dataset
     from mapfree.data.synth import SynthOptions, generate
-    from mapfree.service import auth
-    from mapfree.service.db import Base, Result, Submission, WorkerRow, init_db, make_engine, session_factory
+    from mapfree.service.accounts import tokens as auth
+    from mapfree.service.database.models import Base, Result, Submission, WorkerRow, init_db, make_engine, session_factory
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-service-"))
     generate(tmp / "data", "val", 3, 20, seed=3, options=SynthOptions(first_scene=460, width=135, height=180,

@@ -177,7 +177,7 @@ def fresh_postgres(tag: str) -> str:
     from sqlalchemy import create_engine, text
     from sqlalchemy.engine import make_url
 
-    from mapfree.service.db import Base, make_engine, normalize_url
+    from mapfree.service.database.models import Base, make_engine, normalize_url
 
     base = make_url(normalize_url(PG_URL))
     name = f"mapfree_t_{tag}_{uuid.uuid4().hex[:8]}"
@@ -202,7 +202,7 @@ def drop_postgres_databases() -> None:
     from sqlalchemy import create_engine, text
     from sqlalchemy.engine import make_url
 
-    from mapfree.service.db import normalize_url
+    from mapfree.service.database.models import normalize_url
 
     if not _PG_CREATED:
         return
@@ -245,8 +245,8 @@ class Server:
 
 def create_users(db_url: str, users: dict[str, int | None], admin: bool = False) -> dict[str, str]:
     """Accounts made in-process (what `mapfree admin create-user [--admin]` does): name -> token."""
-    from mapfree.service import auth
-    from mapfree.service.db import init_db, make_engine, session_factory
+    from mapfree.service.accounts import tokens as auth
+    from mapfree.service.database.models import init_db, make_engine, session_factory
 
     engine = make_engine(db_url)
     init_db(engine)

@@ -16,9 +16,9 @@ from sqlalchemy import func, select, text
 from mapfree.data import Dataset
 from mapfree.geometry import Pose
 from mapfree.service import Limits, Settings, create_app
-from mapfree.service.db import Anchor, User, make_engine, session_factory
-from mapfree.service.storage import check_quota
-from mapfree.service.uploads import UploadError
+from mapfree.service.database.models import Anchor, User, make_engine, session_factory
+from mapfree.service.accounts.quota import check_quota
+from mapfree.service.inputs import UploadError
 
 from .conftest import BACKENDS, create_users, db_url_for
 from .test_browser import CHROMIUM, PHONE, _sign_in, browser, phone, shot  # noqa: F401 (fixtures)
@@ -533,7 +533,7 @@ def test_a_photo_is_decoded_without_holding_the_database_write_lock(make_app, sc
     be held meanwhile (every other writer would wait). Checked from a second connection during the decode."""
     import sqlite3
 
-    import mapfree.service.api as api
+    import mapfree.service.anchors.domain as api
 
     ref, second = scene.reference, scene.frame(SECOND)
     app = make_app()
@@ -573,7 +573,7 @@ def test_bytes_after_a_jpegs_end_are_not_stored_or_served(server, realmini_dir):
     from PIL import Image
 
     from mapfree.data import Dataset
-    from mapfree.service.exif import clean_photo
+    from mapfree.service.anchors.exif import clean_photo
 
     ref = Dataset(realmini_dir).scene("val", "s00000").reference
     trailer = b"\x00\x00\x00\x18ftypmp42" + b"MotionPhoto_Data SECRET-CLIP " * 50 + b"\xff\xd9tail"

@@ -21,7 +21,7 @@ def expected_metrics(server, data: bytes, split: str, tmp_path) -> dict:
     """What the benchmark core says, computed in this process on the same ZIP, as the server shows it (test: no
     medians, rounded)."""
     from mapfree.benchmark import evaluate
-    from mapfree.service.submissions import shown_metrics
+    from mapfree.service.leaderboard.submissions import shown_metrics
 
     p = tmp_path / "expected.zip"
     p.write_bytes(data)

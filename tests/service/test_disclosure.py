@@ -1,4 +1,4 @@
-"""What a test evaluation reveals of the private ground truth (the threat model: ``mapfree.service.testmetrics``).
+"""What a test evaluation reveals of the private ground truth (the threat model: ``mapfree.service.leaderboard.disclosure``).
 
 The attack replayed here: a one-scene test split of 12 scored frames; each submission estimates 7 of them (over half,
 which used to publish the medians): a probe frame at the identity rotation with its camera centre 100 m along
@@ -66,9 +66,9 @@ def test_three_probe_submissions_recover_nothing_better_than_a_metre(tmp_path):
     ``to_json``'s ``shown_metrics``): the medians are not published, so nothing places the frame; a control on
     val, where the ground truth is public and the medians stay, shows the same attack working to millimetres."""
     from mapfree.service import Settings
-    from mapfree.service.evaluation import score
-    from mapfree.service.submissions import shown_metrics
-    from mapfree.service.testmetrics import MEDIAN_KEYS
+    from mapfree.service.leaderboard.scoring import score
+    from mapfree.service.leaderboard.submissions import shown_metrics
+    from mapfree.service.leaderboard.disclosure import MEDIAN_KEYS
 
     root, gt = tmp_path / "data", tmp_path / "gt"
     names, poses = _one_scene_split(root, gt)
@@ -106,8 +106,8 @@ def test_no_test_result_carries_a_median(tmp_path, frames_sent):
     """Neither a one-frame probe nor a submission of every frame publishes a median on test; the rest is
     rounded to leaderboard precision."""
     from mapfree.service import Settings
-    from mapfree.service.evaluation import score
-    from mapfree.service.testmetrics import DECIMALS, DEFAULT_DECIMALS, MEDIAN_KEYS
+    from mapfree.service.leaderboard.scoring import score
+    from mapfree.service.leaderboard.disclosure import DECIMALS, DEFAULT_DECIMALS, MEDIAN_KEYS
 
     root, gt = tmp_path / "data", tmp_path / "gt"
     names, poses = _one_scene_split(root, gt)

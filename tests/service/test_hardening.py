@@ -180,8 +180,8 @@ def test_health_answers_from_a_live_snapshot_and_fails_when_the_database_does(ma
 
     from sqlalchemy import create_engine
 
-    from mapfree.service.db import WorkerRow, make_engine, session_factory
-    from mapfree.service.health import STALE_SECONDS, HealthMonitor, Snapshot
+    from mapfree.service.database.models import WorkerRow, make_engine, session_factory
+    from mapfree.service.http.health import STALE_SECONDS, HealthMonitor, Snapshot
 
     app = make_app()
     h = app.client.get("/health/detail", headers=OPERATOR).json()
@@ -216,7 +216,7 @@ def test_a_serving_process_freezes_its_long_lived_objects(tmp_path):
     code = f"""
 import gc
 from mapfree.service import Settings, create_app
-from mapfree.service.gcpause import after_load, freeze_long_lived
+from mapfree.service.http.gc_freeze import after_load, freeze_long_lived
 app = create_app(Settings(db_url="sqlite:///{tmp_path / 'gc.db'}"))
 after_load()
 assert gc.get_freeze_count() == 0, "froze without being asked"
@@ -260,9 +260,9 @@ def _pose_text(scene_dir: Path, lines: int, seed: int) -> bytes:
 def test_upload_is_stored_in_chunks_without_parsing_or_holding_it(make_app, split_data, tmp_path):
     """A few-MB submission is checked from its ZIP directory and copied into the database in chunks: the API's
     Python memory peak stays near one chunk (the old path read, inflated and parsed everything)."""
-    from mapfree.service import storage
-    from mapfree.service.db import Submission, User, ZipChunk
-    from mapfree.service.submissions import accept
+    from mapfree.service.leaderboard import storage
+    from mapfree.service.database.models import Submission, User, ZipChunk
+    from mapfree.service.leaderboard.submissions import accept
 
     app = make_app()
     scenes = sorted(p for p in (split_data.root / "val").iterdir())
@@ -296,8 +296,8 @@ def test_upload_is_stored_in_chunks_without_parsing_or_holding_it(make_app, spli
 
 
 def test_val_rate_limit_storage_quota_and_retention(make_app, split_data):
-    from mapfree.service import storage
-    from mapfree.service.db import Submission, SubmissionFile
+    from mapfree.service.leaderboard import storage
+    from mapfree.service.database.models import Submission, SubmissionFile
 
     data = make_submission(split_data.root / "val")
     app = make_app(val_hourly_limit=2, storage_quota_bytes=int(2.5 * len(data)))
@@ -424,7 +424,7 @@ def test_zip_limits_are_named_per_entry_and_in_total(make_app, split_data):
 
 def test_the_worker_reads_with_the_same_limits(split_data, tmp_path):
     """Declared sizes can lie; the workers' reader enforces the service's per-file limit and names it."""
-    from mapfree.service.evaluation import SubmissionRejected, score
+    from mapfree.service.leaderboard.scoring import SubmissionRejected, score
 
     scene = sorted(p for p in (split_data.root / "val").iterdir())[0]
     p = tmp_path / "s.zip"
@@ -450,7 +450,7 @@ def test_names_with_bidi_controls_are_refused(server):
 
 
 def test_sqlite_database_is_private(tmp_path):
-    from mapfree.service.db import init_db, make_engine
+    from mapfree.service.database.models import init_db, make_engine
 
     engine = make_engine(f"sqlite:///{tmp_path / 'private.db'}")
     init_db(engine)
@@ -474,7 +474,7 @@ def test_operator_methods_folder_and_old_anchors_whose_method_cannot_run(make_ap
     """Methods from ``--methods-dir`` are offered by name (a broken file is skipped, not fatal); an anchor stored
     before this check whose method cannot run here is a 422 at localize time, not a 500."""
     from mapfree import matching
-    from mapfree.service.db import Anchor, User
+    from mapfree.service.database.models import Anchor, User
 
     folder = tmp_path / "methods"
     folder.mkdir()
@@ -503,8 +503,8 @@ def test_tokens_and_sessions_never_outlive_the_token_they_were_made_with(server)
     """A 3-second token minted a 365-day token that kept working, and a session signed in with a token outlived
     its revocation by 12 h. Now a token made with another expires with it at the latest, and revoking a token
     ends the tokens and sessions made with it (and says which)."""
-    from mapfree.service import auth
-    from mapfree.service.db import User, make_engine, session_factory
+    from mapfree.service.accounts import tokens as auth
+    from mapfree.service.database.models import User, make_engine, session_factory
 
     create_users(server.db_url, {"erin": None})
     engine = make_engine(server.db_url)
@@ -564,7 +564,7 @@ def test_out_of_range_ids_are_refused_not_a_500(server):
 
 
 def _worker_rows(db_url: str) -> int:
-    from mapfree.service.db import WorkerRow, make_engine, session_factory
+    from mapfree.service.database.models import WorkerRow, make_engine, session_factory
 
     engine = make_engine(db_url)
     with session_factory(engine)() as db:
@@ -580,8 +580,8 @@ def test_a_burst_of_sigterms_stops_a_worker(split_data, tmp_path, when):
     nested handler for ever: the worker outlived ``serve``. Now a handler only wakes a thread. SIGTERMs are
     sent every millisecond from the moment the worker is idle (or scoring a job) until it has exited, so
     that they also land during its final database delete."""
-    from mapfree.service.db import User, init_db, make_engine, session_factory
-    from mapfree.service.submissions import accept
+    from mapfree.service.database.models import User, init_db, make_engine, session_factory
+    from mapfree.service.leaderboard.submissions import accept
 
     db_url = f"sqlite:///{tmp_path / 'w.db'}"
     create_users(db_url, {"ann": None})
@@ -594,7 +594,7 @@ def test_a_burst_of_sigterms_stops_a_worker(split_data, tmp_path, when):
                          for i, s in enumerate(sorted((split_data.root / "val").iterdir()))}, zipfile.ZIP_DEFLATED)
             accept(db, Settings(db_url=db_url, data_root=split_data.root), user, "val", "slow", False, data)
         engine.dispose()
-    proc = subprocess.Popen([sys.executable, "-m", "mapfree.service.worker", "--db", db_url, "--data",
+    proc = subprocess.Popen([sys.executable, "-m", "mapfree.service.leaderboard.worker", "--db", db_url, "--data",
                              str(split_data.root), "--poll-seconds", "0.05"], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": "1"})
     try:
@@ -624,7 +624,7 @@ def test_a_burst_of_sigterms_stops_a_worker(split_data, tmp_path, when):
 
 
 def _statuses(db_url: str) -> set[str]:
-    from mapfree.service.db import Submission, make_engine, session_factory
+    from mapfree.service.database.models import Submission, make_engine, session_factory
 
     engine = make_engine(db_url)
     with session_factory(engine)() as db:
@@ -639,7 +639,7 @@ def test_a_signal_during_the_stop_handler_cannot_deadlock():
     on that lock for ever; ``stop_on_signals``' handlers return at once and a thread sets the event."""
     script = (
         "import os, signal, threading, sys\n"
-        "from mapfree.service.lifeline import stop_on_signals\n"
+        "from mapfree.service.process import stop_on_signals\n"
         "stop = threading.Event()\n"
         "stop_on_signals(stop)\n"
         "with stop._cond:\n"
@@ -655,7 +655,7 @@ def test_look_alike_names_and_endless_tokens_are_refused(make_app, tmp_path):
     """'аlice' (Cyrillic а) beside 'alice' were two accounts the boards showed alike, and one account minted
     2,000 tokens in 20 s. Now names are ASCII and unique ignoring case, and an account holds at most
     ``MAX_TOKENS`` active tokens (a revoked one frees its place)."""
-    from mapfree.service import auth
+    from mapfree.service.accounts import tokens as auth
 
     db = ["--db", f"sqlite:///{tmp_path / 'names.db'}"]
     mapfree("admin", *db, "create-user", "alice")

@@ -116,7 +116,7 @@ def test_heavy_requests_past_the_cap_get_429_with_retry_after(make_app, realmini
 def test_anchor_cache_is_bounded_in_bytes_and_answers_as_uncached(realmini_dir):
     """Prepared anchors hold features and working-size depth, no pixels; their measured size bounds the cache
     (the least recently used go first), and a cached anchor answers exactly as one prepared afresh."""
-    from mapfree.service.reloc import Localizers, Photo
+    from mapfree.service.anchors.localizers import Localizers, Photo
 
     scene = Dataset(realmini_dir).scene("val", "s00000")
     ref, q = scene.reference, scene.frame("seq1/frame_00009.jpg")
@@ -233,8 +233,9 @@ def test_parallel_uploads_cannot_overrun_the_storage_quota(backend, split_data, 
 def test_an_upload_reserves_its_bytes_before_its_copy_starts(make_app, split_data, monkeypatch):  # noqa: F811
     """While one upload is being copied in, a second one of the same account sees its bytes (it saw none until
     the first chunk was stored: the race that let parallel uploads pass the quota); a failed copy frees them."""
-    from mapfree.service import storage, submissions
-    from mapfree.service.db import User
+    from mapfree.service.accounts import quota as storage
+    from mapfree.service.leaderboard import submissions
+    from mapfree.service.database.models import User
 
     from .conftest import make_submission
 
@@ -295,8 +296,8 @@ def test_leaderboards_are_paged_and_the_csv_streams(make_app):  # noqa: F811
 
     from sqlalchemy import insert
 
-    from mapfree.service.db import Result, Submission, User
-    from mapfree.service.evaluation import METRIC_KEYS
+    from mapfree.service.database.models import Result, Submission, User
+    from mapfree.service.leaderboard.scoring import METRIC_KEYS
 
     app = make_app()
     n = 20_000

@@ -23,7 +23,7 @@ SUBMISSIONS = 12
 
 def _results(db_url: str) -> tuple[dict[str, str], int]:
     """(status by submission, result rows) as the database holds them."""
-    from mapfree.service.db import Result, Submission, make_engine, session_factory
+    from mapfree.service.database.models import Result, Submission, make_engine, session_factory
 
     engine = make_engine(db_url)
     with session_factory(engine)() as db:

@@ -17,8 +17,8 @@ def pair(realmini_dir):
 
 
 def test_a_depth_suffix_no_request_can_carry_is_refused_before_anything_is_built():
-    from mapfree.service.reloc import check_method
-    from mapfree.service.uploads import UploadError
+    from mapfree.service.anchors.localizers import check_method
+    from mapfree.service.inputs import UploadError
 
     for name in ("disk-lightglue_pnp_d1", "aliked-lightglue_pnp_zz1", "sift_pnp_d10"):
         with pytest.raises(UploadError) as e:
@@ -31,7 +31,7 @@ def test_a_depth_suffix_no_request_can_carry_is_refused_before_anything_is_built
 def test_method_names_share_a_pool_bounded_in_bytes(pair):
     """Three names of one configuration build one relocalizer; three configurations over a budget of one keep
     one (the most recent), and every answer is the same as before the others came."""
-    from mapfree.service.reloc import Localizers
+    from mapfree.service.anchors.localizers import Localizers
 
     ref_img, ref_K, ref_d, q_img, q_K, q_d = pair
     locs = Localizers(per_method=1, pool_bytes=1 << 30)
@@ -52,7 +52,7 @@ def test_one_account_cannot_evict_everyone_elses_prepared_anchors(pair):
     """A cache with room for two and a half anchors: one account localizing four anchors round-robin used to
     evict everyone's (every localize then prepared its anchor again); now it evicts its own, and another
     account's anchor is answered from the cache throughout."""
-    from mapfree.service.reloc import Localizers, Photo
+    from mapfree.service.anchors.localizers import Localizers, Photo
 
     ref_img, ref_K, ref_d, q_img, q_K, _ = pair
     probe = Localizers(per_method=1)
@@ -84,7 +84,7 @@ def test_heavy_threads_are_shared_fairly_between_accounts():
 
     from fastapi import HTTPException
 
-    from mapfree.service.concurrency import HeavyPool
+    from mapfree.service.http.heavy import HeavyPool
 
     pool = HeavyPool(threads=1, queue=8)
     assert pool.per_account == 4

@@ -23,7 +23,7 @@ def _limit(text: str) -> int | None:
 
 def _row_id(text: str) -> int:
     """A token's or session's id as listed: a number from 0 to 2^31 - 1 (the database's integer)."""
-    from ..service.deps import MAX_ROW_ID
+    from ..service.http.caller import MAX_ROW_ID
 
     try:
         n = int(text)
@@ -97,7 +97,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _when(t: float | None) -> str:
-    from ..service.auth import utc
+    from ..service.accounts.tokens import utc
 
     return utc(t) if t else "never"
 
@@ -105,11 +105,11 @@ def _when(t: float | None) -> str:
 def run(a: argparse.Namespace) -> int:
     from sqlalchemy import select
 
-    from ..service import auth
-    from ..service.db import ApiToken, User, WebSession, session_factory
+    from ..service.accounts import tokens as auth
+    from ..service.database.models import ApiToken, User, WebSession, session_factory
 
     if a.action == "backup":  # before any upgrade: a backup is what one takes before upgrading
-        from ..service.backup import backup
+        from ..service.database.backup import backup
 
         try:
             print(backup(a.db, a.dest))
@@ -117,8 +117,8 @@ def run(a: argparse.Namespace) -> int:
             print(f"error: {e}", file=sys.stderr)
             return 1
         return 0
-    from ..service.db import DatabaseUnavailable, open_database
-    from ..service.migrations import SchemaVersion
+    from ..service.database.models import DatabaseUnavailable, open_database
+    from ..service.database.migrations import SchemaVersion
 
     try:
         engine, (before, after) = open_database(a.db)
@@ -163,7 +163,7 @@ def run(a: argparse.Namespace) -> int:
         elif a.action == "revoke-tokens":
             print(f"revoked {auth.revoke_tokens(db, user(db, a.name))} token(s)", file=sys.stderr)
         elif a.action == "list-tokens":
-            from ..service.accounts import list_tokens, token_json
+            from ..service.accounts.router import list_tokens, token_json
 
             print("id\tprefix\tlabel\tcreated\texpires\tstate")
             for t in map(token_json, list_tokens(db, user(db, a.name).id)):
@@ -180,7 +180,7 @@ def run(a: argparse.Namespace) -> int:
             print(f"revoked token {a.id} ({row.prefix}…)" + (f" and ended {' and '.join(also)}" if also else ""),
                   file=sys.stderr)
         elif a.action == "list-sessions":
-            from ..service.accounts import list_sessions
+            from ..service.accounts.router import list_sessions
 
             print("id\topened\texpires")
             for w in list_sessions(db, user(db, a.name).id):
@@ -209,8 +209,8 @@ def run(a: argparse.Namespace) -> int:
 def _delete_user(db, u, yes: bool) -> int:
     from sqlalchemy import func, select
 
-    from ..service.accounts import delete_user
-    from ..service.db import User
+    from ..service.accounts.router import delete_user
+    from ..service.database.models import User
 
     if u.is_admin and db.scalar(select(func.count()).select_from(User).where(User.is_admin.is_(True))) == 1:
         print(f"error: {u.name!r} is the only admin; make another admin first", file=sys.stderr)

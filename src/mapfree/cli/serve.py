@@ -132,7 +132,7 @@ def settings_from_args(a: argparse.Namespace):
 def uvicorn_options(a: argparse.Namespace) -> dict:
     """uvicorn's connection settings from the flags: timeouts, concurrency, header size, trusted proxies (none
     unless named: uvicorn would otherwise believe X-Forwarded-For from 127.0.0.1, a per-request new address)."""
-    from ..service.timeouts import head_timeout_protocol
+    from ..service.http.timeouts import head_timeout_protocol
 
     return {"http": head_timeout_protocol(a.header_timeout, a.max_connections_per_address, a.forwarded_allow_ips),
             "timeout_keep_alive": a.timeout_keep_alive,
@@ -148,7 +148,7 @@ ISOLATED = "-P" if sys.version_info >= (3, 11) else "-I"
 
 def worker_command(a: argparse.Namespace) -> list[str]:
     limits = dataclasses.asdict(settings_from_args(a).limits)
-    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.worker",  # the database URL: worker_env
+    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.leaderboard.worker",  # the database URL: worker_env
            "--lease-seconds", str(a.lease_seconds), "--zip-retention-days", str(a.zip_retention_days),
            "--limits", json.dumps(limits), "--log-level", a.log_level, "--exit-with-parent"]
     if a.data:
@@ -253,9 +253,9 @@ def check_folders(a: argparse.Namespace) -> str | None:
 
 
 def run(a: argparse.Namespace) -> int:
-    from ..service.db import DatabaseUnavailable, open_database
-    from ..service.evaluation import check_ground_truth
-    from ..service.logs import setup_logging
+    from ..service.database.models import DatabaseUnavailable, open_database
+    from ..service.leaderboard.scoring import check_ground_truth
+    from ..service.http.logs import setup_logging
 
     if (problem := check_folders(a)) is not None:
         print(f"mapfree serve: error: {problem}", file=sys.stderr)
@@ -269,12 +269,15 @@ def run(a: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"mapfree serve: error: {e}", file=sys.stderr)
         return 2
-    from ..service.migrations import SchemaVersion
+    from ..service.database.migrations import SchemaVersion
 
     try:  # create the tables or upgrade the schema, once, before the API processes and workers start
         engine, (before, after) = open_database(settings.db_url)
         engine.dispose()
-    except (SchemaVersion, DatabaseUnavailable) as e:
+    except SchemaVersion as e:
+        print(f"mapfree serve: error: {e}", file=sys.stderr)
+        return 2
+    except DatabaseUnavailable as e:
         print(f"mapfree serve: error: {e}", file=sys.stderr)
         return 1
     setup_logging(a.log_level)  # JSON lines from here on (the checks above say what is wrong in one line)
@@ -285,7 +288,7 @@ def run(a: argparse.Namespace) -> int:
         sup.start()
     try:
         if a.no_api:
-            from ..service.lifeline import stop_on_signals
+            from ..service.process import stop_on_signals
 
             stop = threading.Event()
             stop_on_signals(stop)
@@ -296,15 +299,15 @@ def run(a: argparse.Namespace) -> int:
         log.info("serving", extra={"host": a.host, "port": a.port, "db": settings.db_url.split("://")[0]})
         conn = uvicorn_options(a)
         if a.api_processes > 1:
-            from ..service.lifeline import PARENT_PID_ENV
+            from ..service.process import PARENT_PID_ENV
 
             os.environ["MAPFREE_SETTINGS"] = json.dumps(dataclasses.asdict(settings), default=str)
             os.environ[PARENT_PID_ENV] = str(os.getpid())  # they end with this process, even on kill -9
-            uvicorn.run("mapfree.service.app:app_from_env", factory=True, host=a.host, port=a.port,
+            uvicorn.run("mapfree.service.http.app:app_from_env", factory=True, host=a.host, port=a.port,
                         workers=a.api_processes, log_config=None, access_log=False, **conn)
         else:
             from ..service import create_app
-            from ..service.gcpause import freeze_long_lived
+            from ..service.http.gc_freeze import freeze_long_lived
 
             app = create_app(settings)
             freeze_long_lived()

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-
 #: A daily test limit (the server's or one account's) meaning "no limit"; 0 means none at all.
 UNLIMITED = -1
 

@@ -8,7 +8,7 @@ from typing import Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..geometry import Intrinsics  # fx fy cx cy (pixels) and the image's width and height, as stored
+from ..geometry import Intrinsics
 
 #: A metric's value: a number, or null where it is not defined (or not published: medians on test).
 Metric = Optional[float]
