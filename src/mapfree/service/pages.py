@@ -20,11 +20,11 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from .accounts import tokens as auth
-from .anchors.domain import (PhotoUpload, add_photo, anchor_json, check_photo_count, find_anchor, localize_anchor,
-                             make_anchor, may_see_photos, photo_name, photo_rows, photo_upload, remove_photo,
-                             stored_photo)
+from .anchors.domain import (add_photo, anchor_json, check_photo_count, find_anchor, localize_anchor, make_anchor,
+                             may_see_photos, photo_name, photo_rows, photo_upload, remove_photo, stored_photo)
 from .anchors.localizers import check_method, default_method, estimate_json, figure_png, needs_reference_depth
-from .anchors.photos import UprightPhoto, read_photo
+from .anchors.photos import Photo, Upload
+from .anchors.photos import read_upload as read_photo_upload
 from .database.models import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .http.caller import LOGIN_CSRF_COOKIE, SESSION_COOKIE, RowId, db_session, identify, require_writer
 from .http.heavy import heavy
@@ -337,10 +337,10 @@ def _form_fields(form: dict, prefix: str) -> dict:
     return {k[len(prefix):]: v for k, v in form.items() if k.startswith(prefix)}
 
 
-def _query_photo(query: UploadFile, lim, form: dict) -> UprightPhoto:
-    """The page's query photo with its ``q_*`` intrinsics (guessed when left empty)."""
-    return read_photo(query.file.read(lim.max_image_bytes + 1), lim, _form_fields(form, "q_"), "query photo",
-                      "query intrinsics", guess=True)
+def _query_photo(query: UploadFile, lim, form: dict) -> Photo:
+    """The page's query photo with its ``q_*`` intrinsics (guessed when left empty), at the working size."""
+    return read_photo_upload(query.file.read(lim.max_image_bytes + 1), lim, _form_fields(form, "q_"),
+                             what="query photo", intr_what="query intrinsics", guess=True).photo
 
 
 @router.post("/relocalize", response_class=HTMLResponse)
@@ -359,25 +359,23 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
     m = method.strip() or default_method(request.app.state.settings.default_method)
     try:
         m = check_method(m)
-        ref_up = read_photo(reference.file.read(lim.max_image_bytes + 1), lim, _form_fields(form, "ref_"),
-                            "reference photo", "reference intrinsics", guess=True)
-        q_up = _query_photo(query, lim, form)
-        ref_depth = None
-        if reference_depth is not None and reference_depth.filename:
-            ref_depth = ref_up.depth(reference_depth.file.read(lim.max_image_bytes + 1), lim, "reference depth")
-        elif needs_reference_depth(m, scale_free_too=False):
+        ref_depth = (reference_depth.file.read(lim.max_image_bytes + 1)
+                     if reference_depth is not None and reference_depth.filename else None)
+        ref = read_photo_upload(reference.file.read(lim.max_image_bytes + 1), lim, _form_fields(form, "ref_"),
+                                ref_depth, what="reference photo", intr_what="reference intrinsics",
+                                depth_what="reference depth", guess=True).photo  # at the size the matches are in
+        q = _query_photo(query, lim, form)
+        if ref_depth is None and needs_reference_depth(m, scale_free_too=False):
             raise UploadError(422, f"method {m} needs the reference depth map (a uint16 PNG in millimetres, the "
                                    "size of the reference photo) for a metric pose; choose one, or a method "
                                    "without depth such as sift_emat_none (direction only, no metric scale)")
     except UploadError as e:
         return _reloc_page(request, db, e.status, method=m, form=form, error=e.message)
-    ref, q = ref_up.fit(lim.work_max_side, ref_depth), q_up.fit(lim.work_max_side)  # the sizes the matches are in
-    del ref_up, q_up, ref_depth  # the full-size pixels go before the method runs
     key = "try-" + secrets.token_hex(8)
     loc = request.app.state.localizers
-    est = loc.localize(key, m, ref.image, ref.K, ref.depth, q.image, q.K, owner=caller.user.id)
+    est = loc.localize(key, m, ref.image, ref.intrinsics, ref.depth, q.image, q.intrinsics, owner=caller.user.id)
     loc.forget(key)
-    png = figure_png(ref.image, q.image, ref.K, q.K, est, title=m)
+    png = figure_png(ref.image, q.image, ref.intrinsics, q.intrinsics, est, title=m)
     return _reloc_page(request, db, method=m, form=form, result=estimate_json(est, m),
                        figure="data:image/png;base64," + base64.b64encode(png).decode())
 
@@ -396,16 +394,17 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
     db.commit()  # release the read transaction before the long computation
     lim = request.app.state.settings.limits
     try:
-        q = _query_photo(query, lim, form).fit(lim.work_max_side)  # the size the matches are in
+        q = _query_photo(query, lim, form)  # at the size the matches are in
     except UploadError as e:
         return _reloc_page(request, db, e.status, method=a.method, form=form, error=e.message)
-    est = localize_anchor(request, a, rows, q.image, q.K, owner=caller.user.id)
+    est = localize_anchor(request, a, rows, q, owner=caller.user.id)
     result = estimate_json(est, a.method)
     if not may_see_photos(a, caller.user):  # the figure would show the anchor's photo
         return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8])
     photo = stored_photo(a, rows, result.get("photo") or 0, lim)  # only the one drawn, not every photo again
     shown = replace(est, pose=est.pose @ photo.pose.inverse()) if est.pose is not None else est  # vs that photo
-    png = figure_png(photo.image, q.image, photo.K, q.K, shown, title=f"{a.method}, photo {result.get('photo', 0)}")
+    png = figure_png(photo.image, q.image, photo.intrinsics, q.intrinsics, shown,
+                     title=f"{a.method}, photo {result.get('photo', 0)}")
     return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8],
                        figure="data:image/png;base64," + base64.b64encode(png).decode())
 
@@ -444,7 +443,7 @@ def _stem(name: str) -> str:
 
 
 def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
-                 cameras: str) -> tuple[list[PhotoUpload], list[str]]:
+                 cameras: str) -> tuple[list[Upload], list[str]]:
     """The create-anchor form's photos (a multiple file input), depth maps (another, matched by file name) and
     cameras lines, checked as ``POST /anchors`` checks its fields, errors naming the photo the same way."""
     files = {Path(f.filename or "").name: f for f in photos if f.filename or f.size}

@@ -3,7 +3,7 @@ delete a photo, localize) are shared by the JSON API (``anchors.router``) and th
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 from fastapi import HTTPException, Request, UploadFile
 from sqlalchemy import select
@@ -14,11 +14,10 @@ from ...geometry import Pose
 from ..accounts.quota import check_quota
 from ..database.models import Anchor, AnchorPhoto, RetiredPhotoIndex, User, new_id, now
 from ..inputs import UploadError, check_name, read_upload
-from .decode import decode_depth, decode_image, parse_pose
-from .exif import clean_photo, depth_png
-from .localizers import Photo, check_method, check_runnable, default_method, intrinsics_of
-from .photos import read_photo
-from .worksize import fit_image
+from .decode import parse_pose
+from .localizers import check_method, check_runnable, default_method
+from .photos import Photo, Upload, decode_stored
+from .photos import read_upload as read_photo_upload
 
 #: The pose of an anchor's first photo in the anchor's frame (``[qw, qx, qy, qz, tx, ty, tz]``).
 IDENTITY = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
@@ -53,45 +52,24 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
             "created_at": a.created_at, "url": f"/anchors/{a.id}"}
 
 
-@dataclass
-class PhotoUpload:
-    """One checked photo of an anchor: its stored bytes, intrinsics and pose, and the decoded arrays at the
-    working size (``Limits.work_max_side``)."""
-
-    image: bytes
-    intrinsics: dict
-    depth: bytes | None
-    pose: list[float]
-    photo: Photo
-
-    @property
-    def nbytes(self) -> int:
-        """What storing it counts against the owner's storage quota."""
-        return len(self.image) + len(self.depth or b"")
-
-
 def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth: UploadFile | None,
-                 pose: str | None) -> PhotoUpload:
-    """Read and check one photo (image, intrinsics, depth, pose); every error names ``what`` (the photo) if
-    given. ``pose=None``: the anchor's first photo, whose camera is the anchor's frame."""
+                 pose: str | None) -> Upload:
+    """Read and check one photo of an anchor (image, intrinsics, depth, pose: ``photos.read_upload``, with what
+    is stored of it); every error names ``what`` (the photo) if given. ``pose=None``: the anchor's first photo,
+    whose camera is the anchor's frame."""
     try:
         img_bytes = read_upload(image, lim.max_image_bytes, "image")
         if img_bytes is None:
             raise UploadError(400, "image: no file uploaded")
-        up = read_photo(img_bytes, lim, {"fx": fx, "fy": fy, "cx": cx, "cy": cy})
-        depth_bytes = read_upload(depth, lim.max_image_bytes, "depth")
-        d = up.depth(depth_bytes, lim) if depth_bytes is not None else None
-        if d is not None and not d.any():
+        up = read_photo_upload(img_bytes, lim, {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
+                               read_upload(depth, lim.max_image_bytes, "depth"), store=True)
+        if up.depth is not None and not up.depth_measured:
             raise UploadError(422, "depth: every pixel is 0 (no measurement), so the photo could never give a "
                                    "metric pose; send its real depth map, or none with a method that needs none")
-        if d is not None and up.orientation != 1:  # stored upright, like its photo
-            depth_bytes = depth_png(d)
         q = IDENTITY if pose is None else parse_pose(pose)
     except UploadError as e:
         raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
-    stored = clean_photo(img_bytes, up.image)  # no metadata, upright: what is kept and served
-    photo = up.fit(lim.work_max_side, d)  # the decoded 4096² photo goes now
-    return PhotoUpload(stored, up.intrinsics, depth_bytes, q, replace(photo, pose=Pose.from_qt(q[:4], q[4:])))
+    return replace(up, photo=replace(up.photo, pose=Pose.from_qt(q[:4], q[4:])), pose=q)
 
 
 def photo_name(i: int, f: UploadFile | None) -> str:
@@ -100,7 +78,7 @@ def photo_name(i: int, f: UploadFile | None) -> str:
     return f"photo {i}" + (f" ({fname!r})" if fname else "")
 
 
-def _runnable(m: str, ups: list[PhotoUpload], names: list[str]) -> None:
+def _runnable(m: str, ups: list[Upload], names: list[str]) -> None:
     """``check_runnable`` for every photo, naming the one without the depth the method needs."""
     for i, u in enumerate(ups):
         try:
@@ -114,7 +92,7 @@ def _runnable(m: str, ups: list[PhotoUpload], names: list[str]) -> None:
 
 
 def _extra_photos(lim, images: list[UploadFile], fx: list[str], fy: list[str], cx: list[str], cy: list[str],
-                  poses: list[str], depths: list[UploadFile], first: int) -> tuple[list[PhotoUpload], list[str]]:
+                  poses: list[str], depths: list[UploadFile], first: int) -> tuple[list[Upload], list[str]]:
     """The repeated ``photo_*`` fields of a request: one value per ``photo_image``, in the same order. Depth
     maps are all or none (an empty file part is dropped, so it cannot stand for a missing one): photos of
     which only some have depth are added one by one (``POST /anchors/{id}/photos``)."""
@@ -135,7 +113,7 @@ def _extra_photos(lim, images: list[UploadFile], fx: list[str], fy: list[str], c
     return ups, names
 
 
-def _photo_rows_of(aid: str, ups: list[PhotoUpload], first_seq: int) -> list[AnchorPhoto]:
+def _photo_rows_of(aid: str, ups: list[Upload], first_seq: int) -> list[AnchorPhoto]:
     return [AnchorPhoto(anchor_id=aid, seq=first_seq + i, intrinsics=u.intrinsics, pose=u.pose, image=u.image,
                         depth=u.depth, created_at=now()) for i, u in enumerate(ups)]
 
@@ -147,7 +125,7 @@ def check_photo_count(lim, n: int) -> None:
         raise UploadError(413, f"an anchor holds at most {lim.max_anchor_photos} photos; got {n}")
 
 
-def make_anchor(request: Request, db: Session, user: User, name: str, method: str, ups: list[PhotoUpload],
+def make_anchor(request: Request, db: Session, user: User, name: str, method: str, ups: list[Upload],
                 names: list[str], private: bool = False) -> tuple[Anchor, list[AnchorPhoto]]:
     """Store a new anchor of ``user`` from checked photos (``ups[0]``: the anchor's frame; ``names``: how errors
     name them, "" for a lone photo), refused (4xx) past the photo limit or the storage quota, or when its method
@@ -277,15 +255,12 @@ def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim) -> Photo:
     """Photo ``k`` of the anchor (0: the anchor row's; else the row with that index) decoded from the database,
     at the working size."""
     row = next(r for r in rows if r.seq == k) if k else None
-    img_b, intr, depth_b, q = ((a.image, a.intrinsics, a.depth, IDENTITY) if row is None else
-                               (row.image, row.intrinsics, row.depth, row.pose))
-    img = decode_image(img_b, lim, f"anchor photo {k}")
-    d = decode_depth(depth_b, lim, img.shape[:2], f"anchor photo {k} depth") if depth_b is not None else None
-    img, K, d = fit_image(img, intrinsics_of(intr), d, lim.work_max_side)  # one native photo in memory at a time
-    return Photo(img, K, d, Pose.from_qt(q[:4], q[4:]))
+    if row is None:
+        return decode_stored(a.image, a.intrinsics, a.depth, IDENTITY, lim, f"anchor photo {k}")
+    return decode_stored(row.image, row.intrinsics, row.depth, row.pose, lim, f"anchor photo {k}")
 
 
-def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img, q_K, q_depth=None,
+def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], query: Photo,
                     owner: int | None = None) -> Estimate:
     """The query's pose in the anchor's frame against its current photos (decoded from ``rows`` only when this
     process has not prepared this version of the anchor, and then counted against ``owner``'s share of the
@@ -294,7 +269,7 @@ def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], q_img,
     indices = photo_indices(rows)
     est = request.app.state.localizers.localize_photos(
         a.id, a.method, anchor_version(rows), lambda: (stored_photo(a, rows, k, lim) for k in indices),
-        q_img, q_K, q_depth, owner)
+        query.image, query.intrinsics, query.depth, owner)
     if est.extras.get("photo") is not None:  # the position among the photos prepared -> its index
         est.extras["photo"] = indices[est.extras["photo"]]
     return est

@@ -111,10 +111,11 @@ def strip_metadata(data: bytes) -> bytes | None:
     return None
 
 
-def clean_photo(data: bytes, upright: np.ndarray | None = None) -> bytes:
-    """What is stored and served for an uploaded photo: upright, without metadata. ``upright`` (RGB) saves
-    decoding again when the caller has it."""
-    orientation = exif_orientation(data)
+def clean_photo(data: bytes, upright: np.ndarray | None = None, orientation: int | None = None) -> bytes:
+    """What is stored and served for an uploaded photo: upright, without metadata. ``upright`` (RGB) and its
+    EXIF ``orientation`` save decoding and reading the metadata again when the caller has them."""
+    if orientation is None:
+        orientation = exif_orientation(data)
     if orientation not in ROTATIONS:  # mirrored (stored before those were refused): shown as stored
         orientation = 1
     if orientation == 1 and (stripped := strip_metadata(data)) is not None:

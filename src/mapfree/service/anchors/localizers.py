@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 import re
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Hashable, Iterable
 
@@ -13,11 +13,12 @@ import cv2
 import numpy as np
 
 from ...estimate import Estimate
-from ...geometry import Intrinsics, Pose
+from ...geometry import Intrinsics
 from ..inputs import UploadError
 from .methodpool import MethodPool
 from .prepared import ByteLRU, PreparedAnchor, localize_prepared, prepare_anchor
-from .worksize import DEFAULT_MAX_SIDE, fit_image
+from .photos import Photo
+from .worksize import DEFAULT_MAX_SIDE, fit_photo
 
 log = logging.getLogger("mapfree.service")
 FALLBACK_METHOD = "sift_pnp_sensor"  # reference depth only: what an anchor with a depth map can always use
@@ -154,28 +155,14 @@ def effective_method(name: str, has_query_depth: bool):
     return m if has_query_depth else methods.query_depth_fallback(m)
 
 
-def intrinsics_of(d: dict) -> Intrinsics:
-    return Intrinsics(d["fx"], d["fy"], d["cx"], d["cy"], int(d["width"]), int(d["height"]))
-
-
-@dataclass
-class Photo:
-    """One photo of an anchor: pixels, intrinsics, optional metric depth, and its world-to-camera pose in the
-    anchor's frame (the first photo's camera; identity for that one)."""
-
-    image: np.ndarray
-    K: Intrinsics
-    depth: np.ndarray | None = None
-    pose: Pose = field(default_factory=Pose.identity)
-
-
 class Localizers:
     """Thread-safe access to relocalizers: at most ``per_method`` concurrent computations per method.
 
-    Every photo is brought to the working size (long side at most ``max_side``, ``worksize.py``) before a method
-    sees it. Prepared anchors (``prepared.py``: features and depth per photo, no pixels) are kept per (anchor,
-    method, version) in an LRU of at most ``cache_bytes``. The version names the anchor's current photos
-    (``anchors.domain.anchor_version``: it changes when one is added or deleted), so a change made through another
+    Every photo is at the working size (long side at most ``max_side``, ``worksize.fit_photo``) when a method
+    sees it (``photos.read_upload`` brings uploads there; ``fit`` makes sure of the rest). Prepared anchors
+    (``prepared.py``: features and depth per photo, no pixels) are kept per (anchor, method, version) in an LRU
+    of at most ``cache_bytes``. The version names the anchor's current photos (``domain.anchor_version``: it
+    changes when one is added or deleted), so a change made through another
     process is never answered from a stale cache. Built relocalizers live in a ``MethodPool`` of at most
     ``pool_bytes``, shared by equal configurations (``methodpool.py``)."""
 
@@ -187,8 +174,7 @@ class Localizers:
 
     def fit(self, photo: Photo) -> Photo:
         """``photo`` at the working size (intrinsics and depth scaled with it)."""
-        image, K, depth = fit_image(photo.image, photo.K, photo.depth, self.max_side)
-        return photo if image is photo.image else Photo(image, K, depth, photo.pose)
+        return fit_photo(photo, self.max_side)
 
     @staticmethod
     def _build(method):
@@ -247,8 +233,6 @@ class Localizers:
         against ``owner``'s share of the cache (the account asking: ``prepared.ByteLRU``). With several photos
         ``est.extras`` names the retrieved one (``photo``, ``retrieval_similarity``). Keypoints in
         ``extras["matches"]`` are in the working-size pixels (``fit``)."""
-        from ...relocalize import View
-
         method = effective_method(method, query_depth is not None)
         loc = self._take(method)
         try:
@@ -259,7 +243,7 @@ class Localizers:
                 self.anchors.put(key, prepared, prepared.nbytes, owner)
             q = self.fit(Photo(query_image, query_K, query_depth))
             try:
-                est = localize_prepared(loc, prepared, View(q.image, q.K, q.depth))
+                est = localize_prepared(loc, prepared, q)
             except MethodUnavailable:
                 raise
             except Exception as e:  # a method that fails outright on this input (not a "no pose")

@@ -91,12 +91,13 @@ class PreparedAnchor:
 
 
 def prepare_anchor(loc: Any, photos: Sequence[Any]) -> PreparedAnchor:
-    """Prepare every photo (``image``, ``K``, ``depth``, ``pose`` at the working size) with localizer ``loc``;
-    with several photos learn the retrieval vocabulary on them (as ``ReferenceSet`` does) and describe each."""
+    """Prepare every photo (a ``photos.Photo``: a ``View`` at the working size with its ``pose``) with localizer
+    ``loc``; with several photos learn the retrieval vocabulary on them (as ``ReferenceSet`` does) and describe
+    each."""
     from ... import retrieval
     from ...relocalize import View
 
-    views = [View(p.image, p.K, p.depth, name=f"photo {i}") for i, p in enumerate(photos)]
+    views = [replace(p, name=f"photo {i}") for i, p in enumerate(photos)]
     describer = descriptors = None
     if len(views) > 1:
         describer = retrieval.create("densevlad")

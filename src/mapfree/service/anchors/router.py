@@ -10,13 +10,13 @@ from sqlalchemy.orm import Session
 from ..database.models import AnchorPhoto
 from ..http.caller import RowId, db_session, require_user, require_writer
 from ..http.heavy import heavy
-from ..inputs import UploadError
+from ..inputs import read_upload
 from ..schemas import AnchorOut, LocalizeOut
 from .domain import (_extra_photos, _own_anchor, add_photo, anchor_json, check_photo_count, find_anchor,
                      localize_anchor, make_anchor, may_see_photos, photo_name, photo_rows, photo_upload, remove_photo)
 from .exif import clean_photo
 from .localizers import estimate_json
-from .photos import read_photo
+from .photos import read_upload as read_photo_upload
 
 router = APIRouter(tags=["relocalization"])
 
@@ -130,12 +130,8 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     rows = photo_rows(db, a.id)
     db.commit()  # release the read transaction before the long computation
     lim = request.app.state.settings.limits
-    q_bytes = image.file.read(lim.max_image_bytes + 1)
-    if len(q_bytes) > lim.max_image_bytes:
-        raise UploadError(413, f"image: larger than the limit of {lim.max_image_bytes} bytes")
-    up = read_photo(q_bytes, lim, {"fx": fx, "fy": fy, "cx": cx, "cy": cy})
-    q_depth = up.depth(depth.file.read(lim.max_image_bytes + 1), lim) if depth is not None and depth.filename else None
-    q = up.fit(lim.work_max_side, q_depth)
-    out = estimate_json(localize_anchor(request, a, rows, q.image, q.K, q.depth, caller.user.id), a.method)
+    q = read_photo_upload(read_upload(image, lim.max_image_bytes, "image") or b"", lim,
+                          {"fx": fx, "fy": fy, "cx": cx, "cy": cy}, read_upload(depth, lim.max_image_bytes, "depth")).photo
+    out = estimate_json(localize_anchor(request, a, rows, q, caller.user.id), a.method)
     out["anchor"] = a.id
     return out

@@ -5,6 +5,9 @@ half-pixel-centre rule and depth maps are resized nearest-neighbour, so poses st
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import TypeVar
+
 import cv2
 import numpy as np
 
@@ -35,3 +38,13 @@ def fit_image(image: np.ndarray, K: Intrinsics, depth: np.ndarray | None,
     d2 = None if depth is None else cv2.resize(np.asarray(depth, np.float32), (nw, nh),
                                                interpolation=cv2.INTER_NEAREST)
     return small, K2, d2
+
+
+ViewT = TypeVar("ViewT")
+
+
+def fit_photo(photo: ViewT, max_side: int) -> ViewT:
+    """A ``View`` (``image``, ``intrinsics``, ``depth``) at the working size: the one place photos are brought
+    to it, for uploads, stored photos and the localizers alike (unchanged when it fits)."""
+    image, K, depth = fit_image(photo.image, photo.intrinsics, photo.depth, max_side)
+    return photo if image is photo.image else replace(photo, image=image, intrinsics=K, depth=depth)
