@@ -150,11 +150,10 @@ def create_app(settings: Settings) -> FastAPI:
     from .. import pages
     from ..accounts import router as accounts
     from ..anchors import router as anchors
-    from ..leaderboard import boards, own
-    from ..leaderboard import router as submissions
+    from ..leaderboard import router as leaderboard
     from . import operations
 
-    for r in (operations, accounts, submissions, anchors, boards, own, pages):
+    for r in (operations, accounts, leaderboard, anchors, pages):
         app.include_router(r.router)
     app.mount("/static", StaticFiles(directory=str(Path(__file__).parents[1] / "static")), name="static")
     app.add_middleware(HeadAsGet)

@@ -1,6 +1,6 @@
 """Leaderboards: the public finished submissions of a split ranked by one metric (equal scores share a rank),
 all of them or each account's best, on the whole split or one scene; the method each author describes; CSV
-export; two submissions side by side. Published results stay in a table of their own (``reference.py``)."""
+export; two submissions side by side. Published results stay in a table of their own (``published.py``); the JSON routes are in ``router.py``."""
 
 from __future__ import annotations
 
@@ -13,15 +13,13 @@ from dataclasses import asdict, dataclass
 from typing import Iterator
 from urllib.parse import urlsplit
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request
-from fastapi.responses import Response, StreamingResponse
+from fastapi import HTTPException, Request
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from ..database.models import MethodInfo, Result, Submission, User
-from ..http.caller import db_session, identify
+from ..http.caller import identify
 from ..inputs import UploadError
-from ..schemas import BoardOut, CompareOut
 from .published import REFERENCE_ROWS
 from .scoring import LOWER_IS_BETTER, METRIC_KEYS, SHORT
 from .submissions import shown_metrics, to_json, visible_submission
@@ -277,58 +275,11 @@ def compare(a: dict, b: dict) -> dict:
     return result
 
 
-# --------------------------------------------------------------------------------------------- JSON API
-
-router = APIRouter(tags=["leaderboard"])
-
-
 def check_split(request: Request, split: str) -> None:
     if split not in request.app.state.settings.splits:
         raise HTTPException(404, f"no leaderboard for split {split!r}")
 
 
-@router.get("/api/leaderboard/{split}.csv", response_class=Response,
-            responses={200: {"content": {"text/csv": {}}, "description": "the whole board"}})
-def leaderboard_csv(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
-                    scene: str | None = Query(None), db: Session = Depends(db_session)):
-    """The whole leaderboard as a CSV file (same parameters as the JSON board, no paging), streamed."""
-    check_split(request, split)
-    ranked = ranking(db, split, sort, view, scene)
-    db.commit()
-    fname = f"mapfree-{split}{'-' + scene if scene else ''}-{view}-{sort}.csv"
-    return StreamingResponse(
-        stream_csv(request.app.state.sessions, split, ranked, scene),  # a plain iterator: run in the thread pool
-        media_type="text/csv; charset=utf-8",
-        headers={"Content-Disposition": f'attachment; filename="{re.sub("[^A-Za-z0-9_.-]", "", fname)}"'})
-
-
-@router.get("/api/leaderboard/{split}", response_model=BoardOut, response_model_exclude_unset=True)
-def leaderboard(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
-                scene: str | None = Query(None), reference: bool = Query(True),
-                page: int = Query(1, ge=1, description="page number, from 1"),
-                per_page: int = Query(PER_PAGE, ge=1, le=MAX_PER_PAGE, description="rows per page"),
-                db: Session = Depends(db_session)):
-    """Public results of a split, best first by ``sort`` (vcre_auc, vcre_prec, pose_auc, pose_prec, med_trans,
-    med_rot, med_vcre, estimates); equal scores share a rank. ``view=best``: each account's best entry;
-    ``scene``: one scene's scores (val only). Paged: ``page`` (from 1) of ``per_page`` rows (at most
-    200); ``total`` and ``pages`` say how many there are. Published results on the real Map-free data come
-    apart, under ``reference``."""
-    check_split(request, split)
-    b = board(db, split, sort, view, scene, page, per_page)
-    out = {"split": split, "sort": sort, "view": view, "scene": scene, "entries": b.entries, "page": b.page,
-           "per_page": b.per_page, "total": b.total, "pages": b.pages}
-    if reference:
-        out["reference"] = reference_rows()
-    return out
-
-
 def visible_json(request: Request, db: Session, sid: str) -> dict:
     """A submission the caller may see, as ``to_json`` (404 otherwise)."""
     return to_json(db, visible_submission(db, identify(request, db).user, sid, f"no such submission {sid[:40]!r}"))
-
-
-@router.get("/api/compare", response_model=CompareOut)
-def compare_submissions(request: Request, a: str = Query(..., description="submission id"),
-                 b: str = Query(..., description="submission id"), db: Session = Depends(db_session)):
-    """Two submissions side by side: each metric, b − a, and which is better (per scene too, except test)."""
-    return compare(visible_json(request, db, a), visible_json(request, db, b))

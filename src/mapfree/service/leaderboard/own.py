@@ -10,17 +10,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-from fastapi import APIRouter, Depends, HTTPException, Request
+from fastapi import HTTPException, Request
 from fastapi.responses import Response, StreamingResponse
-from pydantic import BaseModel, Field
 from sqlalchemy import delete
 from sqlalchemy.orm import Session
 
 from ..config import Settings, shown_limit
 from ..database.models import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
-from ..http.caller import db_session, require_user, require_writer
-from ..schemas import MethodMetaOut
-from .boards import meta_json, parse_meta, save_meta
 from .storage import is_stored, stream_zip
 from .submissions import daily_test_limit, recent_count
 
@@ -90,46 +86,3 @@ def zip_response(request: Request, db: Session, sub: Submission) -> Response:
     return StreamingResponse(stream_zip(request.app.state.sessions, sub.id), media_type="application/zip",
                              headers={"Content-Disposition": f'attachment; filename="{name}"',
                                       "Content-Length": str(sub.size_bytes), "Cache-Control": "private"})
-
-
-# --------------------------------------------------------------------------------------------- JSON API
-
-router = APIRouter(tags=["submissions"])
-
-
-@router.delete("/api/submissions/{sid}", status_code=204, response_class=Response)
-def withdraw_submission(sid: str, request: Request, db: Session = Depends(db_session)):
-    """Withdraw one of your submissions: off the leaderboards, results and ZIP deleted. It still counts against
-    the test quota of the day it was uploaded. Final: a withdrawn submission answers 409 to every later change."""
-    caller = require_writer(request, db)
-    withdraw(db, own_submission(db, caller.user, sid))
-    return Response(status_code=204)
-
-
-@router.get("/api/submissions/{sid}/zip", response_class=Response,
-            responses={200: {"content": {"application/zip": {}}, "description": "the ZIP as uploaded"}})
-def download_zip(sid: str, request: Request, db: Session = Depends(db_session)):
-    """The ZIP you uploaded (owner or admin only; 409 once withdrawn, 410 once past the retention time)."""
-    caller = require_user(request, db)
-    return zip_response(request, db, own_submission(db, caller.user, sid))
-
-
-class MethodBody(BaseModel):
-    description: str = Field("", max_length=4000)
-    paper_url: str = Field("", max_length=1000)
-    code_url: str = Field("", max_length=1000)
-    runtime_ms: float | None = None
-    extra_data: bool = False
-
-
-@router.put("/api/submissions/{sid}/method", response_model=MethodMetaOut)
-def describe_method(sid: str, body: MethodBody, request: Request, db: Session = Depends(db_session)):
-    """Describe the method behind one of your submissions (shown on the leaderboard): description, paper and
-    code links (http/https), runtime per query in ms, and whether it uses data beyond the train split."""
-    caller = require_writer(request, db)
-    sub = own_submission(db, caller.user, sid)
-    meta = parse_meta(body.description, body.paper_url, body.code_url, body.runtime_ms, body.extra_data)
-    save_meta(db, sub.id, meta)
-    db.commit()
-    return meta_json(db.get(MethodInfo, sub.id))
-
