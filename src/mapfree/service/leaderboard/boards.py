@@ -1,6 +1,7 @@
 """Leaderboards: the public finished submissions of a split ranked by one metric (equal scores share a rank),
 all of them or each account's best, on the whole split or one scene; the method each author describes; CSV
-export; two submissions side by side. Published results stay in a table of their own (``published.py``); the JSON routes are in ``router.py``."""
+export; two submissions side by side. Published results stay in a table of their own (``published.py``); the
+JSON routes are in ``router.py``."""
 
 from __future__ import annotations
 
