@@ -18,7 +18,7 @@ echo "built $(basename "$wheel")"
 import sys, zipfile
 names = set(zipfile.ZipFile(sys.argv[1]).namelist())
 need = ["mapfree/configs/methods/", "mapfree/configs/rpr/", "mapfree/service/templates/", "mapfree/service/static/",
-        "mapfree/service/migrations/versions/"]
+        "mapfree/service/database/migrations/versions/"]
 missing = [n for n in need if not any(x.startswith(n) for x in names)]
 if missing:
     sys.exit(f"wheel lacks package data: {missing}")

@@ -17,9 +17,15 @@ Before / after phases (each against a server of this tree and one of ``--baselin
 ``cache``: API RSS once three anchors of 16 photos of 4096x4096 are prepared;
 ``flood``: `/login` latency while 45 localize calls run at once.
 
+Phases of this tree alone: ``overhead``: localize p50 / p95 against a cached anchor through the API and the same
+call on the library in the same run (the default method and a SIFT preset); ``pool``: API RSS while 100 distinct
+method names create anchors, with the default method pool and a small one (and, with ``--baseline``, the
+same names against the baseline tree).
+
     python bench/bench_service.py [--db postgresql://...] [--submissions 200] [--clients 20] [--workers 4]
                                   [--phases memory,uploads,submissions,localize] [--upload-rounds 3]
     python bench/bench_service.py --phases photo,cache,flood --baseline /tmp/mapfree-main
+    python bench/bench_service.py --phases overhead,pool
 """
 
 from __future__ import annotations
@@ -159,12 +165,13 @@ def upload_pressure(url: str, api_pid: int, tokens: list[str], payload: bytes, r
 
 
 def worker_pids(serve_pid: int) -> list[int]:
-    """The evaluation worker processes `mapfree serve` started (its children running mapfree.service.worker)."""
+    """The evaluation worker processes `mapfree serve` started (its children running the module
+    mapfree.service.leaderboard.worker)."""
     pids = []
     for d in Path("/proc").iterdir():
         try:
             if d.name.isdigit() and int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == serve_pid \
-                    and b"mapfree.service.worker" in (d / "cmdline").read_bytes():
+                    and b"mapfree.service.leaderboard.worker" in (d / "cmdline").read_bytes():
                 pids.append(int(d.name))
         except (OSError, ValueError, IndexError):
             continue
@@ -177,7 +184,7 @@ def wait_evaluated(sessions, deadline: float, ids: list[str] | None = None, poll
     from sqlalchemy import func, select
     from sqlalchemy.exc import OperationalError
 
-    from mapfree.service.db import Submission
+    from mapfree.service.database.models import Submission
 
     pending = Submission.status.in_(("queued", "running"))
     if ids is not None:
@@ -196,7 +203,7 @@ def wait_evaluated(sessions, deadline: float, ids: list[str] | None = None, poll
 def upload_memory(url: str, api_pid: int, tokens: list[str], payload: bytes, sessions, deadline: float) -> dict:
     """Three uploads of ``payload`` at once, then their evaluation: peak RSS of the API process and of every
     worker process, sampled every 20 ms from before the uploads until the workers have parsed and scored them."""
-    from mapfree.service.db import Submission
+    from mapfree.service.database.models import Submission
 
     workers = worker_pids(api_pid)
     pids = [api_pid, *workers]
@@ -248,6 +255,8 @@ def pct(xs, q) -> float:
 # ``git worktree add --detach /tmp/mapfree-main main``), and prints both in one table.
 
 MINE = {"photo", "cache", "flood"}
+#: Phases of this tree alone (no baseline): API overhead over the library, and the bounded method pool.
+OWN = {"overhead", "pool"}
 RELOC_METHODS = ("sift_pnp_sensor", "sift_procrustes_sensor", "sift_emat_sensor")
 
 
@@ -441,16 +450,21 @@ def flood_phase(srv: Serve, scene, calls: int) -> dict:
     return {"idle": idle, "during": during, "codes": codes, "wall": wall}
 
 
-def before_after(a, phases: set[str]) -> list[tuple[str, str, str, str]]:
-    """Run the chosen phases on the baseline tree and on this one -> table rows (what, baseline, now, note)."""
+def bench_data(prefix: str):
+    """(a fresh folder holding a tiny synthetic val split for ``--data``, realmini-dev's scene s00000)."""
     from mapfree.data import Dataset
     from mapfree.data.synth import SynthOptions, generate
 
-    tmp = Path(tempfile.mkdtemp(prefix="bench-service-ba-"))
+    tmp = Path(tempfile.mkdtemp(prefix=prefix))
     generate(tmp / "data", "val", 1, 2, seed=3, options=SynthOptions(first_scene=460, width=135, height=180,
                                                                      texture_size=128, write_mono=False),
              progress=False)
-    scene = Dataset(realmini()).scene("val", "s00000")
+    return tmp, Dataset(realmini()).scene("val", "s00000")
+
+
+def before_after(a, phases: set[str]) -> list[tuple[str, str, str, str]]:
+    """Run the chosen phases on the baseline tree and on this one -> table rows (what, baseline, now, note)."""
+    tmp, scene = bench_data("bench-service-ba-")
     trees = {"baseline": Path(a.baseline).resolve(), "now": ROOT}
     res: dict[str, dict] = {}
     for label, code in trees.items():
@@ -508,6 +522,119 @@ def before_after(a, phases: set[str]) -> list[tuple[str, str, str, str]]:
     return rows
 
 
+def overhead_phase(srv: Serve, scene, methods: list[str], n: int) -> list[tuple[str, str, str, str]]:
+    """Localize p50 / p95 against a cached anchor through the API (a client on loopback: upload, decode,
+    localize, answer) and the same call on the library in this process (decode the same JPEG, localize
+    against the same prepared reference with the method the API runs), ``n`` calls each, one at a time."""
+    import cv2
+
+    from mapfree import methods as registry
+    from mapfree.relocalize import Relocalizer, View
+
+    ref, query = scene.reference, scene.frame("seq1/frame_00009.jpg")
+    q_bytes = query.image_path.read_bytes()
+    q_form = {k: repr(getattr(query.intrinsics, k)) for k in ("fx", "fy", "cx", "cy")}
+    rows = []
+    for name in methods:
+        m = registry.query_depth_fallback(registry.get(name))  # what the API runs for a query without depth
+        loc = Relocalizer.from_method(m)
+        prepared = loc.prepare(View(ref.image(), ref.intrinsics, ref.depth("sensor")))
+        with srv.client() as c:
+            r = c.post("/anchors", data={**{k: repr(getattr(ref.intrinsics, k)) for k in ("fx", "fy", "cx", "cy")},
+                                         "method": name},
+                       files={"image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+                              "depth": ("r.png", ref.depth_path("sensor").read_bytes(), "image/png")})
+            if r.status_code != 201:
+                rows.append((f"{name}: localize through the API", "-", "-", f"anchor refused: {r.text[:80]}"))
+                continue
+            url = f"/anchors/{r.json()['id']}/localize"
+            api, own, lib = [], [], []
+            for i in range(n + 3):  # API and library in turns (the same machine load); three to warm up
+                t0 = time.perf_counter()
+                d = c.post(url, data=q_form, files={"image": ("q.jpg", q_bytes, "image/jpeg")}).json()
+                t1 = time.perf_counter()
+                img = cv2.cvtColor(cv2.imdecode(np.frombuffer(q_bytes, np.uint8), cv2.IMREAD_COLOR),
+                                   cv2.COLOR_BGR2RGB)
+                est = loc.localize(View(img, query.intrinsics), prepared)
+                t2 = time.perf_counter()
+                if i >= 3:
+                    api.append(t1 - t0)
+                    own.append(d["timings"].get("total", 0.0))
+                    lib.append(t2 - t1)
+        over = (pct(api, 50) - pct(lib, 50)) / pct(lib, 50) * 100
+        inner = (pct(api, 50) - pct(own, 50)) / pct(own, 50) * 100
+        rows.append((f"{name} ({m.name}): localize p50 / p95, ms", f"{pct(lib, 50):.0f} / {pct(lib, 95):.0f}",
+                     f"{pct(api, 50):.0f} / {pct(api, 95):.0f}",
+                     f"API - library: {over:+.1f} % of the library's p50; API - the method's own time in the "
+                     f"server ({pct(own, 50):.0f} ms): {inner:+.1f} %; ok={est.ok}"))
+    return rows
+
+
+def method_names(n: int) -> list[str]:
+    """``n`` distinct method names a client may send (offline matchers x solvers x the service's depth
+    suffixes), interleaved so that every configuration comes early."""
+    from mapfree.methods import OFFLINE_MATCHERS
+
+    combos = [(s, d) for d in ("sensor", "mono", "dptkitti", "dptnyu") for s in ("pnp", "procrustes", "emat",
+                                                                                "essential")]
+    combos += [("emat", "none"), ("essential", "none")]
+    names = [f"{m}_{s}_{d}" for s, d in combos for m in OFFLINE_MATCHERS]
+    return names[:n]
+
+
+def pool_phase(srv: Serve, scene, names: list[str]) -> dict:
+    """API RSS while each of ``names`` creates an anchor (the method is built, or taken from the pool, and the
+    anchor prepared), sampled every 20 ms; the RSS after 10, 50 and all of them."""
+    ref = scene.reference
+    form = {k: repr(getattr(ref.intrinsics, k)) for k in ("fx", "fy", "cx", "cy")}
+    files = {"image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+             "depth": ("r.png", ref.depth_path("sensor").read_bytes(), "image/png")}
+    after, codes = {}, []
+
+    def run() -> None:
+        with srv.client() as c:
+            for i, name in enumerate(names, 1):
+                r = c.post("/anchors", data={**form, "method": name}, files=files)
+                codes.append(r.status_code)
+                if r.status_code == 201:
+                    c.delete(f"/anchors/{r.json()['id']}")
+                if i in (10, 50, len(names)):
+                    after[i] = srv.rss()
+
+    idle, peak, _ = peak_rss(srv.proc.pid, run)
+    return {"idle": idle, "peak": peak, "after": after, "codes": codes}
+
+
+def own_phases(a, phases: set[str]) -> list[tuple[str, str, str, str]]:
+    """The phases of this tree alone -> table rows (what, first figure, second figure, note)."""
+    tmp, scene = bench_data("bench-service-own-")
+    rows = []
+    if "overhead" in phases:
+        srv = Serve(ROOT, tmp, tmp / "data", users=1)
+        try:
+            rows.append(("localize against a cached anchor, one at a time", "library", "API", ""))
+            rows += overhead_phase(srv, scene, a.overhead_methods.split(","), a.overhead_calls)
+        finally:
+            srv.stop()
+    if "pool" in phases:
+        names = method_names(a.pool_names)
+        runs = [(f"--method-pool-mb {mb}", ROOT, ("--method-pool-mb", mb)) for mb in a.pool_mb.split(",")]
+        if a.baseline:  # the same names against the baseline tree (it has no method pool flag)
+            runs.insert(0, (f"baseline {a.baseline}", Path(a.baseline).resolve(), ()))
+        for label, code_root, extra in runs:
+            srv = Serve(code_root, tmp, tmp / "data", users=1, extra=(*extra, "--storage-quota-mb", "0"))
+            try:
+                r = pool_phase(srv, scene, names)
+            finally:
+                srv.stop()
+            code = ", ".join(f"{c} x {r['codes'].count(c)}" for c in sorted(set(r["codes"])))
+            rows.append((f"API RSS, {len(names)} method names, {label} (MB)",
+                         f"idle {r['idle']:.0f}", f"peak {r['peak']:.0f}",
+                         "after 10 / 50 / all: " + " / ".join(f"{v:.0f}" for v in r["after"].values())
+                         + f"; anchors {code}"))
+    return rows
+
+
 def print_before_after(rows, baseline: str) -> None:
     print(f"\nrelocalization API before / after (baseline: {baseline}; {os.cpu_count()} CPUs)")
     w = max(len(r[0]) for r in rows)
@@ -533,11 +660,25 @@ def main() -> int:
     ap.add_argument("--side", type=int, default=4096, help="long side of the big photos (photo, cache)")
     ap.add_argument("--anchor-photos", type=int, default=16, help="photos per anchor (cache)")
     ap.add_argument("--flood-calls", type=int, default=45, help="concurrent localize calls (flood)")
+    ap.add_argument("--overhead-methods", default="best-offline,sift_pnp_sensor",
+                    help="methods of the overhead phase (API vs library)")
+    ap.add_argument("--overhead-calls", type=int, default=30, help="localize calls per method (overhead)")
+    ap.add_argument("--pool-names", type=int, default=100, help="distinct method names (pool)")
+    ap.add_argument("--pool-mb", default="1024,256", help="--method-pool-mb values to run the pool phase with")
     ap.add_argument("--min-free-mb", type=float, default=14000,
                     help="run the baseline's three-at-once localize only with this much memory available")
     a = ap.parse_args()
     phases = set(a.phases.split(","))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    if phases & OWN:
+        rows = own_phases(a, phases & OWN)
+        print(f"\nrelocalization API of this tree ({os.cpu_count()} CPUs)")
+        w = max(len(r[0]) for r in rows)
+        for name, first, second, note in rows:
+            print(f"  {name:<{w}}  {first:>14}  {second:>14}  {note}")
+        phases -= OWN
+        if not phases:
+            return 0
     if phases & MINE:
         if not a.baseline:
             raise SystemExit("photo, cache and flood need --baseline DIR (e.g. git worktree add --detach "
@@ -551,8 +692,9 @@ def main() -> int:
 
     from mapfree.data import Dataset
     from mapfree.data.synth import SynthOptions, generate
-    from mapfree.service import auth
-    from mapfree.service.db import Base, Result, Submission, WorkerRow, init_db, make_engine, session_factory
+    from mapfree.service.accounts import tokens as auth
+    from mapfree.service.database.models import (Base, Result, Submission, WorkerRow, init_db, make_engine,
+                                                 session_factory)
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-service-"))
     generate(tmp / "data", "val", 3, 20, seed=3, options=SynthOptions(first_scene=460, width=135, height=180,

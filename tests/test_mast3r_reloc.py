@@ -158,7 +158,7 @@ def test_list_methods_says_what_the_presets_need():
 def test_service_anchor_cache_keeps_the_encoded_reference(weights, scene, monkeypatch):
     """The service prepares an anchor once per method: later queries encode only themselves."""
     from mapfree.mast3r.engine import shared_engine
-    from mapfree.service.reloc import Localizers, Photo
+    from mapfree.service.anchors.localizers import Localizers, Photo
 
     monkeypatch.setitem(methods._REGISTRY, "mast3r-small-test", methods.Method(
         name="mast3r-small-test", matcher="mast3r", matcher_opts={"long_side": SMALL}, depth="mast3r", solver="pnp"))

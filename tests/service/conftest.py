@@ -177,7 +177,7 @@ def fresh_postgres(tag: str) -> str:
     from sqlalchemy import create_engine, text
     from sqlalchemy.engine import make_url
 
-    from mapfree.service.db import Base, make_engine, normalize_url
+    from mapfree.service.database.models import Base, make_engine, normalize_url
 
     base = make_url(normalize_url(PG_URL))
     name = f"mapfree_t_{tag}_{uuid.uuid4().hex[:8]}"
@@ -202,7 +202,7 @@ def drop_postgres_databases() -> None:
     from sqlalchemy import create_engine, text
     from sqlalchemy.engine import make_url
 
-    from mapfree.service.db import normalize_url
+    from mapfree.service.database.models import normalize_url
 
     if not _PG_CREATED:
         return
@@ -245,8 +245,8 @@ class Server:
 
 def create_users(db_url: str, users: dict[str, int | None], admin: bool = False) -> dict[str, str]:
     """Accounts made in-process (what `mapfree admin create-user [--admin]` does): name -> token."""
-    from mapfree.service import auth
-    from mapfree.service.db import init_db, make_engine, session_factory
+    from mapfree.service.accounts import tokens as auth
+    from mapfree.service.database.models import init_db, make_engine, session_factory
 
     engine = make_engine(db_url)
     init_db(engine)
@@ -260,12 +260,17 @@ def create_users(db_url: str, users: dict[str, int | None], admin: bool = False)
 
 
 def start_server(db_url: str, backend: str, data: Split, workdir: Path, workers: int = 2,
-                 extra: tuple[str, ...] = (), port: int | None = None) -> Server:
+                 extra: tuple[str, ...] = (), port: int | None = None,
+                 tokens: dict[str, str] | None = None) -> Server:
+    """A ``mapfree serve`` on ``db_url``, healthy with ``workers`` workers; ``tokens``: the accounts of a database
+    another server made already (else alice, made with ``mapfree admin``, bob, and carol with a daily
+    test limit of 2 are created)."""
     port = port or free_port()
     log_path = workdir / f"serve-{backend}-{port}.log"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MAPFREE_DB": db_url, "MAPFREE_OPERATOR_TOKEN": OPERATOR_TOKEN}
-    tokens = {"alice": mapfree("admin", "--db", db_url, "create-user", "alice", env=env).splitlines()[-1]}
-    tokens.update(create_users(db_url, {"bob": None, "carol": 2}))
+    if tokens is None:
+        tokens = {"alice": mapfree("admin", "--db", db_url, "create-user", "alice", env=env).splitlines()[-1]}
+        tokens.update(create_users(db_url, {"bob": None, "carol": 2}))
     # `python -m mapfree.cli.serve` is `mapfree serve` without importing every other subcommand (faster start)
     cmd = [sys.executable, "-m", "mapfree.cli.serve", "--db", db_url, "--data", str(data.root), "--gt",
            str(data.gt), "--workers", str(workers), "--port", str(port), "--lease-seconds", "5",

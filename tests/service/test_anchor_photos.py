@@ -16,9 +16,9 @@ from sqlalchemy import func, select, text
 from mapfree.data import Dataset
 from mapfree.geometry import Pose
 from mapfree.service import Limits, Settings, create_app
-from mapfree.service.db import Anchor, User, make_engine, session_factory
-from mapfree.service.storage import check_quota
-from mapfree.service.uploads import UploadError
+from mapfree.service.database.models import Anchor, User, make_engine, session_factory
+from mapfree.service.accounts.quota import check_quota
+from mapfree.service.inputs import UploadError
 
 from .conftest import BACKENDS, create_users, db_url_for
 from .test_browser import CHROMIUM, PHONE, _sign_in, browser, phone, shot  # noqa: F401 (fixtures)
@@ -468,8 +468,9 @@ def _web_session(app) -> tuple[TestClient, str]:
     return web, web.get("/relocalize").text.split('name="csrf_token" value="')[1].split('"')[0]
 
 
-def test_a_photo_index_past_the_database_integer_is_a_404_not_a_500(make_app, scene):  # noqa: F811
-    """``GET /anchors/{id}/photos/{k}`` with ``k`` beyond a 64-bit integer used to crash SQLite's driver (a 500)."""
+def test_a_photo_index_past_the_database_integer_is_a_422_not_a_500(make_app, scene):  # noqa: F811
+    """``GET /anchors/{id}/photos/{k}`` with ``k`` beyond a 64-bit integer used to crash SQLite's driver (a 500);
+    an index the database cannot hold is a 422 naming the largest, one it can but the anchor lacks a 404."""
     app = make_app()
     auth = app.auth("ann")
     r = app.client.post("/anchors", headers=auth, files=_files(scene.reference),
@@ -478,8 +479,12 @@ def test_a_photo_index_past_the_database_integer_is_a_404_not_a_500(make_app, sc
     aid = r.json()["id"]
     for k in (2**63, 10**20, 2**31, -1):
         r = app.client.get(f"/anchors/{aid}/photos/{k}", headers=app.auth("ben"))
-        assert r.status_code == 404 and f"has no photo {k}" in r.json()["detail"], (k, r.text)
-        assert app.client.delete(f"/anchors/{aid}/photos/{k}", headers=auth).status_code == 404
+        assert r.status_code == 422 and "k: Input should be" in r.json()["detail"], (k, r.text)
+        assert app.client.delete(f"/anchors/{aid}/photos/{k}", headers=auth).status_code == 422
+    k = 2**31 - 1
+    r = app.client.get(f"/anchors/{aid}/photos/{k}", headers=app.auth("ben"))
+    assert r.status_code == 404 and f"has no photo {k}" in r.json()["detail"], (k, r.text)
+    assert app.client.delete(f"/anchors/{aid}/photos/{k}", headers=auth).status_code == 404
     assert app.client.get(f"/anchors/{aid}/photos/0", headers=app.auth("ben")).content == \
         scene.reference.image_path.read_bytes()
 
@@ -528,7 +533,7 @@ def test_a_photo_is_decoded_without_holding_the_database_write_lock(make_app, sc
     be held meanwhile (every other writer would wait). Checked from a second connection during the decode."""
     import sqlite3
 
-    import mapfree.service.api as api
+    import mapfree.service.anchors.domain as api
 
     ref, second = scene.reference, scene.frame(SECOND)
     app = make_app()
@@ -556,3 +561,38 @@ def test_a_photo_is_decoded_without_holding_the_database_write_lock(make_app, sc
                data={**_form(second.intrinsics), "pose": _pose_text(second.pose)})
     assert r.status_code == 201, r.text
     assert seen == ["free"] and [p["index"] for p in r.json()["photos"]] == [0, 1]
+
+
+def test_bytes_after_a_jpegs_end_are_not_stored_or_served(server, realmini_dir):
+    """Phones append a motion photo's MP4 clip or a vendor trailer after the JPEG's end-of-image marker; those
+    bytes used to be stored and served to every other user. Now the stored photo ends at the marker, baseline
+    and progressive alike, its pixels unchanged."""
+    import io
+
+    import cv2
+    from PIL import Image
+
+    from mapfree.data import Dataset
+    from mapfree.service.anchors.exif import clean_photo
+
+    ref = Dataset(realmini_dir).scene("val", "s00000").reference
+    trailer = b"\x00\x00\x00\x18ftypmp42" + b"MotionPhoto_Data SECRET-CLIP " * 50 + b"\xff\xd9tail"
+    baseline = ref.image_path.read_bytes()
+    progressive = io.BytesIO()
+    Image.open(ref.image_path).save(progressive, format="JPEG", progressive=True, quality=90)
+    for jpeg in (baseline, progressive.getvalue()):
+        assert jpeg.endswith(b"\xff\xd9")
+        cleaned = clean_photo(jpeg + trailer)
+        assert cleaned == jpeg  # cut at the marker, nothing re-encoded
+        decode = lambda b: cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR)  # noqa: E731
+        assert np.array_equal(decode(cleaned), decode(jpeg))
+    K = ref.intrinsics
+    with server.client("alice") as c:
+        r = c.post("/anchors", files={"image": ("ref.jpg", baseline + trailer, "image/jpeg"),
+                                      "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")},
+                   data={"fx": str(K.fx), "fy": str(K.fy), "cx": str(K.cx), "cy": str(K.cy),
+                         "method": "sift_pnp_sensor"})
+        assert r.status_code == 201, r.text
+        served = c.get(f"/anchors/{r.json()['id']}/photos/0").content
+        assert served == baseline  # the photo byte for byte (it has no metadata), without the trailer
+        assert c.delete(f"/anchors/{r.json()['id']}").status_code == 204

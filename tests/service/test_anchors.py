@@ -52,7 +52,7 @@ def test_anchor_lifecycle_and_localize(server, realmini_dir):
 
 
 def test_anchor_default_method_is_the_registry_preset(server, realmini_dir):
-    from mapfree.service.reloc import default_method
+    from mapfree.service.anchors.localizers import default_method
 
     ref = Dataset(realmini_dir).scene("val", "s00001").reference
     with server.client("carol") as c:
@@ -76,7 +76,7 @@ def test_needs_reference_depth_one_definition_two_questions():
     """Files-depth methods need the reference's map for their scale; ``scale_free_too`` adds the depth-free
     PnP/Procrustes methods, which cannot give any pose without one (they use an uploaded map when given)."""
     from mapfree import methods
-    from mapfree.service.reloc import needs_reference_depth
+    from mapfree.service.anchors.localizers import needs_reference_depth
 
     table = {  # name: (for the metric scale, for any pose at all)
         "sift_pnp_sensor": (True, True), "sift_emat_sensor": (True, True),

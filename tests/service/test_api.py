@@ -18,13 +18,15 @@ def upload(c, data: bytes, split: str = "val", name: str = "run", public: bool =
 
 
 def expected_metrics(server, data: bytes, split: str, tmp_path) -> dict:
-    """What the benchmark core says, computed in this process on the same ZIP."""
+    """What the benchmark core says, computed in this process on the same ZIP, as the server shows it (test: no
+    medians, rounded)."""
     from mapfree.benchmark import evaluate
+    from mapfree.service.leaderboard.submissions import shown_metrics
 
     p = tmp_path / "expected.zip"
     p.write_bytes(data)
     gt = server.data.gt if split == "test" else None
-    return evaluate(p, server.data.root, split, gt_root=gt).to_dict()["metrics"]
+    return shown_metrics(split, evaluate(p, server.data.root, split, gt_root=gt).to_dict()["metrics"])
 
 
 def test_health_and_openapi(server):

@@ -180,8 +180,8 @@ def test_health_answers_from_a_live_snapshot_and_fails_when_the_database_does(ma
 
     from sqlalchemy import create_engine
 
-    from mapfree.service.db import WorkerRow, make_engine, session_factory
-    from mapfree.service.health import STALE_SECONDS, HealthMonitor, Snapshot
+    from mapfree.service.database.models import WorkerRow, make_engine, session_factory
+    from mapfree.service.http.health import STALE_SECONDS, HealthMonitor, Snapshot
 
     app = make_app()
     h = app.client.get("/health/detail", headers=OPERATOR).json()
@@ -216,7 +216,7 @@ def test_a_serving_process_freezes_its_long_lived_objects(tmp_path):
     code = f"""
 import gc
 from mapfree.service import Settings, create_app
-from mapfree.service.gcpause import after_load, freeze_long_lived
+from mapfree.service.http.gc_freeze import after_load, freeze_long_lived
 app = create_app(Settings(db_url="sqlite:///{tmp_path / 'gc.db'}"))
 after_load()
 assert gc.get_freeze_count() == 0, "froze without being asked"
@@ -260,9 +260,9 @@ def _pose_text(scene_dir: Path, lines: int, seed: int) -> bytes:
 def test_upload_is_stored_in_chunks_without_parsing_or_holding_it(make_app, split_data, tmp_path):
     """A few-MB submission is checked from its ZIP directory and copied into the database in chunks: the API's
     Python memory peak stays near one chunk (the old path read, inflated and parsed everything)."""
-    from mapfree.service import storage
-    from mapfree.service.db import Submission, User, ZipChunk
-    from mapfree.service.submissions import accept
+    from mapfree.service.leaderboard import storage
+    from mapfree.service.database.models import Submission, User, ZipChunk
+    from mapfree.service.leaderboard.submissions import accept
 
     app = make_app()
     scenes = sorted(p for p in (split_data.root / "val").iterdir())
@@ -280,16 +280,24 @@ def test_upload_is_stored_in_chunks_without_parsing_or_holding_it(make_app, spli
         assert sub.status == "queued" and sub.size_bytes == len(data)
         assert sub.sha256 == hashlib.sha256(data).hexdigest()
         assert db.scalar(select(func.count()).select_from(ZipChunk).where(ZipChunk.submission_id == sub.id)) >= 3
-        assert storage.read_zip(db, sub.id) == data
+        assert b"".join(storage.chunks(db, sub.id)) == data
     # a few chunks in flight, whatever the size (the old path held the whole ZIP, inflated and parsed)
     assert peak < min(6 * storage.CHUNK_BYTES, 0.6 * len(data)), f"{peak / 1e6:.1f} MB for {len(data) / 1e6:.1f} MB"
     with sessions() as db:
         assert db.get(Submission, sub.id).status == "queued"
+    # downloads stream the chunks (40 parallel downloads of a 49 MB ZIP took the API to 1.9 GB, each joined whole)
+    tracemalloc.start()
+    streamed = sum(len(chunk) for chunk in storage.stream_zip(sessions, sub.id))
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert streamed == len(data) and peak < min(4 * storage.CHUNK_BYTES, 0.5 * len(data)), f"{peak / 1e6:.1f} MB"
+    r = app.client.get(f"/api/submissions/{sub.id}/zip", headers=app.auth("ann"))
+    assert r.status_code == 200 and r.content == data and r.headers["content-length"] == str(len(data))
 
 
 def test_val_rate_limit_storage_quota_and_retention(make_app, split_data):
-    from mapfree.service import storage
-    from mapfree.service.db import Submission, SubmissionFile
+    from mapfree.service.leaderboard import storage
+    from mapfree.service.database.models import Submission, SubmissionFile
 
     data = make_submission(split_data.root / "val")
     app = make_app(val_hourly_limit=2, storage_quota_bytes=int(2.5 * len(data)))
@@ -311,7 +319,7 @@ def test_val_rate_limit_storage_quota_and_retention(make_app, split_data):
         assert storage.sweep(db, retention_days=90) == 1
     with sessions() as db:
         assert db.get(SubmissionFile, first.id) is None and db.get(Submission, first.id) is not None
-        assert storage.read_zip(db, first.id) is None
+        assert not storage.is_stored(db, first.id)
     assert up("ann", "a3").status_code == 202  # room again
 
 
@@ -416,7 +424,7 @@ def test_zip_limits_are_named_per_entry_and_in_total(make_app, split_data):
 
 def test_the_worker_reads_with_the_same_limits(split_data, tmp_path):
     """Declared sizes can lie; the workers' reader enforces the service's per-file limit and names it."""
-    from mapfree.service.evaluation import SubmissionRejected, score
+    from mapfree.service.leaderboard.scoring import SubmissionRejected, score
 
     scene = sorted(p for p in (split_data.root / "val").iterdir())[0]
     p = tmp_path / "s.zip"
@@ -442,7 +450,7 @@ def test_names_with_bidi_controls_are_refused(server):
 
 
 def test_sqlite_database_is_private(tmp_path):
-    from mapfree.service.db import init_db, make_engine
+    from mapfree.service.database.models import init_db, make_engine
 
     engine = make_engine(f"sqlite:///{tmp_path / 'private.db'}")
     init_db(engine)
@@ -466,7 +474,7 @@ def test_operator_methods_folder_and_old_anchors_whose_method_cannot_run(make_ap
     """Methods from ``--methods-dir`` are offered by name (a broken file is skipped, not fatal); an anchor stored
     before this check whose method cannot run here is a 422 at localize time, not a 500."""
     from mapfree import matching
-    from mapfree.service.db import Anchor, User
+    from mapfree.service.database.models import Anchor, User
 
     folder = tmp_path / "methods"
     folder.mkdir()
@@ -489,3 +497,178 @@ def test_operator_methods_folder_and_old_anchors_whose_method_cannot_run(make_ap
     r = app.client.post(f"/anchors/{old.id}/localize", headers=app.auth("ben"),
                         files={"image": ("q.png", _png(48, 64))}, data=form)
     assert r.status_code == 422 and "loftr_outdoor.ckpt" in r.json()["detail"], r.text
+
+
+def test_tokens_and_sessions_never_outlive_the_token_they_were_made_with(server):
+    """A 3-second token minted a 365-day token that kept working, and a session signed in with a token outlived
+    its revocation by 12 h. Now a token made with another expires with it at the latest, and revoking a token
+    ends the tokens and sessions made with it (and says which)."""
+    from mapfree.service.accounts import tokens as auth
+    from mapfree.service.database.models import User, make_engine, session_factory
+
+    create_users(server.db_url, {"erin": None})
+    engine = make_engine(server.db_url)
+    with session_factory(engine).begin() as db:
+        short = auth.issue_token(db, db.query(User).filter_by(name="erin").one(), expires_in=3)
+    engine.dispose()
+    t0 = time.time()
+    with server.client(headers={"Authorization": f"Bearer {short}"}) as c:
+        r = c.post("/api/tokens", data={"expires_in_days": "365", "label": "long"})
+        assert r.status_code == 201, r.text
+        child = r.json()
+        assert child["expires_at"] <= t0 + 4
+    with server.client(headers={"Authorization": f"Bearer {child['token']}"}) as c:
+        assert c.get("/api/me").status_code == 200
+        time.sleep(max(0.0, t0 + 4 - time.time()))
+        assert c.get("/api/me").status_code == 401
+
+    token = create_users(server.db_url, {"fay": None})["fay"]
+    with server.client(follow_redirects=False) as web, server.client(headers={"Authorization": f"Bearer {token}"}) \
+            as api:
+        csrf = web.get("/login").text.split('name="csrf_token" value="')[1].split('"')[0]
+        assert web.post("/login", data={"token": token, "csrf_token": csrf}).status_code == 303
+        page = web.get("/submit").text
+        session_csrf = page.split('name="csrf_token" value="')[1].split('"')[0]
+        made = web.post("/api/tokens", data={"expires_in_days": "365", "csrf_token": session_csrf}).json()
+        assert web.get("/api/me").status_code == 200
+        tid = next(t["id"] for t in api.get("/api/tokens").json() if t["current"])
+        r = api.delete(f"/api/tokens/{tid}")
+        assert r.status_code == 200 and r.json()["ended"]["tokens"] == [made["id"]], r.text
+        assert len(r.json()["ended"]["sessions"]) == 1
+        assert web.get("/api/me").status_code == 401
+        assert httpx.get(server.url + "/api/me", headers={"Authorization": f"Bearer {made['token']}"}).status_code \
+            == 401
+    with server.client(headers={"Authorization": f"Bearer {server.tokens['alice']}"}) as c:  # the admin's word
+        parent = c.post("/api/tokens", data={"expires_in_days": "1"}).json()
+        with server.client(headers={"Authorization": f"Bearer {parent['token']}"}) as p:
+            grandchild = p.post("/api/tokens", data={"expires_in_days": "1"}).json()
+    out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", server.db_url, "revoke-token",
+                          str(parent["id"])], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and f"and ended 1 tokens made with it ({grandchild['id']})" in out.stderr, out.stderr
+
+
+def test_out_of_range_ids_are_refused_not_a_500(server):
+    """An id past the database's integer (2^63 on SQLite, 2^31 on PostgreSQL) in a path used to be a 500 from
+    the driver; now a 422 naming the largest id (JSON for the API, the error page for forms)."""
+    huge = "99999999999999999999"
+    with server.client("bob") as c:
+        for method, path in (("DELETE", f"/api/tokens/{huge}"), ("DELETE", f"/api/sessions/{2**31}"),
+                             ("POST", f"/me/tokens/{huge}/revoke"), ("POST", f"/me/sessions/{2**31}/end"),
+                             ("GET", f"/anchors/x/photos/{huge}"), ("DELETE", f"/anchors/x/photos/{2**40}")):
+            r = c.request(method, path)
+            assert r.status_code == 422 and "2147483647" in r.text, (method, path, r.status_code, r.text[:200])
+        assert c.delete("/api/tokens/2147483647").status_code == 404
+    out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", server.db_url, "revoke-token", huge],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "no such id" in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def _worker_rows(db_url: str) -> int:
+    from mapfree.service.database.models import WorkerRow, make_engine, session_factory
+
+    engine = make_engine(db_url)
+    with session_factory(engine)() as db:
+        n = db.scalar(select(func.count()).select_from(WorkerRow))
+    engine.dispose()
+    return int(n or 0)
+
+
+@pytest.mark.parametrize("when", ["idle", "mid-job"])
+def test_a_burst_of_sigterms_stops_a_worker(split_data, tmp_path, when):
+    """The worker's SIGTERM handler called ``Event.set()``; a second SIGTERM landing while the first handler
+    held the event's lock (``serve`` stopping it and the parent-death signal, close together) blocked the
+    nested handler for ever: the worker outlived ``serve``. Now a handler only wakes a thread. SIGTERMs are
+    sent every millisecond from the moment the worker is idle (or scoring a job) until it has exited, so
+    that they also land during its final database delete."""
+    from mapfree.service.database.models import User, init_db, make_engine, session_factory
+    from mapfree.service.leaderboard.submissions import accept
+
+    db_url = f"sqlite:///{tmp_path / 'w.db'}"
+    create_users(db_url, {"ann": None})
+    if when == "mid-job":
+        engine = make_engine(db_url)
+        init_db(engine)
+        with session_factory(engine)() as db:
+            user = db.scalar(select(User).where(User.name == "ann"))
+            data = _zip({f"pose_{s.name}.txt": _pose_text(s, 20_000, i)
+                         for i, s in enumerate(sorted((split_data.root / "val").iterdir()))}, zipfile.ZIP_DEFLATED)
+            accept(db, Settings(db_url=db_url, data_root=split_data.root), user, "val", "slow", False, data)
+        engine.dispose()
+    proc = subprocess.Popen([sys.executable, "-m", "mapfree.service.leaderboard.worker", "--db", db_url, "--data",
+                             str(split_data.root), "--poll-seconds", "0.05"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and _worker_rows(db_url) == 0:
+            assert proc.poll() is None
+            time.sleep(0.05)
+        if when == "mid-job":
+            while time.time() < deadline and "running" not in _statuses(db_url):
+                time.sleep(0.01)
+            assert "running" in _statuses(db_url)
+        t0, sent = time.time(), 0
+        while proc.poll() is None and time.time() - t0 < 20:
+            for _ in range(200):  # back to back: one lands while the handler of another runs
+                try:
+                    os.kill(proc.pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    break
+            sent += 200
+            time.sleep(0.001)
+        assert proc.poll() is not None, f"the worker still runs {time.time() - t0:.0f} s after {sent} SIGTERMs"
+        assert _worker_rows(db_url) == 0 or proc.returncode != 0  # a clean stop removed its row
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _statuses(db_url: str) -> set[str]:
+    from mapfree.service.database.models import Submission, make_engine, session_factory
+
+    engine = make_engine(db_url)
+    with session_factory(engine)() as db:
+        out = set(db.scalars(select(Submission.status)))
+    engine.dispose()
+    return out
+
+
+def test_a_signal_during_the_stop_handler_cannot_deadlock():
+    """The nested-handler deadlock, made certain: the main thread holds the stop event's lock (as a first
+    handler inside ``Event.set()`` does) when two SIGTERMs arrive. A handler that called ``stop.set()`` blocked
+    on that lock for ever; ``stop_on_signals``' handlers return at once and a thread sets the event."""
+    script = (
+        "import os, signal, threading, sys\n"
+        "from mapfree.service.process import stop_on_signals\n"
+        "stop = threading.Event()\n"
+        "stop_on_signals(stop)\n"
+        "with stop._cond:\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    sum(range(1000))\n"
+        "sys.exit(0 if stop.wait(10) else 1)\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0, out.stderr
+
+
+def test_look_alike_names_and_endless_tokens_are_refused(make_app, tmp_path):
+    """'аlice' (Cyrillic а) beside 'alice' were two accounts the boards showed alike, and one account minted
+    2,000 tokens in 20 s. Now names are ASCII and unique ignoring case, and an account holds at most
+    ``MAX_TOKENS`` active tokens (a revoked one frees its place)."""
+    from mapfree.service.accounts import tokens as auth
+
+    db = ["--db", f"sqlite:///{tmp_path / 'names.db'}"]
+    mapfree("admin", *db, "create-user", "alice")
+    for name, why in (("\u0430lice", "ASCII"), ("Alice", "only in case"), (".x", "ASCII")):
+        out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", *db, "create-user", name],
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == 1 and why in out.stderr and "Traceback" not in out.stderr, (name, out.stderr)
+    app = make_app()
+    with app.client as c:
+        h = app.auth("ann")
+        made = [c.post("/api/tokens", data={"expires_in_days": "1"}, headers=h) for _ in range(auth.MAX_TOKENS - 1)]
+        assert {r.status_code for r in made} == {201}  # ann's first token and these: the limit
+        r = c.post("/api/tokens", data={"expires_in_days": "1"}, headers=h)
+        assert r.status_code == 409 and "revoke some" in r.json()["detail"], r.text
+        assert c.delete(f"/api/tokens/{made[0].json()['id']}", headers=h).status_code == 200
+        assert c.post("/api/tokens", data={"expires_in_days": "1"}, headers=h).status_code == 201

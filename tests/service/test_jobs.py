@@ -10,9 +10,10 @@ import time
 import pytest
 from sqlalchemy import func, select
 
-from mapfree.service import auth, jobs
+from mapfree.service.accounts import tokens as auth
+from mapfree.service.leaderboard import jobs
 from mapfree.service.config import Settings
-from mapfree.service.db import Result, Submission, SubmissionFile, init_db, make_engine, session_factory
+from mapfree.service.database.models import Result, Submission, SubmissionFile, init_db, make_engine, session_factory
 
 from .conftest import BACKENDS, db_url_for, make_submission
 
@@ -88,7 +89,7 @@ def test_job_abandoned_too_often_fails_cleanly(sessions):
 
 
 def test_worker_process_finishes_an_abandoned_job(sessions, split_data):
-    from mapfree.service import worker
+    from mapfree.service.leaderboard import worker
 
     url, S = sessions
     (sid,) = _enqueue(S, 1, make_submission(split_data.root / "val", noise=0.2))

@@ -10,7 +10,7 @@ import uuid
 
 import pytest
 
-from mapfree.service.leaderboard import competition_ranks
+from mapfree.service.leaderboard.boards import competition_ranks
 
 from .conftest import create_users, make_submission
 from .test_api import upload

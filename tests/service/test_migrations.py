@@ -14,8 +14,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy import inspect
 
 from mapfree.service import Settings, create_app
-from mapfree.service.db import Base, make_engine
-from mapfree.service.migrations import SchemaVersion, current, head, upgrade
+from mapfree.service.database.models import Base, make_engine
+from mapfree.service.database.migrations import SchemaVersion, current, head, upgrade
 
 from .conftest import BACKENDS, db_url_for
 
@@ -53,7 +53,7 @@ def schema(url: str) -> dict:
 def test_the_first_revision_is_the_schema_from_before_migrations(tmp_path):
     from alembic import command
 
-    from mapfree.service.migrations import _config
+    from mapfree.service.database.migrations import _config
 
     old = schema(old_database(tmp_path / "old.db"))
     engine = make_engine(f"sqlite:///{tmp_path / 'first.db'}")
@@ -138,7 +138,7 @@ def test_upgrading_from_the_first_revision_gives_the_models_schema_on_each_backe
     from alembic import command
     from sqlalchemy import text
 
-    from mapfree.service.migrations import _config
+    from mapfree.service.database.migrations import _config
 
     old, new = db_url_for(backend, tmp_path), db_url_for(backend, tmp_path)
     engine = make_engine(old)

@@ -170,3 +170,127 @@ def test_x_forwarded_for_is_believed_only_from_configured_proxies(split_data, tm
             assert statuses(srv) == want, trusted
         finally:
             stop_server(srv.proc)
+
+
+def _answer(s: socket.socket, within: float) -> bytes:
+    """What the server sends on ``s`` within ``within`` seconds (until it closes or stops sending)."""
+    s.settimeout(within)
+    data = b""
+    try:
+        while chunk := s.recv(65536):
+            data += chunk
+            if b"\r\n\r\n" in data and b'"status"' in data:
+                break
+    except (socket.timeout, ConnectionResetError):
+        pass
+    return data
+
+
+def test_uploads_without_good_credentials_are_refused_unread_and_a_body_has_a_total_time(split_data, tmp_path):
+    """An anonymous 60 MB upload used to be read whole (spooled to disk) and then answered 401, and a trickle of
+    a byte every few seconds (under the gap timeout) held its connection and file for as long as it liked. Now
+    missing or bad credentials are refused from the headers, before the body, and a body that is not all in
+    within --body-total-timeout gets 408."""
+    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
+                       extra=("--body-timeout", "30", "--body-total-timeout", "3"))
+    host, port = "127.0.0.1", int(srv.url.rsplit(":", 1)[1])
+    head = ("POST /api/submissions HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; boundary=xx"
+            "\r\nContent-Length: 60000000\r\n{auth}\r\n")
+    try:
+        for auth, want in (("", b"HTTP/1.1 401"), ("Authorization: Bearer mf_wrong\r\n", b"HTTP/1.1 401")):
+            with socket.create_connection((host, port), timeout=10) as s:
+                s.sendall(head.format(auth=auth).encode() + b"--xx\r\n" + b"x" * 100_000)
+                t0 = time.time()
+                data = _answer(s, 5)
+                assert data.startswith(want), (auth, data[:200])
+                assert time.time() - t0 < 3
+        with socket.create_connection((host, port), timeout=10) as s:  # a good token, then a trickle
+            s.sendall(head.format(auth=f"Authorization: Bearer {srv.tokens['alice']}\r\n").encode()
+                      + b'--xx\r\nContent-Disposition: form-data; name="file"; filename="s.zip"\r\n\r\n')
+            t0, data = time.time(), b""
+            s.settimeout(0.5)
+            while time.time() - t0 < 10 and not data:
+                try:
+                    s.sendall(b"x")
+                    data = s.recv(65536)
+                except socket.timeout:
+                    continue
+                except (BrokenPipeError, ConnectionResetError):
+                    break
+            data += _answer(s, 2)
+            assert data.startswith(b"HTTP/1.1 408") and b"within 3 s" in data, data[:300]
+            assert time.time() - t0 < 6
+    finally:
+        stop_server(srv.proc)
+
+
+def test_one_address_cannot_take_every_connection(split_data, tmp_path):
+    """Half-open requests from one address (a header byte a second, reopened as the head timeout closes them)
+    used to fill --limit-concurrency and make other clients' /health fail with 503. Now one address holds at
+    most --max-connections-per-address; past that its new connections are closed at once, others are served."""
+    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
+                       extra=("--max-connections-per-address", "5", "--limit-concurrency", "8",
+                              "--header-timeout", "30"))
+    host, port = "127.0.0.1", int(srv.url.rsplit(":", 1)[1])
+    held = []
+    try:
+        for _ in range(5):
+            s = socket.create_connection((host, port), timeout=5)
+            s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nX-Slow: ")
+            held.append(s)
+        time.sleep(0.3)
+        for _ in range(5):  # the sixth and later from this address: closed without an answer
+            with socket.create_connection((host, port), timeout=5) as s:
+                s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n")
+                s.settimeout(5)
+                try:
+                    assert s.recv(100) == b""
+                except ConnectionResetError:
+                    pass
+        other = socket.create_connection((host, port), timeout=5, source_address=("127.0.0.2", 0))
+        with other:  # another address is served (uvicorn would answer 503 past --limit-concurrency 8)
+            other.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+            assert _answer(other, 5).startswith(b"HTTP/1.1 200")
+        held.pop().close()
+        time.sleep(0.3)
+        with socket.create_connection((host, port), timeout=5) as s:  # a freed place is taken again
+            s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+            assert _answer(s, 5).startswith(b"HTTP/1.1 200")
+    finally:
+        for s in held:
+            s.close()
+        stop_server(srv.proc)
+
+
+def test_operator_mistakes_get_one_line_each(split_data, tmp_path):
+    """A port in use exited 3 (the documented "nothing estimated") with the cause in ~30 JSON lines; a --data
+    folder that does not exist started silently; an unreachable or malformed database printed 100+ lines of
+    tracebacks (serve and admin). Now each is one line naming the problem, exit 1 (2 for a bad flag value)."""
+    import subprocess
+    import sys
+
+    def run(module: str, *args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", f"mapfree.cli.{module}", *args], capture_output=True,
+                              text=True, timeout=120)
+
+    db = f"sqlite:///{tmp_path / 'ops.db'}"
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = str(busy.getsockname()[1])
+        cases = [
+            (run("serve", "--db", db, "--port", port, "--workers", "0"), 1, f"port {port} on 127.0.0.1 is in use"),
+            (run("serve", "--db", db, "--data", str(tmp_path / "nope"), "--workers", "0"), 2, "no such folder"),
+            (run("serve", "--db", "postgresql://svc:s3cret@127.0.0.1:1/mf", "--workers", "0", "--port", "0"), 1,
+             "cannot open the database postgresql"),
+            (run("serve", "--db", "nosuchdriver://x/y", "--workers", "0", "--port", "0"), 1,
+             "not a database URL"),
+            (run("admin", "--db", "postgresql://svc:s3cret@127.0.0.1:1/mf", "list-users"), 1,
+             "cannot open the database"),
+            (run("admin", "--db", f"sqlite:///{tmp_path / 'no' / 'dir.db'}", "list-users"), 1,
+             "cannot open the database"),
+        ]
+    for out, code, words in cases:
+        lines = [x for x in out.stderr.splitlines() if x.strip()]
+        assert out.returncode == code and words in out.stderr, (out.args, out.returncode, out.stderr[-2000:])
+        assert len(lines) == 1 and "Traceback" not in out.stderr and "s3cret" not in out.stderr, out.stderr

@@ -21,6 +21,19 @@ def _limit(text: str) -> int | None:
         raise argparse.ArgumentTypeError(f"{e}, or 'default'") from None
 
 
+def _row_id(text: str) -> int:
+    """A token's or session's id as listed: a number from 0 to 2^31 - 1 (the database's integer)."""
+    from ..service.http.caller import MAX_ROW_ID
+
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an id: {text[:40]!r}") from None
+    if not 0 <= n <= MAX_ROW_ID:
+        raise argparse.ArgumentTypeError(f"no such id: {text[:40]} (ids run from 0 to {MAX_ROW_ID})")
+    return n
+
+
 def _shown(limit: int | None) -> str:
     from ..service.config import shown_limit
 
@@ -63,9 +76,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("name")
     s.add_parser("list-tokens", help="an account's tokens: id, prefix, label, created, expires, state").add_argument(
         "name")
-    s.add_parser("revoke-token", help="revoke one token (by the id list-tokens shows)").add_argument("id", type=int)
+    s.add_parser("revoke-token", help="revoke one token (by the id list-tokens shows), and the tokens and "
+                                      "sessions made with it").add_argument("id", type=_row_id)
     s.add_parser("list-sessions", help="an account's open browser sessions").add_argument("name")
-    s.add_parser("revoke-session", help="end one browser session (by its id)").add_argument("id", type=int)
+    s.add_parser("revoke-session", help="end one browser session (by its id)").add_argument("id", type=_row_id)
     d = s.add_parser("delete-user", help="delete an account with its tokens, sessions, anchors and submissions")
     d.add_argument("name")
     d.add_argument("--yes", action="store_true", help="really delete (without it: say what would go)")
@@ -83,7 +97,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _when(t: float | None) -> str:
-    from ..service.auth import utc
+    from ..service.accounts.tokens import utc
 
     return utc(t) if t else "never"
 
@@ -91,11 +105,11 @@ def _when(t: float | None) -> str:
 def run(a: argparse.Namespace) -> int:
     from sqlalchemy import select
 
-    from ..service import auth
-    from ..service.db import ApiToken, User, WebSession, make_engine, session_factory
+    from ..service.accounts import tokens as auth
+    from ..service.database.models import ApiToken, User, WebSession, session_factory
 
     if a.action == "backup":  # before any upgrade: a backup is what one takes before upgrading
-        from ..service.backup import backup
+        from ..service.database.backup import backup
 
         try:
             print(backup(a.db, a.dest))
@@ -103,12 +117,12 @@ def run(a: argparse.Namespace) -> int:
             print(f"error: {e}", file=sys.stderr)
             return 1
         return 0
-    engine = make_engine(a.db)
-    from ..service.migrations import SchemaVersion, upgrade
+    from ..service.database.models import DatabaseUnavailable, open_database
+    from ..service.database.migrations import SchemaVersion
 
     try:
-        before, after = upgrade(engine)
-    except SchemaVersion as e:
+        engine, (before, after) = open_database(a.db)
+    except (SchemaVersion, DatabaseUnavailable) as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
     if a.action == "migrate":
@@ -141,11 +155,15 @@ def run(a: argparse.Namespace) -> int:
             print(token)
             print(f"created user {a.name!r}; the token above is shown only once", file=sys.stderr)
         elif a.action == "new-token":
-            print(auth.issue_token(db, user(db, a.name), lifetime(), a.label))
+            try:
+                print(auth.issue_token(db, user(db, a.name), lifetime(), a.label))
+            except auth.TokenLimit as e:
+                print(f"error: {e}", file=sys.stderr)
+                return 1
         elif a.action == "revoke-tokens":
             print(f"revoked {auth.revoke_tokens(db, user(db, a.name))} token(s)", file=sys.stderr)
         elif a.action == "list-tokens":
-            from ..service.accounts import list_tokens, token_json
+            from ..service.accounts.router import list_tokens, token_json
 
             print("id\tprefix\tlabel\tcreated\texpires\tstate")
             for t in map(token_json, list_tokens(db, user(db, a.name).id)):
@@ -157,10 +175,12 @@ def run(a: argparse.Namespace) -> int:
             if row is None:
                 print(f"error: no token {a.id}", file=sys.stderr)
                 return 1
-            row.revoked = True
-            print(f"revoked token {a.id} ({row.prefix}…)", file=sys.stderr)
+            ended = auth.revoke_token(db, row)
+            also = [f"{len(v)} {k} made with it ({', '.join(map(str, v))})" for k, v in ended.items() if v]
+            print(f"revoked token {a.id} ({row.prefix}…)" + (f" and ended {' and '.join(also)}" if also else ""),
+                  file=sys.stderr)
         elif a.action == "list-sessions":
-            from ..service.accounts import list_sessions
+            from ..service.accounts.router import list_sessions
 
             print("id\topened\texpires")
             for w in list_sessions(db, user(db, a.name).id):
@@ -189,8 +209,8 @@ def run(a: argparse.Namespace) -> int:
 def _delete_user(db, u, yes: bool) -> int:
     from sqlalchemy import func, select
 
-    from ..service.accounts import delete_user
-    from ..service.db import User
+    from ..service.accounts.router import delete_user
+    from ..service.database.models import User
 
     if u.is_admin and db.scalar(select(func.count()).select_from(User).where(User.is_admin.is_(True))) == 1:
         print(f"error: {u.name!r} is the only admin; make another admin first", file=sys.stderr)

@@ -84,6 +84,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="such requests waiting for a thread; more get 429 with Retry-After (default 8)")
     g.add_argument("--anchor-cache-mb", type=float, default=256.0,
                    help="prepared anchors (features, depth at the working size) kept in memory (default 256 MiB)")
+    g.add_argument("--method-pool-mb", type=float, default=1024.0,
+                   help="built relocalizers (their models) kept in memory, least recently used dropped first "
+                        "(default 1024 MiB)")
     g = p.add_argument_group("connections (uvicorn)")
     g.add_argument("--forwarded-allow-ips", default="",
                    help="comma-separated addresses of trusted reverse proxies whose X-Forwarded-For/-Proto are "
@@ -94,6 +97,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="close a connection whose request line and headers take longer (default 10 s; 0: off)")
     g.add_argument("--body-timeout", type=float, default=30.0,
                    help="answer 408 when the next piece of a request body takes longer (default 30 s; 0: off)")
+    g.add_argument("--body-total-timeout", type=float, default=600.0,
+                   help="answer 408 when a whole request body takes longer (default 600 s: 64 MiB at 1 Mbit/s; "
+                        "0: off)")
+    g.add_argument("--max-connections-per-address", type=int, default=64,
+                   help="open connections one client address may hold per API process; more are closed at once "
+                        "(default 64; 0: no cap; the --forwarded-allow-ips proxies have none)")
     g.add_argument("--limit-concurrency", type=int, default=1000,
                    help="connections per API process before new requests get 503 (default 1000; 0: no limit)")
     g.add_argument("--h11-max-incomplete-event-size", type=int, default=16 * 1024,
@@ -115,16 +124,18 @@ def settings_from_args(a: argparse.Namespace):
                     storage_quota_bytes=int(a.storage_quota_mb * mb), zip_retention_days=a.zip_retention_days,
                     auth_failures_per_minute=a.auth_failures_per_minute,
                     heavy_threads=a.heavy_threads, heavy_queue=a.heavy_queue, anchor_cache_mb=a.anchor_cache_mb,
-                    body_timeout=a.body_timeout, limits=limits,
+                    method_pool_mb=a.method_pool_mb,
+                    body_timeout=a.body_timeout, body_total_timeout=a.body_total_timeout, limits=limits,
                     operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""))
 
 
 def uvicorn_options(a: argparse.Namespace) -> dict:
     """uvicorn's connection settings from the flags: timeouts, concurrency, header size, trusted proxies (none
     unless named: uvicorn would otherwise believe X-Forwarded-For from 127.0.0.1, a per-request new address)."""
-    from ..service.timeouts import head_timeout_protocol
+    from ..service.http.timeouts import head_timeout_protocol
 
-    return {"http": head_timeout_protocol(a.header_timeout), "timeout_keep_alive": a.timeout_keep_alive,
+    return {"http": head_timeout_protocol(a.header_timeout, a.max_connections_per_address, a.forwarded_allow_ips),
+            "timeout_keep_alive": a.timeout_keep_alive,
             "limit_concurrency": a.limit_concurrency or None, "timeout_graceful_shutdown": 10,
             "h11_max_incomplete_event_size": a.h11_max_incomplete_event_size,
             "proxy_headers": bool(a.forwarded_allow_ips), "forwarded_allow_ips": a.forwarded_allow_ips or None}
@@ -137,7 +148,7 @@ ISOLATED = "-P" if sys.version_info >= (3, 11) else "-I"
 
 def worker_command(a: argparse.Namespace) -> list[str]:
     limits = dataclasses.asdict(settings_from_args(a).limits)
-    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.worker",  # the database URL: worker_env
+    cmd = [sys.executable, ISOLATED, "-m", "mapfree.service.leaderboard.worker",  # the database URL: worker_env
            "--lease-seconds", str(a.lease_seconds), "--zip-retention-days", str(a.zip_retention_days),
            "--limits", json.dumps(limits), "--log-level", a.log_level, "--exit-with-parent"]
     if a.data:
@@ -209,28 +220,67 @@ class Supervisor:
                 p.wait()
 
 
-def run(a: argparse.Namespace) -> int:
-    from ..service.db import make_engine
-    from ..service.evaluation import check_ground_truth
-    from ..service.logs import setup_logging
+def port_problem(host: str, port: int) -> str | None:
+    """Why ``host:port`` cannot be served (in use, or not an address of this host), or None."""
+    import errno
+    import socket
 
-    setup_logging(a.log_level)
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError as e:
+        return f"--host {host}: {e.strerror or e}"
+    family, _, _, _, addr = infos[0]
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds it
+        try:
+            s.bind(addr)
+        except OSError as e:
+            if e.errno == errno.EADDRINUSE:
+                return (f"port {port} on {host} is in use (another mapfree serve? its server.pid says which); stop "
+                        "it or choose another --port")
+            return f"cannot listen on {host}:{port}: {e.strerror or e}"
+    return None
+
+
+def check_folders(a: argparse.Namespace) -> str | None:
+    """Why ``--data`` or ``--gt`` cannot be used (not a folder), or None."""
+    from pathlib import Path
+
+    for flag, value in (("--data", a.data), ("--gt", a.gt)):
+        if value and not Path(value).is_dir():
+            return f"{flag} {value}: no such folder"
+    return None
+
+
+def run(a: argparse.Namespace) -> int:
+    from ..service.database.models import DatabaseUnavailable, open_database
+    from ..service.leaderboard.scoring import check_ground_truth
+    from ..service.http.logs import setup_logging
+
+    if (problem := check_folders(a)) is not None:
+        print(f"mapfree serve: error: {problem}", file=sys.stderr)
+        return 2
+    if not a.no_api and (problem := port_problem(a.host, a.port)) is not None:
+        print(f"mapfree serve: error: {problem}", file=sys.stderr)
+        return 1
     settings = settings_from_args(a)
     try:
         check_ground_truth(settings)
     except ValueError as e:
         print(f"mapfree serve: error: {e}", file=sys.stderr)
         return 2
-    from ..service.migrations import SchemaVersion, upgrade
+    from ..service.database.migrations import SchemaVersion
 
-    engine = make_engine(settings.db_url)
     try:  # create the tables or upgrade the schema, once, before the API processes and workers start
-        before, after = upgrade(engine)
+        engine, (before, after) = open_database(settings.db_url)
+        engine.dispose()
     except SchemaVersion as e:
         print(f"mapfree serve: error: {e}", file=sys.stderr)
         return 2
-    finally:
-        engine.dispose()
+    except DatabaseUnavailable as e:
+        print(f"mapfree serve: error: {e}", file=sys.stderr)
+        return 1
+    setup_logging(a.log_level)  # JSON lines from here on (the checks above say what is wrong in one line)
     if before != after:
         log.info("database schema upgraded", extra={"from": before or "unversioned", "to": after})
     sup = Supervisor(worker_command(a), a.workers, env=worker_env(a)) if a.workers > 0 else None
@@ -238,27 +288,26 @@ def run(a: argparse.Namespace) -> int:
         sup.start()
     try:
         if a.no_api:
+            from ..service.process import stop_on_signals
+
             stop = threading.Event()
-            signal.signal(signal.SIGTERM, lambda *_: stop.set())
-            try:
-                stop.wait()
-            except KeyboardInterrupt:
-                pass
+            stop_on_signals(stop)
+            stop.wait()
             return 0
         import uvicorn
 
         log.info("serving", extra={"host": a.host, "port": a.port, "db": settings.db_url.split("://")[0]})
         conn = uvicorn_options(a)
         if a.api_processes > 1:
-            from ..service.lifeline import PARENT_PID_ENV
+            from ..service.process import PARENT_PID_ENV
 
             os.environ["MAPFREE_SETTINGS"] = json.dumps(dataclasses.asdict(settings), default=str)
             os.environ[PARENT_PID_ENV] = str(os.getpid())  # they end with this process, even on kill -9
-            uvicorn.run("mapfree.service.app:app_from_env", factory=True, host=a.host, port=a.port,
+            uvicorn.run("mapfree.service.http.app:app_from_env", factory=True, host=a.host, port=a.port,
                         workers=a.api_processes, log_config=None, access_log=False, **conn)
         else:
             from ..service import create_app
-            from ..service.gcpause import freeze_long_lived
+            from ..service.http.gc_freeze import freeze_long_lived
 
             app = create_app(settings)
             freeze_long_lived()

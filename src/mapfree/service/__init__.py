@@ -7,6 +7,6 @@ __all__ = ["Settings", "Limits", "create_app"]
 
 
 def create_app(settings: Settings):
-    from .app import create_app as _create
+    from .http.app import create_app as _create
 
     return _create(settings)

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-
 #: A daily test limit (the server's or one account's) meaning "no limit"; 0 means none at all.
 UNLIMITED = -1
 
@@ -72,7 +71,9 @@ class Settings:
     heavy_threads: int = 0  # localize / anchor computations at once per API process (0: min(4, CPUs))
     heavy_queue: int = 8  # heavy requests waiting for one of those threads; past that a 429 with Retry-After
     anchor_cache_mb: float = 256.0  # prepared anchors kept per API process (features and depth, no pixels)
+    method_pool_mb: float = 1024.0  # built relocalizers (models) kept per API process, shared by equal configs
     body_timeout: float = 30.0  # seconds for the next piece of a request body before a 408 (0: no limit)
+    body_total_timeout: float = 600.0  # seconds for a whole request body before a 408 (0: no limit)
     limits: Limits = field(default_factory=Limits)
 
     def __post_init__(self) -> None:

@@ -1,0 +1,1 @@
+"""Accounts: API tokens and browser sessions, their lineage, the storage quota."""

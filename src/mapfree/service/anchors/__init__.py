@@ -1,0 +1,2 @@
+"""Relocalization anchors: photos checked and stored once, methods pooled, anchors prepared and cached, queries
+localized."""

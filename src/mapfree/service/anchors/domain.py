@@ -1,0 +1,275 @@
+"""Anchors: a place's photos stored once, localized against by anyone signed in. The operations here (make, add or
+delete a photo, localize) are shared by the JSON API (``anchors.router``) and the web pages (``pages``)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from fastapi import HTTPException, Request, UploadFile
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from ...estimate import Estimate
+from ...geometry import Pose
+from ..accounts.quota import check_quota
+from ..database.models import Anchor, AnchorPhoto, RetiredPhotoIndex, User, new_id, now
+from ..inputs import UploadError, check_name, read_upload
+from .decode import parse_pose
+from .localizers import check_method, check_runnable, default_method
+from .photos import Photo, Upload, decode_stored
+from .photos import read_upload as read_photo_upload
+
+#: The pose of an anchor's first photo in the anchor's frame (``[qw, qx, qy, qz, tx, ty, tz]``).
+IDENTITY = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+
+
+def photo_rows(db: Session, aid: str) -> list[AnchorPhoto]:
+    """The anchor's further photos, by index (1, 2, …; deleted ones leave gaps)."""
+    return list(db.scalars(select(AnchorPhoto).where(AnchorPhoto.anchor_id == aid).order_by(AnchorPhoto.seq)))
+
+
+def anchor_version(rows: list[AnchorPhoto]) -> tuple:
+    """What identifies the current set of an anchor's photos, the same in every API process: each further
+    photo's index and creation time (photo 0 never changes). A photo added or deleted through any process
+    changes it, so no process answers from an anchor it prepared before."""
+    return tuple((r.seq, r.created_at) for r in rows)
+
+
+def photo_indices(rows: list[AnchorPhoto]) -> list[int]:
+    """The indices of an anchor's photos, in order: 0 (the anchor's frame), then each further photo's."""
+    return [0, *(r.seq for r in rows)]
+
+
+def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
+    """An anchor and its photos: photo 0 is the anchor's own (its camera is the anchor's frame); each further
+    photo's ``pose`` is world-to-camera from that frame as ``[qw, qx, qy, qz, tx, ty, tz]``. A photo keeps its
+    ``index`` for life (deleting one leaves a gap)."""
+    photos = [{"index": 0, "intrinsics": a.intrinsics, "has_depth": a.depth is not None, "pose": IDENTITY}]
+    photos += [{"index": r.seq, "intrinsics": r.intrinsics, "has_depth": r.depth is not None, "pose": r.pose}
+               for r in rows]
+    return {"id": a.id, "name": a.name, "method": a.method, "intrinsics": a.intrinsics, "private": bool(a.private),
+            "has_depth": a.depth is not None, "num_photos": len(photos), "photos": photos,
+            "created_at": a.created_at, "url": f"/anchors/{a.id}"}
+
+
+def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth: UploadFile | None,
+                 pose: str | None) -> Upload:
+    """Read and check one photo of an anchor (image, intrinsics, depth, pose: ``photos.read_upload``, with what
+    is stored of it); every error names ``what`` (the photo) if given. ``pose=None``: the anchor's first photo,
+    whose camera is the anchor's frame."""
+    try:
+        img_bytes = read_upload(image, lim.max_image_bytes, "image")
+        if img_bytes is None:
+            raise UploadError(400, "image: no file uploaded")
+        up = read_photo_upload(img_bytes, lim, {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
+                               read_upload(depth, lim.max_image_bytes, "depth"), store=True)
+        if up.depth is not None and not up.depth_measured:
+            raise UploadError(422, "depth: every pixel is 0 (no measurement), so the photo could never give a "
+                                   "metric pose; send its real depth map, or none with a method that needs none")
+        q = IDENTITY if pose is None else parse_pose(pose)
+    except UploadError as e:
+        raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
+    return replace(up, photo=replace(up.photo, pose=Pose.from_qt(q[:4], q[4:])), pose=q)
+
+
+def photo_name(i: int, f: UploadFile | None) -> str:
+    """How errors name a photo: its index in the anchor (0: the first) and the uploaded file's name."""
+    fname = check_name((f.filename or "") if f is not None else "", 80, "file name") if f is not None else ""
+    return f"photo {i}" + (f" ({fname!r})" if fname else "")
+
+
+def _runnable(m: str, ups: list[Upload], names: list[str]) -> None:
+    """``check_runnable`` for every photo, naming the one without the depth the method needs."""
+    for i, u in enumerate(ups):
+        try:
+            check_runnable(m, u.depth is not None)
+        except UploadError as e:
+            if not names[i]:
+                raise
+            raise UploadError(e.status, f"{names[i]}: method {m} takes its metric scale from each photo's depth map "
+                                        "and this photo has none: upload its depth (a single-channel uint16 PNG in "
+                                        "millimetres)") from None
+
+
+def _extra_photos(lim, images: list[UploadFile], fx: list[str], fy: list[str], cx: list[str], cy: list[str],
+                  poses: list[str], depths: list[UploadFile], first: int) -> tuple[list[Upload], list[str]]:
+    """The repeated ``photo_*`` fields of a request: one value per ``photo_image``, in the same order. Depth
+    maps are all or none (an empty file part is dropped, so it cannot stand for a missing one): photos of
+    which only some have depth are added one by one (``POST /anchors/{id}/photos``)."""
+    images = [f for f in images if f.filename or f.size]
+    n = len(images)
+    for field_name, vals in (("photo_fx", fx), ("photo_fy", fy), ("photo_cx", cx), ("photo_cy", cy),
+                             ("photo_pose", poses)):
+        if len(vals) != n:
+            raise UploadError(422, f"{field_name}: {len(vals)} value(s) for {n} photo_image file(s); give one per "
+                                   "photo, in the same order")
+    if depths and len(depths) != n:
+        raise UploadError(422, f"photo_depth: {len(depths)} file(s) for {n} photo_image file(s); give none, or one "
+                               "per photo in the same order (or add the photos one by one: POST "
+                               "/anchors/{id}/photos)")
+    names = [photo_name(first + i, f) for i, f in enumerate(images)]
+    ups = [photo_upload(lim, names[i], f, fx[i], fy[i], cx[i], cy[i], depths[i] if depths else None, poses[i])
+           for i, f in enumerate(images)]
+    return ups, names
+
+
+def _photo_rows_of(aid: str, ups: list[Upload], first_seq: int) -> list[AnchorPhoto]:
+    return [AnchorPhoto(anchor_id=aid, seq=first_seq + i, intrinsics=u.intrinsics, pose=u.pose, image=u.image,
+                        depth=u.depth, created_at=now()) for i, u in enumerate(ups)]
+
+
+def check_photo_count(lim, n: int) -> None:
+    """A 413 when an anchor would hold more than the limit of photos. Called before any photo is decoded too:
+    a small PNG can decode to tens of MB, so a request of a thousand of them must be refused unread."""
+    if n > lim.max_anchor_photos:
+        raise UploadError(413, f"an anchor holds at most {lim.max_anchor_photos} photos; got {n}")
+
+
+def make_anchor(request: Request, db: Session, user: User, name: str, method: str, ups: list[Upload],
+                names: list[str], private: bool = False) -> tuple[Anchor, list[AnchorPhoto]]:
+    """Store a new anchor of ``user`` from checked photos (``ups[0]``: the anchor's frame; ``names``: how errors
+    name them, "" for a lone photo), refused (4xx) past the photo limit or the storage quota, or when its method
+    cannot run on it here; ``private``: its photos are served to its owner and admins only, from the start.
+    Shared by ``POST /anchors`` and the relocalize page."""
+    settings = request.app.state.settings
+    lim = settings.limits
+    check_photo_count(lim, len(ups))
+    name = check_name(name, lim.max_name_chars)
+    m = check_method(method) if method.strip() else default_method(settings.default_method)
+    _runnable(m, ups, names)
+    nbytes = sum(u.nbytes for u in ups)
+    check_quota(db, settings, user.id, nbytes, "this anchor's photos")  # refused before the costly preparation
+    db.commit()  # no transaction (SQLite: the write lock; PostgreSQL: the user's row) held while preparing
+    aid = new_id()
+    rows = _photo_rows_of(aid, ups[1:], 1)
+    # 422 when it cannot run; what it prepares counts against the owner's share of the cache
+    request.app.state.localizers.check(aid, m, [u.photo for u in ups], anchor_version(rows), user.id)
+    try:  # counted again, locked, in the transaction that stores them: another upload may have come meanwhile
+        check_quota(db, settings, user.id, nbytes, "this anchor's photos")
+    except UploadError:
+        db.rollback()
+        request.app.state.localizers.forget(aid)
+        raise
+    first = ups[0]
+    a = Anchor(id=aid, user_id=user.id, name=name, method=m, intrinsics=first.intrinsics, image=first.image,
+               depth=first.depth, private=bool(private), created_at=now())
+    db.add(a)
+    db.flush()
+    db.add_all(rows)
+    db.commit()
+    return a, rows
+
+
+def find_anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
+    """Anchor ``aid`` (404 otherwise); ``lock``: its row locked for the transaction, which serialises changes to
+    its photos (the next index) on PostgreSQL too."""
+    a = None
+    if len(aid) <= 32:
+        a = db.scalars(select(Anchor).where(Anchor.id == aid).with_for_update()).first() if lock else db.get(Anchor, aid)
+    if a is None:
+        raise HTTPException(404, "no such anchor")
+    return a
+
+
+def may_see_photos(a: Anchor, user: User | None) -> bool:
+    """Whether ``user`` may see the anchor's photos: anyone signed in, unless the anchor is private."""
+    return user is not None and (not a.private or a.user_id == user.id or user.is_admin)
+
+
+def _own_anchor(a: Anchor, user: User, what: str) -> None:
+    """A 403 unless ``user`` owns the anchor or is an admin (anyone signed in may see and use it)."""
+    if a.user_id != user.id and not user.is_admin:
+        raise HTTPException(403, f"only the anchor's owner can {what}")
+
+
+def next_photo_index(db: Session, aid: str, rows: list[AnchorPhoto]) -> int:
+    """The index the anchor's next photo gets: after the highest one it ever had, deleted ones included, so that
+    an index always names the same photo."""
+    retired = db.scalar(select(RetiredPhotoIndex.highest).where(RetiredPhotoIndex.anchor_id == aid)) or 0
+    return max(retired, rows[-1].seq if rows else 0) + 1
+
+
+def retire_photo_index(db: Session, aid: str, k: int) -> None:
+    """Remember that index ``k`` of the anchor was given (its photo is being deleted), if it is the highest."""
+    row = db.get(RetiredPhotoIndex, aid)
+    if row is None:
+        db.add(RetiredPhotoIndex(anchor_id=aid, highest=k))
+    elif row.highest < k:
+        row.highest = k
+
+
+def add_photo(request: Request, db: Session, user: User, aid: str, image: UploadFile | None, fx, fy, cx, cy,
+              depth: UploadFile | None, pose: str) -> tuple[Anchor, list[AnchorPhoto]]:
+    """Check and store one more photo of anchor ``aid`` (owner or admin), at the index after the highest one it
+    ever had (``next_photo_index``); the same limits and errors as at creation. Shared by the API and the anchor's page."""
+    lim = request.app.state.settings.limits
+
+    def checks(lock: bool) -> tuple[Anchor, int, str]:
+        a = find_anchor(db, aid, lock=lock)
+        _own_anchor(a, user, "add photos to it")
+        rows = photo_rows(db, a.id)
+        seq = next_photo_index(db, a.id, rows)
+        what = photo_name(seq, image)
+        if len(rows) + 1 >= lim.max_anchor_photos:
+            raise UploadError(413, f"{what}: anchor {a.id} already holds the limit of {lim.max_anchor_photos} photos")
+        return a, seq, what
+
+    a, _, what = checks(lock=False)
+    method = a.method
+    # Decode (up to 16 MB) outside any transaction: on SQLite every transaction holds the database's write lock.
+    db.commit()
+    up = photo_upload(lim, what, image, fx, fy, cx, cy, depth, pose)
+    _runnable(method, [up], [what])
+    a, seq, what = checks(lock=True)  # again, locked: the anchor may have changed (or gone) while decoding
+    check_quota(db, request.app.state.settings, a.user_id, up.nbytes, "this photo")
+    db.add_all(_photo_rows_of(a.id, [up], seq))
+    db.commit()
+    request.app.state.localizers.forget(a.id)  # older versions of this anchor are of no further use here
+    return a, photo_rows(db, a.id)
+
+
+def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) -> tuple[Anchor, list[AnchorPhoto]]:
+    """Delete photo ``k`` of anchor ``aid`` (owner or admin) with its stored bytes; every API process then
+    prepares the anchor afresh from the photos left. Photo 0 is the anchor's frame and stays (409), so an
+    anchor always keeps at least that photo."""
+    a = find_anchor(db, aid, lock=True)
+    _own_anchor(a, user, "delete its photos")
+    rows = photo_rows(db, a.id)
+    if k == 0:
+        raise HTTPException(409, f"photo 0 of anchor {a.id} cannot be deleted: its camera is the anchor's frame, "
+                                 "the one every photo's pose and every localize answer is given in; delete the "
+                                 "whole anchor instead (DELETE /anchors/{id}) and create a new one from the photos "
+                                 "to keep")
+    row = next((r for r in rows if r.seq == k), None)
+    if row is None:
+        raise HTTPException(404, f"anchor {a.id} has no photo {k} (its photos: "
+                                 f"{', '.join(map(str, photo_indices(rows)))})")
+    db.delete(row)
+    retire_photo_index(db, a.id, k)
+    db.commit()
+    request.app.state.localizers.forget(a.id)
+    return a, photo_rows(db, a.id)
+
+
+def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim) -> Photo:
+    """Photo ``k`` of the anchor (0: the anchor row's; else the row with that index) decoded from the database,
+    at the working size."""
+    row = next(r for r in rows if r.seq == k) if k else None
+    if row is None:
+        return decode_stored(a.image, a.intrinsics, a.depth, IDENTITY, lim, f"anchor photo {k}")
+    return decode_stored(row.image, row.intrinsics, row.depth, row.pose, lim, f"anchor photo {k}")
+
+
+def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], query: Photo,
+                    owner: int | None = None) -> Estimate:
+    """The query's pose in the anchor's frame against its current photos (decoded from ``rows`` only when this
+    process has not prepared this version of the anchor, and then counted against ``owner``'s share of the
+    cache: the account asking); ``extras["photo"]`` is the answering photo's index."""
+    lim = request.app.state.settings.limits
+    indices = photo_indices(rows)
+    est = request.app.state.localizers.localize_photos(
+        a.id, a.method, anchor_version(rows), lambda: (stored_photo(a, rows, k, lim) for k in indices),
+        query.image, query.intrinsics, query.depth, owner)
+    if est.extras.get("photo") is not None:  # the position among the photos prepared -> its index
+        est.extras["photo"] = indices[est.extras["photo"]]
+    return est

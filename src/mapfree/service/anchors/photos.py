@@ -1,0 +1,100 @@
+"""One photo from upload to method. An upload is read here once: decoded at its full size, turned upright by its
+EXIF orientation (read once), its intrinsics and depth map checked for the file's stored pixel grid and turned
+with it; what is stored comes from the same decode (upright, without metadata); then the photo is brought to
+the working size (``worksize.fit_photo``) and the full-size pixels are dropped. What a method gets is a
+``Photo``: the relocalize package's ``View``, with the photo's pose in the anchor's frame. Every endpoint that
+takes a photo reads it here, anchors' photos and queries alike."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ...data.orientation import displayed_size, orient_intrinsics, orient_pixels
+from ...geometry import Intrinsics, Pose
+from ...relocalize import View
+from ..config import Limits
+from .decode import decode_depth, decode_photo, parse_intrinsics
+from .exif import clean_photo, depth_png
+from .worksize import fit_photo
+
+_FIELDS = ("fx", "fy", "cx", "cy")
+
+
+@dataclass
+class Photo(View):
+    """A photo as methods take it (a ``View``: pixels, intrinsics, optional metric depth), with its world-to-
+    camera pose in the anchor's frame (the first photo's camera: identity for that one, and for a query)."""
+
+    pose: Pose = field(default_factory=Pose.identity)
+
+
+def intrinsics_of(d: dict) -> Intrinsics:
+    """Stored intrinsics (``fx fy cx cy width height``) as ``Intrinsics``."""
+    return Intrinsics(d["fx"], d["fy"], d["cx"], d["cy"], int(d["width"]), int(d["height"]))
+
+
+def stored_shape(upright: np.ndarray, orientation: int) -> tuple[int, int]:
+    """(rows, cols) of the stored grid of an upright photo: what the client's intrinsics and depth describe."""
+    w, h = displayed_size(upright.shape[1], upright.shape[0], orientation)  # a quarter turn is its own size swap
+    return h, w
+
+
+def upright_intrinsics(intr: dict, orientation: int) -> dict:
+    """Checked intrinsics of the stored grid (``parse_intrinsics``) -> those of the upright photo."""
+    if orientation == 1:
+        return intr
+    k = orient_intrinsics(intrinsics_of(intr), orientation)
+    return {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "width": k.width, "height": k.height}
+
+
+@dataclass
+class Upload:
+    """One checked uploaded photo: the ``Photo`` a method gets (at the working size), and what is stored of it
+    (``store``): the image upright and without metadata, its depth map upright (uint16 PNG), and the intrinsics
+    of the upright photo at its full size."""
+
+    photo: Photo
+    intrinsics: dict
+    image: bytes = b""
+    depth: bytes | None = None
+    depth_measured: bool = False  # the depth map has a non-zero pixel (at its full size)
+    pose: list[float] | None = None  # an anchor's photo: [qw, qx, qy, qz, tx, ty, tz] as stored (``photo.pose``)
+
+    @property
+    def nbytes(self) -> int:
+        """What storing it counts against the owner's storage quota."""
+        return len(self.image) + len(self.depth or b"")
+
+
+def read_upload(data: bytes, lim: Limits, fields: dict, depth: bytes | None = None, *, store: bool = False,
+                what: str = "image", intr_what: str = "intrinsics", depth_what: str = "depth",
+                guess: bool = False) -> Upload:
+    """Uploaded bytes, the client's ``fx fy cx cy`` and optional uint16 depth PNG, both for the file's stored
+    grid -> the checked ``Upload`` (each problem an ``UploadError`` naming ``what``, ``intr_what`` or
+    ``depth_what``). ``store``: also what is kept of it (an anchor's photo; a query keeps nothing). ``guess``: all
+    four intrinsics left empty mean focal 0.8 x the long side, centred (the web form)."""
+    image, orientation = decode_photo(data, lim, what)
+    h, w = stored_shape(image, orientation)
+    if guess and all(str(fields.get(k, "")).strip() == "" for k in _FIELDS):
+        f = 0.8 * max(w, h)
+        fields = {"fx": f, "fy": f, "cx": (w - 1) / 2, "cy": (h - 1) / 2}
+    intr = upright_intrinsics(parse_intrinsics(fields, w, h, intr_what), orientation)
+    d = orient_pixels(decode_depth(depth, lim, (h, w), depth_what), orientation) if depth is not None else None
+    stored, stored_depth = b"", None
+    if store:
+        stored = clean_photo(data, image, orientation)  # no metadata, upright: what is kept and served
+        stored_depth = depth_png(d) if d is not None and orientation != 1 else depth  # upright, like its photo
+    photo = fit_photo(Photo(image, intrinsics_of(intr), d), lim.work_max_side)  # the full-size pixels go now
+    return Upload(photo, intr, stored, stored_depth, bool(d is not None and d.any()))
+
+
+def decode_stored(image: bytes, intrinsics: dict, depth: bytes | None, pose: list[float], lim: Limits,
+                  what: str) -> Photo:
+    """A stored photo (upright, without metadata; its intrinsics and depth as stored) -> its ``Photo`` at the
+    working size, with ``pose`` (``[qw, qx, qy, qz, tx, ty, tz]``)."""
+    img, _ = decode_photo(image, lim, what)
+    d = decode_depth(depth, lim, img.shape[:2], f"{what} depth") if depth is not None else None
+    return fit_photo(Photo(img, intrinsics_of(intrinsics), d, pose=Pose.from_qt(pose[:4], pose[4:])),
+                     lim.work_max_side)  # one full-size photo in memory at a time

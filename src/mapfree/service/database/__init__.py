@@ -1,0 +1,1 @@
+"""The database: the schema (SQLAlchemy models), its migrations (Alembic) and backups."""

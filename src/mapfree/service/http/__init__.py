@@ -1,0 +1,1 @@
+"""HTTP plumbing of the service: the app, who is calling, guards and limits, metrics, health."""

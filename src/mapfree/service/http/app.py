@@ -1,0 +1,188 @@
+"""The FastAPI application: ``create_app(settings)``. Every request error is a 4xx JSON (API) or HTML page
+(browser) naming the problem; unexpected errors are logged and answered with a generic 500."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
+from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from ... import __version__
+from ..anchors.localizers import Localizers, register_methods_dir
+from ..config import Settings, parse_daily_limit
+from ..database.models import init_db, make_engine, session_factory
+from ..inputs import UploadError
+from ..leaderboard.own import Withdrawn
+from ..leaderboard.storage import drop_interrupted_uploads
+from ..process import die_with_parent, parent_from_env
+from ..schemas import ERRORS
+from .gc_freeze import freeze_long_lived
+from .guard import AuthThrottle, CredentialGate, client_address, request_id
+from .head_as_get import HeadAsGet
+from .health import HealthMonitor
+from .heavy import HeavyPool, default_threads
+from .metrics import Metrics
+from .timeouts import BodyTimeout
+
+log = logging.getLogger("mapfree.http")
+_API_PREFIXES = ("/api/", "/anchors", "/health", "/metrics", "/openapi.json")
+CSP = "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; frame-ancestors 'none'"
+
+
+def _wants_html(request: Request) -> bool:
+    p = request.url.path
+    return not p.startswith(_API_PREFIXES) and "text/html" in request.headers.get("accept", "")
+
+
+def error_response(request: Request, status: int, message: str, headers: dict | None = None):
+    """A request's error: the HTML error page for a browser, else JSON ``{detail, status, request_id}``."""
+    if _wants_html(request):
+        from ..pages import error_page
+
+        return error_page(request, status, message, headers)
+    rid = getattr(request.state, "request_id", None)
+    return JSONResponse({"detail": message, "status": status, "request_id": rid}, status_code=status, headers=headers)
+
+
+def _validation_message(exc: RequestValidationError) -> str:
+    parts = []
+    for e in exc.errors():
+        loc = ".".join(str(x) for x in e.get("loc", ()) if x not in ("body", "query", "path"))
+        parts.append(f"{loc or 'request'}: {e.get('msg', 'invalid')}")
+    return "; ".join(parts) or "invalid request"
+
+
+def create_app(settings: Settings) -> FastAPI:
+    engine = make_engine(settings.db_url)
+    init_db(engine)
+    with session_factory(engine).begin() as db:  # uploads cut off when a server was killed: refund them now
+        if (n := drop_interrupted_uploads(db)):
+            log.warning("interrupted uploads removed; their quota and test evaluations refunded",
+                        extra={"submissions": n})
+    # /docs and /redoc with their assets served from /docs-assets (fastapi-offline): no CDN, so they work offline
+    app = FastAPIOffline(title="mapfree service", version=__version__, static_url="/docs-assets",
+                         max_body_size=settings.limits.max_request_bytes, responses=ERRORS,
+                         description="Map-free benchmark evaluation server and metric relocalization API.")
+    app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
+    app.state.health = HealthMonitor(engine)
+    app.state.metrics = Metrics(engine)
+    app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue)
+    app.state.localizers = Localizers(per_method=default_threads(),
+                                      cache_bytes=int(settings.anchor_cache_mb * (1 << 20)),
+                                      max_side=settings.limits.work_max_side,
+                                      pool_bytes=int(settings.method_pool_mb * (1 << 20)))
+    if settings.methods_dir is not None:
+        register_methods_dir(settings.methods_dir)
+
+    @app.exception_handler(UploadError)
+    async def _upload_error(request: Request, exc: UploadError):
+        return error_response(request, exc.status, exc.message)
+
+    @app.exception_handler(Withdrawn)
+    async def _withdrawn(request: Request, exc: Withdrawn):
+        if _wants_html(request):
+            from ..pages import withdrawn_page
+
+            return await run_in_threadpool(withdrawn_page, request, exc)
+        return error_response(request, exc.status_code, str(exc.detail))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, exc: StarletteHTTPException):
+        msg = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        if exc.status_code == 413 and "too large" in msg.lower():
+            msg = f"request body larger than {settings.limits.max_request_bytes} bytes"
+        return error_response(request, exc.status_code, msg, getattr(exc, "headers", None))
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError):
+        return error_response(request, 422, _validation_message(exc))
+
+    @app.exception_handler(Exception)
+    async def _crash(request: Request, exc: Exception):  # only reached when the middleware below did not answer
+        log.error("unhandled error", exc_info=exc, extra={"path": request.url.path})
+        return error_response(request, 500, "internal server error")
+
+    throttle = app.state.auth_throttle = AuthThrottle(settings.auth_failures_per_minute)
+    app.add_middleware(CredentialGate)  # inside the access log below: its 401s are logged and counted
+
+    @app.middleware("http")
+    async def _access_log(request: Request, call_next):
+        """Every request gets an id (``X-Request-ID``) and one JSON access-log line, unexpected 500s included;
+        failed token checks are counted per client address (``guard.AuthThrottle``)."""
+        t0 = time.perf_counter()
+        rid = request.state.request_id = request_id(request)
+        try:
+            response = await call_next(request)
+        except Exception as exc:
+            log.error("unhandled error", exc_info=exc, extra={"request_id": rid, "method": request.method,
+                                                              "path": request.url.path})
+            response = error_response(request, 500, f"internal server error (request id {rid})")
+        client = client_address(request)
+        if response.status_code == 401 and throttle.credentialed(request):
+            throttle.failed(client)
+        route = request.scope.get("route")
+        seconds = time.perf_counter() - t0
+        method = "HEAD" if getattr(request.state, "head", False) else request.method
+        app.state.metrics.observe(method, getattr(route, "path", "unmatched"), response.status_code, seconds)
+        response.headers["X-Request-ID"] = rid
+        response.headers.setdefault("X-Content-Type-Options", "nosniff")
+        response.headers.setdefault("Referrer-Policy", "same-origin")
+        if not request.url.path.startswith(("/docs", "/redoc")):
+            response.headers.setdefault("Content-Security-Policy", CSP)
+        log.info("request", extra={"method": method, "route": getattr(route, "path", "?"),
+                                   "status": response.status_code, "ms": round(seconds * 1000, 2),
+                                   "request_id": rid, "client": client,
+                                   "user_id": getattr(request.state, "user_id", None)})
+        return response
+
+    app.add_middleware(BodyTimeout, seconds=settings.body_timeout, total_seconds=settings.body_total_timeout)
+
+    from .. import pages
+    from ..accounts import router as accounts
+    from ..anchors import router as anchors
+    from ..leaderboard import router as leaderboard
+    from . import operations
+
+    for r in (operations, accounts, leaderboard, anchors, pages):
+        app.include_router(r.router)
+    app.mount("/static", StaticFiles(directory=str(Path(__file__).parents[1] / "static")), name="static")
+    app.add_middleware(HeadAsGet)
+    return app
+
+
+def app_from_env() -> FastAPI:
+    """Factory for ``uvicorn --factory mapfree.service.http.app:app_from_env`` (settings from MAPFREE_* variables)."""
+    from .logs import setup_logging
+
+    setup_logging(os.environ.get("MAPFREE_LOG_LEVEL", "info"))
+    raw = os.environ.get("MAPFREE_SETTINGS")
+    parent = parent_from_env()
+    if parent is not None:  # an API process of `mapfree serve --api-processes N`: it ends with that process
+        die_with_parent(parent)
+    if raw:  # written by `mapfree serve --api-processes N`
+        from ..config import Limits
+
+        d = json.loads(raw)
+        d["limits"] = Limits(**d.get("limits", {}))
+        d["splits"] = tuple(d.get("splits", ("val", "test")))
+        s = Settings(**d)
+    else:
+        s = Settings(db_url=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
+                     data_root=os.environ.get("MAPFREE_DATA") or None, gt_root=os.environ.get("MAPFREE_GT") or None,
+                     default_method=os.environ.get("MAPFREE_METHOD", ""),
+                     test_daily_limit=parse_daily_limit(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
+                     secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1",
+                     operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""))
+    app = create_app(s)
+    freeze_long_lived()
+    return app

@@ -1,0 +1,147 @@
+"""Heavy requests (localize, anchor creation and photos, the try page) on threads of their own.
+
+FastAPI runs every plain ``def`` endpoint on one shared pool (40 threads): 45 concurrent localize calls took
+all of them and stalled sign-in, the leaderboards and every other page. Here the heavy endpoints run on a small
+bounded pool instead, with a bounded number of requests admitted (running or waiting): past that the answer is
+an immediate 429 with ``Retry-After``, so that neither threads nor memory grow with the number of callers. One
+account gets a fair share of them: four anchors localized round-robin by one account used to make every
+other user's request wait behind its own."""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import functools
+import math
+import os
+import threading
+import time
+from collections import OrderedDict, deque
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Callable, Hashable
+
+from fastapi import HTTPException, Request
+
+from .guard import client_address
+
+
+def default_threads() -> int:
+    """Heavy computations at once per API process when not configured: one per CPU, at most 4."""
+    return max(1, min(4, os.cpu_count() or 1))
+
+
+class HeavyPool:
+    """``threads`` worker threads and room for ``queue`` more requests waiting, shared fairly among accounts:
+    one account may have at most ``per_account`` requests in (half the room by default; past that its own
+    requests get 429 while others still get in), and a free thread goes to the accounts waiting in turn, so
+    one account's requests queue behind its own, not in front of everyone else's."""
+
+    def __init__(self, threads: int, queue: int, per_account: int = 0):
+        self.threads = threads if threads > 0 else default_threads()
+        self.capacity = self.threads + max(0, queue)
+        self.per_account = per_account if per_account > 0 else max(1, self.capacity // 2)
+        self.executor = ThreadPoolExecutor(self.threads, thread_name_prefix="mapfree-heavy")
+        self._lock = threading.Lock()
+        self.admitted = 0
+        self._in: dict[Hashable, int] = {}  # requests admitted per account
+        self._turns: dict[Hashable, int] = {}  # threads given to each account with requests in
+        self._waiting: OrderedDict[Hashable, deque[asyncio.Future]] = OrderedDict()  # first: waits longest
+        self.running = 0
+        self._mean_s = 2.0  # running mean of a heavy request's duration, for Retry-After
+
+    def retry_after(self) -> int:
+        """Seconds after which a slot is likely free: the queue ahead drained at the recent pace."""
+        return max(1, min(120, math.ceil(self._mean_s * self.capacity / self.threads)))
+
+    def _busy(self, message: str) -> HTTPException:
+        wait = self.retry_after()
+        return HTTPException(429, f"{message}; try again in {wait} s", headers={"Retry-After": str(wait)})
+
+    def _admit(self, account: Hashable) -> None:
+        with self._lock:
+            if self.admitted >= self.capacity:
+                raise self._busy(f"the server is busy with {self.admitted} relocalization requests (its limit)")
+            if self._in.get(account, 0) >= self.per_account:
+                raise self._busy(f"this account has {self.per_account} relocalization requests in already (its "
+                                 "share of the server)")
+            self.admitted += 1
+            if account not in self._in:  # one turn ahead of the accounts in (none starves a newcomer, nor it them)
+                self._turns[account] = max(0, min(self._turns.values(), default=0) - 1)
+            self._in[account] = self._in.get(account, 0) + 1
+
+    def _done(self, account: Hashable, seconds: float) -> None:
+        with self._lock:
+            self.admitted -= 1
+            self._in[account] -= 1
+            if not self._in[account]:
+                del self._in[account], self._turns[account]
+            self._mean_s = 0.8 * self._mean_s + 0.2 * seconds
+
+    async def _turn(self, account: Hashable) -> None:
+        """Wait for a thread (on the event loop, like ``_release``): at once when one is free and nobody waits."""
+        if self.running < self.threads and not self._waiting:
+            self.running += 1
+            self._turns[account] += 1
+            return
+        turn = asyncio.get_running_loop().create_future()
+        self._waiting.setdefault(account, deque()).append(turn)
+        try:
+            await turn
+        except asyncio.CancelledError:
+            if turn.done() and not turn.cancelled():  # the thread was given as the request went: pass it on
+                self._release()
+            else:
+                q = self._waiting.get(account)
+                if q is not None and turn in q:
+                    q.remove(turn)
+                    if not q:
+                        del self._waiting[account]
+            raise
+
+    def _release(self) -> None:
+        """A thread is free: give it to the waiting account that had the fewest turns (the one waiting longest
+        among equals), which then waits at the back."""
+        self.running -= 1
+        while self.running < self.threads and self._waiting:
+            account = min(self._waiting, key=self._turns.__getitem__)
+            q = self._waiting.pop(account)
+            turn = q.popleft()
+            if q:
+                self._waiting[account] = q
+            if turn.cancelled():
+                continue
+            self.running += 1
+            self._turns[account] += 1
+            turn.set_result(None)
+
+    async def run(self, fn: Callable[..., Any], *args: Any, account: Hashable = None, **kwargs: Any) -> Any:
+        """``fn(*args, **kwargs)`` on a heavy thread for ``account`` (429 when ``capacity`` requests, or the
+        account's share, are in already)."""
+        self._admit(account)
+        t0 = time.perf_counter()
+        try:
+            await self._turn(account)
+            try:
+                ctx = contextvars.copy_context()
+                call = functools.partial(ctx.run, fn, *args, **kwargs)
+                return await asyncio.get_running_loop().run_in_executor(self.executor, call)
+            finally:
+                self._release()
+        finally:
+            self._done(account, time.perf_counter() - t0)
+
+    def shutdown(self) -> None:
+        self.executor.shutdown(wait=False, cancel_futures=True)
+
+
+def heavy(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Decorator of a plain ``def`` endpoint with a ``request`` parameter: FastAPI sees the same parameters, but
+    the body runs on the app's ``HeavyPool`` (``app.state.heavy``) instead of the shared thread pool."""
+
+    @functools.wraps(fn)
+    async def endpoint(*args: Any, **kwargs: Any) -> Any:
+        request: Request = kwargs["request"]
+        account = getattr(request.state, "account", None) or client_address(request)  # CredentialGate's
+        return await request.app.state.heavy.run(fn, *args, account=account, **kwargs)
+
+    return endpoint

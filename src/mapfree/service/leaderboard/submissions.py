@@ -1,0 +1,167 @@
+"""Submissions: accept an upload (validated, stored and queued before it is acknowledged), show results,
+and render plots. Shared by the JSON API and the web pages (leaderboards: ``boards.py``)."""
+
+from __future__ import annotations
+
+import io
+import threading
+from typing import BinaryIO
+
+from fastapi import HTTPException
+from sqlalchemy import delete, func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from ..accounts.quota import check_quota, lock_user
+from ..config import UNLIMITED, Settings
+from ..database.models import Plot, Result, Submission, User, now
+from ..inputs import UploadError, check_name
+from .disclosure import without_medians
+from .scoring import PLOT_NAMES, known_scenes, render_plots, unpack_report
+from .storage import UPLOAD_LEASE_SECONDS, copy_in
+from .zipcheck import check_submission_zip
+
+
+def daily_test_limit(settings: Settings, user: User) -> int:
+    """The account's own limit when set, else the server's; ``UNLIMITED`` (negative): no limit, 0: none."""
+    limit = user.test_daily_limit if user.test_daily_limit is not None else settings.test_daily_limit
+    return UNLIMITED if limit < 0 else limit
+
+
+def recent_count(db: Session, user: User, split: str, window_s: float) -> int:
+    """How many submissions ``user`` made to ``split`` in the last ``window_s`` (withdrawn ones included)."""
+    return int(db.scalar(select(func.count()).select_from(Submission).where(
+        Submission.user_id == user.id, Submission.split == split, Submission.created_at > now() - window_s)) or 0)
+
+
+def _limit_reached(db: Session, user: User, split: str, window_s: float, limit: int, what: str) -> None:
+    """A 429 when ``user`` already made ``limit`` submissions to ``split`` in the last ``window_s`` (0: any
+    submission is refused; ``UNLIMITED``: no limit)."""
+    if limit < 0:
+        return
+    if limit == 0:
+        raise UploadError(429, f"{what} limit: this account may make no {split} submissions (its limit is 0; "
+                               "ask the operator)")
+    since = now() - window_s
+    if recent_count(db, user, split, window_s) >= limit:
+        first = db.scalar(select(func.min(Submission.created_at)).where(
+            Submission.user_id == user.id, Submission.split == split, Submission.created_at > since))
+        wait = max(1, int((first or now()) + window_s - now()) + 1)
+        raise UploadError(429, f"{what} limit reached: {limit} {split} submissions per {window_s / 3600:g} h; "
+                               f"the next one is possible in {wait} s")
+
+
+def accept(db: Session, settings: Settings, user: User, split: str, name: str, public: bool,
+           data: bytes | BinaryIO) -> Submission:
+    """Check a submission cheaply (ZIP directory, entry names and sizes), count it against the account's limits,
+    and store it with its queued job. ``data`` may be a file (the spooled upload): it is copied into the
+    database in chunks, never read whole. Parsing the pose lines is the workers' job."""
+    if split not in settings.splits:
+        raise UploadError(422, f"split must be one of {', '.join(settings.splits)}; got {split!r}")
+    name = check_name(name, settings.limits.max_name_chars) or "unnamed"
+    f = io.BytesIO(data) if isinstance(data, (bytes, bytearray)) else data
+    size = check_submission_zip(f, settings.limits, split, known_scenes(settings, split)).zip_bytes
+    lock_user(db, user.id)  # the limits are counted inside the write transaction that stores the row
+    if split == "test":
+        _limit_reached(db, user, "test", 86400, daily_test_limit(settings, user), "daily")
+    else:
+        hourly = settings.val_hourly_limit if settings.val_hourly_limit > 0 else UNLIMITED  # 0: no limit
+        _limit_reached(db, user, split, 3600, hourly, "hourly")
+    check_quota(db, settings, user.id, size, "this submission")
+    sub = Submission(user_id=user.id, split=split, name=name, public=bool(public), status="uploading",
+                     size_bytes=size, sha256="", created_at=now(), lease_until=now() + UPLOAD_LEASE_SECONDS)
+    db.add(sub)
+    db.commit()
+    try:
+        _, sha = copy_in(db, sub.id, f)
+    except BaseException:
+        db.rollback()
+        db.execute(delete(Submission).where(Submission.id == sub.id))
+        db.commit()
+        raise
+    sub.sha256, sub.status, sub.lease_until = sha, "queued", None
+    db.commit()
+    return sub
+
+
+def shown_metrics(split: str, metrics: dict | None) -> dict | None:
+    """Stored metrics as shown: for ``test`` without medians and rounded, also where a result was stored before
+    either (``disclosure.py``)."""
+    return without_medians(metrics) if split == "test" and metrics else metrics
+
+
+def visible(sub: Submission | None, user: User | None, withdrawn: bool = False) -> bool:
+    """Whether ``user`` may see ``sub``: public, or theirs (admins: any). A withdrawn one only where
+    ``withdrawn`` is asked for, and then only by its owner or an admin (their history lists it)."""
+    if sub is None:
+        return False
+    mine = user is not None and (user.id == sub.user_id or user.is_admin)
+    if sub.status == "withdrawn":
+        return withdrawn and mine
+    return sub.public or mine
+
+
+def visible_submission(db: Session, user: User | None, sid: str, what: str = "no such submission",
+                       withdrawn: bool = False) -> Submission:
+    """Submission ``sid`` if ``user`` may see it (``withdrawn``: its owner sees it once withdrawn, too); a 404
+    ``"{what} (or it is private)"`` otherwise."""
+    sub = db.get(Submission, sid) if len(sid) <= 32 else None
+    if not visible(sub, user, withdrawn):
+        raise HTTPException(404, f"{what} (or it is private)")
+    return sub
+
+
+def to_json(db: Session, sub: Submission, owner_name: str | None = None) -> dict:
+    """What a viewer may see of a submission (test: aggregates only, no per-scene data, no plots)."""
+    res = db.get(Result, sub.id)
+    plots: list[str] = []
+    if sub.split != "test" and res is not None:
+        plots = list(db.scalars(select(Plot.name).where(Plot.submission_id == sub.id)).all())
+        if not plots and db.scalar(select(Result.plot_data.is_not(None)).where(Result.submission_id == sub.id)):
+            plots = list(PLOT_NAMES)  # rendered on first view
+    owner = owner_name or db.scalar(select(User.name).where(User.id == sub.user_id))
+    out = {
+        "id": sub.id, "name": sub.name, "split": sub.split, "public": sub.public, "user": owner,
+        "status": sub.status, "attempts": sub.attempts, "error": sub.error,
+        "created_at": sub.created_at, "started_at": sub.started_at, "finished_at": sub.finished_at,
+        "withdrawn_at": sub.finished_at if sub.status == "withdrawn" else None,
+        "size_bytes": sub.size_bytes, "sha256": sub.sha256,
+        "url": f"/submissions/{sub.id}", "api_url": f"/api/submissions/{sub.id}",
+        "metrics": shown_metrics(sub.split, res.metrics) if res else None, "problems": res.problems if res else [],
+        "plots": [f"/submissions/{sub.id}/plots/{n}.png" for n in sorted(plots)],
+    }
+    if sub.split != "test":
+        out["per_scene"] = res.per_scene if res else None
+    if res:
+        out["eval_seconds"] = res.eval_seconds
+    return out
+
+
+_PLOT_LOCK = threading.Lock()
+
+
+def plot_png(db: Session, sub: Submission, name: str) -> bytes | None:
+    """A figure of a (non-test) submission: stored PNG, or rendered from the packed report on first view."""
+    if sub.split == "test":
+        return None
+    png = db.scalar(select(Plot.png).where(Plot.submission_id == sub.id, Plot.name == name))
+    db.commit()  # never wait on the lock inside a transaction (SQLite: it would hold the write lock)
+    if png is not None or name not in PLOT_NAMES:
+        return png
+    with _PLOT_LOCK:  # one rendering per process at a time; others then find the stored PNGs
+        png = db.scalar(select(Plot.png).where(Plot.submission_id == sub.id, Plot.name == name))
+        if png is not None:
+            db.commit()
+            return png
+        data = db.scalar(select(Result.plot_data).where(Result.submission_id == sub.id))
+        db.commit()  # do not hold a transaction (SQLite: the write lock) while drawing
+        if data is None:
+            return None
+        pngs = render_plots(unpack_report(data))
+        try:
+            for n, p in pngs.items():
+                db.add(Plot(submission_id=sub.id, name=n, png=p))
+            db.commit()
+        except IntegrityError:  # another API process stored them first
+            db.rollback()
+        return pngs.get(name)

@@ -1,0 +1,112 @@
+"""What one API process keeps for relocalization, and how it is shared: the pool of built methods (bounded in
+bytes, shared by equal configurations), the prepared-anchor cache and the heavy threads (a fair share per
+account). In-process, with real SIFT relocalizers on realmini-dev photos."""
+
+from __future__ import annotations
+
+import pytest
+
+from mapfree.data import Dataset
+
+
+@pytest.fixture(scope="module")
+def pair(realmini_dir):
+    scene = Dataset(realmini_dir).scene("val", "s00000")
+    ref, query = scene.reference, scene.frame("seq1/frame_00009.jpg")
+    return ref.image(), ref.intrinsics, ref.depth("sensor"), query.image(), query.intrinsics, query.depth("sensor")
+
+
+def test_a_depth_suffix_no_request_can_carry_is_refused_before_anything_is_built():
+    from mapfree.service.anchors.localizers import check_method
+    from mapfree.service.inputs import UploadError
+
+    for name in ("disk-lightglue_pnp_d1", "aliked-lightglue_pnp_zz1", "sift_pnp_d10"):
+        with pytest.raises(UploadError) as e:
+            check_method(name)
+        assert e.value.status == 422 and "uploaded with the photo" in e.value.message
+    assert check_method("sift_pnp_mono") == "sift_pnp_mono"
+    assert check_method("sift_emat_none") == "sift_emat_none"
+
+
+def test_method_names_share_a_pool_bounded_in_bytes(pair):
+    """Three names of one configuration build one relocalizer; three configurations over a budget of one keep
+    one (the most recent), and every answer is the same as before the others came."""
+    from mapfree.service.anchors.localizers import Localizers
+
+    ref_img, ref_K, ref_d, q_img, q_K, q_d = pair
+    locs = Localizers(per_method=1, pool_bytes=1 << 30)
+    poses = [locs.localize(f"a{i}", name, ref_img, ref_K, ref_d, q_img, q_K).pose
+             for i, name in enumerate(("sift_pnp_sensor", "sift_pnp_mono", "sift_pnp_dptkitti"))]
+    assert locs.pool.built == 1 and locs.pool.configs() == 1
+    assert all(p is not None for p in poses)
+
+    small = Localizers(per_method=1, pool_bytes=1)  # room for less than one: the most recent is kept
+    for name in ("sift_pnp_sensor", "sift_emat_sensor", "sift_procrustes_sensor", "sift_pnp_sensor"):
+        est = small.localize("b", name, ref_img, ref_K, ref_d, q_img, q_K, q_d)  # query depth: each solver runs
+        assert est.pose is not None, (name, est.reason)
+        assert small.pool.configs() == 1
+    assert small.pool.built == 4  # sift_pnp_sensor was dropped and built again
+
+
+def test_one_account_cannot_evict_everyone_elses_prepared_anchors(pair):
+    """A cache with room for two and a half anchors: one account localizing four anchors round-robin used to
+    evict everyone's (every localize then prepared its anchor again); now it evicts its own, and another
+    account's anchor is answered from the cache throughout."""
+    from mapfree.service.anchors.localizers import Localizers, Photo
+
+    ref_img, ref_K, ref_d, q_img, q_K, _ = pair
+    probe = Localizers(per_method=1)
+    probe.localize("x", "sift_pnp_sensor", ref_img, ref_K, ref_d, q_img, q_K)
+    one = probe.anchors.total  # bytes of one prepared anchor
+    locs = Localizers(per_method=1, cache_bytes=int(2.5 * one))
+
+    def photos():
+        return [Photo(ref_img, ref_K, ref_d)]
+
+    def unprepared():
+        raise AssertionError("the victim's anchor was evicted and prepared again")
+
+    locs.localize_photos("victim", "sift_pnp_sensor", (), photos, q_img, q_K, owner="victim")
+    for _ in range(2):
+        for i in range(4):
+            locs.localize_photos(f"attacker{i}", "sift_pnp_sensor", (), photos, q_img, q_K, owner="attacker")
+            est = locs.localize_photos("victim", "sift_pnp_sensor", (), unprepared, q_img, q_K, owner="victim")
+            assert est.pose is not None
+    assert locs.anchors.owned("victim") == one and locs.anchors.total <= 2.5 * one
+
+
+def test_heavy_threads_are_shared_fairly_between_accounts():
+    """One thread: an account with four requests in, then another's one request. The other's used to wait
+    behind all four; now it runs second (turns go round the accounts), and the first account's fifth request
+    is refused with 429 (its share: half the room) while others still get in."""
+    import asyncio
+    import time
+
+    from fastapi import HTTPException
+
+    from mapfree.service.http.heavy import HeavyPool
+
+    pool = HeavyPool(threads=1, queue=8)
+    assert pool.per_account == 4
+    finished: list[str] = []
+
+    def work(name: str) -> None:
+        time.sleep(0.15)
+        finished.append(name)
+
+    async def scenario() -> int:
+        flood = [asyncio.create_task(pool.run(work, f"a{i}", account="a")) for i in range(4)]
+        await asyncio.sleep(0.01)
+        try:
+            await pool.run(work, "a5", account="a")
+            refused = 0
+        except HTTPException as e:
+            refused = e.status_code
+        other = asyncio.create_task(pool.run(work, "b", account="b"))
+        await asyncio.gather(*flood, other)
+        return refused
+
+    assert asyncio.run(scenario()) == 429
+    assert finished == ["a0", "b", "a1", "a2", "a3"]
+    assert pool.admitted == 0 and pool.running == 0
+    pool.shutdown()
