@@ -168,7 +168,7 @@ def test_batched_pipeline_same_poses_one_network_pass_per_batch(weights, scene, 
 
 
 def test_service_anchor_keeps_the_reference_output(weights, scene, monkeypatch, solve_always):
-    from mapfree.service.reloc import Localizers, Photo
+    from mapfree.service.anchors.localizers import Localizers, Photo
 
     monkeypatch.setitem(methods._REGISTRY, "mickey-quick", methods.Method(
         name="mickey-quick", matcher="mickey", depth="mickey", solver="mickey", solver_opts={"draws": 4}))
