@@ -210,19 +210,15 @@ def depth_free_problem(method: Method) -> str | None:
 
 
 def check_options(method: Method, where: str = "") -> None:
-    """Refuse a matcher or solver option the component does not have (a misspelt key would otherwise surface as a
-    TypeError when the method is built, or as every frame of a run failing), suggesting the nearest known one."""
+    """Refuse a matcher or solver option the component does not have (suggesting the nearest known one) or a value
+    of the wrong type or range, before anything is built: the component's own options dataclass checks them, as
+    it does for the command line and for Python (``mapfree.options``). ``where``: the file they came from."""
     if method.kind != "matching":
         return
     from . import matching, solvers
 
-    for key, component, known in (("matcher_opts", method.matcher, matching.option_names(method.matcher)),
-                                  ("solver_opts", method.solver, solvers.option_names(method.solver))):
-        for opt in sorted(set(getattr(method, key)) - set(known)):
-            close = difflib.get_close_matches(opt, known, n=1)
-            hint = f"did you mean {close[0]!r}? " if close else ""
-            raise ValueError(f"{where or method.name}: unknown option {key}.{opt} for {component!r}: {hint}"
-                             f"known: {', '.join(sorted(known))}")
+    matching.check_options(method.matcher, method.matcher_opts, where=where or method.name, prefix="matcher_opts.")
+    solvers.check_options(method.solver, method.solver_opts, where=where or method.name, prefix="solver_opts.")
 
 
 def _yaml_named(name: str) -> Path | None:

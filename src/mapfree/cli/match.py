@@ -61,15 +61,17 @@ def run(args: argparse.Namespace) -> int:
     from ..matching import MissingWeightsError
     from ..matching.export import match_files, save_npz
 
+    from ..matching import check_options
+    from ..options import check_device
+    from . import fail
+
     try:
-        r = match_files(args.image0, args.image1, args.matcher, **_options(args))
-    except TypeError as e:  # an option the matcher's options dataclass does not have
-        print(f"mapfree match: error: option not accepted by matcher {args.matcher!r}: {e}", file=sys.stderr)
-        return 1
+        check_device(args.device)
+        opts = _options(args)
+        check_options(args.matcher, opts)  # before any image is read or weights loaded
+        r = match_files(args.image0, args.image1, args.matcher, **opts)
     except (FormatError, MissingWeightsError, KeyError, ValueError, ImportError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
-        print(f"mapfree match: error: {msg}", file=sys.stderr)
-        return 1
+        return fail("match", e)
     where = []
     if args.output:
         where.append(str(save_npz(args.output, r)))

@@ -14,7 +14,9 @@ import torch
 
 from ..data import Frame
 from ..matching.attention import steady_kernels
+from ..matching.utils import resolve_device
 from ..matching.weights import in_hf_cache, reachable
+from ..options import Options, option
 from .cache import DepthCache
 from .hub import HUB_MODELS
 
@@ -39,12 +41,12 @@ def resolve_model(model: str) -> str:
 
 
 @dataclass
-class HFDepthOptions:
-    batch_size: int = 4
-    device: str | None = None  # None: cuda when available
+class HFDepthOptions(Options):
+    batch_size: int = option(4, min=1)
+    device: str | None = option(None, device=True)  # None: cuda when available
     half: bool = True  # float16 weights on CUDA
     cache_dir: str | None = None  # None: no disk cache
-    cache_dtype: str = "float16"  # 1 mm at 2 m, 1 cm at 20 m: below any network's error, half the disk
+    cache_dtype: str = option("float16", choices=("float16", "float32"))  # 1 mm at 2 m, 1 cm at 20 m: half the disk
     use_intrinsics: bool = True  # Depth Pro: take the focal length from the frame instead of estimating it
 
 
@@ -57,10 +59,10 @@ class HFDepth:
     metric = True
 
     def __init__(self, model: str, options: HFDepthOptions | None = None, **overrides: object) -> None:
-        self.options = o = options or HFDepthOptions(**overrides)  # type: ignore[arg-type]
+        self.options = o = HFDepthOptions.build(overrides, owner=f"depth network {model!r}", base=options)
         self.model_id = resolve_model(model)
         self.name = model if model in HUB_MODELS else f"hf:{model}"
-        self.device = torch.device(o.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        self.device = resolve_device(o.device)  # None/"auto": cuda when available
         self.cache = DepthCache(o.cache_dir, self.model_id, o.cache_dtype) if o.cache_dir else None
         self._model = None
         self._processor = None

@@ -14,7 +14,7 @@ from .base import Features, Matcher, Matches
 from .weights import WEIGHTS_ENV, MissingWeightsError
 
 __all__ = ["Features", "Matches", "Matcher", "MissingWeightsError", "WEIGHTS_ENV", "create", "available", "names",
-           "needs", "option_names", "registry_key"]
+           "needs", "option_names", "options_class", "check_options", "registry_key"]
 
 
 def _sift(**o: object) -> Matcher:
@@ -127,7 +127,11 @@ def registry_key(name: str) -> str:
 def _entry(name: str) -> _Entry:
     key = registry_key(name)
     if key not in _REGISTRY:
-        raise KeyError(f"unknown matcher {name!r}; available: {', '.join(_REGISTRY)}")
+        import difflib
+
+        close = difflib.get_close_matches(key, list(_REGISTRY), n=3, cutoff=0.6)
+        hint = f"did you mean {' or '.join(map(repr, close))}? " if close else ""
+        raise KeyError(f"unknown matcher {name!r}: {hint}known: {', '.join(_REGISTRY)}")
     return _REGISTRY[key]
 
 
@@ -151,12 +155,23 @@ def create(name: str, **options: object) -> Matcher:
     return _entry(name).make(**options)
 
 
-def option_names(name: str) -> list[str]:
-    """The options matcher ``name`` accepts (the fields of its options dataclass), to check a config early."""
+def options_class(name: str) -> type:
+    """The options dataclass of matcher ``name`` (an ``Options``: typed, checked on construction)."""
     import importlib
 
     module, cls = _entry(name).options.rsplit(".", 1)
-    return [f.name for f in fields(getattr(importlib.import_module(f"{__name__}.{module}"), cls))]
+    return getattr(importlib.import_module(f"{__name__}.{module}"), cls)
+
+
+def option_names(name: str) -> list[str]:
+    """The options matcher ``name`` accepts (the fields of its options dataclass), to check a config early."""
+    return [f.name for f in fields(options_class(name))]
+
+
+def check_options(name: str, values: dict, where: str = "", prefix: str = "") -> None:
+    """Refuse an option matcher ``name`` does not have or a value of the wrong type or range, before anything is
+    loaded: the same ``OptionError`` line the matcher itself raises (``where``: the file the values came from)."""
+    options_class(name).build(values, owner=f"matcher {registry_key(name)!r}", where=where, prefix=prefix)
 
 
 def available() -> list[str]:
