@@ -81,8 +81,10 @@ def _label(img: np.ndarray, text: str, row: int = 0) -> None:
 
 
 def draw_matches(img0: np.ndarray, img1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray,
-                 inliers: np.ndarray | None = None, max_lines: int = 400, seed: int = 0) -> np.ndarray:
-    """Reference | query side by side; inlier matches green, the others red (a random subset if many)."""
+                 inliers: np.ndarray | None = None, max_lines: int = 400, seed: int = 0,
+                 label: str | None = None) -> np.ndarray:
+    """Reference | query side by side; inlier matches green, the others red (a random subset if many);
+    ``label``: the headline (default: the number of matches and of green ones)."""
     canvas, off = _side_by_side(img0, img1)
     n = len(kpts0)
     inl = np.ones(n, bool) if inliers is None else np.asarray(inliers, bool)
@@ -96,8 +98,8 @@ def draw_matches(img0: np.ndarray, img1: np.ndarray, kpts0: np.ndarray, kpts1: n
         cv2.line(canvas, a, b, colour, 1, cv2.LINE_AA)
         cv2.circle(canvas, a, 2, colour, -1, cv2.LINE_AA)
         cv2.circle(canvas, b, 2, colour, -1, cv2.LINE_AA)
-    _label(canvas, f"{n} matches, {int(inl.sum())} consistent with the pose" if inliers is not None
-           else f"{n} matches")
+    _label(canvas, label if label is not None else f"{n} matches, {int(inl.sum())} consistent with the pose"
+           if inliers is not None else f"{n} matches")
     return canvas
 
 
@@ -145,16 +147,22 @@ def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_q
 def relocalization_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
                           kpts0: np.ndarray | None, kpts1: np.ndarray | None, pose: Pose | None,
                           gt_pose: Pose | None = None, threshold_px: float = 3.0, title: str = "",
-                          reason: str = "") -> np.ndarray:
+                          reason: str = "", solver_inliers: int | None = None) -> np.ndarray:
     """Matches on top, AR check below, one RGB image; ``reason``: why there is no pose, when there is none.
-    ``kpts0 = None``: a method without correspondences (pose regression): the AR check alone."""
+    ``kpts0 = None``: a method without correspondences (pose regression): the AR check alone. Green matches are
+    those within ``threshold_px`` of the pose's epipolar lines; ``solver_inliers``: the solver's own inlier count
+    (the ``inliers`` of the estimate and its JSON), shown as such in the headline."""
     bottom = ar_panels(ref_img, query_img, K_ref, K_query, pose, gt_pose, reason)
     if kpts0 is None or kpts1 is None:
         if title:
             _label(bottom, title, row=2)
         return bottom
     inl = epipolar_inliers(kpts0, kpts1, K_ref, K_query, pose, threshold_px) if pose is not None else None
-    top = draw_matches(ref_img, query_img, kpts0, kpts1, inl)
+    label = None
+    if inl is not None and solver_inliers is not None:
+        label = (f"{len(kpts0)} matches, {solver_inliers} solver inliers; green: {int(inl.sum())} within "
+                 f"{threshold_px:g} px of the pose")
+    top = draw_matches(ref_img, query_img, kpts0, kpts1, inl, label=label)
     if title:
         _label(top, title, row=1)
     w = max(top.shape[1], bottom.shape[1])
@@ -186,4 +194,5 @@ def estimate_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsic
     m = estimate.extras.get("matches")
     k0, k1 = (m.kpts0, m.kpts1) if m is not None else (None, None)
     return relocalization_figure(ref_img, query_img, K_ref, K_query, k0, k1, estimate.pose, gt_pose,
-                                 threshold_px=threshold_px, title=title, reason=estimate.reason)
+                                 threshold_px=threshold_px, title=title, reason=estimate.reason,
+                                 solver_inliers=int(estimate.inliers) if estimate.pose is not None else None)

@@ -138,6 +138,22 @@ def _query_has_depth(method, args) -> bool:
     return depth_path_for(args.query, method.depth.split(":", 1)[1]).is_file()
 
 
+def _check_depth_suffix(method, args) -> None:
+    """A ``files:SUFFIX`` method whose map is not beside the reference (and no --depth-ref) is a typo in the suffix
+    or the method, not a pair without depth: refused, naming the suffixes that are there (as ``mapfree run``)."""
+    if method.kind != "matching" or not method.depth.startswith("files:") or args.depth_ref is not None:
+        return
+    from ..data.io import depth_path_for, depth_suffixes
+
+    suffix = method.depth.split(":", 1)[1]
+    if not args.reference.is_file() or depth_path_for(args.reference, suffix).is_file():
+        return
+    found = depth_suffixes(args.reference)
+    raise InputError(f"method {method.name!r} reads depth maps *.{suffix}.png, but the reference has none "
+                     f"({depth_path_for(args.reference, suffix)}); depth suffixes there: {', '.join(found) or 'none'} "
+                     f"(pick one with NAME@SUFFIX or the method's last part, or pass --depth-ref)")
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -157,6 +173,7 @@ def run(args: argparse.Namespace) -> int:
             method = method.with_depth(args.depth)
         from ..methods import depth_free_problem, query_depth_fallback
 
+        _check_depth_suffix(method, args)
         problem = depth_free_problem(method)
         if problem and (args.depth_ref is None or (method.solver == "procrustes" and args.depth_query is None)):
             raise InputError(f"{problem}; or pass the maps with --depth-ref/--depth-query")
@@ -196,6 +213,8 @@ def run(args: argparse.Namespace) -> int:
     from ..relocalize.run import estimate_scores
 
     out["scores"] = estimate_scores(est)
+    if est.extras.get("same_viewpoint"):  # the query was taken from the reference's viewpoint: identity pose
+        out["same_viewpoint"] = True
     if gt is not None and est.pose is not None:
         from ..geometry import rotation_angle_deg
         from ..viz import vcre_px

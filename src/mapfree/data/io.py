@@ -19,6 +19,8 @@ from .orientation import OrientationError, exif_orientation, orient_pixels
 
 __all__ = [
     "FormatError",
+    "depth_suffixes",
+    "publish",
     "iter_records",
     "read_intrinsics",
     "write_intrinsics",
@@ -135,6 +137,22 @@ def depth_path_for(image_path: os.PathLike | str, suffix: str) -> Path:
     """``seq1/frame_00012.jpg`` + ``dptkitti`` -> ``seq1/frame_00012.dptkitti.png``."""
     p = Path(image_path)
     return p.with_name(f"{p.stem}.{suffix}.png")
+
+
+def publish(tmp: os.PathLike | str, path: os.PathLike | str) -> Path:
+    """Move a finished temporary file (``tempfile.mkstemp``: mode 0600) to ``path`` atomically, with the mode every
+    other output gets (0666 less the umask: 0644 usually)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(tmp, 0o666 & ~mask)
+    os.replace(tmp, path)
+    return Path(path)
+
+
+def depth_suffixes(image_path: os.PathLike | str) -> list[str]:
+    """The depth suffixes of the maps beside an image: ``frame.sensor.png``, ``frame.mono.png`` -> sensor, mono."""
+    p = Path(image_path)
+    return sorted({q.name[len(p.stem) + 1: -len(".png")] for q in p.parent.glob(f"{p.stem}.*.png")})
 
 
 def read_depth(path: os.PathLike | str) -> np.ndarray:
