@@ -6,7 +6,7 @@ import argparse
 import os
 import sys
 
-from . import HelpFormatter
+from . import HelpFormatter, Parser
 
 
 def _limit(text: str) -> int | None:
@@ -17,8 +17,9 @@ def _limit(text: str) -> int | None:
 
     try:
         return parse_daily_limit(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(f"{e}, or 'default'") from None
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of evaluations (0: none), 'unlimited' or 'default'; got "
+                                         f"{str(text)[:40]!r}") from None
 
 
 def _shown(limit: int | None) -> str:
@@ -100,7 +101,7 @@ def run(a: argparse.Namespace) -> int:
         try:
             print(backup(a.db, a.dest))
         except (OSError, ValueError, RuntimeError) as e:
-            print(f"error: {e}", file=sys.stderr)
+            print(f"mapfree admin: error: {e}", file=sys.stderr)
             return 1
         return 0
     engine = make_engine(a.db)
@@ -109,7 +110,7 @@ def run(a: argparse.Namespace) -> int:
     try:
         before, after = upgrade(engine)
     except SchemaVersion as e:
-        print(f"error: {e}", file=sys.stderr)
+        print(f"mapfree admin: error: {e}", file=sys.stderr)
         return 1
     if a.action == "migrate":
         print(f"schema version {after}" + (" (already)" if before == after else
@@ -120,14 +121,14 @@ def run(a: argparse.Namespace) -> int:
     def user(db, name):
         u = db.scalar(select(User).where(User.name == name))
         if u is None:
-            raise SystemExit(f"error: no user {name!r}")
+            raise SystemExit(f"mapfree admin: error: no user {name!r}")
         return u
 
     def lifetime() -> float | None:
         try:
             return auth.parse_duration(a.expires_in) if a.expires_in else None
         except ValueError as e:
-            raise SystemExit(f"error: --expires-in: {e}") from None
+            raise SystemExit(f"mapfree admin: error: --expires-in: {e}") from None
 
     with sessions.begin() as db:
         if a.action == "create-user":
@@ -135,7 +136,7 @@ def run(a: argparse.Namespace) -> int:
             try:
                 u, token = auth.create_user(db, a.name, admin=a.admin, expires_in=expires_in)
             except ValueError as e:
-                print(f"error: {e}", file=sys.stderr)
+                print(f"mapfree admin: error: {e}", file=sys.stderr)
                 return 1
             u.test_daily_limit = a.test_daily_limit
             print(token)
@@ -155,7 +156,7 @@ def run(a: argparse.Namespace) -> int:
         elif a.action == "revoke-token":
             row = db.get(ApiToken, a.id)
             if row is None:
-                print(f"error: no token {a.id}", file=sys.stderr)
+                print(f"mapfree admin: error: no token {a.id}", file=sys.stderr)
                 return 1
             row.revoked = True
             print(f"revoked token {a.id} ({row.prefix}…)", file=sys.stderr)
@@ -168,7 +169,7 @@ def run(a: argparse.Namespace) -> int:
         elif a.action == "revoke-session":
             row = db.get(WebSession, a.id)
             if row is None:
-                print(f"error: no session {a.id}", file=sys.stderr)
+                print(f"mapfree admin: error: no session {a.id}", file=sys.stderr)
                 return 1
             db.delete(row)
             print(f"ended session {a.id}", file=sys.stderr)
@@ -193,7 +194,7 @@ def _delete_user(db, u, yes: bool) -> int:
     from ..service.db import User
 
     if u.is_admin and db.scalar(select(func.count()).select_from(User).where(User.is_admin.is_(True))) == 1:
-        print(f"error: {u.name!r} is the only admin; make another admin first", file=sys.stderr)
+        print(f"mapfree admin: error: {u.name!r} is the only admin; make another admin first", file=sys.stderr)
         return 1
     name = u.name
     gone = delete_user(db, u, dry_run=not yes)
@@ -208,7 +209,7 @@ def _delete_user(db, u, yes: bool) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m mapfree.cli.admin`` = ``mapfree admin`` without loading the other subcommands."""
-    parser = argparse.ArgumentParser(prog="mapfree")
+    parser = Parser(prog="mapfree")
     register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["admin", *(sys.argv[1:] if argv is None else argv)])
     return int(args.func(args) or 0)

@@ -63,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
     for flag, value in (("--plots", args.plots), ("--viz", args.viz)):
         if value is not None and Path(value).exists() and not Path(value).is_dir():
             return fail("evaluate", f"{flag} {value}: not a folder (it names a file)")
+    if args.worst < 0:
+        return fail("evaluate", f"--worst must be >= 0, got {args.worst}")
     if args.html is not None and Path(args.html).is_dir():
         return fail("evaluate", f"--html {args.html}: a folder; give the report's file name (e.g. report.html)")
     from ..benchmark import EvaluationError, evaluate, format_table

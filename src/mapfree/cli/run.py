@@ -161,9 +161,11 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_summary(res, frames, args: argparse.Namespace) -> None:
     """What the run wrote, in a few lines (``--json`` prints everything)."""
+    from . import plural
+
     total = res.estimated + res.failed
     print(f"wrote {res.submission}: {res.estimated} of {total} frames estimated "
-          f"({frames.computed} computed, {frames.skipped} from the journal, {frames.scenes} scenes, "
+          f"({frames.computed} computed, {frames.skipped} from the journal, {plural(frames.scenes, 'scene')}, "
           f"{frames.seconds:.1f} s)")
     if res.failed:
         print(f"frames without an estimate and why: {res.failures}")
