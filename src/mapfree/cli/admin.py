@@ -6,7 +6,7 @@ import argparse
 import os
 import sys
 
-from . import HelpFormatter, Parser
+from . import HelpFormatter, Parser, fail
 
 
 def _limit(text: str) -> int | None:
@@ -93,7 +93,7 @@ def run(a: argparse.Namespace) -> int:
     from sqlalchemy import select
 
     from ..service import auth
-    from ..service.db import ApiToken, User, WebSession, make_engine, session_factory
+    from ..service.db import User, make_engine, session_factory
 
     if a.action == "backup":  # before any upgrade: a backup is what one takes before upgrading
         from ..service.backup import backup
@@ -101,8 +101,7 @@ def run(a: argparse.Namespace) -> int:
         try:
             print(backup(a.db, a.dest))
         except (OSError, ValueError, RuntimeError) as e:
-            print(f"mapfree admin: error: {e}", file=sys.stderr)
-            return 1
+            return fail("admin", e)
         return 0
     engine = make_engine(a.db)
     from ..service.migrations import SchemaVersion, upgrade
@@ -110,8 +109,7 @@ def run(a: argparse.Namespace) -> int:
     try:
         before, after = upgrade(engine)
     except SchemaVersion as e:
-        print(f"mapfree admin: error: {e}", file=sys.stderr)
-        return 1
+        return fail("admin", e)
     if a.action == "migrate":
         print(f"schema version {after}" + (" (already)" if before == after else
                                             f" (was {before or 'unversioned'})"))
@@ -121,14 +119,26 @@ def run(a: argparse.Namespace) -> int:
     def user(db, name):
         u = db.scalar(select(User).where(User.name == name))
         if u is None:
-            raise SystemExit(f"mapfree admin: error: no user {name!r}")
+            raise LookupError(f"no user {name!r}")
         return u
 
     def lifetime() -> float | None:
         try:
             return auth.parse_duration(a.expires_in) if a.expires_in else None
         except ValueError as e:
-            raise SystemExit(f"mapfree admin: error: --expires-in: {e}") from None
+            raise LookupError(f"--expires-in: {e}") from None
+
+    try:
+        return _act(a, sessions, user, lifetime, engine)
+    except LookupError as e:  # no such user, a bad duration: one line, nothing changed (the transaction rolls back)
+        return fail("admin", e.args[0])
+
+
+def _act(a: argparse.Namespace, sessions, user, lifetime, engine) -> int:
+    from sqlalchemy import select
+
+    from ..service import auth
+    from ..service.db import ApiToken, User, WebSession
 
     with sessions.begin() as db:
         if a.action == "create-user":
@@ -136,8 +146,7 @@ def run(a: argparse.Namespace) -> int:
             try:
                 u, token = auth.create_user(db, a.name, admin=a.admin, expires_in=expires_in)
             except ValueError as e:
-                print(f"mapfree admin: error: {e}", file=sys.stderr)
-                return 1
+                return fail("admin", e)
             u.test_daily_limit = a.test_daily_limit
             print(token)
             print(f"created user {a.name!r}; the token above is shown only once", file=sys.stderr)
@@ -156,8 +165,7 @@ def run(a: argparse.Namespace) -> int:
         elif a.action == "revoke-token":
             row = db.get(ApiToken, a.id)
             if row is None:
-                print(f"mapfree admin: error: no token {a.id}", file=sys.stderr)
-                return 1
+                return fail("admin", f"no token {a.id}")
             row.revoked = True
             print(f"revoked token {a.id} ({row.prefix}…)", file=sys.stderr)
         elif a.action == "list-sessions":
@@ -169,8 +177,7 @@ def run(a: argparse.Namespace) -> int:
         elif a.action == "revoke-session":
             row = db.get(WebSession, a.id)
             if row is None:
-                print(f"mapfree admin: error: no session {a.id}", file=sys.stderr)
-                return 1
+                return fail("admin", f"no session {a.id}")
             db.delete(row)
             print(f"ended session {a.id}", file=sys.stderr)
         elif a.action == "delete-user":
@@ -194,8 +201,7 @@ def _delete_user(db, u, yes: bool) -> int:
     from ..service.db import User
 
     if u.is_admin and db.scalar(select(func.count()).select_from(User).where(User.is_admin.is_(True))) == 1:
-        print(f"mapfree admin: error: {u.name!r} is the only admin; make another admin first", file=sys.stderr)
-        return 1
+        return fail("admin", f"{u.name!r} is the only admin; make another admin first")
     name = u.name
     gone = delete_user(db, u, dry_run=not yes)
     what = ", ".join(f"{n} {k}" for k, n in gone.items())

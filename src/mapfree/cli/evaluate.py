@@ -123,9 +123,12 @@ def _figure_source(args: argparse.Namespace):
 
     def figure(scene: str, frame: str):
         if args.viz:
-            p = frame_figure_path(args.viz, scene, frame)
-            if p.is_file():
-                return p.read_bytes()
+            for suffix in (".jpg", ".png"):  # .png: figures of a run before they were JPEG
+                p = frame_figure_path(args.viz, scene, frame, suffix)
+                if p.is_file():
+                    from ..viz import report_picture
+
+                    return report_picture(p.read_bytes())
         if root is None or not (root / scene).is_dir():
             return None
         try:
@@ -150,7 +153,7 @@ def _draw_from_data(scene_dir, scene: str, frame: str, state: dict):
     from ..benchmark import read_submission
     from ..data import Scene
     from ..geometry import Pose
-    from ..viz import ar_panels, png_bytes
+    from ..viz import ar_panels, jpeg_bytes
 
     if "estimates" not in state:
         state["estimates"] = read_submission(state["submission"])[0]
@@ -163,4 +166,4 @@ def _draw_from_data(scene_dir, scene: str, frame: str, state: dict):
     ref_pose = ref.pose if ref.pose is not None else Pose.identity()
     rel = Pose.from_qt(est.q[i], est.t[i]) @ ref_pose.inverse()
     gt = query.pose @ ref_pose.inverse() if query.pose is not None else None
-    return png_bytes(ar_panels(ref.image(), query.image(), ref.intrinsics, query.intrinsics, rel, gt))
+    return jpeg_bytes(ar_panels(ref.image(), query.image(), ref.intrinsics, query.intrinsics, rel, gt))

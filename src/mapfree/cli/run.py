@@ -66,7 +66,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the run's summary (and scores) as JSON")
     p.add_argument("--strict", action="store_true", help="exit 3 unless every frame got an estimate")
     p.add_argument("--viz", type=Path, default=None, metavar="DIR",
-                   help="draw each frame computed (matches + AR check) as DIR/SCENE/seq1_frame_NNNNN.png")
+                   help="draw each frame computed (matches + AR check) as DIR/SCENE/seq1_frame_NNNNN.jpg "
+                        "(JPEG, long side <= 1280 px: about 150-300 KB a frame)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--list-methods", action="store_true", help="print the method names, each with what it needs, and exit")
     p.set_defaults(func=run)

@@ -230,7 +230,7 @@ def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, w
     split has it) for ``run --viz``. Methods that relocalize against other references than the scene's
     (``--references K``) get the AR check alone: their matches are with another image. A figure that cannot be
     drawn is logged, never raised. ``ref_image``: the reference image's reader, when the caller caches it."""
-    from ..viz import estimate_figure, save_png
+    from ..viz import estimate_figure, save_figure
 
     try:
         ref, query = scene.reference, scene.frame(frame)
@@ -242,7 +242,7 @@ def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, w
         thr = float((method_dict.get("solver_opts") or {}).get("ransac_threshold_px", 3.0))
         fig = estimate_figure((ref_image or ref.image)(), query.image(), ref.intrinsics, query.intrinsics, shown,
                               gt, threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
-        return save_png(frame_figure_path(viz_dir, scene.name, frame), fig)
+        return save_figure(frame_figure_path(viz_dir, scene.name, frame), fig)
     except Exception as e:  # a figure is a by-product: the frame's result is journaled already
         log.warning("no figure for %s %s: %s", scene.name, frame, e)
         return None
