@@ -173,7 +173,7 @@ def test_relocalize_cli_matches_the_network_on_public_preprocessing(official, we
     monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(weights / "empty"))
     assert main(["relocalize", str(ref), str(query), "--method", "rpr-rot6d_trans"]) == 1
     err = capsys.readouterr().err
-    assert "rot6d_trans.ckpt not found" in err and "mapfree_rpr_weights.zip" in err
+    assert "'rot6d_trans.ckpt' not found" in err and "mapfree_rpr_weights.zip" in err
 
 
 def test_run_split_with_a_published_model_writes_the_networks_poses(official, weights, realmini, tmp_path, capsys):

@@ -307,7 +307,7 @@ class WeightFile:
         return self.filename
 
     def item(self) -> str:
-        return f"weights file {self.filename}"
+        return f"weights file '{self.filename}'"
 
     def locate(self, explicit: str | os.PathLike | None = None) -> Found | None:
         """Where the file is by the rule (``explicit``: a file, or a folder holding it), else None."""
@@ -455,7 +455,7 @@ class HubModel:
         return f"https://huggingface.co/{self.repo_id}"
 
     def item(self) -> str:
-        return f"model {self.repo_id}"
+        return f"model '{self.repo_id}'"
 
     def locate(self, explicit: str | os.PathLike | None = None) -> Found | None:
         """The model's folder by the rule (``explicit``: a folder), else None. A folder that is there but incomplete

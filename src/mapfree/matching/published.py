@@ -64,7 +64,7 @@ class Mast3rWeights:
         return f"{self.stem}.pth"
 
     def item(self) -> str:
-        return f"weights file {self.stem}.pth (or the hub folder {self.stem}/ with config.json and model.safetensors)"
+        return f"weights file '{self.stem}.pth' (or the hub folder {self.stem}/ with config.json and model.safetensors)"
 
     def locate(self, explicit: str | os.PathLike | None = None) -> Found | None:
         if explicit is not None:
