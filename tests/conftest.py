@@ -47,3 +47,15 @@ def official_rpr() -> Path:
 def mast3r_fixture() -> Path:
     """Folder with mast3r.json / mast3r_outputs.npz: the public MASt3R/DUSt3R outputs on fill-rule weights."""
     return _shared("fixtures/mast3r", "mast3r.json")
+
+
+@pytest.fixture(scope="session")
+def synth_val(tmp_path_factory) -> Path:
+    """A small synthetic val split, read-only (copy it to change it): two scenes of 10 queries at 240x320, sensor
+    depth only (suffix ``sensor``)."""
+    from mapfree.cli import main
+
+    root = tmp_path_factory.mktemp("synth-val")
+    assert main(["synth", str(root), "--split", "val", "--scenes", "2", "--queries", "10", "--size", "240x320",
+                 "--no-mono", "--quiet"]) == 0
+    return root

@@ -18,11 +18,9 @@ SYNTH_ARGS = ["--size", "240x320", "--no-mono", "--quiet"]
 
 
 @pytest.fixture(scope="module")
-def synth(tmp_path_factory) -> Path:
-    """A small synthetic val split: two scenes of 10 queries, sensor depth (suffix ``sensor``)."""
-    root = tmp_path_factory.mktemp("synth")
-    assert main(["synth", str(root), "--split", "val", "--scenes", "2", "--queries", "10", *SYNTH_ARGS]) == 0
-    return root
+def synth(synth_val) -> Path:
+    """A small synthetic val split: two scenes of 10 queries, sensor depth (suffix ``sensor``); read-only."""
+    return synth_val
 
 
 def _one_line(capfd) -> tuple[str, str]:
