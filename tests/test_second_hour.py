@@ -376,7 +376,7 @@ def test_mapfree_weights_lists_verifies_and_says_how_to_get_the_rest(tmp_path, m
     assert "huggingface-cli download depth-anything/Depth-Anything-V2-Metric-Indoor-Small-hf --local-dir" in out
     assert "mapfree_rpr_weights.zip && unzip -o" in out and "0 of 4 models present and sound." in out
     assert main(["weights", "nope"]) == 1
-    assert "unknown method 'nope'" in _one_line(capfd)[1]
+    assert "'nope' is no method, matcher or depth network" in _one_line(capfd)[1]
 
 
 # --------------------------------------------------------------------------- reports, demo

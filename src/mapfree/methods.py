@@ -310,7 +310,14 @@ def weight_models(name: str) -> list[Any]:
         return list(MATCHER_WEIGHTS[registry_key(name)])
     if name in DEPTH_WEIGHTS:
         return [DEPTH_WEIGHTS[name]]
-    m = get(name)
+    try:
+        m = get(name)
+    except KeyError:
+        known = [*list_methods(), *MATCHER_WEIGHTS, *DEPTH_WEIGHTS]
+        close = difflib.get_close_matches(name, known, n=3, cutoff=0.75)
+        hint = f"did you mean {' or '.join(map(repr, close))}? " if close else ""
+        raise KeyError(f"{name!r} is no method, matcher or depth network: {hint}see `mapfree run --list-methods`, "
+                       f"or `mapfree weights` without a name for every model") from None
     if m.kind == "regression":
         from .regression.official import RPR_WEIGHTS
 

@@ -420,10 +420,24 @@ def shipped_weights(package: str, filename: str, what: str, folder: str = "pretr
 
 
 def load_checkpoint(path: str | os.PathLike, key: str | None = None) -> dict:
-    """``torch.load`` a state dict (tensors only), unwrapping ``key`` (e.g. ``state_dict``) when present."""
+    """``torch.load`` a state dict (tensors only), unwrapping ``key`` (e.g. ``state_dict``) when present. A file that
+    is missing, cut short or not a checkpoint is one ``MissingWeightsError``/``BrokenWeightsError`` naming it."""
     import torch
 
-    sd = torch.load(str(path), map_location="cpu", weights_only=True)
+    if not Path(path).is_file():
+        raise MissingWeightsError(f"weights file {path} not found")
+    why = file_problem(path)
+    if why:
+        raise BrokenWeightsError(f"{path} is refused: {why} (an interrupted download? fetch it again)")
+    try:
+        sd = torch.load(str(path), map_location="cpu", weights_only=True)
+    except Exception as e:  # noqa: BLE001 - pickle, zip and torch errors alike: not a checkpoint we can read
+        text = str(e)
+        gist = text.split("WeightsUnpickler error:", 1)[1] if "WeightsUnpickler error:" in text else (
+            "" if text.startswith("Weights only load failed") else text)
+        gist = " ".join(gist.split())[:120]
+        raise BrokenWeightsError(f"{path}: not a readable PyTorch checkpoint ({type(e).__name__}"
+                                 f"{': ' + gist if gist else ''})") from None
     if key is not None and isinstance(sd, dict) and key in sd:
         sd = sd[key]
     return sd

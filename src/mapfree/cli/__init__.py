@@ -43,6 +43,32 @@ def fail(command: str, error: BaseException | str) -> int:
     return EXIT_ERROR
 
 
+def output_file_problem(flag: str, path, suffixes: tuple[str, ...] = ()) -> str | None:
+    """Why ``path`` (given with ``flag``) cannot be written as an output file, before any work: it names a folder,
+    or its name does not end in one of ``suffixes`` (the formats it is written in); None when it can be tried."""
+    from pathlib import Path
+
+    path = Path(path)
+    if path.is_dir():
+        return f"{flag} {path}: a folder; give a file name" + (f" (e.g. {path / ('out' + suffixes[0])})" if suffixes
+                                                               else "")
+    if suffixes and path.suffix.lower() not in suffixes:
+        return f"{flag} {path}: the name must end in {' or '.join(suffixes)} (the format it is written in)"
+    return None
+
+
+def output_folder_problem(flag: str, path) -> str | None:
+    """Why folder ``path`` (given with ``flag``) cannot be made or written into, before any work: it is a file, or a
+    file stands where one of its parents should be; None when it can be tried."""
+    from pathlib import Path
+
+    path = Path(path)
+    blocker = next((p for p in (path, *path.parents) if p.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        return f"{flag} {path}: {blocker} is a file, not a folder"
+    return None
+
+
 def plural(n: int, word: str, words: str | None = None) -> str:
     """``1 scene``, ``2 scenes`` (``words``: an irregular plural)."""
     return f"{n} {word if n == 1 else words or word + 's'}"
@@ -98,6 +124,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def os_error_text(e: OSError) -> str:
     """``PATH: permission denied`` rather than Python's ``[Errno 13] Permission denied: 'PATH'``."""
+    if isinstance(e, (FileExistsError, NotADirectoryError)) and e.filename and os.path.isfile(e.filename):
+        return f"{e.filename} is a file, not a folder"
     if e.strerror and e.filename:
         return f"{e.filename}: {e.strerror[0].lower()}{e.strerror[1:]}"
     return e.strerror or str(e)

@@ -79,10 +79,10 @@ def run(args: argparse.Namespace) -> int:
     from ..data.synth import SynthOptions, generate
     from ..relocalize.run import run_split
 
-    from . import fail
+    from . import fail, output_folder_problem
 
     bad = next((f"--{k} must be >= 1, got {getattr(args, k)}" for k in ("scenes", "queries", "workers")
-                if getattr(args, k) < 1), None)
+                if getattr(args, k) < 1), None) or output_folder_problem("--out", args.out)
     if bad:
         return fail("demo", bad)
     out: Path = args.out

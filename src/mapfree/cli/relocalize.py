@@ -43,7 +43,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--depth-query", type=Path, help="query depth map (uint16 PNG, mm)")
     p.add_argument("--gt-pose", help="ground truth: 'qw,qx,qy,qz,tx,ty,tz' (query w.r.t. reference), "
                                       "a poses.txt holding both frames, or 'auto' (the scene's poses.txt)")
-    p.add_argument("--viz", type=Path, help="write a PNG with the matches and the AR check")
+    p.add_argument("--viz", type=Path, help="draw the matches and the AR check into this .png (or .jpg) file")
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="weights of a regression method (e.g. --method rpr-3d3d --checkpoint 3d3d.ckpt)")
     p.set_defaults(func=run)
@@ -160,8 +160,11 @@ def run(args: argparse.Namespace) -> int:
     from ..data import FormatError, check_depth_size, read_depth
     from ..methods import get
     from ..relocalize import Relocalizer, as_view
-    from . import EXIT_NOTHING, fail
+    from . import EXIT_NOTHING, fail, output_file_problem
 
+    problem = output_file_problem("--viz", args.viz, (".png", ".jpg", ".jpeg")) if args.viz else None
+    if problem:
+        return fail("relocalize", problem)
     try:
         if args.checkpoint is not None:
             from .run import _with_checkpoint

@@ -97,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
                    "bursts of the scored queries)")
     elif args.viz is not None and args.viz.exists() and not args.viz.is_dir():
         problem = f"--viz {args.viz}: not a folder (it names a file)"
+    elif args.scenes is not None and not [s for s in args.scenes.split(",") if s.strip()]:
+        problem = f"--scenes {args.scenes!r}: no scene name (give e.g. --scenes s00000,s00001)"
     if problem:
         return fail("run", problem)
     from ..relocalize import run_split
@@ -115,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         res = run(args.root, args.split, method, args.output, workers=args.workers,
                   all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
                   confidence=args.confidence, progress=not args.no_progress,
-                  scenes=args.scenes.split(",") if args.scenes else None, batch_size=args.batch, viz_dir=args.viz)
+                  scenes=[s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None, batch_size=args.batch, viz_dir=args.viz)
     except (FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
         return fail("run", e)
     except KeyboardInterrupt:

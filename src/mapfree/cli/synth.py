@@ -52,7 +52,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..data.synth import SynthOptions, generate
-    from . import fail
+    from . import fail, output_folder_problem
 
     try:
         w, h = (int(x) for x in args.size.lower().split("x"))
@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
                 for k in ("scenes", "queries", "train-frames", "workers")),
               (args.first_scene < 0, f"--first-scene must be >= 0, got {args.first_scene}"),
               (not 0 <= args.no_overlap < 1, f"--no-overlap must be in [0, 1), got {args.no_overlap}")]
-    problem = next((msg for bad, msg in checks if bad), None)
+    problem = next((msg for bad, msg in checks if bad), None) or output_folder_problem("ROOT", args.root)
     if problem:
         return fail("synth", problem)
     from pathlib import Path

@@ -20,7 +20,7 @@ from typing import Any, Mapping
 import torch
 
 from ..matching.published import MAST3R_WEIGHTS
-from ..weights import MissingWeightsError, check_folder
+from ..weights import BrokenWeightsError, MissingWeightsError, check_folder, file_problem
 from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs, parse_constructor
 from .model import AsymmetricModel
 
@@ -89,6 +89,9 @@ def _why(e: Exception) -> str:
 
 
 def _load_pth(path: Path) -> tuple[Mapping[str, torch.Tensor], str]:
+    why = file_problem(path)
+    if why:  # cut short: said so, not torch's zip-reader internals
+        raise BrokenWeightsError(f"{path} is refused: {why} (an interrupted download? fetch it again)")
     try:
         with torch.serialization.safe_globals([argparse.Namespace]):
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
