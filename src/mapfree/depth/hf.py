@@ -79,8 +79,10 @@ class HFDepth:
         hit = self.hub.locate()
         if hit is None:
             return None
+        if hit.where == "the Hugging Face cache":  # its own downloads are atomic and complete themselves online
+            return self.model_id
         check_folder(hit.path, self.hub.what)  # cut short or incomplete: named, before transformers reads it
-        return self.model_id if hit.where == "the Hugging Face cache" else str(hit.path)
+        return str(hit.path)
 
     def check_available(self) -> None:
         """Raise ``MissingModelError`` now if the model could not be loaded (in no weights folder, not cached, hub

@@ -62,7 +62,7 @@ def load_hub_model(
             raise hm.missing(explicit=explicit)
         if not reachable(hm.url):
             raise hm.missing(offline_why(hm.url))
-    else:
+    elif hit.where != "the Hugging Face cache":  # its own downloads are atomic and complete themselves online
         check_folder(hit.path, hm.what)  # config.json, a whole weights file: before transformers reads it
     src = find_hub_model(hm, explicit) if hit is not None else None
     from transformers.utils import logging as hf_logging

@@ -14,7 +14,6 @@ import logging
 import multiprocessing as mp
 import os
 import signal
-import tempfile
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -30,13 +29,13 @@ from ..data import REFERENCE_NAME, Dataset, Scene
 from ..data.io import depth_suffixes
 from ..estimate import Estimate
 from ..geometry import Pose
+from .preflight import check_confidence, check_output, check_same_selection, selection_of
 from .references import bind_scene_references, check_scene_references
 
 log = logging.getLogger(__name__)
 
 __all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run",
-           "estimate_scores", "scene_fingerprint", "check_available", "check_depth_source", "write_frame_figure",
-           "check_output", "check_confidence"]
+           "estimate_scores", "scene_fingerprint", "check_available", "check_depth_source", "write_frame_figure"]
 
 JOURNAL_VERSION = 1
 
@@ -352,12 +351,12 @@ def run_split(
     if recs and not resume and not overwrite:
         raise FileExistsError(f"{jpath} already holds {len(recs)} results: run again with --resume to continue "
                               f"that run or --overwrite to start again (in Python: resume=True, overwrite=True)")
-    selection = _selection(all_frames, select)
+    selection = selection_of(all_frames, select)
     if resume and header is not None and not overwrite:
         if not _same_method(header["method"], m.to_dict()):
             raise ValueError(f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
                              f"use another output path or --overwrite")
-        _check_same_selection(jpath, header, selection)
+        check_same_selection(jpath, header, selection)
     fresh = overwrite or not resume or header is None
     if fresh:
         recs = []
@@ -417,66 +416,6 @@ def run_split(
     return RunResult(output, jpath, failures_path(output), computed=total, skipped=len(done), estimated=estimated,
                      failed=failed, seconds=time.perf_counter() - t_start, scenes=len(scene_list),
                      timings=timing_sums, stale_scenes=stale)
-
-
-def check_output(output: Path) -> None:
-    """Refuse an output path that cannot take the submission (a folder, a folder that cannot be made or written
-    in) before any work, naming it: not after the whole split was computed, with the system's errno text."""
-    if output.is_dir():
-        raise ValueError(f"the output {output} is a folder: give the submission ZIP's path "
-                         f"(e.g. {output / 'submission.zip'})")
-    blocker = next((p for p in output.parents if p.exists()), None)
-    if blocker is not None and not blocker.is_dir():
-        raise ValueError(f"the output {output} cannot be written: {blocker} is a file, not a folder")
-    try:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=output.parent):
-            pass
-    except OSError as e:
-        raise ValueError(f"the output {output} cannot be written in {output.parent} ({e.strerror or e})") from None
-
-
-def check_confidence(confidence: str | None, m: Any) -> None:
-    """Refuse a submission confidence (``--confidence``) the method's estimates do not carry, naming the known
-    ones: an unknown name once fell back to the method's own confidence without a word."""
-    if confidence is None:
-        return
-    from ..solvers.confidence import CONFIDENCE_MODES
-
-    known = [f"confidence_{c}" for c in CONFIDENCE_MODES]
-    if m.kind != "matching":
-        raise ValueError(f"--confidence {confidence}: method {m.name!r} ({m.kind}) has its own confidence only "
-                         f"(the alternatives {', '.join(known)} come from a matching method's solver)")
-    if confidence not in known:
-        import difflib
-
-        close = [k for k in known if k == f"confidence_{confidence}"] or difflib.get_close_matches(confidence, known, 1)
-        hint = f"did you mean {close[0]!r}? " if close else ""
-        raise ValueError(f"unknown --confidence {confidence!r}: {hint}known: {', '.join(known)}")
-
-
-def _selection(all_frames: bool, select: Callable[[Scene], list[str]] | None) -> str:
-    """Which frames a run relocalizes, as its journal records it."""
-    if select is not None:
-        return getattr(select, "__name__", "selected")
-    return "all" if all_frames else "scored"
-
-
-_SELECTION_WORDS = {"all": "every query (--all-frames)", "scored": "the scored queries (no --all-frames)"}
-
-
-def _check_same_selection(jpath: Path, header: dict, selection: str) -> None:
-    """A resumed run must relocalize the frames the journal's run did: resuming a run of every query without
-    --all-frames (or the other way round) would write a mix of both sets."""
-    had = header.get("frames")
-    if had is None:  # a journal written before the selection was recorded: its all_frames flag says it
-        if selection not in _SELECTION_WORDS:
-            return
-        had = "all" if header.get("all_frames") else "scored"
-    if had != selection:
-        was, now = (_SELECTION_WORDS.get(x, x) for x in (had, selection))
-        raise ValueError(f"{jpath} holds a run of {was}, this one asks for {now}: resuming would mix the two; "
-                         f"run it as it was, or use --overwrite or another output path")
 
 
 def _pick_scenes(scene_list: list[Scene], names: Sequence[str], split: str) -> list[Scene]:
