@@ -522,6 +522,7 @@ def test_relocalize_default_method_falls_back_to_pnp_for_a_query_without_depth(s
 # --------------------------------------------------------------------------- docs/reports.md
 
 
+@pytest.mark.slow
 def test_the_reports_page_example_runs_as_printed(tmp_path):
     """The "Try it" block of docs/reports.md, run as a reader would, prints the statuses its comments say."""
     import os

@@ -297,6 +297,7 @@ def test_check_deep_prints_no_opencv_warning(synth, tmp_path, capfd):
     assert "WARN" not in out + err and f"{depth}: cannot read depth image" in out
 
 
+@pytest.mark.slow
 def test_a_closed_output_pipe_is_not_an_error(tmp_path):
     """`mapfree relocalize … | head` printed "error: [Errno 32] Broken pipe"."""
     import subprocess
@@ -382,6 +383,7 @@ def test_mapfree_weights_lists_verifies_and_says_how_to_get_the_rest(tmp_path, m
 # --------------------------------------------------------------------------- reports, demo
 
 
+@pytest.mark.slow
 def test_realmini_report_fits_in_a_mail(realmini, tmp_path, capfd):
     """`evaluate --html` was 14.1 MB on realmini-dev (full-size base64 PNGs); `run --viz` 1.3 MB a frame."""
     sub, viz, page = tmp_path / "sub.zip", tmp_path / "viz", tmp_path / "report.html"
