@@ -8,6 +8,11 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+# One BLAS / OpenMP thread per test process (and the processes tests start): on CI's 2 shared cores a second thread
+# only spins while it waits, and numpy's OpenBLAS then runs a K-means or a large matrix product 10x slower (a
+# DenseVLAD vocabulary: 4 s with one thread, 50 s with two under load). Set the variables to override.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 # Ray (mapfree build --ray) binds to the loopback address only: tests never send traffic to another address.
 os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
