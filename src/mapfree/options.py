@@ -24,7 +24,7 @@ import types
 import typing
 from typing import Any, Mapping, TypeVar
 
-__all__ = ["Options", "OptionError", "option", "device_problem", "check_device"]
+__all__ = ["Options", "OptionError", "option", "device_problem", "check_device", "check_keys"]
 
 T = TypeVar("T", bound="Options")
 
@@ -144,6 +144,19 @@ def _problem(value: Any, tp: Any, meta: dict) -> str | None:
     return None
 
 
+def check_keys(cls: type, values: Mapping[str, Any], *, owner: str = "", where: str = "", prefix: str = "") -> None:
+    """Refuse a key of ``values`` that dataclass ``cls`` has no field for, naming the nearest one (``OptionError``);
+    for any options dataclass, ``Options`` or not (whose values are then left to the component)."""
+    known = [f.name for f in dataclasses.fields(cls)]
+    for key in values:
+        if key not in known:
+            close = difflib.get_close_matches(str(key), known, n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            lead, of = (f"{where}: " if where else ""), (f" for {owner}" if owner else "")
+            raise OptionError(f"{lead}unknown option {prefix}{key}{of}: {hint}known: {', '.join(sorted(known))}",
+                              str(key))
+
+
 _HINTS: dict[type, dict[str, Any]] = {}
 
 
@@ -178,15 +191,9 @@ class Options:
         one ``OptionError``: ``[WHERE: ]unknown option PREFIXKEY for OWNER: did you mean …`` or
         ``[WHERE: ]option PREFIXKEY=VALUE for OWNER: expected …``."""
         values = dict(values or {})
+        check_keys(cls, values, owner=owner, where=where, prefix=prefix)
         lead = f"{where}: " if where else ""
         of = f" for {owner}" if owner else ""
-        known = cls.names()
-        for key in values:
-            if key not in known:
-                close = difflib.get_close_matches(str(key), known, n=1)
-                hint = f"did you mean {close[0]!r}? " if close else ""
-                raise OptionError(f"{lead}unknown option {prefix}{key}{of}: {hint}known: {', '.join(sorted(known))}",
-                                  str(key))
         start = {f.name: getattr(base, f.name) for f in dataclasses.fields(cls)} if base is not None else {}
         try:
             return cls(**{**start, **values})

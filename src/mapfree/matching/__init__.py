@@ -171,7 +171,13 @@ def option_names(name: str) -> list[str]:
 def check_options(name: str, values: dict, where: str = "", prefix: str = "") -> None:
     """Refuse an option matcher ``name`` does not have or a value of the wrong type or range, before anything is
     loaded: the same ``OptionError`` line the matcher itself raises (``where``: the file the values came from)."""
-    options_class(name).build(values, owner=f"matcher {registry_key(name)!r}", where=where, prefix=prefix)
+    from ..options import Options, check_keys
+
+    cls, owner = options_class(name), f"matcher {registry_key(name)!r}"
+    if issubclass(cls, Options):  # typed: keys, types and ranges
+        cls.build(values, owner=owner, where=where, prefix=prefix)
+    else:  # a plain dataclass: its keys at least
+        check_keys(cls, values, owner=owner, where=where, prefix=prefix)
 
 
 def available() -> list[str]:
