@@ -24,11 +24,11 @@ setup: $(VENV)/.installed
 demo: setup-learned
 	$(VENV)/bin/mapfree demo --out demo-out
 
-# The whole suite (CI runs it): about 17 minutes on a loaded 2-core machine.
+# The whole suite (CI runs it): about 7 minutes on a 2-core machine shared with other work.
 test: setup
 	$(PY) -m pytest
 
-# The inner loop, about 2-3 minutes there: every test but those marked slow (whole tutorials, training, worker
+# The inner loop, about 2 minutes there: every test but those marked slow (whole tutorials, training, worker
 # processes killed and resumed, full-size networks) and the service's (a server and its workers per backend, a
 # browser). They still run in `make test`.
 test-fast: setup
