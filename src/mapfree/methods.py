@@ -13,12 +13,15 @@ import importlib
 import os
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from .depth import HUB_MODELS, PAIR_MODELS
 from .matching import needs as matcher_needs
 from .method_names import BEST_OFFLINE, BEST_OFFLINE_REFERENCE_DEPTH
 from .yamlio import read_yaml
+
+if TYPE_CHECKING:
+    from .weights import Model
 
 __all__ = [
     "Method", "MATCHERS", "OFFLINE_MATCHERS", "SOLVERS", "DEPTH_ALIASES", "BEST_OFFLINE", "BEST_OFFLINE_REFERENCE_DEPTH",
@@ -299,7 +302,7 @@ def requirements(name: str) -> str:
     return f"{matcher_needs(m.matcher)}; {depth}"
 
 
-def weight_models(name: str) -> list[Any]:
+def weight_models(name: str) -> list["Model"]:
     """The weights (``mapfree.weights`` models) that ``name`` needs: a method (its matcher's and depth network's,
     a published RPR network's), a matcher or a depth network name. ``KeyError`` for a name that is none of these."""
     from .depth.hub import DEPTH_WEIGHTS
@@ -335,7 +338,7 @@ def weight_models(name: str) -> list[Any]:
     return out
 
 
-def all_weight_models() -> list[tuple[Any, list[str]]]:
+def all_weight_models() -> list[tuple["Model", list[str]]]:
     """Every published model a built-in matcher, depth network or RPR method can use, each with the names that
     use it (``mapfree weights`` lists them)."""
     from .depth.hub import DEPTH_WEIGHTS

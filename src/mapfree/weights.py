@@ -31,7 +31,7 @@ import urllib.request
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Protocol
 from urllib.parse import urlparse
 
 __all__ = [
@@ -39,7 +39,7 @@ __all__ = [
     "weights_dir", "default_dir", "search_dirs", "target_dir", "looked_in", "missing_message", "find_in_dirs",
     "find_local", "resolve_weights", "package_file", "shipped_weights", "load_checkpoint", "reachable",
     "in_hf_cache", "hf_cache_folder", "file_problem", "folder_problem", "check_folder", "published_sha256",
-    "sha256_of", "torch_hub_dir", "ModelState", "inspect", "offline_why",
+    "sha256_of", "torch_hub_dir", "ModelState", "inspect", "offline_why", "Model",
 ]
 
 WEIGHTS_ENV = "MAPFREE_WEIGHTS_DIR"
@@ -125,6 +125,27 @@ class Found:
 
     path: Path
     where: str
+
+
+class Model(Protocol):
+    """What every published model declares (``WeightFile``, ``HubModel``, the MASt3R checkpoints): its name in the
+    weights folders, what it is, where the rule finds it, how to get it, and its missing-weights error."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def what(self) -> str: ...
+
+    def item(self) -> str: ...
+
+    def locate(self, explicit: str | os.PathLike | None = None) -> Found | None: ...
+
+    def how(self) -> str: ...
+
+    def fetch_command(self) -> str: ...
+
+    def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError: ...
 
 
 # --------------------------------------------------------------------------- integrity and checksums
@@ -532,7 +553,7 @@ class ModelState:
         return "ok" + (", no published checksum" if self.unchecked and not self.verified else "")
 
 
-def inspect(model, verify: bool = True) -> ModelState:
+def inspect(model: Model, verify: bool = True) -> ModelState:
     """Locate ``model`` by the rule and check it: whole files (a cut-short download is refused), a complete model
     folder, and with ``verify`` the sha256 of every file whose publisher gives one (``published_sha256``)."""
     found = model.locate()
