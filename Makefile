@@ -5,7 +5,7 @@ PIP := $(PY) -m pip install -q --disable-pip-version-check
 # torch is pinned to the CPU wheel on this platform's disk; an open range could pull a multi-GB CUDA build.
 TORCH ?= torch==2.13.0
 
-.PHONY: setup setup-learned demo test docs wheel-check bench clean
+.PHONY: setup setup-learned demo test test-fast docs wheel-check bench clean
 
 $(VENV)/.learned: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -24,8 +24,15 @@ setup: $(VENV)/.installed
 demo: setup-learned
 	$(VENV)/bin/mapfree demo --out demo-out
 
+# The whole suite (CI runs it): about 7 minutes on a 2-core machine shared with other work.
 test: setup
 	$(PY) -m pytest
+
+# The inner loop, about 2 minutes there: every test but those marked slow (whole tutorials, training, worker
+# processes killed and resumed, full-size networks) and the service's (a server and its workers per backend, a
+# browser). They still run in `make test`.
+test-fast: setup
+	$(PY) -m pytest -m "not slow" --ignore=tests/service -p no:cacheprovider
 
 # The documentation site; --strict turns every warning (broken link, docstring that does not render) into an error.
 docs: setup

@@ -8,6 +8,11 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+# One BLAS / OpenMP thread per test process (and the processes tests start): on CI's 2 shared cores a second thread
+# only spins while it waits, and numpy's OpenBLAS then runs a K-means or a large matrix product 10x slower (a
+# DenseVLAD vocabulary: 4 s with one thread, 50 s with two under load). Set the variables to override.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 # Ray (mapfree build --ray) binds to the loopback address only: tests never send traffic to another address.
 os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
@@ -53,3 +58,15 @@ def mast3r_fixture() -> Path:
 def mickey_fixture() -> Path:
     """Folder with mickey.json / mickey_outputs.npz: the public MicKey network and solver on fill-rule weights."""
     return _shared("fixtures/mickey", "mickey.json")
+
+
+@pytest.fixture(scope="session")
+def synth_val(tmp_path_factory) -> Path:
+    """A small synthetic val split, read-only (copy it to change it): two scenes of 10 queries at 240x320, sensor
+    depth only (suffix ``sensor``)."""
+    from mapfree.cli import main
+
+    root = tmp_path_factory.mktemp("synth-val")
+    assert main(["synth", str(root), "--split", "val", "--scenes", "2", "--queries", "10", "--size", "240x320",
+                 "--no-mono", "--quiet"]) == 0
+    return root

@@ -38,6 +38,7 @@ def _probe(mode: str, **env: str) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
 def test_relocalizer_keeps_heap_warm():
     r = _probe("build")

@@ -86,7 +86,7 @@ def test_missing_image_bad_line_and_size_mismatch_are_named(copy, capsys):
     assert f"{query}: listed in intrinsics.txt but missing" in out
     assert f"{scene / 'poses.txt'}:3: expected 8 fields, found 4" in out
     assert f"{copy / 'val/s00001' / name}: image is {w}x{h} but intrinsics.txt says {int(w) + 2}x{h}" in out
-    assert "3 problem(s) found" in out
+    assert "3 problems found" in out
 
 
 def test_empty_truncated_and_8bit_files_are_named(copy):

@@ -122,6 +122,7 @@ def test_overlaps_bounds_and_round_trip(tmp_path):
         read_overlaps(tmp_path / "bad.npz")
 
 
+@pytest.mark.slow
 def test_large_scene_is_lazy_and_fast(tmp_path):
     import time
 

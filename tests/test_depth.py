@@ -132,6 +132,8 @@ def test_missing_model_names_the_id(monkeypatch, tmp_path, scene):
     src = D.create("dav2-outdoor", device="cpu")
     with pytest.raises(MissingModelError) as e:
         src.depth(scene.reference)
-    assert "depth-anything/Depth-Anything-V2-Metric-Outdoor-Small-hf" in str(e.value) and "hf:DIR" in str(e.value)
+    msg = str(e.value)  # the one shape of every missing model: where it was looked for, how to get it
+    assert "depth-anything/Depth-Anything-V2-Metric-Outdoor-Small-hf" in msg and "$MAPFREE_WEIGHTS_DIR" in msg
+    assert "huggingface-cli download depth-anything/Depth-Anything-V2-Metric-Outdoor-Small-hf --local-dir" in msg
     with pytest.raises(MissingModelError, match="does not exist"):
         D.create(f"hf:{tmp_path / 'nothing-here'}")

@@ -141,6 +141,7 @@ def test_block_parser_reads_fences_languages_lines_and_skip_markers():
 PAGES = [pytest.param(p, id=p.name, marks=[pytest.mark.slow] if p.name in SLOW_PAGES else []) for p in TUTORIALS]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", PAGES)
 def test_tutorial_blocks_run(path: Path, tmp_path: Path):
     todo = runnable(path)
@@ -169,6 +170,7 @@ def demo_dir(tmp_path_factory) -> Path:
     return d
 
 
+@pytest.mark.slow
 def test_getting_started_blocks_run_after_the_demo(demo_dir: Path):
     page = DOCS / "getting-started.md"
     marked = [b for b in blocks(page.read_text()) if b.skip]
@@ -177,6 +179,7 @@ def test_getting_started_blocks_run_after_the_demo(demo_dir: Path):
     assert (demo_dir / "pair.png").stat().st_size > 10_000  # the --viz figure
 
 
+@pytest.mark.slow
 def test_readme_python_example_runs_on_the_demo_output(demo_dir: Path):
     readme = ROOT / "README.md"
     py = [b for b in blocks(readme.read_text()) if b.lang == "python"]

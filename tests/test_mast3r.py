@@ -74,7 +74,8 @@ def _compare(net: torch.nn.Module, arrays: dict[str, np.ndarray], model: str, in
 
 
 @pytest.mark.parametrize("model", ["mast3r-tiny", "dust3r-tiny"])
-@pytest.mark.parametrize("form", ["pth", "hub", "hub-bin"])
+@pytest.mark.parametrize("form", ["pth", pytest.param("hub", marks=pytest.mark.slow),  # the forms: in `make test`
+                                  pytest.param("hub-bin", marks=pytest.mark.slow)])
 def test_tiny_models_reproduce_public_outputs(fixture, tiny, model, form, tmp_path):
     spec, arrays = fixture
     m = spec["models"][model]
@@ -99,6 +100,7 @@ def test_checkpoint_without_second_decoder_gets_a_copy(tiny, tmp_path):
             assert torch.equal(v, sd["dec_blocks." + k[len("dec_blocks2."):]])
 
 
+@pytest.mark.slow
 def test_reciprocal_matches_identical_to_public(fixture, tiny):
     spec, arrays = fixture
     expr, sd = tiny["mast3r-tiny"]

@@ -123,6 +123,7 @@ def test_missing_weights_fail_before_any_work(tmp_path, monkeypatch):
         Relocalizer.from_method("mast3r_pnp_mast3r")
 
 
+@pytest.mark.slow
 def test_cli_relocalize_with_tiny_checkpoint(weights, scene, tmp_path, realmini):
     cfg = tmp_path / "mast3r-small.yaml"
     cfg.write_text(f"extends: mast3r_pnp_mast3r\nmatcher_opts:\n  long_side: {SMALL}\n")
@@ -145,6 +146,7 @@ def test_cli_relocalize_with_tiny_checkpoint(weights, scene, tmp_path, realmini)
     assert "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt" in r.stderr
 
 
+@pytest.mark.slow
 def test_list_methods_says_what_the_presets_need():
     r = subprocess.run([sys.executable, "-m", "mapfree", "run", "--list-methods"], capture_output=True, text=True,
                        timeout=120)

@@ -15,13 +15,9 @@ SYNTH_ARGS = ["--size", "240x320", "--no-mono", "--quiet"]
 
 
 @pytest.fixture(scope="module")
-def synth(tmp_path_factory) -> Path:
-    """A small synthetic val split: two scenes of 10 queries, sensor depth (suffix ``sensor``)."""
-    from mapfree.cli import main
-
-    root = tmp_path_factory.mktemp("synth")
-    assert main(["synth", str(root), "--split", "val", "--scenes", "2", "--queries", "10", *SYNTH_ARGS]) == 0
-    return root
+def synth(synth_val) -> Path:
+    """A small synthetic val split: two scenes of 10 queries, sensor depth (suffix ``sensor``); read-only."""
+    return synth_val
 
 
 # --------------------------------------------------------------------------- defect 1: 0-byte / corrupt image
@@ -236,11 +232,11 @@ def test_run_exit_codes_summary_table_and_viz(synth, tmp_path, capsys):
     res = capsys.readouterr()
     assert rc == 0, res.err
     assert res.out.startswith(f"wrote {out}: ") and "AUC @ VCRE < 90px" in res.out  # evaluate's table, not JSON
-    figs = sorted(p.relative_to(viz).as_posix() for p in viz.rglob("*.png"))
-    assert figs == [f"{s}/seq1_frame_{i:05d}.png" for s in ("s00000", "s00001") for i in (0, 5)], figs
+    figs = sorted(p.relative_to(viz).as_posix() for p in viz.rglob("*.jpg"))
+    assert figs == [f"{s}/seq1_frame_{i:05d}.jpg" for s in ("s00000", "s00001") for i in (0, 5)], figs
     import cv2
 
-    img = cv2.imread(str(viz / "s00000" / "seq1_frame_00005.png"))
+    img = cv2.imread(str(viz / "s00000" / "seq1_frame_00005.jpg"))
     assert img.shape[:2] == (2 * 320 + 6, 2 * 240)  # matches above the AR check, reference | query in each
     # --json: the summary and the scores as JSON.
     assert main(["run", str(synth), "--method", "sift_pnp_sensor", "-o", str(out), "--no-progress", "--resume",
@@ -375,11 +371,12 @@ def run_with_viz(synth, tmp_path_factory):
     return d
 
 
-def _embedded_pngs(page: str) -> list[bytes]:
+def _embedded_pictures(page: str) -> list[bytes]:
+    """The plots (PNG) and the frames' figures (JPEG) embedded in a report page, in page order."""
     import base64
     import re
 
-    return [base64.b64decode(b) for b in re.findall(r'src="data:image/png;base64,([^"]+)"', page)]
+    return [base64.b64decode(b) for b in re.findall(r'src="data:image/(?:png|jpeg);base64,([^"]+)"', page)]
 
 
 def test_evaluate_html_report_is_self_contained(synth, run_with_viz, tmp_path, capsys):
@@ -393,15 +390,16 @@ def test_evaluate_html_report_is_self_contained(synth, run_with_viz, tmp_path, c
     page = page_path.read_text()
     assert "AUC @ VCRE &lt; 90px" in page and "s00000" in page and "s00001" in page  # tables
     assert not re.search(r'(src|href)="(?!data:)', page)  # nothing fetched from elsewhere
-    pngs = _embedded_pngs(page)
-    assert len(pngs) == 3 + 4 and all(p.startswith(b"\x89PNG") for p in pngs)  # 3 plots, 4 scored frames
-    # The worst frames' pictures are the run's own figures (matches + AR check), byte for byte.
-    figs = {p.read_bytes() for p in viz.rglob("*.png")}
-    assert set(pngs[3:]) == figs
+    pics = _embedded_pictures(page)
+    assert len(pics) == 3 + 4 and all(p.startswith(b"\x89PNG") for p in pics[:3])  # 3 plots, 4 scored frames
+    assert all(p.startswith(b"\xff\xd8\xff") for p in pics[3:])  # the frames as JPEG
+    # The worst frames' pictures are the run's own figures (matches + AR check), byte for byte (small enough).
+    figs = {p.read_bytes() for p in viz.rglob("*.jpg")}
+    assert set(pics[3:]) == figs
     # Without the run's figures, the AR check is drawn from the dataset's images.
     assert main(["evaluate", str(sub), "--dataset", str(synth), "--html", str(tmp_path / "r2.html")]) == 0
-    pngs2 = _embedded_pngs((tmp_path / "r2.html").read_text())
-    assert len(pngs2) == 7 and not set(pngs2[3:]) & figs
+    pics2 = _embedded_pictures((tmp_path / "r2.html").read_text())
+    assert len(pics2) == 7 and not set(pics2[3:]) & figs
     capsys.readouterr()
 
 
@@ -524,6 +522,7 @@ def test_relocalize_default_method_falls_back_to_pnp_for_a_query_without_depth(s
 # --------------------------------------------------------------------------- docs/reports.md
 
 
+@pytest.mark.slow
 def test_the_reports_page_example_runs_as_printed(tmp_path):
     """The "Try it" block of docs/reports.md, run as a reader would, prints the statuses its comments say."""
     import os

@@ -108,6 +108,7 @@ def test_a_tagged_turned_photo_gives_the_pose_of_the_original(scene, tmp_path, o
     assert np.linalg.norm(plain.pose.center - q.pose.center) < 0.25
 
 
+@pytest.mark.slow
 def test_mapfree_relocalize_reads_a_sideways_phone_photo(scene, tmp_path):
     """The command line with a query stored sideways (orientation 6) and intrinsics.txt and a depth map for its
     stored grid: the same pose as the original photo (it used to be refused: the image did not match its

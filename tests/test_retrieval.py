@@ -104,6 +104,7 @@ def test_pose_triangulation_exact_and_degenerate():
     assert not triangulate_pose(refs[:1], rel[:1]).ok
 
 
+@pytest.mark.slow
 def test_k_references_retrieve_and_beat_one_reference(realmini):
     from mapfree.relocalize import Relocalizer
     from mapfree.relocalize.references import ReferencedLocalizer
@@ -127,6 +128,7 @@ def test_k_references_retrieve_and_beat_one_reference(realmini):
     assert loc.localize(tests[0]).ok
 
 
+@pytest.mark.slow
 def test_prefetched_path_honours_the_references(realmini, tmp_path):
     """With K references bound, ``localize_many`` (what ``mapfree run`` calls) retrieves per query exactly as
     ``localize`` does (same reference, same pose), with and without prefetching, and a bad query fails the same
@@ -149,6 +151,7 @@ def test_prefetched_path_honours_the_references(realmini, tmp_path):
     assert all(e.extras["reference"] in refs.names for e in one if e.ok)
 
 
+@pytest.mark.slow
 def test_pose_triangulation_on_real_references(realmini):
     from mapfree.relocalize.references import ReferencedLocalizer
 
@@ -163,6 +166,7 @@ def test_pose_triangulation_on_real_references(realmini):
         ReferencedLocalizer.build(bound.localizer, [ref], k=1, mode="triangulation")
 
 
+@pytest.mark.slow
 def test_run_with_k_references_cli(realmini, tmp_path, capsys):
     from mapfree.cli import main
 

@@ -75,7 +75,9 @@ def test_fixture_lists_the_twelve_published_configurations(official):
         assert official[name]["config"] == f"config/regression/mapfree/{name}.yaml"
 
 
-@pytest.mark.parametrize("name", OFFICIAL_CONFIGS)
+# Two configurations (a 3D-3D head and a binned one) in `make test-fast`; all twelve in `make test`.
+@pytest.mark.parametrize("name", [c if c in ("3d3d", "rotbin_transdirectionbin_scale") else
+                                  pytest.param(c, marks=pytest.mark.slow) for c in OFFICIAL_CONFIGS])
 def test_published_checkpoint_loads_strictly_and_gives_the_public_pose(name, official, weights, inputs,
                                                                        encoder_features):
     from mapfree.regression import load_method
@@ -173,9 +175,10 @@ def test_relocalize_cli_matches_the_network_on_public_preprocessing(official, we
     monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(weights / "empty"))
     assert main(["relocalize", str(ref), str(query), "--method", "rpr-rot6d_trans"]) == 1
     err = capsys.readouterr().err
-    assert "rot6d_trans.ckpt not found" in err and "mapfree_rpr_weights.zip" in err
+    assert "'rot6d_trans.ckpt' not found" in err and "mapfree_rpr_weights.zip" in err
 
 
+@pytest.mark.slow
 def test_run_split_with_a_published_model_writes_the_networks_poses(official, weights, realmini, tmp_path, capsys):
     """``mapfree run ROOT --method rpr-3d3d --checkpoint CKPT``: every scored query's pose is the network's on the
     public preprocessing, with confidence 0 (the published models carry none)."""
@@ -204,6 +207,7 @@ def test_run_split_with_a_published_model_writes_the_networks_poses(official, we
     np.testing.assert_allclose(got.t, o.t[0].double().numpy(), atol=1e-5)
 
 
+@pytest.mark.slow
 def test_finetune_a_confidence_on_top_of_a_published_model(official, weights, tmp_path):
     """``mapfree train 3d3d --init 3d3d.ckpt --freeze pose --set model.uncertainty=true``: only the added
     uncertainty head trains (frozen encoder features cached); the poses stay the published model's exactly and

@@ -77,6 +77,7 @@ def test_run_writes_valid_submission_and_failure_log(tiny, tmp_path):
     assert again.computed == 0 and again.skipped == 5 and again.estimated == res.estimated
 
 
+@pytest.mark.slow
 def test_resume_after_kill_loses_and_recomputes_nothing(tiny, tmp_path):
     out = tmp_path / "killed" / "sub.zip"
     journal = out.with_name("sub.journal.jsonl")
@@ -108,6 +109,7 @@ def test_resume_after_kill_loses_and_recomputes_nothing(tiny, tmp_path):
     assert len(sub["pose_s00000.txt"]) == sum(r["ok"] for r in after if r["scene"] == "s00000")
 
 
+@pytest.mark.slow
 def test_ctrl_c_with_workers_stops_at_once_and_resumes(realmini, tmp_path):
     """Ctrl-C (SIGINT to the whole foreground group, as a terminal sends it; twice, as impatient users do) during
     ``run --workers 2``: the run stops after the frames in flight, starts no queued scene, says how to resume, and

@@ -97,6 +97,7 @@ def test_localization_report_counts_failures(realmini, seven):
                             np.full(3, 540), np.full(3, 360))
 
 
+@pytest.mark.slow
 def test_sevenscenes_cli_more_references_localise_better(realmini, seven, tmp_path, capsys):
     from mapfree.cli import main
 

@@ -13,19 +13,22 @@ import importlib
 import os
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from .depth import HUB_MODELS, PAIR_MODELS
 from .matching import needs as matcher_needs
 from .method_names import BEST_OFFLINE, BEST_OFFLINE_REFERENCE_DEPTH
 from .yamlio import read_yaml
 
+if TYPE_CHECKING:
+    from .weights import Model
+
 __all__ = [
     "Method", "MATCHERS", "OFFLINE_MATCHERS", "SOLVERS", "DEPTH_ALIASES", "BEST_OFFLINE", "BEST_OFFLINE_REFERENCE_DEPTH",
     "PAPER_THRESHOLD_PX",
     "get", "list_methods", "requirements", "register", "register_kind", "factory", "parse_name", "preset_name",
     "load_yaml", "config_dirs", "check_options", "query_depth_fallback", "depth_free_problem", "QUERY_DEPTH_SOLVERS",
-    "LIFTING_SOLVERS",
+    "LIFTING_SOLVERS", "weight_models", "all_weight_models",
 ]
 
 #: Matchers whose presets exist; ``OFFLINE_MATCHERS`` run without downloading weights.
@@ -213,19 +216,15 @@ def depth_free_problem(method: Method) -> str | None:
 
 
 def check_options(method: Method, where: str = "") -> None:
-    """Refuse a matcher or solver option the component does not have (a misspelt key would otherwise surface as a
-    TypeError when the method is built, or as every frame of a run failing), suggesting the nearest known one."""
+    """Refuse a matcher or solver option the component does not have (suggesting the nearest known one) or a value
+    of the wrong type or range, before anything is built: the component's own options dataclass checks them, as
+    it does for the command line and for Python (``mapfree.options``). ``where``: the file they came from."""
     if method.kind != "matching":
         return
     from . import matching, solvers
 
-    for key, component, known in (("matcher_opts", method.matcher, matching.option_names(method.matcher)),
-                                  ("solver_opts", method.solver, solvers.option_names(method.solver))):
-        for opt in sorted(set(getattr(method, key)) - set(known)):
-            close = difflib.get_close_matches(opt, known, n=1)
-            hint = f"did you mean {close[0]!r}? " if close else ""
-            raise ValueError(f"{where or method.name}: unknown option {key}.{opt} for {component!r}: {hint}"
-                             f"known: {', '.join(sorted(known))}")
+    matching.check_options(method.matcher, method.matcher_opts, where=where or method.name, prefix="matcher_opts.")
+    solvers.check_options(method.solver, method.solver_opts, where=where or method.name, prefix="solver_opts.")
 
 
 def _yaml_named(name: str) -> Path | None:
@@ -306,6 +305,62 @@ def requirements(name: str) -> str:
     else:
         depth = f"depth network {HUB_MODELS.get(m.depth, m.depth.removeprefix('hf:'))}"
     return f"{matcher_needs(m.matcher)}; {depth}"
+
+
+def weight_models(name: str) -> list["Model"]:
+    """The weights (``mapfree.weights`` models) that ``name`` needs: a method (its matcher's and depth network's,
+    a published RPR network's), a matcher or a depth network name. ``KeyError`` for a name that is none of these."""
+    from .depth.hub import DEPTH_WEIGHTS
+    from .matching import registry_key
+    from .matching.published import MATCHER_WEIGHTS
+
+    if registry_key(name) in MATCHER_WEIGHTS:
+        return list(MATCHER_WEIGHTS[registry_key(name)])
+    if name in DEPTH_WEIGHTS:
+        return [DEPTH_WEIGHTS[name]]
+    try:
+        m = get(name)
+    except KeyError:
+        known = [*list_methods(), *MATCHER_WEIGHTS, *DEPTH_WEIGHTS]
+        close = difflib.get_close_matches(name, known, n=3, cutoff=0.75)
+        hint = f"did you mean {' or '.join(map(repr, close))}? " if close else ""
+        raise KeyError(f"{name!r} is no method, matcher or depth network: {hint}see `mapfree run --list-methods`, "
+                       f"or `mapfree weights` without a name for every model") from None
+    if m.kind == "regression":
+        from .regression.official import RPR_WEIGHTS
+
+        config = m.options.get("config")
+        return [RPR_WEIGHTS[config]] if config in RPR_WEIGHTS and not m.options.get("checkpoint") else []
+    if m.kind != "matching":
+        return []
+    out = list(MATCHER_WEIGHTS.get(registry_key(m.matcher), ()))
+    if m.depth in DEPTH_WEIGHTS:
+        out.append(DEPTH_WEIGHTS[m.depth])
+    elif m.depth.startswith("hf:") and not Path(m.depth[3:]).expanduser().is_dir():
+        from .weights import HubModel
+
+        out.append(HubModel(m.depth[3:], f"depth network {m.depth}"))
+    return out
+
+
+def all_weight_models() -> list[tuple["Model", list[str]]]:
+    """Every published model a built-in matcher, depth network or RPR method can use, each with the names that
+    use it (``mapfree weights`` lists them)."""
+    from .depth.hub import DEPTH_WEIGHTS
+    from .matching.published import MATCHER_WEIGHTS
+
+    users: dict[str, tuple[Any, list[str]]] = {}
+    sources: list[tuple[str, tuple]] = [*MATCHER_WEIGHTS.items(), *((k, (v,)) for k, v in DEPTH_WEIGHTS.items())]
+    try:
+        from .regression.official import RPR_WEIGHTS
+
+        sources += [(f"rpr-{k}", (v,)) for k, v in RPR_WEIGHTS.items()]
+    except ImportError:  # pragma: no cover - a training-free install without the regression package's deps
+        pass
+    for user, models in sources:
+        for model in models:
+            users.setdefault(model.name, (model, []))[1].append(user)
+    return list(users.values())
 
 
 def _register_builtins() -> None:

@@ -18,7 +18,7 @@ from .geometry import Intrinsics, Pose, project
 
 __all__ = [
     "vcre_grid", "epipolar_inliers", "draw_matches", "draw_grid", "ar_panels", "relocalization_figure", "save_png",
-    "vcre_px", "estimate_figure", "png_bytes",
+    "vcre_px", "estimate_figure", "png_bytes", "jpeg_bytes", "report_picture", "save_figure", "fit",
 ]
 
 GREEN, RED, ORANGE, CYAN, WHITE = (40, 200, 60), (230, 40, 40), (255, 150, 0), (0, 200, 255), (255, 255, 255)
@@ -81,8 +81,10 @@ def _label(img: np.ndarray, text: str, row: int = 0) -> None:
 
 
 def draw_matches(img0: np.ndarray, img1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray,
-                 inliers: np.ndarray | None = None, max_lines: int = 400, seed: int = 0) -> np.ndarray:
-    """Reference | query side by side; inlier matches green, the others red (a random subset if many)."""
+                 inliers: np.ndarray | None = None, max_lines: int = 400, seed: int = 0,
+                 label: str | None = None) -> np.ndarray:
+    """Reference | query side by side; inlier matches green, the others red (a random subset if many);
+    ``label``: the headline (default: the number of matches and of green ones)."""
     canvas, off = _side_by_side(img0, img1)
     n = len(kpts0)
     inl = np.ones(n, bool) if inliers is None else np.asarray(inliers, bool)
@@ -96,8 +98,8 @@ def draw_matches(img0: np.ndarray, img1: np.ndarray, kpts0: np.ndarray, kpts1: n
         cv2.line(canvas, a, b, colour, 1, cv2.LINE_AA)
         cv2.circle(canvas, a, 2, colour, -1, cv2.LINE_AA)
         cv2.circle(canvas, b, 2, colour, -1, cv2.LINE_AA)
-    _label(canvas, f"{n} matches, {int(inl.sum())} consistent with the pose" if inliers is not None
-           else f"{n} matches")
+    _label(canvas, label if label is not None else f"{n} matches, {int(inl.sum())} consistent with the pose"
+           if inliers is not None else f"{n} matches")
     return canvas
 
 
@@ -145,21 +147,43 @@ def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_q
 def relocalization_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
                           kpts0: np.ndarray | None, kpts1: np.ndarray | None, pose: Pose | None,
                           gt_pose: Pose | None = None, threshold_px: float = 3.0, title: str = "",
-                          reason: str = "") -> np.ndarray:
+                          reason: str = "", solver_inliers: int | None = None) -> np.ndarray:
     """Matches on top, AR check below, one RGB image; ``reason``: why there is no pose, when there is none.
-    ``kpts0 = None``: a method without correspondences (pose regression): the AR check alone."""
+    ``kpts0 = None``: a method without correspondences (pose regression): the AR check alone. Green matches are
+    those within ``threshold_px`` of the pose's epipolar lines; ``solver_inliers``: the solver's own inlier count
+    (the ``inliers`` of the estimate and its JSON), shown as such in the headline."""
     bottom = ar_panels(ref_img, query_img, K_ref, K_query, pose, gt_pose, reason)
     if kpts0 is None or kpts1 is None:
         if title:
             _label(bottom, title, row=2)
         return bottom
     inl = epipolar_inliers(kpts0, kpts1, K_ref, K_query, pose, threshold_px) if pose is not None else None
-    top = draw_matches(ref_img, query_img, kpts0, kpts1, inl)
+    label = None
+    if inl is not None and solver_inliers is not None:
+        label = (f"{len(kpts0)} matches, {solver_inliers} solver inliers; green: {int(inl.sum())} within "
+                 f"{threshold_px:g} px of the pose")
+    top = draw_matches(ref_img, query_img, kpts0, kpts1, inl, label=label)
     if title:
         _label(top, title, row=1)
     w = max(top.shape[1], bottom.shape[1])
     pad = lambda im: np.pad(im, ((0, 0), (0, w - im.shape[1]), (0, 0)))  # noqa: E731
     return np.concatenate([pad(top), np.full((6, w, 3), 255, np.uint8), pad(bottom)], axis=0)
+
+
+#: ``run --viz`` figures: JPEG at this quality, the long side at most this many pixels (about 150-300 KB a frame of
+#: the dataset's 540x720 images, against 1.2 MB as full-size PNG).
+FIGURE_QUALITY, FIGURE_MAX_SIDE = 85, 1280
+#: Pictures embedded in an HTML report: smaller still, so eight worst frames and the plots stay well under 2 MB.
+REPORT_QUALITY, REPORT_MAX_SIDE = 80, 960
+
+
+def fit(rgb: np.ndarray, max_side: int | None) -> np.ndarray:
+    """``rgb`` scaled down (area interpolation) so that its long side is at most ``max_side`` pixels."""
+    h, w = rgb.shape[:2]
+    if not max_side or max(h, w) <= max_side:
+        return rgb
+    s = max_side / max(h, w)
+    return cv2.resize(rgb, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
 
 
 def png_bytes(rgb: np.ndarray) -> bytes:
@@ -170,12 +194,57 @@ def png_bytes(rgb: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
+def jpeg_bytes(rgb: np.ndarray, max_side: int | None = REPORT_MAX_SIDE, quality: int = REPORT_QUALITY) -> bytes:
+    """An RGB image as JPEG, its long side at most ``max_side`` pixels (to embed in a page)."""
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(fit(rgb, max_side), cv2.COLOR_RGB2BGR),
+                           [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError("could not encode the image as JPEG")
+    return buf.tobytes()
+
+
+def report_picture(data: bytes, max_side: int = REPORT_MAX_SIDE, quality: int = REPORT_QUALITY) -> bytes:
+    """An encoded figure (PNG or JPEG, e.g. from ``run --viz``) made fit for a report: as it is when it is already
+    a JPEG no larger than ``max_side``, else decoded and encoded as such a JPEG."""
+    if data[:3] == b"\xff\xd8\xff":
+        h, w = _jpeg_size(data)
+        if max(h, w) <= max_side:
+            return data
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError("not an image OpenCV can decode")
+    return jpeg_bytes(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), max_side, quality)
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int]:
+    """(height, width) from a JPEG's start-of-frame marker, without decoding it ((inf, inf) if not found)."""
+    i = 2
+    while i + 9 < len(data):
+        if data[i] != 0xFF:
+            break
+        marker, length = data[i + 1], int.from_bytes(data[i + 2:i + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            return int.from_bytes(data[i + 5:i + 7], "big"), int.from_bytes(data[i + 7:i + 9], "big")
+        i += 2 + length
+    return (1 << 30, 1 << 30)
+
+
 def save_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:
-    """Write an RGB image as PNG (parent folders created); raises OSError naming the file on failure."""
+    """Write an RGB image (PNG, or JPEG for a ``.jpg`` name; parent folders created); raises OSError naming the file
+    on failure."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"{path}: could not write PNG")
+        raise OSError(f"{path}: could not write {path.suffix.lstrip('.').upper() or 'the image'}")
+    return path
+
+
+def save_figure(path: os.PathLike | str, rgb: np.ndarray, max_side: int = FIGURE_MAX_SIDE,
+                quality: int = FIGURE_QUALITY) -> Path:
+    """Write a figure as JPEG, its long side at most ``max_side`` pixels (``run --viz``: one a frame)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(jpeg_bytes(rgb, max_side, quality))
     return path
 
 
@@ -186,4 +255,5 @@ def estimate_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsic
     m = estimate.extras.get("matches")
     k0, k1 = (m.kpts0, m.kpts1) if m is not None else (None, None)
     return relocalization_figure(ref_img, query_img, K_ref, K_query, k0, k1, estimate.pose, gt_pose,
-                                 threshold_px=threshold_px, title=title, reason=estimate.reason)
+                                 threshold_px=threshold_px, title=title, reason=estimate.reason,
+                                 solver_inliers=int(estimate.inliers) if estimate.pose is not None else None)

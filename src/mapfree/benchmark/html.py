@@ -1,8 +1,9 @@
 """One self-contained HTML page of an evaluation: headline and per-scene tables, the three evaluation figures and
-the worst frames, every picture embedded (base64 PNG), so the file can be mailed or archived on its own.
+the worst frames, every picture embedded (base64: the plots as PNG, the frames as JPEG), so the file can be mailed
+or archived on its own (about 1.5 MB with eight worst frames of the dataset's images).
 
-The worst frames' pictures come from a caller-supplied ``figure(scene, frame)`` (PNG bytes or None): the CLI
-looks for the figure a ``mapfree run --viz DIR`` drew, else draws the AR check from the dataset's images.
+The worst frames' pictures come from a caller-supplied ``figure(scene, frame)`` (JPEG or PNG bytes, or None): the
+CLI looks for the figure a ``mapfree run --viz DIR`` drew, else draws the AR check from the dataset's images.
 """
 
 from __future__ import annotations
@@ -33,9 +34,10 @@ th{background:#f5f5f5}td:first-child,th:first-child{text-align:left}.plots img{w
 """
 
 
-def frame_figure_path(viz_dir: os.PathLike | str, scene: str, frame: str) -> Path:
-    """``VIZ/s00000/seq1_frame_00005.png``: where ``mapfree run --viz VIZ`` draws a frame's figure."""
-    return Path(viz_dir) / scene / (frame.replace("/", "_").rsplit(".", 1)[0] + ".png")
+def frame_figure_path(viz_dir: os.PathLike | str, scene: str, frame: str, suffix: str = ".jpg") -> Path:
+    """``VIZ/s00000/seq1_frame_00005.jpg``: where ``mapfree run --viz VIZ`` draws a frame's figure (``.png``: where
+    runs before JPEG figures drew it)."""
+    return Path(viz_dir) / scene / (frame.replace("/", "_").rsplit(".", 1)[0] + suffix)
 
 
 def worst_frames(report: Report, n: int = 8) -> list[int]:
@@ -44,13 +46,17 @@ def worst_frames(report: Report, n: int = 8) -> list[int]:
     return idx[np.argsort(-report.vcre[idx], kind="stable")][:n].tolist()
 
 
-def _img(png: bytes, alt: str) -> str:
-    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
+def _img(data: bytes, alt: str) -> str:
+    mime = "image/jpeg" if data[:3] == b"\xff\xd8\xff" else "image/png"
+    return f'<img alt="{html.escape(alt)}" src="data:{mime};base64,{base64.b64encode(data).decode()}">'
 
 
 def _fig_png(fig) -> bytes:
+    import matplotlib.pyplot as plt
+
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
+    plt.close(fig)
     return buf.getvalue()
 
 

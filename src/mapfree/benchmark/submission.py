@@ -21,6 +21,7 @@ from typing import BinaryIO, Collection, Iterable, Mapping
 
 import numpy as np
 
+from ..data.io import publish
 from ..geometry import Pose, rotmat_to_quat
 from .tables import parse_numbers, scan_table
 
@@ -517,7 +518,7 @@ def write_submission(
         with os.fdopen(fd, "wb") as fh, zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_DEFLATED) as zf:
             for name, text in files.items():
                 zf.writestr(name, text)
-        os.replace(tmp, path)
+        publish(tmp, path)  # 0644 as every other output, not mkstemp's 0600
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

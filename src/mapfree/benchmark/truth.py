@@ -204,6 +204,10 @@ def load_truth(
     if gt_root is None and dataset_root is None:
         raise ValueError("need a dataset root or a ground-truth root")
     root = Path(gt_root) if gt_root is not None else Path(dataset_root)
+    if gt_root is not None and not root.is_dir():
+        raise FileNotFoundError(f"ground-truth root {root} (--gt-root) does not exist")
+    if dataset_root is not None and not Path(dataset_root).is_dir():
+        raise FileNotFoundError(f"dataset root {dataset_root} (--dataset) does not exist")
     names = Dataset(root).scene_names(split)
     if not names:
         raise FileNotFoundError(f"{root / split}: no scenes")

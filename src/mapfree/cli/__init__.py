@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 class HelpFormatter(argparse.HelpFormatter):
@@ -19,9 +20,19 @@ class DefaultsHelpFormatter(HelpFormatter, argparse.ArgumentDefaultsHelpFormatte
     """``HelpFormatter`` that also prints every option's default."""
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser, but a command line it cannot parse is one line (which argument, what is wrong, where the
+    help is) with exit status 2, not the whole usage block before it."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (`{self.prog} --help` shows the usage)\n")
+
+
 #: Exit statuses of every command: results written; an error (a message on stderr says what); argparse's own
 #: usage errors; the command ran but estimated nothing (with ``--strict``: not everything).
 EXIT_OK, EXIT_ERROR, EXIT_USAGE, EXIT_NOTHING = 0, 1, 2, 3
+#: The reader of the output went away (``mapfree … | head``): the shell's status of a command ended by SIGPIPE.
+EXIT_BROKEN_PIPE = 141
 
 
 def fail(command: str, error: BaseException | str) -> int:
@@ -32,9 +43,40 @@ def fail(command: str, error: BaseException | str) -> int:
     return EXIT_ERROR
 
 
+def output_file_problem(flag: str, path, suffixes: tuple[str, ...] = ()) -> str | None:
+    """Why ``path`` (given with ``flag``) cannot be written as an output file, before any work: it names a folder,
+    or its name does not end in one of ``suffixes`` (the formats it is written in); None when it can be tried."""
+    from pathlib import Path
+
+    path = Path(path)
+    if path.is_dir():
+        return f"{flag} {path}: a folder; give a file name" + (f" (e.g. {path / ('out' + suffixes[0])})" if suffixes
+                                                               else "")
+    if suffixes and path.suffix.lower() not in suffixes:
+        return f"{flag} {path}: the name must end in {' or '.join(suffixes)} (the format it is written in)"
+    return None
+
+
+def output_folder_problem(flag: str, path) -> str | None:
+    """Why folder ``path`` (given with ``flag``) cannot be made or written into, before any work: it is a file, or a
+    file stands where one of its parents should be; None when it can be tried."""
+    from pathlib import Path
+
+    path = Path(path)
+    blocker = next((p for p in (path, *path.parents) if p.exists()), None)
+    if blocker is not None and not blocker.is_dir():
+        return f"{flag} {path}: {blocker} is a file, not a folder"
+    return None
+
+
+def plural(n: int, word: str, words: str | None = None) -> str:
+    """``1 scene``, ``2 scenes`` (``words``: an irregular plural)."""
+    return f"{n} {word if n == 1 else words or word + 's'}"
+
+
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
 COMMANDS = ["demo", "synth", "check", "evaluate", "relocalize", "match", "run", "train", "serve", "admin", "sevenscenes",
-            "scannet", "build"]
+            "scannet", "build", "weights"]
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -42,7 +84,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     command imports and builds nothing of the others."""
     from .. import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="mapfree",
         description="Map-free visual relocalization: metric pose of a query photo relative to one reference photo.",
     )
@@ -67,10 +109,24 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     try:
-        return int(args.func(args) or EXIT_OK)
+        code = int(args.func(args) or EXIT_OK)
+        sys.stdout.flush()  # a closed pipe shows here, not as a traceback when the interpreter exits
+        return code
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `mapfree … | head`: the reader has gone; nothing to tell it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except OSError as e:  # an output that cannot be written (read-only, full disk, a file in the way): one line
-        return fail(args.command, e)
+        return fail(args.command, os_error_text(e))
+
+
+def os_error_text(e: OSError) -> str:
+    """``PATH: permission denied`` rather than Python's ``[Errno 13] Permission denied: 'PATH'``."""
+    if isinstance(e, (FileExistsError, NotADirectoryError)) and e.filename and os.path.isfile(e.filename):
+        return f"{e.filename} is a file, not a folder"
+    if e.strerror and e.filename:
+        return f"{e.filename}: {e.strerror[0].lower()}{e.strerror[1:]}"
+    return e.strerror or str(e)
 

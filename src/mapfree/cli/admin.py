@@ -6,7 +6,7 @@ import argparse
 import os
 import sys
 
-from . import HelpFormatter
+from . import HelpFormatter, Parser, fail
 
 
 def _limit(text: str) -> int | None:
@@ -17,8 +17,9 @@ def _limit(text: str) -> int | None:
 
     try:
         return parse_daily_limit(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(f"{e}, or 'default'") from None
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of evaluations (0: none), 'unlimited' or 'default'; got "
+                                         f"{str(text)[:40]!r}") from None
 
 
 def _row_id(text: str) -> int:
@@ -114,8 +115,7 @@ def run(a: argparse.Namespace) -> int:
         try:
             print(backup(a.db, a.dest))
         except (OSError, ValueError, RuntimeError) as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 1
+            return fail("admin", e)
         return 0
     from ..service.database.models import DatabaseUnavailable, open_database
     from ..service.database.migrations import SchemaVersion
@@ -123,8 +123,7 @@ def run(a: argparse.Namespace) -> int:
     try:
         engine, (before, after) = open_database(a.db)
     except (SchemaVersion, DatabaseUnavailable) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+        return fail("admin", e)
     if a.action == "migrate":
         print(f"schema version {after}" + (" (already)" if before == after else
                                             f" (was {before or 'unversioned'})"))
@@ -134,14 +133,26 @@ def run(a: argparse.Namespace) -> int:
     def user(db, name):
         u = db.scalar(select(User).where(User.name == name))
         if u is None:
-            raise SystemExit(f"error: no user {name!r}")
+            raise LookupError(f"no user {name!r}")
         return u
 
     def lifetime() -> float | None:
         try:
             return auth.parse_duration(a.expires_in) if a.expires_in else None
         except ValueError as e:
-            raise SystemExit(f"error: --expires-in: {e}") from None
+            raise LookupError(f"--expires-in: {e}") from None
+
+    try:
+        return _act(a, sessions, user, lifetime, engine)
+    except LookupError as e:  # no such user, a bad duration: one line, nothing changed (the transaction rolls back)
+        return fail("admin", e.args[0])
+
+
+def _act(a: argparse.Namespace, sessions, user, lifetime, engine) -> int:
+    from sqlalchemy import select
+
+    from ..service import auth
+    from ..service.db import ApiToken, User, WebSession
 
     with sessions.begin() as db:
         if a.action == "create-user":
@@ -149,8 +160,7 @@ def run(a: argparse.Namespace) -> int:
             try:
                 u, token = auth.create_user(db, a.name, admin=a.admin, expires_in=expires_in)
             except ValueError as e:
-                print(f"error: {e}", file=sys.stderr)
-                return 1
+                return fail("admin", e)
             u.test_daily_limit = a.test_daily_limit
             print(token)
             print(f"created user {a.name!r}; the token above is shown only once", file=sys.stderr)
@@ -158,8 +168,7 @@ def run(a: argparse.Namespace) -> int:
             try:
                 print(auth.issue_token(db, user(db, a.name), lifetime(), a.label))
             except auth.TokenLimit as e:
-                print(f"error: {e}", file=sys.stderr)
-                return 1
+                return fail("admin", e)
         elif a.action == "revoke-tokens":
             print(f"revoked {auth.revoke_tokens(db, user(db, a.name))} token(s)", file=sys.stderr)
         elif a.action == "list-tokens":
@@ -173,8 +182,7 @@ def run(a: argparse.Namespace) -> int:
         elif a.action == "revoke-token":
             row = db.get(ApiToken, a.id)
             if row is None:
-                print(f"error: no token {a.id}", file=sys.stderr)
-                return 1
+                return fail("admin", f"no token {a.id}")
             ended = auth.revoke_token(db, row)
             also = [f"{len(v)} {k} made with it ({', '.join(map(str, v))})" for k, v in ended.items() if v]
             print(f"revoked token {a.id} ({row.prefix}…)" + (f" and ended {' and '.join(also)}" if also else ""),
@@ -188,8 +196,7 @@ def run(a: argparse.Namespace) -> int:
         elif a.action == "revoke-session":
             row = db.get(WebSession, a.id)
             if row is None:
-                print(f"error: no session {a.id}", file=sys.stderr)
-                return 1
+                return fail("admin", f"no session {a.id}")
             db.delete(row)
             print(f"ended session {a.id}", file=sys.stderr)
         elif a.action == "delete-user":
@@ -213,8 +220,7 @@ def _delete_user(db, u, yes: bool) -> int:
     from ..service.database.models import User
 
     if u.is_admin and db.scalar(select(func.count()).select_from(User).where(User.is_admin.is_(True))) == 1:
-        print(f"error: {u.name!r} is the only admin; make another admin first", file=sys.stderr)
-        return 1
+        return fail("admin", f"{u.name!r} is the only admin; make another admin first")
     name = u.name
     gone = delete_user(db, u, dry_run=not yes)
     what = ", ".join(f"{n} {k}" for k, n in gone.items())
@@ -228,7 +234,7 @@ def _delete_user(db, u, yes: bool) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m mapfree.cli.admin`` = ``mapfree admin`` without loading the other subcommands."""
-    parser = argparse.ArgumentParser(prog="mapfree")
+    parser = Parser(prog="mapfree")
     register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["admin", *(sys.argv[1:] if argv is None else argv)])
     return int(args.func(args) or 0)

@@ -63,12 +63,17 @@ def run(args: argparse.Namespace) -> int:
     from ..build.run import build_all
 
     from ..matching import names as matcher_names
-    from . import fail
+    from . import fail, output_folder_problem
 
     if args.matcher != "colmap" and args.matcher.strip().lower().replace("_", "-") not in matcher_names():
         return fail("build", f"unknown --matcher {args.matcher!r}; colmap or one of {', '.join(matcher_names())}")
-    if args.workers < 1 or args.fps <= 0 or not 0 < args.min_registered <= 1 or args.max_features < 64:
-        return fail("build", "--workers >= 1, --fps > 0, 0 < --min-registered <= 1, --max-features >= 64")
+    checks = [(args.workers < 1, f"--workers must be >= 1, got {args.workers}"),
+              (args.fps <= 0, f"--fps must be > 0, got {args.fps}"),
+              (not 0 < args.min_registered <= 1, f"--min-registered must be in (0, 1], got {args.min_registered}"),
+              (args.max_features < 64, f"--max-features must be >= 64, got {args.max_features}")]
+    problem = next((msg for bad, msg in checks if bad), None) or output_folder_problem("--out", args.out)
+    if problem:
+        return fail("build", problem)
     if args.private_gt and args.split != "test":
         return fail("build", "--private-gt only applies to --split test")
     opts = BuildOptions(split=args.split, fps=args.fps, device_axes=args.device_axes, min_registered=args.min_registered,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from . import EXIT_ERROR, EXIT_OK, HelpFormatter, fail
+from . import EXIT_ERROR, EXIT_OK, HelpFormatter, fail, plural
 
 DESCRIPTION = """\
 Verify a Map-free dataset folder: the split folders and their scenes (the release: 460 train s00000-s00459,
@@ -51,6 +51,12 @@ def run(args: argparse.Namespace) -> int:
 
     if args.workers < 1:
         return fail("check", "--workers must be >= 1")
+    if args.max_problems < 0:
+        return fail("check", f"--max-problems must be >= 0, got {args.max_problems}")
+    if not args.root.is_dir():
+        from ..data.check import not_a_dataset_folder
+
+        return fail("check", f"{args.root}: {not_a_dataset_folder(args.root)}")
     err = Console(stderr=True)
     show = not args.json and err.is_terminal
     report = check_dataset(args.root, args.split, subset=args.subset, deep=args.deep, workers=args.workers,
@@ -77,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         out.print(str(p), markup=False, highlight=False, soft_wrap=True)
     if len(problems) > args.max_problems:
         out.print(f"… and {len(problems) - args.max_problems} more (--max-problems N, or --json for all)")
-    out.print("OK: nothing missing or unreadable" if report.ok else f"{len(problems)} problem(s) found",
+    out.print("OK: nothing missing or unreadable" if report.ok else f"{plural(len(problems), 'problem')} found",
               style="green" if report.ok else "red")
     if not report.subset and any(s.expected is not None and s.scenes != s.expected for s in report.splits):
         out.print("(a partial copy, or scenes of your own? --subset checks only the scenes that are there)")

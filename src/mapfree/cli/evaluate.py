@@ -63,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
     for flag, value in (("--plots", args.plots), ("--viz", args.viz)):
         if value is not None and Path(value).exists() and not Path(value).is_dir():
             return fail("evaluate", f"{flag} {value}: not a folder (it names a file)")
+    if args.worst < 0:
+        return fail("evaluate", f"--worst must be >= 0, got {args.worst}")
     if args.html is not None and Path(args.html).is_dir():
         return fail("evaluate", f"--html {args.html}: a folder; give the report's file name (e.g. report.html)")
     from ..benchmark import EvaluationError, evaluate, format_table
@@ -121,9 +123,12 @@ def _figure_source(args: argparse.Namespace):
 
     def figure(scene: str, frame: str):
         if args.viz:
-            p = frame_figure_path(args.viz, scene, frame)
-            if p.is_file():
-                return p.read_bytes()
+            for suffix in (".jpg", ".png"):  # .png: figures of a run before they were JPEG
+                p = frame_figure_path(args.viz, scene, frame, suffix)
+                if p.is_file():
+                    from ..viz import report_picture
+
+                    return report_picture(p.read_bytes())
         if root is None or not (root / scene).is_dir():
             return None
         try:
@@ -148,7 +153,7 @@ def _draw_from_data(scene_dir, scene: str, frame: str, state: dict):
     from ..benchmark import read_submission
     from ..data import Scene
     from ..geometry import Pose
-    from ..viz import ar_panels, png_bytes
+    from ..viz import ar_panels, jpeg_bytes
 
     if "estimates" not in state:
         state["estimates"] = read_submission(state["submission"])[0]
@@ -161,4 +166,4 @@ def _draw_from_data(scene_dir, scene: str, frame: str, state: dict):
     ref_pose = ref.pose if ref.pose is not None else Pose.identity()
     rel = Pose.from_qt(est.q[i], est.t[i]) @ ref_pose.inverse()
     gt = query.pose @ ref_pose.inverse() if query.pose is not None else None
-    return png_bytes(ar_panels(ref.image(), query.image(), ref.intrinsics, query.intrinsics, rel, gt))
+    return jpeg_bytes(ar_panels(ref.image(), query.image(), ref.intrinsics, query.intrinsics, rel, gt))

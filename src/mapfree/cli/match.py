@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("image1", type=Path, help="second image (the query)")
     p.add_argument("--matcher", default="sift", help="matcher name (default: sift); see `mapfree run --list-methods`")
     p.add_argument("-o", "--output", type=Path, help="write the matches to this .npz file")
-    p.add_argument("--viz", type=Path, help="write a PNG of the matches")
+    p.add_argument("--viz", type=Path, help="draw the matches into this .png (or .jpg) file")
     p.add_argument("--device", help="cpu, cuda, cuda:1 … (default: cuda when available); not for sift")
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="a matcher option (e.g. max_keypoints=1024, weights=DIR); values read as YAML scalars")
@@ -61,15 +61,21 @@ def run(args: argparse.Namespace) -> int:
     from ..matching import MissingWeightsError
     from ..matching.export import match_files, save_npz
 
+    from ..matching import check_options
+    from ..options import check_device
+    from . import fail, output_file_problem
+
+    problem = (output_file_problem("-o", args.output) if args.output else None) or (
+        output_file_problem("--viz", args.viz, (".png", ".jpg", ".jpeg")) if args.viz else None)
+    if problem:
+        return fail("match", problem)
     try:
-        r = match_files(args.image0, args.image1, args.matcher, **_options(args))
-    except TypeError as e:  # an option the matcher's options dataclass does not have
-        print(f"mapfree match: error: option not accepted by matcher {args.matcher!r}: {e}", file=sys.stderr)
-        return 1
+        check_device(args.device)
+        opts = _options(args)
+        check_options(args.matcher, opts)  # before any image is read or weights loaded
+        r = match_files(args.image0, args.image1, args.matcher, **opts)
     except (FormatError, MissingWeightsError, KeyError, ValueError, ImportError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else str(e)
-        print(f"mapfree match: error: {msg}", file=sys.stderr)
-        return 1
+        return fail("match", e)
     where = []
     if args.output:
         where.append(str(save_npz(args.output, r)))

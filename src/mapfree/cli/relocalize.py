@@ -43,7 +43,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--depth-query", type=Path, help="query depth map (uint16 PNG, mm)")
     p.add_argument("--gt-pose", help="ground truth: 'qw,qx,qy,qz,tx,ty,tz' (query w.r.t. reference), "
                                       "a poses.txt holding both frames, or 'auto' (the scene's poses.txt)")
-    p.add_argument("--viz", type=Path, help="write a PNG with the matches and the AR check")
+    p.add_argument("--viz", type=Path, help="draw the matches and the AR check into this .png (or .jpg) file")
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="weights of a regression method (e.g. --method rpr-3d3d --checkpoint 3d3d.ckpt)")
     p.set_defaults(func=run)
@@ -138,14 +138,33 @@ def _query_has_depth(method, args) -> bool:
     return depth_path_for(args.query, method.depth.split(":", 1)[1]).is_file()
 
 
+def _check_depth_suffix(method, args) -> None:
+    """A ``files:SUFFIX`` method whose map is not beside the reference (and no --depth-ref) is a typo in the suffix
+    or the method, not a pair without depth: refused, naming the suffixes that are there (as ``mapfree run``)."""
+    if method.kind != "matching" or not method.depth.startswith("files:") or args.depth_ref is not None:
+        return
+    from ..data.io import depth_path_for, depth_suffixes
+
+    suffix = method.depth.split(":", 1)[1]
+    if not args.reference.is_file() or depth_path_for(args.reference, suffix).is_file():
+        return
+    found = depth_suffixes(args.reference)
+    raise InputError(f"method {method.name!r} reads depth maps *.{suffix}.png, but the reference has none "
+                     f"({depth_path_for(args.reference, suffix)}); depth suffixes there: {', '.join(found) or 'none'} "
+                     f"(pick one with NAME@SUFFIX or the method's last part, or pass --depth-ref)")
+
+
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..data import FormatError, check_depth_size, read_depth
     from ..methods import get
     from ..relocalize import Relocalizer, as_view
-    from . import EXIT_NOTHING, fail
+    from . import EXIT_NOTHING, fail, output_file_problem
 
+    problem = output_file_problem("--viz", args.viz, (".png", ".jpg", ".jpeg")) if args.viz else None
+    if problem:
+        return fail("relocalize", problem)
     try:
         if args.checkpoint is not None:
             from .run import _with_checkpoint
@@ -157,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
             method = method.with_depth(args.depth)
         from ..methods import depth_free_problem, query_depth_fallback
 
+        _check_depth_suffix(method, args)
         problem = depth_free_problem(method)
         if problem and (args.depth_ref is None or (method.solver == "procrustes" and args.depth_query is None)):
             raise InputError(f"{problem}; or pass the maps with --depth-ref/--depth-query")
@@ -196,6 +216,8 @@ def run(args: argparse.Namespace) -> int:
     from ..relocalize.run import estimate_scores
 
     out["scores"] = estimate_scores(est)
+    if est.extras.get("same_viewpoint"):  # the query was taken from the reference's viewpoint: identity pose
+        out["same_viewpoint"] = True
     if gt is not None and est.pose is not None:
         from ..geometry import rotation_angle_deg
         from ..viz import vcre_px

@@ -66,7 +66,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the run's summary (and scores) as JSON")
     p.add_argument("--strict", action="store_true", help="exit 3 unless every frame got an estimate")
     p.add_argument("--viz", type=Path, default=None, metavar="DIR",
-                   help="draw each frame computed (matches + AR check) as DIR/SCENE/seq1_frame_NNNNN.png")
+                   help="draw each frame computed (matches + AR check) as DIR/SCENE/seq1_frame_NNNNN.jpg "
+                        "(JPEG, long side <= 1280 px: about 150-300 KB a frame)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--list-methods", action="store_true", help="print the method names, each with what it needs, and exit")
     p.set_defaults(func=run)
@@ -96,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
                    "bursts of the scored queries)")
     elif args.viz is not None and args.viz.exists() and not args.viz.is_dir():
         problem = f"--viz {args.viz}: not a folder (it names a file)"
+    elif args.scenes is not None and not [s for s in args.scenes.split(",") if s.strip()]:
+        problem = f"--scenes {args.scenes!r}: no scene name (give e.g. --scenes s00000,s00001)"
     if problem:
         return fail("run", problem)
     from ..relocalize import run_split
@@ -114,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
         res = run(args.root, args.split, method, args.output, workers=args.workers,
                   all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
                   confidence=args.confidence, progress=not args.no_progress,
-                  scenes=args.scenes.split(",") if args.scenes else None, batch_size=args.batch, viz_dir=args.viz)
+                  scenes=[s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None, batch_size=args.batch, viz_dir=args.viz)
     except (FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
         return fail("run", e)
     except KeyboardInterrupt:
@@ -161,9 +164,11 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_summary(res, frames, args: argparse.Namespace) -> None:
     """What the run wrote, in a few lines (``--json`` prints everything)."""
+    from . import plural
+
     total = res.estimated + res.failed
     print(f"wrote {res.submission}: {res.estimated} of {total} frames estimated "
-          f"({frames.computed} computed, {frames.skipped} from the journal, {frames.scenes} scenes, "
+          f"({frames.computed} computed, {frames.skipped} from the journal, {plural(frames.scenes, 'scene')}, "
           f"{frames.seconds:.1f} s)")
     if res.failed:
         print(f"frames without an estimate and why: {res.failures}")

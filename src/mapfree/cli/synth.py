@@ -45,13 +45,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--scan-frames", type=int, default=12, help="scans split: images per scan, two scans a place (default: 12)")
     p.add_argument("--no-mono", action="store_true", help="skip the simulated monocular depth (frame.mono.png)")
     p.add_argument("--workers", type=int, default=1, help="scenes rendered in parallel processes (default: 1)")
+    p.add_argument("--force", action="store_true", help="replace scenes that already exist (default: refuse)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..data.synth import SynthOptions, generate
-    from . import fail
+    from . import fail, output_folder_problem
 
     try:
         w, h = (int(x) for x in args.size.lower().split("x"))
@@ -59,10 +60,23 @@ def run(args: argparse.Namespace) -> int:
         return fail("synth", f"--size must look like 540x720, got {args.size!r}")
     if args.private_gt and args.split not in ("test", "scans"):
         return fail("synth", "--private-gt only applies to --split test or scans")
-    if w < 32 or h < 32 or args.scenes < 0 or args.queries < 1 or args.train_frames < 1 \
-            or not 0 <= args.no_overlap < 1 or args.workers < 1:
-        return fail("synth", "sizes must be >= 32 px, --queries/--train-frames/--workers >= 1, --scenes >= 0 and "
-                             "0 <= --no-overlap < 1")
+    checks = [(w < 32 or h < 32, f"--size {args.size}: both sides must be >= 32 px"),
+              *((getattr(args, k.replace("-", "_")) < 1, f"--{k} must be >= 1, got {getattr(args, k.replace('-', '_'))}")
+                for k in ("scenes", "queries", "train-frames", "workers")),
+              (args.first_scene < 0, f"--first-scene must be >= 0, got {args.first_scene}"),
+              (not 0 <= args.no_overlap < 1, f"--no-overlap must be in [0, 1), got {args.no_overlap}")]
+    problem = next((msg for bad, msg in checks if bad), None) or output_folder_problem("ROOT", args.root)
+    if problem:
+        return fail("synth", problem)
+    from pathlib import Path
+
+    folder = Path(args.root) / args.split
+    targets = [folder / f"s{args.first_scene + k:05d}" for k in range(args.scenes)]
+    existing = [t.name for t in targets if t.is_dir() and any(t.iterdir())]
+    if existing and not args.force:
+        listed = ", ".join(existing[:4]) + (" …" if len(existing) > 4 else "")
+        return fail("synth", f"{folder} already holds {len(existing)} of these scenes ({listed}): --force replaces "
+                             f"them, --first-scene N writes new ones beside them")
     opts = SynthOptions(
         queries=args.queries, train_frames=args.train_frames, width=w, height=h,
         no_overlap_fraction=args.no_overlap, first_scene=args.first_scene, write_mono=not args.no_mono,
@@ -70,17 +84,19 @@ def run(args: argparse.Namespace) -> int:
     )
     t0 = time.perf_counter()
     if args.split == "scans":
-        return _scans(args, opts, t0)
+        return _scans(args, opts, t0, existing)
     dirs = generate(args.root, args.split, args.scenes, args.queries, args.seed, args.private_gt, opts,
                     progress=not args.quiet)
     dt = time.perf_counter() - t0
-    print(f"wrote {len(dirs)} {args.split} scene(s) under {args.root}/{args.split} in {dt:.1f} s")
+    replaced = f", replacing {len(existing)} that existed" if existing else ""
+    print(f"wrote {len(dirs)} {args.split} scene{'s' if len(dirs) != 1 else ''} under {args.root}/{args.split}"
+          f"{replaced} in {dt:.1f} s")
     if args.private_gt:
         print(f"private ground truth under {args.private_gt}/test")
     return 0
 
 
-def _scans(args: argparse.Namespace, opts, t0: float) -> int:
+def _scans(args: argparse.Namespace, opts, t0: float, existing: list[str]) -> int:
     from ..data.synth.scans import ScanOptions, generate_scans
     from . import fail
 
@@ -88,7 +104,9 @@ def _scans(args: argparse.Namespace, opts, t0: float) -> int:
         return fail("synth", "--scan-frames must be >= 3")
     dirs = generate_scans(args.root, args.scenes, args.seed, ScanOptions(frames=args.scan_frames, synth=opts),
                           args.private_gt, args.first_scene, progress=not args.quiet)
-    print(f"wrote {len(dirs)} place(s) of raw scans under {args.root}/scans in {time.perf_counter() - t0:.1f} s")
+    replaced = f", replacing {len(existing)} that existed" if existing else ""
+    print(f"wrote {len(dirs)} place{'s' if len(dirs) != 1 else ''} of raw scans under {args.root}/scans{replaced} in "
+          f"{time.perf_counter() - t0:.1f} s")
     if args.private_gt:
         print(f"true poses and overlaps under {args.private_gt}/scans")
     return 0

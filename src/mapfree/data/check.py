@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import re
+import zipfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -255,6 +256,15 @@ def _check_one(args: tuple[str, str, bool]) -> SceneStats:
     return check_scene(*args)
 
 
+def not_a_dataset_folder(root: Path) -> str:
+    """Why ``root`` is no dataset folder: it does not exist, or it is a file (a ZIP of the release, say)."""
+    if not root.exists():
+        return "no such folder"
+    if zipfile.is_zipfile(root):
+        return "a ZIP file, not a dataset folder: unzip it and check the folder it makes"
+    return "a file, not a dataset folder"
+
+
 def check_dataset(root: os.PathLike | str, splits: Sequence[str] | None = None, *, subset: bool = False,
                   deep: bool = False, workers: int = 1,
                   progress: Callable[[Iterable[SceneStats], int], Iterable[SceneStats]] | None = None) -> CheckReport:
@@ -268,7 +278,7 @@ def check_dataset(root: os.PathLike | str, splits: Sequence[str] | None = None, 
     root = Path(root)
     report = CheckReport(str(root), deep, subset)
     if not root.is_dir():
-        report.problems.append(Problem(str(root), "no such folder"))
+        report.problems.append(Problem(str(root), not_a_dataset_folder(root)))
         return report
     unknown = [s for s in (splits or []) if s not in SPLITS]
     if unknown:

@@ -19,6 +19,8 @@ from .orientation import OrientationError, exif_orientation, orient_pixels
 
 __all__ = [
     "FormatError",
+    "depth_suffixes",
+    "publish",
     "iter_records",
     "read_intrinsics",
     "write_intrinsics",
@@ -137,6 +139,38 @@ def depth_path_for(image_path: os.PathLike | str, suffix: str) -> Path:
     return p.with_name(f"{p.stem}.{suffix}.png")
 
 
+def publish(tmp: os.PathLike | str, path: os.PathLike | str) -> Path:
+    """Move a finished temporary file (``tempfile.mkstemp``: mode 0600) to ``path`` atomically, with the mode every
+    other output gets (0666 less the umask: 0644 usually)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(tmp, 0o666 & ~mask)
+    os.replace(tmp, path)
+    return Path(path)
+
+
+def depth_suffixes(image_path: os.PathLike | str) -> list[str]:
+    """The depth suffixes of the maps beside an image: ``frame.sensor.png``, ``frame.mono.png`` -> sensor, mono."""
+    p = Path(image_path)
+    return sorted({q.name[len(p.stem) + 1: -len(".png")] for q in p.parent.glob(f"{p.stem}.*.png")})
+
+
+def _decode(data: np.ndarray, flags: int) -> np.ndarray | None:
+    """``cv2.imdecode`` without OpenCV's own "[ WARN ] … buffer is incomplete" lines on stderr (the caller words
+    the error, naming the file); None for bytes it cannot decode."""
+    import cv2
+    from cv2.utils import logging as cv_log
+
+    level = cv_log.getLogLevel()
+    cv_log.setLogLevel(cv_log.LOG_LEVEL_ERROR)
+    try:
+        return cv2.imdecode(data, flags)
+    except cv2.error:  # OpenCV asserts on some truncated headers instead of returning None
+        return None
+    finally:
+        cv_log.setLogLevel(level)
+
+
 def read_depth(path: os.PathLike | str) -> np.ndarray:
     """uint16 millimetre PNG -> float32 metres, 0 = invalid."""
     import cv2  # here, not at the top: reading poses and intrinsics needs no OpenCV
@@ -145,10 +179,7 @@ def read_depth(path: os.PathLike | str) -> np.ndarray:
     if not Path(path).is_file():
         raise FormatError(path, None, "depth image not found")
     data = np.fromfile(str(path), dtype=np.uint8)
-    try:
-        d = cv2.imdecode(data, cv2.IMREAD_ANYDEPTH) if data.size else None
-    except cv2.error:
-        d = None
+    d = _decode(data, cv2.IMREAD_ANYDEPTH) if data.size else None
     if d is None:
         raise FormatError(path, None, "cannot read depth image (empty or corrupt)")
     if d.ndim != 2:
@@ -194,10 +225,7 @@ def read_image(path: os.PathLike | str) -> np.ndarray:
         raise FormatError(path, None, "image file not found")
     if data.size == 0:
         raise FormatError(path, None, "image file is empty (0 bytes)")
-    try:
-        img = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-    except cv2.error:  # OpenCV asserts on some truncated headers instead of returning None
-        img = None
+    img = _decode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise FormatError(path, None, "cannot decode image (corrupt or unsupported format)")
     return upright(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), path)

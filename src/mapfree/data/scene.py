@@ -154,7 +154,8 @@ class Dataset:
     def __init__(self, root: os.PathLike | str):
         self.root = Path(root)
         if not self.root.is_dir():
-            raise FileNotFoundError(f"dataset root {self.root} does not exist")
+            raise FileNotFoundError(f"dataset root {self.root} " + ("is a file, not a folder" if self.root.exists()
+                                                                     else "does not exist"))
 
     def splits(self) -> list[str]:
         return [s for s in SPLITS if (self.root / s).is_dir()]

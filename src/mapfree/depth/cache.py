@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data.io import publish
+
 __all__ = ["DepthCache"]
 
 
@@ -49,4 +51,4 @@ class DepthCache:
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npy")
         with os.fdopen(fd, "wb") as f:
             np.save(f, depth.astype(self.dtype), allow_pickle=False)
-        os.replace(tmp, path)  # atomic: readers never see half a file
+        publish(tmp, path)  # atomic: readers never see half a file

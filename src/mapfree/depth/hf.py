@@ -14,7 +14,9 @@ import torch
 
 from ..data import Frame
 from ..matching.attention import steady_kernels
-from ..matching.weights import in_hf_cache, reachable
+from ..matching.utils import resolve_device
+from ..weights import BrokenWeightsError, HubModel, MissingWeightsError, check_folder, offline_why, reachable
+from ..options import Options, option
 from .cache import DepthCache
 from .hub import HUB_MODELS
 
@@ -22,8 +24,8 @@ __all__ = ["HUB_MODELS", "HFDepthOptions", "HFDepth", "MissingModelError", "reso
 
 
 
-class MissingModelError(FileNotFoundError):
-    """The model is neither a local folder nor in the Hugging Face cache, and the hub is unreachable."""
+class MissingModelError(MissingWeightsError):
+    """The model is in no weights folder, not in the Hugging Face cache, and the hub is unreachable."""
 
 
 def resolve_model(model: str) -> str:
@@ -39,12 +41,12 @@ def resolve_model(model: str) -> str:
 
 
 @dataclass
-class HFDepthOptions:
-    batch_size: int = 4
-    device: str | None = None  # None: cuda when available
+class HFDepthOptions(Options):
+    batch_size: int = option(4, min=1)
+    device: str | None = option(None, device=True)  # None: cuda when available
     half: bool = True  # float16 weights on CUDA
     cache_dir: str | None = None  # None: no disk cache
-    cache_dtype: str = "float16"  # 1 mm at 2 m, 1 cm at 20 m: below any network's error, half the disk
+    cache_dtype: str = option("float16", choices=("float16", "float32"))  # 1 mm at 2 m, 1 cm at 20 m: half the disk
     use_intrinsics: bool = True  # Depth Pro: take the focal length from the frame instead of estimating it
 
 
@@ -57,30 +59,41 @@ class HFDepth:
     metric = True
 
     def __init__(self, model: str, options: HFDepthOptions | None = None, **overrides: object) -> None:
-        self.options = o = options or HFDepthOptions(**overrides)  # type: ignore[arg-type]
+        self.options = o = HFDepthOptions.build(overrides, owner=f"depth network {model!r}", base=options)
         self.model_id = resolve_model(model)
         self.name = model if model in HUB_MODELS else f"hf:{model}"
-        self.device = torch.device(o.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        # a hub id is looked for by the weights rule ($MAPFREE_WEIGHTS_DIR/<name>, the default folder, the cache)
+        self.hub = None if Path(self.model_id).is_dir() else HubModel(self.model_id, f"depth network {model}")
+        self.device = resolve_device(o.device)  # None/"auto": cuda when available
         self.cache = DepthCache(o.cache_dir, self.model_id, o.cache_dtype) if o.cache_dir else None
         self._model = None
         self._processor = None
         self.predictions = 0  # images run through the network (cache misses)
 
     # ------------------------------------------------------------------ loading
-    def check_available(self) -> None:
-        """Raise ``MissingModelError`` now if the model could not be loaded (not cached, hub unreachable), without
-        loading it: a run refuses before any work instead of failing every frame."""
-        if self._model is not None or Path(self.model_id).is_dir():
-            return
-        if in_hf_cache(self.model_id) or reachable(_HUB_URL):
-            return
-        raise MissingModelError(self._missing_message())
+    def _source(self) -> str | None:
+        """A local folder (or the cached hub id) to load from, by the weights rule; None: only a download would do."""
+        if self.hub is None:
+            check_folder(self.model_id, f"depth network hf:{self.model_id}")
+            return self.model_id
+        hit = self.hub.locate()
+        if hit is None:
+            return None
+        if hit.where == "the Hugging Face cache":  # its own downloads are atomic and complete themselves online
+            return self.model_id
+        check_folder(hit.path, self.hub.what)  # cut short or incomplete: named, before transformers reads it
+        return str(hit.path)
 
-    def _missing_message(self) -> str:
-        return (f"depth model '{self.model_id}' is not in the local Hugging Face cache and huggingface.co is "
-                f"unreachable. On a machine with internet run `huggingface-cli download {self.model_id} "
-                f"--local-dir DIR`, copy DIR here and use the depth spec 'hf:DIR' (or point HF_HOME at a "
-                f"cache that holds it).")
+    def check_available(self) -> None:
+        """Raise ``MissingModelError`` now if the model could not be loaded (in no weights folder, not cached, hub
+        unreachable), without loading it: a run refuses before any work instead of failing every frame."""
+        if self._model is not None or self._source() is not None or reachable(_HUB_URL):
+            return
+        raise self._missing()
+
+    def _missing(self) -> MissingModelError:
+        assert self.hub is not None
+        return MissingModelError(str(self.hub.missing(offline_why(_HUB_URL))))
 
     def load(self) -> None:
         """Load model + processor now (otherwise on first use); ``MissingModelError`` when unavailable."""
@@ -91,21 +104,25 @@ class HFDepth:
 
         hf_logging.set_verbosity_error()
         dtype = torch.float16 if self.options.half and self.device.type == "cuda" else torch.float32
-        local = Path(self.model_id).is_dir()
+        src = self._source()
+        local = src is not None and Path(src).is_dir()
 
-        def load(local_only: bool):
-            proc = AutoImageProcessor.from_pretrained(self.model_id, local_files_only=local_only)
-            net = AutoModelForDepthEstimation.from_pretrained(self.model_id, local_files_only=local_only, dtype=dtype)
+        def load(source: str, local_only: bool):
+            proc = AutoImageProcessor.from_pretrained(source, local_files_only=local_only)
+            net = AutoModelForDepthEstimation.from_pretrained(source, local_files_only=local_only, dtype=dtype)
             return proc, net
 
         try:
-            proc, net = load(True)
-        except (OSError, ValueError) as e:
+            if src is None:
+                raise OSError("not on this machine")
+            proc, net = load(src, True)
+        except Exception as e:  # noqa: BLE001 - transformers, safetensors and torch each raise their own kinds
             if local:
-                raise MissingModelError(f"{self.model_id}: not a transformers depth model folder ({e})") from None
+                first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+                raise BrokenWeightsError(f"{src}: not a transformers depth model folder ({first})") from None
             if not reachable(_HUB_URL):
-                raise MissingModelError(self._missing_message()) from None
-            proc, net = load(False)
+                raise self._missing() from None
+            proc, net = load(self.model_id, False)
         self._processor, self._model = proc, net.to(self.device).eval()
 
     # ------------------------------------------------------------------ prediction

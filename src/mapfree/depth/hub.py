@@ -1,6 +1,8 @@
 """Short names of the monocular metric depth networks on the Hugging Face hub (no torch import here)."""
 
-__all__ = ["HUB_MODELS"]
+from ..weights import HubModel
+
+__all__ = ["HUB_MODELS", "DEPTH_WEIGHTS"]
 
 _DA2 = "depth-anything/Depth-Anything-V2-Metric-{}-{}-hf"
 HUB_MODELS: dict[str, str] = {
@@ -21,3 +23,6 @@ HUB_MODELS: dict[str, str] = {
     "dpt-nyu-large": "facebook/dpt-dinov2-large-nyu",
     "depth-pro": "apple/DepthPro-hf",
 }
+
+#: The networks as ``mapfree.weights`` models: found by the one rule, ``<name>/`` being the last part of the hub id.
+DEPTH_WEIGHTS = {short: HubModel(repo, f"depth network {short}") for short, repo in HUB_MODELS.items()}

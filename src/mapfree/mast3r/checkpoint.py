@@ -4,7 +4,7 @@ Two forms: the authors' ``.pth`` (``{"model": state_dict, "args": Namespace(mode
 and the hub's folder (``config.json`` of constructor arguments + ``model.safetensors``, or ``pytorch_model.bin``
 in older pushes). A checkpoint without the second decoder gets a copy of the first, as the public loader does.
 Weights are never shipped with mapfree (CC BY-NC-SA 4.0): the user downloads them and we find them by name in
-``$MAPFREE_WEIGHTS_DIR``.
+the weights folders (``$MAPFREE_WEIGHTS_DIR``, then ``~/.cache/mapfree/weights``: ``mapfree.weights``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ from typing import Any, Mapping
 
 import torch
 
-from ..matching.weights import WEIGHTS_ENV, MissingWeightsError, weights_dir
+from ..matching.published import MAST3R_WEIGHTS
+from ..weights import BrokenWeightsError, MissingWeightsError, check_folder, file_problem
 from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs, parse_constructor
 from .model import AsymmetricModel
 
@@ -29,7 +30,7 @@ __all__ = ["Published", "PUBLISHED", "find_checkpoint", "checkpoint_available", 
 
 @dataclass(frozen=True)
 class Published:
-    """A published checkpoint: the file stem we look for, its hub id, its direct download."""
+    """A published checkpoint: the file stem we look for, its hub id, its direct download, its architecture."""
 
     stem: str
     hub_id: str
@@ -37,27 +38,21 @@ class Published:
     expr: str  # the constructor call stored in the .pth (the architecture)
 
 
-PUBLISHED = {
-    "mast3r": Published(
-        "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric", "naver/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric",
-        "https://download.europe.naverlabs.com/ComputerVision/MASt3R/"
-        "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth",
-        (
+_EXPR = {
+    "mast3r": (
         "AsymmetricMASt3R(pos_embed='RoPE100', patch_embed_cls='PatchEmbedDust3R', img_size=(512, 512), "
         "head_type='catmlp+dpt', output_mode='pts3d+desc24', depth_mode=('exp', -inf, inf), conf_mode=('exp', "
         "1, inf), enc_embed_dim=1024, enc_depth=24, enc_num_heads=16, dec_embed_dim=768, dec_depth=12, "
         "dec_num_heads=12, two_confs=True, desc_conf_mode=('exp', 0, inf), landscape_only=False)"
-        )),
-    "dust3r": Published(
-        "DUSt3R_ViTLarge_BaseDecoder_512_dpt", "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt",
-        "https://download.europe.naverlabs.com/ComputerVision/DUSt3R/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth",
-        (
+    ),
+    "dust3r": (
         "AsymmetricCroCo3DStereo(pos_embed='RoPE100', patch_embed_cls='PatchEmbedDust3R', img_size=(512, 512), "
         "head_type='dpt', output_mode='pts3d', depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), "
         "enc_embed_dim=1024, enc_depth=24, enc_num_heads=16, dec_embed_dim=768, dec_depth=12, "
         "dec_num_heads=12, landscape_only=False)"
-        )),
+    ),
 }
+PUBLISHED = {kind: Published(w.stem, w.hub_id, w.url, _EXPR[kind]) for kind, w in MAST3R_WEIGHTS.items()}
 _HUB_WEIGHTS = ("model.safetensors", "pytorch_model.bin")
 
 
@@ -66,30 +61,19 @@ def _is_hub_folder(p: Path) -> bool:
 
 
 def find_checkpoint(kind: str, explicit: str | os.PathLike | None = None) -> Path:
-    """The checkpoint of ``kind`` (``mast3r`` | ``dust3r``): ``explicit`` (a ``.pth`` or a hub folder), else
-    ``$MAPFREE_WEIGHTS_DIR/<stem>.pth`` or ``$MAPFREE_WEIGHTS_DIR/<stem>/`` (a hub download); else a
-    ``MissingWeightsError`` saying which file to put where and where it is published."""
-    pub = PUBLISHED[kind]
-    if explicit is not None:
-        p = Path(explicit).expanduser()
-        if p.is_file() or _is_hub_folder(p):
-            return p
-        raise MissingWeightsError(f"{kind}: checkpoint {p} not found (expected a .pth file or a folder with "
-                                  f"config.json and model.safetensors)")
-    root = weights_dir()
-    if root is not None:
-        for cand in (root / f"{pub.stem}.pth", root / pub.stem, root / pub.hub_id.replace("/", "--")):
-            if cand.is_file() or _is_hub_folder(cand):
-                return cand
-    where = f"${WEIGHTS_ENV} (now {root})" if root is not None else f"a folder named by ${WEIGHTS_ENV} (not set)"
-    raise MissingWeightsError(
-        f"{kind}: weights file '{pub.stem}.pth' not found. Place '{pub.stem}.pth' (or the hub folder '{pub.stem}/' "
-        f"with config.json and model.safetensors) in {where}. It is published at {pub.url} and on the Hugging Face "
-        f"hub as {pub.hub_id} (licence CC BY-NC-SA 4.0: mapfree does not ship it).")
+    """The checkpoint of ``kind`` (``mast3r`` | ``dust3r``) by the weights rule (``mapfree.weights``):
+    ``explicit`` (a ``.pth`` or a hub folder), else ``<stem>.pth`` or the hub folder ``<stem>/`` in
+    ``$MAPFREE_WEIGHTS_DIR`` or the default folder; else a ``MissingWeightsError`` saying which file to put where
+    and where it is published."""
+    w = MAST3R_WEIGHTS[kind]
+    hit = w.locate(explicit)
+    if hit is None or (hit.path.is_dir() and not _is_hub_folder(hit.path)):
+        raise w.missing(explicit=explicit)
+    return hit.path
 
 
 def checkpoint_available(kind: str) -> bool:
-    """Whether the published checkpoint of ``kind`` is in ``$MAPFREE_WEIGHTS_DIR``."""
+    """Whether the published checkpoint of ``kind`` is in a weights folder."""
     try:
         find_checkpoint(kind)
     except MissingWeightsError:
@@ -105,6 +89,9 @@ def load_error_gist(e: Exception) -> str:
 
 
 def _load_pth(path: Path) -> tuple[Mapping[str, torch.Tensor], str]:
+    why = file_problem(path)
+    if why:  # cut short: said so, not torch's zip-reader internals
+        raise BrokenWeightsError(f"{path} is refused: {why} (an interrupted download? fetch it again)")
     try:
         with torch.serialization.safe_globals([argparse.Namespace]):
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
@@ -121,6 +108,7 @@ def _load_pth(path: Path) -> tuple[Mapping[str, torch.Tensor], str]:
 
 
 def _load_hub(folder: Path) -> tuple[Mapping[str, torch.Tensor], dict[str, Any]]:
+    check_folder(folder, "MASt3R/DUSt3R")  # a weights file cut short: named, before safetensors reads it
     try:
         kwargs = json.loads((folder / "config.json").read_text())
     except (OSError, ValueError) as e:

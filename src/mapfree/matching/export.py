@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import difflib
 import os
 import time
 from dataclasses import dataclass
@@ -11,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import create, names, registry_key
+from . import create, options_class, registry_key
 from .base import Matches
 
 __all__ = ["NPZ_KEYS", "PairMatches", "match_files", "save_npz", "load_npz", "resolve_name"]
@@ -48,19 +47,14 @@ class PairMatches:
 def resolve_name(name: str) -> str:
     """The registry key of ``name`` (case and ``_``/``-`` as ``create`` accepts); ``KeyError`` with the nearest
     names for an unknown one."""
-    key = registry_key(name)
-    known = names()
-    if key in known:
-        return key
-    close = difflib.get_close_matches(key, known, n=3, cutoff=0.6)
-    hint = f"did you mean {' or '.join(map(repr, close))}? " if close else ""
-    raise KeyError(f"unknown matcher {name!r}: {hint}known: {', '.join(known)}")
+    options_class(name)  # the registry's refusal of an unknown name, with the nearest ones
+    return registry_key(name)
 
 
 def match_files(image0: os.PathLike | str, image1: os.PathLike | str, matcher: str,
                 **options: object) -> PairMatches:
     """Read both images (``FormatError`` naming an unreadable one), build ``matcher`` (``KeyError``,
-    ``MissingWeightsError``, or ``TypeError`` for an option it does not have) and match them."""
+    ``MissingWeightsError``, or ``OptionError`` for an option it does not have or a bad value) and match them."""
     from ..data import read_image
 
     name = resolve_name(matcher)

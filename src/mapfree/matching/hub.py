@@ -1,23 +1,23 @@
 """Matchers published as transformers models on the Hugging Face hub (SuperGlue, EfficientLoFTR): where their
 folders come from, how they are loaded, and the grey input their image processors would make.
 
-A model folder (``config.json`` + ``model.safetensors``) is found, in order, at the ``weights=`` option,
-``$MAPFREE_WEIGHTS_DIR/<name>`` (``<name>`` = the last part of the hub id), or the Hugging Face cache; online,
-``from_pretrained`` downloads it into that cache. Offline with none of these: one ``MissingWeightsError``
-naming the hub id and where to place the folder, before any work."""
+A model folder (``config.json`` + ``model.safetensors``) is found by the one rule of ``mapfree.weights``: the
+``weights=`` option, ``$MAPFREE_WEIGHTS_DIR/<name>``, the default folder ``~/.cache/mapfree/weights/<name>``
+(``<name>`` = the last part of the hub id), the Hugging Face cache; online, ``from_pretrained`` downloads it into
+that cache. Offline with none of these: one ``MissingWeightsError`` naming the hub id and where to place the
+folder, before any work; a folder that is there but incomplete or cut short: a ``BrokenWeightsError`` naming it."""
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import torch
 
+from ..weights import BrokenWeightsError, HubModel, MissingWeightsError, check_folder, offline_why, reachable
 from .utils import matching_size
-from .weights import OFFLINE_ENV, WEIGHTS_ENV, MissingWeightsError, in_hf_cache, reachable, weights_dir
 
 __all__ = ["HubModel", "find_hub_model", "load_hub_model", "transformers_classes", "grey_pixels", "GREY_WEIGHTS"]
 
@@ -25,53 +25,13 @@ __all__ = ["HubModel", "find_hub_model", "load_hub_model", "transformers_classes
 GREY_WEIGHTS = (0.2989, 0.5870, 0.1140)
 
 
-@dataclass(frozen=True)
-class HubModel:
-    """A transformers model on the hub: its id, what it is (for messages) and its weights' licence."""
-
-    repo_id: str
-    what: str
-    licence: str = ""
-
-    @property
-    def folder(self) -> str:
-        """The folder name looked for under ``$MAPFREE_WEIGHTS_DIR``."""
-        return self.repo_id.rsplit("/", 1)[-1]
-
-    @property
-    def url(self) -> str:
-        return f"https://huggingface.co/{self.repo_id}"
-
-
-def _is_model_dir(p: Path) -> bool:
-    return (p / "config.json").is_file()
-
-
 def find_hub_model(hm: HubModel, explicit: str | os.PathLike | None = None) -> str | None:
-    """A local source for ``hm``: a folder path, or the hub id when the Hugging Face cache holds it; else None."""
-    if explicit is not None:
-        p = Path(explicit).expanduser()
-        return str(p) if _is_model_dir(p) else None
-    root = weights_dir()
-    if root is not None:
-        for cand in (root / hm.folder, root / hm.repo_id):
-            if _is_model_dir(cand):
-                return str(cand)
-    return hm.repo_id if in_hf_cache(hm.repo_id) else None
-
-
-def _missing(hm: HubModel, explicit: str | os.PathLike | None, why: str) -> MissingWeightsError:
-    root = weights_dir()
-    if explicit is not None:
-        where = f"the folder given as weights= ({explicit})"
-    else:
-        where = f"${WEIGHTS_ENV}/{hm.folder}" + (f" ({root / hm.folder})" if root is not None else "")
-        where += ", or into the Hugging Face cache"
-    return MissingWeightsError(
-        f"{hm.what}: model '{hm.repo_id}' not found ({why}). Place its folder (config.json, model.safetensors; "
-        f"`huggingface-cli download {hm.repo_id} --local-dir DIR` on a machine with internet) as {where}. "
-        f"It is published at {hm.url}" + (f" ({hm.licence})." if hm.licence else ".")
-    )
+    """A local source for ``hm`` by the rule: a folder path (possibly incomplete: loading says what is wrong), or
+    the hub id when the Hugging Face cache holds it; else None."""
+    hit = hm.locate(explicit)
+    if hit is None:
+        return None
+    return hm.repo_id if hit.where == "the Hugging Face cache" else str(hit.path)
 
 
 def transformers_classes(*names: str) -> tuple[Any, ...]:
@@ -94,15 +54,17 @@ def load_hub_model(
     configure: Callable[[Any], None] | None = None,
 ) -> Any:
     """``model_cls.from_pretrained`` of ``hm`` from its local source (or a download when online), its config
-    first edited by ``configure`` (the paper's settings). Raises ``MissingWeightsError`` before any work."""
-    src = find_hub_model(hm, explicit)
-    if src is None:
+    first edited by ``configure`` (the paper's settings). Raises ``MissingWeightsError`` before any work, and
+    ``BrokenWeightsError`` for a folder that is there but incomplete or cut short (an interrupted download)."""
+    hit = hm.locate(explicit)
+    if hit is None:
         if explicit is not None:
-            raise _missing(hm, explicit, f"{explicit} holds no config.json")
+            raise hm.missing(explicit=explicit)
         if not reachable(hm.url):
-            flag = next((v for v in (OFFLINE_ENV, "HF_HUB_OFFLINE") if os.environ.get(v)), None)
-            why = f"${flag} is set" if flag else "offline: huggingface.co unreachable"
-            raise _missing(hm, None, why)
+            raise hm.missing(offline_why(hm.url))
+    elif hit.where != "the Hugging Face cache":  # its own downloads are atomic and complete themselves online
+        check_folder(hit.path, hm.what)  # config.json, a whole weights file: before transformers reads it
+    src = find_hub_model(hm, explicit) if hit is not None else None
     from transformers.utils import logging as hf_logging
 
     hf_logging.set_verbosity_error()
@@ -127,13 +89,14 @@ def load_hub_model(
         return net.eval()
     except _OptionError:
         raise
-    except (OSError, ValueError, TypeError, RuntimeError) as e:
+    except Exception as e:  # noqa: BLE001 - safetensors, torch and transformers each raise their own kinds
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        if isinstance(e, RuntimeError):  # transformers' refusal of mismatched sizes says only that
+        if isinstance(e, RuntimeError) and "size" in first:  # transformers' refusal of mismatched sizes says only that
             first = "weights of the wrong shape for its config.json"
         if Path(src).is_dir():
-            raise ValueError(f"{src}: not a {hm.what} model folder ({first})") from None
-        raise _missing(hm, None, first) from None
+            raise BrokenWeightsError(f"{hm.what}: model folder {src} is refused: not a {hm.what} model folder "
+                                     f"({first})") from None
+        raise hm.missing(first) from None
 
 
 def grey_pixels(

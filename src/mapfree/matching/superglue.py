@@ -13,32 +13,29 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..options import Options, option
 from .attention import steady_kernels
 from .base import Features, Matches
-from .hub import HubModel, find_hub_model, grey_pixels, load_hub_model, transformers_classes
+from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_classes
+from .published import SUPERGLUE_MODELS
 from .utils import autocast, checked_or_blank, resolve_device, to_original
 
 __all__ = ["SuperGlueOptions", "SuperGlueMatcher", "SUPERGLUE_MODELS", "superglue_available"]
 
-_LICENCE = "Magic Leap licence: academic or non-profit non-commercial research use only"
-SUPERGLUE_MODELS = {
-    "outdoor": HubModel("magic-leap-community/superglue_outdoor", "SuperPoint + SuperGlue (outdoor)", _LICENCE),
-    "indoor": HubModel("magic-leap-community/superglue_indoor", "SuperPoint + SuperGlue (indoor)", _LICENCE),
-}
 
 
 @dataclass
-class SuperGlueOptions:
-    weights_kind: str = "outdoor"  # outdoor | indoor
+class SuperGlueOptions(Options):
+    weights_kind: str = option("outdoor", choices=("outdoor", "indoor"))
     weights: str | None = None  # a model folder (config.json + model.safetensors) instead of the hub's
-    max_keypoints: int = 1024
-    keypoint_threshold: float = 0.005
-    nms_radius: int = 4
-    sinkhorn_iterations: int = 20
-    match_threshold: float = 0.2
-    max_size: int | None = 720  # long side; the dataset's 540x720 images are matched as they are
+    max_keypoints: int = option(1024, min=1)
+    keypoint_threshold: float = option(0.005, min=0, max=1)
+    nms_radius: int = option(4, min=0)
+    sinkhorn_iterations: int = option(20, min=1)
+    match_threshold: float = option(0.2, min=0, max=1)
+    max_size: int | None = option(720, min=16)  # long side; the dataset's 540x720 images are matched as they are
     mixed_precision: bool = False  # CUDA autocast; off until validated on a GPU
-    device: str | None = None
+    device: str | None = option(None, device=True)
 
 
 def superglue_available(kind: str = "outdoor", weights: str | None = None) -> bool:
@@ -62,7 +59,7 @@ class SuperGlueMatcher:
         SuperGlueConfig, SuperGlueForKeypointMatching = transformers_classes("SuperGlueConfig",
                                                                             "SuperGlueForKeypointMatching")
 
-        self.options = o = options or SuperGlueOptions(**overrides)  # type: ignore[arg-type]
+        self.options = o = SuperGlueOptions.build(overrides, owner="matcher 'superglue'", base=options)
         if o.weights_kind not in SUPERGLUE_MODELS:
             raise ValueError(f"unknown SuperGlue weights {o.weights_kind!r}; choose from {sorted(SUPERGLUE_MODELS)}")
         self.name = "superglue" if o.weights_kind == "outdoor" else f"superglue-{o.weights_kind}"

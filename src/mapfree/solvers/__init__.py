@@ -22,7 +22,7 @@ from .procrustes import ProcrustesOptions, ProcrustesSolver
 from .scale import scale_vote, scale_vote_bruteforce
 
 __all__ = [
-    "Solver", "create", "available", "options_for", "option_names", "PRESETS", "CONFIDENCE_MODES",
+    "Solver", "create", "available", "options_for", "option_names", "check_options", "PRESETS", "CONFIDENCE_MODES",
     "EssentialOptions", "EssentialSolver", "MickeySolver", "MickeySolverOptions", "PnPOptions", "PnPSolver",
     "ProcrustesOptions", "ProcrustesSolver",
     "scale_vote", "scale_vote_bruteforce",
@@ -56,16 +56,18 @@ def option_names(name: str) -> list[str]:
     return [f.name for f in fields(SOLVERS[_canonical(name)][1])]
 
 
+def check_options(name: str, values: dict, where: str = "", prefix: str = "") -> None:
+    """Refuse an option solver ``name`` does not have or a value of the wrong type or range (``OptionError``)."""
+    key = _canonical(name)
+    SOLVERS[key][1].build(values, owner=f"solver {key!r}", where=where, prefix=prefix)
+
+
 def options_for(name: str, preset: str = "paper", **options):
     """The options dataclass of solver ``name`` for a preset, with explicit overrides applied."""
     if preset not in PRESETS:
         raise KeyError(f"unknown preset {preset!r}; available: {', '.join(PRESETS)}")
-    cls = SOLVERS[_canonical(name)][1]
-    known = {f.name for f in fields(cls)}
-    unknown = set(options) - known
-    if unknown:
-        raise TypeError(f"unknown option(s) for {name!r}: {', '.join(sorted(unknown))}; known: {', '.join(sorted(known))}")
-    return cls(**{**PRESETS[preset], **options})
+    key = _canonical(name)
+    return SOLVERS[key][1].build({**PRESETS[preset], **options}, owner=f"solver {key!r}")
 
 
 def create(name: str, preset: str = "paper", **options) -> Solver:

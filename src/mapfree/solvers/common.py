@@ -165,8 +165,7 @@ class GuardedSolver:
     _errors: tuple[type[BaseException], ...] = (cv2.error, np.linalg.LinAlgError, ValueError, RuntimeError, MemoryError)
 
     def __init__(self, options=None, **overrides) -> None:
-        base = options or self.Options()
-        self.options = self.Options(**{**base.__dict__, **overrides})
+        self.options = self.Options.build(overrides, owner=f"solver {self.name!r}", base=options)
 
     def solve(self, matches, K_ref: Intrinsics, K_query: Intrinsics,
               depth_ref: np.ndarray | None, depth_query: np.ndarray | None = None) -> Estimate:

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose
+from ..options import Options, option
 from .common import (
     GuardedSolver,
     DEPTH_SAMPLING,
@@ -34,32 +35,20 @@ BACKENDS = ("opencv", "poselib")
 
 
 @dataclass
-class EssentialOptions:
+class EssentialOptions(Options):
     """Defaults are the paper's; use ``ransac_threshold_px=2`` for learned matchers."""
 
-    ransac_threshold_px: float = 3.0
-    ransac_confidence: float = 0.9999
-    max_iters: int = 1000  # OpenCV's default for findEssentialMat, as in the public code
-    distance_threshold: float = 50.0  # recoverPose drops points triangulating farther (in baselines)
-    scale_threshold: float = 0.1  # metres, scale-vote inlier radius
-    depth_sampling: str = "nearest"  # "nearest" | "floor" (public code) | "bilinear"
-    min_matches: int = 5
-    backend: str = "opencv"  # "opencv" (cv2 USAC_MAGSAC, the paper's) | "poselib" (LO-RANSAC + refinement)
-    confidence: str = "inliers"  # "inliers" (paper) | "score" (see confidence.py)
+    ransac_threshold_px: float = option(3.0, min=0, min_open=True)
+    ransac_confidence: float = option(0.9999, min=0, max=1, min_open=True, max_open=True)
+    max_iters: int = option(1000, min=1)  # OpenCV's default for findEssentialMat, as in the public code
+    distance_threshold: float = option(50.0, min=0, min_open=True)  # recoverPose drops farther points (baselines)
+    scale_threshold: float = option(0.1, min=0, min_open=True)  # metres, scale-vote inlier radius
+    depth_sampling: str = option("nearest", choices=DEPTH_SAMPLING)  # "nearest" | "floor" (public code) | "bilinear"
+    min_matches: int = option(5, min=5)
+    backend: str = option("opencv", choices=BACKENDS)  # "opencv" (cv2 USAC_MAGSAC, the paper's) | "poselib"
+    confidence: str = option("inliers", choices=CONFIDENCE_MODES)  # "inliers" (paper) | "score" (confidence.py)
     allow_unscaled: bool = False  # without depth, return the unit-length translation instead of failing
     refine: bool = False  # polish (R, t̂) on the pose inliers (poselib, Sampson error, Cauchy loss); not in the paper
-
-    def __post_init__(self) -> None:
-        if self.backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
-        if self.confidence not in CONFIDENCE_MODES:
-            raise ValueError(f"confidence must be one of {CONFIDENCE_MODES}, got {self.confidence!r}")
-        if self.depth_sampling not in DEPTH_SAMPLING:
-            raise ValueError(f"depth_sampling must be one of {DEPTH_SAMPLING}, got {self.depth_sampling!r}")
-        if not (self.ransac_threshold_px > 0 and self.scale_threshold > 0 and self.distance_threshold > 0):
-            raise ValueError("thresholds must be positive")
-        if not 0 < self.ransac_confidence < 1:
-            raise ValueError("ransac_confidence must be in (0, 1)")
 
 
 def triangulated_depths(x0: np.ndarray, x1: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -7,10 +7,14 @@ local PCA of the target) slides along surfaces and converges to the surface alig
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .common import kabsch
+
+if TYPE_CHECKING:  # SciPy's spatial module loads only when ICP runs (a third of a second of every CLI start)
+    from scipy.spatial import cKDTree
 
 __all__ = ["ICP_METHODS", "icp", "estimate_normals"]
 
@@ -55,6 +59,8 @@ def icp(src: np.ndarray, dst: np.ndarray, R: np.ndarray, t: np.ndarray, max_dist
         raise ValueError(f"ICP method must be one of {ICP_METHODS}, got {method!r}")
     if len(src) < 6 or len(dst) < 6:
         return R, t, 0.0, 0.0
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(dst)
     normals = estimate_normals(dst, tree) if method == "point_to_plane" else None
     prev = None

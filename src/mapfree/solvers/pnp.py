@@ -9,6 +9,7 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose, project
+from ..options import Options, option
 from .common import (
     GuardedSolver,
     DEPTH_SAMPLING,
@@ -27,28 +28,18 @@ BACKENDS = ("opencv", "poselib")
 
 
 @dataclass
-class PnPOptions:
+class PnPOptions(Options):
     """Defaults are the paper's."""
 
-    ransac_iterations: int = 1000
-    reprojection_threshold_px: float = 3.0
-    ransac_confidence: float = 0.9999
-    min_refine_inliers: int = 6  # iterative refinement on the inliers when at least this many
-    max_translation: float = 1000.0  # metres; larger solutions are degenerate (public code's guard)
-    depth_sampling: str = "nearest"
-    min_matches: int = 5
-    backend: str = "opencv"  # "opencv" (solvePnPRansac + P3P, the paper's) | "poselib"
-    confidence: str = "inliers"
-
-    def __post_init__(self) -> None:
-        if self.backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
-        if self.confidence not in CONFIDENCE_MODES:
-            raise ValueError(f"confidence must be one of {CONFIDENCE_MODES}, got {self.confidence!r}")
-        if self.depth_sampling not in DEPTH_SAMPLING:
-            raise ValueError(f"depth_sampling must be one of {DEPTH_SAMPLING}, got {self.depth_sampling!r}")
-        if not self.reprojection_threshold_px > 0:
-            raise ValueError("reprojection_threshold_px must be positive")
+    ransac_iterations: int = option(1000, min=1)
+    reprojection_threshold_px: float = option(3.0, min=0, min_open=True)
+    ransac_confidence: float = option(0.9999, min=0, max=1, min_open=True, max_open=True)
+    min_refine_inliers: int = option(6, min=4)  # iterative refinement on the inliers when at least this many
+    max_translation: float = option(1000.0, min=0, min_open=True)  # metres; larger solutions are degenerate
+    depth_sampling: str = option("nearest", choices=DEPTH_SAMPLING)
+    min_matches: int = option(5, min=4)
+    backend: str = option("opencv", choices=BACKENDS)  # "opencv" (solvePnPRansac + P3P, the paper's) | "poselib"
+    confidence: str = option("inliers", choices=CONFIDENCE_MODES)
 
 
 def _pnp_opencv(X: np.ndarray, uv: np.ndarray, K: np.ndarray, opt: PnPOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

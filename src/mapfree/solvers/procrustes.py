@@ -12,6 +12,7 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose, backproject_depth
+from ..options import Options, option
 from .common import (
     GuardedSolver,
     DEPTH_SAMPLING,
@@ -31,32 +32,22 @@ __all__ = ["ProcrustesOptions", "ProcrustesSolver", "ransac_rigid"]
 
 
 @dataclass
-class ProcrustesOptions:
+class ProcrustesOptions(Options):
     """Defaults follow the public code (Open3D's RANSAC on correspondences: 3-point samples, 0.05 m,
     at most 100000 iterations, confidence 0.999); ICP off."""
 
-    inlier_threshold: float = 0.05  # metres
-    max_iterations: int = 100_000
-    ransac_confidence: float = 0.999
-    refine_steps: int = 3  # refits on the inliers (local optimisation)
+    inlier_threshold: float = option(0.05, min=0, min_open=True)  # metres
+    max_iterations: int = option(100_000, min=1)
+    ransac_confidence: float = option(0.999, min=0, max=1, min_open=True, max_open=True)
+    refine_steps: int = option(3, min=0)  # refits on the inliers (local optimisation)
     icp: bool = False
-    icp_max_iterations: int = 30
-    icp_max_points: int = 20_000  # per cloud, regular subsampling of the back-projected depth maps
-    icp_method: str = "point_to_point"  # the public code's (Open3D default) | "point_to_plane" (more accurate)
-    depth_sampling: str = "nearest"
-    min_matches: int = 5
-    confidence: str = "inliers"
+    icp_max_iterations: int = option(30, min=1)
+    icp_max_points: int = option(20_000, min=3)  # per cloud, regular subsampling of the back-projected depth maps
+    icp_method: str = option("point_to_point", choices=ICP_METHODS)  # the public code's | "point_to_plane"
+    depth_sampling: str = option("nearest", choices=DEPTH_SAMPLING)
+    min_matches: int = option(5, min=3)
+    confidence: str = option("inliers", choices=CONFIDENCE_MODES)
     seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.confidence not in CONFIDENCE_MODES:
-            raise ValueError(f"confidence must be one of {CONFIDENCE_MODES}, got {self.confidence!r}")
-        if self.depth_sampling not in DEPTH_SAMPLING:
-            raise ValueError(f"depth_sampling must be one of {DEPTH_SAMPLING}, got {self.depth_sampling!r}")
-        if not self.inlier_threshold > 0:
-            raise ValueError("inlier_threshold must be positive")
-        if self.icp_method not in ICP_METHODS:
-            raise ValueError(f"icp_method must be one of {ICP_METHODS}, got {self.icp_method!r}")
 
 
 def _count(P: np.ndarray, Q: np.ndarray, R: np.ndarray, t: np.ndarray, thr: float) -> np.ndarray:

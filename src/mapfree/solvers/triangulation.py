@@ -16,16 +16,17 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Pose
+from ..options import Options, option
 
 __all__ = ["TriangulationOptions", "triangulate_pose", "query_rays"]
 
 
 @dataclass
-class TriangulationOptions:
+class TriangulationOptions(Options):
     """Rays closer than ``min_ray_angle_deg`` to parallel, or meeting behind a reference, give no estimate."""
 
-    min_ray_angle_deg: float = 1.0
-    min_baseline_m: float = 1e-3  # references closer than this cannot fix a scale
+    min_ray_angle_deg: float = option(1.0, min=0, max=90)
+    min_baseline_m: float = option(1e-3, min=0)  # references closer than this cannot fix a scale
 
 
 def query_rays(ref_poses: Sequence[Pose], relative: Sequence[Pose]) -> tuple[np.ndarray, np.ndarray]:

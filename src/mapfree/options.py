@@ -1,0 +1,202 @@
+"""Typed option dataclasses, checked in one place for the command line, YAML configs and Python alike.
+
+Every component's options (a matcher's, a solver's, a depth network's) are a dataclass deriving from ``Options``.
+Constructing one checks each value against its annotation (``int``, ``float``, ``bool``, ``str``, ``X | None``)
+and against the range, choices or device rule declared with ``option(...)``::
+
+    @dataclass
+    class SIFTOptions(Options):
+        max_features: int = option(2048, min=1)
+        ratio: float = option(0.8, min=0, max=1, min_open=True)
+
+``Options.build(values, owner="matcher 'sift'")`` is how the registries make one from user input: an unknown key
+is refused with the nearest known one, a bad value with what was expected, both as one ``OptionError`` line
+naming the option and its owner (and the file it came from, ``where=``). This module imports nothing of ours.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import re
+import types
+import typing
+from typing import Any, Mapping, TypeVar
+
+__all__ = ["Options", "OptionError", "option", "device_problem", "check_device", "check_keys"]
+
+T = TypeVar("T", bound="Options")
+
+_DEVICE = re.compile(r"(cuda|mps)(?::(\d+))?")
+
+
+class OptionError(ValueError, TypeError):
+    """A refused option; ``str()`` is the one line a user sees (the option, its value, what was expected). A
+    ``ValueError``, and a ``TypeError`` as the dataclass's own refusal of an unknown keyword was."""
+
+    def __init__(self, message: str, key: str = "", value: Any = None, expected: str = "") -> None:
+        super().__init__(message)
+        self.key, self.value, self.expected = key, value, expected
+
+
+def option(default: Any, *, min: float | None = None, max: float | None = None, min_open: bool = False,
+           max_open: bool = False, choices: tuple | None = None, device: bool = False, doc: str = "") -> Any:
+    """A dataclass field with its rule: ``min``/``max`` (inclusive unless ``*_open``), ``choices``, or ``device``
+    (cpu, cuda, cuda:N, mps, auto: one this machine has). ``None`` is always allowed where the type allows it."""
+    meta = {"min": min, "max": max, "min_open": min_open, "max_open": max_open, "choices": choices,
+            "device": device, "doc": doc}
+    return dataclasses.field(default=default, metadata={"mapfree": meta})
+
+
+def device_problem(value: Any) -> str | None:
+    """Why ``value`` is not a device to run on here (``None`` when it is): a name torch does not know, or CUDA/MPS
+    on a machine without it. ``None`` and ``auto`` (cuda when available, else cpu) are always fine."""
+    if value is None:
+        return None
+    if not isinstance(value, str):
+        return "expected cpu, cuda, cuda:N, mps or auto"
+    s = value.strip().lower()
+    if s in ("auto", "cpu"):
+        return None
+    m = _DEVICE.fullmatch(s)
+    if m is None:
+        return "expected cpu, cuda, cuda:N, mps or auto"
+    try:
+        import torch
+    except ImportError:
+        return f"{m[1]} needs torch (pip install 'mapfree[learned]')"
+    if m[1] == "mps":
+        mps = getattr(torch.backends, "mps", None)
+        return None if mps is not None and mps.is_available() else "MPS is not available on this machine"
+    if not torch.cuda.is_available():
+        return f"CUDA is not available on this machine (torch {torch.__version__}): use cpu, or leave it out"
+    n = torch.cuda.device_count()
+    if m[2] is not None and int(m[2]) >= n:
+        return f"this machine has {n} CUDA device(s): cuda:0" + (f" … cuda:{n - 1}" if n > 1 else "")
+    return None
+
+
+def check_device(value: Any, name: str = "--device") -> None:
+    """Raise ``OptionError`` (``NAME VALUE: why``) unless ``value`` is a device to run on here."""
+    why = device_problem(value)
+    if why:
+        raise OptionError(f"{name} {value}: {why}", "device", value, why)
+
+
+def _type_name(tp: Any) -> str:
+    return {int: "an integer", float: "a number", bool: "true or false", str: "a string"}.get(tp, getattr(
+        tp, "__name__", str(tp)))
+
+
+def _split_optional(tp: Any) -> tuple[tuple, bool]:
+    """The member types of ``tp`` and whether ``None`` is one of them."""
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        return tuple(a for a in args if a is not type(None)), type(None) in args
+    return (tp,), tp is type(None)
+
+
+def _type_ok(value: Any, tp: Any) -> bool:
+    if tp is bool:
+        return isinstance(value, bool)
+    if tp is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if tp is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if tp is str:
+        return isinstance(value, str)
+    return True  # a type this check does not know (a tuple, a path): left to the component
+
+
+def _range_text(meta: dict) -> str:
+    lo, hi = meta["min"], meta["max"]
+    if lo is not None and hi is not None:
+        return f"in {'(' if meta['min_open'] else '['}{lo:g}, {hi:g}{')' if meta['max_open'] else ']'}"
+    if lo is not None:
+        return f"{'>' if meta['min_open'] else '>='} {lo:g}"
+    if hi is not None:
+        return f"{'<' if meta['max_open'] else '<='} {hi:g}"
+    return ""
+
+
+def _problem(value: Any, tp: Any, meta: dict) -> str | None:
+    """What is wrong with ``value`` for a field of type ``tp`` with rule ``meta`` (None when nothing)."""
+    members, nullable = _split_optional(tp)
+    if value is None:
+        return None if nullable else f"expected {' or '.join(_type_name(t) for t in members)}, not null"
+    if meta.get("device"):
+        return device_problem(value)
+    kinds = " or ".join(_type_name(t) for t in members)
+    rng = _range_text(meta) if meta else ""
+    if not any(_type_ok(value, t) for t in members):
+        return f"expected {kinds}{' or null' if nullable else ''}{' ' + rng if rng else ''}"
+    if not meta:
+        return None
+    if meta["choices"] is not None and value not in meta["choices"]:
+        return f"expected one of {', '.join(map(str, meta['choices']))}"
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        lo, hi = meta["min"], meta["max"]
+        bad_lo = lo is not None and (value <= lo if meta["min_open"] else value < lo)
+        bad_hi = hi is not None and (value >= hi if meta["max_open"] else value > hi)
+        if bad_lo or bad_hi:
+            return f"expected {kinds} {rng}"
+    return None
+
+
+def check_keys(cls: type, values: Mapping[str, Any], *, owner: str = "", where: str = "", prefix: str = "") -> None:
+    """Refuse a key of ``values`` that dataclass ``cls`` has no field for, naming the nearest one (``OptionError``);
+    for any options dataclass, ``Options`` or not (whose values are then left to the component)."""
+    known = [f.name for f in dataclasses.fields(cls)]
+    for key in values:
+        if key not in known:
+            close = difflib.get_close_matches(str(key), known, n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            lead, of = (f"{where}: " if where else ""), (f" for {owner}" if owner else "")
+            raise OptionError(f"{lead}unknown option {prefix}{key}{of}: {hint}known: {', '.join(sorted(known))}",
+                              str(key))
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
+
+
+@dataclasses.dataclass
+class Options:
+    """Base of every options dataclass: values checked on construction (``OptionError``), built from user input
+    with ``build``."""
+
+    def __post_init__(self) -> None:
+        hints = _hints(type(self))
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            why = _problem(value, hints.get(f.name, Any), f.metadata.get("mapfree", {}))
+            if why:
+                raise OptionError(f"option {f.name}={value!r}: {why}", f.name, value, why)
+
+    @classmethod
+    def names(cls) -> list[str]:
+        """The option names (the dataclass's fields)."""
+        return [f.name for f in dataclasses.fields(cls)]
+
+    @classmethod
+    def build(cls: type[T], values: Mapping[str, Any] | None = None, *, owner: str = "", where: str = "",
+              prefix: str = "", base: "Options | None" = None) -> T:
+        """An instance from ``values`` (over ``base``'s values, else the defaults). An unknown key or a bad value is
+        one ``OptionError``: ``[WHERE: ]unknown option PREFIXKEY for OWNER: did you mean …`` or
+        ``[WHERE: ]option PREFIXKEY=VALUE for OWNER: expected …``."""
+        values = dict(values or {})
+        check_keys(cls, values, owner=owner, where=where, prefix=prefix)
+        lead = f"{where}: " if where else ""
+        of = f" for {owner}" if owner else ""
+        start = {f.name: getattr(base, f.name) for f in dataclasses.fields(cls)} if base is not None else {}
+        try:
+            return cls(**{**start, **values})
+        except OptionError as e:
+            raise OptionError(f"{lead}option {prefix}{e.key}={e.value!r}{of}: {e.expected}", e.key, e.value,
+                              e.expected) from None
