@@ -107,7 +107,7 @@ def run(a: argparse.Namespace) -> int:
     from sqlalchemy import select
 
     from ..service.accounts import tokens as auth
-    from ..service.database.models import ApiToken, User, WebSession, session_factory
+    from ..service.database.models import User, session_factory
 
     if a.action == "backup":  # before any upgrade: a backup is what one takes before upgrading
         from ..service.database.backup import backup
@@ -151,8 +151,8 @@ def run(a: argparse.Namespace) -> int:
 def _act(a: argparse.Namespace, sessions, user, lifetime, engine) -> int:
     from sqlalchemy import select
 
-    from ..service import auth
-    from ..service.db import ApiToken, User, WebSession
+    from ..service.accounts import tokens as auth
+    from ..service.database.models import ApiToken, User, WebSession
 
     with sessions.begin() as db:
         if a.action == "create-user":
