@@ -12,12 +12,14 @@ import numpy as np
 import pytest
 import torch
 
+from mapfree import depth, matching, solvers
 from mapfree.matching.weights import MissingWeightsError
 from mapfree.mickey.checkpoint import find_files, load_network, network_from_state_dicts, read_checkpoint
 from mapfree.mickey.config import MickeyConfig, config_from_yaml
 from mapfree.mickey.preprocess import prepare_array, scale_intrinsics
 from mapfree.mickey.dinov2 import ViTShape
 from mapfree.mickey.synthetic import VIT_SIZES, published_layout, synthetic_state_dicts, write_standin
+from mapfree.options import OptionError
 from mapfree.solvers.mickey import MickeySolverOptions, kabsch_torch, lift, probabilistic_procrustes
 
 PAIRS = {"01": 1, "02": 2}  # image0 = A (index 0) in both
@@ -244,11 +246,28 @@ def test_weighted_kabsch_on_a_mask_ignores_the_outliers():
     assert not np.allclose(kabsch_torch(A, B)[0].numpy(), R.numpy(), atol=1e-3)  # unweighted: pulled off
 
 
-def test_solver_options_are_checked():
-    with pytest.raises(ValueError, match="confidence"):
-        MickeySolverOptions(confidence="median")
-    with pytest.raises(ValueError, match="sample_size"):
+def test_options_are_typed_and_checked_as_every_component_s():
+    """The solver's, the matcher's and the depth source's options: one ``OptionError`` line naming the option, its
+    value and its owner, before any file is looked for."""
+    with pytest.raises(OptionError, match="^option confidence='median' for solver 'mickey': expected one of inliers"):
+        solvers.create("mickey", confidence="median")
+    with pytest.raises(OptionError, match="^option sample_size=2: expected an integer >= 3$"):
         MickeySolverOptions(sample_size=2)
+    with pytest.raises(OptionError, match=r"^option draw_size=4 for solver 'mickey': expected an integer >= "
+                                          r"sample_size \(5\)$"):
+        solvers.create("mickey", sample_size=5, draw_size=4)
+    assert solvers.create("mickey", preset="best").options.confidence == "score"
+    with pytest.raises(OptionError, match="^option checkpoint='mickey_xl' for matcher 'mickey': expected one of "
+                                          "mickey, mickey_sc$"):
+        matching.create("mickey", checkpoint="mickey_xl")
+    with pytest.raises(OptionError, match="^option batch_size=0 for matcher 'mickey'"):
+        matching.check_options("mickey", {"batch_size": 0})
+    with pytest.raises(OptionError, match="did you mean 'min_score'"):
+        matching.check_options("mickey", {"min_scor": 0.1})
+    with pytest.raises(OptionError, match="^unknown option batch_size for depth network 'mickey': known: checkpoint"):
+        depth.create("mickey", batch_size=2)
+    with pytest.raises(OptionError, match="^option fp16='yes' for depth network 'mickey': expected true or false"):
+        depth.create("mickey", fp16="yes")
 
 
 def test_missing_files_name_the_file_the_folder_and_the_source(tmp_path, monkeypatch):
