@@ -151,8 +151,8 @@ def run(a: argparse.Namespace) -> int:
 def _act(a: argparse.Namespace, sessions, user, lifetime, engine) -> int:
     from sqlalchemy import select
 
-    from ..service import auth
-    from ..service.db import ApiToken, User, WebSession
+    from ..service.accounts import tokens as auth
+    from ..service.database.models import ApiToken, User, WebSession
 
     with sessions.begin() as db:
         if a.action == "create-user":
