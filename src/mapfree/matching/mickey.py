@@ -27,7 +27,7 @@ __all__ = ["MickeyOptions", "MickeyMatcher", "mutual_best"]
 class MickeyOptions(MickeyNetworkOptions):
     """The network's options (checkpoint, weights, dinov2, config, fp16, device) and the matching's."""
 
-    min_score: float = option(0.0, min=0, max=1)  # keep mutual matches whose final score (a probability) is above
+    min_score: float = option(0.0, min=0, max=1)  # keep mutual matches whose final score (a probability) exceeds it
     batch_size: int = option(8, min=1)  # images (extract_many) or pairs (match_many) per network pass
 
 
