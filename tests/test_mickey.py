@@ -6,18 +6,22 @@ from __future__ import annotations
 
 import json
 import pathlib
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from mapfree.matching.weights import MissingWeightsError
-from mapfree.mickey.checkpoint import find_files, load_network, network_from_state_dicts, read_checkpoint
+from mapfree import depth, matching, solvers
+from mapfree.matching.weights import BrokenWeightsError, MissingWeightsError
+from mapfree.mickey.checkpoint import (DINOV2_FILE, DINOV2_URL, WEIGHTS_ZIP_URL, MickeyFiles, files_available,
+                                       find_files, load_network, network_from_state_dicts, read_checkpoint)
 from mapfree.mickey.config import MickeyConfig, config_from_yaml
 from mapfree.mickey.preprocess import prepare_array, scale_intrinsics
 from mapfree.mickey.dinov2 import ViTShape
 from mapfree.mickey.synthetic import VIT_SIZES, published_layout, synthetic_state_dicts, write_standin
+from mapfree.options import OptionError
 from mapfree.solvers.mickey import MickeySolverOptions, kabsch_torch, lift, probabilistic_procrustes
 
 PAIRS = {"01": 1, "02": 2}  # image0 = A (index 0) in both
@@ -244,39 +248,114 @@ def test_weighted_kabsch_on_a_mask_ignores_the_outliers():
     assert not np.allclose(kabsch_torch(A, B)[0].numpy(), R.numpy(), atol=1e-3)  # unweighted: pulled off
 
 
-def test_solver_options_are_checked():
-    with pytest.raises(ValueError, match="confidence"):
-        MickeySolverOptions(confidence="median")
-    with pytest.raises(ValueError, match="sample_size"):
+def test_options_are_typed_and_checked_as_every_component_s():
+    """The solver's, the matcher's and the depth source's options: one ``OptionError`` line naming the option, its
+    value and its owner, before any file is looked for."""
+    with pytest.raises(OptionError, match="^option confidence='median' for solver 'mickey': expected one of inliers"):
+        solvers.create("mickey", confidence="median")
+    with pytest.raises(OptionError, match="^option sample_size=2: expected an integer >= 3$"):
         MickeySolverOptions(sample_size=2)
+    with pytest.raises(OptionError, match=r"^option draw_size=4 for solver 'mickey': expected an integer >= "
+                                          r"sample_size \(5\)$"):
+        solvers.create("mickey", sample_size=5, draw_size=4)
+    assert solvers.create("mickey", preset="best").options.confidence == "score"
+    with pytest.raises(OptionError, match="^option checkpoint='mickey_xl' for matcher 'mickey': expected one of "
+                                          "mickey, mickey_sc$"):
+        matching.create("mickey", checkpoint="mickey_xl")
+    with pytest.raises(OptionError, match="^option batch_size=0 for matcher 'mickey'"):
+        matching.check_options("mickey", {"batch_size": 0})
+    with pytest.raises(OptionError, match="did you mean 'min_score'"):
+        matching.check_options("mickey", {"min_scor": 0.1})
+    with pytest.raises(OptionError, match="^unknown option batch_size for depth network 'mickey': known: checkpoint"):
+        depth.create("mickey", batch_size=2)
+    with pytest.raises(OptionError, match="^option fp16='yes' for depth network 'mickey': expected true or false"):
+        depth.create("mickey", fp16="yes")
 
 
-def test_missing_files_name_the_file_the_folder_and_the_source(tmp_path, monkeypatch):
-    monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(tmp_path))
+def _saved(path: Path, obj: object) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(obj, path)
+    return path
+
+
+def test_files_follow_the_one_weights_rule(tmp_path, monkeypatch):
+    """``mickey/`` (or the zip's ``mickey/mickey_weights/``) in $MAPFREE_WEIGHTS_DIR, then the default folder; DINOv2
+    also in torch's hub cache; a path given: only there. Missing or cut short: the messages every model gives."""
+    cache = tmp_path / "cache"
+    env, default, hub = tmp_path / "env", cache / "mapfree" / "weights", cache / "torch" / "hub" / "checkpoints"
+    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
+    monkeypatch.delenv("TORCH_HOME", raising=False)
+    monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(env))
     monkeypatch.setenv("MAPFREE_OFFLINE", "1")
     with pytest.raises(MissingWeightsError) as e:
         find_files()
-    msg = str(e.value)
-    assert "'mickey.ckpt'" in msg and str(tmp_path / "mickey") in msg and "mickey_weights.zip" in msg
-    assert "MAPFREE_WEIGHTS_DIR" in msg and "\n" not in msg
-    (tmp_path / "mickey").mkdir()
-    (tmp_path / "mickey" / "mickey_sc.ckpt").write_bytes(b"")
+    assert str(e.value) == (
+        f"MicKey: weights file 'mickey.ckpt' not found; looked in $MAPFREE_WEIGHTS_DIR/mickey/mickey.ckpt "
+        f"({env / 'mickey' / 'mickey.ckpt'}), the default folder ({default / 'mickey' / 'mickey.ckpt'}). Download "
+        f"{WEIGHTS_ZIP_URL} (Niantic non-commercial licence: mapfree does not ship it) and unzip it into "
+        f"{env / 'mickey'}. `mapfree weights` lists every model, where it looks and how to get it.")
+    # the default folder, the zip unzipped as it is (mickey_weights/ kept, its config.yaml beside the checkpoint)
+    zipped = _saved(default / "mickey" / "mickey_weights" / "mickey.ckpt", {"state_dict": {}})
+    (zipped.parent / "config.yaml").write_text("MODEL: MicKey\n")
     with pytest.raises(MissingWeightsError) as e:
-        find_files("mickey_sc")
+        find_files()
     msg = str(e.value)
-    assert "dinov2_vitl14_pretrain.pth" in msg and "dl.fbaipublicfiles.com" in msg and "\n" not in msg
-    (tmp_path / "mickey" / "dinov2_vitl14_pretrain.pth").write_bytes(b"")
-    (tmp_path / "mickey" / "config.yaml").write_text("MODEL: MicKey\n")
-    files = find_files("mickey_sc")
-    assert files.checkpoint.name == "mickey_sc.ckpt" and files.config.name == "config.yaml"
+    assert msg.startswith("MicKey's DINOv2 ViT-L/14 backbone: weights file 'dinov2_vitl14_pretrain.pth' not found "
+                          "($MAPFREE_OFFLINE is set); looked in $MAPFREE_WEIGHTS_DIR/mickey/dinov2_vitl14_pretrain.pth")
+    assert f"torch's hub cache ({hub})" in msg and DINOV2_URL in msg and "\n" not in msg
+    in_hub = _saved(hub / DINOV2_FILE, {"pos_embed": torch.zeros(1)})
+    assert find_files() == MickeyFiles(zipped, in_hub, zipped.parent / "config.yaml")
+    # $MAPFREE_WEIGHTS_DIR wins over the default folder, and its mickey/ over torch's hub cache
+    ckpt = _saved(env / "mickey" / "mickey.ckpt", {"state_dict": {}})
+    dino = _saved(env / "mickey" / DINOV2_FILE, {"pos_embed": torch.zeros(1)})
+    assert find_files() == MickeyFiles(ckpt, dino, None)
+    # a path given: a file or a folder holding it, and only there
+    assert find_files(weights=zipped.parent, dinov2=in_hub).checkpoint == zipped
+    with pytest.raises(MissingWeightsError, match=r"^MicKey: weights file 'mickey.ckpt' not found at the path given "
+                                                  r"\(.*nosuch\)$"):
+        find_files(weights=tmp_path / "nosuch")
+    # a checkpoint cut short (an interrupted download): refused, naming it
+    data = ckpt.read_bytes()
+    (env / "mickey" / "mickey_sc.ckpt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(BrokenWeightsError, match=rf"^MicKey: {re.escape(str(env / 'mickey' / 'mickey_sc.ckpt'))} is "
+                                                 r"refused: truncated or damaged"):
+        find_files("mickey_sc")
+    assert files_available("mickey") and not files_available("mickey_sc")
     with pytest.raises(ValueError, match="unknown checkpoint 'mickey_xl'"):
         find_files("mickey_xl")
+
+
+def test_mapfree_weights_lists_mickey_s_files(tmp_path, monkeypatch, capfd):
+    from mapfree.cli import main
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(tmp_path / "w"))
+    ckpt = _saved(tmp_path / "w" / "mickey" / "mickey.ckpt", {"state_dict": {}})
+    assert main(["weights", "mickey"]) == 1  # DINOv2 missing
+    out = capfd.readouterr().out
+    rows = {ln.split()[0]: " ".join(ln.split()[1:]) for ln in out.splitlines() if ln.startswith("mickey/")}
+    assert rows == {"mickey/mickey.ckpt": f"mickey ok, no published checksum $MAPFREE_WEIGHTS_DIR: {ckpt}",
+                    "mickey/dinov2_vitl14_pretrain.pth": "mickey missing"}
+    assert "1 of 2 models present and sound." in out
+    assert f"curl -L --create-dirs -o {tmp_path / 'w' / 'mickey' / DINOV2_FILE} {DINOV2_URL}" in out
+    # a method config picking the other checkpoint needs that one
+    cfg = tmp_path / "sc.yaml"
+    cfg.write_text("extends: mickey\nmatcher_opts: {checkpoint: mickey_sc}\n")
+    assert main(["weights", str(cfg), "--missing"]) == 1
+    out = capfd.readouterr().out
+    assert "mickey/mickey_sc.ckpt" in out and "mickey/mickey.ckpt " not in out
+    assert f"unzip -o {tmp_path / 'w' / 'mickey' / 'mickey_weights.zip'} -d {tmp_path / 'w' / 'mickey'}" in out
+    (tmp_path / "w" / "mickey" / DINOV2_FILE).write_bytes(ckpt.read_bytes()[:100])
+    assert main(["weights"]) == 1  # the whole list: MicKey's files among them, a broken one named
+    out = capfd.readouterr().out
+    assert "mickey (checkpoint: mickey_sc)" in out
+    assert "mickey/dinov2_vitl14_pretrain.pth" in out and "BROKEN: truncated or damaged" in out
 
 
 def test_corrupt_or_mismatched_files_are_one_clear_line(tmp_path, tiny_files):
     garbage = tmp_path / "mickey.ckpt"
     garbage.write_bytes(b"not a checkpoint")
-    with pytest.raises(ValueError) as e:
+    with pytest.raises(BrokenWeightsError) as e:
         read_checkpoint(garbage)
     assert str(garbage) in str(e.value) and "mickey_weights.zip" in str(e.value) and "\n" not in str(e.value)
     # a DINOv2 file whose width does not fit the heads: strict loading names the mismatch

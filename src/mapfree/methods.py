@@ -312,7 +312,7 @@ def weight_models(name: str) -> list["Model"]:
     a published RPR network's), a matcher or a depth network name. ``KeyError`` for a name that is none of these."""
     from .depth.hub import DEPTH_WEIGHTS
     from .matching import registry_key
-    from .matching.published import MATCHER_WEIGHTS
+    from .matching.published import MATCHER_WEIGHTS, matcher_weights
 
     if registry_key(name) in MATCHER_WEIGHTS:
         return list(MATCHER_WEIGHTS[registry_key(name)])
@@ -333,7 +333,7 @@ def weight_models(name: str) -> list["Model"]:
         return [RPR_WEIGHTS[config]] if config in RPR_WEIGHTS and not m.options.get("checkpoint") else []
     if m.kind != "matching":
         return []
-    out = list(MATCHER_WEIGHTS.get(registry_key(m.matcher), ()))
+    out = list(matcher_weights(registry_key(m.matcher), m.matcher_opts))
     if m.depth in DEPTH_WEIGHTS:
         out.append(DEPTH_WEIGHTS[m.depth])
     elif m.depth.startswith("hf:") and not Path(m.depth[3:]).expanduser().is_dir():
@@ -347,10 +347,12 @@ def all_weight_models() -> list[tuple["Model", list[str]]]:
     """Every published model a built-in matcher, depth network or RPR method can use, each with the names that
     use it (``mapfree weights`` lists them)."""
     from .depth.hub import DEPTH_WEIGHTS
-    from .matching.published import MATCHER_WEIGHTS
+    from .matching.published import MATCHER_WEIGHTS, OPTION_WEIGHTS
 
     users: dict[str, tuple[Any, list[str]]] = {}
-    sources: list[tuple[str, tuple]] = [*MATCHER_WEIGHTS.items(), *((k, (v,)) for k, v in DEPTH_WEIGHTS.items())]
+    by_option = [(f"{matcher} ({option}: {value})", (v,)) for (matcher, option, value), v in OPTION_WEIGHTS.items()]
+    sources: list[tuple[str, tuple]] = [*MATCHER_WEIGHTS.items(), *by_option,
+                                        *((k, (v,)) for k, v in DEPTH_WEIGHTS.items())]
     try:
         from .regression.official import RPR_WEIGHTS
 

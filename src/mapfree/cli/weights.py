@@ -73,9 +73,8 @@ def run(args: argparse.Namespace) -> int:
         shown = [(m, u, s) for m, u, s in states if not args.missing or s.found is None or s.problem]
         if shown:
             w_model = max(len(m.name) for m, _, _ in shown)
-            w_users = min(max(len(", ".join(u)) for _, u, _ in shown), 40)
-            w_status = max(len(s.status) for _, _, s in shown if not s.problem) if any(
-                not s.problem for _, _, s in shown) else 7
+            w_users = min(max(len("used by"), *(len(", ".join(u)) for _, u, _ in shown)), 40)
+            w_status = max([len("status"), *(len(s.status) for _, _, s in shown if not s.problem)])
             print(f"{'model':<{w_model}}  {'used by':<{w_users}}  {'status':<{w_status}}  where")
             for m, u, s in shown:
                 users = ", ".join(u)

@@ -14,9 +14,13 @@ from typing import Any
 import numpy as np
 
 from ..matching.base import Features
-from ..mickey.engine import MickeyEngine, MickeyImage, shared_engine
+from ..mickey.engine import MickeyEngine, MickeyImage, MickeyNetworkOptions, engine_for
 
-__all__ = ["MickeyDepth", "sparse_depth_map"]
+__all__ = ["MickeyDepth", "MickeyDepthOptions", "sparse_depth_map"]
+
+#: The depth source's options: those of the network (checkpoint, weights, dinov2, config, fp16, device), as the
+#: ``mickey`` matcher's, so that both share one network.
+MickeyDepthOptions = MickeyNetworkOptions
 
 
 def sparse_depth_map(out: MickeyImage) -> np.ndarray:
@@ -41,10 +45,12 @@ class MickeyDepth:
     metric = True
     pairwise = True
 
-    def __init__(self, engine: MickeyEngine | None = None, **options: Any) -> None:
-        """``engine``: the matcher's; else the shared one for ``options`` (those of the ``mickey`` matcher that
-        choose the files, ``device`` and ``fp16``)."""
-        self.engine = engine if engine is not None else shared_engine(**options)
+    def __init__(self, engine: MickeyEngine | None = None, options: MickeyDepthOptions | None = None,
+                 **overrides: object) -> None:
+        """``engine``: the matcher's; else the shared one for the options (those of the ``mickey`` matcher that
+        choose the files, ``device`` and ``fp16``: ``MickeyDepthOptions``), checked as every component's are."""
+        self.options = MickeyDepthOptions.build(overrides, owner="depth network 'mickey'", base=options)
+        self.engine = engine if engine is not None else engine_for(self.options)
 
     def depth(self, frame: object) -> None:
         """No depth before matching: see ``pair_depth``."""

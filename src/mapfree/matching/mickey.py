@@ -15,7 +15,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..mickey.engine import MickeyEngine, MickeyImage, shared_engine
+from ..mickey.engine import MickeyEngine, MickeyImage, MickeyNetworkOptions, engine_for
+from ..options import option
 from .base import CandidateMatches, Features, MatchCandidates, Matches
 from .utils import checked_or_blank
 
@@ -23,15 +24,11 @@ __all__ = ["MickeyOptions", "MickeyMatcher", "mutual_best"]
 
 
 @dataclass
-class MickeyOptions:
-    checkpoint: str = "mickey"  # mickey | mickey_sc: the file in $MAPFREE_WEIGHTS_DIR/mickey/
-    weights: str | None = None  # a checkpoint file elsewhere (or a folder holding <checkpoint>.ckpt)
-    dinov2: str | None = None  # the DINOv2 ViT-L/14 file elsewhere
-    config: str | None = None  # the config YAML elsewhere (default: the one beside the checkpoint, if any)
-    fp16: bool | None = None  # DINOv2 in float16: None = as the config says (published: yes) on a GPU, no on CPU
-    min_score: float = 0.0  # keep mutual matches whose final score is above this
-    batch_size: int = 8  # images (extract_many) or pairs (match_many) per network pass
-    device: str | None = None
+class MickeyOptions(MickeyNetworkOptions):
+    """The network's options (checkpoint, weights, dinov2, config, fp16, device) and the matching's."""
+
+    min_score: float = option(0.0, min=0, max=1)  # keep mutual matches whose final score (a probability) exceeds it
+    batch_size: int = option(8, min=1)  # images (extract_many) or pairs (match_many) per network pass
 
 
 def mutual_best(scores: torch.Tensor, min_score: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -52,10 +49,8 @@ class MickeyMatcher:
     name = "mickey"
 
     def __init__(self, options: MickeyOptions | None = None, **overrides: object) -> None:
-        self.options = o = options or MickeyOptions(**overrides)  # type: ignore[arg-type]
-        if o.batch_size < 1:
-            raise ValueError(f"batch_size must be at least 1, got {o.batch_size}")
-        self.engine: MickeyEngine = shared_engine(o.checkpoint, o.weights, o.dinov2, o.config, o.device, o.fp16)
+        self.options = o = MickeyOptions.build(overrides, owner="matcher 'mickey'", base=options)
+        self.engine: MickeyEngine = engine_for(o)
         self.device = self.engine.device
 
     @staticmethod

@@ -6,12 +6,14 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Mapping
 
 from ..weights import Found, HubModel, MissingWeightsError, WeightFile, find_in_dirs, missing_message, target_dir
 
 __all__ = ["SUPERPOINT_WEIGHTS", "SUPERPOINT_LIGHTGLUE_WEIGHTS", "SHIPPED", "LIGHTGLUE_SHIPPED", "XFEAT_WEIGHTS",
            "LOFTR_WEIGHTS", "SUPERGLUE_MODELS", "EFFICIENTLOFTR_MODEL", "MAST3R_WEIGHTS", "Mast3rWeights",
-           "MATCHER_WEIGHTS"]
+           "MICKEY_CHECKPOINTS", "MICKEY_DINOV2", "MICKEY_ZIP_URL", "OPTION_WEIGHTS", "MATCHER_WEIGHTS",
+           "matcher_weights"]
 
 _RELEASE = "https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv"
 SUPERPOINT_WEIGHTS = WeightFile("superpoint_v1.pth", "SuperPoint extractor", (f"{_RELEASE}/superpoint_v1.pth",))
@@ -96,6 +98,22 @@ MAST3R_WEIGHTS = {
                             f"{_NAVER}/DUSt3R/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth", "dust3r"),
 }
 
+MICKEY_ZIP_URL = "https://storage.googleapis.com/niantic-lon-static/research/mickey/assets/mickey_weights.zip"
+_MICKEY_LICENCE = "Niantic non-commercial licence: mapfree does not ship it"
+#: MicKey's files live together in ``mickey/`` of a weights folder (the authors' zip unzipped there may keep its
+#: ``mickey_weights/`` folder): the checkpoints (with the ``config.yaml`` beside them) and the DINOv2 backbone,
+#: which is also found in the weights folder itself and in torch's hub cache (where the public code downloads it).
+MICKEY_CHECKPOINTS = {
+    name: WeightFile(f"{name}.ckpt", "MicKey", (MICKEY_ZIP_URL,), aliases=(f"mickey/mickey_weights/{name}.ckpt",),
+                     licence=_MICKEY_LICENCE, archive=True, folder="mickey", torch_hub=False)
+    for name in ("mickey", "mickey_sc")
+}
+MICKEY_DINOV2 = WeightFile(
+    "dinov2_vitl14_pretrain.pth", "MicKey's DINOv2 ViT-L/14 backbone",
+    ("https://dl.fbaipublicfiles.com/dinov2/dinov2_vitl14/dinov2_vitl14_pretrain.pth",),
+    aliases=("mickey/mickey_weights/dinov2_vitl14_pretrain.pth", "dinov2_vitl14_pretrain.pth"),
+    licence="Meta's DINOv2, Apache 2.0", folder="mickey")
+
 _XF = tuple(XFEAT_WEIGHTS.values())
 #: What each registered matcher needs (by registry key); a matcher that needs nothing has an empty tuple.
 MATCHER_WEIGHTS: dict[str, tuple] = {
@@ -109,4 +127,19 @@ MATCHER_WEIGHTS: dict[str, tuple] = {
     "superglue": (SUPERGLUE_MODELS["outdoor"],), "superglue-indoor": (SUPERGLUE_MODELS["indoor"],),
     "efficientloftr": (EFFICIENTLOFTR_MODEL,),
     "mast3r": (MAST3R_WEIGHTS["mast3r"],), "dust3r": (MAST3R_WEIGHTS["dust3r"],),
+    "mickey": (MICKEY_CHECKPOINTS["mickey"], MICKEY_DINOV2),
 }
+#: Weights an option makes a matcher use in place of its first model in ``MATCHER_WEIGHTS``, by (matcher, option,
+#: value): MicKey's other checkpoint.
+OPTION_WEIGHTS: dict[tuple[str, str, str], WeightFile] = {
+    ("mickey", "checkpoint", "mickey_sc"): MICKEY_CHECKPOINTS["mickey_sc"],
+}
+
+
+def matcher_weights(key: str, options: Mapping[str, Any] | None = None) -> tuple:
+    """What matcher ``key`` (a registry key) needs with ``options`` (its ``matcher_opts``)."""
+    models = MATCHER_WEIGHTS.get(key, ())
+    for (matcher, name, value), model in OPTION_WEIGHTS.items():
+        if matcher == key and (options or {}).get(name) == value:
+            return (model, *models[1:])
+    return models

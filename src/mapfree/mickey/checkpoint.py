@@ -1,15 +1,18 @@
 """Finding and reading MicKey's files: the authors' checkpoint, Meta's DINOv2 backbone and the shipped config.
 
-Layout (``$MAPFREE_WEIGHTS_DIR/mickey/``): ``mickey.ckpt`` or ``mickey_sc.ckpt`` and ``config.yaml`` from the
-authors' ``mickey_weights.zip`` (its ``mickey_weights/`` folder may be kept), and ``dinov2_vitl14_pretrain.pth``
-(also found in ``$MAPFREE_WEIGHTS_DIR`` itself or torch's hub cache, where the public code downloads it, and
-downloaded there on first use when online). mapfree ships none of them: MicKey's weights are under Niantic's
-non-commercial licence.
+The files follow the one weights rule (``mapfree.weights``, the models ``MICKEY_CHECKPOINTS`` and
+``MICKEY_DINOV2`` of ``matching.published``): a path given for a file (the matcher's ``weights``, ``dinov2``,
+``config`` options), else ``mickey/`` (or the authors' ``mickey/mickey_weights/``) in ``$MAPFREE_WEIGHTS_DIR``,
+then in the default folder ``~/.cache/mapfree/weights``. There: ``mickey.ckpt`` or ``mickey_sc.ckpt`` and
+``config.yaml`` from the authors' ``mickey_weights.zip``, and ``dinov2_vitl14_pretrain.pth`` (also found in the
+weights folder itself and in torch's hub cache, where the public code downloads it, and downloaded there on
+first use when online). mapfree ships none of them: MicKey's weights are under Niantic's non-commercial licence.
 
 The checkpoint is a PyTorch Lightning file whose ``state_dict`` holds every key of the network except DINOv2's;
 DINOv2 comes from its own file. Files are read with ``torch.load(weights_only=True)``: only tensors and plain
 containers are built. Other objects a Lightning file may carry (its callbacks' and loops' state) are replaced
-by inert placeholders, never constructed, and ignored. Keys load strictly.
+by inert placeholders, never constructed, and ignored. Keys load strictly. A file that is missing is a
+``MissingWeightsError``, one cut short or unreadable a ``BrokenWeightsError``, each naming it, as for every model.
 """
 
 from __future__ import annotations
@@ -24,7 +27,8 @@ from typing import Any, Mapping
 import torch
 
 from ..mast3r.checkpoint import load_error_gist
-from ..matching.weights import WEIGHTS_ENV, MissingWeightsError, WeightFile, resolve_weights, weights_dir
+from ..matching.published import MICKEY_CHECKPOINTS, MICKEY_DINOV2, MICKEY_ZIP_URL
+from ..weights import BrokenWeightsError, MissingWeightsError, file_problem, resolve_weights
 from .config import MickeyConfig, config_from_yaml
 from .dinov2 import ViTShape
 from .model import MickeyNet
@@ -33,16 +37,15 @@ __all__ = ["MickeyFiles", "CHECKPOINTS", "WEIGHTS_ZIP_URL", "DINOV2_URL", "SUBDI
            "read_checkpoint", "read_dinov2", "network_from_state_dicts", "load_network", "published_key",
            "EXTRACTOR_PREFIX", "DUSTBIN_KEY", "DINOV2_FILE"]
 
-SUBDIR = "mickey"
-CHECKPOINTS = ("mickey", "mickey_sc")
-WEIGHTS_ZIP_URL = "https://storage.googleapis.com/niantic-lon-static/research/mickey/assets/mickey_weights.zip"
-DINOV2_URL = "https://dl.fbaipublicfiles.com/dinov2/dinov2_vitl14/dinov2_vitl14_pretrain.pth"
-DINOV2_FILE = "dinov2_vitl14_pretrain.pth"
+SUBDIR = MICKEY_DINOV2.folder
+CHECKPOINTS = tuple(MICKEY_CHECKPOINTS)
+WEIGHTS_ZIP_URL = MICKEY_ZIP_URL
+DINOV2_URL = MICKEY_DINOV2.urls[0]
+DINOV2_FILE = MICKEY_DINOV2.filename
 CONFIG_NAMES = ("config.yaml", "config.yml")
 EXTRACTOR_PREFIX = "compute_matches.extractor."
 DUSTBIN_KEY = "compute_matches.matcher.matching_mat.dustbin_score"
 _CKPT_DINOV2 = EXTRACTOR_PREFIX + "dinov2_vitl14."  # absent from the published files; ignored when present
-_LICENCE = "Niantic non-commercial licence: mapfree does not ship it"
 
 
 @dataclass(frozen=True)
@@ -52,74 +55,38 @@ class MickeyFiles:
     config: Path | None
 
 
-def _folders() -> list[Path]:
-    root = weights_dir()
-    return [] if root is None else [root / SUBDIR, root / SUBDIR / "mickey_weights"]
-
-
-def _where() -> str:
-    root = weights_dir()
-    now = f"now {root / SUBDIR}" if root is not None else f"${WEIGHTS_ENV} is not set"
-    return f"${WEIGHTS_ENV}/{SUBDIR}/ ({now})"
-
-
-def _explicit(path: str | os.PathLike, name: str, what: str) -> Path:
+def _config(path: str | os.PathLike) -> Path:
     p = Path(path).expanduser()
     if p.is_dir():
-        p = p / name
+        p = p / CONFIG_NAMES[0]
     if not p.is_file():
-        raise MissingWeightsError(f"MicKey: {what} {p} not found")
+        raise MissingWeightsError(f"MicKey: config {p} not found (the config.yaml of {WEIGHTS_ZIP_URL})")
     return p
-
-
-def _find_checkpoint(name: str, explicit: str | os.PathLike | None) -> Path:
-    if name not in CHECKPOINTS:
-        raise ValueError(f"MicKey: unknown checkpoint {name!r}; choose {' or '.join(CHECKPOINTS)}")
-    if explicit is not None:
-        return _explicit(explicit, f"{name}.ckpt", "checkpoint")
-    for d in _folders():
-        if (d / f"{name}.ckpt").is_file():
-            return d / f"{name}.ckpt"
-    raise MissingWeightsError(
-        f"MicKey: weights file '{name}.ckpt' not found. Place '{name}.ckpt' (and the config.yaml beside it) in "
-        f"{_where()}. It is published in mickey_weights.zip at {WEIGHTS_ZIP_URL} ({_LICENCE}).")
-
-
-def _find_dinov2(explicit: str | os.PathLike | None, download: bool) -> Path:
-    if explicit is not None:
-        return _explicit(explicit, DINOV2_FILE, "DINOv2 weights")
-    for d in _folders():
-        if (d / DINOV2_FILE).is_file():
-            return d / DINOV2_FILE
-    wf = WeightFile(DINOV2_FILE, "MicKey's DINOv2 ViT-L/14 backbone", (DINOV2_URL,))
-    try:
-        return resolve_weights(wf, download=download)
-    except MissingWeightsError:
-        raise MissingWeightsError(
-            f"MicKey: weights file '{DINOV2_FILE}' not found (offline or downloads off). Place '{DINOV2_FILE}' "
-            f"in {_where()}. It is published at {DINOV2_URL} (Meta's DINOv2, Apache 2.0).") from None
 
 
 def find_files(checkpoint: str = "mickey", weights: str | os.PathLike | None = None,
                dinov2: str | os.PathLike | None = None, config: str | os.PathLike | None = None,
                download: bool = True) -> MickeyFiles:
     """The checkpoint (``checkpoint`` = ``mickey`` | ``mickey_sc``, or the file ``weights``), the DINOv2 file and
-    the config YAML (the one beside the checkpoint when there is one; else the published defaults are used).
-    A missing file is a ``MissingWeightsError`` naming it, where to put it and where it is published."""
-    ckpt = _find_checkpoint(checkpoint, weights)
-    dino = _find_dinov2(dinov2, download)
+    the config YAML (the one beside the checkpoint when there is one; else the published defaults are used), by
+    the weights rule. A missing file is a ``MissingWeightsError`` naming it, where it was looked for and where it is
+    published; a file cut short (an interrupted download) a ``BrokenWeightsError`` naming it."""
+    if checkpoint not in MICKEY_CHECKPOINTS:
+        raise ValueError(f"MicKey: unknown checkpoint {checkpoint!r}; choose {' or '.join(CHECKPOINTS)}")
+    ckpt = resolve_weights(MICKEY_CHECKPOINTS[checkpoint], weights)  # never downloaded: the zip is the user's
+    dino = resolve_weights(MICKEY_DINOV2, dinov2, download=download)
     if config is not None:
-        cfg: Path | None = _explicit(config, CONFIG_NAMES[0], "config")
+        cfg: Path | None = _config(config)
     else:
         cfg = next((ckpt.parent / n for n in CONFIG_NAMES if (ckpt.parent / n).is_file()), None)
     return MickeyFiles(ckpt, dino, cfg)
 
 
 def files_available(checkpoint: str = "mickey") -> bool:
-    """Whether the checkpoint and DINOv2 are on this machine (no download)."""
+    """Whether the checkpoint and DINOv2 are on this machine, whole (no download)."""
     try:
         find_files(checkpoint, download=False)
-    except MissingWeightsError:
+    except (MissingWeightsError, BrokenWeightsError):
         return False
     return True
 
@@ -141,7 +108,11 @@ _UNSUPPORTED = re.compile(r"Unsupported global: GLOBAL (\S+) was not")
 
 
 def _load_tensors(path: Path, what: str, expected: str) -> Any:
-    """``torch.load(weights_only=True)``, any other global it meets standing in as an inert placeholder."""
+    """``torch.load(weights_only=True)``, any other global it meets standing in as an inert placeholder. A file
+    cut short or unreadable is a ``BrokenWeightsError`` naming it."""
+    why = file_problem(path)
+    if why:  # cut short: said so, not torch's zip-reader internals
+        raise BrokenWeightsError(f"MicKey: {path} is refused: {why} (an interrupted download? fetch it again)")
     inert: list[str] = []
     for _ in range(64):
         try:
@@ -158,8 +129,8 @@ def _load_tensors(path: Path, what: str, expected: str) -> Any:
             err = e
             break
     else:  # pragma: no cover - 64 distinct foreign classes
-        raise ValueError(f"{path}: not a readable {what} (too many non-tensor objects); expected {expected}")
-    raise ValueError(f"{path}: not a readable {what} ({load_error_gist(err)}); expected {expected}") from None
+        raise BrokenWeightsError(f"{path}: not a readable {what} (too many non-tensor objects); expected {expected}")
+    raise BrokenWeightsError(f"{path}: not a readable {what} ({load_error_gist(err)}); expected {expected}") from None
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, torch.Tensor]:
@@ -169,7 +140,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     ckpt = _load_tensors(path, "MicKey checkpoint", expected)
     sd = ckpt.get("state_dict") if isinstance(ckpt, dict) and "state_dict" in ckpt else ckpt
     if not isinstance(sd, Mapping) or not any(str(k).startswith(EXTRACTOR_PREFIX) for k in sd):
-        raise ValueError(f"{path}: not a MicKey checkpoint (no 'state_dict' with {EXTRACTOR_PREFIX}* keys); "
+        raise BrokenWeightsError(f"{path}: not a MicKey checkpoint (no 'state_dict' with {EXTRACTOR_PREFIX}* keys); "
                          f"expected {expected}")
     return {k: v for k, v in sd.items() if not k.startswith(_CKPT_DINOV2) and isinstance(v, torch.Tensor)}
 
@@ -179,7 +150,7 @@ def read_dinov2(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     path = Path(path)
     sd = _load_tensors(path, "DINOv2 weight file", f"{DINOV2_FILE} from {DINOV2_URL}")
     if not isinstance(sd, Mapping) or "pos_embed" not in sd:
-        raise ValueError(f"{path}: not a DINOv2 weight file (no 'pos_embed'); expected {DINOV2_FILE} from "
+        raise BrokenWeightsError(f"{path}: not a DINOv2 weight file (no 'pos_embed'); expected {DINOV2_FILE} from "
                          f"{DINOV2_URL}")
     return dict(sd)
 

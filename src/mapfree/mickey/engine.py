@@ -16,11 +16,24 @@ import numpy as np
 import torch
 
 from ..matching.utils import resolve_device
-from .checkpoint import MickeyFiles, find_files, load_network
+from ..options import Options, option
+from .checkpoint import CHECKPOINTS, MickeyFiles, find_files, load_network
 from .model import Keypoints, MickeyNet
 from .preprocess import Prepared, prepare_array
 
-__all__ = ["MickeyImage", "MickeyEngine", "shared_engine"]
+__all__ = ["MickeyImage", "MickeyEngine", "MickeyNetworkOptions", "shared_engine", "engine_for"]
+
+
+@dataclass
+class MickeyNetworkOptions(Options):
+    """Which network to run and how: the options the ``mickey`` matcher and depth source share."""
+
+    checkpoint: str = option("mickey", choices=CHECKPOINTS)  # the published file, found by the weights rule
+    weights: str | None = None  # a checkpoint file elsewhere (or a folder holding <checkpoint>.ckpt)
+    dinov2: str | None = None  # the DINOv2 ViT-L/14 file elsewhere (or a folder holding it)
+    config: str | None = None  # the config YAML elsewhere (default: the one beside the checkpoint, if any)
+    fp16: bool | None = None  # DINOv2 in float16: None = as the config says (published: yes) on a GPU, no on CPU
+    device: str | None = option(None, device=True)  # None: cuda when available
 
 
 @dataclass
@@ -102,3 +115,9 @@ def shared_engine(checkpoint: str = "mickey", weights: str | None = None, dinov2
         if key not in _ENGINES:
             _ENGINES[key] = MickeyEngine(load_network(files, dev, fp16), dev, files)
         return _ENGINES[key]
+
+
+def engine_for(options: MickeyNetworkOptions) -> MickeyEngine:
+    """The shared engine for a matcher's or depth source's options."""
+    o = options
+    return shared_engine(o.checkpoint, o.weights, o.dinov2, o.config, o.device, o.fp16)

@@ -23,6 +23,7 @@ import numpy as np
 from ..estimate import Estimate
 from ..geometry import Pose
 from ..matching.base import CandidateMatches
+from ..options import OptionError, Options, option
 from .common import GuardedSolver, SolverError, Timer, rotation_is_valid
 from .confidence import CONFIDENCE_MODES, choose
 
@@ -34,26 +35,25 @@ __all__ = ["MickeySolverOptions", "MickeySolver", "ProcrustesResult", "probabili
 
 
 @dataclass
-class MickeySolverOptions:
+class MickeySolverOptions(Options):
     """The published values (MicKey's config, section ``PROCRUSTES``)."""
 
-    draws: int = 20  # IT_MATCHES
-    draw_size: int = 2048  # NUM_SAMPLED_MATCHES
-    hypotheses: int = 100  # IT_RANSAC, per draw
-    sample_size: int = 3  # NUM_CORR_3D_3D
-    refine_steps: int = 4  # NUM_REFINEMENTS
-    inlier_threshold: float = 0.15  # TH_INLIER, metres
-    soft_threshold: float = 0.3  # TH_SOFT_INLIER, metres
-    confidence: str = "inliers"  # the public soft inlier count | "score": times the fraction of the draw it fits
+    draws: int = option(20, min=1)  # IT_MATCHES
+    draw_size: int = option(2048, min=3)  # NUM_SAMPLED_MATCHES, at least sample_size
+    hypotheses: int = option(100, min=1)  # IT_RANSAC, per draw
+    sample_size: int = option(3, min=3)  # NUM_CORR_3D_3D
+    refine_steps: int = option(4, min=0)  # NUM_REFINEMENTS
+    inlier_threshold: float = option(0.15, min=0, min_open=True)  # TH_INLIER, metres
+    soft_threshold: float = option(0.3, min=0, min_open=True)  # TH_SOFT_INLIER, metres
+    # "inliers": the public soft inlier count; "score": times the fraction of the draw it fits
+    confidence: str = option("inliers", choices=CONFIDENCE_MODES)
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.confidence not in CONFIDENCE_MODES:
-            raise ValueError(f"confidence must be one of {CONFIDENCE_MODES}, got {self.confidence!r}")
-        if min(self.draws, self.hypotheses) < 1 or self.sample_size < 3 or self.draw_size < self.sample_size:
-            raise ValueError("draws and hypotheses must be >= 1, sample_size >= 3 and draw_size >= sample_size")
-        if not (self.inlier_threshold > 0 and self.soft_threshold > 0):
-            raise ValueError("inlier_threshold and soft_threshold must be positive")
+        super().__post_init__()
+        if self.draw_size < self.sample_size:
+            why = f"expected an integer >= sample_size ({self.sample_size})"
+            raise OptionError(f"option draw_size={self.draw_size!r}: {why}", "draw_size", self.draw_size, why)
 
 
 @dataclass
