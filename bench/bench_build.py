@@ -24,9 +24,9 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from mapfree.build import BuildOptions
-from mapfree.build.accuracy import compare_to_truth
-from mapfree.build.place import build_place
+from mapfree.scenebuild import BuildOptions
+from mapfree.scenebuild.accuracy import compare_to_truth
+from mapfree.scenebuild.place import build_place
 from mapfree.data.synth import SynthOptions
 from mapfree.data.synth.scans import ScanOptions, generate_scans
 

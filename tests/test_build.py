@@ -12,10 +12,10 @@ import pytest
 
 pytest.importorskip("pycolmap")
 
-from mapfree.build import BuildOptions, read_correspondences
-from mapfree.build.accuracy import compare_to_truth
-from mapfree.build.inputs import interpolate_track, read_place, read_tum
-from mapfree.build.run import build_all
+from mapfree.scenebuild import BuildOptions, read_correspondences
+from mapfree.scenebuild.accuracy import compare_to_truth
+from mapfree.scenebuild.inputs import interpolate_track, read_place, read_tum
+from mapfree.scenebuild.run import build_all
 from mapfree.cli import main as cli_main
 from mapfree.data import Dataset, read_overlaps, read_poses
 from mapfree.data.synth import SynthOptions
@@ -295,7 +295,7 @@ def test_own_matcher_written_into_colmap_database(scans, tmp_path):
     """--matcher sift: our registry's keypoints and matches go into COLMAP's database and map as accurately."""
     import pycolmap
 
-    from mapfree.build import SfmOptions
+    from mapfree.scenebuild import SfmOptions
     from mapfree.matching import create
 
     opts = BuildOptions(split="train", report_plot=False, keep_work=True, sfm=SfmOptions(matcher="sift"))
@@ -319,7 +319,7 @@ def test_unknown_matcher_is_a_clear_error(scans, tmp_path, capsys):
 
 def test_overlaps_from_sfm_tracks_without_depth(scans, tmp_path):
     """Frames without depth: overlaps come from the SfM tracks (the paper's recipe); forcing depth is an error."""
-    from mapfree.build.place import BuildError, _overlaps
+    from mapfree.scenebuild.place import BuildError, _overlaps
 
     _images_only(scans, tmp_path / "scans", ("intrinsics.txt",))
     res = build_all(tmp_path / "scans", tmp_path / "out", BuildOptions(report_plot=False, allow_unscaled=True),

@@ -147,7 +147,7 @@ def test_mapfree_relocalize_reads_a_sideways_phone_photo(scene, tmp_path):
 def test_build_reads_exif_intrinsics_for_the_upright_photo(tmp_path):
     """``mapfree build`` takes a phone photo's focal length from EXIF; for a sideways-stored photo the intrinsics
     are those of the upright photo every reader of ours decodes (they used to keep the stored grid's size)."""
-    from mapfree.build.inputs import exif_intrinsics
+    from mapfree.scenebuild.inputs import exif_intrinsics
 
     exif = Image.Exif()
     exif[0x0112] = 6

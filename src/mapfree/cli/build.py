@@ -59,8 +59,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..build import BuildOptions, SfmOptions
-    from ..build.run import build_all
+    from ..scenebuild import BuildOptions, SfmOptions
+    from ..scenebuild.run import build_all
 
     from ..matching import names as matcher_names
     from . import fail, output_folder_problem
