@@ -33,11 +33,11 @@ sys.path.insert(0, str(HERE))
 from bench_pipeline import DEFAULT_ROOT, GpuUtilisation  # noqa: E402
 
 from mapfree.data import Dataset  # noqa: E402
-from mapfree.regression.config import load_config  # noqa: E402
-from mapfree.regression.data import PairDataset, as_float_input, resized_image, resolve_size, val_pairs  # noqa: E402
-from mapfree.regression.losses import PoseLoss  # noqa: E402
-from mapfree.regression.model import RPRNet  # noqa: E402
-from mapfree.regression.train import resolve_config  # noqa: E402
+from mapfree.rpr.config import load_config  # noqa: E402
+from mapfree.rpr.data import PairDataset, as_float_input, resized_image, resolve_size, val_pairs  # noqa: E402
+from mapfree.rpr.losses import PoseLoss  # noqa: E402
+from mapfree.rpr.model import RPRNet  # noqa: E402
+from mapfree.rpr.train import resolve_config  # noqa: E402
 
 
 def _sync(device: torch.device) -> None:

@@ -34,7 +34,7 @@ def equivalence(batch: int = 2, hw: tuple[int, int] = (90, 68)) -> str:
 
     import torch
 
-    from mapfree.regression.aggregator import CorrelationAggregator
+    from mapfree.rpr.aggregator import CorrelationAggregator
 
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     ref = CorrelationAggregator(32, fused=False).to(device)
@@ -69,8 +69,8 @@ def profile(batch: int, steps: int = 5, size: tuple[int, int] | None = None) -> 
     from torch.profiler import profile as torch_profile
 
     from bench_train import Trainer, _random_batch, _size, _sync
-    from mapfree.regression.config import load_config
-    from mapfree.regression.train import resolve_config
+    from mapfree.rpr.config import load_config
+    from mapfree.rpr.train import resolve_config
 
     cfg = load_config(resolve_config("rot6d_trans"))
     if size:

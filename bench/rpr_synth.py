@@ -43,9 +43,9 @@ def evaluate(run: Path, root: Path) -> dict[str, dict[str, float]]:
     import torch
     import yaml
 
-    from mapfree.regression import load_method
-    from mapfree.regression.config import RPRConfig
-    from mapfree.regression.report import evaluate_pairs, mean_training_pose
+    from mapfree.rpr import load_method
+    from mapfree.rpr.config import RPRConfig
+    from mapfree.rpr.report import evaluate_pairs, mean_training_pose
 
     cfg = RPRConfig.from_dict(yaml.safe_load((run / "config.yaml").read_text()))
     R, t = mean_training_pose(root, cfg.data, epochs=3)
@@ -73,7 +73,7 @@ def main() -> None:
         _mapfree("train", args.config, "--data", str(args.root), "--out", str(args.out), "--no-progress", *extra)
     res = evaluate(args.out, args.root)
     (args.out / "heldout.json").write_text(json.dumps(res, indent=1))
-    from mapfree.regression.report import plot_curves
+    from mapfree.rpr.report import plot_curves
 
     png = plot_curves(args.out / "logs" / "metrics.csv", args.out / "curves_vs_mean_pose.png", args.config,
                       {"mean training pose: VCRE prec": res["mean training pose"]["vcre_prec"]})

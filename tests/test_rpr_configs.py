@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from mapfree.regression.config import RPRConfig, config_dir, load_config
+from mapfree.rpr.config import RPRConfig, config_dir, load_config
 from mapfree.yamlio import deep_merge, read_yaml_with_base
 
 #: Every config in configs/rpr as written out in full at b9f3c3b, before ``base:`` existed (parsed YAML as JSON).

@@ -17,13 +17,13 @@ pytest.importorskip("pytorch_lightning")
 from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
 
 from mapfree.data import Dataset  # noqa: E402
-from mapfree.regression import aggregator as agg_mod  # noqa: E402
-from mapfree.regression.aggregator import CorrelationAggregator  # noqa: E402
-from mapfree.regression.data import (EpochSampler, PairDataset, RPRDataModule, TrainPairs, as_float_input,  # noqa: E402
+from mapfree.rpr import aggregator as agg_mod  # noqa: E402
+from mapfree.rpr.aggregator import CorrelationAggregator  # noqa: E402
+from mapfree.rpr.data import (EpochSampler, PairDataset, RPRDataModule, TrainPairs, as_float_input,  # noqa: E402
                                      load_pair_image, resized_image, val_pairs)
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_regression_train import make_tiny_root, tiny_config  # noqa: E402
+from test_rpr_train import make_tiny_root, tiny_config  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -181,8 +181,8 @@ def test_one_dataset_with_persistent_workers_resamples_every_epoch(tiny_root):
 
 
 def test_lightning_fit_draws_each_epochs_pairs_through_persistent_workers(tiny_root, tmp_path, monkeypatch):
-    from mapfree.regression.module import RPRModule
-    from mapfree.regression.train import TrainerOptions, fit
+    from mapfree.rpr.module import RPRModule
+    from mapfree.rpr.train import TrainerOptions, fit
 
     seen: dict[int, list] = {}
     step = RPRModule.training_step

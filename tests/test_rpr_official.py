@@ -17,7 +17,7 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("pytorch_lightning")
 
 from mapfree.mast3r.synthetic import fill_value  # noqa: E402  (the same fill rule as the MASt3R fixture)
-from mapfree.regression.official import OFFICIAL_CONFIGS  # noqa: E402
+from mapfree.rpr.official import OFFICIAL_CONFIGS  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -62,7 +62,7 @@ def weights(official, tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def encoder_features(official, weights, inputs):
     """Both images' encoder features through the loaded 3d3d checkpoint (every release shares this encoder)."""
-    from mapfree.regression import load_method
+    from mapfree.rpr import load_method
 
     net = load_method(write_checkpoint(official, "3d3d", weights), device="cpu").module.net
     with torch.no_grad():
@@ -80,7 +80,7 @@ def test_fixture_lists_the_twelve_published_configurations(official):
                                   pytest.param(c, marks=pytest.mark.slow) for c in OFFICIAL_CONFIGS])
 def test_published_checkpoint_loads_strictly_and_gives_the_public_pose(name, official, weights, inputs,
                                                                        encoder_features):
-    from mapfree.regression import load_method
+    from mapfree.rpr import load_method
 
     method = load_method(write_checkpoint(official, name, weights), device="cpu")  # config from the file name
     module = method.module
@@ -115,7 +115,7 @@ def test_published_checkpoint_loads_strictly_and_gives_the_public_pose(name, off
 
 
 def test_a_checkpoint_of_another_configuration_is_refused_naming_the_keys(official, weights, tmp_path):
-    from mapfree.regression import load_method
+    from mapfree.rpr import load_method
 
     src = write_checkpoint(official, "rotbin_trans", weights)
     wrong = tmp_path / "3d3d.ckpt"
@@ -150,7 +150,7 @@ def test_relocalize_cli_matches_the_network_on_public_preprocessing(official, we
     $MAPFREE_WEIGHTS_DIR, and a missing file names itself and the release's address."""
     from mapfree.cli import main
     from mapfree.geometry import Pose
-    from mapfree.regression import load_method
+    from mapfree.rpr import load_method
 
     ckpt = write_checkpoint(official, "3d3d", weights)
     scene = realmini / "val" / "s00000"
@@ -187,7 +187,7 @@ def test_run_split_with_a_published_model_writes_the_networks_poses(official, we
     from mapfree.cli import main
     from mapfree.data import Dataset
     from mapfree.geometry import Pose
-    from mapfree.regression import load_method
+    from mapfree.rpr import load_method
 
     ckpt = write_checkpoint(official, "3d3d", weights)
     out = tmp_path / "sub.zip"
@@ -213,12 +213,12 @@ def test_finetune_a_confidence_on_top_of_a_published_model(official, weights, tm
     uncertainty head trains (frozen encoder features cached); the poses stay the published model's exactly and
     the submissions gain a confidence."""
     import pytorch_lightning as pl
-    from test_regression_train import make_tiny_root
+    from test_rpr_train import make_tiny_root
 
     from mapfree.cli import main
-    from mapfree.regression import load_method
-    from mapfree.regression.config import apply_overrides, load_config, resolve_config
-    from mapfree.regression.module import RPRModule
+    from mapfree.rpr import load_method
+    from mapfree.rpr.config import apply_overrides, load_config, resolve_config
+    from mapfree.rpr.module import RPRModule
 
     root = make_tiny_root(tmp_path / "data", n_train=1, frames=3)
     ckpt = write_checkpoint(official, "3d3d", weights)
@@ -248,7 +248,7 @@ def test_finetune_a_confidence_on_top_of_a_published_model(official, weights, tm
 
 
 def test_registering_the_published_methods_does_not_load_torch():
-    """``methods.get`` imports ``mapfree.regression`` to register ``rpr-<config>``: that must stay cheap (no torch,
+    """``methods.get`` imports ``mapfree.rpr`` to register ``rpr-<config>``: that must stay cheap (no torch,
     ~2 s) for every CLI call and service start, whatever method they ask for."""
     import subprocess
     import sys

@@ -318,7 +318,7 @@ def test_one_weights_rule_the_variable_then_the_default_folder(tmp_path, monkeyp
     every model (a file, a hub folder, MASt3R, an RPR network) follows it; one message shape when missing."""
     from mapfree.mast3r.checkpoint import find_checkpoint
     from mapfree.matching.published import LIGHTGLUE_SHIPPED, SUPERGLUE_MODELS
-    from mapfree.regression.official import find_weights
+    from mapfree.rpr.official import find_weights
     from mapfree.weights import MissingWeightsError, default_dir
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))

@@ -48,7 +48,7 @@ _LEARNED_THRESHOLD_PX = 2.0
 
 
 #: Lazily imported modules that register method kinds / presets on import.
-_KIND_MODULES = {"regression": "mapfree.regression"}
+_KIND_MODULES = {"regression": "mapfree.rpr"}
 _FACTORIES: dict[str, Callable[["Method"], Any]] = {}
 _REGISTRY: dict[str, "Method"] = {}
 
@@ -95,7 +95,7 @@ class Method:
 
 
 def register_kind(kind: str, build: Callable[[Method], Any]) -> None:
-    """Register how methods of ``kind`` are built (``mapfree.regression`` registers ``"regression"``)."""
+    """Register how methods of ``kind`` are built (``mapfree.rpr`` registers ``"regression"``)."""
     _FACTORIES[kind] = build
 
 
@@ -327,7 +327,7 @@ def weight_models(name: str) -> list["Model"]:
         raise KeyError(f"{name!r} is no method, matcher or depth network: {hint}see `mapfree run --list-methods`, "
                        f"or `mapfree weights` without a name for every model") from None
     if m.kind == "regression":
-        from .regression.official import RPR_WEIGHTS
+        from .rpr.official import RPR_WEIGHTS
 
         config = m.options.get("config")
         return [RPR_WEIGHTS[config]] if config in RPR_WEIGHTS and not m.options.get("checkpoint") else []
@@ -354,7 +354,7 @@ def all_weight_models() -> list[tuple["Model", list[str]]]:
     sources: list[tuple[str, tuple]] = [*MATCHER_WEIGHTS.items(), *by_option,
                                         *((k, (v,)) for k, v in DEPTH_WEIGHTS.items())]
     try:
-        from .regression.official import RPR_WEIGHTS
+        from .rpr.official import RPR_WEIGHTS
 
         sources += [(f"rpr-{k}", (v,)) for k, v in RPR_WEIGHTS.items()]
     except ImportError:  # pragma: no cover - a training-free install without the regression package's deps

@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     # The config and the flags are checked before Lightning is imported (seconds, and its banner lines): a typo
     # in the command line is answered at once.
-    from ..regression.config import apply_overrides, load_config, resolve_config
+    from ..rpr.config import apply_overrides, load_config, resolve_config
 
     try:
         path = resolve_config(args.config)
@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     if args.resume is not None and not args.resume.is_file():
         return fail("train", f"--resume checkpoint {args.resume} not found")
     try:
-        from ..regression.train import TrainerOptions, fit
+        from ..rpr.train import TrainerOptions, fit
     except ImportError as e:
         print(f"mapfree train needs the training extra (pip install 'mapfree[train]'): {e}", file=sys.stderr)
         return 1

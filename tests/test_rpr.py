@@ -8,13 +8,13 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from mapfree.geometry import quat_to_rotmat, rotation_angle_deg  # noqa: E402
-from mapfree.regression.config import LossConfig, ModelConfig  # noqa: E402
-from mapfree.regression.losses import PoseLoss, rotation_loss, translation_loss, virtual_point_loss  # noqa: E402
-from mapfree.regression.metrics import auc, pose_errors, vcre_px, virtual_points  # noqa: E402
-from mapfree.regression.model import RPRNet  # noqa: E402
-from mapfree.regression.params import Parameterisation, PoseOutput  # noqa: E402
-from mapfree.regression.procrustes import procrustes  # noqa: E402
-from mapfree.regression.rotations import (  # noqa: E402
+from mapfree.rpr.config import LossConfig, ModelConfig  # noqa: E402
+from mapfree.rpr.losses import PoseLoss, rotation_loss, translation_loss, virtual_point_loss  # noqa: E402
+from mapfree.rpr.metrics import auc, pose_errors, vcre_px, virtual_points  # noqa: E402
+from mapfree.rpr.model import RPRNet  # noqa: E402
+from mapfree.rpr.params import Parameterisation, PoseOutput  # noqa: E402
+from mapfree.rpr.procrustes import procrustes  # noqa: E402
+from mapfree.rpr.rotations import (  # noqa: E402
     EULER_BINS, SPHERICAL_BINS, direction_to_spherical, euler_bin_angles, euler_bin_index, euler_from_matrix,
     geodesic_angle, matrix_from_euler, rot6d_to_matrix, spherical_bin_index, spherical_to_direction,
 )
@@ -72,7 +72,7 @@ def test_ablations_change_aggregated_channels():
 def test_cosine_correlation_finds_the_shifted_position():
     """With a temperature the attention peaks at the matching image-1 position, so the soft-argmax position
     channels carry the flow; image 0's own grid (``own_position``) lets the head subtract it."""
-    from mapfree.regression.aggregator import CorrelationAggregator
+    from mapfree.rpr.aggregator import CorrelationAggregator
 
     g = torch.Generator().manual_seed(0)
     f0 = torch.randn(1, 16, 6, 8, generator=g)
@@ -364,13 +364,13 @@ def test_auc_equals_precision_with_constant_confidence_and_rewards_good_ranking(
 def test_every_shipped_config_loads_and_builds():
     from pathlib import Path
 
-    from mapfree.regression.config import apply_overrides, load_config
+    from mapfree.rpr.config import apply_overrides, load_config
 
     configs = sorted((Path(__file__).resolve().parents[1] / "configs" / "rpr").glob("*.yaml"))
     names = {load_config(p).name for p in configs}
     for paper_name in ("R(q)+t", "R(q)+s·t̂", "R(6D)+t", "R(6D)+s·t̂", "R(α,β,γ)+s·t̂(φ,θ)", "[3D-3D]"):
         assert paper_name in names
-    from mapfree.regression.official import OFFICIAL_CONFIGS
+    from mapfree.rpr.official import OFFICIAL_CONFIGS
 
     assert set(OFFICIAL_CONFIGS) <= {p.stem for p in configs}  # one config per published checkpoint
     for p in configs:
