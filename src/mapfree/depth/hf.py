@@ -13,8 +13,7 @@ import numpy as np
 import torch
 
 from ..data import Frame
-from ..matching.attention import steady_kernels
-from ..matching.utils import resolve_device
+from ..runtime import resolve_device, steady_kernels
 from ..weights import BrokenWeightsError, HubModel, MissingWeightsError, check_folder, offline_why, reachable
 from ..options import Options, option
 from .cache import DepthCache

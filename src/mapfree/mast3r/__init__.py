@@ -2,6 +2,7 @@
 checkpoint reader, the 512 preprocessing and the fast reciprocal matcher. Weights are the user's download.
 
 Modules: ``config`` (constructor arguments, parsed not evaluated), ``rope``/``blocks``/``dpt``/``heads``/
-``model`` (the network), ``checkpoint`` (``.pth`` and hub folders, strict), ``preprocess``, ``reciprocal``,
-``engine`` (one forward per pair, shared by the matcher and the depth source), ``synthetic`` (fill-rule weights).
+``model`` (the network), ``published`` (the checkpoints' names and addresses, no torch), ``checkpoint``
+(``.pth`` and hub folders, strict), ``preprocess``, ``reciprocal``, ``engine`` (one forward per pair, shared by
+the matcher and the depth source), ``synthetic`` (fill-rule weights).
 """

@@ -19,10 +19,10 @@ from typing import Any, Mapping
 
 import torch
 
-from ..matching.published import MAST3R_WEIGHTS
 from ..weights import BrokenWeightsError, MissingWeightsError, check_folder, file_problem
 from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs, parse_constructor
 from .model import AsymmetricModel
+from .published import MAST3R_WEIGHTS
 
 __all__ = ["Published", "PUBLISHED", "find_checkpoint", "checkpoint_available", "load_model", "read_checkpoint",
            "model_from_state_dict", "load_error_gist"]

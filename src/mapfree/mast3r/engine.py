@@ -19,8 +19,7 @@ from typing import Any, Callable, Hashable, Sequence
 import numpy as np
 import torch
 
-from ..matching.attention import steady_kernels
-from ..matching.utils import resolve_device
+from ..runtime import resolve_device, steady_kernels
 from .checkpoint import find_checkpoint, load_model
 from .model import AsymmetricModel, Encoded
 from .preprocess import Prepared, prepare_array

@@ -17,12 +17,13 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..geometry import to_original
 from ..options import Options, option
-from .attention import steady_kernels
+from ..runtime import resolve_device, steady_kernels
 from .base import Features, Matches
 from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_classes
 from .published import EFFICIENTLOFTR_MODEL
-from .utils import autocast, checked_or_blank, inside, resolve_device, to_original
+from .utils import autocast, checked_or_blank, inside
 
 __all__ = ["EfficientLoFTROptions", "EfficientLoFTRMatcher", "EFFICIENTLOFTR_MODEL", "efficientloftr_available",
            "mutual_pairs", "refine"]

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from kornia.feature.lightglue import LightGlue, filter_matches, normalize_keypoints
 
-from .attention import steady_kernels
+from ..runtime import steady_kernels
 from .base import Features
 
 __all__ = ["GlueInput", "glue_input", "run_glue", "bucket_length", "BUCKET"]

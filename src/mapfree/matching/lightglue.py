@@ -13,12 +13,13 @@ import numpy as np
 import torch
 from kornia.feature import ALIKED, DISK, LightGlue
 
+from ..geometry import to_original
 from ..options import Options, option
-from .attention import steady_kernels
+from ..runtime import resolve_device, steady_kernels
 from .base import Features, Matches
 from .glue import glue_input, run_glue
 from .superpoint import SuperPoint
-from .utils import autocast, check_image, image_tensor, is_textureless, resize_for_matching, resolve_device, to_original
+from .utils import autocast, check_image, image_tensor, is_textureless, resize_for_matching
 from .published import SHIPPED, SUPERPOINT_LIGHTGLUE_WEIGHTS, SUPERPOINT_WEIGHTS
 from .weights import MissingWeightsError, WeightFile, find_local, load_checkpoint, resolve_weights, shipped_weights
 

@@ -12,8 +12,9 @@ import torch
 from kornia.feature import LoFTR
 from kornia.feature.loftr import loftr as _kloftr
 
+from ..geometry import to_original
 from ..options import Options, option
-from .attention import steady_kernels
+from ..runtime import resolve_device, steady_kernels
 from .base import Features, Matches
 from .utils import (
     autocast,
@@ -21,8 +22,6 @@ from .utils import (
     image_tensor,
     inside,
     resize_for_matching,
-    resolve_device,
-    to_original,
 )
 from .published import LOFTR_WEIGHTS
 from .weights import find_local, load_checkpoint, resolve_weights

@@ -7,9 +7,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..geometry import to_original
 from ..options import Options, option
 from .base import Features, Matches
-from .utils import check_image, resize_for_matching, to_original
+from .utils import check_image, resize_for_matching
 
 __all__ = ["SIFTOptions", "SIFTMatcher", "root_sift", "squared_distances", "two_nearest"]
 

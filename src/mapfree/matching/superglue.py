@@ -13,12 +13,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..geometry import to_original
 from ..options import Options, option
-from .attention import steady_kernels
+from ..runtime import resolve_device, steady_kernels
 from .base import Features, Matches
 from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_classes
 from .published import SUPERGLUE_MODELS
-from .utils import autocast, checked_or_blank, resolve_device, to_original
+from .utils import autocast, checked_or_blank
 
 __all__ = ["SuperGlueOptions", "SuperGlueMatcher", "SUPERGLUE_MODELS", "superglue_available"]
 

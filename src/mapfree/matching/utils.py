@@ -1,4 +1,4 @@
-"""Small helpers shared by the matchers: devices, resizing with the half-pixel rule, tensors, mutual NN.
+"""Small helpers shared by the matchers: resizing with the half-pixel rule, tensors, mutual NN.
 
 torch is imported by the helpers that use it, not here: SIFT (OpenCV only) shares the image helpers, and a SIFT
 command then starts without loading torch (a second or more of every ``mapfree`` call)."""
@@ -17,11 +17,9 @@ if TYPE_CHECKING:
     import torch
 
 __all__ = [
-    "resolve_device",
     "check_image",
     "resize_for_matching",
     "matching_size",
-    "to_original",
     "image_tensor",
     "mutual_nearest",
     "autocast",
@@ -29,15 +27,6 @@ __all__ = [
     "checked_or_blank",
     "inside",
 ]
-
-
-def resolve_device(device: str | torch.device | None = None) -> torch.device:
-    """``None``/"auto" -> cuda when available, else cpu."""
-    import torch
-
-    if device is None or str(device) == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(device)
 
 
 def check_image(image: np.ndarray) -> np.ndarray:
@@ -57,7 +46,8 @@ def resize_for_matching(
 ) -> tuple[np.ndarray, tuple[float, float]]:
     """Resize so the long side is at most ``max_size`` and both sides are multiples of ``multiple``.
 
-    Returns the image and the scale ``(sx, sy)`` = new size / old size; ``to_original`` undoes it.
+    Returns the image and the scale ``(sx, sy)`` = new size / old size; ``mapfree.geometry.to_original``
+    undoes it.
     """
     h, w = image.shape[:2]
     nw, nh = matching_size(w, h, max_size, multiple)
@@ -73,15 +63,6 @@ def matching_size(width: int, height: int, max_size: int | None = None, multiple
     nw = max(multiple, int(round(width * s / multiple)) * multiple)
     nh = max(multiple, int(round(height * s / multiple)) * multiple)
     return nw, nh
-
-
-def to_original(kpts: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
-    """Map pixel coordinates of a resized image back to the original (half-pixel rule)."""
-    kpts = np.asarray(kpts, dtype=np.float64).reshape(-1, 2)
-    if scale == (1.0, 1.0):
-        return kpts
-    s = np.asarray(scale, dtype=np.float64)
-    return (kpts + 0.5) / s - 0.5
 
 
 def image_tensor(image: np.ndarray, device: torch.device, gray: bool = False) -> torch.Tensor:

@@ -13,8 +13,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..geometry import to_original
 from ..options import Options, option
-from .attention import steady_kernels
+from ..runtime import resolve_device, steady_kernels
 from .base import Features, Matches
 from .glue import glue_input, run_glue
 from .published import XFEAT_WEIGHTS
@@ -26,8 +27,6 @@ from .utils import (
     is_textureless,
     mutual_nearest,
     resize_for_matching,
-    resolve_device,
-    to_original,
 )
 
 __all__ = ["XFeatOptions", "XFeatMatcher", "MODES"]

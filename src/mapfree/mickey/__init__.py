@@ -3,8 +3,8 @@ DINOv2, their matching by a dual softmax, and the probabilistic Procrustes solve
 
 Modules: ``config`` (the shipped YAML, read not trusted), ``dinov2`` (the ViT/14 backbone, its size read from
 the weight file), ``heads`` (the four keypoint heads), ``model`` (network and matching matrix), ``preprocess``
-(540x720 input, intrinsics scaled), ``checkpoint`` (the files, in ``mickey/`` of a weights folder by the one
-weights rule; loaded strictly), ``engine`` (one network shared by the matcher and the depth source),
-``synthetic`` (fill-rule weights).
+(540x720 input, intrinsics scaled), ``published`` (the files' names and addresses, no torch), ``checkpoint``
+(the files, in ``mickey/`` of a weights folder by the one weights rule; loaded strictly), ``engine`` (one
+network shared by the matcher and the depth source), ``synthetic`` (fill-rule weights).
 The solver is ``mapfree.solvers.mickey``.
 """

@@ -1,7 +1,7 @@
 """Finding and reading MicKey's files: the authors' checkpoint, Meta's DINOv2 backbone and the shipped config.
 
 The files follow the one weights rule (``mapfree.weights``, the models ``MICKEY_CHECKPOINTS`` and
-``MICKEY_DINOV2`` of ``matching.published``): a path given for a file (the matcher's ``weights``, ``dinov2``,
+``MICKEY_DINOV2`` of ``mickey.published``): a path given for a file (the matcher's ``weights``, ``dinov2``,
 ``config`` options), else ``mickey/`` (or the authors' ``mickey/mickey_weights/``) in ``$MAPFREE_WEIGHTS_DIR``,
 then in the default folder ``~/.cache/mapfree/weights``. There: ``mickey.ckpt`` or ``mickey_sc.ckpt`` and
 ``config.yaml`` from the authors' ``mickey_weights.zip``, and ``dinov2_vitl14_pretrain.pth`` (also found in the
@@ -27,11 +27,11 @@ from typing import Any, Mapping
 import torch
 
 from ..mast3r.checkpoint import load_error_gist
-from ..matching.published import MICKEY_CHECKPOINTS, MICKEY_DINOV2, MICKEY_ZIP_URL
 from ..weights import BrokenWeightsError, MissingWeightsError, file_problem, resolve_weights
 from .config import MickeyConfig, config_from_yaml
 from .dinov2 import ViTShape
 from .model import MickeyNet
+from .published import MICKEY_CHECKPOINTS, MICKEY_DINOV2, MICKEY_ZIP_URL
 
 __all__ = ["MickeyFiles", "CHECKPOINTS", "WEIGHTS_ZIP_URL", "DINOV2_URL", "SUBDIR", "find_files", "files_available",
            "read_checkpoint", "read_dinov2", "network_from_state_dicts", "load_network", "published_key",

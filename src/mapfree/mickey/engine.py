@@ -15,8 +15,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ..matching.utils import resolve_device
 from ..options import Options, option
+from ..runtime import resolve_device
 from .checkpoint import CHECKPOINTS, MickeyFiles, find_files, load_network
 from .model import Keypoints, MickeyNet
 from .preprocess import Prepared, prepare_array

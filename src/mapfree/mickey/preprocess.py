@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..matching.utils import to_original
+from ..geometry import to_original
 
 __all__ = ["Prepared", "prepare_array", "scale_intrinsics", "INPUT_SIZE"]
 

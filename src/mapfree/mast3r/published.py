@@ -1,0 +1,61 @@
+"""The published MASt3R / DUSt3R checkpoints, as ``mapfree.weights`` models (no torch here: ``mapfree weights``
+lists them without loading any network). ``mapfree.matching.published`` lists them with every matcher's weights."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..weights import Found, MissingWeightsError, find_in_dirs, missing_message, target_dir
+
+__all__ = ["Mast3rWeights", "MAST3R_WEIGHTS"]
+
+
+@dataclass(frozen=True)
+class Mast3rWeights:
+    """A MASt3R/DUSt3R checkpoint: the authors' ``STEM.pth``, or the hub's folder ``STEM/`` (config.json +
+    model.safetensors) in the weights folders. Never downloaded for the user (CC BY-NC-SA 4.0)."""
+
+    stem: str
+    hub_id: str
+    url: str
+    what: str
+    licence: str = "CC BY-NC-SA 4.0: mapfree does not ship it"
+
+    @property
+    def name(self) -> str:
+        return f"{self.stem}.pth"
+
+    def item(self) -> str:
+        return f"weights file '{self.stem}.pth' (or the hub folder {self.stem}/ with config.json and model.safetensors)"
+
+    def locate(self, explicit: str | os.PathLike | None = None) -> Found | None:
+        if explicit is not None:
+            p = Path(explicit).expanduser()
+            return Found(p, "the path given") if p.exists() else None
+        hit = find_in_dirs(f"{self.stem}.pth", self.stem, self.hub_id.replace("/", "--"))
+        return Found(*hit) if hit is not None else None
+
+    def how(self) -> str:
+        return (f"Download {self.url} (licence {self.licence}) into {target_dir()}, or the hub folder {self.hub_id} "
+                f"as {target_dir() / self.stem}/")
+
+    def fetch_command(self) -> str:
+        return f"curl -L --create-dirs -o {target_dir() / self.name} {self.url}"
+
+    def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError:
+        if explicit is not None:
+            return MissingWeightsError(f"{self.what}: checkpoint {explicit} not found (expected a .pth file or a "
+                                       f"folder with config.json and model.safetensors)")
+        return MissingWeightsError(missing_message(self.what, self.item(), self.name, self.how(), why))
+
+
+_NAVER = "https://download.europe.naverlabs.com/ComputerVision"
+MAST3R_WEIGHTS = {
+    "mast3r": Mast3rWeights("MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric",
+                            "naver/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric",
+                            f"{_NAVER}/MASt3R/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth", "mast3r"),
+    "dust3r": Mast3rWeights("DUSt3R_ViTLarge_BaseDecoder_512_dpt", "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt",
+                            f"{_NAVER}/DUSt3R/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth", "dust3r"),
+}
