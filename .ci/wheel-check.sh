@@ -22,6 +22,10 @@ need = ["mapfree/configs/methods/", "mapfree/configs/rpr/", "mapfree/service/tem
 missing = [n for n in need if not any(x.startswith(n) for x in names)]
 if missing:
     sys.exit(f"wheel lacks package data: {missing}")
+# Only the mapfree package ships: the test and benchmark helpers (src/mapfree_dev) stay in the checkout.
+strays = sorted({n.split("/")[0] for n in names} - {"mapfree"} - {n.split("/")[0] for n in names if ".dist-info" in n})
+if strays:
+    sys.exit(f"wheel holds more than the mapfree package: {strays}")
 print(f"{len(names)} files in the wheel, package data present")
 PYEOF
 # Only the installed wheel may be importable: no source folder on the path.

@@ -23,6 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))  # mapfree_dev: in the checkout, not the wheel
 DEFAULT_ROOT = next((p for p in (Path(__file__).resolve().parents[2] / "shared/data/realmini-dev",
                                  Path("/work/shared/data/realmini-dev")) if p.is_dir()), None)
 
@@ -120,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("no dataset root given and realmini-dev not found")
     import torch
 
-    from mapfree.mickey.synthetic import write_standin
+    from mapfree_dev.standins.mickey import write_standin
 
     rows = []
     with tempfile.TemporaryDirectory() as d:

@@ -34,6 +34,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(HERE.parent / "src"))  # mapfree_dev (stand-in weights): in the checkout, not the wheel
 LEARNED = ["xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "superpoint-lightglue",
            "loftr"]
 
@@ -137,7 +138,7 @@ def never_seen_two_view(root: Path, n: int, kinds: tuple[str, ...] = ("mast3r", 
     encoder, both decoders and heads, and the reciprocal matching. Each new image size is a new token count."""
     import torch
 
-    from mapfree.mast3r.synthetic import write_published_standin
+    from mapfree_dev.standins.mast3r import write_published_standin
 
     with tempfile.TemporaryDirectory() as d:
         opts = {k: {"weights": str(write_published_standin(d, k, dtype=torch.float16))} for k in kinds}

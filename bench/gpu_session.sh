@@ -88,9 +88,9 @@ for part in "${parts[@]}"; do
   case "$part" in
     pairs)
       presets=${MAPFREE_GPU_PRESETS:-aliked-lightglue_emat_sensor,xfeat-lighterglue_emat_sensor,mast3r_pnp_mast3r,superglue_emat_sensor,efficientloftr_emat_sensor}
-      prepare=("$PY" -c "import sys, torch; sys.path.insert(0, 'bench'); from pathlib import Path
+      prepare=("$PY" -c "import sys, torch; sys.path[:0] = ['bench', 'src']; from pathlib import Path
 from hub_random_models import write_models
-from mapfree.mast3r.synthetic import write_published_standin
+from mapfree_dev.standins.mast3r import write_published_standin
 write_models(Path('$weights'))
 print(write_published_standin('$weights', 'mast3r', dtype=torch.float16), 'written (fill-rule weights, fp16)')")
       cmd=("$PY" bench/gpu_probe.py "$ROOT" --out "$dir" --threads 8 --presets "$presets" --never-seen none

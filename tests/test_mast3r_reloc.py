@@ -18,7 +18,7 @@ from mapfree.depth.mast3r import Mast3rDepth
 from mapfree.estimate import Estimate
 from mapfree.mast3r.checkpoint import PUBLISHED
 from mapfree.mast3r.config import config_from_kwargs, parse_constructor
-from mapfree.mast3r.synthetic import save_pth, synthetic_state_dict
+from mapfree_dev.standins.mast3r import save_pth, synthetic_state_dict
 from mapfree.matching import MissingWeightsError
 from mapfree.matching.mast3r import Mast3rMatcher
 from mapfree.relocalize import Relocalizer

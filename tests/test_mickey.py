@@ -20,7 +20,7 @@ from mapfree.mickey.checkpoint import (DINOV2_FILE, DINOV2_URL, WEIGHTS_ZIP_URL,
 from mapfree.mickey.config import MickeyConfig, config_from_yaml
 from mapfree.mickey.preprocess import prepare_array, scale_intrinsics
 from mapfree.mickey.dinov2 import ViTShape
-from mapfree.mickey.synthetic import VIT_SIZES, published_layout, synthetic_state_dicts, write_standin
+from mapfree_dev.standins.mickey import VIT_SIZES, published_layout, synthetic_state_dicts, write_standin
 from mapfree.options import OptionError
 from mapfree.solvers.mickey import MickeySolverOptions, kabsch_torch, lift, probabilistic_procrustes
 

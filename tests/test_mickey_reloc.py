@@ -19,7 +19,7 @@ from mapfree.estimate import Estimate
 from mapfree.matching import MissingWeightsError
 from mapfree.matching.base import CandidateMatches, Matches
 from mapfree.matching.mickey import MickeyMatcher
-from mapfree.mickey.synthetic import write_standin
+from mapfree_dev.standins.mickey import write_standin
 from mapfree.relocalize import Relocalizer, pipeline
 from mapfree.solvers.common import sample_depth_at
 

@@ -16,7 +16,7 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("pytorch_lightning")
 
-from mapfree.mast3r.synthetic import fill_value  # noqa: E402  (the same fill rule as the MASt3R fixture)
+from mapfree_dev.standins.mast3r import fill_value  # noqa: E402  (the same fill rule as the MASt3R fixture)
 from mapfree.rpr.official import OFFICIAL_CONFIGS  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

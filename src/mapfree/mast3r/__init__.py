@@ -4,5 +4,6 @@ checkpoint reader, the 512 preprocessing and the fast reciprocal matcher. Weight
 Modules: ``config`` (constructor arguments, parsed not evaluated), ``rope``/``blocks``/``dpt``/``heads``/
 ``model`` (the network), ``published`` (the checkpoints' names and addresses, no torch), ``checkpoint``
 (``.pth`` and hub folders, strict), ``preprocess``, ``reciprocal``, ``engine`` (one forward per pair, shared by
-the matcher and the depth source), ``synthetic`` (fill-rule weights).
+the matcher and the depth source). Fill-rule stand-in weights for tests: ``mapfree_dev.standins.mast3r``
+(in a checkout, not in the wheel).
 """

@@ -1,6 +1,6 @@
 """Deterministic stand-in weights for MicKey in the published files' layout (tests, ``bench/``, the GPU probe).
 
-Every tensor is filled by the rule of ``mapfree.mast3r.synthetic.fill_value`` under its published name (DINOv2's
+Every tensor is filled by the rule of ``mapfree_dev.standins.mast3r.fill_value`` under its published name (DINOv2's
 as ``"dinov2." + key``), except the constants the checkpoint stores (the score head's ``eps``, ``offset_par1/2``
 and ``ones_kernel`` keep their values) and integer buffers (``num_batches_tracked``: 0, as built). The public code
 run on the same rule gives the arrays of ``shared/fixtures/mickey``.
@@ -12,11 +12,12 @@ from pathlib import Path
 
 import torch
 
-from ..mast3r.synthetic import fill_value
-from .checkpoint import DINOV2_FILE, SUBDIR, published_key
-from .config import MickeyConfig
-from .dinov2 import ViTShape
-from .model import MickeyNet
+from mapfree.mickey.checkpoint import DINOV2_FILE, SUBDIR, published_key
+from mapfree.mickey.config import MickeyConfig
+from mapfree.mickey.dinov2 import ViTShape
+from mapfree.mickey.model import MickeyNet
+
+from .mast3r import fill_value
 
 __all__ = ["VIT_SIZES", "published_layout", "synthetic_state_dicts", "write_standin"]
 

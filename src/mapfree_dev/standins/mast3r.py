@@ -16,8 +16,8 @@ from typing import Iterator
 import numpy as np
 import torch
 
-from .config import ModelConfig, parse_constructor
-from .model import AsymmetricModel
+from mapfree.mast3r.config import ModelConfig, parse_constructor
+from mapfree.mast3r.model import AsymmetricModel
 
 __all__ = ["fill_value", "synthetic_state_dict", "iter_synthetic_state_dict", "save_pth", "save_hub",
            "write_published_standin"]
@@ -80,8 +80,8 @@ def save_hub(folder: str | Path, expr: str, state_dict: dict[str, torch.Tensor])
 def write_published_standin(folder: str | Path, kind: str, dtype: torch.dtype = torch.float32) -> Path:
     """``<published stem>.pth`` in ``folder``: the published architecture of ``kind`` with fill-rule weights
     (``dtype`` float16 halves the file; the loader computes in float32). For benchmarks without the real file."""
-    from .checkpoint import PUBLISHED
-    from .config import config_from_kwargs
+    from mapfree.mast3r.checkpoint import PUBLISHED
+    from mapfree.mast3r.config import config_from_kwargs
 
     pub = PUBLISHED[kind]
     cfg = config_from_kwargs(*parse_constructor(pub.expr))
