@@ -6,6 +6,7 @@ import argparse
 import importlib
 import os
 import sys
+import traceback
 
 class HelpFormatter(argparse.HelpFormatter):
     """The description wrapped as usual; an epilog that starts with ``examples:`` kept line by line."""
@@ -77,6 +78,34 @@ def plural(n: int, word: str, words: str | None = None) -> str:
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
 COMMANDS = ["demo", "synth", "check", "evaluate", "relocalize", "match", "run", "train", "serve", "admin", "sevenscenes",
             "scannet", "build", "weights"]
+#: Set (to anything but 0) to have a command that cannot be loaded print the full traceback under its one line.
+DEBUG_ENV = "MAPFREE_DEBUG"
+
+
+class CommandLoadError(RuntimeError):
+    """A command's module failed to import: a broken install or checkout, never a missing optional extra (a
+    command imports its heavy dependencies only when it runs). ``command`` names it; the cause is chained."""
+
+    def __init__(self, command: str, cause: BaseException):
+        super().__init__(f"the command cannot be loaded: {type(cause).__name__}: {cause}{_raised_at(cause)} "
+                         f"(a broken install or checkout; {DEBUG_ENV}=1 prints the traceback)")
+        self.command = command
+
+
+def _raised_at(error: BaseException) -> str:
+    """`` (FILE, line N)`` of the innermost frame of ``error`` in a real file ("" for a SyntaxError, whose message
+    names them already)."""
+    if isinstance(error, SyntaxError):
+        return ""
+    frames = [f for f in traceback.extract_tb(error.__traceback__) if not f.filename.startswith("<")]
+    return f" ({frames[-1].filename}, line {frames[-1].lineno})" if frames else ""
+
+
+def _command_module(name: str):
+    try:
+        return importlib.import_module(f"{__name__}.{name}")
+    except Exception as e:  # noqa: BLE001 - whatever stops the import, the command cannot run
+        raise CommandLoadError(name, e) from e
 
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
@@ -91,19 +120,18 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"mapfree {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in [only] if only in COMMANDS else COMMANDS:
-        try:
-            module = importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError as e:
-            if e.name == f"{__name__}.{name}":
-                continue  # command not built yet
-            raise
-        module.register(sub)
+        _command_module(name).register(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(argv[0] if argv else None)
+    try:
+        parser = build_parser(argv[0] if argv else None)
+    except CommandLoadError as e:
+        if os.environ.get(DEBUG_ENV, "0") not in ("", "0"):
+            traceback.print_exception(e.__cause__, file=sys.stderr)
+        return fail(e.command, e)
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
