@@ -70,3 +70,9 @@ def synth_val(tmp_path_factory) -> Path:
     assert main(["synth", str(root), "--split", "val", "--scenes", "2", "--queries", "10", "--size", "240x320",
                  "--no-mono", "--quiet"]) == 0
     return root
+
+
+@pytest.fixture(scope="module")
+def synth(synth_val) -> Path:
+    """A small synthetic val split: two scenes of 10 queries, sensor depth (suffix ``sensor``); read-only."""
+    return synth_val

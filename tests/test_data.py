@@ -157,3 +157,11 @@ def test_scored_query_without_intrinsics_is_named(realmini, tmp_path, capsys):
     out = tmp_path / "sub.zip"
     assert main(["run", str(tmp_path), "--method", "sift_pnp_sensor", "-o", str(out), "--no-progress"]) == 1
     assert "frame_00010.jpg" in capsys.readouterr().err and not out.exists()
+
+
+@pytest.mark.parametrize("content", [b"", b"\xff\xd8\xff\xe0 truncated"])
+def test_empty_or_corrupt_image_names_the_file(tmp_path, content):
+    bad = tmp_path / "empty.jpg"
+    bad.write_bytes(content)
+    with pytest.raises(FormatError, match="empty.jpg"):
+        read_image(bad)

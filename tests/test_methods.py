@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from mapfree import depth, matching, methods, solvers
+from mapfree.relocalize import run_split
 
 
 def test_every_listed_method_parses_into_valid_components():
@@ -112,3 +113,39 @@ def test_every_registered_matcher_declares_its_options():
 
     for name in matching.names():
         assert matching.option_names(name), name
+
+
+def test_shipped_method_configs_pass_the_option_check():
+    from mapfree.methods import config_dirs, get
+
+    files = [p for d in config_dirs() for p in d.glob("*.yaml")]
+    assert files
+    for p in files:
+        get(str(p))
+
+
+def test_every_method_in_the_run_help_exists():
+    """`mapfree run --help` showed `--method configs/methods/best-offline.yaml`, a file that did not exist."""
+    import re
+
+    from mapfree.cli import build_parser
+    from mapfree.methods import get
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction").choices
+    root = Path(__file__).resolve().parents[1]
+    for name in ("run", "relocalize"):
+        for method in re.findall(r"--method (\S+)", sub[name].format_help().split("examples:")[1]):
+            get(str(root / method) if method.endswith(".yaml") else method)
+
+
+def test_depth_free_pnp_and_procrustes_are_not_listed_and_refused_for_a_split(synth, tmp_path):
+    from mapfree.methods import list_methods
+
+    names = list_methods()
+    assert "sift_emat_none" in names and "sift_pnp_sensor" in names
+    assert not [n for n in names if n.endswith(("_pnp_none", "_procrustes_none"))]
+    for name in ("sift_pnp_none", "xfeat_procrustes_none"):
+        with pytest.raises(ValueError, match=r"no depth source.*needs a depth map.*_emat_none"):
+            run_split(synth, "val", name, tmp_path / "x.zip", progress=False)
+    assert not (tmp_path / "x.journal.jsonl").exists()

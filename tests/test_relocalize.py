@@ -209,3 +209,25 @@ def test_a_depth_map_of_another_aspect_ratio_is_refused(scene, sift_sensor):
     assert not est.ok and "depth map is 360x540 but the image is 540x360" in est.reason
     with pytest.raises(ValueError, match=r"depth map is 360x540 but the image is 540x360"):
         sift_sensor.set_reference(rotated)
+
+
+def test_figure_of_a_method_without_matches_has_no_matches_panel(synth):
+    """A regression method (RPR) has no correspondences: its --viz showed an empty "0 matches" panel."""
+    from mapfree.data import Dataset
+    from mapfree.estimate import Estimate
+    from mapfree.viz import estimate_figure
+
+    scene = Dataset(synth).scene("val", "s00000")
+    ref, q = scene.reference, scene.queries[5]
+    rel = q.pose @ ref.pose.inverse()
+    args = (ref.image(), q.image(), ref.intrinsics, q.intrinsics)
+    h, w = ref.image().shape[:2]
+    regression = estimate_figure(*args, Estimate(rel, 1.0), rel, title="rpr")
+    assert regression.shape[:2] == (h, 2 * w)  # the AR check alone
+    from mapfree.matching.base import Matches
+
+    import numpy as np
+
+    k = np.array([[10.0, 10.0], [50.0, 60.0]])
+    matched = estimate_figure(*args, Estimate(rel, 1.0, extras={"matches": Matches(k, k + 1, np.ones(2))}), rel)
+    assert matched.shape[:2] == (2 * h + 6, 2 * w)

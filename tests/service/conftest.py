@@ -1,6 +1,6 @@
 """Fixtures of the service tests: a small split with private test ground truth, and a real ``mapfree serve``
 (uvicorn + worker processes) on a free loopback port, once per database backend (SQLite, and PostgreSQL when
-``MAPFREE_TEST_PG`` holds a URL; ``.ci/services.sh`` starts one)."""
+``MAPFREE_TEST_PG`` holds a URL; ``.ci/services.sh`` starts one); ``make_app``: the app in-process on SQLite."""
 
 from __future__ import annotations
 
@@ -21,6 +21,9 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from fastapi.testclient import TestClient
+
+from mapfree.service import Limits, Settings, create_app
 
 ROOT = Path(__file__).resolve().parents[2]
 ARTIFACTS = ROOT / "test-artifacts"
@@ -128,6 +131,16 @@ def make_submission(split_root: Path, noise: float = 0.0, seed: int = 0, drop_ev
                              f"{conf:.3f}")
             z.writestr(f"pose_{scene.name}.txt", "\n".join(lines) + "\n")
     return buf.getvalue()
+
+
+def pose_text(scene_dir: Path, lines: int, seed: int) -> bytes:
+    """``lines`` pose lines over the scene's query frames (repeats are duplicates, which the reader skips)."""
+    names = [n for n, _ in truth_poses(scene_dir)]
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(lines, 8))
+    v[:, 7] = np.abs(v[:, 7])
+    return "".join(f"{names[i % len(names)]} {r[0]:.9f} {r[1]:.9f} {r[2]:.9f} {r[3]:.9f} {r[4]:.9f} {r[5]:.9f} "
+                   f"{r[6]:.9f} {r[7]:.6f}\n" for i, r in enumerate(v)).encode()
 
 
 def zip_of(entries: dict[str, bytes], method: int = zipfile.ZIP_DEFLATED) -> bytes:
@@ -362,3 +375,33 @@ def realmini_dir() -> Path:
 def _drop_test_databases():
     yield
     drop_postgres_databases()
+
+
+@dataclass
+class App:
+    client: TestClient
+    settings: Settings
+    tokens: dict[str, str]
+
+    def auth(self, user: str) -> dict:
+        return {"Authorization": f"Bearer {self.tokens[user]}"}
+
+
+@pytest.fixture
+def make_app(split_data, tmp_path):
+    """``make_app(**settings)``: the real FastAPI app on a fresh SQLite file, called in-process."""
+    clients = []
+
+    def make(limits: Limits | None = None, **kw) -> App:
+        url = f"sqlite:///{tmp_path / f'app{len(clients)}.db'}"
+        kw.setdefault("operator_token", OPERATOR_TOKEN)
+        settings = Settings(db_url=url, data_root=split_data.root, gt_root=split_data.gt,
+                            limits=limits or Limits(), **kw)
+        tokens = create_users(url, {"ann": None, "ben": None})
+        client = TestClient(create_app(settings), raise_server_exceptions=False)
+        clients.append(client)
+        return App(client, settings, tokens)
+
+    yield make
+    for c in clients:
+        c.close()

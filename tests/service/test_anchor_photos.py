@@ -22,7 +22,6 @@ from mapfree.service.inputs import UploadError
 
 from .conftest import BACKENDS, create_users, db_url_for
 from .test_browser import CHROMIUM, PHONE, _sign_in, browser, phone, shot  # noqa: F401 (fixtures)
-from .test_hardening import make_app  # noqa: F401 (fixture)
 
 METHOD = "sift_pnp_sensor"
 SCENE = "s00000"

@@ -13,7 +13,6 @@ from mapfree.data import Dataset
 from mapfree.geometry import Pose
 
 from .conftest import BACKENDS
-from .test_hardening import make_app  # noqa: F401  (the in-process app fixture)
 
 METHOD = "sift_pnp_sensor"
 

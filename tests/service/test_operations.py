@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -15,8 +16,6 @@ from PIL import Image
 from mapfree.data import Dataset
 from mapfree.data.orientation import orient_intrinsics, orient_pixels
 from mapfree.geometry import rotation_angle_deg
-
-from .test_hardening import make_app  # noqa: F401 (fixture)
 
 METHOD = "sift_pnp_sensor"
 QUERY = "seq1/frame_00010.jpg"
@@ -625,3 +624,13 @@ def test_metadata_stripping_keeps_pixels_and_drops_every_metadata_segment():
     cleaned = clean_photo(png.getvalue())
     assert b"SN-0042" not in cleaned and np.array_equal(_decode(cleaned), rgb)
     assert cv2.imdecode(np.frombuffer(cleaned, np.uint8), cv2.IMREAD_COLOR) is not None
+
+
+def test_sqlite_database_is_private(tmp_path):
+    from mapfree.service.database.models import init_db, make_engine
+
+    engine = make_engine(f"sqlite:///{tmp_path / 'private.db'}")
+    init_db(engine)
+    engine.dispose()
+    for p in tmp_path.glob("private.db*"):
+        assert stat.S_IMODE(p.stat().st_mode) & 0o077 == 0, (p.name, oct(p.stat().st_mode))
