@@ -2,7 +2,7 @@
 a lost node or a killed driver costs no frame and journals none twice, a node without the data is one clear line.
 
 One cluster (``ray.cluster_utils.Cluster``: a head and two worker nodes of one CPU each) serves the module; the
-split is synthetic (3 scenes of 40 small queries) and the method SIFT + PnP, so a whole run takes seconds.
+split is synthetic (3 scenes of 30 small queries) and the method SIFT + PnP, so a whole run takes seconds.
 """
 
 from __future__ import annotations
@@ -26,12 +26,11 @@ from mapfree.cli import main  # noqa: E402
 from mapfree.data.synth import SynthOptions, generate  # noqa: E402
 from mapfree.relocalize import read_journal, run_split  # noqa: E402
 from mapfree.relocalize.distributed import ClusterError, RayOptions, task_slots  # noqa: E402
-from mapfree.relocalize.multiframe import run_multi  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
 METHOD = "sift_pnp_sensor"
-SCENES, QUERIES = 3, 40
+SCENES, QUERIES = 3, 30
 TOTAL = SCENES * QUERIES  # --all-frames
 MB = 1024 * 1024
 # A lost node is noticed within about a second (Ray's default waits tens of seconds for a real network).
@@ -62,8 +61,13 @@ def cluster():
     old = {k: os.environ.get(k) for k in ("RAY_AUTH_MODE", "MAPFREE_OFFLINE")}
     os.environ["RAY_AUTH_MODE"] = "disabled"  # a throw-away loopback cluster: no token to hand around
     os.environ["MAPFREE_OFFLINE"] = "1"  # the nodes' environment: weights not on disk fail at once
+    with socket.socket() as s:  # a free port for the head's Ray Client server (ray://)
+        s.bind(("127.0.0.1", 0))
+        client_port = s.getsockname()[1]
     c = Cluster(initialize_head=True, head_node_args={
-        "num_cpus": 1, "include_dashboard": False, "object_store_memory": 80 * MB, "_system_config": FAST_HEALTH})
+        "num_cpus": 1, "include_dashboard": False, "object_store_memory": 80 * MB, "_system_config": FAST_HEALTH,
+        "ray_client_server_port": client_port})
+    c.client_address = f"ray://127.0.0.1:{client_port}"
     workers = [c.add_node(num_cpus=1, object_store_memory=80 * MB) for _ in range(2)]
     c.wait_for_nodes()
     try:
@@ -121,10 +125,21 @@ def test_multi_frame_track_and_figures_equal_the_local_ones(split, cluster, tmp_
     _same_outputs(tmp_path / "local/m.zip", tmp_path / "ray/m.zip")
     assert (tmp_path / "local/m.frames.zip").read_bytes() == (tmp_path / "ray/m.frames.zip").read_bytes()
     figures = sorted(p.relative_to(tmp_path / "local/viz") for p in (tmp_path / "local/viz").rglob("*.png"))
-    assert len(figures) == 4 * 9  # 40 queries: 4 bursts of 9 frames
+    assert len(figures) == 3 * 9  # 30 queries: 3 bursts of 9 frames
     assert figures == sorted(p.relative_to(tmp_path / "ray/viz") for p in (tmp_path / "ray/viz").rglob("*.png"))
     for f in figures:
         assert (tmp_path / "local/viz" / f).read_bytes() == (tmp_path / "ray/viz" / f).read_bytes(), f
+
+
+def test_through_ray_client_the_same_poses(split, local, cluster, tmp_path):
+    """A driver outside the cluster (--ray ray://HOST:PORT, Ray Client: chunks come back whole, not streamed)."""
+    c, _ = cluster
+    out = tmp_path / "client.zip"
+    res = run_split(split, "val", METHOD, out, all_frames=True, progress=False, ray_address=c.client_address,
+                    scenes=["s00002"])
+    assert res.computed == QUERIES and res.cluster["workers"] == 3 and not ray.is_initialized()
+    with zipfile.ZipFile(local) as a, zipfile.ZipFile(out) as b:
+        assert b.namelist() == ["pose_s00002.txt"] and b.read("pose_s00002.txt") == a.read("pose_s00002.txt")
 
 
 def test_resume_after_the_driver_is_killed_computes_only_the_missing_frames(split, local, cluster, tmp_path):
@@ -161,7 +176,7 @@ def test_weights_missing_on_the_nodes_stop_the_run_before_any_work(split, cluste
     c, _ = cluster
     out = tmp_path / "sg.zip"
     assert main(["run", str(split), "--method", "superglue_pnp_sensor", "-o", str(out), "--no-progress",
-                 "--ray", c.address]) == 1
+                 "--scenes", "s00000", "--ray", c.address]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "cannot run method 'superglue_pnp_sensor'" in err[0], err
     assert f"node 127.0.0.1 ({socket.gethostname()}, node " in err[0] and "$MAPFREE_WEIGHTS_DIR" in err[0], err
@@ -271,6 +286,8 @@ def test_bad_cluster_requests_are_clear_errors(split, tmp_path, capsys):
         RayOptions(gpus_per_task=-1)
     assert main(["run", str(split), "--method", METHOD, "-o", str(tmp_path / "a.zip"), "--gpus-per-task", "1"]) == 1
     assert "--gpus-per-task applies to a run on Ray: add --ray" in capsys.readouterr().err
+    assert main(["run", str(split), "--method", METHOD, "-o", str(tmp_path / "a.zip"), "--ray", "--workers", "4"]) == 1
+    assert "--workers sizes the local pool" in capsys.readouterr().err
     with socket.socket() as s:  # a port nothing listens on
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]

@@ -186,7 +186,8 @@ def _print_summary(res, frames, args: argparse.Namespace) -> None:
         print(f"figures of the computed frames: {args.viz}/SCENE/")
     if frames.cluster:
         c = frames.cluster
-        print(f"computed on the Ray cluster {c['address']}: {c['workers']} workers on {c['nodes']} node(s)"
+        where = "a Ray instance on this machine" if c["address"] == "local" else f"the Ray cluster {c['address']}"
+        print(f"computed on {where}: {c['workers']} workers on {c['nodes']} node(s)"
               + (f"; {c['requeued']} frame(s) of lost workers computed elsewhere" if c["requeued"] else ""))
 
 
@@ -198,6 +199,9 @@ def _ray_options(args: argparse.Namespace):
         if given:
             raise ValueError(f"{given[0]} applies to a run on Ray: add --ray [ADDRESS]")
         return None
+    if args.workers != 1:
+        raise ValueError("--workers sizes the local pool; on Ray the cluster's resources decide how many workers run "
+                         "(--cpus-per-task, --gpus-per-task)")
     from ..relocalize.distributed import RayOptions
 
     return RayOptions(cpus_per_task=1.0 if args.cpus_per_task is None else args.cpus_per_task,

@@ -219,6 +219,10 @@ class FrameWorker:
             self.reference = open_scene(self.method_dict, scene_dir)
         yield from scene_results(self.reference, self.method_dict, frames, batch_size, figures)
 
+    def run_all(self, scene_dir: str, frames: list[str], batch_size: int | None, figures: bool) -> list[FrameResult]:
+        """``run``'s results in one list, for a driver connected through Ray Client (which cannot stream)."""
+        return list(self.run(scene_dir, frames, batch_size, figures))
+
 
 # --------------------------------------------------------------------------- the driver
 
@@ -310,6 +314,8 @@ class _Driver:
         self.info = ClusterRun(address)
         self.seen_nodes: set[str] = set()
         self.journaled: set[tuple[str, str]] = set()
+        # Ray Client (ray://) cannot stream a task's results: its chunks come back whole.
+        self.streaming = not ray.util.client.ray.is_connected()
 
     # ---- set-up
 
@@ -416,8 +422,11 @@ class _Driver:
             slot.scene, slot.frames = job
             busy.add(slot.scene)
             self.info.tasks += 1
-            slot.stream = slot.actor.run.options(num_returns="streaming").remote(
-                slot.scene, list(slot.frames), self.batch_size, self.viz_dir is not None)
+            args = (slot.scene, list(slot.frames), self.batch_size, self.viz_dir is not None)
+            if self.streaming:
+                slot.stream = slot.actor.run.options(num_returns="streaming").remote(*args)
+            else:
+                slot.stream = slot.actor.run_all.remote(*args)
 
     def _drop(self, slot: _Slot) -> None:
         """A lost worker: its unfinished frames go back to the queue."""
@@ -430,24 +439,30 @@ class _Driver:
         self.ray.kill(slot.actor, no_restart=True)
 
     def _receive(self, slot: _Slot) -> None:
-        """The next result of a busy worker's stream (or the end of its chunk), journaled at once."""
+        """The next result of a busy worker's stream, or the end of its chunk (all of it without streaming)."""
         ray = self.ray
         try:
-            result: FrameResult = ray.get(next(slot.stream))
+            results: list[FrameResult] = [ray.get(next(slot.stream))] if self.streaming else ray.get(slot.stream)
         except StopIteration:
-            if slot.frames:  # a stream that ended short of its frames: hand them out again
-                self.queue.give_back(slot.scene, slot.frames)
-                slot.frames = []
-            slot.stream = None
-            return
+            results = []
         except (ray.exceptions.RayActorError, ray.exceptions.ObjectLostError):
             self._drop(slot)
             return
+        for result in results:
+            self._journal(slot, result)
+        if not results or not self.streaming:  # the chunk is over
+            if slot.frames:  # short of its frames: hand them out again
+                self.queue.give_back(slot.scene, slot.frames)
+                slot.frames = []
+            slot.stream = None
+
+    def _journal(self, slot: _Slot, result: FrameResult) -> None:
+        """Append a frame's record to the journal (never twice), write its figure, advance the bar."""
         rec = result.record
         key = (rec["scene"], rec["frame"])
         if rec["frame"] in slot.frames:
             slot.frames.remove(rec["frame"])
-        if key in self.journaled:  # never twice in the journal
+        if key in self.journaled:
             return
         _append(self.journal, [rec])
         self.journaled.add(key)
