@@ -293,5 +293,28 @@ def test_bad_cluster_requests_are_clear_errors(split, tmp_path, capsys):
         port = s.getsockname()[1]
     with pytest.raises(ClusterError, match=f"cannot reach the Ray cluster at 127.0.0.1:{port}"):
         run_split(split, "val", METHOD, tmp_path / "b.zip", progress=False, ray_address=f"127.0.0.1:{port}")
+    from mapfree.methods import get
+
+    # Which methods ask a cluster with GPUs for one per worker by default: those that run networks.
+    assert not get("sift_pnp_sensor").networks and get("xfeat_pnp_sensor").networks
+    assert get("mast3r_pnp_mast3r").networks
     nodes = [{"Resources": {"CPU": 4.0, "GPU": 1.0}}, {"Resources": {"CPU": 8.0}}]
     assert task_slots(nodes, 1, 0) == 12 and task_slots(nodes, 1, 0.25) == 4 and task_slots(nodes, 2, 1) == 1
+
+
+def test_fractional_gpus_put_several_workers_on_one_gpu(split, local, cluster, tmp_path):
+    """A node declaring one GPU (Ray schedules by declared resources; the method itself runs on the CPU here):
+    --gpus-per-task 0.5 starts two workers there and none on the GPU-less nodes; the poses are the local ones."""
+    c, _ = cluster
+    c.add_node(num_cpus=2, num_gpus=1, object_store_memory=80 * MB)
+    c.wait_for_nodes()
+    out = tmp_path / "gpu-half.zip"
+    res = run_split(split, "val", METHOD, out, all_frames=True, progress=False, scenes=["s00001"],
+                    ray_address=c.address, ray_options=RayOptions(gpus_per_task=0.5))
+    assert res.cluster["workers"] == 2 and res.cluster["nodes"] == 1, res.cluster
+    with zipfile.ZipFile(local) as a, zipfile.ZipFile(out) as b:
+        assert b.read("pose_s00001.txt") == a.read("pose_s00001.txt")
+    # A method that runs networks asks for a whole GPU by default: one worker, on the GPU node.
+    res = run_split(split, "val", "xfeat_pnp_sensor", tmp_path / "xfeat.zip", progress=False, scenes=["s00001"],
+                    ray_address=c.address)
+    assert res.computed == QUERIES // 5 and res.cluster["workers"] == 1 and res.cluster["tasks"] == 2, res.cluster

@@ -184,8 +184,12 @@ def _check_nodes(ray: Any, nodes: Sequence[dict], root: str, split: str, scene_d
         raise ClusterError("a node of the Ray cluster did not answer the data check within 5 minutes") from None
     for node, problem in answers:
         if problem:
-            raise FileNotFoundError(f"node {node} cannot read the dataset root {root} ({problem}): every node needs "
-                                    f"the dataset at the same path (shared storage)")
+            raise _unreadable(node, root, problem)
+
+
+def _unreadable(node: str, root: str, problem: str) -> FileNotFoundError:
+    return FileNotFoundError(f"node {node} cannot read the dataset root {root} ({problem}): every node needs the "
+                             f"dataset at the same path (shared storage)")
 
 
 # --------------------------------------------------------------------------- the worker
@@ -200,13 +204,17 @@ class FrameWorker:
         self.method_dict = method_dict
         self.reference: SceneReference | None = None
 
-    def setup(self) -> dict[str, str]:
-        """Build the method here (its weights must be on this node) and say where this worker runs."""
+    def setup(self, root: str, split: str, scene_dirs: Sequence[str]) -> dict[str, str]:
+        """Check the data is readable here (a node that joined after the start was not checked), build the method
+        (its weights must be on this node) and say where this worker runs."""
         import ray
 
         from .. import __version__
 
         node = _node_name()
+        problem = check_root(root, split, scene_dirs)
+        if problem:
+            return {"node": node, "unreadable": problem}
         try:
             check_depth_source(_localizer(self.method_dict))
         except Exception as e:  # weights or a model missing on this node: one line naming it
@@ -298,7 +306,7 @@ def run_on_ray(method: Any, todo: Sequence[tuple[str, list[str]]], journal: Path
     ray = _ray()
     started = connect(address)
     try:
-        return _Driver(ray, method, todo, journal, bar, address, options, batch_size, viz_dir).run(root, split)
+        return _Driver(ray, method, todo, journal, bar, address, options, root, split, batch_size, viz_dir).run()
     finally:
         if started:
             ray.shutdown()
@@ -306,8 +314,10 @@ def run_on_ray(method: Any, todo: Sequence[tuple[str, list[str]]], journal: Path
 
 class _Driver:
     def __init__(self, ray: Any, method: Any, todo: Sequence[tuple[str, list[str]]], journal: Path, bar: Any,
-                 address: str, options: RayOptions, batch_size: int | None, viz_dir: str | None) -> None:
+                 address: str, options: RayOptions, root: str, split: str, batch_size: int | None,
+                 viz_dir: str | None) -> None:
         self.ray, self.method, self.todo, self.journal, self.bar = ray, method, todo, journal, bar
+        self.root, self.split, self.scene_dirs = root, split, [scene for scene, _ in todo]
         self.options, self.batch_size, self.viz_dir = options, batch_size, viz_dir
         self.md = method.to_dict()
         self.slots: list[_Slot] = []
@@ -330,7 +340,7 @@ class _Driver:
         cpus, gpus = self.resources
         actor = self.worker_cls.options(num_cpus=cpus, num_gpus=gpus, max_restarts=0, max_task_retries=0).remote(
             self.md, max(1, int(cpus)))
-        self.slots.append(_Slot(actor, setup=actor.setup.remote()))
+        self.slots.append(_Slot(actor, setup=actor.setup.remote(self.root, self.split, self.scene_dirs)))
 
     def _grow(self, nodes: Sequence[dict] | None = None) -> None:
         """Start workers while the cluster has room and the queue has chunks for them."""
@@ -340,7 +350,7 @@ class _Driver:
         for _ in range(max(0, min(room, want))):
             self._start_worker()
 
-    def run(self, root: str, split: str) -> ClusterRun:
+    def run(self) -> ClusterRun:
         ray = self.ray
         nodes = _alive_nodes(ray)
         self.resources = self._resources(nodes)
@@ -349,7 +359,7 @@ class _Driver:
             raise ValueError(f"no node of the Ray cluster has room for a worker of {self.resources[0]:g} CPU(s) and "
                              f"{self.resources[1]:g} GPU(s) (--cpus-per-task, --gpus-per-task); its nodes: "
                              f"{_describe(nodes)}")
-        _check_nodes(ray, nodes, root, split, [scene for scene, _ in self.todo])
+        _check_nodes(ray, nodes, self.root, self.split, self.scene_dirs)
         self.queue = _Queue(self.todo, plan_chunks(self.todo, slots, self.options.chunk_frames))
         self.worker_cls = ray.remote(FrameWorker)
         try:
@@ -374,6 +384,8 @@ class _Driver:
         except ray.exceptions.RayError as e:
             raise ClusterError(f"a worker could not start: {str(e).strip().splitlines()[-1]} (is mapfree installed "
                                f"on every node?)") from None
+        if "unreadable" in answer:
+            raise _unreadable(answer["node"], self.root, answer["unreadable"])
         if "error" in answer:
             raise FileNotFoundError(f"node {answer['node']} cannot run method {self.method.name!r}: {answer['error']}")
         from .. import __version__
