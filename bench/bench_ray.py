@@ -6,8 +6,10 @@ machine) and times, back to back, two whole `mapfree run --all-frames` processes
 W = N x CPUS_PER_NODE: the local pool (``--workers W``) and Ray (``--ray ADDRESS``, one worker per CPU), each
 REPEAT times in alternating order, the best of each counting; one thread per worker everywhere. Every run must
 write the same ZIP, byte for byte. On one machine the cores, not the nodes, are the limit, so Ray's
-frames/s should match the pool's: the ratio column is what the engine costs. Then the per-task overhead: the
-round trip of an empty chunk to a warm worker, and its share of a run (chunks per run x overhead / run time).
+frames/s should match the pool's: the ratio column is what the engine costs. Frames/s are the steady state
+(first to last frame journaled, the journal polled); start-up (process start to the first frame: Python, the
+workers, the method) and the whole-run ratio are shown beside. Then the per-task overhead: the round trip of an
+empty chunk to a warm worker, and its share of a run (chunks per run x overhead / steady time).
 
     PYTHONPATH=src .venv/bin/python bench/bench_ray.py [--scenes 6] [--queries 100] [--size 320x240]
                                                       [--nodes 1,2,3] [--cpus-per-node 1] [--repeat 2]
@@ -22,6 +24,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # every node on the loopback address
@@ -35,13 +38,42 @@ from mapfree.data.synth import SynthOptions, generate  # noqa: E402
 MB = 1024 * 1024
 
 
-def _timed_run(root: Path, out: Path, method: str, extra: list[str]) -> tuple[float, dict]:
-    """Seconds of one whole `mapfree run` process (Python start, workers' start and the frames), and its summary."""
+@dataclass
+class Timing:
+    """One whole `mapfree run` process: seconds in all, to its first journaled frame (start-up: Python, workers,
+    the method, the first frame), and from the first to the last journaled frame (the steady state)."""
+
+    whole: float
+    start: float
+    steady: float
+    summary: dict
+
+    def fps(self, frames: int) -> float:
+        return (frames - 1) / self.steady
+
+
+def _timed_run(root: Path, out: Path, method: str, extra: list[str]) -> Timing:
     cmd = [sys.executable, "-m", "mapfree", "run", str(root), "--method", method, "-o", str(out), "--all-frames",
            "--no-progress", "--json", *extra]
+    journal = out.with_name(out.stem + ".journal.jsonl")
+    for old in (out, journal):
+        old.unlink(missing_ok=True)
     t0 = time.perf_counter()
-    done = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": _src()})
-    return time.perf_counter() - t0, json.loads(done.stdout)
+    first = last = None
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": _src()}) as proc:
+        seen = 0
+        while proc.poll() is None:  # the journal's lines as they come: header + one per frame
+            lines = journal.read_bytes().count(b"\n") if journal.exists() else 0
+            now = time.perf_counter()
+            if lines > 1 and first is None:
+                first = now
+            if lines > seen:
+                seen, last = lines, now
+            time.sleep(0.02)
+        summary = json.loads(proc.stdout.read())
+    whole = time.perf_counter() - t0
+    assert proc.returncode == 0 and first is not None and last is not None, proc.returncode
+    return Timing(whole, first - t0, last - first, summary)
 
 
 def _src() -> str:
@@ -92,7 +124,6 @@ def main() -> None:
         generate(root, "val", args.scenes, args.queries, options=SynthOptions(width=w, height=h, write_mono=False),
                  progress=False)
         reference: bytes | None = None
-        tasks = 0
         for n in (int(v) for v in args.nodes.split(",")):
             workers = n * args.cpus_per_node
             node = {"num_cpus": args.cpus_per_node, "object_store_memory": 80 * MB}
@@ -103,14 +134,13 @@ def main() -> None:
                 cluster.wait_for_nodes()
                 local_out, ray_out = Path(tmp) / f"local{n}.zip", Path(tmp) / f"ray{n}.zip"
                 runs = {"local": (local_out, ["--workers", str(workers)]), "ray": (ray_out, ["--ray", cluster.address])}
-                best: dict[str, float] = {}
+                best: dict[str, Timing] = {}
                 for r in range(args.repeat):  # interleaved, alternating order; the best of each
                     for kind in ("local", "ray") if r % 2 == 0 else ("ray", "local"):
                         out, extra = runs[kind]
-                        seconds, summary = _timed_run(root, out, args.method, ["--overwrite", *extra])
-                        best[kind] = min(best.get(kind, seconds), seconds)
-                        tasks = summary["cluster"]["tasks"] if kind == "ray" else tasks
-                t_local, t_ray = best["local"], best["ray"]
+                        t = _timed_run(root, out, args.method, extra)
+                        if kind not in best or t.steady < best[kind].steady:
+                            best[kind] = t
                 if overhead is None:
                     overhead = _task_overhead_ms(cluster.address, args.method, root / "val" / "s00000")
             finally:
@@ -118,20 +148,24 @@ def main() -> None:
             for out in (local_out, ray_out):
                 reference = reference or out.read_bytes()
                 assert out.read_bytes() == reference, f"{out.name} differs from the first run's ZIP"
-            rows.append((workers, frames / t_local, n, frames / t_ray, t_local / t_ray, tasks, t_ray))
+            rows.append((workers, n, best["local"], best["ray"]))
 
     table = Table(title=f"mapfree run --all-frames, {args.method}, {frames} frames ({args.scenes} scenes x "
-                        f"{args.queries}, {args.size}); whole processes, best of {args.repeat}; {os.cpu_count()}-core CPU")
-    for col in ("workers", "local pool frames/s", "Ray nodes", "Ray frames/s", "Ray / local", "Ray tasks",
-                "overhead share"):
+                        f"{args.queries}, {args.size}); whole processes, best of {args.repeat}; "
+                        f"{os.cpu_count()}-core CPU")
+    for col in ("workers", "Ray nodes", "pool frames/s", "Ray frames/s", "Ray / pool", "pool start s", "Ray start s",
+                "whole run Ray / pool", "Ray tasks", "overhead share"):
         table.add_column(col, justify="right")
-    for workers, f_local, n, f_ray, ratio, tasks, t_ray in rows:
-        share = tasks * overhead / 1000 / t_ray
-        table.add_row(str(workers), f"{f_local:.1f}", str(n), f"{f_ray:.1f}", f"{ratio:.2f}", str(tasks),
-                      f"{100 * share:.2f} %")
-    Console().print(table)
-    print(f"Ray per-task overhead: {overhead:.1f} ms (round trip of an empty chunk to a warm worker); every run "
-          f"wrote the same ZIP")
+    for workers, n, pool, ray_t in rows:
+        tasks = ray_t.summary["cluster"]["tasks"]
+        table.add_row(str(workers), str(n), f"{pool.fps(frames):.1f}", f"{ray_t.fps(frames):.1f}",
+                      f"{ray_t.fps(frames) / pool.fps(frames):.2f}", f"{pool.start:.1f}", f"{ray_t.start:.1f}",
+                      f"{pool.whole / ray_t.whole:.2f}", str(tasks),
+                      f"{100 * tasks * overhead / 1000 / ray_t.steady:.2f} %")
+    Console(width=160).print(table)
+    print(f"frames/s: first to last frame journaled (steady state); start: process start to the first frame. Ray "
+          f"per-task overhead: {overhead:.1f} ms (round trip of an empty chunk to a warm worker); every run wrote "
+          f"the same ZIP")
 
 
 if __name__ == "__main__":

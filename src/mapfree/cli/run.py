@@ -70,8 +70,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--viz", type=Path, default=None, metavar="DIR",
                    help="draw each frame computed (matches + AR check) as DIR/SCENE/seq1_frame_NNNNN.png")
     p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
-                   help="run on Ray: alone, a Ray instance started on this machine; 'auto', HOST:PORT or "
-                        "ray://HOST:PORT joins a running cluster (every node must see ROOT at the same path)")
+                   help="compute the frames on Ray workers: without ADDRESS on a Ray instance started here; "
+                        "'auto', HOST:PORT or ray://HOST:PORT joins a running cluster (every node must read ROOT "
+                        "at the same path)")
     p.add_argument("--cpus-per-task", type=float, default=None, metavar="N",
                    help="with --ray: CPUs each worker asks for (default: 1)")
     p.add_argument("--gpus-per-task", type=float, default=None, metavar="N",

@@ -34,7 +34,6 @@ from typing import Any, Iterator, Sequence
 from .run import FrameResult, SceneReference, _append, _localizer, _sigint_ignored, check_depth_source, open_scene, \
     save_figure, scene_results, set_threads
 
-log = logging.getLogger(__name__)
 
 __all__ = ["RayOptions", "ClusterError", "connect", "check_root", "task_slots", "plan_chunks", "run_on_ray"]
 
@@ -359,11 +358,11 @@ class _Driver:
             raise ValueError(f"no node of the Ray cluster has room for a worker of {self.resources[0]:g} CPU(s) and "
                              f"{self.resources[1]:g} GPU(s) (--cpus-per-task, --gpus-per-task); its nodes: "
                              f"{_describe(nodes)}")
-        _check_nodes(ray, nodes, self.root, self.split, self.scene_dirs)
         self.queue = _Queue(self.todo, plan_chunks(self.todo, slots, self.options.chunk_frames))
         self.worker_cls = ray.remote(FrameWorker)
         try:
-            self._grow(nodes)
+            self._grow(nodes)  # the workers start (and load the method) while every node checks the data
+            _check_nodes(ray, nodes, self.root, self.split, self.scene_dirs)
             self._wait_for_setups()
             self._loop()
         finally:
