@@ -323,6 +323,7 @@ class _Driver:
         self.info = ClusterRun(address)
         self.seen_nodes: set[str] = set()
         self.journaled: set[tuple[str, str]] = set()
+        self.start_failures = 0
         # Ray Client (ray://) cannot stream a task's results: its chunks come back whole.
         self.streaming = not ray.util.client.ray.is_connected()
 
@@ -351,7 +352,7 @@ class _Driver:
 
     def run(self) -> ClusterRun:
         ray = self.ray
-        nodes = _alive_nodes(ray)
+        self.nodes = nodes = _alive_nodes(ray)
         self.resources = self._resources(nodes)
         slots = task_slots(nodes, *self.resources)
         if slots == 0:
@@ -377,8 +378,13 @@ class _Driver:
         ref, slot.setup = slot.setup, None
         try:
             answer = ray.get(ref)
-        except ray.exceptions.RayActorError:  # its node went away meanwhile
+        except ray.exceptions.RayActorError as e:  # its node went away meanwhile, or the cluster refused it
             self._drop(slot)
+            self.start_failures += 1
+            if not self.seen_nodes and self.start_failures >= 2 * max(1, task_slots(self.nodes, *self.resources)):
+                why = str(e).strip().splitlines()[0]
+                raise ClusterError(f"the Ray cluster ended all {self.start_failures} workers started so far before "
+                                   f"any ran ({why}); see its logs (the driver's included)") from None
             return
         except ray.exceptions.RayError as e:
             raise ClusterError(f"a worker could not start: {str(e).strip().splitlines()[-1]} (is mapfree installed "
