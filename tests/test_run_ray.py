@@ -160,6 +160,20 @@ def test_multi_frame_track_and_figures_equal_the_local_ones(split, cluster, tmp_
     assert text.returncode == 0 and "(0 computed, 27 from the journal" in text.stdout, text.stdout + text.stderr
 
 
+def test_k_references_the_same_on_the_cluster(realmini, cluster, tmp_path):
+    """--references 2 (DenseVLAD retrieval among posed mapping images): the workers choose and retrieve the
+    references as a local run does, so the submission is the same bytes."""
+    from realmini_layouts import mapfree_multi_reference_scene
+
+    root = mapfree_multi_reference_scene(realmini, tmp_path / "data")
+    local_out = tmp_path / "local.zip"
+    done = mapfree_run(root, local_out, "--references", "2", "--all-frames")
+    res = summary(mapfree_run(root, tmp_path / "ray.zip", "--references", "2", "--all-frames", "--ray",
+                              cluster.address))
+    assert res["computed"] == summary(done)["computed"] > 0 and res["cluster"]["workers"] >= 1
+    _same_outputs(local_out, tmp_path / "ray.zip")
+
+
 def test_through_ray_client_the_same_poses(split, local, cluster, tmp_path):
     """A driver outside the cluster (--ray ray://HOST:PORT, Ray Client: chunks come back whole, not streamed)."""
     out = tmp_path / "client.zip"
