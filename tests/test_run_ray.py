@@ -177,7 +177,11 @@ def test_k_references_the_same_on_the_cluster(realmini, cluster, tmp_path):
 def test_through_ray_client_the_same_poses(split, local, cluster, tmp_path):
     """A driver outside the cluster (--ray ray://HOST:PORT, Ray Client: chunks come back whole, not streamed)."""
     out = tmp_path / "client.zip"
-    res = summary(mapfree_run(split, out, "--all-frames", "--scenes", "s00002", "--ray", cluster.client))
+    for _ in range(2):  # Ray Client's per-client server, forked by its proxy, now and then dies as it starts
+        done = mapfree_run(split, out, "--all-frames", "--scenes", "s00002", "--ray", cluster.client)
+        if "Initialization failure from server" not in done.stderr:
+            break
+    res = summary(done)
     assert res["computed"] == QUERIES and res["cluster"]["workers"] == 3
     assert _scene_file(out, "s00002") == _scene_file(local, "s00002")
 

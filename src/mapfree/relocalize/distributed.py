@@ -103,8 +103,14 @@ def connect(address: str) -> bool:
             ray.init(address=address, **quiet)
     except (ConnectionError, RuntimeError, ValueError) as e:
         where = "start a local Ray instance" if address == LOCAL else f"reach the Ray cluster at {address}"
-        raise ClusterError(f"cannot {where}: {str(e).strip().splitlines()[0]}") from None
+        raise ClusterError(f"cannot {where}: {_one_line(e)}") from None
     return True
+
+
+def _one_line(e: BaseException, limit: int = 300) -> str:
+    """A Ray error's text on one line (its messages span several), cut at ``limit`` characters."""
+    text = " ".join(str(e).split())
+    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
@@ -382,12 +388,13 @@ class _Driver:
             self._drop(slot)
             self.start_failures += 1
             if not self.seen_nodes and self.start_failures >= 2 * max(1, task_slots(self.nodes, *self.resources)):
-                why = str(e).strip().splitlines()[0]
+                why = _one_line(e)
                 raise ClusterError(f"the Ray cluster ended all {self.start_failures} workers started so far before "
                                    f"any ran ({why}); see its logs (the driver's included)") from None
             return
         except ray.exceptions.RayError as e:
-            raise ClusterError(f"a worker could not start: {str(e).strip().splitlines()[-1]} (is mapfree installed "
+            last = str(e).strip().splitlines()[-1]  # a task error's text ends with the exception
+            raise ClusterError(f"a worker could not start: {last} (is mapfree installed "
                                f"on every node?)") from None
         if "unreadable" in answer:
             raise _unreadable(answer["node"], self.root, answer["unreadable"])
