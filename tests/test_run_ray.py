@@ -149,9 +149,9 @@ def test_multi_frame_track_and_figures_equal_the_local_ones(split, cluster, tmp_
         assert summary(done)["frames"]["computed"] == 3 * 9  # 30 queries: 3 bursts of 9 frames
     _same_outputs(tmp_path / "local/m.zip", tmp_path / "ray/m.zip")
     assert (tmp_path / "local/m.frames.zip").read_bytes() == (tmp_path / "ray/m.frames.zip").read_bytes()
-    figures = sorted(p.relative_to(tmp_path / "local/viz") for p in (tmp_path / "local/viz").rglob("*.png"))
+    figures = sorted(p.relative_to(tmp_path / "local/viz") for p in (tmp_path / "local/viz").rglob("*.jpg"))
     assert len(figures) == 3 * 9
-    assert figures == sorted(p.relative_to(tmp_path / "ray/viz") for p in (tmp_path / "ray/viz").rglob("*.png"))
+    assert figures == sorted(p.relative_to(tmp_path / "ray/viz") for p in (tmp_path / "ray/viz").rglob("*.jpg"))
     for f in figures:
         assert (tmp_path / "local/viz" / f).read_bytes() == (tmp_path / "ray/viz" / f).read_bytes(), f
     text = subprocess.run([sys.executable, "-m", "mapfree", "run", str(split), "--method", METHOD, "-o",
