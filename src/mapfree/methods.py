@@ -80,6 +80,13 @@ class Method:
     def metric(self) -> bool:
         return self.kind != "matching" or self.depth != "none"
 
+    @property
+    def networks(self) -> bool:
+        """Whether running it evaluates neural networks (a learned matcher, a depth network, a regression
+        model): such a method asks a cluster for a GPU per worker (``mapfree run --ray``)."""
+        classical_depth = self.depth == "none" or self.depth.startswith("files:")
+        return self.kind != "matching" or self.matcher.strip().lower() != "sift" or not classical_depth
+
     def build(self) -> Any:
         """An object with ``set_reference(view)``, ``localize(view)`` and ``relocalize(ref, query)``.
 

@@ -40,6 +40,7 @@ _ENTRY_RE = re.compile(r"^pose_(s\d{5})\.txt$")
 _BOM = b"\xef\xbb\xbf"
 _FIELDS = ("name", "qw", "qx", "qy", "qz", "tx", "ty", "tz", "confidence")
 _EMPTY = (np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
+ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # entries' timestamp in a written submission (the ZIP epoch): reproducible bytes
 
 
 @dataclass(frozen=True)
@@ -516,8 +517,10 @@ def write_submission(
     fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".part", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh, zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-            for name, text in files.items():
-                zf.writestr(name, text)
+            for name, text in files.items():  # a fixed timestamp: the same estimates give the same bytes
+                info = zipfile.ZipInfo(name, date_time=ZIP_DATE)
+                info.external_attr = 0o644 << 16  # -rw-r--r-- when unpacked
+                zf.writestr(info, text, compress_type=zipfile.ZIP_DEFLATED)
         publish(tmp, path)  # 0644 as every other output, not mkstemp's 0600
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -11,7 +11,8 @@ DESCRIPTION = """\
 Relocalize every query the benchmark scores (every 5th; --all-frames for all) of every scene of a split
 against the scene's reference image and write a submission ZIP.
 
-Reference features and depth are computed once per scene; scenes run in parallel worker processes.
+Reference features and depth are computed once per scene; scenes run in parallel worker processes,
+or, with --ray, as chunks of frames on the workers of a Ray cluster (same results, same journal).
 Every finished frame is appended to OUTPUT's journal (submission.journal.jsonl): after a crash or
 Ctrl-C, run the same command with --resume and only the missing frames are computed. Frames without an
 estimate are listed with their reason in submission.failures.jsonl. Nothing non-finite is ever written.
@@ -25,6 +26,7 @@ examples:
   mapfree run data/ --split val --method sift_emat_dptkitti -o sift.zip --workers 2
   mapfree run data/ --split val --method best-offline -o best.zip --resume --evaluate
   mapfree run data/ --method configs/methods/xfeat-pnp-poselib.yaml --scenes s00000,s00001 --viz figures/
+  mapfree run /shared/data --split test --method mast3r_pnp_mast3r -o /shared/m.zip --ray auto --gpus-per-task 1
   mapfree run --list-methods
 """
 
@@ -68,6 +70,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--viz", type=Path, default=None, metavar="DIR",
                    help="draw each frame computed (matches + AR check) as DIR/SCENE/seq1_frame_NNNNN.jpg "
                         "(JPEG, long side <= 1280 px: about 150-300 KB a frame)")
+    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
+                   help="compute the frames on Ray workers: without ADDRESS on a Ray instance started here; "
+                        "'auto', HOST:PORT or ray://HOST:PORT joins a running cluster (every node must read ROOT "
+                        "at the same path)")
+    p.add_argument("--cpus-per-task", type=float, default=None, metavar="N",
+                   help="with --ray: CPUs each worker asks for (default: 1)")
+    p.add_argument("--gpus-per-task", type=float, default=None, metavar="N",
+                   help="with --ray: GPUs each worker asks for; a fraction such as 0.25 shares a GPU between "
+                        "workers (default: 1 for a method with networks on a cluster with GPUs, else 0)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--list-methods", action="store_true", help="print the method names, each with what it needs, and exit")
     p.set_defaults(func=run)
@@ -85,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
         width = max(map(len, names))
         print("\n".join(f"{n:<{width}}  {requirements(n)}" for n in names))
         return 0
+    if args.root is None and args.ray not in (None, "local") and Path(args.ray).is_dir():
+        args.root, args.ray = Path(args.ray), "local"  # `run --ray ROOT …`: the folder is ROOT, not an address
     problem = None
     if args.root is None or not args.method:
         problem = "ROOT and --method are required (or --list-methods)"
@@ -102,8 +115,10 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         return fail("run", problem)
     from ..relocalize import run_split
+    from ..relocalize.distributed import ClusterError
 
     try:
+        ray_options = _ray_options(args)
         method = args.method
         if getattr(args, "checkpoint", None) is not None:
             method = _with_checkpoint(method, args.checkpoint)
@@ -117,8 +132,9 @@ def run(args: argparse.Namespace) -> int:
         res = run(args.root, args.split, method, args.output, workers=args.workers,
                   all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
                   confidence=args.confidence, progress=not args.no_progress,
-                  scenes=[s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None, batch_size=args.batch, viz_dir=args.viz)
-    except (FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
+                  scenes=[s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None,
+                  batch_size=args.batch, viz_dir=args.viz, ray_address=args.ray, ray_options=ray_options)
+    except (ClusterError, FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
         return fail("run", e)
     except KeyboardInterrupt:
         from ..relocalize import journal_path, read_journal
@@ -174,6 +190,28 @@ def _print_summary(res, frames, args: argparse.Namespace) -> None:
         print(f"frames without an estimate and why: {res.failures}")
     if args.viz is not None and frames.computed:
         print(f"figures of the computed frames: {args.viz}/SCENE/")
+    if frames.cluster:
+        c = frames.cluster
+        where = "a Ray instance on this machine" if c["address"] == "local" else f"the Ray cluster {c['address']}"
+        print(f"computed on {where}: {c['workers']} workers on {c['nodes']} node(s)"
+              + (f"; {c['requeued']} frame(s) of lost workers computed elsewhere" if c["requeued"] else ""))
+
+
+def _ray_options(args: argparse.Namespace):
+    """``RayOptions`` of ``--cpus-per-task``/``--gpus-per-task`` (which need ``--ray``); None without ``--ray``."""
+    given = [f for f, v in (("--cpus-per-task", args.cpus_per_task), ("--gpus-per-task", args.gpus_per_task))
+             if v is not None]
+    if args.ray is None:
+        if given:
+            raise ValueError(f"{given[0]} applies to a run on Ray: add --ray [ADDRESS]")
+        return None
+    if args.workers != 1:
+        raise ValueError("--workers sizes the local pool; on Ray the cluster's resources decide how many workers run "
+                         "(--cpus-per-task, --gpus-per-task)")
+    from ..relocalize.distributed import RayOptions
+
+    return RayOptions(cpus_per_task=1.0 if args.cpus_per_task is None else args.cpus_per_task,
+                      gpus_per_task=args.gpus_per_task)
 
 
 def _with_checkpoint(name: str, checkpoint: Path):

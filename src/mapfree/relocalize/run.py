@@ -7,13 +7,13 @@ there. The submission ZIP and the failure log (``submission.failures.jsonl``) ar
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import logging
 import multiprocessing as mp
 import os
 import signal
+import sys
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -69,6 +69,7 @@ class RunResult:
     scenes: int = 0
     timings: dict[str, float] = field(default_factory=dict)
     stale_scenes: list[str] = field(default_factory=list)  # resumed scenes whose data changed: recomputed
+    cluster: dict[str, Any] = field(default_factory=dict)  # --ray: address, nodes, workers, frames handed out again
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in self.__dict__.items()}
@@ -179,7 +180,8 @@ _LOCALIZERS: dict[str, Any] = {}
 
 
 def _localizer(method_dict: dict) -> Any:
-    """One built method per worker process (matchers load weights once)."""
+    """One built method per worker process (matchers load weights once); ``open_scene`` binds it to one scene's
+    reference at a time."""
     key = json.dumps(method_dict, sort_keys=True)
     if key not in _LOCALIZERS:
         from ..methods import Method
@@ -188,14 +190,36 @@ def _localizer(method_dict: dict) -> Any:
     return _LOCALIZERS[key]
 
 
-def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: str,
-               on_frame: Callable[[dict], None] | None = None, batch_size: int | None = None,
-               viz_dir: str | None = None) -> int:
-    """Relocalize ``frames`` of one scene against its reference, appending each result to the journal."""
-    if _stopping():  # a scene already handed to this worker when the parent asked to stop: not started
-        return 0
+@dataclass
+class FrameResult:
+    """One computed frame as a worker hands it over: its journal record and, with ``--viz``, its figure (JPEG)."""
+
+    record: dict[str, Any]
+    figure: bytes | None = None
+
+
+@dataclass
+class SceneReference:
+    """A scene with the method bound to its reference(s), set up once for all the frames a worker computes
+    there; ``error`` says why the reference failed (then every frame fails with that reason)."""
+
+    scene: Scene
+    localizer: Any
+    ref_pose: Pose
+    error: str = ""
+    _image: np.ndarray | None = field(default=None, repr=False)
+
+    def ref_image(self) -> np.ndarray:
+        """The reference image, decoded once for all the scene's figures (``--viz``)."""
+        if self._image is None:
+            self._image = self.scene.reference.image()
+        return self._image
+
+
+def open_scene(method_dict: dict, scene_path: str) -> SceneReference:
+    """The built method (one per process) bound to the reference of the scene at ``scene_path``."""
     scene = Scene(Path(scene_path))
-    journal_p = Path(journal)
+    ref_pose = Pose.identity()
     try:
         loc = _localizer(method_dict)
         ref = scene.reference
@@ -203,33 +227,67 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
         loc.set_reference(ref)
         loc, ref_pose = bind_scene_references(loc, scene, method_dict, ref_pose)  # --references K (references.py)
     except Exception as e:  # the whole scene fails cleanly; each frame says why
-        reason = f"reference failed: {type(e).__name__}: {e}"
-        recs = [_record(scene.name, f, Estimate.failure(reason), None) for f in frames]
-        _append(journal_p, recs)
-        for r in recs:
-            on_frame and on_frame(r)
-        return len(recs)
-    ref_image = functools.cache(ref.image)  # --viz: the reference decoded once for all the scene's figures
-    for name, est in zip(frames, _estimates(loc, scene, frames, batch_size)):
+        return SceneReference(scene, None, ref_pose, f"reference failed: {type(e).__name__}: {e}")
+    return SceneReference(scene, loc, ref_pose)
+
+
+def scene_results(ref: SceneReference, method_dict: dict, frames: Sequence[str], batch_size: int | None = None,
+                  figures: bool = False) -> Iterator[FrameResult]:
+    """Relocalize ``frames`` of a scene against its reference, one ``FrameResult`` per frame in order (the same
+    wherever it runs: a pool worker, a Ray worker, this process). ``figures``: draw each one (``--viz``)."""
+    scene = ref.scene
+    if ref.localizer is None:
+        for name in frames:
+            yield FrameResult(_record(scene.name, name, Estimate.failure(ref.error), None))
+        return
+    for name, est in zip(frames, _estimates(ref.localizer, scene, frames, batch_size)):
         # Relative pose (query w.r.t. reference) -> world-to-camera in the scene's frame.
-        world = est.pose @ ref_pose if est.pose is not None else None
-        rec = _record(scene.name, name, est, world)
-        _append(journal_p, [rec])
-        if viz_dir is not None:
-            write_frame_figure(Path(viz_dir), scene, name, est, world, method_dict, ref_image)
-        on_frame and on_frame(rec)
-        if _stopping():  # asked to stop: the frame in flight is journaled, no more
+        world = est.pose @ ref.ref_pose if est.pose is not None else None
+        picture = None
+        if figures:
+            from ..viz import FIGURE_MAX_SIDE, FIGURE_QUALITY, jpeg_bytes
+
+            fig = frame_figure(scene, name, est, world, method_dict, ref.ref_image)
+            picture = None if fig is None else jpeg_bytes(fig, FIGURE_MAX_SIDE, FIGURE_QUALITY)
+        yield FrameResult(_record(scene.name, name, est, world), picture)
+
+
+def save_figure(viz_dir: os.PathLike | str | None, result: FrameResult) -> None:
+    """Write a frame's figure where ``--viz`` puts it (``frame_figure_path``); a failed write is logged only."""
+    if viz_dir is None or result.figure is None:
+        return
+    path = frame_figure_path(viz_dir, result.record["scene"], result.record["frame"])
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(result.figure)
+    except OSError as e:  # a figure is a by-product: the frame's result is journaled already
+        log.warning("no figure for %s %s: %s", result.record["scene"], result.record["frame"], e)
+
+
+def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: str,
+               on_frame: Callable[[dict], None] | None = None, batch_size: int | None = None,
+               viz_dir: str | None = None) -> int:
+    """Relocalize ``frames`` of one scene against its reference, appending each result to the journal."""
+    if _stopping():  # a scene already handed to this worker when the parent asked to stop: not started
+        return 0
+    journal_p = Path(journal)
+    ref = open_scene(method_dict, scene_path)
+    for res in scene_results(ref, method_dict, frames, batch_size, figures=viz_dir is not None):
+        _append(journal_p, [res.record])
+        save_figure(viz_dir, res)
+        on_frame and on_frame(res.record)
+        if _stopping() and ref.localizer is not None:  # asked to stop: the frame in flight is journaled, no more
             break
     return len(frames)
 
 
-def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, world: Pose | None,
-                       method_dict: dict, ref_image: Callable[[], np.ndarray] | None = None) -> Path | None:
-    """Draw one frame's figure (matches + AR check against the scene's reference image, ground truth when the
-    split has it) for ``run --viz``. Methods that relocalize against other references than the scene's
+def frame_figure(scene: Scene, frame: str, est: Estimate, world: Pose | None, method_dict: dict,
+                 ref_image: Callable[[], np.ndarray] | None = None) -> np.ndarray | None:
+    """One frame's figure for ``run --viz`` (matches + AR check against the scene's reference image, ground truth
+    when the split has it). Methods that relocalize against other references than the scene's
     (``--references K``) get the AR check alone: their matches are with another image. A figure that cannot be
     drawn is logged, never raised. ``ref_image``: the reference image's reader, when the caller caches it."""
-    from ..viz import estimate_figure, save_figure
+    from ..viz import estimate_figure
 
     try:
         ref, query = scene.reference, scene.frame(frame)
@@ -239,10 +297,25 @@ def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, w
         extras = {} if (method_dict.get("options") or {}).get("references") else est.extras
         shown = Estimate(rel, est.confidence, est.inliers, est.reason, extras=extras)
         thr = float((method_dict.get("solver_opts") or {}).get("ransac_threshold_px", 3.0))
-        fig = estimate_figure((ref_image or ref.image)(), query.image(), ref.intrinsics, query.intrinsics, shown,
-                              gt, threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
-        return save_figure(frame_figure_path(viz_dir, scene.name, frame), fig)
+        return estimate_figure((ref_image or ref.image)(), query.image(), ref.intrinsics, query.intrinsics, shown,
+                               gt, threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
     except Exception as e:  # a figure is a by-product: the frame's result is journaled already
+        log.warning("no figure for %s %s: %s", scene.name, frame, e)
+        return None
+
+
+def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, world: Pose | None,
+                       method_dict: dict, ref_image: Callable[[], np.ndarray] | None = None) -> Path | None:
+    """Draw one frame's figure (``frame_figure``) into ``frame_figure_path(viz_dir, …)``; None when it could not
+    be drawn or written (logged, never raised)."""
+    from ..viz import save_figure as save_jpeg
+
+    fig = frame_figure(scene, frame, est, world, method_dict, ref_image)
+    if fig is None:
+        return None
+    try:
+        return save_jpeg(frame_figure_path(viz_dir, scene.name, frame), fig)
+    except OSError as e:
         log.warning("no figure for %s %s: %s", scene.name, frame, e)
         return None
 
@@ -277,6 +350,11 @@ def _init_worker(threads: int, stop: Any = None) -> None:
     global _STOP
     _STOP = stop
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    set_threads(threads)
+
+
+def set_threads(threads: int) -> None:
+    """A worker's share of the cores: ``threads`` for OpenMP/BLAS, OpenCV and torch."""
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(threads)
     import cv2
@@ -298,7 +376,8 @@ def _write_outputs(output: Path, scenes: list[str], recs: list[dict], confidence
 
     by_scene: dict[str, list] = {s: [] for s in scenes}
     failures = []
-    for r in recs:
+    # Frame order, not journal order (which is the order workers finished in): the same ZIP wherever they ran.
+    for r in sorted(recs, key=lambda r: (r["scene"], r["frame"])):
         if r["scene"] not in by_scene:
             continue
         if r["ok"]:
@@ -329,6 +408,8 @@ def run_split(
     select: Callable[[Scene], list[str]] | None = None,
     batch_size: int | None = None,
     viz_dir: os.PathLike | str | None = None,
+    ray_address: str | None = None,
+    ray_options: Any = None,
 ) -> RunResult:
     """Relocalize every (scored) query of ``split`` and write a submission ZIP at ``output``.
 
@@ -338,6 +419,11 @@ def run_split(
     ``batch_size``: queries per device pass of the batched pipeline (0: one pair at a time; ``None``: 16 when
     the matcher runs on a GPU, else 0). ``viz_dir``: draw each frame computed by this call there
     (``frame_figure_path``: matches + AR check).
+
+    ``ray_address``: compute the frames on a Ray cluster instead of ``workers`` local processes (``"local"``
+    starts Ray on this machine; ``"auto"``, ``HOST:PORT`` or ``ray://HOST:PORT`` joins a running cluster), with
+    the resources per worker of ``ray_options`` (a ``distributed.RayOptions``); this process keeps the journal,
+    and the results are the same as a local run's (``mapfree.relocalize.distributed``).
     """
     from ..methods import Method, get
 
@@ -385,7 +471,7 @@ def run_split(
         raise ValueError(problem)
     _check_depth_files(m, scene_list, split)
     check_scene_references(scene_list, m.to_dict())
-    if todo:
+    if todo and ray_address is None:  # on a cluster, every worker checks the method on its own node
         check_available(m, keep=workers <= 1 or len(todo) <= 1)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
     if fresh:
@@ -398,8 +484,15 @@ def run_split(
     bar = _progress(total, len(done), progress, m.name)
     md = m.to_dict()
     viz = str(viz_dir) if viz_dir is not None else None
+    cluster: dict[str, Any] = {}
     try:
-        if workers <= 1 or len(todo) <= 1:
+        if ray_address is not None and todo:
+            from .distributed import RayOptions, run_on_ray
+
+            work = [(os.path.abspath(s.path), names) for s, names in todo]  # workers do not share our cwd
+            cluster = run_on_ray(m, work, jpath, bar, ray_address, ray_options or RayOptions(),
+                                 os.path.abspath(root), split, batch_size, viz).to_dict()
+        elif workers <= 1 or len(todo) <= 1:
             for s, names in todo:
                 _run_scene(md, str(s.path), names, str(jpath), on_frame=lambda r: bar.update(1),
                            batch_size=batch_size, viz_dir=viz)
@@ -415,7 +508,7 @@ def run_split(
             timing_sums[k] = timing_sums.get(k, 0.0) + v
     return RunResult(output, jpath, failures_path(output), computed=total, skipped=len(done), estimated=estimated,
                      failed=failed, seconds=time.perf_counter() - t_start, scenes=len(scene_list),
-                     timings=timing_sums, stale_scenes=stale)
+                     timings=timing_sums, stale_scenes=stale, cluster=cluster)
 
 
 def _pick_scenes(scene_list: list[Scene], names: Sequence[str], split: str) -> list[Scene]:
@@ -524,6 +617,12 @@ def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, bat
 class _NoBar:
     def update(self, n: int = 1) -> None:
         pass
+
+    def set_postfix_str(self, s: str = "", refresh: bool = True) -> None:
+        pass
+
+    def write(self, s: str) -> None:
+        print(s, file=sys.stderr)
 
     def close(self) -> None:
         pass
