@@ -18,7 +18,7 @@ ends in the same solver with the preset's options, so that its poses can be set 
 from __future__ import annotations
 
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -29,6 +29,7 @@ def loop(matcher: str):
     def register(fn):
         LOOPS[matcher] = fn
         return fn
+
     return register
 
 
@@ -76,8 +77,13 @@ def _timed_pairs(pairs: list, pose: Callable, warm: Callable[[], object]) -> tup
         _sync()
         wall = time.perf_counter() - t0
     poses = {k: (v[0].tolist(), v[1].tolist()) if v is not None else None for k, v in poses.items()}
-    return poses, {"pairs": n, "seconds": wall, "pairs_per_s": n / wall, "gpu_util": util.mean,
-                   "peak_gpu_mib": peak_gpu_mib()}
+    return poses, {
+        "pairs": n,
+        "seconds": wall,
+        "pairs_per_s": n / wall,
+        "gpu_util": util.mean,
+        "peak_gpu_mib": peak_gpu_mib(),
+    }
 
 
 def _solver(preset: str):
@@ -119,13 +125,21 @@ def xfeat_lighterglue_loop(pairs: list, preset: str = "xfeat-lighterglue_emat_se
                 d = xf.detectAndCompute(small, top_k=4096)[0]
                 sides.append((d, (small.shape[1], small.shape[0]), scale))
             (d0, s0, sc0), (d1, s1, sc1) = sides
-            data = {"keypoints0": d0["keypoints"][None], "keypoints1": d1["keypoints"][None],
-                    "descriptors0": d0["descriptors"][None], "descriptors1": d1["descriptors"][None],
-                    "image_size0": torch.tensor(s0, device=dev)[None], "image_size1": torch.tensor(s1, device=dev)[None]}
+            data = {
+                "keypoints0": d0["keypoints"][None],
+                "keypoints1": d1["keypoints"][None],
+                "descriptors0": d0["descriptors"][None],
+                "descriptors1": d1["descriptors"][None],
+                "image_size0": torch.tensor(s0, device=dev)[None],
+                "image_size1": torch.tensor(s1, device=dev)[None],
+            }
             out = lg(data, min_conf=0.1)
             idx = out["matches"][0]
-            m = Matches(to_original(d0["keypoints"][idx[:, 0]].cpu().numpy(), sc0),
-                        to_original(d1["keypoints"][idx[:, 1]].cpu().numpy(), sc1), out["scores"][0].float().cpu().numpy())
+            m = Matches(
+                to_original(d0["keypoints"][idx[:, 0]].cpu().numpy(), sc0),
+                to_original(d1["keypoints"][idx[:, 1]].cpu().numpy(), sc1),
+                out["scores"][0].float().cpu().numpy(),
+            )
         return solver.solve(m, r.intrinsics, q.intrinsics, r.depth("sensor"), q.depth("sensor"))
 
     first = pairs[0][0]
@@ -219,8 +233,11 @@ def mast3r_public_loop(pairs: list, preset: str = "mast3r_pnp_mast3r") -> dict:
         c0, c1 = out1["desc_conf"].numpy(), out2["desc_conf"].numpy()
         keep = _away_from_border(xy0, c0.shape, opt.border_px) & _away_from_border(xy1, c1.shape, opt.border_px)
         xy0, xy1 = xy0[keep], xy1[keep]
-        m = Matches(v1.to_original(xy0), v2.to_original(xy1),
-                    np.minimum(c0[xy0[:, 1], xy0[:, 0]], c1[xy1[:, 1], xy1[:, 0]]).astype(np.float64))
+        m = Matches(
+            v1.to_original(xy0),
+            v2.to_original(xy1),
+            np.minimum(c0[xy0[:, 1], xy0[:, 0]], c1[xy1[:, 1], xy1[:, 0]]).astype(np.float64),
+        )
         found[f"{s.name}/{q.name}"] = m
         depth = depth_at_original(out1["pts3d"][..., 2].numpy(), out1["conf"].numpy(), v1)
         return solver.solve(m, r.intrinsics, q.intrinsics, _fit_depth(depth, r.intrinsics, owned=True), None)
@@ -232,7 +249,7 @@ def mast3r_public_loop(pairs: list, preset: str = "mast3r_pnp_mast3r") -> dict:
         poses, row = _timed_pairs(pairs, pose, lambda: pose(first, first.reference))
     finally:
         blocks._attend = sdpa
-    del model
+    model = None  # the loop's network goes before the pipeline's matcher loads its own
     torch.cuda.empty_cache() if torch.cuda.is_available() else None
 
     # The pipeline's matcher on the same pairs (untimed): fused attention, one batch per scene, reference encoded once.
@@ -245,7 +262,16 @@ def mast3r_public_loop(pairs: list, preset: str = "mast3r_pnp_mast3r") -> dict:
             a, b = _match_set(m), _match_set(found[f"{s.name}/{q.name}"])
             same += a == b
             jaccard.append(len(a & b) / max(1, len(a | b)))
-    agreement = {"pairs": len(jaccard), "identical_match_sets": same, "min_jaccard": min(jaccard, default=1.0),
-                 "median_jaccard": float(np.median(jaccard)) if jaccard else 1.0}
-    return {"preset": "public MASt3R loop (inference + fast_reciprocal_NNs, batch 1)", "device": str(dev),
-            "poses": poses, "first": row, "matches_vs_pipeline": agreement}
+    agreement = {
+        "pairs": len(jaccard),
+        "identical_match_sets": same,
+        "min_jaccard": min(jaccard, default=1.0),
+        "median_jaccard": float(np.median(jaccard)) if jaccard else 1.0,
+    }
+    return {
+        "preset": "public MASt3R loop (inference + fast_reciprocal_NNs, batch 1)",
+        "device": str(dev),
+        "poses": poses,
+        "first": row,
+        "matches_vs_pipeline": agreement,
+    }

@@ -24,17 +24,43 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))  # mapfree_dev: in the checkout, not the wheel
-DEFAULT_ROOT = next((p for p in (Path(__file__).resolve().parents[2] / "shared/data/realmini-dev",
-                                 Path("/work/shared/data/realmini-dev")) if p.is_dir()), None)
+DEFAULT_ROOT = next(
+    (
+        p
+        for p in (
+            Path(__file__).resolve().parents[2] / "shared/data/realmini-dev",
+            Path("/work/shared/data/realmini-dev"),
+        )
+        if p.is_dir()
+    ),
+    None,
+)
 
 
 def run_preset(root: Path, preset: str, scenes: str, weights: Path, out: Path, threads: int) -> dict:
     """One ``mapfree run`` in a fresh process: wall/CPU seconds, peak memory, per-pair median timings."""
     zip_path = out / f"{preset}.zip"
-    env = {**os.environ, "MAPFREE_WEIGHTS_DIR": str(weights), "MAPFREE_OFFLINE": "1",
-           **{v: str(threads) for v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}}
-    cmd = [sys.executable, "-m", "mapfree", "run", str(root), "--method", preset, "--scenes", scenes,
-           "-o", str(zip_path), "--overwrite", "--no-progress"]
+    env = {
+        **os.environ,
+        "MAPFREE_WEIGHTS_DIR": str(weights),
+        "MAPFREE_OFFLINE": "1",
+        **{v: str(threads) for v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")},
+    }
+    cmd = [
+        sys.executable,
+        "-m",
+        "mapfree",
+        "run",
+        str(root),
+        "--method",
+        preset,
+        "--scenes",
+        scenes,
+        "-o",
+        str(zip_path),
+        "--overwrite",
+        "--no-progress",
+    ]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     _, status, usage = os.wait4(proc.pid, 0)
@@ -49,9 +75,17 @@ def run_preset(root: Path, preset: str, scenes: str, weights: Path, out: Path, t
         vals = [r["timings"][key] for r in frames if key in r["timings"]]
         return statistics.median(vals) if vals else float("nan")
 
-    return {"preset": preset, "pairs": len(frames), "estimates": sum(r["ok"] for r in frames), "wall_s": wall,
-            "cpu_s": usage.ru_utime + usage.ru_stime, "peak_gib": usage.ru_maxrss / 2 ** 20,
-            "pairs_per_s": len(frames) / wall, "match_s": med("match"), "solve_s": med("solve")}
+    return {
+        "preset": preset,
+        "pairs": len(frames),
+        "estimates": sum(r["ok"] for r in frames),
+        "wall_s": wall,
+        "cpu_s": usage.ru_utime + usage.ru_stime,
+        "peak_gib": usage.ru_maxrss / 2**20,
+        "pairs_per_s": len(frames) / wall,
+        "match_s": med("match"),
+        "solve_s": med("solve"),
+    }
 
 
 def solver_seconds(threads: int, n: int = 51 * 38, repeats: int = 2) -> float:
@@ -97,8 +131,9 @@ def loop_pairs_per_s(root: Path, scenes: str, weights: Path, threads: int) -> tu
             final = engine.scores(a, [b])[0]
             X0 = lift(a.xy_original().float(), a.keypoints.depth[0], ref.intrinsics.K)
             X1 = lift(b.xy_original().float(), b.keypoints.depth[0], query.intrinsics.K)
-            probabilistic_procrustes(final[None], X0[None], X1[None],
-                                     generator=torch.Generator(device=final.device).manual_seed(0))
+            probabilistic_procrustes(
+                final[None], X0[None], X1[None], generator=torch.Generator(device=final.device).manual_seed(0)
+            )
             sync()
             n += 1
     return n, n / (time.perf_counter() - t0)
@@ -108,13 +143,23 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("root", nargs="?", type=Path, default=DEFAULT_ROOT)
     ap.add_argument("--scenes", default="s00000")
-    ap.add_argument("--presets", default="mickey,xfeat_pnp_sensor", help="the first is timed, the others are "
-                                                                         "baselines in the same call")
+    ap.add_argument(
+        "--presets",
+        default="mickey,xfeat_pnp_sensor",
+        help="the first is timed, the others are baselines in the same call",
+    )
     ap.add_argument("--threads", type=int, default=2, help="torch/BLAS threads of each run")
-    ap.add_argument("--size", choices=("full", "tiny"), default="full",
-                    help="'tiny': a two-block DINOv2, to rehearse the script quickly")
-    ap.add_argument("--loop", action="store_true", help="also time the public code's loop (both images per pair "
-                                                         "through the network, batch 1) on the same pairs")
+    ap.add_argument(
+        "--size",
+        choices=("full", "tiny"),
+        default="full",
+        help="'tiny': a two-block DINOv2, to rehearse the script quickly",
+    )
+    ap.add_argument(
+        "--loop",
+        action="store_true",
+        help="also time the public code's loop (both images per pair through the network, batch 1) on the same pairs",
+    )
     ap.add_argument("--json", type=Path, help="also write the rows here")
     args = ap.parse_args(argv)
     if args.root is None:
@@ -133,15 +178,21 @@ def main(argv: list[str] | None = None) -> int:
     device = "cuda" if torch.cuda.is_available() else f"cpu ({os.cpu_count()} cores, {args.threads} threads)"
     vit = "ViT-L/14" if args.size == "full" else "tiny DINOv2"
     print(f"device: {device}; scenes {args.scenes} of {args.root}; MicKey {vit} with fill-rule weights")
-    print("| preset | pairs | estimates | wall s (whole process) | CPU s | pairs/s | per pair: network s | "
-          "solver s | peak memory |")
+    print(
+        "| preset | pairs | estimates | wall s (whole process) | CPU s | pairs/s | per pair: network s | "
+        "solver s | peak memory |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['preset']} | {r['pairs']} | {r['estimates']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
-              f"{r['pairs_per_s']:.3f} | {r['match_s']:.2f} | {r['solve_s']:.2f} | {r['peak_gib']:.1f} GiB |")
+        print(
+            f"| {r['preset']} | {r['pairs']} | {r['estimates']} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | "
+            f"{r['pairs_per_s']:.3f} | {r['match_s']:.2f} | {r['solve_s']:.2f} | {r['peak_gib']:.1f} GiB |"
+        )
     if loop is not None:
-        print(f"\npublic code's loop (our port; both images per pair, batch 1, solver on every pair): {loop[0]} "
-              f"pairs, {loop[1]:.3f} pairs/s")
+        print(
+            f"\npublic code's loop (our port; both images per pair, batch 1, solver on every pair): {loop[0]} "
+            f"pairs, {loop[1]:.3f} pairs/s"
+        )
     solve = solver_seconds(args.threads)
     print(f"\nMicKey's solver alone (published settings, 1938 x 1938 candidates): {solve:.2f} s per pair")
     mk = next((r for r in rows if r["preset"] == "mickey"), None)

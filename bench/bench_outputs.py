@@ -30,8 +30,12 @@ def _mapfree(*args: str, env: dict | None = None, prelude: str = "") -> float:
     """Wall time (s) of one ``mapfree`` process; ``prelude``: Python run before the command in the same process."""
     code = f"{prelude}\nimport sys\nfrom mapfree.cli import main\nsys.exit(main(sys.argv[1:]))"
     t0 = time.perf_counter()
-    p = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
-                       env={**os.environ, "PYTHONPATH": str(REPO / "src"), **(env or {})})
+    p = subprocess.run(
+        [sys.executable, "-c", code, *args],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO / "src"), **(env or {})},
+    )
     dt = time.perf_counter() - t0
     if p.returncode not in (0, 3):
         raise SystemExit(f"mapfree {' '.join(args)} failed: {p.stderr.strip()}")
@@ -47,25 +51,39 @@ def sizes(root: Path, work: Path) -> list[tuple[str, str, str]]:
     png = sum(len(cv2.imencode(".png", cv2.imread(str(f)))[1]) for f in figs)  # the same pixels as full-size PNG
     html = page.stat().st_size
     embedded = re.findall(r'src="data:image/jpeg;base64,([^"]+)"', page.read_text())
-    as_png = html - sum(len(e) for e in embedded) + sum(
-        len(base64.b64encode(cv2.imencode(".png", cv2.imread(str(f)))[1].tobytes())) for f in figs[: len(embedded)])
+    as_png = (
+        html
+        - sum(len(e) for e in embedded)
+        + sum(
+            len(base64.b64encode(cv2.imencode(".png", cv2.imread(str(f)))[1].tobytes())) for f in figs[: len(embedded)]
+        )
+    )
     n = len(figs)
-    return [("run --viz, per frame", f"{jpg / n / 1e3:.0f} KB (JPEG)", f"{png / n / 1e3:.0f} KB (PNG)"),
-            (f"run --viz, {n} frames", f"{jpg / 1e6:.1f} MB", f"{png / 1e6:.1f} MB"),
-            ("evaluate --html --viz", f"{html / 1e6:.2f} MB", f"{as_png / 1e6:.2f} MB (≈, frames as PNG)")]
+    return [
+        ("run --viz, per frame", f"{jpg / n / 1e3:.0f} KB (JPEG)", f"{png / n / 1e3:.0f} KB (PNG)"),
+        (f"run --viz, {n} frames", f"{jpg / 1e6:.1f} MB", f"{png / 1e6:.1f} MB"),
+        ("evaluate --html --viz", f"{html / 1e6:.2f} MB", f"{as_png / 1e6:.2f} MB (≈, frames as PNG)"),
+    ]
 
 
 def start(root: Path, runs: int) -> list[tuple[str, str, str]]:
     scene = root / "val" / "s00000"
-    args = ("relocalize", str(scene / "seq0" / "frame_00000.jpg"), str(scene / "seq1" / "frame_00005.jpg"),
-            "--method", "sift_pnp_sensor")
+    args = (
+        "relocalize",
+        str(scene / "seq0" / "frame_00000.jpg"),
+        str(scene / "seq1" / "frame_00005.jpg"),
+        "--method",
+        "sift_pnp_sensor",
+    )
     now, before = [], []
     for _ in range(runs):  # interleaved, so that load changes hit both alike
         now.append(_mapfree(*args))
         before.append(_mapfree(*args, prelude="import torch, scipy.spatial"))
     a, b = statistics.median(now), statistics.median(before)
-    return [("relocalize sift_pnp_sensor, wall (median)", f"{a:.2f} s", f"{b:.2f} s (+torch, scipy.spatial)"),
-            ("ratio", f"{b / a:.1f}x faster", "")]
+    return [
+        ("relocalize sift_pnp_sensor, wall (median)", f"{a:.2f} s", f"{b:.2f} s (+torch, scipy.spatial)"),
+        ("ratio", f"{b / a:.1f}x faster", ""),
+    ]
 
 
 def main() -> None:

@@ -46,10 +46,26 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-DEFAULT_ROOT = next((p for p in (Path(__file__).resolve().parents[2] / "shared/data/realmini-dev",
-                                 Path("/work/shared/data/realmini-dev")) if p.is_dir()), None)
-DEFAULT_PRESETS = ["aliked-lightglue_emat_sensor", "xfeat-lighterglue_emat_sensor", "xfeat_emat_sensor",
-                   "xfeat-star_emat_sensor", "disk-lightglue_emat_sensor", "loftr_emat_sensor", "sift_emat_sensor"]
+DEFAULT_ROOT = next(
+    (
+        p
+        for p in (
+            Path(__file__).resolve().parents[2] / "shared/data/realmini-dev",
+            Path("/work/shared/data/realmini-dev"),
+        )
+        if p.is_dir()
+    ),
+    None,
+)
+DEFAULT_PRESETS = [
+    "aliked-lightglue_emat_sensor",
+    "xfeat-lighterglue_emat_sensor",
+    "xfeat_emat_sensor",
+    "xfeat-star_emat_sensor",
+    "disk-lightglue_emat_sensor",
+    "loftr_emat_sensor",
+    "sift_emat_sensor",
+]
 TARGET_PAIRS_S = {"aliked-lightglue_emat_sensor": 70.0, "xfeat-lighterglue_emat_sensor": 70.0}  # one H100
 
 
@@ -83,8 +99,16 @@ def library_loop(name: str, pairs: list, root, split: str, loc=None, warmup: int
             matches.append(est.extras.get("matches"))
             n += 1
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"preset": name, "pairs": n, "seconds": wall, "cpu_s": cpu, "pairs_per_s": n / wall, "poses": poses,
-            "matches": matches, "loc": loc}
+    return {
+        "preset": name,
+        "pairs": n,
+        "seconds": wall,
+        "cpu_s": cpu,
+        "pairs_per_s": n / wall,
+        "poses": poses,
+        "matches": matches,
+        "loc": loc,
+    }
 
 
 def shared_floor(pairs: list, matches: list, depth_suffix: str = "sensor") -> dict:
@@ -131,17 +155,23 @@ def spec4_comparison(pairs: list, root, split: str, rounds: int, warmup: int = 4
     _warm_up(loc, root, split, warmup)
     names = ["reference", "ours", "floor"]  # round 0 in this order: the floor reuses the matches ours found
     runs: dict[str, list] = {k: [] for k in names}
-    loops = {"reference": lambda: bench_reference(pairs),
-             "ours": lambda: library_loop("sift_emat_sensor", pairs, root, split, loc),
-             "floor": lambda: shared_floor(pairs, runs["ours"][0]["matches"])}
+    loops = {
+        "reference": lambda: bench_reference(pairs),
+        "ours": lambda: library_loop("sift_emat_sensor", pairs, root, split, loc),
+        "floor": lambda: shared_floor(pairs, runs["ours"][0]["matches"]),
+    }
     for r in range(rounds):
-        for k in names[r % 3:] + names[: r % 3]:
+        for k in names[r % 3 :] + names[: r % 3]:
             runs[k].append(loops[k]())
     ratio = lambda a, b, key: [x[key] / y[key] for x, y in zip(runs[a], runs[b])]  # noqa: E731
-    return {"runs": runs, "speedup": ratio("reference", "ours", "seconds"),
-            "ceiling": ratio("reference", "floor", "seconds"), "speedup_cpu": ratio("reference", "ours", "cpu_s"),
-            "ceiling_cpu": ratio("reference", "floor", "cpu_s"),
-            "agreement": pose_agreement(runs["ours"][0]["poses"], runs["reference"][0]["poses"])}
+    return {
+        "runs": runs,
+        "speedup": ratio("reference", "ours", "seconds"),
+        "ceiling": ratio("reference", "floor", "seconds"),
+        "speedup_cpu": ratio("reference", "ours", "cpu_s"),
+        "ceiling_cpu": ratio("reference", "floor", "cpu_s"),
+        "agreement": pose_agreement(runs["ours"][0]["poses"], runs["reference"][0]["poses"]),
+    }
 
 
 def bench_reference(pairs: list, depth_suffix: str = "sensor") -> dict:
@@ -169,8 +199,14 @@ def bench_reference(pairs: list, depth_suffix: str = "sensor") -> dict:
             poses.append(None if isinstance(res, str) else Pose(res[0], res[1]))
             n += 1
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"preset": "straightforward paper-protocol", "pairs": n, "seconds": wall, "cpu_s": cpu, "pairs_per_s": n / wall,
-            "poses": poses}
+    return {
+        "preset": "straightforward paper-protocol",
+        "pairs": n,
+        "seconds": wall,
+        "cpu_s": cpu,
+        "pairs_per_s": n / wall,
+        "poses": poses,
+    }
 
 
 def pose_agreement(a: list, b: list) -> dict:
@@ -179,10 +215,14 @@ def pose_agreement(a: list, b: list) -> dict:
     both = [(p, q) for p, q in zip(a, b) if p is not None and q is not None]
     dr = [float(rotation_angle_deg(p.R, q.R)) for p, q in both]
     dt = [float(np.linalg.norm(p.t - q.t)) for p, q in both]
-    return {"both_estimated": len(both), "only_one": sum((p is None) != (q is None) for p, q in zip(a, b)),
-            "identical": sum(r < 1e-6 and t < 1e-6 for r, t in zip(dr, dt)),
-            "max_rot_diff_deg": max(dr, default=0.0), "max_trans_diff_m": max(dt, default=0.0),
-            "median_trans_diff_m": float(np.median(dt)) if dt else 0.0}
+    return {
+        "both_estimated": len(both),
+        "only_one": sum((p is None) != (q is None) for p, q in zip(a, b)),
+        "identical": sum(r < 1e-6 and t < 1e-6 for r, t in zip(dr, dt)),
+        "max_rot_diff_deg": max(dr, default=0.0),
+        "max_trans_diff_m": max(dt, default=0.0),
+        "median_trans_diff_m": float(np.median(dt)) if dt else 0.0,
+    }
 
 
 def resized_split(root, split: str, size: tuple[int, int], dst: Path) -> Path:
@@ -204,8 +244,10 @@ def resized_split(root, split: str, size: tuple[int, int], dst: Path) -> Path:
             im = cv2.resize(read_image(f.image_path), (w, h), interpolation=cv2.INTER_AREA)
             cv2.imwrite(str(out / name), cv2.cvtColor(im, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
             for dp in f.image_path.parent.glob(f.image_path.stem + ".*.png"):
-                write_depth(out / Path(name).parent / dp.name,
-                            cv2.resize(read_depth(dp), (w, h), interpolation=cv2.INTER_NEAREST))
+                write_depth(
+                    out / Path(name).parent / dp.name,
+                    cv2.resize(read_depth(dp), (w, h), interpolation=cv2.INTER_NEAREST),
+                )
         write_intrinsics(out / "intrinsics.txt", intr)
         write_poses(out / "poses.txt", table.names, [table.pose(i) for i in range(len(table.names))])
     return dst
@@ -214,12 +256,16 @@ def resized_split(root, split: str, size: tuple[int, int], dst: Path) -> Path:
 class GpuUtilisation:
     """Mean GPU utilisation (%) over a ``with`` block, sampled by ``nvidia-smi`` every 100 ms; None without one."""
 
-    def __enter__(self) -> "GpuUtilisation":
+    def __enter__(self) -> GpuUtilisation:
         self.samples: list[float] = []
         self._proc = None
         try:
-            self._proc = subprocess.Popen(["nvidia-smi", "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits",
-                                           "-lms", "100"], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+            self._proc = subprocess.Popen(
+                ["nvidia-smi", "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits", "-lms", "100"],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+                text=True,
+            )
         except (FileNotFoundError, PermissionError):
             return self
         self._thread = threading.Thread(target=self._read, daemon=True)
@@ -273,14 +319,22 @@ def _poses(journal: Path) -> dict[str, list]:
     return {f"{r['scene']}/{r['frame']}": (r["q"], r["t"]) if r["ok"] else None for r in read_journal(journal)[1]}
 
 
-def run_one(root, split: str, spec: str, all_frames: bool, batch: int | None, second_pass: bool,
-            max_pairs: int | None = None, warmup: int = 4) -> dict:
+def run_one(
+    root,
+    split: str,
+    spec: str,
+    all_frames: bool,
+    batch: int | None,
+    second_pass: bool,
+    max_pairs: int | None = None,
+    warmup: int = 4,
+) -> dict:
     """Time ``mapfree run`` (``run_split``: files in -> ZIP out) of one preset on never-seen pairs."""
     import torch
 
     from mapfree.methods import get
-    from mapfree.relocalize import run as run_mod
     from mapfree.relocalize import frames_to_run, run_split
+    from mapfree.relocalize import run as run_mod
 
     name, _, opt = spec.partition(":")
     batch = 0 if opt == "b0" else batch
@@ -297,14 +351,28 @@ def run_one(root, split: str, spec: str, all_frames: bool, batch: int | None, se
             if torch.cuda.is_available():
                 torch.cuda.reset_peak_memory_stats()
             with GpuUtilisation() as util:
-                res = run_split(root, split, name, Path(tmp) / "sub.zip", all_frames=all_frames, scenes=scenes,
-                                progress=False, overwrite=True, batch_size=batch,
-                                select=lambda s: frames_to_run(s, all_frames)[:max_pairs])
+                res = run_split(
+                    root,
+                    split,
+                    name,
+                    Path(tmp) / "sub.zip",
+                    all_frames=all_frames,
+                    scenes=scenes,
+                    progress=False,
+                    overwrite=True,
+                    batch_size=batch,
+                    select=lambda s: frames_to_run(s, all_frames)[:max_pairs],
+                )
                 sync()
-            out[label] = {"pairs": res.computed, "seconds": res.seconds, "pairs_per_s": res.computed / res.seconds,
-                          "gpu_util": util.mean, "estimated": res.estimated,
-                          "peak_gpu_mib": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
-                          "ms": {k: 1000 * v / max(1, res.computed) for k, v in res.timings.items()}}
+            out[label] = {
+                "pairs": res.computed,
+                "seconds": res.seconds,
+                "pairs_per_s": res.computed / res.seconds,
+                "gpu_util": util.mean,
+                "estimated": res.estimated,
+                "peak_gpu_mib": torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None,
+                "ms": {k: 1000 * v / max(1, res.computed) for k, v in res.timings.items()},
+            }
             if label == "first":
                 out["poses"] = _poses(res.journal)
     out["device"] = str(getattr(getattr(loc, "matcher", None), "device", "cpu"))
@@ -343,10 +411,7 @@ def kornia_loop(root, split: str, all_frames: bool, max_pairs: int | None = None
     def pose(r, q):
         with torch.inference_mode():
             f0, f1 = ext(tensor(r.image_path))[0], ext(tensor(q.image_path))[0]
-            side = lambda f, fr: {"keypoints": f.keypoints[None], "descriptors": f.descriptors[None],  # noqa: E731
-                                  "image_size": torch.tensor([[fr.intrinsics.width, fr.intrinsics.height]],
-                                                             device=dev, dtype=torch.float32)}
-            out = lg({"image0": side(f0, r), "image1": side(f1, q)})
+            out = lg({"image0": _side(f0, r, dev), "image1": _side(f1, q, dev)})
             idx = out["matches"][0].cpu().numpy()
             k0, k1 = f0.keypoints.cpu().numpy(), f1.keypoints.cpu().numpy()
         m = Matches(k0[idx[:, 0]], k1[idx[:, 1]], out["scores"][0].float().cpu().numpy())
@@ -364,8 +429,12 @@ def kornia_loop(root, split: str, all_frames: bool, max_pairs: int | None = None
                 n += 1
         wall = time.perf_counter() - t0
     poses = {k: (v[0].tolist(), v[1].tolist()) if v is not None else None for k, v in poses.items()}
-    return {"preset": "kornia ALIKED+LightGlue loop (batch 1)", "device": str(dev), "poses": poses,
-            "first": {"pairs": n, "seconds": wall, "pairs_per_s": n / wall, "gpu_util": util.mean}}
+    return {
+        "preset": "kornia ALIKED+LightGlue loop (batch 1)",
+        "device": str(dev),
+        "poses": poses,
+        "first": {"pairs": n, "seconds": wall, "pairs_per_s": n / wall, "gpu_util": util.mean},
+    }
 
 
 BASELINES = ("aliked-lightglue", "xfeat-lighterglue", "mast3r")  # matchers with a straightforward loop
@@ -387,13 +456,26 @@ def baseline_loop(matcher: str, root, split: str, all_frames: bool, max_pairs: i
     return LOOPS[matcher](pairs)
 
 
+def _side(f, frame, dev) -> dict:
+    """One image's input of kornia's LightGlue: keypoints, descriptors and the image's (width, height)."""
+    import torch
+
+    size = [[frame.intrinsics.width, frame.intrinsics.height]]
+    return {
+        "keypoints": f.keypoints[None],
+        "descriptors": f.descriptors[None],
+        "image_size": torch.tensor(size, device=dev, dtype=torch.float32),
+    }
+
+
 def pose_diffs(a: dict, b: dict) -> dict:
     """How far two runs' poses are apart, over the frames both estimated."""
     from mapfree.geometry import Pose
 
     both = [(Pose.from_qt(*a[k]), Pose.from_qt(*b[k])) for k in a if a.get(k) and b.get(k)]
     return pose_agreement([p for p, _ in both], [q for _, q in both]) | {
-        "only_one": sum((a.get(k) is None) != (b.get(k) is None) for k in a)}
+        "only_one": sum((a.get(k) is None) != (b.get(k) is None) for k in a)
+    }
 
 
 def _child(argv: list[str], timeout: float | None = None) -> dict:
@@ -425,11 +507,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--second-pass", action="store_true", help="also time the same pairs again (seen pairs)")
     ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the kornia loop")
     ap.add_argument("--no-spec4", dest="spec4", action="store_false", help="skip the paper-protocol SIFT comparison")
-    ap.add_argument("--spec4-rounds", type=int, default=5,
-                    help="rounds of the paper-protocol comparison, in rotating order (verdict: the median CPU-time ratio)")
+    ap.add_argument(
+        "--spec4-rounds",
+        type=int,
+        default=5,
+        help="rounds of the paper-protocol comparison, in rotating order (verdict: the median CPU-time ratio)",
+    )
     ap.add_argument("--json", type=Path, help="also write the results here")
-    ap.add_argument("--child-timeout", type=float, help="seconds each preset's process may take before it is "
-                    "reported as timed out (default: no limit)")
+    ap.add_argument(
+        "--child-timeout",
+        type=float,
+        help="seconds each preset's process may take before it is reported as timed out (default: no limit)",
+    )
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: time one preset in this (fresh) process
     ap.add_argument("--loop", help=argparse.SUPPRESS)  # internal: time one baseline loop in this (fresh) process
     args = ap.parse_args(argv)
@@ -441,8 +530,16 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(args.threads)
     torch.set_num_threads(args.threads)
     if args.one:
-        res = run_one(args.root, args.split, args.one, args.all_frames, args.batch, args.second_pass, args.max_pairs,
-                      args.warmup_queries)
+        res = run_one(
+            args.root,
+            args.split,
+            args.one,
+            args.all_frames,
+            args.batch,
+            args.second_pass,
+            args.max_pairs,
+            args.warmup_queries,
+        )
         print(json.dumps(res))
         return 0
     if args.loop:
@@ -456,8 +553,11 @@ def main(argv: list[str] | None = None) -> int:
             w, h = (int(v) for v in args.size.lower().split("x"))
             root = resized_split(args.root, args.split, (w, h), Path(tmp))
         pairs = [(s, qs[: args.max_pairs]) for s, qs in scene_pairs(root, args.split, args.all_frames)]
-        print(f"{sum(len(q) for _, q in pairs)} pairs in {len(pairs)} scenes, {pairs[0][0].reference.intrinsics.width}x"
-              f"{pairs[0][0].reference.intrinsics.height}, device {device}, {args.threads} thread(s)\n", flush=True)
+        print(
+            f"{sum(len(q) for _, q in pairs)} pairs in {len(pairs)} scenes, {pairs[0][0].reference.intrinsics.width}x"
+            f"{pairs[0][0].reference.intrinsics.height}, device {device}, {args.threads} thread(s)\n",
+            flush=True,
+        )
         common = [str(root), "--split", args.split, "--threads", str(args.threads)]
         common += ["--all-frames"] if args.all_frames else []
         common += ["--batch", str(args.batch)] if args.batch is not None else []
@@ -468,22 +568,30 @@ def main(argv: list[str] | None = None) -> int:
         for spec in args.presets.split(","):
             r = _child(common + ["--one", spec], args.child_timeout)
             r.setdefault("preset", spec)
-            print(f"{spec}: {_fmt(r.get('first', {}).get('pairs_per_s'), '.2f')} pairs/s"
-                  + (f" ({r['error']})" if "error" in r else ""), flush=True)
+            print(
+                f"{spec}: {_fmt(r.get('first', {}).get('pairs_per_s'), '.2f')} pairs/s"
+                + (f" ({r['error']})" if "error" in r else ""),
+                flush=True,
+            )
             rows.append(r)
         bases = {}
         for matcher in dict.fromkeys(_matcher(r["preset"]) for r in rows) if args.baseline else ():
             if matcher in BASELINES:
                 bases[matcher] = b = _child(common + ["--loop", matcher], args.child_timeout)
                 b.setdefault("preset", f"{matcher} loop")
-                print(f"{b['preset']}: {_fmt(b.get('first', {}).get('pairs_per_s'), '.2f')} pairs/s"
-                      + (f" ({b['error']})" if "error" in b else ""), flush=True)
+                print(
+                    f"{b['preset']}: {_fmt(b.get('first', {}).get('pairs_per_s'), '.2f')} pairs/s"
+                    + (f" ({b['error']})" if "error" in b else ""),
+                    flush=True,
+                )
         spec4 = None
         if args.spec4 and any(r["preset"] == "sift_emat_sensor" for r in rows):
             spec4 = spec4_comparison(pairs, root, args.split, max(1, args.spec4_rounds), args.warmup_queries)
 
-    print("\n| preset | device | first-pass pairs/s (mapfree run) | ms/pair | GPU util % | peak GPU MiB | seen pairs/s "
-          "| vs its loop | poses vs its loop (median Δt m, max Δrot °) |")
+    print(
+        "\n| preset | device | first-pass pairs/s (mapfree run) | ms/pair | GPU util % | peak GPU MiB | seen pairs/s "
+        "| vs its loop | poses vs its loop (median Δt m, max Δrot °) |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows + list(bases.values()):
         if "error" in r:
@@ -496,27 +604,39 @@ def main(argv: list[str] | None = None) -> int:
             ratio = f"{f['pairs_per_s'] / base['first']['pairs_per_s']:.2f}x"
             d = pose_diffs(r["poses"], base["poses"])
             agree = f"{d['median_trans_diff_m']:.3f}, {d['max_rot_diff_deg']:.2f} ({d['both_estimated']} both)"
-        print(f"| {r['preset']} | {r['device']} | {f['pairs_per_s']:.2f} | {1000 / f['pairs_per_s']:.0f} | "
-              f"{_fmt(f['gpu_util'])} | {_fmt(f.get('peak_gpu_mib'), '.0f')} | {_fmt(seen.get('pairs_per_s'), '.2f')} | "
-              f"{ratio} | {agree} |")
-    print("\nWhere each preset's first pass spends its time (ms per pair, summed over the pipeline's threads, so "
-          "overlapping stages add up to more than the wall time):\n")
+        print(
+            f"| {r['preset']} | {r['device']} | {f['pairs_per_s']:.2f} | {1000 / f['pairs_per_s']:.0f} | "
+            f"{_fmt(f['gpu_util'])} | {_fmt(f.get('peak_gpu_mib'), '.0f')} | {_fmt(seen.get('pairs_per_s'), '.2f')} | "
+            f"{ratio} | {agree} |"
+        )
+    print(
+        "\nWhere each preset's first pass spends its time (ms per pair, summed over the pipeline's threads, so "
+        "overlapping stages add up to more than the wall time):\n"
+    )
     for r in rows:
         if "error" not in r:
             print(f"- {r['preset']}: " + ", ".join(f"{k} {v:.1f}" for k, v in r["first"]["ms"].items()))
     for b in bases.values():
         if "matches_vs_pipeline" in b:
-            print(f"\n{b['preset']}: matches against the pipeline's matcher on the same pairs: "
-                  f"{json.dumps(b['matches_vs_pipeline'])}")
-    result = {"device": device, "threads": args.threads, "size": args.size,
-              "rows": [{k: v for k, v in r.items() if k != "poses"} for r in rows + list(bases.values())]}
+            print(
+                f"\n{b['preset']}: matches against the pipeline's matcher on the same pairs: "
+                f"{json.dumps(b['matches_vs_pipeline'])}"
+            )
+    result = {
+        "device": device,
+        "threads": args.threads,
+        "size": args.size,
+        "rows": [{k: v for k, v in r.items() if k != "poses"} for r in rows + list(bases.values())],
+    }
     print()
     for r in rows:
         if r["preset"] in TARGET_PAIRS_S and "error" not in r:
             ok = device == "cuda" and r["first"]["pairs_per_s"] >= TARGET_PAIRS_S[r["preset"]]
             verdict = ("PASS" if ok else "FAIL") if device == "cuda" else "not evaluated (the target is for one H100)"
-            print(f"{r['preset']}: {r['first']['pairs_per_s']:.2f} pairs/s on never-seen pairs, target >= "
-                  f"{TARGET_PAIRS_S[r['preset']]:.0f} on one H100: {verdict}")
+            print(
+                f"{r['preset']}: {r['first']['pairs_per_s']:.2f} pairs/s on never-seen pairs, target >= "
+                f"{TARGET_PAIRS_S[r['preset']]:.0f} on one H100: {verdict}"
+            )
     for r in rows:
         base = bases.get(_matcher(r["preset"]))
         if ":" in r["preset"] or "error" in r or not base or "error" in base:
@@ -532,15 +652,20 @@ def main(argv: list[str] | None = None) -> int:
         # The verdict is on CPU time: both sides are single-threaded, and other jobs' load stretches wall-clock
         # rounds unevenly (a round of either side slowed 2x by a neighbour's burst is common on a shared CPU).
         ok = med("speedup_cpu") >= 2
-        print(f"sift_emat_sensor (in-process loop; pairs/s per round: {pps('ours')}) vs straightforward paper-protocol "
-              f"({pps('reference')}): CPU time {med('speedup_cpu'):.2f}x, wall clock {med('speedup'):.2f}x (medians "
-              f"of {len(spec4['speedup'])} rounds; wall {span('speedup')}) ({'PASS' if ok else 'FAIL'}: target >= 2x "
-              f"in CPU time); poses: {json.dumps(agree)}")
-        print(f"shared work only ({pps('floor')} pairs/s: the reference's own SIFT, depth, decoding and RANSAC for "
-              f"each query, the reference image's once per scene): at most CPU time {med('ceiling_cpu'):.2f}x, wall "
-              f"clock {med('ceiling'):.2f}x ({span('ceiling')}) for any pipeline with the same poses")
+        print(
+            f"sift_emat_sensor (in-process loop; pairs/s per round: {pps('ours')}) vs straightforward paper-protocol "
+            f"({pps('reference')}): CPU time {med('speedup_cpu'):.2f}x, wall clock {med('speedup'):.2f}x (medians "
+            f"of {len(spec4['speedup'])} rounds; wall {span('speedup')}) ({'PASS' if ok else 'FAIL'}: target >= 2x "
+            f"in CPU time); poses: {json.dumps(agree)}"
+        )
+        print(
+            f"shared work only ({pps('floor')} pairs/s: the reference's own SIFT, depth, decoding and RANSAC for "
+            f"each query, the reference image's once per scene): at most CPU time {med('ceiling_cpu'):.2f}x, wall "
+            f"clock {med('ceiling'):.2f}x ({span('ceiling')}) for any pipeline with the same poses"
+        )
         result["spec4"] = {k: spec4[k] for k in ("speedup", "ceiling", "speedup_cpu", "ceiling_cpu", "agreement")} | {
-            "pairs_per_s": {k: [r["pairs_per_s"] for r in v] for k, v in spec4["runs"].items()}}
+            "pairs_per_s": {k: [r["pairs_per_s"] for r in v] for k, v in spec4["runs"].items()}
+        }
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
     return 0

@@ -53,8 +53,21 @@ class Timing:
 
 
 def _timed_run(root: Path, out: Path, method: str, extra: list[str]) -> Timing:
-    cmd = [sys.executable, "-m", "mapfree", "run", str(root), "--method", method, "-o", str(out), "--all-frames",
-           "--no-progress", "--json", *extra]
+    cmd = [
+        sys.executable,
+        "-m",
+        "mapfree",
+        "run",
+        str(root),
+        "--method",
+        method,
+        "-o",
+        str(out),
+        "--all-frames",
+        "--no-progress",
+        "--json",
+        *extra,
+    ]
     journal = out.with_name(out.stem + ".journal.jsonl")
     for old in (out, journal):
         old.unlink(missing_ok=True)
@@ -121,8 +134,14 @@ def main() -> None:
     rows, overhead = [], None
     with tempfile.TemporaryDirectory(prefix="bench-ray") as tmp:
         root = Path(tmp) / "data"
-        generate(root, "val", args.scenes, args.queries, options=SynthOptions(width=w, height=h, write_mono=False),
-                 progress=False)
+        generate(
+            root,
+            "val",
+            args.scenes,
+            args.queries,
+            options=SynthOptions(width=w, height=h, write_mono=False),
+            progress=False,
+        )
         reference: bytes | None = None
         for n in (int(v) for v in args.nodes.split(",")):
             workers = n * args.cpus_per_node
@@ -150,22 +169,44 @@ def main() -> None:
                 assert out.read_bytes() == reference, f"{out.name} differs from the first run's ZIP"
             rows.append((workers, n, best["local"], best["ray"]))
 
-    table = Table(title=f"mapfree run --all-frames, {args.method}, {frames} frames ({args.scenes} scenes x "
-                        f"{args.queries}, {args.size}); whole processes, best of {args.repeat}; "
-                        f"{os.cpu_count()}-core CPU")
-    for col in ("workers", "Ray nodes", "pool frames/s", "Ray frames/s", "Ray / pool", "pool start s", "Ray start s",
-                "whole run Ray / pool", "Ray tasks", "overhead share"):
+    table = Table(
+        title=f"mapfree run --all-frames, {args.method}, {frames} frames ({args.scenes} scenes x "
+        f"{args.queries}, {args.size}); whole processes, best of {args.repeat}; "
+        f"{os.cpu_count()}-core CPU"
+    )
+    for col in (
+        "workers",
+        "Ray nodes",
+        "pool frames/s",
+        "Ray frames/s",
+        "Ray / pool",
+        "pool start s",
+        "Ray start s",
+        "whole run Ray / pool",
+        "Ray tasks",
+        "overhead share",
+    ):
         table.add_column(col, justify="right")
     for workers, n, pool, ray_t in rows:
         tasks = ray_t.summary["cluster"]["tasks"]
-        table.add_row(str(workers), str(n), f"{pool.fps(frames):.1f}", f"{ray_t.fps(frames):.1f}",
-                      f"{ray_t.fps(frames) / pool.fps(frames):.2f}", f"{pool.start:.1f}", f"{ray_t.start:.1f}",
-                      f"{pool.whole / ray_t.whole:.2f}", str(tasks),
-                      f"{100 * tasks * overhead / 1000 / ray_t.steady:.2f} %")
+        table.add_row(
+            str(workers),
+            str(n),
+            f"{pool.fps(frames):.1f}",
+            f"{ray_t.fps(frames):.1f}",
+            f"{ray_t.fps(frames) / pool.fps(frames):.2f}",
+            f"{pool.start:.1f}",
+            f"{ray_t.start:.1f}",
+            f"{pool.whole / ray_t.whole:.2f}",
+            str(tasks),
+            f"{100 * tasks * overhead / 1000 / ray_t.steady:.2f} %",
+        )
     Console(width=160).print(table)
-    print(f"frames/s: first to last frame journaled (steady state); start: process start to the first frame. Ray "
-          f"per-task overhead: {overhead:.1f} ms (round trip of an empty chunk to a warm worker); every run wrote "
-          f"the same ZIP")
+    print(
+        f"frames/s: first to last frame journaled (steady state); start: process start to the first frame. Ray "
+        f"per-task overhead: {overhead:.1f} ms (round trip of an empty chunk to a warm worker); every run wrote "
+        f"the same ZIP"
+    )
 
 
 if __name__ == "__main__":

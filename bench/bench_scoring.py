@@ -55,14 +55,26 @@ def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
     w1, x1, y1, z1 = a.T
     w2, x2, y2, z2 = b.T
-    return np.stack([
-        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-        w1 * y2 + y1 * w2 + z1 * x2 - x1 * z2, w1 * z2 + z1 * w2 + x1 * y2 - y1 * x2,
-    ], axis=1)
+    return np.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 + y1 * w2 + z1 * x2 - x1 * z2,
+            w1 * z2 + z1 * w2 + x1 * y2 - y1 * x2,
+        ],
+        axis=1,
+    )
 
 
-def make_split(root: Path, n_scenes: int, n_evaluated: int, seed: int = 0, all_queries: bool = False,
-               split: str = "val", gt_root: Path | None = None) -> dict:
+def make_split(
+    root: Path,
+    n_scenes: int,
+    n_evaluated: int,
+    seed: int = 0,
+    all_queries: bool = False,
+    split: str = "val",
+    gt_root: Path | None = None,
+) -> dict:
     """Write ``root/SPLIT/sNNNNN/{poses,intrinsics}.txt`` and return estimates for a submission. With ``gt_root``
     the true poses go to ``gt_root/SPLIT/sNNNNN/poses.txt`` and ``root``'s poses.txt holds zeros (test layout)."""
     import numpy as np
@@ -81,8 +93,10 @@ def make_split(root: Path, n_scenes: int, n_evaluated: int, seed: int = 0, all_q
         names = ["seq0/frame_00000.jpg"] + [f"seq1/frame_{i:05d}.jpg" for i in range(n)]
         q = np.r_[[[1.0, 0, 0, 0]], _random_quats(rng, n, 40)]
         t = np.r_[[[0.0, 0, 0]], rng.normal(scale=1.5, size=(n, 3))]
-        poses = "".join(f"{nm} {a:.9f} {b:.9f} {c:.9f} {e:.9f} {x:.6f} {y:.6f} {z:.6f}\n"
-                        for nm, (a, b, c, e), (x, y, z) in zip(names, q, t))
+        poses = "".join(
+            f"{nm} {a:.9f} {b:.9f} {c:.9f} {e:.9f} {x:.6f} {y:.6f} {z:.6f}\n"
+            for nm, (a, b, c, e), (x, y, z) in zip(names, q, t)
+        )
         if gt_root is None:
             (d / "poses.txt").write_text(poses)
         else:
@@ -123,7 +137,15 @@ def reference_main(a: argparse.Namespace) -> int:
     return 0
 
 
-STAGES = ("imports: numpy", "imports: mapfree and the standard library", "ZIP read (inflate)", "parse + checks", "ground truth", "metrics", "output")
+STAGES = (
+    "imports: numpy",
+    "imports: mapfree and the standard library",
+    "ZIP read (inflate)",
+    "parse + checks",
+    "ground truth",
+    "metrics",
+    "output",
+)
 
 
 def stages_main(a: argparse.Namespace) -> int:
@@ -239,8 +261,14 @@ def main(argv: list[str] | None = None) -> int:
         commands = {
             "public-evaluator reference (naive.py, whole process)": [py, __file__, "--reference", *split_args],
             "mapfree evaluate --json": [*mapfree, "evaluate", *split_args, "--json"],
-            "mapfree evaluate --json --compat official": [*mapfree, "evaluate", *split_args, "--json",
-                                                          "--compat", "official"],
+            "mapfree evaluate --json --compat official": [
+                *mapfree,
+                "evaluate",
+                *split_args,
+                "--json",
+                "--compat",
+                "official",
+            ],
             "mapfree evaluate --help": [*mapfree, "evaluate", "--help"],
             'floor: python -c "import numpy"': [py, "-c", "import numpy"],
             "floor: python -c pass": [py, "-c", "pass"],
@@ -252,8 +280,9 @@ def main(argv: list[str] | None = None) -> int:
         for _ in range(args.repeat):
             for k, cmd in commands.items():
                 times[k].append(_run(cmd))
-            out = subprocess.run([py, __file__, "--stages", *split_args], capture_output=True, text=True, check=True,
-                                 env=ENV)
+            out = subprocess.run(
+                [py, __file__, "--stages", *split_args], capture_output=True, text=True, check=True, env=ENV
+            )
             stage_runs.append(json.loads(out.stdout))
     finally:
         if tmp:
@@ -266,23 +295,31 @@ def main(argv: list[str] | None = None) -> int:
     ratio, cpu_ratio = statistics.median(ratios), statistics.median(cpu_ratios)
 
     w = 58
-    print(f"\n{args.scenes} scenes, {n_eval} evaluated frames, test split with private ground truth; "
-          f"whole processes, median of {args.repeat}")
+    print(
+        f"\n{args.scenes} scenes, {n_eval} evaluated frames, test split with private ground truth; "
+        f"whole processes, median of {args.repeat}"
+    )
     print(f"{'':<{w}}  {'wall (s)':>9}  {'CPU (s)':>8}")
     for k, (wall, cpu) in med.items():
         print(f"{k:<{w}}  {wall:>9.3f}  {cpu:>8.3f}")
     print(f"{'ratio reference / mapfree evaluate (median of pairs)':<{w}}  {ratio:>8.1f}x  {cpu_ratio:>7.1f}x")
     floor = med['floor: python -c "import numpy"']
-    print(f"{'best ratio possible with numpy (reference / the floor)':<{w}}  {med[ref_key][0] / floor[0]:>8.1f}x  "
-          f"{med[ref_key][1] / floor[1]:>7.1f}x")
-    print(f"{'max |difference| from the reference, both modes':<{w}}  {worst:>9.1e}  "
-          f"{'identical to 1e-6' if ok else 'DIFFERENT'}")
+    print(
+        f"{'best ratio possible with numpy (reference / the floor)':<{w}}  {med[ref_key][0] / floor[0]:>8.1f}x  "
+        f"{med[ref_key][1] / floor[1]:>7.1f}x"
+    )
+    print(
+        f"{'max |difference| from the reference, both modes':<{w}}  {worst:>9.1e}  "
+        f"{'identical to 1e-6' if ok else 'DIFFERENT'}"
+    )
 
     print(f"\nmapfree evaluate by stage (inside a fresh process, median of {args.repeat}; start-up from the floor)")
     start = med["floor: python -c pass"]
     rows = [("interpreter start-up (python -c pass)", *start)]
-    rows += [(s, statistics.median(r[s][0] for r in stage_runs), statistics.median(r[s][1] for r in stage_runs))
-             for s in STAGES]
+    rows += [
+        (s, statistics.median(r[s][0] for r in stage_runs), statistics.median(r[s][1] for r in stage_runs))
+        for s in STAGES
+    ]
     for name, wall, cpu in rows:
         print(f"{name:<{w}}  {wall:>9.3f}  {cpu:>8.3f}")
     print(f"{'sum of stages':<{w}}  {sum(r[1] for r in rows):>9.3f}  {sum(r[2] for r in rows):>8.3f}")

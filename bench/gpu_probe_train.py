@@ -54,11 +54,13 @@ def equivalence(batch: int = 2, hw: tuple[int, int] = (90, 68)) -> str:
     want, got, half = run(ref), run(fast), run(fast, amp=True)
     rel = lambda x, y: float((x - y).abs().max() / y.abs().max())  # noqa: E731
     peak = lambda x, y: float(((x[:, -1] - y[:, -1]).abs() / y[:, -1]).max())  # noqa: E731
-    return (f"fp32 fused vs explicit: output {rel(got[0], want[0]):.1e}, grad f0 {rel(got[1], want[1]):.1e}, "
-            f"grad f1 {rel(got[2], want[2]):.1e} (relative to the largest value; CPU: ~1e-5 / 1e-4); "
-            f"peak probability {peak(got[0], want[0]):.1e} relative; "
-            f"bf16 fused vs fp32 explicit: features/positions {float((half[0] - want[0])[:, :-1].abs().max()):.3f} "
-            f"absolute, peak {peak(half[0], want[0]):.3f} relative")
+    return (
+        f"fp32 fused vs explicit: output {rel(got[0], want[0]):.1e}, grad f0 {rel(got[1], want[1]):.1e}, "
+        f"grad f1 {rel(got[2], want[2]):.1e} (relative to the largest value; CPU: ~1e-5 / 1e-4); "
+        f"peak probability {peak(got[0], want[0]):.1e} relative; "
+        f"bf16 fused vs fp32 explicit: features/positions {float((half[0] - want[0])[:, :-1].abs().max()):.3f} "
+        f"absolute, peak {peak(half[0], want[0]):.3f} relative"
+    )
 
 
 def profile(batch: int, steps: int = 5, size: tuple[int, int] | None = None) -> str:
@@ -79,8 +81,10 @@ def profile(batch: int, steps: int = 5, size: tuple[int, int] | None = None) -> 
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
     data = {k: v.to(device) for k, v in _random_batch(_size(cfg), batch).items()}
     out = []
-    for name, kw in (("before", dict(fused=False, amp=False, channels_last=False)),
-                     ("after", dict(fused=True, amp=True, channels_last=True))):
+    for name, kw in (
+        ("before", dict(fused=False, amp=False, channels_last=False)),
+        ("after", dict(fused=True, amp=True, channels_last=True)),
+    ):
         try:
             tr = Trainer(cfg, device, **kw)
             tr.step(data)
@@ -108,22 +112,34 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--large", type=int, default=64, help="the large batch")
     ap.add_argument("--workers", type=int, default=12)
     ap.add_argument("--quick", action="store_true", help="rehearse every step on any device, in a few minutes")
-    ap.add_argument("--profile-only", action="store_true",
-                    help="only the fused-warp check and the CUDA profile (a call that already has the step rows)")
-    ap.add_argument("--no-compile", dest="compile", action="store_false",
-                    help="skip the torch.compile rows (compiling takes minutes of a short device lease)")
+    ap.add_argument(
+        "--profile-only",
+        action="store_true",
+        help="only the fused-warp check and the CUDA profile (a call that already has the step rows)",
+    )
+    ap.add_argument(
+        "--no-compile",
+        dest="compile",
+        action="store_false",
+        help="skip the torch.compile rows (compiling takes minutes of a short device lease)",
+    )
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     import torch
 
     gpu = torch.cuda.is_available()
     if not gpu and not args.quick:
-        print("no GPU here: this probe only fills in GPU figures (bench/bench_train.py runs on CPU; --quick "
-              "rehearses this probe on the CPU)")
+        print(
+            "no GPU here: this probe only fills in GPU figures (bench/bench_train.py runs on CPU; --quick "
+            "rehearses this probe on the CPU)"
+        )
         return 1
     device = torch.cuda.get_device_name() if gpu else "no GPU (cpu)"
-    lines = [f"# RPR training probe: {device}, torch {torch.__version__}"
-             + (" (--quick: a rehearsal, not figures)" if args.quick else ""), ""]
+    lines = [
+        f"# RPR training probe: {device}, torch {torch.__version__}"
+        + (" (--quick: a rehearsal, not figures)" if args.quick else ""),
+        "",
+    ]
     have_images = args.root is not None and Path(args.root).is_dir()
     batches = (2, 3) if args.quick else (10, args.large)
     steps, warmup, epochs, per_epoch = ("1", "1", "1", 2) if args.quick else ("10", "3", "3", 20)
@@ -132,13 +148,38 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / "probe_train.md").write_text("\n".join(lines) + "\n")
 
     def bench(batch: int, parts: str, extra: list[str], timeout: float) -> None:
-        cmd = [sys.executable, str(HERE / "bench_train.py"), "--config", "rot6d_trans",
-               "--device", "cuda" if gpu else "cpu", "--batch", str(batch), "--steps", steps, "--warmup", warmup,
-               "--workers", str(min(args.workers, 2) if args.quick else args.workers), "--epochs", epochs,
-               "--loop-pairs", str(per_epoch * batch), "--parts", parts, *extra]
+        cmd = [
+            sys.executable,
+            str(HERE / "bench_train.py"),
+            "--config",
+            "rot6d_trans",
+            "--device",
+            "cuda" if gpu else "cpu",
+            "--batch",
+            str(batch),
+            "--steps",
+            steps,
+            "--warmup",
+            warmup,
+            "--workers",
+            str(min(args.workers, 2) if args.quick else args.workers),
+            "--epochs",
+            epochs,
+            "--loop-pairs",
+            str(per_epoch * batch),
+            "--parts",
+            parts,
+            *extra,
+        ]
         cmd += ["--root", str(args.root)] if have_images and parts != "step" else []
-        lines.extend([f"## batch {batch}" + (", torch.compile" if "--compile" in extra else ""), "",
-                      "`python " + " ".join(cmd[1:]) + "`", ""])
+        lines.extend(
+            [
+                f"## batch {batch}" + (", torch.compile" if "--compile" in extra else ""),
+                "",
+                "`python " + " ".join(cmd[1:]) + "`",
+                "",
+            ]
+        )
         print("\n".join(lines[-4:]), flush=True)
         lines.extend([stream(cmd, timeout=timeout), ""])
         save()
@@ -146,12 +187,15 @@ def main(argv: list[str] | None = None) -> int:
     # The compile rows come last: compiling takes minutes and must not cost the other rows if the call runs out.
     for batch in () if args.profile_only else batches:
         bench(batch, "step,loader,loop" if have_images else "step", ["--size", QUICK_SIZE] if args.quick else [], 240)
-    lines += ["## fused warping vs the explicit volume on this device", "",
-              equivalence(1, (44, 32)) if args.quick else equivalence(), ""]
+    lines += [
+        "## fused warping vs the explicit volume on this device",
+        "",
+        equivalence(1, (44, 32)) if args.quick else equivalence(),
+        "",
+    ]
     print("\n".join(lines[-4:]), flush=True)
     quick_size = tuple(int(v) for v in QUICK_SIZE.split("x"))
-    lines += ["## where the CUDA time goes", "",
-              profile(2, 1, quick_size) if args.quick else profile(args.large)]
+    lines += ["## where the CUDA time goes", "", profile(2, 1, quick_size) if args.quick else profile(args.large)]
     print(lines[-1], flush=True)
     save()
     if not args.quick and args.compile and not args.profile_only:

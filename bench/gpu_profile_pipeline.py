@@ -23,15 +23,16 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 
-def profile_preset(root: Path, split: str, name: str, batches: list[int], rows: int = 18,
-                   max_pairs: int | None = None) -> str:
+def profile_preset(
+    root: Path, split: str, name: str, batches: list[int], rows: int = 18, max_pairs: int | None = None
+) -> str:
     import torch
     from torch.profiler import ProfilerActivity, profile
 
     from bench_pipeline import _scenes_with_depth, _warm_up
     from mapfree.methods import get
-    from mapfree.relocalize import run as run_mod
     from mapfree.relocalize import frames_to_run, run_split
+    from mapfree.relocalize import run as run_mod
 
     gpu = torch.cuda.is_available()
     sync = torch.cuda.synchronize if gpu else (lambda: None)
@@ -41,11 +42,22 @@ def profile_preset(root: Path, split: str, name: str, batches: list[int], rows: 
     scenes = _scenes_with_depth(root, split)
     out = [f"## {name}", ""]
     with tempfile.TemporaryDirectory() as tmp:
+
         def once(batch: int) -> tuple[int, float]:
             sync()
             t0 = time.perf_counter()
-            res = run_split(root, split, name, Path(tmp) / "sub.zip", all_frames=True, scenes=scenes, progress=False,
-                            overwrite=True, batch_size=batch, select=lambda s: frames_to_run(s, True)[:max_pairs])
+            res = run_split(
+                root,
+                split,
+                name,
+                Path(tmp) / "sub.zip",
+                all_frames=True,
+                scenes=scenes,
+                progress=False,
+                overwrite=True,
+                batch_size=batch,
+                select=lambda s: frames_to_run(s, True)[:max_pairs],
+            )
             sync()
             return res.computed, time.perf_counter() - t0
 
@@ -55,18 +67,33 @@ def profile_preset(root: Path, split: str, name: str, batches: list[int], rows: 
             cprof.enable()
             n, wall = once(batches[0])
             cprof.disable()
-        out += [f"first pass, batch {batches[0]}, under both profilers: {n} pairs in {wall:.2f} s "
-                f"({n / wall:.1f} pairs/s with the profilers' overhead)", ""]
+        out += [
+            f"first pass, batch {batches[0]}, under both profilers: {n} pairs in {wall:.2f} s "
+            f"({n / wall:.1f} pairs/s with the profilers' overhead)",
+            "",
+        ]
         for b in batches:
             n, wall = once(b)
             out.append(f"- seen pairs, batch {b}: {n / wall:.1f} pairs/s ({1000 * wall / n:.1f} ms per pair)")
         avg = prof.key_averages()
         cuda_total = sum(e.self_device_time_total for e in avg) / 1000
-        out += ["", f"CUDA kernel time in all: {cuda_total:.0f} ms over {n} pairs ({cuda_total / n:.1f} ms per pair)",
-                "", "### operators by their own CPU time", "", "```",
-                avg.table(sort_by="self_cpu_time_total", row_limit=rows), "```", "",
-                "### operators by their own CUDA time", "", "```",
-                avg.table(sort_by="self_cuda_time_total" if gpu else "cpu_time_total", row_limit=rows // 2), "```", ""]
+        out += [
+            "",
+            f"CUDA kernel time in all: {cuda_total:.0f} ms over {n} pairs ({cuda_total / n:.1f} ms per pair)",
+            "",
+            "### operators by their own CPU time",
+            "",
+            "```",
+            avg.table(sort_by="self_cpu_time_total", row_limit=rows),
+            "```",
+            "",
+            "### operators by their own CUDA time",
+            "",
+            "```",
+            avg.table(sort_by="self_cuda_time_total" if gpu else "cpu_time_total", row_limit=rows // 2),
+            "```",
+            "",
+        ]
         buf = io.StringIO()
         pstats.Stats(cprof, stream=buf).sort_stats("cumulative").print_stats(rows + 12)
         out += ["### the calling thread (cProfile, cumulative)", "", "```", buf.getvalue().strip(), "```", ""]

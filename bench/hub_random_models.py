@@ -27,9 +27,11 @@ def write_models(dst: Path, seed: int = 0) -> list[Path]:
     )
 
     out = []
-    for folder, make in (("superglue_outdoor", lambda: SuperGlueForKeypointMatching(SuperGlueConfig())),
-                         ("superglue_indoor", lambda: SuperGlueForKeypointMatching(SuperGlueConfig())),
-                         ("efficientloftr", lambda: EfficientLoFTRForKeypointMatching(EfficientLoFTRConfig()))):
+    for folder, make in (
+        ("superglue_outdoor", lambda: SuperGlueForKeypointMatching(SuperGlueConfig())),
+        ("superglue_indoor", lambda: SuperGlueForKeypointMatching(SuperGlueConfig())),
+        ("efficientloftr", lambda: EfficientLoFTRForKeypointMatching(EfficientLoFTRConfig())),
+    ):
         torch.manual_seed(seed)
         net = make()
         net.save_pretrained(dst / folder)

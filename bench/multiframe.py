@@ -13,9 +13,16 @@ import argparse
 import time
 from pathlib import Path
 
-KEYS = ["Precision @ VCRE < 90px", "AUC @ VCRE < 90px", "Precision @ Pose Error < (25.0cm, 5deg)",
-        "AUC @ Pose Error < (25.0cm, 5deg)", "Average Median Translation Error", "Average Median Rotation Error",
-        "Average Median Reprojection Error", "Estimates for % of frames"]
+KEYS = [
+    "Precision @ VCRE < 90px",
+    "AUC @ VCRE < 90px",
+    "Precision @ Pose Error < (25.0cm, 5deg)",
+    "AUC @ Pose Error < (25.0cm, 5deg)",
+    "Average Median Translation Error",
+    "Average Median Rotation Error",
+    "Average Median Reprojection Error",
+    "Estimates for % of frames",
+]
 SHORT = ["VCRE prec", "VCRE AUC", "pose prec", "pose AUC", "med t (m)", "med R (°)", "med VCRE (px)", "estimated"]
 
 

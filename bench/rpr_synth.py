@@ -32,11 +32,40 @@ def _mapfree(*args: str) -> None:
 def render(root: Path, train_scenes: int, val_scenes: int, seed: int, workers: int) -> None:
     """The held-out val split at the benchmark's 540x720 and many small train scenes at the network's 192x256."""
     if not (root / "val").is_dir():
-        _mapfree("synth", str(root), "--split", "val", "--scenes", str(val_scenes), "--queries", "30",
-                 "--seed", str(seed), "--workers", str(workers), "--quiet")
+        _mapfree(
+            "synth",
+            str(root),
+            "--split",
+            "val",
+            "--scenes",
+            str(val_scenes),
+            "--queries",
+            "30",
+            "--seed",
+            str(seed),
+            "--workers",
+            str(workers),
+            "--quiet",
+        )
     if not (root / "train").is_dir():
-        _mapfree("synth", str(root), "--split", "train", "--scenes", str(train_scenes), "--train-frames", "25",
-                 "--size", "192x256", "--no-mono", "--seed", str(seed), "--workers", str(workers), "--quiet")
+        _mapfree(
+            "synth",
+            str(root),
+            "--split",
+            "train",
+            "--scenes",
+            str(train_scenes),
+            "--train-frames",
+            "25",
+            "--size",
+            "192x256",
+            "--no-mono",
+            "--seed",
+            str(seed),
+            "--workers",
+            str(workers),
+            "--quiet",
+        )
 
 
 def evaluate(run: Path, root: Path) -> dict[str, dict[str, float]]:
@@ -50,8 +79,10 @@ def evaluate(run: Path, root: Path) -> dict[str, dict[str, float]]:
     cfg = RPRConfig.from_dict(yaml.safe_load((run / "config.yaml").read_text()))
     R, t = mean_training_pose(root, cfg.data, epochs=3)
     method = load_method(run / "checkpoints" / "last.ckpt", device="cuda" if torch.cuda.is_available() else "cpu")
-    return {"mean training pose": evaluate_pairs(None, root, cfg.data, constant=(R, t)),
-            "model (last.ckpt)": evaluate_pairs(method.predict, root, cfg.data)}
+    return {
+        "mean training pose": evaluate_pairs(None, root, cfg.data, constant=(R, t)),
+        "model (last.ckpt)": evaluate_pairs(method.predict, root, cfg.data),
+    }
 
 
 def main() -> None:
@@ -75,19 +106,31 @@ def main() -> None:
     (args.out / "heldout.json").write_text(json.dumps(res, indent=1))
     from mapfree.rpr.report import plot_curves
 
-    png = plot_curves(args.out / "logs" / "metrics.csv", args.out / "curves_vs_mean_pose.png", args.config,
-                      {"mean training pose: VCRE prec": res["mean training pose"]["vcre_prec"]})
+    png = plot_curves(
+        args.out / "logs" / "metrics.csv",
+        args.out / "curves_vs_mean_pose.png",
+        args.config,
+        {"mean training pose: VCRE prec": res["mean training pose"]["vcre_prec"]},
+    )
 
     table = Table(title=f"held-out val ({int(res['model (last.ckpt)']['pairs'])} pairs): VCRE < 90 px")
     for col in ("", "VCRE prec", "VCRE AUC", "median VCRE px", "median t err m", "median R err deg"):
         table.add_column(col, justify="right" if col else "left")
     for name, m in res.items():
-        table.add_row(name, f"{m['vcre_prec']:.3f}", f"{m['vcre_auc']:.3f}", f"{m['vcre_med']:.0f}",
-                      f"{m['trans_err_med']:.2f}", f"{m['rot_err_med']:.1f}")
+        table.add_row(
+            name,
+            f"{m['vcre_prec']:.3f}",
+            f"{m['vcre_auc']:.3f}",
+            f"{m['vcre_med']:.0f}",
+            f"{m['trans_err_med']:.2f}",
+            f"{m['rot_err_med']:.1f}",
+        )
     Console(width=120).print(table)
     base, model = res["mean training pose"]["vcre_prec"], res["model (last.ckpt)"]["vcre_prec"]
-    print(f"model / mean pose precision: {model / max(base, 1e-9):.2f}x; curves: {png}; "
-          f"total {time.perf_counter() - t0:.0f} s")
+    print(
+        f"model / mean pose precision: {model / max(base, 1e-9):.2f}x; curves: {png}; "
+        f"total {time.perf_counter() - t0:.0f} s"
+    )
 
 
 if __name__ == "__main__":

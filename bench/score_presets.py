@@ -14,12 +14,18 @@ import sys
 import time
 from pathlib import Path
 
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-KEYS = ["AUC @ VCRE < 90px", "Precision @ VCRE < 90px", "AUC @ Pose Error < (25.0cm, 5deg)",
-        "Precision @ Pose Error < (25.0cm, 5deg)", "Average Median Translation Error", "Average Median Rotation Error",
-        "Average Median Reprojection Error", "Estimates for % of frames"]
+KEYS = [
+    "AUC @ VCRE < 90px",
+    "Precision @ VCRE < 90px",
+    "AUC @ Pose Error < (25.0cm, 5deg)",
+    "Precision @ Pose Error < (25.0cm, 5deg)",
+    "Average Median Translation Error",
+    "Average Median Rotation Error",
+    "Average Median Reprojection Error",
+    "Estimates for % of frames",
+]
 SHORT = ["VCRE AUC", "VCRE prec", "pose AUC", "pose prec", "med t (m)", "med R (°)", "med VCRE (px)", "estimated"]
 
 
@@ -33,8 +39,9 @@ def run_matcher(matcher: str, solvers: list[str], depth: str, scenes: list, all_
     locs = {}
     for s in solvers:
         method = get(preset_name(matcher, s, depth))
-        locs[method.name] = Relocalizer(m, method.depth, method.solver, solver_opts=method.solver_opts,
-                                        name=method.name)
+        locs[method.name] = Relocalizer(
+            m, method.depth, method.solver, solver_opts=method.solver_opts, name=method.name
+        )
     out: dict = {name: {} for name in locs}
     times = {"match": 0.0, "pairs": 0}
     first = next(iter(locs.values()))
@@ -59,8 +66,11 @@ def run_matcher(matcher: str, solvers: list[str], depth: str, scenes: list, all_
 def to_submission(results: dict, confidence: str | None) -> dict:
     sub = {}
     for scene, rows in results.items():
-        sub[scene] = [(f, e.pose, float(e.extras.get(confidence, e.confidence)) if confidence else e.confidence)
-                      for f, e in rows if e.pose is not None]
+        sub[scene] = [
+            (f, e.pose, float(e.extras.get(confidence, e.confidence)) if confidence else e.confidence)
+            for f, e in rows
+            if e.pose is not None
+        ]
     return sub
 
 
@@ -74,8 +84,10 @@ def score(sub: dict, root, split: str, every: int) -> dict:
 
     key = (str(root), split, every)
     if key not in _TRUTH:
-        _TRUTH[key] = {s.name: load_scene_truth(s.path / "poses.txt", s.path / "intrinsics.txt", s.name, every=every)
-                       for s in Dataset(root).scenes(split)}
+        _TRUTH[key] = {
+            s.name: load_scene_truth(s.path / "poses.txt", s.path / "intrinsics.txt", s.name, every=every)
+            for s in Dataset(root).scenes(split)
+        }
     # A scene without estimates is left out: its frames then count as failures, as they should.
     return evaluate({k: v for k, v in sub.items() if v}, root, split, truth=_TRUTH[key]).metrics
 
@@ -99,7 +111,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--matchers", default="sift,xfeat,xfeat-star,xfeat-lighterglue,aliked-lightglue,disk-lightglue")
     ap.add_argument("--solvers", default="emat,pnp,procrustes")
     ap.add_argument("--all-frames", action="store_true", help="relocalize and score every query, not every 5th")
-    ap.add_argument("--reference", action="store_true", help="also run the straightforward paper-protocol implementation")
+    ap.add_argument(
+        "--reference", action="store_true", help="also run the straightforward paper-protocol implementation"
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     import cv2
@@ -123,8 +137,11 @@ def main(argv: list[str] | None = None) -> int:
             rows_inl.append((name, a))
             rows_score.append((name, b))
             dump[name] = {"inliers": a, "score": b}
-            print(f"{name}: VCRE AUC {a['AUC @ VCRE < 90px']:.3f} (inliers) {b['AUC @ VCRE < 90px']:.3f} (score)",
-                  file=sys.stderr, flush=True)
+            print(
+                f"{name}: VCRE AUC {a['AUC @ VCRE < 90px']:.3f} (inliers) {b['AUC @ VCRE < 90px']:.3f} (score)",
+                file=sys.stderr,
+                flush=True,
+            )
     if args.reference:
         import reference_spec4
 
@@ -135,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     frames = "all queries" if args.all_frames else "scored queries (every 5th)"
     print(f"\n### {args.split}, depth `{args.depth}`, {frames}; confidence = inlier count (paper)\n")
     print(table(rows_inl))
-    print(f"\n### same estimates, confidence = solver score (`confidence_score`)\n")
+    print("\n### same estimates, confidence = solver score (`confidence_score`)\n")
     print(table(rows_score))
     print("\nmatcher seconds:", json.dumps({k: round(v["seconds"], 1) for k, v in timing.items()}))
     if args.json:

@@ -67,8 +67,25 @@ def synth_val(tmp_path_factory) -> Path:
     from mapfree.cli import main
 
     root = tmp_path_factory.mktemp("synth-val")
-    assert main(["synth", str(root), "--split", "val", "--scenes", "2", "--queries", "10", "--size", "240x320",
-                 "--no-mono", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "synth",
+                str(root),
+                "--split",
+                "val",
+                "--scenes",
+                "2",
+                "--queries",
+                "10",
+                "--size",
+                "240x320",
+                "--no-mono",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     return root
 
 

@@ -39,13 +39,24 @@ def cluster() -> None:
     from ray.cluster_utils import Cluster
 
     port = _free_port()
-    c = Cluster(initialize_head=True, head_node_args={
-        "num_cpus": 1, "include_dashboard": False, "object_store_memory": 80 * MB, "_system_config": FAST_HEALTH,
-        "ray_client_server_port": port})
+    c = Cluster(
+        initialize_head=True,
+        head_node_args={
+            "num_cpus": 1,
+            "include_dashboard": False,
+            "object_store_memory": 80 * MB,
+            "_system_config": FAST_HEALTH,
+            "ray_client_server_port": port,
+        },
+    )
     workers = [c.add_node(num_cpus=1, object_store_memory=80 * MB) for _ in range(2)]
     c.wait_for_nodes()
-    print(json.dumps({"address": c.address, "client": f"ray://127.0.0.1:{port}",
-                      "workers": [n.node_id for n in workers]}), flush=True)
+    print(
+        json.dumps(
+            {"address": c.address, "client": f"ray://127.0.0.1:{port}", "workers": [n.node_id for n in workers]}
+        ),
+        flush=True,
+    )
     try:
         for line in sys.stdin:
             cmd = line.split()
@@ -63,8 +74,16 @@ def node(address: str) -> None:
     from ray._private.node import Node
     from ray._private.parameter import RayParams
 
-    params = RayParams(num_cpus=1, num_gpus=0, object_store_memory=80 * MB, min_worker_port=0, max_worker_port=0,
-                       gcs_address=address, include_log_monitor=False, node_manager_port=0)
+    params = RayParams(
+        num_cpus=1,
+        num_gpus=0,
+        object_store_memory=80 * MB,
+        min_worker_port=0,
+        max_worker_port=0,
+        gcs_address=address,
+        include_log_monitor=False,
+        node_manager_port=0,
+    )
     params.dashboard_agent_listen_port = None
     n = Node(params, head=False, shutdown_at_exit=True, spawn_reaper=True)
 

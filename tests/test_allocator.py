@@ -33,8 +33,13 @@ print(json.dumps({"warm": keep_heap_warm(), "faults": counts[2:]}))
 
 
 def _probe(mode: str, **env: str) -> dict:
-    out = subprocess.run([sys.executable, "-c", PROBE, mode], capture_output=True, text=True, check=True,
-                         env={**os.environ, "MAPFREE_OFFLINE": "1", **env})
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE, mode],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "MAPFREE_OFFLINE": "1", **env},
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 

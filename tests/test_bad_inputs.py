@@ -38,7 +38,7 @@ def _cells(line: str) -> list[str]:
         if line[i] == "`":
             n = len(line[i:]) - len(line[i:].lstrip("`"))
             fence = n if fence == 0 else (0 if n == fence else fence)
-            cur += line[i:i + n]
+            cur += line[i : i + n]
             i += n
             continue
         if line[i] == "|" and fence == 0:
@@ -83,8 +83,11 @@ def split_env(command: str) -> tuple[dict[str, str], list[str]]:
 
 
 def _tool_env(repo: Path) -> dict[str, str]:
-    return {**os.environ, "PYTHONPATH": str(repo / "src"),
-            "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    return {
+        **os.environ,
+        "PYTHONPATH": str(repo / "src"),
+        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+    }
 
 
 @pytest.fixture(scope="module")
@@ -92,8 +95,14 @@ def workspace(tmp_path_factory) -> Path:
     """The folder of the page's setup block (a small synthetic split, broken files and folders)."""
     repo = PAGE.parents[1]
     d = tmp_path_factory.mktemp("bad-inputs")
-    p = subprocess.run(["bash", "-euo", "pipefail", "-c", setup_block()], cwd=d, env=_tool_env(repo),
-                       capture_output=True, text=True, timeout=300)
+    p = subprocess.run(
+        ["bash", "-euo", "pipefail", "-c", setup_block()],
+        cwd=d,
+        env=_tool_env(repo),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert p.returncode == 0, p.stdout + p.stderr
     return d
 
@@ -115,8 +124,13 @@ def run_row(row: Row, monkeypatch, capfd) -> tuple[int, str]:
     """(exit status, stderr) of a row: in this process (``main``), or through bash for a pipeline."""
     if " | " in row.command:
         repo = PAGE.parents[1]
-        p = subprocess.run(["bash", "-c", f"{row.command}; exit ${{PIPESTATUS[0]}}"], capture_output=True, text=True,
-                           env={**_tool_env(repo), "XDG_CACHE_HOME": os.environ["XDG_CACHE_HOME"]}, timeout=120)
+        p = subprocess.run(
+            ["bash", "-c", f"{row.command}; exit ${{PIPESTATUS[0]}}"],
+            capture_output=True,
+            text=True,
+            env={**_tool_env(repo), "XDG_CACHE_HOME": os.environ["XDG_CACHE_HOME"]},
+            timeout=120,
+        )
         return p.returncode, p.stderr
     from mapfree.cli import main
 

@@ -46,15 +46,15 @@ def test_batched_path_equals_one_pair_at_a_time(name, realmini, one_torch_thread
         ref, queries = _queries(realmini, scene, n)
         anchor = loc.prepare(ref)
         one = [loc.localize(q, anchor) for q in queries]
-        many = list(loc.localize_batched(queries, anchor, BatchOptions(batch_size=3, decode_workers=2,
-                                                                        solve_workers=2)))
+        many = list(
+            loc.localize_batched(queries, anchor, BatchOptions(batch_size=3, decode_workers=2, solve_workers=2))
+        )
         assert len(many) == len(queries)
         for a, b in zip(one, many):
             _same(a, b, exact=name != "aliked-lightglue")
         assert sum(e.ok for e in many) >= n and many[-1].extras.get("same_viewpoint")
         assert np.allclose(many[-1].pose.R, np.eye(3)) and np.allclose(many[-1].pose.t, 0)
-        assert all(set(e.timings) >= {"read", "total"} and all(np.isfinite(list(e.timings.values())))
-                   for e in many)
+        assert all(set(e.timings) >= {"read", "total"} and all(np.isfinite(list(e.timings.values()))) for e in many)
 
 
 def test_batched_path_isolates_bad_queries(realmini, tmp_path, one_torch_thread):
@@ -77,8 +77,14 @@ def test_batched_lightglue_gives_each_pair_its_own_matches(realmini, one_torch_t
     f0 = m.extract(ref.image())
     fs = m.extract_many([q.image() for q in queries[:3]])
     batched = run_glue(m.glue, glue_input(f0), [glue_input(f) for f in fs])
-    side = lambda f: {"keypoints": f.data["keypoints"][None], "descriptors": f.data["descriptors"][None],  # noqa: E731
-                      "image_size": torch.tensor([f.data["resized"]], dtype=torch.float32)}
+
+    def side(f):
+        return {
+            "keypoints": f.data["keypoints"][None],
+            "descriptors": f.data["descriptors"][None],
+            "image_size": torch.tensor([f.data["resized"]], dtype=torch.float32),
+        }
+
     for f1, (idx, scores) in zip(fs, batched):
         with torch.inference_mode():
             ko = m.glue({"image0": side(f0), "image1": side(f1)})
@@ -117,13 +123,13 @@ def test_run_split_batched_writes_the_same_submission(realmini, tmp_path, one_to
     outs = {}
     for batch in (0, 4):
         out = tmp_path / f"b{batch}" / "sub.zip"
-        res = run_split(realmini, "val", "xfeat_emat_sensor", out, scenes=["s00001"], progress=False,
-                        batch_size=batch)
+        res = run_split(realmini, "val", "xfeat_emat_sensor", out, scenes=["s00001"], progress=False, batch_size=batch)
         assert res.computed >= 5 and res.estimated >= 4
         with zipfile.ZipFile(out) as z:
             outs[batch] = z.read("pose_s00001.txt").decode()
         assert [r["frame"] for r in read_journal(res.journal)[1]] == [
-            f.name for f in Dataset(realmini).scene("val", "s00001").scored_queries()]
+            f.name for f in Dataset(realmini).scene("val", "s00001").scored_queries()
+        ]
     assert outs[0] == outs[4] and outs[0].count("\n") >= 4
 
 

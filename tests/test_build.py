@@ -12,15 +12,15 @@ import pytest
 
 pytest.importorskip("pycolmap")
 
-from mapfree.scenebuild import BuildOptions, read_correspondences
-from mapfree.scenebuild.accuracy import compare_to_truth
-from mapfree.scenebuild.inputs import interpolate_track, read_place, read_tum
-from mapfree.scenebuild.run import build_all
 from mapfree.cli import main as cli_main
 from mapfree.data import Dataset, read_overlaps, read_poses
 from mapfree.data.synth import SynthOptions
 from mapfree.data.synth.scans import ScanOptions, generate_scans
-from mapfree.geometry import Pose, project, backproject
+from mapfree.geometry import Pose, backproject, project
+from mapfree.scenebuild import BuildOptions, read_correspondences
+from mapfree.scenebuild.accuracy import compare_to_truth
+from mapfree.scenebuild.inputs import interpolate_track, read_place, read_tum
+from mapfree.scenebuild.run import build_all
 
 SMALL = ScanOptions(frames=8, synth=SynthOptions(width=240, height=320, texture_size=256, write_mono=False))
 
@@ -151,17 +151,20 @@ def _images_only(scans: Path, root: Path, files: tuple[str, ...] = ()) -> None:
 def test_no_metric_scale_is_a_clear_error(scans, tmp_path):
     _images_only(scans, tmp_path / "scans")
     # No device poses, no depth, no intrinsics: SfM guesses the focal length, the scale is unknown.
-    res = build_all(tmp_path / "scans", tmp_path / "out", BuildOptions(split="train", report_plot=False),
-                    progress=False)
+    res = build_all(
+        tmp_path / "scans", tmp_path / "out", BuildOptions(split="train", report_plot=False), progress=False
+    )
     assert res[0].status == "failed" and "no metric scale" in res[0].reason and "--allow-unscaled" in res[0].reason
 
 
-@pytest.mark.parametrize("corrupt, problem", [
-    ("equal", "is equal to the previous one"),  # every timestamp the same (an export without a clock)
-    ("backwards", "is before the previous one"),  # line 5 goes back in time
-])
-def test_device_track_without_increasing_times_fails_the_place_naming_file_and_line(scans, tmp_path, corrupt,
-                                                                                    problem):
+@pytest.mark.parametrize(
+    "corrupt, problem",
+    [
+        ("equal", "is equal to the previous one"),  # every timestamp the same (an export without a clock)
+        ("backwards", "is before the previous one"),  # line 5 goes back in time
+    ],
+)
+def test_device_track_without_increasing_times_fails_the_place_naming_file_and_line(scans, tmp_path, corrupt, problem):
     _images_only(scans, tmp_path / "scans", ("rgb.txt", "intrinsics.txt", "device_poses.txt"))
     track = tmp_path / "scans/s00000/scan1/device_poses.txt"
     lines = track.read_text().splitlines(keepends=True)
@@ -174,8 +177,9 @@ def test_device_track_without_increasing_times_fails_the_place_naming_file_and_l
         lines[4] = lines[2].split()[0] + " " + lines[4].split(maxsplit=1)[1]
         line = 5
     track.write_text("".join(lines))
-    res = build_all(tmp_path / "scans", tmp_path / "out", BuildOptions(split="train", report_plot=False),
-                    progress=False)
+    res = build_all(
+        tmp_path / "scans", tmp_path / "out", BuildOptions(split="train", report_plot=False), progress=False
+    )
     assert res[0].status == "failed"
     assert f"{track}:{line}: timestamp" in res[0].reason and problem in res[0].reason, res[0].reason
     assert not (tmp_path / "out/train/s00000").exists()
@@ -199,8 +203,23 @@ def test_ray_val_build_runs_and_evaluates(built, scans, tmp_path):
     for i, n in enumerate(val.names[1:], 1):  # train's origin is the same reference frame
         assert np.allclose(val.pose(i).t, train[n].t, atol=1e-3)
     sub = tmp_path / "sub.zip"
-    assert cli_main(["run", str(out), "--split", "val", "--method", "sift_emat_sensor", "-o", str(sub),
-                     "--all-frames", "--no-progress"]) == 0
+    assert (
+        cli_main(
+            [
+                "run",
+                str(out),
+                "--split",
+                "val",
+                "--method",
+                "sift_emat_sensor",
+                "-o",
+                str(sub),
+                "--all-frames",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert cli_main(["evaluate", str(sub), "--dataset", str(out), "--split", "val", "--json"]) == 0
 
 
@@ -254,10 +273,23 @@ def test_ray_cluster_address(built, scans, tmp_path, monkeypatch):
     with socket.socket() as s:
         s.bind((host, 0))
         port = s.getsockname()[1]
-    head = subprocess.Popen([str(Path(sys.executable).parent / "ray"), "start", "--head", "--block",
-                             f"--port={port}", f"--node-ip-address={host}", "--num-cpus=1",
-                             "--object-store-memory=100000000", "--include-dashboard=false", f"--temp-dir={temp}"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    head = subprocess.Popen(
+        [
+            str(Path(sys.executable).parent / "ray"),
+            "start",
+            "--head",
+            "--block",
+            f"--port={port}",
+            f"--node-ip-address={host}",
+            "--num-cpus=1",
+            "--object-store-memory=100000000",
+            "--include-dashboard=false",
+            f"--temp-dir={temp}",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     out = tmp_path / "cluster"
     try:
         deadline = time.monotonic() + 60
@@ -268,8 +300,13 @@ def test_ray_cluster_address(built, scans, tmp_path, monkeypatch):
             time.sleep(0.5)
         else:
             pytest.fail("the Ray head did not start")
-        results = build_all(scans / "scans", out, BuildOptions(split="train", report_plot=False),
-                            ray_address=f"{host}:{port}", progress=False)
+        results = build_all(
+            scans / "scans",
+            out,
+            BuildOptions(split="train", report_plot=False),
+            ray_address=f"{host}:{port}",
+            progress=False,
+        )
         assert ray.is_initialized() and ray.get_runtime_context().gcs_address.endswith(f":{port}")
     finally:
         ray.shutdown()
@@ -295,8 +332,8 @@ def test_own_matcher_written_into_colmap_database(scans, tmp_path):
     """--matcher sift: our registry's keypoints and matches go into COLMAP's database and map as accurately."""
     import pycolmap
 
-    from mapfree.scenebuild import SfmOptions
     from mapfree.matching import create
+    from mapfree.scenebuild import SfmOptions
 
     opts = BuildOptions(split="train", report_plot=False, keep_work=True, sfm=SfmOptions(matcher="sift"))
     res = build_all(scans / "scans", tmp_path, opts, progress=False)
@@ -322,8 +359,9 @@ def test_overlaps_from_sfm_tracks_without_depth(scans, tmp_path):
     from mapfree.scenebuild.place import BuildError, _overlaps
 
     _images_only(scans, tmp_path / "scans", ("intrinsics.txt",))
-    res = build_all(tmp_path / "scans", tmp_path / "out", BuildOptions(report_plot=False, allow_unscaled=True),
-                    progress=False)
+    res = build_all(
+        tmp_path / "scans", tmp_path / "out", BuildOptions(report_plot=False, allow_unscaled=True), progress=False
+    )
     assert res[0].status == "ok", res[0].reason
     assert res[0].report["overlap_points"] == "sfm" and res[0].report["scale"]["source"] == "none"
     ov = read_overlaps(tmp_path / "out/train/s00000/overlaps.npz")

@@ -35,8 +35,10 @@ def test_realmini_passes_as_a_subset_and_reports_frames_and_depth(realmini, caps
     assert "OK: nothing missing or unreadable" in out
     report = check_dataset(realmini, subset=True)
     (val,) = report.splits
-    frames = sum(len((realmini / "val" / s / "intrinsics.txt").read_text().split("\n")) - 1 for s in
-                 ("s00000", "s00001", "s00002", "s00003"))
+    frames = sum(
+        len((realmini / "val" / s / "intrinsics.txt").read_text().split("\n")) - 1
+        for s in ("s00000", "s00001", "s00002", "s00003")
+    )
     assert (val.split, val.scenes, val.frames, val.images_checked) == ("val", 4, frames, frames)
     assert val.depth == {"sensor": len(list((realmini / "val").glob("s*/seq*/*.sensor.png")))}
     # the same in parallel worker processes, and with every image and depth map decoded
@@ -109,8 +111,14 @@ def test_empty_truncated_and_8bit_files_are_named(copy):
 
 
 def test_train_split_needs_overlaps(tmp_path, capsys):
-    generate(tmp_path, "train", n_scenes=1, seed=0, progress=False,
-             options=SynthOptions(width=120, height=160, texture_size=128, train_frames=3, write_mono=False))
+    generate(
+        tmp_path,
+        "train",
+        n_scenes=1,
+        seed=0,
+        progress=False,
+        options=SynthOptions(width=120, height=160, texture_size=128, train_frames=3, write_mono=False),
+    )
     code, out = _check(capsys, str(tmp_path), "--subset")
     assert code == 0, out
     assert "sensor 6" in out
@@ -121,8 +129,15 @@ def test_train_split_needs_overlaps(tmp_path, capsys):
 
 
 def test_test_split_with_hidden_poses_passes_and_the_reference_is_required(tmp_path):
-    generate(tmp_path, "test", n_scenes=1, n_queries=5, seed=0, progress=False,
-             options=SynthOptions(width=120, height=160, texture_size=128, write_mono=False))
+    generate(
+        tmp_path,
+        "test",
+        n_scenes=1,
+        n_queries=5,
+        seed=0,
+        progress=False,
+        options=SynthOptions(width=120, height=160, texture_size=128, write_mono=False),
+    )
     scene = tmp_path / "test" / "s00000"
     assert set((scene / "poses.txt").read_text().split()[1:8]) == {"0"}  # all-zero lines: hidden ground truth
     assert check_dataset(tmp_path, subset=True).ok

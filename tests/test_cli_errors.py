@@ -9,10 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from mapfree.cli import main
-
 from cli_support import one_line as _one_line
-
+from mapfree.cli import main
 
 SYNTH_ARGS = ["--size", "240x320", "--no-mono", "--quiet"]
 
@@ -27,10 +25,15 @@ def test_build_on_an_empty_folder_is_an_error(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("argv", [["synth", "ROOT", "--size", "big"],
-                                  ["synth", "ROOT", "--split", "val", "--private-gt", "G"],
-                                  ["build", "SCANS", "--out", "OUT", "--matcher", "nope"],
-                                  ["build", "SCANS", "--out", "OUT", "--workers", "0"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["synth", "ROOT", "--size", "big"],
+        ["synth", "ROOT", "--split", "val", "--private-gt", "G"],
+        ["build", "SCANS", "--out", "OUT", "--matcher", "nope"],
+        ["build", "SCANS", "--out", "OUT", "--workers", "0"],
+    ],
+)
 def test_synth_and_build_flag_checks_say_error_like_every_command(argv, tmp_path, capsys):
     from mapfree.cli import main
 
@@ -40,19 +43,28 @@ def test_synth_and_build_flag_checks_say_error_like_every_command(argv, tmp_path
     assert err.startswith(f"mapfree {argv[0]}: error: ") and err.count("\n") == 1
 
 
-@pytest.mark.parametrize("argv", [["nosuch"], ["R6D_t_cpu_synth", "--set", "model.rotation=euler"],
-                                  ["R6D_t_cpu_synth", "--resume", "nosuch.ckpt"]])
+@pytest.mark.parametrize(
+    "argv",
+    [["nosuch"], ["R6D_t_cpu_synth", "--set", "model.rotation=euler"], ["R6D_t_cpu_synth", "--resume", "nosuch.ckpt"]],
+)
 def test_train_argument_errors_come_before_lightning_is_imported(argv, tmp_path):
     """A typo in `mapfree train`'s command line once waited for Lightning (seconds) and its banner lines."""
     import os
     import subprocess
     import sys
 
-    probe = ("import sys\nfrom mapfree.cli import main\ncode = main(sys.argv[1:])\n"
-             "print('LOADED' if any(m in sys.modules for m in ('pytorch_lightning', 'lightning')) else 'CLEAN', code)")
+    probe = (
+        "import sys\nfrom mapfree.cli import main\ncode = main(sys.argv[1:])\n"
+        "print('LOADED' if any(m in sys.modules for m in ('pytorch_lightning', 'lightning')) else 'CLEAN', code)"
+    )
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
-    p = subprocess.run([sys.executable, "-c", probe, "train", *argv, "--out", str(tmp_path / "o")],
-                       capture_output=True, text=True, env=env, timeout=120)
+    p = subprocess.run(
+        [sys.executable, "-c", probe, "train", *argv, "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert p.stdout.split() == ["CLEAN", "1"], (p.stdout, p.stderr)
     assert p.stderr.startswith("mapfree train: error:") and "Traceback" not in p.stderr
 
@@ -68,12 +80,33 @@ def test_train_prints_no_lightning_banner(tmp_path):
     from mapfree.cli import main
 
     for split in ("train", "val"):
-        assert main(["synth", str(tmp_path / "data"), "--split", split, "--scenes", "1", "--queries", "10",
-                     *SYNTH_ARGS]) == 0
+        assert (
+            main(["synth", str(tmp_path / "data"), "--split", split, "--scenes", "1", "--queries", "10", *SYNTH_ARGS])
+            == 0
+        )
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
-    p = subprocess.run([sys.executable, "-m", "mapfree", "train", "R6D_t_cpu_synth", "--data", str(tmp_path / "data"),
-                        "--out", str(tmp_path / "run"), "--max-steps", "1", "--set", "data.batch_size=2",
-                        "--no-progress"], capture_output=True, text=True, env=env, timeout=600)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapfree",
+            "train",
+            "R6D_t_cpu_synth",
+            "--data",
+            str(tmp_path / "data"),
+            "--out",
+            str(tmp_path / "run"),
+            "--max-steps",
+            "1",
+            "--set",
+            "data.batch_size=2",
+            "--no-progress",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
     assert p.returncode == 0, p.stderr
     for noise in ("GPU available", "TPU available", "Tip:", "LeafSpec", "in eval mode"):
         assert noise not in p.stderr, p.stderr
@@ -105,8 +138,9 @@ def test_negative_counts_are_refused(synth, tmp_path, capfd):
 
     sub = tmp_path / "e.zip"
     write_submission(sub, {})
-    assert main(["evaluate", str(sub), "--dataset", str(synth), "--html", str(tmp_path / "r.html"),
-                 "--worst", "-1"]) == 1
+    assert (
+        main(["evaluate", str(sub), "--dataset", str(synth), "--html", str(tmp_path / "r.html"), "--worst", "-1"]) == 1
+    )
     assert _one_line(capfd)[1] == "mapfree evaluate: error: --worst must be >= 0, got -1"
     assert main(["check", str(synth), "--subset", "--max-problems", "-1"]) == 1
     assert _one_line(capfd)[1] == "mapfree check: error: --max-problems must be >= 0, got -1"
@@ -120,13 +154,29 @@ def test_small_wording_items(synth, tmp_path, capfd):
     sub = tmp_path / "e.zip"
     write_submission(sub, {})
     assert main(["check", str(sub)]) == 1
-    assert _one_line(capfd)[1] == (f"mapfree check: error: {sub}: a ZIP file, not a dataset folder: unzip it and "
-                                   f"check the folder it makes")
+    assert _one_line(capfd)[1] == (
+        f"mapfree check: error: {sub}: a ZIP file, not a dataset folder: unzip it and check the folder it makes"
+    )
     assert main(["evaluate", str(sub), "--dataset", str(synth), "--gt-root", str(tmp_path / "nogt")]) == 1
-    assert _one_line(capfd)[1] == (f"mapfree evaluate: error: ground-truth root {tmp_path / 'nogt'} (--gt-root) "
-                                   f"does not exist")
-    assert main(["run", str(synth), "--method", "sift_pnp_sensor", "-o", str(tmp_path / "one.zip"), "--scenes",
-                 "s00001", "--no-progress"]) == 0
+    assert _one_line(capfd)[1] == (
+        f"mapfree evaluate: error: ground-truth root {tmp_path / 'nogt'} (--gt-root) does not exist"
+    )
+    assert (
+        main(
+            [
+                "run",
+                str(synth),
+                "--method",
+                "sift_pnp_sensor",
+                "-o",
+                str(tmp_path / "one.zip"),
+                "--scenes",
+                "s00001",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "1 scene, " in capfd.readouterr().out
     assert oct((tmp_path / "one.zip").stat().st_mode & 0o777) == oct(0o666 & ~_umask())  # as every other output
 
@@ -167,6 +217,11 @@ def test_a_closed_output_pipe_is_not_an_error(tmp_path):
 
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
     # `true` has exited long before Python writes: every write meets a closed pipe
-    p = subprocess.run(["bash", "-c", f"{sys.executable} -m mapfree run --list-methods | true; "
-                                      "echo ${PIPESTATUS[0]}"], capture_output=True, text=True, env=env, timeout=120)
+    p = subprocess.run(
+        ["bash", "-c", f"{sys.executable} -m mapfree run --list-methods | true; echo ${{PIPESTATUS[0]}}"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert p.stdout.strip() == "141" and p.stderr == "", p.stderr

@@ -16,8 +16,22 @@ def run_with_viz(synth, tmp_path_factory):
     from mapfree.cli import main
 
     d = tmp_path_factory.mktemp("runviz")
-    assert main(["run", str(synth), "--method", "sift_pnp_sensor", "-o", str(d / "sub.zip"), "--no-progress",
-                 "--viz", str(d / "viz")]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(synth),
+                "--method",
+                "sift_pnp_sensor",
+                "-o",
+                str(d / "sub.zip"),
+                "--no-progress",
+                "--viz",
+                str(d / "viz"),
+            ]
+        )
+        == 0
+    )
     return d
 
 
@@ -70,8 +84,10 @@ def test_evaluate_exit_codes_plots_file_and_track_mixup(synth, run_with_viz, tmp
     assert "no scored frame has an estimate" in capsys.readouterr().err
     # A multi-frame submission scored on the single-frame track: said, not silent zeros.
     multi = tmp_path / "multi.zip"
-    assert main(["run", str(synth), "--track", "multi", "--method", "sift_pnp_sensor", "-o", str(multi),
-                 "--no-progress"]) == 0
+    assert (
+        main(["run", str(synth), "--track", "multi", "--method", "sift_pnp_sensor", "-o", str(multi), "--no-progress"])
+        == 0
+    )
     capsys.readouterr()
     assert main(["evaluate", str(multi), "--dataset", str(synth)]) == 3
     assert "score it with --track multi" in capsys.readouterr().err
@@ -82,8 +98,10 @@ def test_evaluate_exit_codes_plots_file_and_track_mixup(synth, run_with_viz, tmp
 def test_realmini_report_fits_in_a_mail(realmini, tmp_path, capfd):
     """`evaluate --html` was 14.1 MB on realmini-dev (full-size base64 PNGs); `run --viz` 1.3 MB a frame."""
     sub, viz, page = tmp_path / "sub.zip", tmp_path / "viz", tmp_path / "report.html"
-    assert main(["run", str(realmini), "--method", "sift_pnp_sensor", "-o", str(sub), "--viz", str(viz),
-                 "--no-progress"]) == 0
+    assert (
+        main(["run", str(realmini), "--method", "sift_pnp_sensor", "-o", str(sub), "--viz", str(viz), "--no-progress"])
+        == 0
+    )
     figs = sorted(viz.rglob("*.jpg"))
     assert len(figs) == 20 and not list(viz.rglob("*.png"))
     import cv2
@@ -105,8 +123,11 @@ def test_the_reports_page_example_runs_as_printed(tmp_path):
 
     repo = Path(__file__).resolve().parents[1]
     block = re.findall(r"```bash\n(.*?)```", (repo / "docs" / "reports.md").read_text(), re.S)[-1]
-    env = {**os.environ, "PYTHONPATH": str(repo / "src"), "PATH": f"{Path(sys.executable).parent}{os.pathsep}"
-           f"{os.environ['PATH']}"}
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(repo / "src"),
+        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+    }
     p = subprocess.run(["bash", "-c", block], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     lines = p.stdout.splitlines()
     assert [ln for ln in lines if ln in ("0", "3")] == ["0", "3"], p.stdout + p.stderr

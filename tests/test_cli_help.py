@@ -24,4 +24,6 @@ def test_help_has_examples_and_defaults(name):
     for a in sp._actions:
         if not a.option_strings or a.default in (None, False, "", [], argparse.SUPPRESS) or a.help == argparse.SUPPRESS:
             continue
-        assert "default" in (a.help or ""), f"{name} {a.option_strings[-1]}: help does not say its default {a.default!r}"
+        assert "default" in (a.help or ""), (
+            f"{name} {a.option_strings[-1]}: help does not say its default {a.default!r}"
+        )

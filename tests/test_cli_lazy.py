@@ -24,8 +24,8 @@ try:
     code = main(sys.argv[1:])
 except SystemExit as e:  # --help exits through argparse
     code = e.code
-print(json.dumps({"code": code, "loaded": sorted(m for m in %r if m in sys.modules)}), file=sys.stderr)
-""" % (HEAVY,)
+print(json.dumps({"code": code, "loaded": sorted(m for m in HEAVY if m in sys.modules)}), file=sys.stderr)
+""".replace("HEAVY", repr(HEAVY))
 
 
 def _probe(*argv: str) -> tuple[dict, str]:

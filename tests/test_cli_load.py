@@ -15,8 +15,10 @@ from mapfree.cli import CommandLoadError, build_parser, main
 def broken_command(tmp_path, monkeypatch) -> Path:
     """A command module ``broken`` beside the real ones whose second line imports a module that does not exist."""
     module = tmp_path / "broken.py"
-    module.write_text("from __future__ import annotations\nfrom mapfree.no_such_module import thing\n\n\n"
-                      "def register(subparsers):\n    subparsers.add_parser('broken')\n")
+    module.write_text(
+        "from __future__ import annotations\nfrom mapfree.no_such_module import thing\n\n\n"
+        "def register(subparsers):\n    subparsers.add_parser('broken')\n"
+    )
     monkeypatch.setattr(cli, "__path__", [*cli.__path__, str(tmp_path)])
     monkeypatch.setattr(cli, "COMMANDS", [*cli.COMMANDS, "broken"])
     monkeypatch.delenv("MAPFREE_DEBUG", raising=False)
@@ -27,8 +29,10 @@ def test_a_command_that_cannot_be_imported_is_one_line_with_its_cause(broken_com
     assert main(["broken"]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1, err
-    assert err.startswith("mapfree broken: error: the command cannot be loaded: ModuleNotFoundError: "
-                          "No module named 'mapfree.no_such_module'")
+    assert err.startswith(
+        "mapfree broken: error: the command cannot be loaded: ModuleNotFoundError: "
+        "No module named 'mapfree.no_such_module'"
+    )
     assert f"({broken_command}, line 2)" in err and "MAPFREE_DEBUG=1" in err and "Traceback" not in err
 
 

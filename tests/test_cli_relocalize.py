@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import json
 
-from mapfree.cli import main
-from mapfree.data import read_image
-
 from cli_support import one_line as _one_line
 from cli_support import query_pair as _pair
+from mapfree.cli import main
+from mapfree.data import read_image
 
 
 def test_relocalize_bad_inputs_are_one_line_and_no_estimate_is_exit_3(synth, tmp_path, capfd):
@@ -60,8 +59,7 @@ def test_relocalize_default_method_falls_back_to_pnp_for_a_query_without_depth(s
     shutil.copy(q.image_path, bare)  # no photo.sensor.png beside it
     K = q.intrinsics
     k = f"{K.fx},{K.fy},{K.cx},{K.cy}"
-    rc = main(["relocalize", str(scene.reference.image_path), str(bare), "--K-query", k,
-               "--K-ref", k])
+    rc = main(["relocalize", str(scene.reference.image_path), str(bare), "--K-query", k, "--K-ref", k])
     res = capsys.readouterr()
     assert rc == 0, res.err
     out = json.loads(res.out)

@@ -7,10 +7,9 @@ import json
 
 import pytest
 
+from cli_support import one_line as _one_line
 from mapfree.cli import main
 from mapfree.relocalize import run_split
-
-from cli_support import one_line as _one_line
 
 
 def test_empty_image_in_a_dataset_fails_with_its_name(synth, tmp_path):
@@ -66,8 +65,22 @@ def test_resume_recomputes_a_scene_whose_data_changed(synth, tmp_path, capsys):
     img = root / "val" / "s00000" / "seq1" / "frame_00003.jpg"
     st = img.stat()
     os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
-    assert main(["run", str(root), "--method", "sift_pnp_sensor", "-o", str(out), "--all-frames", "--resume",
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(root),
+                "--method",
+                "sift_pnp_sensor",
+                "-o",
+                str(out),
+                "--all-frames",
+                "--resume",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     res = capsys.readouterr()
     assert "the data of s00000 changed" in res.err and "10 computed, 5 from the journal" in res.out
 
@@ -101,8 +114,20 @@ def test_run_exit_codes_summary_table_and_viz(synth, tmp_path, capsys):
     from mapfree.cli import main
 
     out, viz = tmp_path / "sub.zip", tmp_path / "viz"
-    rc = main(["run", str(synth), "--method", "sift_pnp_sensor", "-o", str(out), "--no-progress", "--evaluate",
-               "--viz", str(viz)])
+    rc = main(
+        [
+            "run",
+            str(synth),
+            "--method",
+            "sift_pnp_sensor",
+            "-o",
+            str(out),
+            "--no-progress",
+            "--evaluate",
+            "--viz",
+            str(viz),
+        ]
+    )
     res = capsys.readouterr()
     assert rc == 0, res.err
     assert res.out.startswith(f"wrote {out}: ") and "AUC @ VCRE < 90px" in res.out  # evaluate's table, not JSON
@@ -113,8 +138,23 @@ def test_run_exit_codes_summary_table_and_viz(synth, tmp_path, capsys):
     img = cv2.imread(str(viz / "s00000" / "seq1_frame_00005.jpg"))
     assert img.shape[:2] == (2 * 320 + 6, 2 * 240)  # matches above the AR check, reference | query in each
     # --json: the summary and the scores as JSON.
-    assert main(["run", str(synth), "--method", "sift_pnp_sensor", "-o", str(out), "--no-progress", "--resume",
-                 "--evaluate", "--json"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(synth),
+                "--method",
+                "sift_pnp_sensor",
+                "-o",
+                str(out),
+                "--no-progress",
+                "--resume",
+                "--evaluate",
+                "--json",
+            ]
+        )
+        == 0
+    )
     data = json.loads(capsys.readouterr().out)
     assert data["skipped"] == 4 and "AUC @ VCRE < 90px" in data["metrics"]
 
@@ -163,8 +203,22 @@ def test_an_unknown_confidence_is_refused_with_the_known_ones(synth, tmp_path, c
 
     out = tmp_path / "s.zip"
     for name in ("confidence_scor", "bogus"):
-        assert main(["run", str(synth), "--method", "sift_pnp_sensor", "-o", str(out), "--confidence", name,
-                     "--no-progress"]) == 1
+        assert (
+            main(
+                [
+                    "run",
+                    str(synth),
+                    "--method",
+                    "sift_pnp_sensor",
+                    "-o",
+                    str(out),
+                    "--confidence",
+                    name,
+                    "--no-progress",
+                ]
+            )
+            == 1
+        )
         line = _one_line(capfd)[1]
         assert f"unknown --confidence {name!r}" in line and "known: confidence_inliers, confidence_score" in line
     assert not out.exists() and not (tmp_path / "s.journal.jsonl").exists()
@@ -177,10 +231,23 @@ def test_an_unknown_confidence_is_refused_with_the_known_ones(synth, tmp_path, c
 def test_an_empty_split_is_an_error_not_an_empty_submission(tmp_path, capfd):
     """An empty split ran, wrote an empty submission and answered exit 3 pointing at an empty failures file."""
     (tmp_path / "data" / "val").mkdir(parents=True)
-    assert main(["run", str(tmp_path / "data"), "--method", "sift_pnp_sensor", "-o", str(tmp_path / "s.zip"),
-                 "--no-progress"]) == 1
-    assert _one_line(capfd)[1] == (f"mapfree run: error: the val split holds no scenes: {tmp_path / 'data' / 'val'} "
-                                   f"has no sNNNNN folder")
+    assert (
+        main(
+            [
+                "run",
+                str(tmp_path / "data"),
+                "--method",
+                "sift_pnp_sensor",
+                "-o",
+                str(tmp_path / "s.zip"),
+                "--no-progress",
+            ]
+        )
+        == 1
+    )
+    assert _one_line(capfd)[1] == (
+        f"mapfree run: error: the val split holds no scenes: {tmp_path / 'data' / 'val'} has no sNNNNN folder"
+    )
     assert not (tmp_path / "s.zip").exists() and not (tmp_path / "s.journal.jsonl").exists()
 
 

@@ -73,7 +73,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-DRIVER = textwrap.dedent('''
+DRIVER = textwrap.dedent("""
     import json, subprocess, sys, traceback
     blocks = json.load(open(sys.argv[1]))
     ns = {"__name__": "__main__"}
@@ -89,7 +89,7 @@ DRIVER = textwrap.dedent('''
             except BaseException:
                 traceback.print_exc()
                 sys.exit(f"FAILED {b['where']}")
-''')
+""")
 
 
 def run_page(blocks_: list[Block], page: str, cwd: Path, timeout: float, replace: dict[str, str] | None = None) -> str:
@@ -108,8 +108,15 @@ def run_page(blocks_: list[Block], page: str, cwd: Path, timeout: float, replace
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"  # mapfree, python of this venv
     env["PYTHONPATH"] = f"{ROOT / 'src'}{os.pathsep}{env.get('PYTHONPATH', '')}".rstrip(os.pathsep)
     env.setdefault("MPLBACKEND", "Agg")
-    proc = subprocess.Popen([sys.executable, ".driver.py", ".blocks.json"], cwd=cwd, env=env, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, ".driver.py", ".blocks.json"],
+        cwd=cwd,
+        env=env,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     try:
         out, _ = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -129,11 +136,17 @@ def run_page(blocks_: list[Block], page: str, cwd: Path, timeout: float, replace
 
 
 def test_block_parser_reads_fences_languages_lines_and_skip_markers():
-    text = ("# t\n\n```bash\necho a\n```\n\n<!-- docs-test: skip (installs packages) -->\n```bash\npip x\n```\n"
-            "- item:\n  ```python\n  print(1)\n  ```\n```text\nnot code\n```\n")
+    text = (
+        "# t\n\n```bash\necho a\n```\n\n<!-- docs-test: skip (installs packages) -->\n```bash\npip x\n```\n"
+        "- item:\n  ```python\n  print(1)\n  ```\n```text\nnot code\n```\n"
+    )
     got = blocks(text)
     assert [(b.lang, b.line, b.skip) for b in got] == [
-        ("bash", 3, None), ("bash", 8, "installs packages"), ("python", 12, None), ("text", 15, None)]
+        ("bash", 3, None),
+        ("bash", 8, "installs packages"),
+        ("python", 12, None),
+        ("text", 15, None),
+    ]
     assert got[2].code == "print(1)\n"
 
 
@@ -163,8 +176,14 @@ def demo_dir(tmp_path_factory) -> Path:
     """A folder holding ``demo-out/`` as ``mapfree demo`` writes it (one scene, enough queries for the pages)."""
     d = tmp_path_factory.mktemp("demo")
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
-    r = subprocess.run([sys.executable, "-m", "mapfree", "demo", "--out", "demo-out", "--scenes", "1",
-                        "--queries", "25"], cwd=d, env=env, capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [sys.executable, "-m", "mapfree", "demo", "--out", "demo-out", "--scenes", "1", "--queries", "25"],
+        cwd=d,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert (d / "demo-out" / "submission.zip").is_file()
     return d
@@ -175,7 +194,7 @@ def test_getting_started_blocks_run_after_the_demo(demo_dir: Path):
     page = DOCS / "getting-started.md"
     marked = [b for b in blocks(page.read_text()) if b.skip]
     assert all(b.skip.strip() for b in marked)  # every skipped block says why
-    out = run_page(runnable(page), "docs/getting-started.md", demo_dir, timeout=300)
+    run_page(runnable(page), "docs/getting-started.md", demo_dir, timeout=300)
     assert (demo_dir / "pair.png").stat().st_size > 10_000  # the --viz figure
 
 

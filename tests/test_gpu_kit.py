@@ -15,7 +15,9 @@ from mapfree.matching.lightglue import SHIPPED, _load_strict, shipped_file
 from mapfree.matching.weights import WEIGHTS_ENV, load_checkpoint
 
 # Loaded from its file: putting bench/ on sys.path would let its modules shadow others for the whole session.
-_spec = importlib.util.spec_from_file_location("bench_gpu_kit", Path(__file__).resolve().parents[1] / "bench/gpu_kit.py")
+_spec = importlib.util.spec_from_file_location(
+    "bench_gpu_kit", Path(__file__).resolve().parents[1] / "bench/gpu_kit.py"
+)
 gpu_kit = sys.modules["bench_gpu_kit"] = importlib.util.module_from_spec(_spec)  # dataclasses look it up there
 _spec.loader.exec_module(gpu_kit)
 
@@ -106,8 +108,9 @@ def _toy_wheel(d: Path) -> Path:
         z.writestr("toy/__init__.py", "")
         z.writestr("toy/weights/w.pt", buf.read_bytes())
         z.writestr("toy-1.0.dist-info/METADATA", "Metadata-Version: 2.1\nName: toy\nVersion: 1.0\n")
-        z.writestr("toy-1.0.dist-info/WHEEL", "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\n"
-                                              "Tag: py3-none-any\n")
+        z.writestr(
+            "toy-1.0.dist-info/WHEEL", "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\nTag: py3-none-any\n"
+        )
         z.writestr("toy-1.0.dist-info/RECORD", "")
     return path
 
@@ -125,8 +128,23 @@ def test_repacked_wheel_holds_fp16_weights_and_installs(tmp_path):
                 continue
             assert digest == gpu_kit._record_hash(z.read(name)) and int(size) == len(z.read(name))
     site = tmp_path / "site"
-    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
-                    "--target", str(site), str(out)], check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "-q",
+            "--no-index",
+            "--no-deps",
+            "--no-compile",
+            "--target",
+            str(site),
+            str(out),
+        ],
+        check=True,
+        capture_output=True,
+    )
     sd = torch.load(site / "toy/weights/w.pt", weights_only=True)
     assert sd["w"].dtype == torch.float16 and sd["n"].dtype == torch.int64
     torch.testing.assert_close(sd["w"].float(), torch.linspace(-3, 3, 1000), rtol=1e-3, atol=1e-3)

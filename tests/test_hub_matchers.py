@@ -30,8 +30,13 @@ def tiny_superglue(seed: int):
 
     torch.manual_seed(seed)
     sp = {"encoder_hidden_sizes": [8, 8, 16, 16], "decoder_hidden_size": 32, "descriptor_decoder_dim": 32}
-    cfg = SuperGlueConfig(keypoint_detector_config=sp, hidden_size=32, keypoint_encoder_sizes=[8, 16],
-                          gnn_layers_types=["self", "cross"], num_attention_heads=2)
+    cfg = SuperGlueConfig(
+        keypoint_detector_config=sp,
+        hidden_size=32,
+        keypoint_encoder_sizes=[8, 16],
+        gnn_layers_types=["self", "cross"],
+        num_attention_heads=2,
+    )
     return SuperGlueForKeypointMatching(cfg).eval()
 
 
@@ -40,9 +45,15 @@ def tiny_efficientloftr(seed: int):
 
     torch.manual_seed(seed)
     # 8 heads: the rotary embedding needs hidden_size / heads = hidden_size / 8
-    cfg = EfficientLoFTRConfig(stage_num_blocks=[1, 1, 1, 1], out_features=[16, 16, 32, 32], hidden_size=32,
-                               num_attention_layers=1, num_attention_heads=8, fine_matching_slice_dim=4,
-                               initializer_range=0.5)
+    cfg = EfficientLoFTRConfig(
+        stage_num_blocks=[1, 1, 1, 1],
+        out_features=[16, 16, 32, 32],
+        hidden_size=32,
+        num_attention_layers=1,
+        num_attention_heads=8,
+        fine_matching_slice_dim=4,
+        initializer_range=0.5,
+    )
     return EfficientLoFTRForKeypointMatching(cfg).eval()
 
 
@@ -65,8 +76,10 @@ def pair(realmini):
 
 def in_bounds(m: Matches, im0: np.ndarray, im1: np.ndarray) -> bool:
     (h0, w0), (h1, w1) = im0.shape[:2], im1.shape[:2]
-    return bool(np.all((m.kpts0 >= -0.5) & (m.kpts0 <= [w0 - 0.5, h0 - 0.5]))
-                and np.all((m.kpts1 >= -0.5) & (m.kpts1 <= [w1 - 0.5, h1 - 0.5])))
+    return bool(
+        np.all((m.kpts0 >= -0.5) & (m.kpts0 <= [w0 - 0.5, h0 - 0.5]))
+        and np.all((m.kpts1 >= -0.5) & (m.kpts1 <= [w1 - 0.5, h1 - 0.5]))
+    )
 
 
 # ---------------------------------------------------------------------- preprocessing
@@ -173,15 +186,15 @@ def test_refine_moves_both_points_to_the_best_pixel_pair():
     w, c, sl = 8, 12, 4
     fine0 = torch.zeros(1, w * w, c)
     fine1 = torch.zeros(1, (w + 2) ** 2, c)
-    l, (r_row, r_col) = 9, (2, 5)  # image 0: window pixel (1, 1); image 1: (2, 5) of the inner 8x8
-    fine0[0, l, 0] = 10.0
+    left, (r_row, r_col) = 9, (2, 5)  # image 0: window pixel (1, 1); image 1: (2, 5) of the inner 8x8
+    fine0[0, left, 0] = 10.0
     fine1[0, (r_row + 1) * (w + 2) + (r_col + 1), 0] = 10.0
     kp = torch.tensor([[80.0, 40.0]])
     k0, k1 = refine(fine0, fine1, kp, kp, sl, 10.0)
     torch.testing.assert_close(k0, kp + torch.tensor([[1 - 3.5, 1 - 3.5]]))
     torch.testing.assert_close(k1, kp + torch.tensor([[5 - 3.5, 2 - 3.5]]))  # stage 2 flat: no shift
     # stage 2: image 1's right-hand neighbour in the 3x3 block scores high -> a shift towards +x
-    fine0[0, l, -1] = 5.0
+    fine0[0, left, -1] = 5.0
     fine1[0, r_row * (w + 2) + r_col + 1, -1] = 20.0  # block (row r-1+1, col r-1+2) = the centre row's right
     _, k1b = refine(fine0, fine1, kp, kp, sl, 10.0)
     dx, dy = (k1b - k1)[0].tolist()
@@ -217,8 +230,7 @@ def test_efficientloftr_coarse_matches_are_the_models(weights_dir, pair):
     hc, wc = coarse.shape[-2:]
     flat = coarse[0].flatten(2).transpose(1, 2) / coarse.shape[2] ** 0.5
     sim = flat[0] @ flat[1].t() / cfg.coarse_matching_temperature
-    i, j, _ = mutual_pairs(sim.softmax(0) * sim.softmax(1), (hc, wc), (hc, wc), 0.0,
-                           cfg.coarse_matching_border_removal)
+    i, j, _ = mutual_pairs(sim.softmax(0) * sim.softmax(1), (hc, wc), (hc, wc), 0.0, cfg.coarse_matching_border_removal)
     theirs = out.matches[0, 1]  # for each image-0 cell, its image-1 cell or -1
     mine = torch.full_like(theirs, -1)
     mine[i] = j
@@ -249,11 +261,20 @@ def test_relocalize_command_with_a_superglue_preset(weights_dir, tmp_path, realm
     from mapfree.cli import main
 
     cfg = tmp_path / "sg.yaml"
-    cfg.write_text(f"extends: superglue_emat_sensor\nmatcher_opts:\n  weights: {weights_dir / 'superglue_outdoor'}\n"
-                   "  device: cpu\n")
+    cfg.write_text(
+        f"extends: superglue_emat_sensor\nmatcher_opts:\n  weights: {weights_dir / 'superglue_outdoor'}\n"
+        "  device: cpu\n"
+    )
     scene = realmini / "val" / "s00000"
-    rc = main(["relocalize", str(scene / "seq0" / "frame_00000.jpg"), str(scene / "seq1" / "frame_00010.jpg"),
-               "--method", str(cfg)])
+    rc = main(
+        [
+            "relocalize",
+            str(scene / "seq0" / "frame_00000.jpg"),
+            str(scene / "seq1" / "frame_00010.jpg"),
+            "--method",
+            str(cfg),
+        ]
+    )
     out = json.loads(capsys.readouterr().out)
     assert out["method"] == "sg" and rc == (0 if out["ok"] else 3)  # 3: ran, no estimate
     assert out["ok"] or out["reason"]  # random weights at the paper's 0.2 threshold: usually no matches
@@ -270,9 +291,14 @@ def offline(monkeypatch, tmp_path):
     return tmp_path
 
 
-@pytest.mark.parametrize("name, repo", [("superglue", "magic-leap-community/superglue_outdoor"),
-                                        ("superglue-indoor", "magic-leap-community/superglue_indoor"),
-                                        ("efficientloftr", "zju-community/efficientloftr")])
+@pytest.mark.parametrize(
+    "name, repo",
+    [
+        ("superglue", "magic-leap-community/superglue_outdoor"),
+        ("superglue-indoor", "magic-leap-community/superglue_indoor"),
+        ("efficientloftr", "zju-community/efficientloftr"),
+    ],
+)
 def test_missing_weights_offline_name_the_model_and_where_to_put_it(offline, name, repo):
     with pytest.raises(MissingWeightsError) as e:
         M.create(name, device="cpu")
@@ -305,8 +331,12 @@ def test_batched_path_equals_one_pair_at_a_time(name, folder, weights_dir, realm
     from mapfree.relocalize.batched import BatchOptions
 
     scene = Dataset(realmini).scene("val", "s00000")
-    loc = Relocalizer(name, "files:sensor", "pnp", matcher_opts={"device": "cpu", "match_threshold": 0.0,
-                                                                 "weights": str(weights_dir / folder)})
+    loc = Relocalizer(
+        name,
+        "files:sensor",
+        "pnp",
+        matcher_opts={"device": "cpu", "match_threshold": 0.0, "weights": str(weights_dir / folder)},
+    )
     anchor = loc.prepare(scene.reference)
     queries = scene.queries[3:5]
     one = [loc.localize(q, anchor) for q in queries]

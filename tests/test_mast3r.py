@@ -15,8 +15,8 @@ from mapfree.mast3r.checkpoint import find_checkpoint, load_model, model_from_st
 from mapfree.mast3r.config import UnsupportedCheckpointError, config_from_kwargs, parse_constructor
 from mapfree.mast3r.preprocess import prepare_image, prepare_path
 from mapfree.mast3r.reciprocal import reciprocal_matches
-from mapfree_dev.standins.mast3r import iter_synthetic_state_dict, save_hub, save_pth, synthetic_state_dict
 from mapfree.matching.weights import MissingWeightsError
+from mapfree_dev.standins.mast3r import iter_synthetic_state_dict, save_hub, save_pth, synthetic_state_dict
 
 INPUTS = ("landscape_96x128", "portrait_128x96")
 
@@ -74,8 +74,14 @@ def _compare(net: torch.nn.Module, arrays: dict[str, np.ndarray], model: str, in
 
 
 @pytest.mark.parametrize("model", ["mast3r-tiny", "dust3r-tiny"])
-@pytest.mark.parametrize("form", ["pth", pytest.param("hub", marks=pytest.mark.slow),  # the forms: in `make test`
-                                  pytest.param("hub-bin", marks=pytest.mark.slow)])
+@pytest.mark.parametrize(
+    "form",
+    [
+        "pth",
+        pytest.param("hub", marks=pytest.mark.slow),  # the forms: in `make test`
+        pytest.param("hub-bin", marks=pytest.mark.slow),
+    ],
+)
 def test_tiny_models_reproduce_public_outputs(fixture, tiny, model, form, tmp_path):
     spec, arrays = fixture
     m = spec["models"][model]
@@ -97,7 +103,7 @@ def test_checkpoint_without_second_decoder_gets_a_copy(tiny, tmp_path):
     net = load_model(save_pth(tmp_path / "m.pth", expr, sd))
     for k, v in net.state_dict().items():
         if k.startswith("dec_blocks2."):
-            assert torch.equal(v, sd["dec_blocks." + k[len("dec_blocks2."):]])
+            assert torch.equal(v, sd["dec_blocks." + k[len("dec_blocks2.") :]])
 
 
 @pytest.mark.slow
@@ -130,7 +136,7 @@ def test_preprocessing_matches_public_loader_on_real_photos(fixture, realmini):
         assert t.mean() == pytest.approx(want["mean"], abs=1e-9)
         assert t.std() == pytest.approx(want["std"], abs=1e-9)
         np.testing.assert_array_equal(t[:, :3, :3], np.array(want["corner_3x3_rgb"]))
-        np.testing.assert_array_equal(t[:, h // 2:h // 2 + 3, w // 2:w // 2 + 3], np.array(want["center_3x3_rgb"]))
+        np.testing.assert_array_equal(t[:, h // 2 : h // 2 + 3, w // 2 : w // 2 + 3], np.array(want["center_3x3_rgb"]))
     for wh, hw in info["sizes_wh_to_true_shape_hw"].items():
         w, h = map(int, wh.split("x"))
         assert list(prepare_image(PIL.Image.new("RGB", (w, h))).true_shape) == hw, wh
@@ -143,15 +149,23 @@ def test_network_pixels_map_back_to_original_pixels():
     np.testing.assert_allclose(corners, [[-0.5, 2 * 360 / 341 - 0.5], [539.5, 338 * 360 / 341 - 0.5]])
 
 
-@pytest.mark.parametrize("expr, bad", [
-    ("AsymmetricMASt3R(pos_embed='RoPE100', head_type='catmlp+dpt', output_mode='pts3d+desc24', dec_depth=12, "
-     "use_flash=True)", "use_flash"),
-    ("AsymmetricCroCo3DStereo(pos_embed='cosine', head_type='dpt', dec_depth=12)", "pos_embed"),
-    ("AsymmetricCroCo3DStereo(pos_embed='RoPE100', head_type='linear', dec_depth=12)", "head_type"),
-    ("AsymmetricCroCo3DStereo(pos_embed='RoPE100', head_type='dpt', dec_depth=12, depth_mode=__import__('os'))",
-     "depth_mode"),
-    ("CroCoNet(enc_depth=2)", "CroCoNet"),
-])
+@pytest.mark.parametrize(
+    "expr, bad",
+    [
+        (
+            "AsymmetricMASt3R(pos_embed='RoPE100', head_type='catmlp+dpt', output_mode='pts3d+desc24', dec_depth=12, "
+            "use_flash=True)",
+            "use_flash",
+        ),
+        ("AsymmetricCroCo3DStereo(pos_embed='cosine', head_type='dpt', dec_depth=12)", "pos_embed"),
+        ("AsymmetricCroCo3DStereo(pos_embed='RoPE100', head_type='linear', dec_depth=12)", "head_type"),
+        (
+            "AsymmetricCroCo3DStereo(pos_embed='RoPE100', head_type='dpt', dec_depth=12, depth_mode=__import__('os'))",
+            "depth_mode",
+        ),
+        ("CroCoNet(enc_depth=2)", "CroCoNet"),
+    ],
+)
 def test_unsupported_checkpoint_argument_is_a_clear_error(expr, bad, tmp_path):
     path = save_pth(tmp_path / "bad.pth", expr, {})
     with pytest.raises(UnsupportedCheckpointError) as e:

@@ -18,10 +18,10 @@ from mapfree.depth.mast3r import Mast3rDepth
 from mapfree.estimate import Estimate
 from mapfree.mast3r.checkpoint import PUBLISHED
 from mapfree.mast3r.config import config_from_kwargs, parse_constructor
-from mapfree_dev.standins.mast3r import save_pth, synthetic_state_dict
 from mapfree.matching import MissingWeightsError
 from mapfree.matching.mast3r import Mast3rMatcher
 from mapfree.relocalize import Relocalizer
+from mapfree_dev.standins.mast3r import save_pth, synthetic_state_dict
 
 QUERIES = ("seq1/frame_00010.jpg", "seq1/frame_00020.jpg")
 SMALL = 160  # network input long side for speed (the published models take 512)
@@ -61,8 +61,9 @@ def _check_estimate(est: Estimate, width: int, height: int) -> None:
         assert m.kpts0[:, 0].max() > 160 and np.all(m.scores > 0)  # confidences: exp(.) (+ 1 for points)
 
 
-@pytest.mark.parametrize("kind, solver, forwards", [("mast3r", "pnp", 1), ("mast3r", "essential", 2),
-                                                    ("dust3r", "pnp", 1)])
+@pytest.mark.parametrize(
+    "kind, solver, forwards", [("mast3r", "pnp", 1), ("mast3r", "essential", 2), ("dust3r", "pnp", 1)]
+)
 def test_relocalizer_one_forward_per_pair_reference_encoded_once(weights, scene, kind, solver, forwards, monkeypatch):
     matcher = Mast3rMatcher(kind=kind, long_side=SMALL)
     loc = Relocalizer(matcher, kind, solver)
@@ -101,8 +102,10 @@ def test_pair_depth_at_original_size_from_the_cached_pass(weights, scene):
 
 def test_presets_are_registered_with_what_they_need():
     names = methods.list_methods(depths=())
-    for net, file in (("mast3r", "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth"),
-                      ("dust3r", "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth")):
+    for net, file in (
+        ("mast3r", "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth"),
+        ("dust3r", "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth"),
+    ):
         for solver, name in (("pnp", "pnp"), ("emat", "essential"), ("procrustes", "procrustes")):
             m = methods.get(f"{net}_{solver}_{net}")
             assert f"{net}_{solver}_{net}" in names
@@ -129,18 +132,46 @@ def test_cli_relocalize_with_tiny_checkpoint(weights, scene, tmp_path, realmini)
     cfg.write_text(f"extends: mast3r_pnp_mast3r\nmatcher_opts:\n  long_side: {SMALL}\n")
     ref = realmini / "val" / "s00000" / "seq0" / "frame_00000.jpg"
     query = realmini / "val" / "s00000" / QUERIES[0]
-    r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(ref), str(query), "--method", str(cfg),
-                        "--intrinsics", str(realmini / "val" / "s00000" / "intrinsics.txt")],
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapfree",
+            "relocalize",
+            str(ref),
+            str(query),
+            "--method",
+            str(cfg),
+            "--intrinsics",
+            str(realmini / "val" / "s00000" / "intrinsics.txt"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert "Traceback" not in r.stderr, r.stderr
     out = json.loads(r.stdout)
     assert r.returncode == (0 if out["ok"] else 3)  # 3: ran, no estimate
     assert out["method"] == "mast3r-small" and out["scores"]["num_matches"] > 0
     assert out["ok"] or out["reason"]  # junk weights: a pose or a clean no-estimate, never a crash
-    r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(ref), str(query), "--method",
-                        "dust3r_emat_dust3r", "--intrinsics", str(realmini / "val" / "s00000" / "intrinsics.txt")],
-                       capture_output=True, text=True, timeout=300,
-                       env={**os.environ, "MAPFREE_WEIGHTS_DIR": str(tmp_path)})
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapfree",
+            "relocalize",
+            str(ref),
+            str(query),
+            "--method",
+            "dust3r_emat_dust3r",
+            "--intrinsics",
+            str(realmini / "val" / "s00000" / "intrinsics.txt"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "MAPFREE_WEIGHTS_DIR": str(tmp_path)},
+    )
     assert r.returncode == 1 and "Traceback" not in r.stderr
     assert "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth" in r.stderr
     assert "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt" in r.stderr
@@ -148,8 +179,9 @@ def test_cli_relocalize_with_tiny_checkpoint(weights, scene, tmp_path, realmini)
 
 @pytest.mark.slow
 def test_list_methods_says_what_the_presets_need():
-    r = subprocess.run([sys.executable, "-m", "mapfree", "run", "--list-methods"], capture_output=True, text=True,
-                       timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "mapfree", "run", "--list-methods"], capture_output=True, text=True, timeout=120
+    )
     assert r.returncode == 0, r.stderr
     lines = {ln.split()[0]: ln for ln in r.stdout.splitlines() if ln.strip()}
     assert "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth" in lines["mast3r_pnp_mast3r"]
@@ -162,8 +194,13 @@ def test_service_anchor_cache_keeps_the_encoded_reference(weights, scene, monkey
     from mapfree.mast3r.engine import shared_engine
     from mapfree.service.anchors.localizers import Localizers, Photo
 
-    monkeypatch.setitem(methods._REGISTRY, "mast3r-small-test", methods.Method(
-        name="mast3r-small-test", matcher="mast3r", matcher_opts={"long_side": SMALL}, depth="mast3r", solver="pnp"))
+    monkeypatch.setitem(
+        methods._REGISTRY,
+        "mast3r-small-test",
+        methods.Method(
+            name="mast3r-small-test", matcher="mast3r", matcher_opts={"long_side": SMALL}, depth="mast3r", solver="pnp"
+        ),
+    )
     engine = shared_engine("mast3r", long_side=SMALL)
     locs = Localizers()
     ref = Photo(scene.reference.image(), scene.reference.intrinsics)
@@ -182,9 +219,17 @@ def test_service_anchor_cache_keeps_the_encoded_reference(weights, scene, monkey
     assert len(calls) == 1  # the anchor was prepared once
     assert engine.encodes - enc0 == 1 + len(QUERIES) and engine.forwards - fwd0 == len(QUERIES)
     # Ess.Mat keeps its solver for a plain query photo: the network gives the query's depth (no PnP twin)
-    monkeypatch.setitem(methods._REGISTRY, "mast3r-small-emat", methods.Method(
-        name="mast3r-small-emat", matcher="mast3r", matcher_opts={"long_side": SMALL}, depth="mast3r",
-        solver="essential"))
+    monkeypatch.setitem(
+        methods._REGISTRY,
+        "mast3r-small-emat",
+        methods.Method(
+            name="mast3r-small-emat",
+            matcher="mast3r",
+            matcher_opts={"long_side": SMALL},
+            depth="mast3r",
+            solver="essential",
+        ),
+    )
     f = scene.frame(QUERIES[0])
     est = locs.localize_photos("a1", "mast3r-small-emat", "v1", photos, f.image(), f.intrinsics)
     assert est.extras["method"] == "mast3r-small-emat" and "no depth for the query" not in est.reason
@@ -222,8 +267,9 @@ def test_batched_pairs_equal_pairs_alone(weights, scene):
     images = [scene.frame(q).image() for q in QUERIES]
     alone = Mast3rMatcher(long_side=SMALL, device="cpu", weights=str(weights / f"{PUBLISHED['mast3r'].stem}.pth"))
     f0 = alone.extract(ref)
-    singles = [alone.engine.pair(f0.data["encoded"], alone.extract(im).data["encoded"], descriptors=True)
-               for im in images]
+    singles = [
+        alone.engine.pair(f0.data["encoded"], alone.extract(im).data["encoded"], descriptors=True) for im in images
+    ]
     single_matches = [alone.match(f0, alone.extract(im)) for im in images]
     alone.engine._images.size = alone.engine._pairs.size = 0  # nothing cached: the batch computes everything
     feats = alone.extract_many(images)

@@ -39,11 +39,14 @@ def run_match(capsys, *argv: str) -> tuple[int, str, str]:
     return rc, out.out, out.err
 
 
-@pytest.mark.parametrize("matcher, extra", [
-    ("sift", ()),
-    ("xfeat", ("--option", "top_k=1000", "--device", "cpu")),
-    ("superglue", ("--option", "match_threshold=0", "--device", "cpu")),
-])
+@pytest.mark.parametrize(
+    "matcher, extra",
+    [
+        ("sift", ()),
+        ("xfeat", ("--option", "top_k=1000", "--device", "cpu")),
+        ("superglue", ("--option", "match_threshold=0", "--device", "cpu")),
+    ],
+)
 def test_every_matcher_writes_the_same_keys(matcher, extra, images, superglue_dir, tmp_path, capsys):
     if matcher == "superglue":
         extra = (*extra, "--option", f"weights={superglue_dir}")
@@ -108,18 +111,28 @@ def test_errors_are_one_line_naming_the_problem(images, tmp_path, capsys, monkey
 def test_list_methods_has_the_new_presets(capsys):
     assert main(["run", "--list-methods"]) == 0
     rows = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
-    for n in ("superglue_emat_dptkitti", "superglue_pnp_dptkitti", "superglue-indoor_emat_dptnyu",
-              "superglue_pnp_sensor", "efficientloftr_emat_dptkitti", "efficientloftr_pnp_sensor"):
+    for n in (
+        "superglue_emat_dptkitti",
+        "superglue_pnp_dptkitti",
+        "superglue-indoor_emat_dptnyu",
+        "superglue_pnp_sensor",
+        "efficientloftr_emat_dptkitti",
+        "efficientloftr_pnp_sensor",
+    ):
         assert n in rows
     assert "magic-leap-community/superglue_outdoor" in rows["superglue_emat_dptkitti"]
-    assert "superglue_indoor" in rows["superglue-indoor_emat_dptnyu"] and "dptnyu.png" in rows[
-        "superglue-indoor_emat_dptnyu"]
+    assert (
+        "superglue_indoor" in rows["superglue-indoor_emat_dptnyu"]
+        and "dptnyu.png" in rows["superglue-indoor_emat_dptnyu"]
+    )
     assert "zju-community/efficientloftr" in rows["efficientloftr_pnp_sensor"]
     assert rows["sift_emat_none"].startswith("nothing")
 
 
 def test_the_command_module_imports_nothing_heavy():
-    code = ("import sys, mapfree.cli.match; "
-            "print(sorted(m for m in ('torch', 'cv2', 'mapfree.matching', 'transformers') if m in sys.modules))")
+    code = (
+        "import sys, mapfree.cli.match; "
+        "print(sorted(m for m in ('torch', 'cv2', 'mapfree.matching', 'transformers') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

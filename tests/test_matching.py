@@ -148,7 +148,11 @@ def offline(monkeypatch, tmp_path):
 
 @pytest.mark.parametrize(
     "name, filename",
-    [("loftr", "loftr_outdoor.ckpt"), ("loftr-indoor", "loftr_indoor.ckpt"), ("superpoint-lightglue", "superpoint_v1.pth")],
+    [
+        ("loftr", "loftr_outdoor.ckpt"),
+        ("loftr-indoor", "loftr_indoor.ckpt"),
+        ("superpoint-lightglue", "superpoint_v1.pth"),
+    ],
 )
 def test_missing_weights_error_says_what_to_place_where(offline, name, filename):
     with pytest.raises(MissingWeightsError) as e:

@@ -21,8 +21,12 @@ def test_every_listed_method_parses_into_valid_components():
         assert m.matcher in known_matchers, name
         # The options must be ones the solver really has (raises TypeError otherwise).
         solvers.options_for(m.solver, **m.solver_opts)
-        assert m.depth == "none" or m.depth.startswith(("files:", "hf:")) or m.depth in depth.HUB_MODELS \
-            or m.depth in depth.PAIR_MODELS, name
+        assert (
+            m.depth == "none"
+            or m.depth.startswith(("files:", "hf:"))
+            or m.depth in depth.HUB_MODELS
+            or m.depth in depth.PAIR_MODELS
+        ), name
 
 
 @pytest.mark.parametrize("matcher", methods.MATCHERS)
@@ -51,8 +55,10 @@ def test_depth_swap_keeps_everything_else():
 
 def test_yaml_config_loading(tmp_path: Path):
     cfg = tmp_path / "mine.yaml"
-    cfg.write_text("extends: sift_emat_sensor\nsolver_opts:\n  confidence: score\nmatcher_opts:\n  ratio: 0.9\n"
-                   "description: test config\n")
+    cfg.write_text(
+        "extends: sift_emat_sensor\nsolver_opts:\n  confidence: score\nmatcher_opts:\n  ratio: 0.9\n"
+        "description: test config\n"
+    )
     m = methods.get(str(cfg))
     assert m.name == "mine" and m.matcher == "sift" and m.depth == "files:sensor"
     assert m.solver_opts == {"ransac_threshold_px": 3.0, "confidence": "score"}
@@ -100,8 +106,12 @@ def test_register_and_kind_hook():
 
 def test_unknown_method_suggests_close_names():
     """A typo gets the nearest real names, not only the grammar of names."""
-    for typo, meant in (("best-ofline", "best-offline"), ("siftt_emat_sensor", "sift_emat_sensor"),
-                        ("xfeat-pnp-sensor", "xfeat_pnp_sensor"), ("rpr-3d3", "rpr-3d3d")):
+    for typo, meant in (
+        ("best-ofline", "best-offline"),
+        ("siftt_emat_sensor", "sift_emat_sensor"),
+        ("xfeat-pnp-sensor", "xfeat_pnp_sensor"),
+        ("rpr-3d3", "rpr-3d3d"),
+    ):
         with pytest.raises(KeyError, match=f"did you mean .*'{meant}'"):
             methods.get(typo)
 

@@ -15,14 +15,23 @@ import torch
 
 from mapfree import depth, matching, solvers
 from mapfree.matching.weights import BrokenWeightsError, MissingWeightsError
-from mapfree.mickey.checkpoint import (DINOV2_FILE, DINOV2_URL, WEIGHTS_ZIP_URL, MickeyFiles, files_available,
-                                       find_files, load_network, network_from_state_dicts, read_checkpoint)
+from mapfree.mickey.checkpoint import (
+    DINOV2_FILE,
+    DINOV2_URL,
+    WEIGHTS_ZIP_URL,
+    MickeyFiles,
+    files_available,
+    find_files,
+    load_network,
+    network_from_state_dicts,
+    read_checkpoint,
+)
 from mapfree.mickey.config import MickeyConfig, config_from_yaml
-from mapfree.mickey.preprocess import prepare_array, scale_intrinsics
 from mapfree.mickey.dinov2 import ViTShape
-from mapfree_dev.standins.mickey import VIT_SIZES, published_layout, synthetic_state_dicts, write_standin
+from mapfree.mickey.preprocess import prepare_array, scale_intrinsics
 from mapfree.options import OptionError
 from mapfree.solvers.mickey import MickeySolverOptions, kabsch_torch, lift, probabilistic_procrustes
+from mapfree_dev.standins.mickey import VIT_SIZES, published_layout, synthetic_state_dicts, write_standin
 
 PAIRS = {"01": 1, "02": 2}  # image0 = A (index 0) in both
 
@@ -61,8 +70,13 @@ def tiny_files(tmp_path_factory) -> Path:
 def tiny_outputs(fixture, tiny_files):
     """The tiny network loaded from its files, run once on the three photos (the fixture's resized inputs)."""
     _, arrays = fixture
-    net = load_network(find_files(weights=tiny_files / "mickey" / "mickey.ckpt",
-                                  dinov2=tiny_files / "mickey" / "dinov2_vitl14_pretrain.pth", download=False))
+    net = load_network(
+        find_files(
+            weights=tiny_files / "mickey" / "mickey.ckpt",
+            dinov2=tiny_files / "mickey" / "dinov2_vitl14_pretrain.pth",
+            download=False,
+        )
+    )
     x = torch.from_numpy(np.stack([arrays[f"input{i}_u8"] for i in range(3)])).permute(0, 3, 1, 2).float() / 255
     with torch.inference_mode():
         return net, net.extract(x)
@@ -77,8 +91,16 @@ def _compare_pair(net, k, arrays, size: str, pair: str, rtol: float) -> None:
     b = PAIRS[pair]
     k0, k1 = k.item(0), k.item(b)
     p = f"{size}_pair{pair}_"
-    got = {"kps0": k0.xy[0].T, "kps1": k1.xy[0].T, "depth_kp0": k0.depth, "depth_kp1": k1.depth,
-           "scr0": k0.score, "scr1": k1.score, "dsc0": k0.desc[0].T, "dsc1": k1.desc[0].T}
+    got = {
+        "kps0": k0.xy[0].T,
+        "kps1": k1.xy[0].T,
+        "depth_kp0": k0.depth,
+        "depth_kp1": k1.depth,
+        "scr0": k0.score,
+        "scr1": k1.score,
+        "dsc0": k0.desc[0].T,
+        "dsc1": k1.desc[0].T,
+    }
     for key, value in got.items():
         want = arrays[p + key]
         assert _rel(value.numpy().reshape(want.shape), want) < rtol, key
@@ -101,14 +123,19 @@ def _compare_pair(net, k, arrays, size: str, pair: str, rtol: float) -> None:
 def test_tiny_layout_is_the_published_one(fixture):
     spec, _ = fixture
     heads, dino = synthetic_state_dicts(VIT_SIZES["tiny"])
-    assert {k: [str(v.dtype).replace("torch.", ""), list(v.shape)] for k, v in heads.items()} == \
-        spec["tiny_checkpoint_layout"]
+    assert {k: [str(v.dtype).replace("torch.", ""), list(v.shape)] for k, v in heads.items()} == spec[
+        "tiny_checkpoint_layout"
+    ]
     assert {k: list(v.shape) for k, v in dino.items()} == spec["tiny_dinov2_layout"]
     full = published_layout(VIT_SIZES["full"])  # the published ViT-L: shapes only, no values
-    assert {k: [str(v.dtype).replace("torch.", ""), list(v.shape)] for k, v in full.items()
-            if k.startswith("compute_matches.")} == spec["full_checkpoint_layout"]
-    assert {k: list(v.shape) for k, v in full.items() if not k.startswith("compute_matches.")} == \
-        spec["full_dinov2_layout"]
+    assert {
+        k: [str(v.dtype).replace("torch.", ""), list(v.shape)]
+        for k, v in full.items()
+        if k.startswith("compute_matches.")
+    } == spec["full_checkpoint_layout"]
+    assert {k: list(v.shape) for k, v in full.items() if not k.startswith("compute_matches.")} == spec[
+        "full_dinov2_layout"
+    ]
 
 
 @pytest.mark.parametrize("pair", sorted(PAIRS))
@@ -180,10 +207,12 @@ def test_solver_recovers_the_clean_pose_with_the_public_draws(fixture, size):
     _, arrays = fixture
     p = f"{size}_clean_"
     S = torch.from_numpy(arrays[p + "final_scores"])
-    X0 = lift(torch.from_numpy(arrays[p + "kps0"]).T, torch.from_numpy(arrays[p + "depth_kp0"][0]),
-              arrays[p + "K_color0"])
-    X1 = lift(torch.from_numpy(arrays[p + "kps1"]).T, torch.from_numpy(arrays[p + "depth_kp1"][0]),
-              arrays[p + "K_color1"])
+    X0 = lift(
+        torch.from_numpy(arrays[p + "kps0"]).T, torch.from_numpy(arrays[p + "depth_kp0"][0]), arrays[p + "K_color0"]
+    )
+    X1 = lift(
+        torch.from_numpy(arrays[p + "kps1"]).T, torch.from_numpy(arrays[p + "depth_kp1"][0]), arrays[p + "K_color1"]
+    )
     res = probabilistic_procrustes(S[None], X0[None], X1[None], generator=torch.Generator().manual_seed(0))
     np.testing.assert_allclose(res.R[0].numpy(), arrays[p + "R_true"], atol=1e-5)
     np.testing.assert_allclose(res.t[0].numpy(), arrays[p + "t_true"], atol=1e-5)
@@ -206,8 +235,9 @@ def test_solver_batched_pairs_each_recover_their_pose():
     rng = np.random.default_rng(7)
     n = 300
     Ss, X0s, X1s, truths = [], [], [], []
-    for b, (axis, angle, t) in enumerate(((1, 0.2, (0.3, -0.1, 0.5)), (0, -0.4, (-1.0, 0.2, 0.0)),
-                                          (2, 0.05, (0.0, 0.0, 2.0)))):
+    for b, (axis, angle, t) in enumerate(
+        ((1, 0.2, (0.3, -0.1, 0.5)), (0, -0.4, (-1.0, 0.2, 0.0)), (2, 0.05, (0.0, 0.0, 2.0)))
+    ):
         R = _rotation(axis, angle)
         X0 = rng.uniform([-4, -4, 2], [4, 4, 10], (n, 3))
         perm = rng.permutation(n)  # keypoint i of image 0 is keypoint perm[i] of image 1
@@ -221,8 +251,9 @@ def test_solver_batched_pairs_each_recover_their_pose():
         S[np.arange(n), perm] = rng.uniform(0.5, 1.0, n)
         Ss.append(S), X0s.append(X0), X1s.append(X1), truths.append((R, np.asarray(t)))
     f = lambda a: torch.from_numpy(np.stack(a)).float()  # noqa: E731
-    res = probabilistic_procrustes(f(Ss), f(X0s), f(X1s), MickeySolverOptions(draw_size=1024),
-                                   generator=torch.Generator().manual_seed(3))
+    res = probabilistic_procrustes(
+        f(Ss), f(X0s), f(X1s), MickeySolverOptions(draw_size=1024), generator=torch.Generator().manual_seed(3)
+    )
     assert res.drawn == 1024
     for b, (R, t) in enumerate(truths):
         np.testing.assert_allclose(res.R[b].numpy(), R, atol=1e-5)
@@ -255,12 +286,16 @@ def test_options_are_typed_and_checked_as_every_component_s():
         solvers.create("mickey", confidence="median")
     with pytest.raises(OptionError, match="^option sample_size=2: expected an integer >= 3$"):
         MickeySolverOptions(sample_size=2)
-    with pytest.raises(OptionError, match=r"^option draw_size=4 for solver 'mickey': expected an integer >= "
-                                          r"sample_size \(5\)$"):
+    with pytest.raises(
+        OptionError,
+        match=r"^option draw_size=4 for solver 'mickey': expected an integer >= "
+        r"sample_size \(5\)$",
+    ):
         solvers.create("mickey", sample_size=5, draw_size=4)
     assert solvers.create("mickey", preset="best").options.confidence == "score"
-    with pytest.raises(OptionError, match="^option checkpoint='mickey_xl' for matcher 'mickey': expected one of "
-                                          "mickey, mickey_sc$"):
+    with pytest.raises(
+        OptionError, match="^option checkpoint='mickey_xl' for matcher 'mickey': expected one of mickey, mickey_sc$"
+    ):
         matching.create("mickey", checkpoint="mickey_xl")
     with pytest.raises(OptionError, match="^option batch_size=0 for matcher 'mickey'"):
         matching.check_options("mickey", {"batch_size": 0})
@@ -293,15 +328,18 @@ def test_files_follow_the_one_weights_rule(tmp_path, monkeypatch):
         f"MicKey: weights file 'mickey.ckpt' not found; looked in $MAPFREE_WEIGHTS_DIR/mickey/mickey.ckpt "
         f"({env / 'mickey' / 'mickey.ckpt'}), the default folder ({default / 'mickey' / 'mickey.ckpt'}). Download "
         f"{WEIGHTS_ZIP_URL} (Niantic non-commercial licence: mapfree does not ship it) and unzip it into "
-        f"{env / 'mickey'}. `mapfree weights` lists every model, where it looks and how to get it.")
+        f"{env / 'mickey'}. `mapfree weights` lists every model, where it looks and how to get it."
+    )
     # the default folder, the zip unzipped as it is (mickey_weights/ kept, its config.yaml beside the checkpoint)
     zipped = _saved(default / "mickey" / "mickey_weights" / "mickey.ckpt", {"state_dict": {}})
     (zipped.parent / "config.yaml").write_text("MODEL: MicKey\n")
     with pytest.raises(MissingWeightsError) as e:
         find_files()
     msg = str(e.value)
-    assert msg.startswith("MicKey's DINOv2 ViT-L/14 backbone: weights file 'dinov2_vitl14_pretrain.pth' not found "
-                          "($MAPFREE_OFFLINE is set); looked in $MAPFREE_WEIGHTS_DIR/mickey/dinov2_vitl14_pretrain.pth")
+    assert msg.startswith(
+        "MicKey's DINOv2 ViT-L/14 backbone: weights file 'dinov2_vitl14_pretrain.pth' not found "
+        "($MAPFREE_OFFLINE is set); looked in $MAPFREE_WEIGHTS_DIR/mickey/dinov2_vitl14_pretrain.pth"
+    )
     assert f"torch's hub cache ({hub})" in msg and DINOV2_URL in msg and "\n" not in msg
     in_hub = _saved(hub / DINOV2_FILE, {"pos_embed": torch.zeros(1)})
     assert find_files() == MickeyFiles(zipped, in_hub, zipped.parent / "config.yaml")
@@ -311,14 +349,20 @@ def test_files_follow_the_one_weights_rule(tmp_path, monkeypatch):
     assert find_files() == MickeyFiles(ckpt, dino, None)
     # a path given: a file or a folder holding it, and only there
     assert find_files(weights=zipped.parent, dinov2=in_hub).checkpoint == zipped
-    with pytest.raises(MissingWeightsError, match=r"^MicKey: weights file 'mickey.ckpt' not found at the path given "
-                                                  r"\(.*nosuch\)$"):
+    with pytest.raises(
+        MissingWeightsError,
+        match=r"^MicKey: weights file 'mickey.ckpt' not found at the path given "
+        r"\(.*nosuch\)$",
+    ):
         find_files(weights=tmp_path / "nosuch")
     # a checkpoint cut short (an interrupted download): refused, naming it
     data = ckpt.read_bytes()
     (env / "mickey" / "mickey_sc.ckpt").write_bytes(data[: len(data) // 2])
-    with pytest.raises(BrokenWeightsError, match=rf"^MicKey: {re.escape(str(env / 'mickey' / 'mickey_sc.ckpt'))} is "
-                                                 r"refused: truncated or damaged"):
+    with pytest.raises(
+        BrokenWeightsError,
+        match=rf"^MicKey: {re.escape(str(env / 'mickey' / 'mickey_sc.ckpt'))} is "
+        r"refused: truncated or damaged",
+    ):
         find_files("mickey_sc")
     assert files_available("mickey") and not files_available("mickey_sc")
     with pytest.raises(ValueError, match="unknown checkpoint 'mickey_xl'"):
@@ -334,8 +378,10 @@ def test_mapfree_weights_lists_mickey_s_files(tmp_path, monkeypatch, capfd):
     assert main(["weights", "mickey"]) == 1  # DINOv2 missing
     out = capfd.readouterr().out
     rows = {ln.split()[0]: " ".join(ln.split()[1:]) for ln in out.splitlines() if ln.startswith("mickey/")}
-    assert rows == {"mickey/mickey.ckpt": f"mickey ok, no published checksum $MAPFREE_WEIGHTS_DIR: {ckpt}",
-                    "mickey/dinov2_vitl14_pretrain.pth": "mickey missing"}
+    assert rows == {
+        "mickey/mickey.ckpt": f"mickey ok, no published checksum $MAPFREE_WEIGHTS_DIR: {ckpt}",
+        "mickey/dinov2_vitl14_pretrain.pth": "mickey missing",
+    }
     assert "1 of 2 models present and sound." in out
     assert f"curl -L --create-dirs -o {tmp_path / 'w' / 'mickey' / DINOV2_FILE} {DINOV2_URL}" in out
     # a method config picking the other checkpoint needs that one
@@ -365,14 +411,19 @@ def test_corrupt_or_mismatched_files_are_one_clear_line(tmp_path, tiny_files):
         network_from_state_dicts(MickeyConfig(), heads, dino_wide, "mickey.ckpt")
     assert "size mismatch" in str(e.value) and "\n" not in str(e.value)
     with pytest.raises(ValueError, match="1 unexpected"):
-        network_from_state_dicts(MickeyConfig(), {**heads, "compute_matches.extra": torch.zeros(1)},
-                                 synthetic_state_dicts(VIT_SIZES["tiny"])[1])
+        network_from_state_dicts(
+            MickeyConfig(),
+            {**heads, "compute_matches.extra": torch.zeros(1)},
+            synthetic_state_dicts(VIT_SIZES["tiny"])[1],
+        )
 
 
 def test_shipped_config_is_read_and_unsupported_values_refused(tmp_path):
     cfg = tmp_path / "config.yaml"
-    cfg.write_text("MODEL: MicKey\nMICKEY:\n  DINOV2:\n    FLOAT16: false\n    CHANNEL_DIM: 1024\n"
-                   "FEATURE_MATCHER:\n  DUAL_SOFTMAX:\n    TEMPERATURE: 0.2\nTRAINING:\n  BATCH_SIZE: 8\n")
+    cfg.write_text(
+        "MODEL: MicKey\nMICKEY:\n  DINOV2:\n    FLOAT16: false\n    CHANNEL_DIM: 1024\n"
+        "FEATURE_MATCHER:\n  DUAL_SOFTMAX:\n    TEMPERATURE: 0.2\nTRAINING:\n  BATCH_SIZE: 8\n"
+    )
     c = config_from_yaml(cfg)
     assert (c.float16, c.temperature, c.channel_dim, c.kp_blocks) == (False, 0.2, 1024, (512, 256, 128, 64))
     cfg.write_text("FEATURE_MATCHER:\n  TYPE: Sinkhorn\n")

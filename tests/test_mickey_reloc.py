@@ -19,9 +19,9 @@ from mapfree.estimate import Estimate
 from mapfree.matching import MissingWeightsError
 from mapfree.matching.base import CandidateMatches, Matches
 from mapfree.matching.mickey import MickeyMatcher
-from mapfree_dev.standins.mickey import write_standin
 from mapfree.relocalize import Relocalizer, pipeline
 from mapfree.solvers.common import sample_depth_at
+from mapfree_dev.standins.mickey import write_standin
 
 QUERIES = ("seq1/frame_00010.jpg", "seq1/frame_00020.jpg")
 
@@ -170,8 +170,13 @@ def test_batched_pipeline_same_poses_one_network_pass_per_batch(weights, scene, 
 def test_service_anchor_keeps_the_reference_output(weights, scene, monkeypatch, solve_always):
     from mapfree.service.anchors.localizers import Localizers, Photo
 
-    monkeypatch.setitem(methods._REGISTRY, "mickey-quick", methods.Method(
-        name="mickey-quick", matcher="mickey", depth="mickey", solver="mickey", solver_opts={"draws": 4}))
+    monkeypatch.setitem(
+        methods._REGISTRY,
+        "mickey-quick",
+        methods.Method(
+            name="mickey-quick", matcher="mickey", depth="mickey", solver="mickey", solver_opts={"draws": 4}
+        ),
+    )
     locs = Localizers()
     ref = Photo(scene.reference.image(), scene.reference.intrinsics)
     calls = []
@@ -193,8 +198,12 @@ def test_service_anchor_keeps_the_reference_output(weights, scene, monkeypatch, 
 
 def test_presets_listed_with_what_they_need():
     names = methods.list_methods(depths=())
-    for name, solver in (("mickey", "mickey"), ("mickey_pnp_mickey", "pnp"), ("mickey_emat_mickey", "essential"),
-                         ("mickey_procrustes_mickey", "procrustes")):
+    for name, solver in (
+        ("mickey", "mickey"),
+        ("mickey_pnp_mickey", "pnp"),
+        ("mickey_emat_mickey", "essential"),
+        ("mickey_procrustes_mickey", "procrustes"),
+    ):
         m = methods.get(name)
         assert name in names and (m.matcher, m.depth, m.solver) == ("mickey", "mickey", solver)
         assert "mickey.ckpt" in m.description and "dinov2_vitl14_pretrain.pth" in m.description
@@ -219,22 +228,57 @@ def test_cli_relocalize_and_match(weights, tmp_path, realmini):
     ref = realmini / "val" / "s00000" / "seq0" / "frame_00000.jpg"
     query = realmini / "val" / "s00000" / QUERIES[0]
     env = {**os.environ, "MAPFREE_WEIGHTS_DIR": str(weights), "MAPFREE_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
-    r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(ref), str(query), "--method", "mickey",
-                        "--intrinsics", str(realmini / "val" / "s00000" / "intrinsics.txt")],
-                       capture_output=True, text=True, timeout=300, env=env)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapfree",
+            "relocalize",
+            str(ref),
+            str(query),
+            "--method",
+            "mickey",
+            "--intrinsics",
+            str(realmini / "val" / "s00000" / "intrinsics.txt"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert "Traceback" not in r.stderr, r.stderr
     out = json.loads(r.stdout)
     assert r.returncode == 0 and out["ok"] and out["method"] == "mickey" and out["scores"]["num_matches"] > 100
     npz = tmp_path / "m.npz"
-    r = subprocess.run([sys.executable, "-m", "mapfree", "match", str(ref), str(query), "--matcher", "mickey",
-                        "-o", str(npz)], capture_output=True, text=True, timeout=300, env=env)
+    r = subprocess.run(
+        [sys.executable, "-m", "mapfree", "match", str(ref), str(query), "--matcher", "mickey", "-o", str(npz)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert r.returncode == 0, r.stderr
     assert "(1938 / 1938 points)" in r.stdout
     with np.load(npz) as z:
         assert z["kpts0"].shape[0] > 100 and z["kpts0"][:, 1].max() <= 359.5
-    r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(ref), str(query), "--method", "mickey",
-                        "--intrinsics", str(realmini / "val" / "s00000" / "intrinsics.txt")],
-                       capture_output=True, text=True, timeout=300, env={**env, "MAPFREE_WEIGHTS_DIR": str(tmp_path)})
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapfree",
+            "relocalize",
+            str(ref),
+            str(query),
+            "--method",
+            "mickey",
+            "--intrinsics",
+            str(realmini / "val" / "s00000" / "intrinsics.txt"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**env, "MAPFREE_WEIGHTS_DIR": str(tmp_path)},
+    )
     assert r.returncode == 1 and "Traceback" not in r.stderr
     line = r.stderr.strip().splitlines()[-1]
     assert "mickey.ckpt" in line and "mickey_weights.zip" in line and str(tmp_path / "mickey") in line

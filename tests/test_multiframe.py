@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import shutil
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -46,7 +45,9 @@ def test_derived_device_poses_drift_a_few_cm_per_metre_and_are_reproducible(real
     dev = load_device_poses(scene)
     assert dev.derived and not (scene.path / "poses_device.txt").exists()
     assert load_device_poses(scene).poses.keys() == dev.poses.keys()
-    assert all(np.allclose(a.matrix, b.matrix) for a, b in zip(dev.poses.values(), load_device_poses(scene).poses.values()))
+    assert all(
+        np.allclose(a.matrix, b.matrix) for a, b in zip(dev.poses.values(), load_device_poses(scene).poses.values())
+    )
     other = load_device_poses(scene, seed=1)
     bursts = scene_bursts(scene)
     assert len(bursts) == 3 and set(dev.poses) == {n for _, b in bursts for n in b}
@@ -101,8 +102,11 @@ def test_fusion_drops_outliers_averages_the_rest_and_scores_agreement(realmini):
     truth = Dataset(realmini).scene("val", "s00000").frame(_name(9)).pose
     rng = np.random.default_rng(0)
     good = [Hypothesis(f"f{i}", _noisy(truth, rng, 3.0, 0.15), 50.0 + i) for i in range(6)]
-    bad = [Hypothesis("far", _noisy(truth, rng, 40.0, 2.0), 400.0),
-           Hypothesis("turned", _noisy(truth, rng, 60.0, 0.1), 30.0), Hypothesis("off", _noisy(truth, rng, 1.0, 1.5), 30.0)]
+    bad = [
+        Hypothesis("far", _noisy(truth, rng, 40.0, 2.0), 400.0),
+        Hypothesis("turned", _noisy(truth, rng, 60.0, 0.1), 30.0),
+        Hypothesis("off", _noisy(truth, rng, 1.0, 1.5), 30.0),
+    ]
     est = fuse(good + bad, 9)
     assert est.ok and sorted(est.extras["frames_used"]) == sorted(h.frame for h in good)
     t_err, r_err = _pose_error(est.pose, truth)
@@ -145,8 +149,11 @@ def test_rebasing_is_independent_of_the_device_frame(realmini):
 def test_evaluate_multi_track_scores_exactly_the_burst_queries(realmini):
     truth = load_truth(realmini, "val", track="multi")
     assert {s: t.names for s, t in truth.items()} == {
-        "s00000": [_name(9), _name(19)], "s00001": [_name(9), _name(19), _name(29)],
-        "s00002": [_name(9), _name(19)], "s00003": [_name(9)]}
+        "s00000": [_name(9), _name(19)],
+        "s00001": [_name(9), _name(19), _name(29)],
+        "s00002": [_name(9), _name(19)],
+        "s00003": [_name(9)],
+    }
     ds = Dataset(realmini)
     perfect = {s.name: [(f.name, f.pose, 1.0) for f in s.queries] for s in ds.scenes("val")}
     for compat in ("default", "official"):
@@ -159,8 +166,21 @@ def test_evaluate_multi_track_scores_exactly_the_burst_queries(realmini):
 @pytest.fixture(scope="module")
 def multi_run(realmini, tmp_path_factory):
     out = tmp_path_factory.mktemp("multi") / "multi.zip"
-    code = cli_main(["run", str(realmini), "--track", "multi", "--method", "sift_pnp_sensor", "-o", str(out),
-                     "--scenes", "s00000,s00003", "--no-progress"])
+    code = cli_main(
+        [
+            "run",
+            str(realmini),
+            "--track",
+            "multi",
+            "--method",
+            "sift_pnp_sensor",
+            "-o",
+            str(out),
+            "--scenes",
+            "s00000,s00003",
+            "--no-progress",
+        ]
+    )
     assert code == 0
     return out
 
@@ -194,8 +214,19 @@ def test_bad_device_poses_are_a_clear_error(realmini, tmp_path, capsys):
     bad.write_text(f"{_name(1)} 1 0 0 0 0 0 0\n{_name(2)} 1 0 0 nan 0 0 0\n")
     with pytest.raises(FormatError, match=r"poses_device.txt:2: non-finite"):
         load_device_poses(Dataset(root).scene("val", "s00000"))
-    code = cli_main(["run", str(root), "--track", "multi", "--method", "sift_pnp_sensor", "-o",
-                     str(tmp_path / "m.zip"), "--no-progress"])
+    code = cli_main(
+        [
+            "run",
+            str(root),
+            "--track",
+            "multi",
+            "--method",
+            "sift_pnp_sensor",
+            "-o",
+            str(tmp_path / "m.zip"),
+            "--no-progress",
+        ]
+    )
     assert code == 1 and "poses_device.txt:2: non-finite" in capsys.readouterr().err
     bad.write_text(f"{_name(1)} 0 0 0 0 0 0 0\n")
     with pytest.raises(FormatError, match=r"poses_device.txt:1: zero quaternion"):
@@ -209,8 +240,20 @@ def test_bad_device_poses_are_a_clear_error(realmini, tmp_path, capsys):
 def test_all_frames_with_the_multi_track_is_a_clear_error(realmini, tmp_path, capsys):
     """The multi track runs the bursts of the scored queries; --all-frames would be silently ignored."""
     out = tmp_path / "m.zip"
-    code = cli_main(["run", str(realmini), "--track", "multi", "--all-frames", "--method", "sift_pnp_sensor",
-                     "-o", str(out), "--no-progress"])
+    code = cli_main(
+        [
+            "run",
+            str(realmini),
+            "--track",
+            "multi",
+            "--all-frames",
+            "--method",
+            "sift_pnp_sensor",
+            "-o",
+            str(out),
+            "--no-progress",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 1 and "mapfree run: error: --all-frames" in err and "--track multi" in err
     assert not out.exists() and not frames_path(out).exists()
@@ -234,5 +277,8 @@ def test_the_report_names_its_track_in_json_and_table_title(realmini, tmp_path, 
         assert ("multi-frame track" in title) == (track == "multi"), title
     single = evaluate(sub, realmini, "val")
     assert single.track == "single" and "track" not in format_table(single).splitlines()[0]
-    assert format_table(evaluate(sub, realmini, "val", track="multi")).splitlines()[0].endswith(
-        "8 evaluated frames, 8 estimated, multi-frame track")
+    assert (
+        format_table(evaluate(sub, realmini, "val", track="multi"))
+        .splitlines()[0]
+        .endswith("8 evaluated frames, 8 estimated, multi-frame track")
+    )

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import pytest
 
-from mapfree.cli import main
-from mapfree.relocalize import run_split
-
 from cli_support import one_line as _one_line
 from cli_support import query_pair as _pair
+from mapfree.cli import main
+from mapfree.relocalize import run_split
 
 
 def _cuda() -> bool:
@@ -36,19 +35,27 @@ def test_option_values_are_checked_in_one_place_for_cli_yaml_and_python(synth, t
     from mapfree.options import OptionError
 
     a, b = _pair(synth)
-    for opt, expected in (("max_features=abc", "option max_features='abc' for matcher 'sift': expected an integer"),
-                          ("max_features=-5", "option max_features=-5 for matcher 'sift': expected an integer >= 1"),
-                          ("ratio=5", "option ratio=5 for matcher 'sift': expected a number in (0, 1]"),
-                          ("bogus=1", "unknown option bogus for matcher 'sift': known: device, max_features")):
+    for opt, expected in (
+        ("max_features=abc", "option max_features='abc' for matcher 'sift': expected an integer"),
+        ("max_features=-5", "option max_features=-5 for matcher 'sift': expected an integer >= 1"),
+        ("ratio=5", "option ratio=5 for matcher 'sift': expected a number in (0, 1]"),
+        ("bogus=1", "unknown option bogus for matcher 'sift': known: device, max_features"),
+    ):
         assert main(["match", a, b, "--option", opt]) == 1
         _, line = _one_line(capfd)
         assert line.startswith("mapfree match: error: ") and expected in line, line
     # The same check, the same words, for a method YAML (run and relocalize) and for Python.
-    for body, expected in (("matcher_opts: {max_features: abc}",
-                            "option matcher_opts.max_features='abc' for matcher 'sift': expected an integer"),
-                           ("matcher_opts: {bogus: 1}", "unknown option matcher_opts.bogus for matcher 'sift'"),
-                           ("solver_opts: {reprojection_threshold_px: -1}",
-                            "option solver_opts.reprojection_threshold_px=-1 for solver 'pnp': expected a number > 0")):
+    for body, expected in (
+        (
+            "matcher_opts: {max_features: abc}",
+            "option matcher_opts.max_features='abc' for matcher 'sift': expected an integer",
+        ),
+        ("matcher_opts: {bogus: 1}", "unknown option matcher_opts.bogus for matcher 'sift'"),
+        (
+            "solver_opts: {reprojection_threshold_px: -1}",
+            "option solver_opts.reprojection_threshold_px=-1 for solver 'pnp': expected a number > 0",
+        ),
+    ):
         cfg = tmp_path / "m.yaml"
         cfg.write_text(f"extends: sift_pnp_sensor\n{body}\n")
         assert main(["run", str(synth), "--method", str(cfg), "-o", str(tmp_path / "s.zip"), "--no-progress"]) == 1

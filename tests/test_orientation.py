@@ -8,8 +8,15 @@ import pytest
 from PIL import Image
 
 from mapfree.data import Dataset, FormatError, read_image
-from mapfree.data.orientation import (OrientationError, camera_rotation, check_orientation, exif_orientation,
-                                      fit_intrinsics, orient_intrinsics, orient_pixels)
+from mapfree.data.orientation import (
+    OrientationError,
+    camera_rotation,
+    check_orientation,
+    exif_orientation,
+    fit_intrinsics,
+    orient_intrinsics,
+    orient_pixels,
+)
 from mapfree.geometry import Intrinsics, rotation_angle_deg
 from mapfree.relocalize import Relocalizer
 
@@ -98,8 +105,9 @@ def test_a_tagged_turned_photo_gives_the_pose_of_the_original(scene, tmp_path, o
     undo = {3: 3, 6: 8, 8: 6}[o]  # stores the grid so that orientation o shows the original
     path = tmp_path / f"query.{fmt}"
     _save(path, orient_pixels(q.image(), undo), o, **({"quality": 98} if fmt == "jpg" else {}))
-    tagged = loc.relocalize(ref_view, (path, orient_intrinsics(q.intrinsics, undo),
-                                       orient_pixels(q.depth("sensor"), undo)))
+    tagged = loc.relocalize(
+        ref_view, (path, orient_intrinsics(q.intrinsics, undo), orient_pixels(q.depth("sensor"), undo))
+    )
     assert plain.ok and tagged.ok, (plain.reason, tagged.reason)
     # lossless: the very same pixels; JPEG re-encoding noise moves RANSAC a little (the pose is 0.2 m away)
     tol_m, tol_deg = (1e-6, 1e-4) if fmt == "png" else (0.06, 1.0)
@@ -126,16 +134,33 @@ def test_mapfree_relocalize_reads_a_sideways_phone_photo(scene, tmp_path):
     (root / "seq0/frame_00000.jpg").write_bytes(ref.image_path.read_bytes())
     _save(root / "seq1/frame_00010.png", orient_pixels(q.image(), 8), 6)
     write_depth(root / "q.png", orient_pixels(q.depth("sensor"), 8))
-    write_intrinsics(root / "intrinsics.txt", {"seq0/frame_00000.jpg": ref.intrinsics,
-                                               "seq1/frame_00010.png": orient_intrinsics(q.intrinsics, 8)})
+    write_intrinsics(
+        root / "intrinsics.txt",
+        {"seq0/frame_00000.jpg": ref.intrinsics, "seq1/frame_00010.png": orient_intrinsics(q.intrinsics, 8)},
+    )
 
     def pose(query, depth) -> np.ndarray:
-        r = subprocess.run([sys.executable, "-m", "mapfree", "relocalize", str(root / "seq0/frame_00000.jpg"),
-                            str(query), "--method", "sift_pnp_sensor", "--intrinsics",
-                            str(root / "intrinsics.txt") if query.parent.parent == root else str(scene.path /
-                                                                                                  "intrinsics.txt"),
-                            "--depth-ref", str(ref.depth_path("sensor")), "--depth-query", str(depth)],
-                           capture_output=True, text=True, timeout=300)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "mapfree",
+                "relocalize",
+                str(root / "seq0/frame_00000.jpg"),
+                str(query),
+                "--method",
+                "sift_pnp_sensor",
+                "--intrinsics",
+                str(root / "intrinsics.txt") if query.parent.parent == root else str(scene.path / "intrinsics.txt"),
+                "--depth-ref",
+                str(ref.depth_path("sensor")),
+                "--depth-query",
+                str(depth),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert r.returncode == 0, r.stderr[-2000:]
         out = json.loads(r.stdout)
         return np.array(out["R"]), np.array(out["t"])

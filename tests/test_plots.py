@@ -55,8 +55,9 @@ def _labels(axis) -> list[str]:
 def test_scene_scatter_labels_narrow_ranges(realmini):
     """Per-scene medians within less than a decade (0.22-0.4 m, 6-17°, as a real SIFT run on realmini-dev gives)
     still get numbers on both log axes: the scatter once showed a translation axis without a single label."""
-    from mapfree.benchmark.plots import scene_scatter_figure
     from scipy.spatial.transform import Rotation
+
+    from mapfree.benchmark.plots import scene_scatter_figure
 
     est = {}
     for k, (scene, rows) in enumerate(sorted(_estimates(realmini, 0.0).items())):
@@ -76,21 +77,40 @@ def test_unwritable_output_is_a_clean_error(realmini, tmp_path, capsys):
     blocker = tmp_path / "not-a-dir"
     blocker.write_text("")
     write_submission(tmp_path / "empty.zip", {})
-    assert cli_main(["evaluate", str(tmp_path / "empty.zip"), "--dataset", str(realmini),
-                     "--plots", str(blocker / "plots")]) == 1
+    assert (
+        cli_main(
+            ["evaluate", str(tmp_path / "empty.zip"), "--dataset", str(realmini), "--plots", str(blocker / "plots")]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert err.startswith("mapfree evaluate: error:") and str(blocker / "plots") in err and "Traceback" not in err
     scene = realmini / "val" / "s00000"
-    assert cli_main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(scene / "seq1/frame_00010.jpg"),
-                     "--method", "sift_pnp_sensor", "--viz", str(blocker / "viz.png")]) == 1
+    assert (
+        cli_main(
+            [
+                "relocalize",
+                str(scene / "seq0/frame_00000.jpg"),
+                str(scene / "seq1/frame_00010.jpg"),
+                "--method",
+                "sift_pnp_sensor",
+                "--viz",
+                str(blocker / "viz.png"),
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert err.startswith("mapfree relocalize: error:") and str(blocker) in err
 
 
 def _visible_labels(axis, renderer):
     lo, hi = axis.get_view_interval()
-    return [t for t in axis.get_ticklabels(minor=False) + axis.get_ticklabels(minor=True)
-            if t.get_text() and lo <= t.get_position()[axis is axis.axes.yaxis] <= hi]
+    return [
+        t
+        for t in axis.get_ticklabels(minor=False) + axis.get_ticklabels(minor=True)
+        if t.get_text() and lo <= t.get_position()[axis is axis.axes.yaxis] <= hi
+    ]
 
 
 def test_scene_scatter_tick_labels_never_overlap_and_empty_scenes_are_named(realmini):
@@ -109,24 +129,34 @@ def test_scene_scatter_tick_labels_never_overlap_and_empty_scenes_are_named(real
         from mapfree.data import read_poses
 
         t = read_poses(d / "poses.txt")
-        gt[d.name] = [(n, Pose(t.pose(i).R, t.pose(i).t + 0.3), 1.0) for i, n in enumerate(t.names)
-                      if n.startswith("seq1/")]
+        gt[d.name] = [
+            (n, Pose(t.pose(i).R, t.pose(i).t + 0.3), 1.0) for i, n in enumerate(t.names) if n.startswith("seq1/")
+        ]
     base = evaluate(gt, realmini, "val")
     rng = np.random.default_rng(0)
     for trial in range(12):
         report = copy.copy(base)
         lo_r, lo_t = 10 ** rng.uniform(-1.5, 1), 10 ** rng.uniform(-2, 0)
-        report.per_scene = {f"s{i:05d}": {"Average Median Rotation Error": lo_r * 10 ** rng.uniform(0, 2.6),
-                                          "Average Median Translation Error": lo_t * 10 ** rng.uniform(0, 2.6),
-                                          "Precision @ VCRE < 90px": 0.5} for i in range(16)}
+        report.per_scene = {
+            f"s{i:05d}": {
+                "Average Median Rotation Error": lo_r * 10 ** rng.uniform(0, 2.6),
+                "Average Median Translation Error": lo_t * 10 ** rng.uniform(0, 2.6),
+                "Precision @ VCRE < 90px": 0.5,
+            }
+            for i in range(16)
+        }
         fig = scene_scatter_figure(report)
         fig.canvas.draw()
         renderer = fig.canvas.get_renderer()
         for axis in (fig.axes[0].xaxis, fig.axes[0].yaxis):
             labels = _visible_labels(axis, renderer)
             boxes = [t.get_window_extent(renderer) for t in labels]
-            clash = [(a.get_text(), b.get_text()) for i, a in enumerate(labels) for j, b in enumerate(labels)
-                     if i < j and boxes[i].overlaps(boxes[j])]
+            clash = [
+                (a.get_text(), b.get_text())
+                for i, a in enumerate(labels)
+                for j, b in enumerate(labels)
+                if i < j and boxes[i].overlaps(boxes[j])
+            ]
             assert len(labels) >= 2 and not clash, clash
     fig = scene_scatter_figure(base)  # realmini has 4 val scenes: the 4th got no estimate
     missing = sorted(set(base.per_scene) - set(gt))

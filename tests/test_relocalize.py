@@ -49,8 +49,9 @@ def test_cached_reference_gives_the_same_pose(scene, sift_sensor):
 
 def test_tuple_inputs_with_explicit_depth(scene, sift_sensor):
     ref, q = scene.reference, scene.frame(EASY_QUERY)
-    est = sift_sensor.relocalize((ref.image_path, ref.intrinsics.K, ref.depth("sensor")),
-                                 (q.image(), q.intrinsics, q.depth("sensor")))
+    est = sift_sensor.relocalize(
+        (ref.image_path, ref.intrinsics.K, ref.depth("sensor")), (q.image(), q.intrinsics, q.depth("sensor"))
+    )
     assert est.ok and np.linalg.norm(est.pose.center - q.pose.center) < 0.25
 
 
@@ -122,16 +123,32 @@ def test_viz_writes_png(tmp_path, scene, sift_sensor):
     q = scene.frame(EASY_QUERY)
     est = sift_sensor.relocalize(scene.reference, q)
     m = est.extras["matches"]
-    fig = relocalization_figure(scene.reference.image(), q.image(), scene.reference.intrinsics, q.intrinsics,
-                                m.kpts0, m.kpts1, est.pose, q.pose, title="sift")
+    fig = relocalization_figure(
+        scene.reference.image(),
+        q.image(),
+        scene.reference.intrinsics,
+        q.intrinsics,
+        m.kpts0,
+        m.kpts1,
+        est.pose,
+        q.pose,
+        title="sift",
+    )
     path = save_png(tmp_path / "out" / "viz.png", fig)
     back = cv2.imread(str(path))
     assert back is not None and back.shape == fig.shape and back.shape[0] > 2 * q.intrinsics.height
     # Orange estimate dots and cyan ground-truth dots were drawn in the AR panel (bottom right).
-    ar = fig[-q.intrinsics.height:, scene.reference.intrinsics.width:]
+    ar = fig[-q.intrinsics.height :, scene.reference.intrinsics.width :]
     assert np.any(np.all(ar == (255, 150, 0), axis=2)) and np.any(np.all(ar == (0, 200, 255), axis=2))
-    none = [scene.reference.image(), q.image(), scene.reference.intrinsics, q.intrinsics, np.zeros((0, 2)),
-            np.zeros((0, 2)), None]
+    none = [
+        scene.reference.image(),
+        q.image(),
+        scene.reference.intrinsics,
+        q.intrinsics,
+        np.zeros((0, 2)),
+        np.zeros((0, 2)),
+        None,
+    ]
     failed = relocalization_figure(*none)
     assert save_png(tmp_path / "none.png", failed).is_file()
     # Without a pose the AR panel says why: only its second label row changes, and it reaches further right.
@@ -191,8 +208,14 @@ def test_sift_emat_sensor_equals_the_straightforward_spec4_code(realmini):
         loc.set_reference(s.reference)
         for q in s.scored_queries()[:count]:
             est = loc.localize(q)
-            R, t, conf = ref_impl.relocalize_pair(s.reference.image(), q.image(), s.reference.intrinsics.K,
-                                                  q.intrinsics.K, s.reference.depth("sensor"), q.depth("sensor"))
+            R, t, conf = ref_impl.relocalize_pair(
+                s.reference.image(),
+                q.image(),
+                s.reference.intrinsics.K,
+                q.intrinsics.K,
+                s.reference.depth("sensor"),
+                q.depth("sensor"),
+            )
             assert est.ok and rotation_angle_deg(est.pose.R, R) < 1e-5 and np.linalg.norm(est.pose.t - t) < 1e-9
             assert est.confidence == conf
 
@@ -224,9 +247,9 @@ def test_figure_of_a_method_without_matches_has_no_matches_panel(synth):
     h, w = ref.image().shape[:2]
     regression = estimate_figure(*args, Estimate(rel, 1.0), rel, title="rpr")
     assert regression.shape[:2] == (h, 2 * w)  # the AR check alone
-    from mapfree.matching.base import Matches
-
     import numpy as np
+
+    from mapfree.matching.base import Matches
 
     k = np.array([[10.0, 10.0], [50.0, 60.0]])
     matched = estimate_figure(*args, Estimate(rel, 1.0, extras={"matches": Matches(k, k + 1, np.ones(2))}), rel)

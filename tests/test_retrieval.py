@@ -13,7 +13,6 @@ from mapfree.data import Dataset
 from mapfree.geometry import Pose
 from mapfree.retrieval import DenseVLAD, create, dense_rootsift, retrieve, select_references
 from mapfree.solvers.triangulation import triangulate_pose
-
 from realmini_layouts import mapfree_multi_reference_scene, realmini_frames
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -37,8 +36,10 @@ def vlad(hololens):
 def errors(est_pose: Pose, gt: Pose) -> tuple[float, float]:
     qe, te = est_pose.qt()
     qg, tg = gt.qt()
-    return (float(translation_error(qg[None], tg[None], qe[None], te[None])[0]),
-            float(rotation_error_deg(qg[None], qe[None])[0]))
+    return (
+        float(translation_error(qg[None], tg[None], qe[None], te[None])[0]),
+        float(rotation_error_deg(qg[None], qe[None])[0]),
+    )
 
 
 def test_dense_rootsift_is_dense_and_root_normalised(hololens):
@@ -99,8 +100,12 @@ def test_pose_triangulation_exact_and_degenerate():
     np.testing.assert_allclose(est.pose.t, q.t, atol=1e-9)
     flipped = [Pose(rel[0].R, -rel[0].t), Pose(rel[1].R, -rel[1].t)]
     assert not triangulate_pose(refs, flipped).ok  # rays meeting behind the references
-    assert "parallel" in triangulate_pose([refs[0], Pose(refs[0].R, refs[0].t + [0, 0, 0.5])],
-                                          [Pose(np.eye(3), [0, 0, 1.0])] * 2).reason
+    assert (
+        "parallel"
+        in triangulate_pose(
+            [refs[0], Pose(refs[0].R, refs[0].t + [0, 0, 0.5])], [Pose(np.eye(3), [0, 0, 1.0])] * 2
+        ).reason
+    )
     assert not triangulate_pose(refs[:1], rel[:1]).ok
 
 
@@ -120,8 +125,11 @@ def test_k_references_retrieve_and_beat_one_reference(realmini):
         ests = [bound.localize(q) for q in tests]
         ok = [e for e in ests if e.ok]
         assert all(e.extras["reference"] in refs.names for e in ok)
-        results[k] = sum(1 for e, q in zip(ests, tests) if e.ok and errors(e.pose, q.pose)[0] < 0.25
-                         and errors(e.pose, q.pose)[1] < 5)
+        results[k] = sum(
+            1
+            for e, q in zip(ests, tests)
+            if e.ok and errors(e.pose, q.pose)[0] < 0.25 and errors(e.pose, q.pose)[1] < 5
+        )
     assert results[4] == len(tests) and results[4] > results[1]
     assert loc.anchor is None  # binding leaves the localizer as it was: one reference, set as usual
     loc.set_reference(ref)
@@ -172,8 +180,22 @@ def test_run_with_k_references_cli(realmini, tmp_path, capsys):
 
     root = mapfree_multi_reference_scene(realmini, tmp_path / "data")
     out = tmp_path / "k4.zip"
-    rc = main(["run", str(root), "--method", "sift_pnp_sensor", "--references", "4", "--all-frames",
-               "-o", str(out), "--no-progress", "--evaluate", "--json"])
+    rc = main(
+        [
+            "run",
+            str(root),
+            "--method",
+            "sift_pnp_sensor",
+            "--references",
+            "4",
+            "--all-frames",
+            "-o",
+            str(out),
+            "--no-progress",
+            "--evaluate",
+            "--json",
+        ]
+    )
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
     assert res["estimated"] == 6 and res["metrics"]["Precision @ Pose Error < (25.0cm, 5deg)"] == 1.0
@@ -182,9 +204,26 @@ def test_run_with_k_references_cli(realmini, tmp_path, capsys):
     assert all("retrieval_similarity" in r["scores"] for r in recs)
     # A scene with one posed seq0 image cannot triangulate: refused before any work, naming the scene.
     capsys.readouterr()
-    rc = main(["run", str(realmini), "--method", "sift_emat_none", "--references", "2", "--reference-mode",
-               "triangulation", "--scenes", "s00003", "-o", str(tmp_path / "tri.zip"), "--no-progress"])
+    rc = main(
+        [
+            "run",
+            str(realmini),
+            "--method",
+            "sift_emat_none",
+            "--references",
+            "2",
+            "--reference-mode",
+            "triangulation",
+            "--scenes",
+            "s00003",
+            "-o",
+            str(tmp_path / "tri.zip"),
+            "--no-progress",
+        ]
+    )
     assert rc == 1 and "triangulation needs 2 posed seq0" in capsys.readouterr().err
     assert not (tmp_path / "tri.zip").exists()
-    assert main(["run", str(root), "--method", "sift_pnp_sensor", "--references", "0", "-o",
-                 str(tmp_path / "bad.zip")]) == 1
+    assert (
+        main(["run", str(root), "--method", "sift_pnp_sensor", "--references", "0", "-o", str(tmp_path / "bad.zip")])
+        == 1
+    )

@@ -7,24 +7,41 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from mapfree.geometry import quat_to_rotmat, rotation_angle_deg  # noqa: E402
-from mapfree.rpr.config import LossConfig, ModelConfig  # noqa: E402
-from mapfree.rpr.losses import PoseLoss, rotation_loss, translation_loss, virtual_point_loss  # noqa: E402
-from mapfree.rpr.metrics import auc, pose_errors, vcre_px, virtual_points  # noqa: E402
-from mapfree.rpr.model import RPRNet  # noqa: E402
-from mapfree.rpr.params import Parameterisation, PoseOutput  # noqa: E402
-from mapfree.rpr.procrustes import procrustes  # noqa: E402
-from mapfree.rpr.rotations import (  # noqa: E402
-    EULER_BINS, SPHERICAL_BINS, direction_to_spherical, euler_bin_angles, euler_bin_index, euler_from_matrix,
-    geodesic_angle, matrix_from_euler, rot6d_to_matrix, spherical_bin_index, spherical_to_direction,
+from mapfree.geometry import quat_to_rotmat, rotation_angle_deg
+from mapfree.rpr.config import LossConfig, ModelConfig
+from mapfree.rpr.losses import PoseLoss, rotation_loss, translation_loss, virtual_point_loss
+from mapfree.rpr.metrics import auc, pose_errors, vcre_px, virtual_points
+from mapfree.rpr.model import RPRNet
+from mapfree.rpr.params import Parameterisation, PoseOutput
+from mapfree.rpr.procrustes import procrustes
+from mapfree.rpr.rotations import (
+    EULER_BINS,
+    SPHERICAL_BINS,
+    direction_to_spherical,
+    euler_bin_angles,
+    euler_bin_index,
+    euler_from_matrix,
+    geodesic_angle,
+    matrix_from_euler,
+    rot6d_to_matrix,
+    spherical_bin_index,
+    spherical_to_direction,
 )
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 TINY = dict(encoder_channels=(8, 16, 32), encoder_blocks=1, feature_dim=8, head_channels=(8, 16, 32, 32), mlp=(32, 16))
-VARIANTS = [("quat", "t"), ("quat", "s_tdir"), ("6d", "t"), ("6d", "s_tdir"), ("euler_bins", "t"),
-            ("euler_bins", "s_tbins"), ("6d", "s_tbins"), ("3d3d", "t")]
+VARIANTS = [
+    ("quat", "t"),
+    ("quat", "s_tdir"),
+    ("6d", "t"),
+    ("6d", "s_tdir"),
+    ("euler_bins", "t"),
+    ("euler_bins", "s_tbins"),
+    ("6d", "s_tbins"),
+    ("3d3d", "t"),
+]
 
 
 def random_rotations(n: int, seed: int = 0) -> np.ndarray:
@@ -42,7 +59,8 @@ def test_output_shapes_per_parameterisation(rotation, translation):
     assert out.R.shape == (B, 3, 3) and out.t.shape == (B, 3) and out.log_sigma.shape == (B, 2)
     assert net.uncertainty[-1].out_features == 2
     expected = {"quat": 4, "6d": 6, "euler_bins": 900}.get(rotation, 0) + (
-        {"t": 3, "s_tdir": 4, "s_tbins": 541}[translation] if rotation != "3d3d" else 18)
+        {"t": 3, "s_tdir": 4, "s_tbins": 541}[translation] if rotation != "3d3d" else 18
+    )
     last = net.head.mlp if isinstance(net.head.mlp, torch.nn.Linear) else net.head.mlp[-1]
     assert last.out_features == expected
     assert net.param.dim == expected
@@ -50,9 +68,9 @@ def test_output_shapes_per_parameterisation(rotation, translation):
     det = torch.linalg.det(out.R.double())
     assert torch.allclose(det, torch.ones_like(det), atol=1e-5)
     if rotation == "euler_bins":
-        assert [l.shape[-1] for l in out.raw["euler_logits"]] == [360, 180, 360]
+        assert [g.shape[-1] for g in out.raw["euler_logits"]] == [360, 180, 360]
     if translation == "s_tbins" and rotation != "3d3d":
-        assert [l.shape[-1] for l in out.raw["spherical_logits"]] == [360, 180]
+        assert [g.shape[-1] for g in out.raw["spherical_logits"]] == [360, 180]
 
 
 def test_ablations_change_aggregated_channels():
@@ -228,11 +246,14 @@ def _gt_output(kind_rot: str, kind_trans: str, R: torch.Tensor, t: torch.Tensor)
         raw["quat"] = torch.from_numpy(rotmat_to_quat(R.numpy()))
     if kind_rot == "ce":
         idx = euler_bin_index(euler_from_matrix(R))
-        raw["euler_logits"] = [1e4 * torch.nn.functional.one_hot(idx[:, i], n).double() for i, n in enumerate(EULER_BINS)]
+        raw["euler_logits"] = [
+            1e4 * torch.nn.functional.one_hot(idx[:, i], n).double() for i, n in enumerate(EULER_BINS)
+        ]
     if kind_trans == "ce":
         idx = spherical_bin_index(direction_to_spherical(t))
-        raw["spherical_logits"] = [1e4 * torch.nn.functional.one_hot(idx[:, i], n).double()
-                                   for i, n in enumerate(SPHERICAL_BINS)]
+        raw["spherical_logits"] = [
+            1e4 * torch.nn.functional.one_hot(idx[:, i], n).double() for i, n in enumerate(SPHERICAL_BINS)
+        ]
         raw["scale"] = t.norm(dim=-1)
     return PoseOutput(R.clone(), t.clone(), raw)
 
@@ -287,8 +308,10 @@ def test_pose_loss_weighting_and_uncertainty():
     assert learned.s_rot.grad is not None and learned.s_trans.grad is not None
     # The Laplace NLL is smallest when the predicted scale equals the error.
     err = torch.stack([geodesic_angle(out.R, R), (out.t - t).norm(dim=-1)], -1)
-    nll = [PoseLoss(LossConfig())(PoseOutput(out.R, out.t, {}, torch.log(err) + d), R, t)["loss_nll"]
-           for d in (-0.5, 0.0, 0.5)]
+    nll = [
+        PoseLoss(LossConfig())(PoseOutput(out.R, out.t, {}, torch.log(err) + d), R, t)["loss_nll"]
+        for d in (-0.5, 0.0, 0.5)
+    ]
     assert nll[1] < nll[0] and nll[1] < nll[2]
 
 
@@ -340,7 +363,9 @@ def test_vcre_agrees_with_the_benchmark_scorer():
 
     R_gt, t_gt = random_rotations(n, seed=12), rng.normal(size=(n, 3))
     # Estimates from near the truth to far off (exercises the clipping at the image border).
-    noise = quat_to_rotmat(np.c_[np.ones(n), rng.normal(scale=np.linspace(0.01, 0.5, n))[:, None] * rng.normal(size=(n, 3))])
+    noise = quat_to_rotmat(
+        np.c_[np.ones(n), rng.normal(scale=np.linspace(0.01, 0.5, n))[:, None] * rng.normal(size=(n, 3))]
+    )
     R_est, t_est = noise @ R_gt, t_gt + rng.normal(scale=0.5, size=(n, 3))
     fx = rng.uniform(500, 700, n)
     K4 = np.c_[fx, fx, np.full(n, 269.5), np.full(n, 359.5)]
@@ -375,8 +400,10 @@ def test_every_shipped_config_loads_and_builds():
     assert set(OFFICIAL_CONFIGS) <= {p.stem for p in configs}  # one config per published checkpoint
     for p in configs:
         cfg = load_config(p)
-        assert Parameterisation(cfg.model.rotation, cfg.model.translation).name.split(",")[0] in cfg.name or \
-            "CPU" in cfg.name
+        assert (
+            Parameterisation(cfg.model.rotation, cfg.model.translation).name.split(",")[0] in cfg.name
+            or "CPU" in cfg.name
+        )
     cfg = apply_overrides(load_config(configs[0]), ["train.lr=1e-3", "model.aggregator=concat"])
     assert cfg.train.lr == 1e-3 and isinstance(cfg.train.lr, float) and cfg.model.aggregator == "concat"
     with pytest.raises(ValueError, match="batch_size"):

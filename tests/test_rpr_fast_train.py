@@ -14,16 +14,24 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("pytorch_lightning")
 
-from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
+from torch.utils._python_dispatch import TorchDispatchMode
 
-from mapfree.data import Dataset  # noqa: E402
-from mapfree.rpr import aggregator as agg_mod  # noqa: E402
-from mapfree.rpr.aggregator import CorrelationAggregator  # noqa: E402
-from mapfree.rpr.data import (EpochSampler, PairDataset, RPRDataModule, TrainPairs, as_float_input,  # noqa: E402
-                                     load_pair_image, resized_image, val_pairs)
+from mapfree.data import Dataset
+from mapfree.rpr import aggregator as agg_mod
+from mapfree.rpr.aggregator import CorrelationAggregator
+from mapfree.rpr.data import (
+    EpochSampler,
+    PairDataset,
+    RPRDataModule,
+    TrainPairs,
+    as_float_input,
+    load_pair_image,
+    resized_image,
+    val_pairs,
+)
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_rpr_train import make_tiny_root, tiny_config  # noqa: E402
+from test_rpr_train import make_tiny_root, tiny_config
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -194,8 +202,9 @@ def test_lightning_fit_draws_each_epochs_pairs_through_persistent_workers(tiny_r
     monkeypatch.setattr(RPRModule, "training_step", recording_step)
     cfg = tiny_config(tiny_root, num_workers=1, batch_size=2, cache_dir=str(tmp_path / "cache"))
     cfg.train.max_epochs = 3
-    trainer, _ = fit(cfg, tmp_path / "run", TrainerOptions(accelerator="cpu", devices=1, progress=False,
-                                                           limit_val_batches=1))
+    trainer, _ = fit(
+        cfg, tmp_path / "run", TrainerOptions(accelerator="cpu", devices=1, progress=False, limit_val_batches=1)
+    )
     dm = RPRDataModule(cfg.data)
     dm.setup("fit")
     for e in range(3):

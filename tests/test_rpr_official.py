@@ -16,13 +16,13 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("pytorch_lightning")
 
+from mapfree.rpr.official import OFFICIAL_CONFIGS
 from mapfree_dev.standins.mast3r import fill_value  # noqa: E402  (the same fill rule as the MASt3R fixture)
-from mapfree.rpr.official import OFFICIAL_CONFIGS  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def fill_state_dict(spec: dict[str, list]) -> dict[str, "torch.Tensor"]:
+def fill_state_dict(spec: dict[str, list]) -> dict[str, torch.Tensor]:
     """The fixture's fill rule (its README): a deterministic value for every key of a checkpoint."""
     sd = {}
     for key, (dtype, shape) in spec.items():
@@ -39,7 +39,7 @@ def official(official_rpr) -> dict:
 
 
 @pytest.fixture(scope="module")
-def inputs() -> tuple["torch.Tensor", "torch.Tensor"]:
+def inputs() -> tuple[torch.Tensor, torch.Tensor]:
     x = np.random.default_rng(2022).random((2, 2, 3, 360, 270)).astype(np.float32)
     return torch.from_numpy(x[0]), torch.from_numpy(x[1])
 
@@ -49,8 +49,15 @@ def write_checkpoint(official: dict, name: str, folder: Path) -> Path:
     path = folder / f"{name}.ckpt"
     if not path.is_file():
         folder.mkdir(parents=True, exist_ok=True)
-        torch.save({"epoch": 49, "global_step": 0, "pytorch-lightning_version": "1.6.5",
-                    "state_dict": fill_state_dict(official[name]["state_dict"])}, path)
+        torch.save(
+            {
+                "epoch": 49,
+                "global_step": 0,
+                "pytorch-lightning_version": "1.6.5",
+                "state_dict": fill_state_dict(official[name]["state_dict"]),
+            },
+            path,
+        )
     return path
 
 
@@ -76,10 +83,16 @@ def test_fixture_lists_the_twelve_published_configurations(official):
 
 
 # Two configurations (a 3D-3D head and a binned one) in `make test-fast`; all twelve in `make test`.
-@pytest.mark.parametrize("name", [c if c in ("3d3d", "rotbin_transdirectionbin_scale") else
-                                  pytest.param(c, marks=pytest.mark.slow) for c in OFFICIAL_CONFIGS])
-def test_published_checkpoint_loads_strictly_and_gives_the_public_pose(name, official, weights, inputs,
-                                                                       encoder_features):
+@pytest.mark.parametrize(
+    "name",
+    [
+        c if c in ("3d3d", "rotbin_transdirectionbin_scale") else pytest.param(c, marks=pytest.mark.slow)
+        for c in OFFICIAL_CONFIGS
+    ],
+)
+def test_published_checkpoint_loads_strictly_and_gives_the_public_pose(
+    name, official, weights, inputs, encoder_features
+):
     from mapfree.rpr import load_method
 
     method = load_method(write_checkpoint(official, name, weights), device="cpu")  # config from the file name
@@ -135,7 +148,7 @@ def _copy(src: Path, dst: Path) -> Path:
     return dst
 
 
-def _public_preprocess(path: Path) -> "torch.Tensor":
+def _public_preprocess(path: Path) -> torch.Tensor:
     """The public code's image reading, written independently: cv2.imread, BGR->RGB, resize to W 270 x H 360."""
     import cv2
 
@@ -143,8 +156,7 @@ def _public_preprocess(path: Path) -> "torch.Tensor":
     return torch.from_numpy(img).float().permute(2, 0, 1)[None] / 255
 
 
-def test_relocalize_cli_matches_the_network_on_public_preprocessing(official, weights, realmini, capsys,
-                                                                     monkeypatch):
+def test_relocalize_cli_matches_the_network_on_public_preprocessing(official, weights, realmini, capsys, monkeypatch):
     """``mapfree relocalize REF QUERY --method rpr-3d3d --checkpoint CKPT`` on landscape photos (squashed to
     270×360 as the public code does) prints the network's pose; without --checkpoint the weights come from
     $MAPFREE_WEIGHTS_DIR, and a missing file names itself and the release's address."""
@@ -160,8 +172,12 @@ def test_relocalize_cli_matches_the_network_on_public_preprocessing(official, we
         out = net(_public_preprocess(ref), _public_preprocess(query))
     want = Pose(out.R[0].double().numpy(), out.t[0].double().numpy())
     capsys.readouterr()
-    assert main(["relocalize", str(ref), str(query), "--method", "rpr-3d3d", "--checkpoint", str(ckpt),
-                 "--gt-pose", "auto"]) == 0
+    assert (
+        main(
+            ["relocalize", str(ref), str(query), "--method", "rpr-3d3d", "--checkpoint", str(ckpt), "--gt-pose", "auto"]
+        )
+        == 0
+    )
     res = json.loads(capsys.readouterr().out)
     np.testing.assert_allclose(np.array(res["R"]), want.R, atol=1e-5)
     np.testing.assert_allclose(np.array(res["t"]), want.t, atol=1e-5)
@@ -191,8 +207,26 @@ def test_run_split_with_a_published_model_writes_the_networks_poses(official, we
 
     ckpt = write_checkpoint(official, "3d3d", weights)
     out = tmp_path / "sub.zip"
-    assert main(["run", str(realmini), "--split", "val", "--scenes", "s00003", "--method", "rpr-3d3d",
-                 "--checkpoint", str(ckpt), "-o", str(out), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(realmini),
+                "--split",
+                "val",
+                "--scenes",
+                "s00003",
+                "--method",
+                "rpr-3d3d",
+                "--checkpoint",
+                str(ckpt),
+                "-o",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     rows = [r.split() for r in zipfile.ZipFile(out).read("pose_s00003.txt").decode().splitlines() if r.strip()]
     scene = Dataset(realmini).scene("val", "s00003")
@@ -213,20 +247,43 @@ def test_finetune_a_confidence_on_top_of_a_published_model(official, weights, tm
     uncertainty head trains (frozen encoder features cached); the poses stay the published model's exactly and
     the submissions gain a confidence."""
     import pytorch_lightning as pl
-    from test_rpr_train import make_tiny_root
 
     from mapfree.cli import main
     from mapfree.rpr import load_method
     from mapfree.rpr.config import apply_overrides, load_config, resolve_config
     from mapfree.rpr.module import RPRModule
+    from test_rpr_train import make_tiny_root
 
     root = make_tiny_root(tmp_path / "data", n_train=1, frames=3)
     ckpt = write_checkpoint(official, "3d3d", weights)
-    sets = ["data.pairs_per_scene=2", "data.batch_size=2", "data.val_batch_size=1", "data.max_val_pairs=1",
-            "model.uncertainty=true", "train.cache_features=true"]
+    sets = [
+        "data.pairs_per_scene=2",
+        "data.batch_size=2",
+        "data.val_batch_size=1",
+        "data.max_val_pairs=1",
+        "model.uncertainty=true",
+        "train.cache_features=true",
+    ]
     out = tmp_path / "ft"
-    args = ["train", "3d3d", "--data", str(root), "--out", str(out), "--init", str(ckpt), "--freeze", "pose",
-            "--max-steps", "2", "--accelerator", "cpu", "--devices", "1", "--no-progress"]
+    args = [
+        "train",
+        "3d3d",
+        "--data",
+        str(root),
+        "--out",
+        str(out),
+        "--init",
+        str(ckpt),
+        "--freeze",
+        "pose",
+        "--max-steps",
+        "2",
+        "--accelerator",
+        "cpu",
+        "--devices",
+        "1",
+        "--no-progress",
+    ]
     assert main(args + [a for s in sets for a in ("--set", s)]) == 0
     tuned = load_method(out / "checkpoints" / "last.ckpt", device="cpu")
     public = load_method(ckpt, device="cpu").module.state_dict()
@@ -253,7 +310,9 @@ def test_registering_the_published_methods_does_not_load_torch():
     import subprocess
     import sys
 
-    code = ("import sys, mapfree.methods as m; m.get('sift_emat_none'); assert m.get('rpr-3d3d').options == "
-            "{'config': '3d3d'}; print('torch' in sys.modules)")
+    code = (
+        "import sys, mapfree.methods as m; m.get('sift_emat_none'); assert m.get('rpr-3d3d').options == "
+        "{'config': '3d3d'}; print('torch' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"

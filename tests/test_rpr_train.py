@@ -12,12 +12,12 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("pytorch_lightning")
 
-from mapfree.data import Dataset, Overlaps, write_intrinsics, write_overlaps, write_poses  # noqa: E402
-from mapfree.geometry import Intrinsics, Pose, quat_to_rotmat  # noqa: E402
-from mapfree.rpr.config import DataConfig, LossConfig, ModelConfig, RPRConfig  # noqa: E402
-from mapfree.rpr.data import PairDataset, RPRDataModule, sample_pairs  # noqa: E402
-from mapfree.rpr.model import RPRNet  # noqa: E402
-from mapfree.rpr.losses import PoseLoss  # noqa: E402
+from mapfree.data import Dataset, Overlaps, write_intrinsics, write_overlaps, write_poses
+from mapfree.geometry import Intrinsics, Pose, quat_to_rotmat
+from mapfree.rpr.config import DataConfig, LossConfig, ModelConfig, RPRConfig
+from mapfree.rpr.data import PairDataset, RPRDataModule, sample_pairs
+from mapfree.rpr.losses import PoseLoss
+from mapfree.rpr.model import RPRNet
 
 TINY = dict(encoder_channels=(8, 16, 32), encoder_blocks=1, feature_dim=8, head_channels=(8, 16, 32, 32), mlp=(32, 16))
 W, H = 80, 60  # written image size; the network sees 64×48
@@ -57,8 +57,14 @@ def make_tiny_root(root: Path, n_train: int = 2, n_val: int = 1, frames: int = 5
         path = root / "train" / f"s{s:05d}"
         names = [f"seq{q}/frame_{f:05d}.jpg" for q in (0, 1) for f in range(frames)]
         _write_scene(path, names, [_pose(rng) for _ in names], rng)
-        rows = [(sa, fa, sb, fb) for sa in (0, 1) for fa in range(frames) for sb in (0, 1) for fb in range(frames)
-                if (sa, fa) < (sb, fb)]
+        rows = [
+            (sa, fa, sb, fb)
+            for sa in (0, 1)
+            for fa in range(frames)
+            for sb in (0, 1)
+            for fb in range(frames)
+            if (sa, fa) < (sb, fb)
+        ]
         ov = np.array([OVERLAP_VALUES[i % len(OVERLAP_VALUES)] for i in range(len(rows))])
         write_overlaps(path / "overlaps.npz", Overlaps(np.array(rows), ov))
     for s in range(n_val):
@@ -137,8 +143,9 @@ def test_model_overfits_eight_pairs():
     torch.manual_seed(0)
     rng = np.random.default_rng(1)
     # Low-frequency random images (i.i.d. noise looks the same to every sample after global pooling); 32×24 for speed.
-    img0, img1 = (torch.nn.functional.interpolate(torch.rand(8, 3, 3, 4), size=(24, 32), mode="bilinear")
-                  for _ in range(2))
+    img0, img1 = (
+        torch.nn.functional.interpolate(torch.rand(8, 3, 3, 4), size=(24, 32), mode="bilinear") for _ in range(2)
+    )
     poses = [_pose(rng, angle=0.6) for _ in range(8)]
     R = torch.tensor(np.stack([p.R for p in poses]), dtype=torch.float32)
     t = torch.tensor(np.stack([p.t for p in poses]), dtype=torch.float32)
@@ -164,8 +171,9 @@ def test_train_checkpoint_load_predict_is_identical(tiny_root, tmp_path):
     from mapfree.rpr.train import TrainerOptions, fit
 
     cfg = tiny_config(tiny_root)
-    trainer, module = fit(cfg, tmp_path / "run", TrainerOptions(accelerator="cpu", devices=1, max_steps=2,
-                                                                 progress=False))
+    trainer, module = fit(
+        cfg, tmp_path / "run", TrainerOptions(accelerator="cpu", devices=1, max_steps=2, progress=False)
+    )
     ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
     assert ckpt.is_file() and (tmp_path / "run" / "checkpoints" / "best.ckpt").is_file()
     assert torch.load(ckpt, map_location="cpu", weights_only=False)["global_step"] == 2  # the final weights
@@ -193,9 +201,12 @@ def test_train_checkpoint_load_predict_is_identical(tiny_root, tmp_path):
     np.testing.assert_allclose(batch[0].pose.R, single.pose.R, atol=1e-5)
     np.testing.assert_allclose(single.pose.t, est.pose.t, atol=1e-6)
     # Resume continues from the checkpoint's step.
-    trainer2, _ = fit(cfg, tmp_path / "run", TrainerOptions(accelerator="cpu", devices=1, max_steps=3, max_epochs=5,
-                                                           progress=False),
-                      resume=ckpt)
+    trainer2, _ = fit(
+        cfg,
+        tmp_path / "run",
+        TrainerOptions(accelerator="cpu", devices=1, max_steps=3, max_epochs=5, progress=False),
+        resume=ckpt,
+    )
     assert trainer2.global_step == 3
 
 
@@ -209,9 +220,30 @@ def test_cli_train_two_steps(tiny_root, tmp_path):
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(_lists(cfg)))
     out = tmp_path / "out"
-    rc = main(["train", str(path), "--devices", "1", "--strategy", "auto", "--accelerator", "cpu", "--max-steps", "2",
-               "--data", str(tiny_root), "--out", str(out), "--no-progress", "--set", "data.pairs_per_scene=4",
-               "--precision", "bf16-mixed", "--channels-last"])
+    rc = main(
+        [
+            "train",
+            str(path),
+            "--devices",
+            "1",
+            "--strategy",
+            "auto",
+            "--accelerator",
+            "cpu",
+            "--max-steps",
+            "2",
+            "--data",
+            str(tiny_root),
+            "--out",
+            str(out),
+            "--no-progress",
+            "--set",
+            "data.pairs_per_scene=4",
+            "--precision",
+            "bf16-mixed",
+            "--channels-last",
+        ]
+    )
     assert rc == 0
     assert (out / "checkpoints" / "last.ckpt").is_file()
     rows = list(csv.DictReader(open(out / "logs" / "metrics.csv")))
@@ -224,7 +256,7 @@ def test_cli_train_two_steps(tiny_root, tmp_path):
     plain = cv2.imread(str(plot_curves(out / "logs" / "metrics.csv", tmp_path / "a.png", "tiny")))
     marked = cv2.imread(str(plot_curves(out / "logs" / "metrics.csv", tmp_path / "b.png", "tiny", {"mean pose": 0.5})))
     assert plain is not None and marked is not None and plain.shape == marked.shape
-    assert (plain != marked).any(axis=2)[:, plain.shape[1] // 2:].sum() > 100  # the right (validation) panel
+    assert (plain != marked).any(axis=2)[:, plain.shape[1] // 2 :].sum() > 100  # the right (validation) panel
     assert main(["train", str(tmp_path / "missing.yaml")]) == 1
     assert main(["train", str(path), "--set", "model.rotation=euler"]) == 1
 
@@ -233,7 +265,11 @@ def test_registry_builds_rpr_from_a_checkpoint(tiny_root, tmp_path):
     methods = pytest.importorskip("mapfree.methods")
     from mapfree.rpr.train import TrainerOptions, fit
 
-    fit(tiny_config(tiny_root), tmp_path / "r", TrainerOptions(accelerator="cpu", devices=1, max_steps=1, progress=False))
+    fit(
+        tiny_config(tiny_root),
+        tmp_path / "r",
+        TrainerOptions(accelerator="cpu", devices=1, max_steps=1, progress=False),
+    )
     m = methods.get("rpr")
     assert m.kind == "regression"
     with pytest.raises(ValueError, match="checkpoint"):
@@ -306,12 +342,31 @@ def test_cli_run_with_checkpoint_end_to_end(tiny_root, tmp_path, capsys):
     from mapfree.cli import main
     from mapfree.rpr.train import TrainerOptions, fit
 
-    fit(tiny_config(tiny_root), tmp_path / "r", TrainerOptions(accelerator="cpu", devices=1, max_steps=1, progress=False))
+    fit(
+        tiny_config(tiny_root),
+        tmp_path / "r",
+        TrainerOptions(accelerator="cpu", devices=1, max_steps=1, progress=False),
+    )
     ckpt = tmp_path / "r" / "checkpoints" / "last.ckpt"
     out = tmp_path / "sub.zip"
     capsys.readouterr()
-    rc = main(["run", str(tiny_root), "--split", "val", "--method", "rpr", "--checkpoint", str(ckpt), "-o", str(out),
-               "--no-progress", "--evaluate", "--json"])
+    rc = main(
+        [
+            "run",
+            str(tiny_root),
+            "--split",
+            "val",
+            "--method",
+            "rpr",
+            "--checkpoint",
+            str(ckpt),
+            "-o",
+            str(out),
+            "--no-progress",
+            "--evaluate",
+            "--json",
+        ]
+    )
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
     assert "metrics" in res
@@ -321,8 +376,22 @@ def test_cli_run_with_checkpoint_end_to_end(tiny_root, tmp_path, capsys):
     rows = [r.split() for r in text.splitlines() if r.strip() and not r.startswith("#")]
     assert len(rows) == 2 and all(len(r) == 9 for r in rows), rows  # frames 0 and 5 of the 10 queries are scored
     # A checkpoint for a non-regression method, or a missing file, is a clean error.
-    assert main(["run", str(tiny_root), "--method", "rpr", "--checkpoint", str(tmp_path / "none.ckpt"),
-                 "-o", str(tmp_path / "x.zip"), "--no-progress"]) == 1
+    assert (
+        main(
+            [
+                "run",
+                str(tiny_root),
+                "--method",
+                "rpr",
+                "--checkpoint",
+                str(tmp_path / "none.ckpt"),
+                "-o",
+                str(tmp_path / "x.zip"),
+                "--no-progress",
+            ]
+        )
+        == 1
+    )
 
 
 def _lists(x):

@@ -81,8 +81,23 @@ def test_run_writes_valid_submission_and_failure_log(tiny, tmp_path):
 def test_resume_after_kill_loses_and_recomputes_nothing(tiny, tmp_path):
     out = tmp_path / "killed" / "sub.zip"
     journal = out.with_name("sub.journal.jsonl")
-    cmd = [sys.executable, "-m", "mapfree", "run", str(tiny), "--split", "val", "--method", METHOD, "-o", str(out),
-           "--all-frames", "--workers", "2", "--no-progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "mapfree",
+        "run",
+        str(tiny),
+        "--split",
+        "val",
+        "--method",
+        METHOD,
+        "-o",
+        str(out),
+        "--all-frames",
+        "--workers",
+        "2",
+        "--no-progress",
+    ]
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.time() + 90
     try:
@@ -118,10 +133,31 @@ def test_ctrl_c_with_workers_stops_at_once_and_resumes(realmini, tmp_path):
     root = _tiny_split(realmini, tmp_path / "data", {"s00000": 10, "s00001": 10, "s00002": 10})
     out = tmp_path / "sub.zip"
     journal = out.with_name("sub.journal.jsonl")
-    cmd = [sys.executable, "-m", "mapfree", "run", str(root), "--split", "val", "--method", METHOD, "-o", str(out),
-           "--all-frames", "--workers", "2", "--no-progress"]
-    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL), text=True)
+    cmd = [
+        sys.executable,
+        "-m",
+        "mapfree",
+        "run",
+        str(root),
+        "--split",
+        "val",
+        "--method",
+        METHOD,
+        "-o",
+        str(out),
+        "--all-frames",
+        "--workers",
+        "2",
+        "--no-progress",
+    ]
+    proc = subprocess.Popen(
+        cmd,
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        text=True,
+    )
     deadline = time.time() + 90
     while time.time() < deadline and proc.poll() is None and len(read_journal(journal)[1]) < 2:
         time.sleep(0.02)
@@ -156,16 +192,38 @@ def test_depth_suffix_typo_is_refused_before_any_work(realmini, tmp_path, capsys
 def test_cli_relocalize_json_and_viz(realmini, tmp_path, capsys):
     scene = realmini / "val" / "s00000"
     png = tmp_path / "viz.png"
-    rc = main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(scene / "seq1/frame_00010.jpg"),
-               "--method", METHOD, "--gt-pose", "auto", "--viz", str(png)])
+    rc = main(
+        [
+            "relocalize",
+            str(scene / "seq0/frame_00000.jpg"),
+            str(scene / "seq1/frame_00010.jpg"),
+            "--method",
+            METHOD,
+            "--gt-pose",
+            "auto",
+            "--viz",
+            str(png),
+        ]
+    )
     out = json.loads(capsys.readouterr().out)
     assert rc == 0 and out["ok"] and png.is_file()
     assert out["error"]["translation_m"] < 0.25 and out["error"]["rotation_deg"] < 5
     assert set(out["timings"]) >= {"match", "depth", "solve"} and len(out["q_wxyz"]) == 4
 
     K = "495.57,495.48,269.5,169.19"
-    rc = main(["relocalize", str(scene / "seq0/frame_00000.jpg"), str(scene / "seq0/frame_00000.jpg"),
-               "--method", METHOD, "--K-ref", K, "--K-query", K])
+    rc = main(
+        [
+            "relocalize",
+            str(scene / "seq0/frame_00000.jpg"),
+            str(scene / "seq0/frame_00000.jpg"),
+            "--method",
+            METHOD,
+            "--K-ref",
+            K,
+            "--K-query",
+            K,
+        ]
+    )
     out = json.loads(capsys.readouterr().out)
     assert rc == 0 and out["ok"] and np.allclose(out["t"], 0)  # the reference itself: taken from there
 
@@ -186,12 +244,45 @@ def test_run_evaluate_on_a_test_split_explains_instead_of_crashing(tmp_path, cap
     """``run --split test --evaluate``: the test poses are private (all zeros), so the run's JSON is printed, the
     evaluation is refused with a pointer to ``mapfree evaluate --gt-root``, exit 2; before, a traceback."""
     root = tmp_path / "data"
-    assert main(["synth", str(root), "--split", "test", "--scenes", "1", "--queries", "5", "--size", "240x320",
-                 "--no-mono", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "synth",
+                str(root),
+                "--split",
+                "test",
+                "--scenes",
+                "1",
+                "--queries",
+                "5",
+                "--size",
+                "240x320",
+                "--no-mono",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     out = tmp_path / "t.zip"
-    assert main(["run", str(root), "--split", "test", "--method", "sift_pnp_sensor", "-o", str(out),
-                 "--no-progress", "--evaluate", "--json"]) == 1
+    assert (
+        main(
+            [
+                "run",
+                str(root),
+                "--split",
+                "test",
+                "--method",
+                "sift_pnp_sensor",
+                "-o",
+                str(out),
+                "--no-progress",
+                "--evaluate",
+                "--json",
+            ]
+        )
+        == 1
+    )
     res = capsys.readouterr()
     assert json.loads(res.out)["computed"] == 1 and out.is_file()
     assert "--gt-root" in res.err and "Traceback" not in res.err
@@ -232,8 +323,12 @@ def test_refused_run_leaves_an_existing_journal_alone(realmini, tmp_path):
     journal = out.with_name("sub.journal.jsonl")
     from mapfree.methods import get
 
-    old = (json.dumps({"kind": "header", "version": 1, "method": get("sift_emat_sensr").to_dict()}) + "\n"
-           + json.dumps({"kind": "frame", "scene": "s00000", "frame": "seq1/frame_00000.jpg", "ok": False}) + "\n")
+    old = (
+        json.dumps({"kind": "header", "version": 1, "method": get("sift_emat_sensr").to_dict()})
+        + "\n"
+        + json.dumps({"kind": "frame", "scene": "s00000", "frame": "seq1/frame_00000.jpg", "ok": False})
+        + "\n"
+    )
     journal.write_text(old)
     for flags in ({"overwrite": True}, {"resume": True}):
         with pytest.raises(ValueError, match=r"\*\.sensr\.png"):

@@ -23,11 +23,10 @@ import pytest
 
 pytest.importorskip("ray")
 
-from mapfree.data.synth import SynthOptions, generate  # noqa: E402
-from mapfree.relocalize import read_journal, run_split  # noqa: E402
-from mapfree.relocalize.distributed import ClusterError, RayOptions, task_slots  # noqa: E402
-
-from raycluster import ENV  # noqa: E402
+from mapfree.data.synth import SynthOptions, generate
+from mapfree.relocalize import read_journal, run_split
+from mapfree.relocalize.distributed import ClusterError, RayOptions, task_slots
+from raycluster import ENV
 
 pytestmark = pytest.mark.slow
 
@@ -41,9 +40,15 @@ class Keeper:
     """The cluster's process: its address, its Ray Client address, and commands (``kill I``, ``add_gpu``)."""
 
     def __init__(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, str(KEEPER), "cluster"], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-                                     start_new_session=True, env={**os.environ, **ENV})
+        self.proc = subprocess.Popen(
+            [sys.executable, str(KEEPER), "cluster"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            start_new_session=True,
+            env={**os.environ, **ENV},
+        )
         info = json.loads(self._line(lambda s: s.startswith("{")))
         self.address, self.client, self.workers = info["address"], info["client"], info["workers"]
 
@@ -70,8 +75,9 @@ class Keeper:
 @pytest.fixture(scope="module")
 def split(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("ray-split")
-    generate(root, "val", SCENES, QUERIES, options=SynthOptions(width=320, height=240, write_mono=False),
-             progress=False)
+    generate(
+        root, "val", SCENES, QUERIES, options=SynthOptions(width=320, height=240, write_mono=False), progress=False
+    )
     return root
 
 
@@ -95,12 +101,25 @@ def cluster():
 
 def mapfree_run(split: Path, out: Path, *args: str, popen: bool = False):
     """``mapfree run SPLIT --method METHOD -o OUT --no-progress --json ARGS`` as its own process."""
-    cmd = [sys.executable, "-m", "mapfree", "run", str(split), "--method", METHOD, "-o", str(out), "--no-progress",
-           "--json", *args]
+    cmd = [
+        sys.executable,
+        "-m",
+        "mapfree",
+        "run",
+        str(split),
+        "--method",
+        METHOD,
+        "-o",
+        str(out),
+        "--no-progress",
+        "--json",
+        *args,
+    ]
     env = {**os.environ, **ENV}
     if popen:
-        return subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                text=True, env=env)
+        return subprocess.Popen(
+            cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env
+        )
     return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
 
 
@@ -134,8 +153,9 @@ def test_three_nodes_write_the_local_submission_byte_for_byte(split, local, clus
     assert len(keys) == len(set(keys)) == TOTAL
     # A GPU per worker on a cluster without GPUs: refused at once, naming what the nodes hold.
     done = mapfree_run(split, tmp_path / "gpu.zip", "--ray", cluster.address, "--gpus-per-task", "1")
-    assert done.returncode == 1 and "no node of the Ray cluster has room for a worker of 1 CPU(s) and 1 GPU" \
-        in done.stderr, done.stderr
+    assert (
+        done.returncode == 1 and "no node of the Ray cluster has room for a worker of 1 CPU(s) and 1 GPU" in done.stderr
+    ), done.stderr
     # A finished run resumed: nothing to compute, the cluster is not even reached.
     again = run_split(split, "val", METHOD, out, all_frames=True, progress=False, resume=True, ray_address="ray://x:1")
     assert again.computed == 0 and again.skipped == TOTAL and again.cluster == {}
@@ -144,8 +164,17 @@ def test_three_nodes_write_the_local_submission_byte_for_byte(split, local, clus
 def test_multi_frame_track_and_figures_equal_the_local_ones(split, cluster, tmp_path):
     """--track multi --viz --ray ADDRESS: the fused submission and every figure equal a local run's."""
     for where, extra in (("local", []), ("ray", ["--ray", cluster.address])):
-        done = mapfree_run(split, tmp_path / where / "m.zip", "--track", "multi", "--scenes", "s00001", "--viz",
-                           str(tmp_path / where / "viz"), *extra)
+        done = mapfree_run(
+            split,
+            tmp_path / where / "m.zip",
+            "--track",
+            "multi",
+            "--scenes",
+            "s00001",
+            "--viz",
+            str(tmp_path / where / "viz"),
+            *extra,
+        )
         assert summary(done)["frames"]["computed"] == 3 * 9  # 30 queries: 3 bursts of 9 frames
     _same_outputs(tmp_path / "local/m.zip", tmp_path / "ray/m.zip")
     assert (tmp_path / "local/m.frames.zip").read_bytes() == (tmp_path / "ray/m.frames.zip").read_bytes()
@@ -154,9 +183,28 @@ def test_multi_frame_track_and_figures_equal_the_local_ones(split, cluster, tmp_
     assert figures == sorted(p.relative_to(tmp_path / "ray/viz") for p in (tmp_path / "ray/viz").rglob("*.jpg"))
     for f in figures:
         assert (tmp_path / "local/viz" / f).read_bytes() == (tmp_path / "ray/viz" / f).read_bytes(), f
-    text = subprocess.run([sys.executable, "-m", "mapfree", "run", str(split), "--method", METHOD, "-o",
-                           str(tmp_path / "ray/m.zip"), "--track", "multi", "--scenes", "s00001", "--resume",
-                           "--no-progress"], capture_output=True, text=True, env={**os.environ, **ENV})
+    text = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapfree",
+            "run",
+            str(split),
+            "--method",
+            METHOD,
+            "-o",
+            str(tmp_path / "ray/m.zip"),
+            "--track",
+            "multi",
+            "--scenes",
+            "s00001",
+            "--resume",
+            "--no-progress",
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **ENV},
+    )
     assert text.returncode == 0 and "(0 computed, 27 from the journal" in text.stdout, text.stdout + text.stderr
 
 
@@ -168,8 +216,9 @@ def test_k_references_the_same_on_the_cluster(realmini, cluster, tmp_path):
     root = mapfree_multi_reference_scene(realmini, tmp_path / "data")
     local_out = tmp_path / "local.zip"
     done = mapfree_run(root, local_out, "--references", "2", "--all-frames")
-    res = summary(mapfree_run(root, tmp_path / "ray.zip", "--references", "2", "--all-frames", "--ray",
-                              cluster.address))
+    res = summary(
+        mapfree_run(root, tmp_path / "ray.zip", "--references", "2", "--all-frames", "--ray", cluster.address)
+    )
     assert res["computed"] == summary(done)["computed"] > 0 and res["cluster"]["workers"] >= 1
     _same_outputs(local_out, tmp_path / "ray.zip")
 
@@ -215,9 +264,27 @@ def test_weights_missing_on_the_nodes_stop_the_run_before_any_work(split, cluste
     """SuperGlue's weights are on no node (nor downloadable here): each worker builds the method on its node, and
     the first to fail ends the run in one line naming its node and where the weights go; nothing is journaled."""
     out = tmp_path / "sg.zip"
-    done = subprocess.run([sys.executable, "-m", "mapfree", "run", str(split), "--method", "superglue_pnp_sensor",
-                           "-o", str(out), "--no-progress", "--scenes", "s00000", "--ray", cluster.address],
-                          capture_output=True, text=True, env={**os.environ, **ENV})
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapfree",
+            "run",
+            str(split),
+            "--method",
+            "superglue_pnp_sensor",
+            "-o",
+            str(out),
+            "--no-progress",
+            "--scenes",
+            "s00000",
+            "--ray",
+            cluster.address,
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **ENV},
+    )
     err = done.stderr.strip().splitlines()
     assert done.returncode == 1 and len(err) == 1 and "cannot run method 'superglue_pnp_sensor'" in err[0], err
     assert f"node 127.0.0.1 ({socket.gethostname()}, node " in err[0] and "$MAPFREE_WEIGHTS_DIR" in err[0], err
@@ -232,9 +299,14 @@ def test_a_node_that_cannot_read_the_dataset_is_one_clear_line(split, cluster, t
     empty = tmp_path / "empty"
     empty.mkdir()
     start = f'mount --bind "{empty}" "{split}" && exec "{sys.executable}" "{KEEPER}" node "$0"'
-    node = subprocess.Popen(["unshare", "-m", "--propagation", "private", "sh", "-c", start, cluster.address],
-                            start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-                            env={**os.environ, **ENV})
+    node = subprocess.Popen(
+        ["unshare", "-m", "--propagation", "private", "sh", "-c", start, cluster.address],
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env={**os.environ, **ENV},
+    )
     out = tmp_path / "sub.zip"
     try:
         blind = node.stdout.readline().strip()
@@ -287,14 +359,36 @@ def test_fractional_gpus_put_several_workers_on_one_gpu(split, local, cluster, t
     --gpus-per-task 0.5 starts two workers there and none on the GPU-less nodes; the poses are the local ones."""
     cluster.command("add_gpu")
     out = tmp_path / "gpu-half.zip"
-    res = summary(mapfree_run(split, out, "--all-frames", "--scenes", "s00001", "--ray", cluster.address,
-                              "--gpus-per-task", "0.5"))
+    res = summary(
+        mapfree_run(
+            split, out, "--all-frames", "--scenes", "s00001", "--ray", cluster.address, "--gpus-per-task", "0.5"
+        )
+    )
     assert res["cluster"]["workers"] == 2 and res["cluster"]["nodes"] == 1, res["cluster"]
     assert _scene_file(out, "s00001") == _scene_file(local, "s00001")
     # A method that runs networks asks for a whole GPU by default: one worker, on the GPU node.
-    done = subprocess.run([sys.executable, "-m", "mapfree", "run", str(split), "--method", "xfeat_pnp_sensor", "-o",
-                           str(tmp_path / "xfeat.zip"), "--scenes", "s00001", "--no-progress", "--json", "--ray",
-                           cluster.address], capture_output=True, text=True, env={**os.environ, **ENV})
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapfree",
+            "run",
+            str(split),
+            "--method",
+            "xfeat_pnp_sensor",
+            "-o",
+            str(tmp_path / "xfeat.zip"),
+            "--scenes",
+            "s00001",
+            "--no-progress",
+            "--json",
+            "--ray",
+            cluster.address,
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **ENV},
+    )
     res = summary(done)
     assert res["computed"] == QUERIES // 5 and res["cluster"]["workers"] == 1 and res["cluster"]["tasks"] == 2, res
 

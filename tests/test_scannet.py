@@ -11,7 +11,6 @@ import pytest
 from mapfree.benchmark.relpose import pose_auc, relpose_errors
 from mapfree.data import FormatError
 from mapfree.data.scannet import read_pairs
-
 from realmini_layouts import realmini_frames, scannet_pairs
 
 PAIRS = [(0, 3), (5, 9), (10, 14), (15, 20)]
@@ -37,15 +36,18 @@ def test_reader_pairs_intrinsics_depth(realmini, pair_list):
     np.testing.assert_allclose(p.frame1.depth("depth"), queries[j].depth("sensor"))
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda f: f[:30], "expected 38 fields"),
-    (lambda f: f[:4] + ["x"] + f[5:], "unparseable number"),
-    (lambda f: f[:4] + ["nan"] + f[5:], "non-finite"),
-    (lambda f: f[:2] + ["1"] + f[3:], "EXIF rotations"),
-    (lambda f: f[:22] + ["5"] + f[23:], "T_0to1 is not a rigid transform"),
-    (lambda f: f[:4] + ["-3"] + f[5:], "K0 is not a pinhole camera matrix"),
-    (lambda f: ["nowhere/color/frame-000001.jpg"] + f[1:], "missing or unreadable"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda f: f[:30], "expected 38 fields"),
+        (lambda f: f[:4] + ["x"] + f[5:], "unparseable number"),
+        (lambda f: f[:4] + ["nan"] + f[5:], "non-finite"),
+        (lambda f: f[:2] + ["1"] + f[3:], "EXIF rotations"),
+        (lambda f: f[:22] + ["5"] + f[23:], "T_0to1 is not a rigid transform"),
+        (lambda f: f[:4] + ["-3"] + f[5:], "K0 is not a pinhole camera matrix"),
+        (lambda f: ["nowhere/color/frame-000001.jpg"] + f[1:], "missing or unreadable"),
+    ],
+)
 def test_reader_names_the_bad_line(pair_list, tmp_path, edit, message):
     lines = pair_list.read_text().splitlines()
     lines.insert(0, "# a comment line is skipped")
@@ -75,18 +77,50 @@ def test_scannet_cli_scores_real_pairs(pair_list, tmp_path, capsys):
     assert "AUC @ 20°" in capsys.readouterr().out
     rep = json.loads((out / "report.json").read_text())
     m = rep["metrics"]
-    assert m["Pairs"] == len(PAIRS) and m["Estimates for % of pairs"] == 1.0 and m["Metric estimates for % of pairs"] == 1.0
+    assert (
+        m["Pairs"] == len(PAIRS)
+        and m["Estimates for % of pairs"] == 1.0
+        and m["Metric estimates for % of pairs"] == 1.0
+    )
     assert m["AUC @ 20°"] >= m["AUC @ 10°"] >= m["AUC @ 5°"] > 0.3
     assert m["Median translation error (m)"] < 0.1
     assert len(rep["pairs"]) == len(PAIRS) and (out / "pose_error_cdf.png").stat().st_size > 0
     # Without depth the poses have no scale: no metric translation error, the angular scores remain.
-    assert main(["scannet", str(pair_list), "--method", "sift_emat_none", "--out", str(tmp_path / "o2"),
-                 "--no-progress", "--limit", "2"]) == 0
+    assert (
+        main(
+            [
+                "scannet",
+                str(pair_list),
+                "--method",
+                "sift_emat_none",
+                "--out",
+                str(tmp_path / "o2"),
+                "--no-progress",
+                "--limit",
+                "2",
+            ]
+        )
+        == 0
+    )
     m2 = json.loads((tmp_path / "o2" / "report.json").read_text())["metrics"]
     assert m2["Pairs"] == 2 and m2["Median translation error (m)"] is None and m2["AUC @ 20°"] > 0
     assert main(["scannet", str(tmp_path / "missing.txt"), "--out", str(tmp_path / "o3")]) == 1
     # Ran, but not a single pair estimated (PnP without any depth): exit 3, the report is still written.
     capsys.readouterr()
-    assert main(["scannet", str(pair_list), "--method", "sift_pnp_none", "--out", str(tmp_path / "o4"),
-                 "--no-progress", "--limit", "1"]) == 3
+    assert (
+        main(
+            [
+                "scannet",
+                str(pair_list),
+                "--method",
+                "sift_pnp_none",
+                "--out",
+                str(tmp_path / "o4"),
+                "--no-progress",
+                "--limit",
+                "1",
+            ]
+        )
+        == 3
+    )
     assert "no pair got an estimate" in capsys.readouterr().err and (tmp_path / "o4" / "report.json").is_file()

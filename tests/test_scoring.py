@@ -67,8 +67,12 @@ def test_perfect_submission_scores_zero_errors_and_full_precision(tmp_path):
 
 def test_known_rotation_gives_its_angle_and_no_translation_error(tmp_path):
     make_scene(tmp_path, "s00000", [Pose.identity()] * 6)
-    est = {"s00000": [("seq1/frame_00000.jpg", Pose(rot_x(10.0), np.zeros(3)), 1.0),
-                      ("seq1/frame_00005.jpg", Pose(rot_x(-3.5) @ rot_x(-3.5), np.zeros(3)), 1.0)]}
+    est = {
+        "s00000": [
+            ("seq1/frame_00000.jpg", Pose(rot_x(10.0), np.zeros(3)), 1.0),
+            ("seq1/frame_00005.jpg", Pose(rot_x(-3.5) @ rot_x(-3.5), np.zeros(3)), 1.0),
+        ]
+    }
     r = evaluate(est, tmp_path, "val")
     np.testing.assert_allclose(r.rot_err, [10.0, 7.0], atol=1e-6)
     np.testing.assert_allclose(r.trans_err, 0, atol=1e-12)
@@ -124,7 +128,11 @@ def test_auc_hand_computed_ranking_with_ties():
 def test_missing_frames_and_missing_scene_in_both_modes(tmp_path):
     rng = np.random.default_rng(2)
     for s, n in (("s00000", 20), ("s00001", 13)):
-        make_scene(tmp_path, s, [Pose(quat_to_rotmat(np.r_[1, rng.normal(size=3) * 0.1]), rng.normal(size=3)) for _ in range(n)])
+        make_scene(
+            tmp_path,
+            s,
+            [Pose(quat_to_rotmat(np.r_[1, rng.normal(size=3) * 0.1]), rng.normal(size=3)) for _ in range(n)],
+        )
     est = gt_estimates(tmp_path)
     est["s00000"] = [e for e in est["s00000"] if e[0] != "seq1/frame_00005.jpg"]  # 1 of 4 scored frames
     full = evaluate(est, tmp_path, "val")
@@ -173,7 +181,9 @@ def _random_split(root: Path, seed: int) -> dict:
             big = rng.random() < 0.15  # some wild estimates: behind the camera, 180° flips
             dR = quat_to_rotmat(np.r_[rng.normal() * (0 if big else 5), rng.normal(size=3)])
             p = gt[i]
-            items.append((name, Pose(dR @ p.R, p.t + rng.normal(size=3) * (3.0 if big else 0.2)), float(rng.integers(0, 6))))
+            items.append(
+                (name, Pose(dR @ p.R, p.t + rng.normal(size=3) * (3.0 if big else 0.2)), float(rng.integers(0, 6)))
+            )
         est[f"s{s:05d}"] = items
     return est
 
@@ -277,8 +287,13 @@ def test_per_scene_figures_equal_scoring_each_scene_alone(tmp_path):
     for compat in ("default", "official"):
         r = evaluate(est, tmp_path, "val", compat=compat)
         for scene in ("s00000", "s00001", "s00002"):
-            alone = evaluate({scene: est[scene]} if scene in est else {}, tmp_path, "val", compat="default",
-                             truth={scene: load_truth(tmp_path, "val")[scene]})
+            alone = evaluate(
+                {scene: est[scene]} if scene in est else {},
+                tmp_path,
+                "val",
+                compat="default",
+                truth={scene: load_truth(tmp_path, "val")[scene]},
+            )
             for k, v in r.per_scene[scene].items():
                 if compat == "official" and scene == "s00002" and k != METRIC_KEYS[0]:
                     continue  # the public evaluator's penalty differs for a missing scene

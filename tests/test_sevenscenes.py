@@ -12,7 +12,6 @@ import pytest
 from mapfree.benchmark.localization import localization_report
 from mapfree.data import FormatError
 from mapfree.data.sevenscenes import SevenScenes, read_matrix_pose
-
 from realmini_layouts import realmini_frames, seven_scenes
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -86,15 +85,17 @@ def test_localization_report_counts_failures(realmini, seven):
     q_est, t_est = q.copy(), t.copy()
     t_est[1] += [0.5, 0, 0]  # one frame 50 cm off
     q_est[2] = np.nan  # one frame without estimate
-    r = localization_report(["office"] * n, [f.name for f in test], q, t, q_est, t_est, np.ones(n), K,
-                            np.full(n, 540), np.full(n, 360))
+    r = localization_report(
+        ["office"] * n, [f.name for f in test], q, t, q_est, t_est, np.ones(n), K, np.full(n, 540), np.full(n, 360)
+    )
     assert r.thresholds.vcre == (64.9, 32.4)  # 10 % and 5 % of the 540x360 diagonal
     assert r.metrics["Precision @ VCRE < 64.9px"] == pytest.approx((n - 2) / n)
     assert r.metrics["Estimates for % of frames"] == pytest.approx((n - 1) / n)
     assert r.vcre[1] > 64.9 and r.vcre[0] == pytest.approx(0, abs=1e-6) and np.isnan(r.vcre[2])
     with pytest.raises(ValueError, match="contiguous"):
-        localization_report(["a", "b", "a"], ["x"] * 3, q[:3], t[:3], q[:3], t[:3], np.ones(3), K[:3],
-                            np.full(3, 540), np.full(3, 360))
+        localization_report(
+            ["a", "b", "a"], ["x"] * 3, q[:3], t[:3], q[:3], t[:3], np.ones(3), K[:3], np.full(3, 540), np.full(3, 360)
+        )
 
 
 @pytest.mark.slow
@@ -102,9 +103,25 @@ def test_sevenscenes_cli_more_references_localise_better(realmini, seven, tmp_pa
     from mapfree.cli import main
 
     out = tmp_path / "out"
-    rc = main(["sevenscenes", str(seven), "--method", "sift_pnp_depth", "--k", "1,4", "--mapping-stride", "1",
-               "--query-stride", "2", "--intrinsics", *map(str, camera(realmini)), "--out", str(out),
-               "--no-progress"])
+    rc = main(
+        [
+            "sevenscenes",
+            str(seven),
+            "--method",
+            "sift_pnp_depth",
+            "--k",
+            "1,4",
+            "--mapping-stride",
+            "1",
+            "--query-stride",
+            "2",
+            "--intrinsics",
+            *map(str, camera(realmini)),
+            "--out",
+            str(out),
+            "--no-progress",
+        ]
+    )
     assert rc == 0
     assert "K=4" in capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
@@ -126,7 +143,25 @@ def test_sevenscenes_says_when_k_exceeds_the_mapping_frames(realmini, seven, tmp
 
     n = len(SevenScenes(seven).scene("office").frames("train", 10))
     assert n < 10
-    assert main(["sevenscenes", str(seven), "--method", "sift_pnp_depth", "--k", "10", "--query-stride", "50",
-                 "--intrinsics", *map(str, camera(realmini)), "--out", str(tmp_path / "o"), "--no-plots",
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "sevenscenes",
+                str(seven),
+                "--method",
+                "sift_pnp_depth",
+                "--k",
+                "10",
+                "--query-stride",
+                "50",
+                "--intrinsics",
+                *map(str, camera(realmini)),
+                "--out",
+                str(tmp_path / "o"),
+                "--no-plots",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert f"office has {n} mapping frame(s) at --mapping-stride 10, so K > {n} uses {n}" in capsys.readouterr().err

@@ -39,8 +39,14 @@ def rot(rx: float, ry: float, rz: float) -> np.ndarray:
 TRUE = Pose(rot(0.05, -0.12, 0.03), np.array([0.45, -0.1, 0.2]))
 
 
-def synthetic_pair(rng: np.random.Generator, n: int = 300, pose: Pose = TRUE, outliers: float = 0.0,
-                   K0: Intrinsics = K_REF, K1: Intrinsics = K_QRY):
+def synthetic_pair(
+    rng: np.random.Generator,
+    n: int = 300,
+    pose: Pose = TRUE,
+    outliers: float = 0.0,
+    K0: Intrinsics = K_REF,
+    K1: Intrinsics = K_QRY,
+):
     """Exact matches between two cameras and sparse depth maps that hold the exact depth at the pixel each
     keypoint rounds to (reference keypoints sit on integer pixels; colliding query pixels are dropped)."""
     uv0 = np.stack([rng.integers(0, K0.width, n), rng.integers(0, K0.height, n)], axis=1).astype(np.float64)
@@ -123,8 +129,16 @@ def test_registry_names_aliases_and_presets():
 # --------------------------------------------------------------------------- exact recovery
 
 
-@pytest.mark.parametrize("name,kw", [("essential", {"refine": True}), ("essential", {"backend": "poselib"}),
-                                     ("pnp", {}), ("pnp", {"backend": "poselib"}), ("procrustes", {})])
+@pytest.mark.parametrize(
+    "name,kw",
+    [
+        ("essential", {"refine": True}),
+        ("essential", {"backend": "poselib"}),
+        ("pnp", {}),
+        ("pnp", {"backend": "poselib"}),
+        ("procrustes", {}),
+    ],
+)
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_exact_correspondences_recover_pose(name, kw, seed):
     rng = np.random.default_rng(seed)
@@ -146,8 +160,9 @@ def test_paper_essential_is_exact_up_to_opencv_polishing():
         assert dt < 1e-3 and math.radians(dr) < 1e-3, (seed, dt, dr)
 
 
-@pytest.mark.parametrize("name,kw", [("essential", {}), ("essential", {"backend": "poselib"}), ("pnp", {}),
-                                     ("procrustes", {})])
+@pytest.mark.parametrize(
+    "name,kw", [("essential", {}), ("essential", {"backend": "poselib"}), ("pnp", {}), ("procrustes", {})]
+)
 def test_forty_percent_outliers(name, kw):
     rng = np.random.default_rng(2)
     m, D0, D1 = synthetic_pair(rng, n=400, outliers=0.4)
@@ -195,8 +210,13 @@ def test_depth_lookups_equal_the_float64_map(realmini):
         for mode in ("nearest", "floor", "bilinear"):
             got, want = sample_depth_at(d, uv, K, mode), sample_depth_at(d.astype(np.float64), uv, K, mode)
             assert got.dtype == np.float64 and np.array_equal(got, want) and (got > 0).sum() > 1000
-    for m, ok in ((d, True), (np.where(np.isfinite(d), 0.0, d), False), (np.full((4, 4), np.inf), False),
-                  (np.array([[np.nan, 2 * MAX_DEPTH], [np.inf, 1.0]]), True), (np.full((3, 3), 2 * MAX_DEPTH), False)):
+    for m, ok in (
+        (d, True),
+        (np.where(np.isfinite(d), 0.0, d), False),
+        (np.full((4, 4), np.inf), False),
+        (np.array([[np.nan, 2 * MAX_DEPTH], [np.inf, 1.0]]), True),
+        (np.full((3, 3), 2 * MAX_DEPTH), False),
+    ):
         with np.errstate(invalid="ignore"):
             full = bool(np.any(np.isfinite(m) & (m > 0) & (m < MAX_DEPTH)))
         assert valid_depth_map(m) is ok is full

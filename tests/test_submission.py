@@ -32,7 +32,10 @@ def reasons(problems, scene=None, line=None) -> list[str]:
 def test_round_trip(tmp_path):
     rng = np.random.default_rng(0)
     est = {
-        s: [(n, Pose(quat_to_rotmat(rng.normal(size=4)), rng.normal(size=3)), float(rng.integers(0, 100))) for n in NAMES]
+        s: [
+            (n, Pose(quat_to_rotmat(rng.normal(size=4)), rng.normal(size=3)), float(rng.integers(0, 100)))
+            for n in NAMES
+        ]
         for s in ("s00000", "s00001")
     }
     est["s00001"].append(("seq1/frame_00009.jpg", None, 1.0))  # no estimate: left out
@@ -52,12 +55,14 @@ def test_round_trip(tmp_path):
 
 
 def test_writer_never_writes_non_finite_or_negative(tmp_path):
-    est = {"s00000": [
-        ("seq1/frame_00000.jpg", Pose(np.eye(3), [np.nan, 0, 0]), 1.0),
-        ("seq1/frame_00001.jpg", Pose.identity(), float("inf")),
-        ("seq1/frame_00002.jpg", Pose.identity(), -2.0),
-        ("seq1/frame_00003.jpg", Pose.identity(), 2.0),
-    ]}
+    est = {
+        "s00000": [
+            ("seq1/frame_00000.jpg", Pose(np.eye(3), [np.nan, 0, 0]), 1.0),
+            ("seq1/frame_00001.jpg", Pose.identity(), float("inf")),
+            ("seq1/frame_00002.jpg", Pose.identity(), -2.0),
+            ("seq1/frame_00003.jpg", Pose.identity(), 2.0),
+        ]
+    }
     skipped = write_submission(tmp_path / "s.zip", est)
     assert len(skipped) == 3
     text = zipfile.ZipFile(tmp_path / "s.zip").read("pose_s00000.txt").decode()
@@ -66,26 +71,33 @@ def test_writer_never_writes_non_finite_or_negative(tmp_path):
 
 def test_every_malformed_line_is_reported_and_the_rest_kept():
     body = (
-        "# a comment line\n"                                        # 1 comment
-        + GOOD                                                      # 2 ok
-        + "seq1/frame_00001.jpg 1 0 0 0 0 0 0\n"                    # 3 wrong field count
-        + "seq1/frame_00002.jpg 1 0 zero 0 0 0 0 1\n"               # 4 unparseable
-        + "seq1/frame_00003.jpg 1 0 0 0 nan 0 0 1\n"                # 5 non-finite
-        + "seq1/frame_00004.jpg 0 0 0 0 0 0 0 1\n"                  # 6 zero quaternion
-        + "seq1/frame_99999.jpg 1 0 0 0 0 0 0 1\n"                  # 7 unknown frame
-        + "seq1/frame_00000.jpg 1 0 0 0 9 9 9 1\n"                  # 8 duplicate
-        + "seq1/frame_00005.jpg 1 0 0 0 0 0 0 -3\n"                 # 9 negative confidence
-        + "seq1/frame_00006.jpg 1 0 0 0 0 0 0 inf\n"                # 10 non-finite confidence
-        + "seq1/frame_0000x.jpg 1 0 0 0 0 0 0 1\n"                  # 11 no frame number
-        + "seq1/frame_00007.jpg   2  0  0  0  0  0  0  1\n"         # 12 ok (extra spaces)
+        "# a comment line\n"  # 1 comment
+        + GOOD  # 2 ok
+        + "seq1/frame_00001.jpg 1 0 0 0 0 0 0\n"  # 3 wrong field count
+        + "seq1/frame_00002.jpg 1 0 zero 0 0 0 0 1\n"  # 4 unparseable
+        + "seq1/frame_00003.jpg 1 0 0 0 nan 0 0 1\n"  # 5 non-finite
+        + "seq1/frame_00004.jpg 0 0 0 0 0 0 0 1\n"  # 6 zero quaternion
+        + "seq1/frame_99999.jpg 1 0 0 0 0 0 0 1\n"  # 7 unknown frame
+        + "seq1/frame_00000.jpg 1 0 0 0 9 9 9 1\n"  # 8 duplicate
+        + "seq1/frame_00005.jpg 1 0 0 0 0 0 0 -3\n"  # 9 negative confidence
+        + "seq1/frame_00006.jpg 1 0 0 0 0 0 0 inf\n"  # 10 non-finite confidence
+        + "seq1/frame_0000x.jpg 1 0 0 0 0 0 0 1\n"  # 11 no frame number
+        + "seq1/frame_00007.jpg   2  0  0  0  0  0  0  1\n"  # 12 ok (extra spaces)
     )
     data = zip_bytes({"pose_s00000.txt": body, "pose_s00042.txt": GOOD, "sub/pose_s00001.txt": GOOD})
     est, problems = read_submission(data, EXPECTED)
     assert est["s00000"].names == ["seq1/frame_00000.jpg", "seq1/frame_00007.jpg"]
     np.testing.assert_allclose(est["s00000"].t[0], [0.1, 0.2, 0.3])  # the first of the duplicates wins
     expect = {
-        3: "expected 9 fields", 4: "unparseable number in field qy", 5: "non-finite", 6: "zero quaternion",
-        7: "unknown frame", 8: "duplicate frame", 9: "negative confidence", 10: "non-finite", 11: "5-digit number",
+        3: "expected 9 fields",
+        4: "unparseable number in field qy",
+        5: "non-finite",
+        6: "zero quaternion",
+        7: "unknown frame",
+        8: "duplicate frame",
+        9: "negative confidence",
+        10: "non-finite",
+        11: "5-digit number",
     }
     for line, text in expect.items():
         got = reasons(problems, "s00000", line)
@@ -128,10 +140,15 @@ def test_clean_and_messy_files_parse_identically():
 
 
 def test_unsafe_paths_and_junk_entries_are_ignored():
-    data = zip_bytes({
-        "/etc/pose_s00000.txt": GOOD, "../pose_s00000.txt": GOOD, "__MACOSX/._pose_s00000.txt": "x",
-        "README.md": "hello", "pose_s00001.txt": GOOD,
-    })
+    data = zip_bytes(
+        {
+            "/etc/pose_s00000.txt": GOOD,
+            "../pose_s00000.txt": GOOD,
+            "__MACOSX/._pose_s00000.txt": "x",
+            "README.md": "hello",
+            "pose_s00001.txt": GOOD,
+        }
+    )
     est, problems = read_submission(data, EXPECTED)
     assert list(est) == ["s00001"]
     text = " ".join(str(p) for p in problems)
@@ -185,7 +202,9 @@ def test_a_file_read_in_pieces_gives_what_the_whole_file_gives(monkeypatch):
     import mapfree.benchmark.submission as sub
 
     rng = np.random.default_rng(4)
-    lines = [f"{NAMES[i % 10]} " + " ".join(repr(float(v)) for v in rng.normal(size=7)) + f" {i % 7}" for i in range(40)]
+    lines = [
+        f"{NAMES[i % 10]} " + " ".join(repr(float(v)) for v in rng.normal(size=7)) + f" {i % 7}" for i in range(40)
+    ]
     lines[3] = "seq1/frame_00099.jpg 1 0 0 0 0 0 0 1"  # unknown frame
     lines[17] = "seq1/frame_00002.jpg 1 0 0 0 0 0 x 1"  # unparseable number
     lines[25] = "seq1/frame_00004.jpg 0 0 0 0 0 0 0 1"  # zero quaternion
@@ -209,8 +228,10 @@ def test_a_large_file_is_parsed_in_memory_bounded_by_its_compressed_size():
 
     # 8 MB of pose lines (frames repeat: the first of each is kept, the rest reported), 4-5x compressible.
     rng = np.random.default_rng(1)
-    block = "".join(f"{NAMES[i % 10]} 1.0 0.0 0.0 0.0 {a:.4f} {b:.4f} {c:.4f} {abs(d) * 10:.1f}\n"
-                    for i, (a, b, c, d) in enumerate(rng.normal(size=(20000, 4)))).encode()
+    block = "".join(
+        f"{NAMES[i % 10]} 1.0 0.0 0.0 0.0 {a:.4f} {b:.4f} {c:.4f} {abs(d) * 10:.1f}\n"
+        for i, (a, b, c, d) in enumerate(rng.normal(size=(20000, 4)))
+    ).encode()
     text = block * (8_000_000 // len(block) + 1)
     data = zip_bytes({"pose_s00000.txt": text})
     tracemalloc.start()

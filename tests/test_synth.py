@@ -34,8 +34,11 @@ def train_root(tmp_path_factory) -> Path:
 
 
 def _tree_digest(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*"))
-            if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def _planar(depth: np.ndarray) -> np.ndarray:
@@ -77,8 +80,13 @@ def test_val_split_reads_back_in_mapfree_layout(val_root):
     scenes = Dataset(val_root).scenes("val")
     assert [s.name for s in scenes] == ["s00000", "s00001"]
     for scene in scenes:
-        assert set(p.name for p in scene.path.iterdir()) == {"intrinsics.txt", "poses.txt", "poses_device.txt",
-                                                             "seq0", "seq1"}
+        assert set(p.name for p in scene.path.iterdir()) == {
+            "intrinsics.txt",
+            "poses.txt",
+            "poses_device.txt",
+            "seq0",
+            "seq1",
+        }
         assert scene.poses.names == list(scene.intrinsics) and len(scene.queries) == 10
         ref = scene.reference
         assert np.allclose(ref.pose.R, np.eye(3)) and np.allclose(ref.pose.t, 0)
@@ -132,8 +140,12 @@ def test_no_overlap_queries_share_nothing_with_the_reference(val_root):
         ov = []
         for q in scene.queries:
             d_q = q.depth(GT_DEPTH_SUFFIX)
-            ov.append((depth_overlap(d_ref, ref.intrinsics, ref.pose, d_q, q.intrinsics, q.pose),
-                       depth_overlap(d_q, q.intrinsics, q.pose, d_ref, ref.intrinsics, ref.pose)))
+            ov.append(
+                (
+                    depth_overlap(d_ref, ref.intrinsics, ref.pose, d_q, q.intrinsics, q.pose),
+                    depth_overlap(d_q, q.intrinsics, q.pose, d_ref, ref.intrinsics, ref.pose),
+                )
+            )
         ov = np.array(ov)
         assert np.sum(np.all(ov == 0, 1)) >= 3  # 30 % of 10 queries look away, and really see nothing
         assert np.sum(np.all(ov > 0.1, 1)) >= 4  # most others share a good part of the view
@@ -153,11 +165,12 @@ def test_train_overlaps_from_geometry(train_root):
     frames = {(int(n[3]), int(n[-9:-4])): f for n, f in scene.frames.items()}
 
     def dense(fa, fb):
-        return depth_overlap(fa.depth(GT_DEPTH_SUFFIX), fa.intrinsics, fa.pose, fb.depth(GT_DEPTH_SUFFIX),
-                             fb.intrinsics, fb.pose, step=2)
+        return depth_overlap(
+            fa.depth(GT_DEPTH_SUFFIX), fa.intrinsics, fa.pose, fb.depth(GT_DEPTH_SUFFIX), fb.intrinsics, fb.pose, step=2
+        )
 
     agree = []
-    for (a, b, c, d) in list(table)[:: max(1, len(table) // 40)]:
+    for a, b, c, d in list(table)[:: max(1, len(table) // 40)]:
         fa, fb = frames[(a, b)], frames[(c, d)]
         agree.append((table[(a, b, c, d)], min(dense(fa, fb), dense(fb, fa))))
     assert np.corrcoef(np.array(agree).T)[0, 1] > 0.6
@@ -183,8 +196,9 @@ def test_mono_depth_has_a_per_image_scale_bias(val_root):
 
 def test_test_split_hides_poses_and_writes_private_ground_truth(tmp_path):
     opts = SynthOptions(width=90, height=120, texture_size=64, first_scene=525)
-    dirs = generate(tmp_path / "data", "test", 1, 4, seed=1, private_gt_dir=tmp_path / "gt", options=opts,
-                    progress=False)
+    dirs = generate(
+        tmp_path / "data", "test", 1, 4, seed=1, private_gt_dir=tmp_path / "gt", options=opts, progress=False
+    )
     assert dirs == [tmp_path / "data/test/s00525"]
     public = read_poses(dirs[0] / "poses.txt")
     assert len(public) == 5 and np.all(public.q == 0) and np.all(public.t == 0)
@@ -202,8 +216,12 @@ def test_reference_and_close_query_match_with_sift_consistently_with_gt(tmp_path
     scene = Dataset(tmp_path).scene("val", scene_dir.name)
     ref = scene.reference
     d_ref = ref.depth(GT_DEPTH_SUFFIX)
-    best = max(scene.queries, key=lambda q: depth_overlap(d_ref, ref.intrinsics, ref.pose, q.depth(GT_DEPTH_SUFFIX),
-                                                          q.intrinsics, q.pose, step=4))
+    best = max(
+        scene.queries,
+        key=lambda q: depth_overlap(
+            d_ref, ref.intrinsics, ref.pose, q.depth(GT_DEPTH_SUFFIX), q.intrinsics, q.pose, step=4
+        ),
+    )
     assert rotation_angle_deg(np.eye(3), best.pose.R) > 1 or np.linalg.norm(best.pose.center) > 0.1
     sift = cv2.SIFT_create(2048)
     k0, d0 = sift.detectAndCompute(cv2.cvtColor(ref.image(), cv2.COLOR_RGB2GRAY), None)
@@ -218,8 +236,25 @@ def test_reference_and_close_query_match_with_sift_consistently_with_gt(tmp_path
 
 
 def test_cli_writes_a_split_and_rejects_bad_options(tmp_path, capsys):
-    assert cli_main(["synth", str(tmp_path), "--scenes", "1", "--queries", "2", "--size", "90x120", "--quiet",
-                     "--first-scene", "3", "--no-mono"]) == 0
+    assert (
+        cli_main(
+            [
+                "synth",
+                str(tmp_path),
+                "--scenes",
+                "1",
+                "--queries",
+                "2",
+                "--size",
+                "90x120",
+                "--quiet",
+                "--first-scene",
+                "3",
+                "--no-mono",
+            ]
+        )
+        == 0
+    )
     scene = Dataset(tmp_path).scene("val", "s00003")
     assert len(scene.queries) == 2 and not scene.reference.has_depth(EST_DEPTH_SUFFIX)
     assert scene.reference.has_depth(GT_DEPTH_SUFFIX)

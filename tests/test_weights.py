@@ -10,10 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from mapfree.cli import main
-
 from cli_support import one_line as _one_line
 from cli_support import query_pair as _pair
+from mapfree.cli import main
 
 
 def _safetensors(path: Path, n_floats: int, keep: int | None = None) -> None:
@@ -25,8 +24,9 @@ def _safetensors(path: Path, n_floats: int, keep: int | None = None) -> None:
 
 
 @pytest.mark.parametrize("matcher, folder", [("superglue", "superglue_outdoor"), ("efficientloftr", "efficientloftr")])
-def test_a_cut_short_or_incomplete_model_folder_is_refused_with_its_path(synth, tmp_path, monkeypatch, capfd,
-                                                                         matcher, folder):
+def test_a_cut_short_or_incomplete_model_folder_is_refused_with_its_path(
+    synth, tmp_path, monkeypatch, capfd, matcher, folder
+):
     """A truncated model.safetensors was a 44-line SafetensorError traceback; a folder without config.json said
     "model not found" although it was there."""
     monkeypatch.setenv("MAPFREE_WEIGHTS_DIR", str(tmp_path / "w"))

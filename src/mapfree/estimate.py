@@ -38,11 +38,10 @@ class Estimate:
 
         rot = rotation_angle_deg(self.pose.R, np.eye(3))
         t = ", ".join(f"{v:.3f}" for v in self.pose.t)
-        return (f"Estimate(rotation {rot:.2f} deg, t=({t}) m, confidence {self.confidence:.3g}, "
-                f"inliers {self.inliers})")
+        return f"Estimate(rotation {rot:.2f} deg, t=({t}) m, confidence {self.confidence:.3g}, inliers {self.inliers})"
 
     @classmethod
-    def failure(cls, reason: str, **timings: float) -> "Estimate":
+    def failure(cls, reason: str, **timings: float) -> Estimate:
         return cls(None, 0.0, 0, reason, dict(timings))
 
     @property
@@ -50,8 +49,13 @@ class Estimate:
         return self.pose is not None
 
     def to_dict(self) -> dict:
-        d: dict = {"ok": self.ok, "confidence": self.confidence, "inliers": int(self.inliers), "reason": self.reason,
-                   "timings": {k: float(v) for k, v in self.timings.items()}}
+        d: dict = {
+            "ok": self.ok,
+            "confidence": self.confidence,
+            "inliers": int(self.inliers),
+            "reason": self.reason,
+            "timings": {k: float(v) for k, v in self.timings.items()},
+        }
         if self.pose is not None:
             q, t = self.pose.qt()
             d.update(q_wxyz=q.tolist(), t=t.tolist(), R=self.pose.R.tolist(), center=self.pose.center.tolist())

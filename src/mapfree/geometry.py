@@ -6,8 +6,8 @@ quaternions in ``w x y z`` order. Nothing here imports anything else from mapfre
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 import numpy as np
 
@@ -62,9 +62,7 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     m = R.reshape(-1, 3, 3)
     tr = np.trace(m, axis1=1, axis2=2)
     # Candidate 4*q_i^2 for each component; pick the largest to avoid dividing by a small number.
-    d = np.stack(
-        [1 + tr, 1 + 2 * m[:, 0, 0] - tr, 1 + 2 * m[:, 1, 1] - tr, 1 + 2 * m[:, 2, 2] - tr], axis=1
-    )
+    d = np.stack([1 + tr, 1 + 2 * m[:, 0, 0] - tr, 1 + 2 * m[:, 1, 1] - tr, 1 + 2 * m[:, 2, 2] - tr], axis=1)
     k = np.argmax(d, axis=1)
     a = m
     # Scaled by 4|q_k|: the chosen component is d_k = 4 q_k^2, the others are sums/differences of entries.
@@ -106,15 +104,15 @@ class Pose:
         object.__setattr__(self, "t", np.asarray(self.t, dtype=np.float64).reshape(3))
 
     @classmethod
-    def identity(cls) -> "Pose":
+    def identity(cls) -> Pose:
         return cls(np.eye(3), np.zeros(3))
 
     @classmethod
-    def from_qt(cls, q_wxyz: Iterable[float], t: Iterable[float]) -> "Pose":
+    def from_qt(cls, q_wxyz: Iterable[float], t: Iterable[float]) -> Pose:
         return cls(quat_to_rotmat(np.asarray(q_wxyz, dtype=np.float64)), np.asarray(t, dtype=np.float64))
 
     @classmethod
-    def from_matrix(cls, T: np.ndarray) -> "Pose":
+    def from_matrix(cls, T: np.ndarray) -> Pose:
         T = np.asarray(T, dtype=np.float64)
         return cls(T[:3, :3], T[:3, 3])
 
@@ -133,10 +131,10 @@ class Pose:
         """Camera centre in world coordinates, ``-R^T t``."""
         return -self.R.T @ self.t
 
-    def inverse(self) -> "Pose":
+    def inverse(self) -> Pose:
         return Pose(self.R.T, -self.R.T @ self.t)
 
-    def __matmul__(self, other: "Pose") -> "Pose":
+    def __matmul__(self, other: Pose) -> Pose:
         """Composition: ``(a @ b)(X) = a(b(X))``."""
         return Pose(self.R @ other.R, self.R @ other.t + self.t)
 
@@ -144,7 +142,7 @@ class Pose:
         """Apply to (N,3) points."""
         return np.asarray(X) @ self.R.T + self.t
 
-    def relative_to(self, first: "Pose") -> "Pose":
+    def relative_to(self, first: Pose) -> Pose:
         """Pose of this camera relative to ``first`` (q12 = q2 q1^-1, t12 = t2 - R12 t1)."""
         return self @ first.inverse()
 
@@ -160,11 +158,11 @@ class Poses:
     t: np.ndarray
 
     @classmethod
-    def from_qt(cls, q_wxyz: np.ndarray, t: np.ndarray) -> "Poses":
+    def from_qt(cls, q_wxyz: np.ndarray, t: np.ndarray) -> Poses:
         return cls(quat_to_rotmat(np.asarray(q_wxyz, dtype=np.float64)), np.asarray(t, dtype=np.float64))
 
     @classmethod
-    def stack(cls, poses: Iterable[Pose]) -> "Poses":
+    def stack(cls, poses: Iterable[Pose]) -> Poses:
         poses = list(poses)
         return cls(np.stack([p.R for p in poses]), np.stack([p.t for p in poses]))
 
@@ -181,14 +179,14 @@ class Poses:
     def centers(self) -> np.ndarray:
         return -np.einsum("nji,nj->ni", self.R, self.t)
 
-    def inverse(self) -> "Poses":
+    def inverse(self) -> Poses:
         Rt = np.swapaxes(self.R, 1, 2)
         return Poses(Rt, -np.einsum("nij,nj->ni", Rt, self.t))
 
-    def __matmul__(self, other: "Poses") -> "Poses":
+    def __matmul__(self, other: Poses) -> Poses:
         return Poses(self.R @ other.R, np.einsum("nij,nj->ni", self.R, other.t) + self.t)
 
-    def relative_to(self, first: "Poses") -> "Poses":
+    def relative_to(self, first: Poses) -> Poses:
         return self @ first.inverse()
 
 
@@ -211,7 +209,7 @@ class Intrinsics:
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
 
     @classmethod
-    def from_K(cls, K: np.ndarray, width: int, height: int) -> "Intrinsics":
+    def from_K(cls, K: np.ndarray, width: int, height: int) -> Intrinsics:
         K = np.asarray(K, dtype=np.float64)
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
 
@@ -223,7 +221,7 @@ class Intrinsics:
     def diagonal(self) -> float:
         return float(np.hypot(self.width, self.height))
 
-    def scaled(self, sx: float, sy: float | None = None) -> "Intrinsics":
+    def scaled(self, sx: float, sy: float | None = None) -> Intrinsics:
         """Intrinsics after resizing the image by (sx, sy), half-pixel-centre convention."""
         sy = sx if sy is None else sy
         return Intrinsics(
@@ -235,7 +233,7 @@ class Intrinsics:
             int(round(self.height * sy)),
         )
 
-    def resized(self, width: int, height: int) -> "Intrinsics":
+    def resized(self, width: int, height: int) -> Intrinsics:
         """Intrinsics of the image resized to exactly ``width × height``."""
         out = self.scaled(width / self.width, height / self.height)
         return Intrinsics(out.fx, out.fy, out.cx, out.cy, int(width), int(height))

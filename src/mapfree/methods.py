@@ -11,9 +11,10 @@ from __future__ import annotations
 import difflib
 import importlib
 import os
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 from .depth import HUB_MODELS, PAIR_MODELS
 from .matching import needs as matcher_needs
@@ -24,16 +25,47 @@ if TYPE_CHECKING:
     from .weights import Model
 
 __all__ = [
-    "Method", "MATCHERS", "OFFLINE_MATCHERS", "SOLVERS", "DEPTH_ALIASES", "BEST_OFFLINE", "BEST_OFFLINE_REFERENCE_DEPTH",
+    "Method",
+    "MATCHERS",
+    "OFFLINE_MATCHERS",
+    "SOLVERS",
+    "DEPTH_ALIASES",
+    "BEST_OFFLINE",
+    "BEST_OFFLINE_REFERENCE_DEPTH",
     "PAPER_THRESHOLD_PX",
-    "get", "list_methods", "requirements", "register", "register_kind", "factory", "parse_name", "preset_name",
-    "load_yaml", "config_dirs", "check_options", "query_depth_fallback", "depth_free_problem", "QUERY_DEPTH_SOLVERS",
-    "LIFTING_SOLVERS", "weight_models", "all_weight_models",
+    "get",
+    "list_methods",
+    "requirements",
+    "register",
+    "register_kind",
+    "factory",
+    "parse_name",
+    "preset_name",
+    "load_yaml",
+    "config_dirs",
+    "check_options",
+    "query_depth_fallback",
+    "depth_free_problem",
+    "QUERY_DEPTH_SOLVERS",
+    "LIFTING_SOLVERS",
+    "weight_models",
+    "all_weight_models",
 ]
 
 #: Matchers whose presets exist; ``OFFLINE_MATCHERS`` run without downloading weights.
-MATCHERS = ("sift", "xfeat", "xfeat-star", "xfeat-lighterglue", "aliked-lightglue", "disk-lightglue", "loftr",
-            "superpoint-lightglue", "superglue", "superglue-indoor", "efficientloftr")
+MATCHERS = (
+    "sift",
+    "xfeat",
+    "xfeat-star",
+    "xfeat-lighterglue",
+    "aliked-lightglue",
+    "disk-lightglue",
+    "loftr",
+    "superpoint-lightglue",
+    "superglue",
+    "superglue-indoor",
+    "efficientloftr",
+)
 OFFLINE_MATCHERS = MATCHERS[:6]
 MATCHERS += PAIR_MODELS  # networks with their own depth; weights are the user's download (docs/mast3r.md, mickey.md)
 #: Matchers whose presets' descriptions say what they need (``matching.needs``): weights the user places.
@@ -49,8 +81,8 @@ _LEARNED_THRESHOLD_PX = 2.0
 
 #: Lazily imported modules that register method kinds / presets on import.
 _KIND_MODULES = {"regression": "mapfree.rpr"}
-_FACTORIES: dict[str, Callable[["Method"], Any]] = {}
-_REGISTRY: dict[str, "Method"] = {}
+_FACTORIES: dict[str, Callable[[Method], Any]] = {}
+_REGISTRY: dict[str, Method] = {}
 
 
 @dataclass
@@ -71,7 +103,7 @@ class Method:
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
-    def with_depth(self, depth: str) -> "Method":
+    def with_depth(self, depth: str) -> Method:
         """The same method with another depth spec (``files:SUFFIX``, ``none``, ``hf:…``) or bare suffix."""
         spec = _depth_spec(depth)
         return replace(self, depth=spec, name=f"{self.name}@{depth}")
@@ -154,10 +186,14 @@ def parse_name(name: str) -> Method | None:
     # Only Ess.Mat's threshold depends on the matcher in the paper; PnP uses 3 px throughout.
     solver_opts: dict[str, Any] = {"ransac_threshold_px": threshold} if solver == "essential" else {}
     return Method(
-        name=name, matcher=matcher, depth=_depth_spec(depth_tok), solver=solver, solver_opts=solver_opts,
+        name=name,
+        matcher=matcher,
+        depth=_depth_spec(depth_tok),
+        solver=solver,
+        solver_opts=solver_opts,
         description=f"{matcher} matches, {solver} solver, depth {depth_tok} (paper settings"
-                    + (f", {threshold:g} px)" if solver == "essential" else ")")
-                    + (f"; needs {matcher_needs(matcher)}" if matcher in _NEEDS_IN_DESCRIPTION else ""),
+        + (f", {threshold:g} px)" if solver == "essential" else ")")
+        + (f"; needs {matcher_needs(matcher)}" if matcher in _NEEDS_IN_DESCRIPTION else ""),
     )
 
 
@@ -203,7 +239,11 @@ def query_depth_fallback(method: Method) -> Method:
     only, at the reference's metric scale) when its solver would need the query's depth. The service and
     ``mapfree relocalize`` both answer a plain photo this way (the default ``best-offline`` is Procrustes)."""
     # a pair network's query depth comes from the network, with the pair: no fallback
-    if method.kind == "matching" and method.depth not in ("none", *PAIR_MODELS) and method.solver in QUERY_DEPTH_SOLVERS:
+    if (
+        method.kind == "matching"
+        and method.depth not in ("none", *PAIR_MODELS)
+        and method.solver in QUERY_DEPTH_SOLVERS
+    ):
         return replace(method, solver="pnp", solver_opts={}, name=f"{method.name}+pnp")
     return method
 
@@ -212,14 +252,18 @@ def depth_free_problem(method: Method) -> str | None:
     """Why ``method`` cannot estimate anything from images alone (PnP or Procrustes with depth ``none``: they run
     only on depth maps handed to them with the images, as the service's anchors do), else None."""
     if method.kind == "matching" and method.matcher != "mickey" and "mickey" in (method.depth, method.solver):
-        return (f"method {method.name!r}: the mickey depth and solver read the keypoints of the mickey matcher, "
-                f"not {method.matcher}'s: use the mickey matcher (e.g. mickey or mickey_pnp_mickey)")
+        return (
+            f"method {method.name!r}: the mickey depth and solver read the keypoints of the mickey matcher, "
+            f"not {method.matcher}'s: use the mickey matcher (e.g. mickey or mickey_pnp_mickey)"
+        )
     if method.kind != "matching" or method.depth != "none" or method.solver not in LIFTING_SOLVERS:
         return None
     where = "the reference" if method.solver == "pnp" else "both images"
-    return (f"method {method.name!r} has no depth source, and its {method.solver} solver needs a depth map of "
-            f"{where}: choose a depth suffix or network (e.g. {method.matcher}_{method.solver}_sensor) or Ess.Mat "
-            f"without depth ({method.matcher}_emat_none, up to scale)")
+    return (
+        f"method {method.name!r} has no depth source, and its {method.solver} solver needs a depth map of "
+        f"{where}: choose a depth suffix or network (e.g. {method.matcher}_{method.solver}_sensor) or Ess.Mat "
+        f"without depth ({method.matcher}_emat_none, up to scale)"
+    )
 
 
 def check_options(method: Method, where: str = "") -> None:
@@ -287,8 +331,12 @@ def get(name_or_path: str | os.PathLike) -> Method:
 def list_methods(depths: tuple[str, ...] = ("dptkitti", "dptnyu", "sensor", "mono", "none")) -> list[str]:
     """Every preset name for the given depth tokens, the YAML configs, and registered methods."""
     # Without depth only Ess.Mat estimates anything (PnP/Procrustes need maps: ``depth_free_problem``).
-    names = [preset_name(m, s, d) for d in depths for m in MATCHERS
-             for s in (("emat",) if d == "none" else ("emat", "pnp", "procrustes"))]
+    names = [
+        preset_name(m, s, d)
+        for d in depths
+        for m in MATCHERS
+        for s in (("emat",) if d == "none" else ("emat", "pnp", "procrustes"))
+    ]
     for d in config_dirs():
         names += sorted(p.stem for p in d.glob("*.y*ml"))
     _load_plugins()
@@ -308,13 +356,13 @@ def requirements(name: str) -> str:
     elif m.depth in PAIR_MODELS:
         depth = f"depth from the {m.depth} network's own pointmaps (no depth files)"
     elif m.depth.startswith("files:"):
-        depth = f"depth maps FRAME.{m.depth[len('files:'):]}.png"
+        depth = f"depth maps FRAME.{m.depth[len('files:') :]}.png"
     else:
         depth = f"depth network {HUB_MODELS.get(m.depth, m.depth.removeprefix('hf:'))}"
     return f"{matcher_needs(m.matcher)}; {depth}"
 
 
-def weight_models(name: str) -> list["Model"]:
+def weight_models(name: str) -> list[Model]:
     """The weights (``mapfree.weights`` models) that ``name`` needs: a method (its matcher's and depth network's,
     a published RPR network's), a matcher or a depth network name. ``KeyError`` for a name that is none of these."""
     from .depth.hub import DEPTH_WEIGHTS
@@ -331,8 +379,10 @@ def weight_models(name: str) -> list["Model"]:
         known = [*list_methods(), *MATCHER_WEIGHTS, *DEPTH_WEIGHTS]
         close = difflib.get_close_matches(name, known, n=3, cutoff=0.75)
         hint = f"did you mean {' or '.join(map(repr, close))}? " if close else ""
-        raise KeyError(f"{name!r} is no method, matcher or depth network: {hint}see `mapfree run --list-methods`, "
-                       f"or `mapfree weights` without a name for every model") from None
+        raise KeyError(
+            f"{name!r} is no method, matcher or depth network: {hint}see `mapfree run --list-methods`, "
+            f"or `mapfree weights` without a name for every model"
+        ) from None
     if m.kind == "regression":
         from .rpr.official import RPR_WEIGHTS
 
@@ -350,7 +400,7 @@ def weight_models(name: str) -> list["Model"]:
     return out
 
 
-def all_weight_models() -> list[tuple["Model", list[str]]]:
+def all_weight_models() -> list[tuple[Model, list[str]]]:
     """Every published model a built-in matcher, depth network or RPR method can use, each with the names that
     use it (``mapfree weights`` lists them)."""
     from .depth.hub import DEPTH_WEIGHTS
@@ -358,8 +408,11 @@ def all_weight_models() -> list[tuple["Model", list[str]]]:
 
     users: dict[str, tuple[Any, list[str]]] = {}
     by_option = [(f"{matcher} ({option}: {value})", (v,)) for (matcher, option, value), v in OPTION_WEIGHTS.items()]
-    sources: list[tuple[str, tuple]] = [*MATCHER_WEIGHTS.items(), *by_option,
-                                        *((k, (v,)) for k, v in DEPTH_WEIGHTS.items())]
+    sources: list[tuple[str, tuple]] = [
+        *MATCHER_WEIGHTS.items(),
+        *by_option,
+        *((k, (v,)) for k, v in DEPTH_WEIGHTS.items()),
+    ]
     try:
         from .rpr.official import RPR_WEIGHTS
 
@@ -378,42 +431,71 @@ def _register_builtins() -> None:
     best = parse_name("xfeat_procrustes_sensor")
     pnp = parse_name("xfeat_pnp_sensor")
     assert best is not None and pnp is not None
-    register(replace(best, name=BEST_OFFLINE, solver_opts={**best.solver_opts, "confidence": "score"},
-                     description="best offline preset: XFeat, Procrustes (3D-3D RANSAC), ranking confidence; "
-                                 "needs depth for both images (files:sensor; swap with best-offline@SUFFIX)"))
-    register(replace(pnp, name=BEST_OFFLINE_REFERENCE_DEPTH, solver_opts={**pnp.solver_opts, "confidence": "score"},
-                     description="best offline preset when only the reference has depth: XFeat, PnP, "
-                                 "ranking confidence (files:sensor at the reference)"))
+    register(
+        replace(
+            best,
+            name=BEST_OFFLINE,
+            solver_opts={**best.solver_opts, "confidence": "score"},
+            description="best offline preset: XFeat, Procrustes (3D-3D RANSAC), ranking confidence; "
+            "needs depth for both images (files:sensor; swap with best-offline@SUFFIX)",
+        )
+    )
+    register(
+        replace(
+            pnp,
+            name=BEST_OFFLINE_REFERENCE_DEPTH,
+            solver_opts={**pnp.solver_opts, "confidence": "score"},
+            description="best offline preset when only the reference has depth: XFeat, PnP, "
+            "ranking confidence (files:sensor at the reference)",
+        )
+    )
 
 
 def _register_two_view_presets() -> None:
     # MASt3R / DUSt3R with their own pointmaps as depth: no depth files, one forward pass per pair (PnP).
-    how = {"pnp": "PnP on the reference's depth (one forward pass per pair)",
-           "emat": "Ess.Mat scaled by both images' depth (a second, symmetric decoder pass for the query's depth)",
-           "procrustes": "3D-3D Procrustes on both images' depth (a second, symmetric decoder pass)"}
+    how = {
+        "pnp": "PnP on the reference's depth (one forward pass per pair)",
+        "emat": "Ess.Mat scaled by both images' depth (a second, symmetric decoder pass for the query's depth)",
+        "procrustes": "3D-3D Procrustes on both images' depth (a second, symmetric decoder pass)",
+    }
     for net in PAIR_MODELS[:2]:
         for solver in how:
             m = parse_name(preset_name(net, solver, net))
             assert m is not None
-            register(replace(m, description=f"{net} matches and {net} metric depth, {how[solver]}; needs "
-                                            f"{matcher_needs(net)} (docs/mast3r.md)"))
+            register(
+                replace(
+                    m,
+                    description=f"{net} matches and {net} metric depth, {how[solver]}; needs "
+                    f"{matcher_needs(net)} (docs/mast3r.md)",
+                )
+            )
 
 
 def _register_mickey_presets() -> None:
     # MicKey: its own solver on its scored candidates (the public pipeline), and our solvers on its mutual
     # matches with each keypoint's metric depth. Procrustes takes MicKey's inlier threshold (0.15 m; not tuned).
     needs = f"needs {matcher_needs('mickey')} (docs/mickey.md)"
-    register(Method(name="mickey", matcher="mickey", depth="mickey", solver="mickey",
-                    description=f"MicKey end to end: metric keypoints, dual-softmax matching, its probabilistic "
-                                f"Procrustes RANSAC and confidence (soft inlier count); {needs}"))
-    how = {"pnp": ("PnP on the reference keypoints' depth", {}),
-           "emat": ("Ess.Mat scaled by the keypoints' depth", {}),
-           "procrustes": ("3D-3D Procrustes on both images' keypoint depths, 0.15 m", {"inlier_threshold": 0.15})}
+    register(
+        Method(
+            name="mickey",
+            matcher="mickey",
+            depth="mickey",
+            solver="mickey",
+            description=f"MicKey end to end: metric keypoints, dual-softmax matching, its probabilistic "
+            f"Procrustes RANSAC and confidence (soft inlier count); {needs}",
+        )
+    )
+    how = {
+        "pnp": ("PnP on the reference keypoints' depth", {}),
+        "emat": ("Ess.Mat scaled by the keypoints' depth", {}),
+        "procrustes": ("3D-3D Procrustes on both images' keypoint depths, 0.15 m", {"inlier_threshold": 0.15}),
+    }
     for solver, (what, opts) in how.items():
         m = parse_name(preset_name("mickey", solver, "mickey"))
         assert m is not None
-        register(replace(m, solver_opts={**m.solver_opts, **opts},
-                         description=f"mickey mutual matches, {what}; {needs}"))
+        register(
+            replace(m, solver_opts={**m.solver_opts, **opts}, description=f"mickey mutual matches, {what}; {needs}")
+        )
 
 
 _register_builtins()

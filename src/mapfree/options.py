@@ -22,7 +22,8 @@ import math
 import re
 import types
 import typing
-from typing import Any, Mapping, TypeVar
+from collections.abc import Mapping
+from typing import Any, TypeVar
 
 __all__ = ["Options", "OptionError", "option", "device_problem", "check_device", "check_keys"]
 
@@ -40,12 +41,28 @@ class OptionError(ValueError, TypeError):
         self.key, self.value, self.expected = key, value, expected
 
 
-def option(default: Any, *, min: float | None = None, max: float | None = None, min_open: bool = False,
-           max_open: bool = False, choices: tuple | None = None, device: bool = False, doc: str = "") -> Any:
+def option(
+    default: Any,
+    *,
+    min: float | None = None,
+    max: float | None = None,
+    min_open: bool = False,
+    max_open: bool = False,
+    choices: tuple | None = None,
+    device: bool = False,
+    doc: str = "",
+) -> Any:
     """A dataclass field with its rule: ``min``/``max`` (inclusive unless ``*_open``), ``choices``, or ``device``
     (cpu, cuda, cuda:N, mps, auto: one this machine has). ``None`` is always allowed where the type allows it."""
-    meta = {"min": min, "max": max, "min_open": min_open, "max_open": max_open, "choices": choices,
-            "device": device, "doc": doc}
+    meta = {
+        "min": min,
+        "max": max,
+        "min_open": min_open,
+        "max_open": max_open,
+        "choices": choices,
+        "device": device,
+        "doc": doc,
+    }
     return dataclasses.field(default=default, metadata={"mapfree": meta})
 
 
@@ -85,8 +102,9 @@ def check_device(value: Any, name: str = "--device") -> None:
 
 
 def _type_name(tp: Any) -> str:
-    return {int: "an integer", float: "a number", bool: "true or false", str: "a string"}.get(tp, getattr(
-        tp, "__name__", str(tp)))
+    return {int: "an integer", float: "a number", bool: "true or false", str: "a string"}.get(
+        tp, getattr(tp, "__name__", str(tp))
+    )
 
 
 def _split_optional(tp: Any) -> tuple[tuple, bool]:
@@ -153,8 +171,9 @@ def check_keys(cls: type, values: Mapping[str, Any], *, owner: str = "", where: 
             close = difflib.get_close_matches(str(key), known, n=1)
             hint = f"did you mean {close[0]!r}? " if close else ""
             lead, of = (f"{where}: " if where else ""), (f" for {owner}" if owner else "")
-            raise OptionError(f"{lead}unknown option {prefix}{key}{of}: {hint}known: {', '.join(sorted(known))}",
-                              str(key))
+            raise OptionError(
+                f"{lead}unknown option {prefix}{key}{of}: {hint}known: {', '.join(sorted(known))}", str(key)
+            )
 
 
 _HINTS: dict[type, dict[str, Any]] = {}
@@ -185,8 +204,15 @@ class Options:
         return [f.name for f in dataclasses.fields(cls)]
 
     @classmethod
-    def build(cls: type[T], values: Mapping[str, Any] | None = None, *, owner: str = "", where: str = "",
-              prefix: str = "", base: "Options | None" = None) -> T:
+    def build(
+        cls: type[T],
+        values: Mapping[str, Any] | None = None,
+        *,
+        owner: str = "",
+        where: str = "",
+        prefix: str = "",
+        base: Options | None = None,
+    ) -> T:
         """An instance from ``values`` (over ``base``'s values, else the defaults). An unknown key or a bad value is
         one ``OptionError``: ``[WHERE: ]unknown option PREFIXKEY for OWNER: did you mean …`` or
         ``[WHERE: ]option PREFIXKEY=VALUE for OWNER: expected …``."""
@@ -198,5 +224,6 @@ class Options:
         try:
             return cls(**{**start, **values})
         except OptionError as e:
-            raise OptionError(f"{lead}option {prefix}{e.key}={e.value!r}{of}: {e.expected}", e.key, e.value,
-                              e.expected) from None
+            raise OptionError(
+                f"{lead}option {prefix}{e.key}={e.value!r}{of}: {e.expected}", e.key, e.value, e.expected
+            ) from None

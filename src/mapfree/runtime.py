@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import contextlib
 import functools
-from typing import TYPE_CHECKING, Any, Callable, Iterator, TypeVar
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any, TypeVar
 
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["resolve_device", "STEADY_BACKENDS", "steady_kernels", "with_steady_kernels"]
+__all__ = ["resolve_device", "STEADY_BACKENDS", "steady_kernels", "with_steady_kernels"]  # noqa: F822 (lazy)
 
 F = TypeVar("F", bound=Callable)
 

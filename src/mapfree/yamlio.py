@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import yaml
 
@@ -63,8 +64,10 @@ def _resolve(path: Path, search: tuple[Path, ...], chain: tuple[Path, ...]) -> d
     candidates = [path.parent / name] + [d / n for d in search for n in (name, f"{name}.yaml")]
     found = next((c for c in candidates if c.is_file()), None)
     if found is None:
-        raise ValueError(f"{where}: {BASE_KEY} {name!r} not found (looked for "
-                         f"{', '.join(str(c) for c in dict.fromkeys(candidates))})")
+        raise ValueError(
+            f"{where}: {BASE_KEY} {name!r} not found (looked for "
+            f"{', '.join(str(c) for c in dict.fromkeys(candidates))})"
+        )
     return deep_merge(_resolve(found, search, (*chain, path)), data)
 
 

@@ -28,8 +28,15 @@ from mapfree.service import Limits, Settings, create_app
 ROOT = Path(__file__).resolve().parents[2]
 ARTIFACTS = ROOT / "test-artifacts"
 PG_URL = os.environ.get("MAPFREE_TEST_PG", "")
-BACKENDS = ["sqlite", pytest.param("postgresql", marks=pytest.mark.skipif(
-    not PG_URL, reason="MAPFREE_TEST_PG is not set (run .ci/services.sh to start PostgreSQL)"))]
+BACKENDS = [
+    "sqlite",
+    pytest.param(
+        "postgresql",
+        marks=pytest.mark.skipif(
+            not PG_URL, reason="MAPFREE_TEST_PG is not set (run .ci/services.sh to start PostgreSQL)"
+        ),
+    ),
+]
 VAL_SCENES, TEST_SCENES, QUERIES = 2, 2, 20
 #: The monitoring token the test servers get (``MAPFREE_OPERATOR_TOKEN``): it reads /health/detail and /metrics.
 OPERATOR_TOKEN = "mf_operator-" + uuid.uuid4().hex
@@ -94,10 +101,19 @@ def split_data(tmp_path_factory) -> Split:
         from mapfree.data.synth import SynthOptions
 
         small = dict(width=135, height=180, texture_size=128, write_mono=False)
-        generate(root, "val", VAL_SCENES, QUERIES, seed=1, options=SynthOptions(first_scene=460, **small),
-                 progress=False)
-        generate(root, "test", TEST_SCENES, QUERIES, seed=2, private_gt_dir=gt,
-                 options=SynthOptions(first_scene=525, **small), progress=False)
+        generate(
+            root, "val", VAL_SCENES, QUERIES, seed=1, options=SynthOptions(first_scene=460, **small), progress=False
+        )
+        generate(
+            root,
+            "test",
+            TEST_SCENES,
+            QUERIES,
+            seed=2,
+            private_gt_dir=gt,
+            options=SynthOptions(first_scene=525, **small),
+            progress=False,
+        )
     else:
         rng = np.random.default_rng(0)
         _write_text_split(root, "val", [f"s{460 + i:05d}" for i in range(VAL_SCENES)], None, rng)
@@ -127,8 +143,9 @@ def make_submission(split_root: Path, noise: float = 0.0, seed: int = 0, drop_ev
                     continue
                 t = np.array(v[4:]) + rng.normal(scale=noise, size=3) if noise else np.array(v[4:])
                 conf = float(rng.uniform(1, 100))
-                lines.append(f"{name} {' '.join(f'{x:.9f}' for x in v[:4])} {' '.join(f'{x:.9f}' for x in t)} "
-                             f"{conf:.3f}")
+                lines.append(
+                    f"{name} {' '.join(f'{x:.9f}' for x in v[:4])} {' '.join(f'{x:.9f}' for x in t)} {conf:.3f}"
+                )
             z.writestr(f"pose_{scene.name}.txt", "\n".join(lines) + "\n")
     return buf.getvalue()
 
@@ -139,8 +156,11 @@ def pose_text(scene_dir: Path, lines: int, seed: int) -> bytes:
     rng = np.random.default_rng(seed)
     v = rng.normal(size=(lines, 8))
     v[:, 7] = np.abs(v[:, 7])
-    return "".join(f"{names[i % len(names)]} {r[0]:.9f} {r[1]:.9f} {r[2]:.9f} {r[3]:.9f} {r[4]:.9f} {r[5]:.9f} "
-                   f"{r[6]:.9f} {r[7]:.6f}\n" for i, r in enumerate(v)).encode()
+    return "".join(
+        f"{names[i % len(names)]} {r[0]:.9f} {r[1]:.9f} {r[2]:.9f} {r[3]:.9f} {r[4]:.9f} {r[5]:.9f} "
+        f"{r[6]:.9f} {r[7]:.6f}\n"
+        for i, r in enumerate(v)
+    ).encode()
 
 
 def zip_of(entries: dict[str, bytes], method: int = zipfile.ZIP_DEFLATED) -> bytes:
@@ -175,8 +195,9 @@ def free_port() -> int:
 def mapfree(command: str, *args: str, env=None) -> str:
     """Run ``mapfree COMMAND ...`` as ``python -m mapfree.cli.COMMAND`` (same code, without importing the other
     subcommands and their heavy dependencies)."""
-    out = subprocess.run([sys.executable, "-m", f"mapfree.cli.{command}", *args], capture_output=True, text=True, timeout=120,
-                         env=env)
+    out = subprocess.run(
+        [sys.executable, "-m", f"mapfree.cli.{command}", *args], capture_output=True, text=True, timeout=120, env=env
+    )
     assert out.returncode == 0, out.stderr
     return out.stdout.strip()
 
@@ -272,9 +293,16 @@ def create_users(db_url: str, users: dict[str, int | None], admin: bool = False)
     return out
 
 
-def start_server(db_url: str, backend: str, data: Split, workdir: Path, workers: int = 2,
-                 extra: tuple[str, ...] = (), port: int | None = None,
-                 tokens: dict[str, str] | None = None) -> Server:
+def start_server(
+    db_url: str,
+    backend: str,
+    data: Split,
+    workdir: Path,
+    workers: int = 2,
+    extra: tuple[str, ...] = (),
+    port: int | None = None,
+    tokens: dict[str, str] | None = None,
+) -> Server:
     """A ``mapfree serve`` on ``db_url``, healthy with ``workers`` workers; ``tokens``: the accounts of a database
     another server made already (else alice, made with ``mapfree admin``, bob, and carol with a daily
     test limit of 2 are created)."""
@@ -285,9 +313,26 @@ def start_server(db_url: str, backend: str, data: Split, workdir: Path, workers:
         tokens = {"alice": mapfree("admin", "--db", db_url, "create-user", "alice", env=env).splitlines()[-1]}
         tokens.update(create_users(db_url, {"bob": None, "carol": 2}))
     # `python -m mapfree.cli.serve` is `mapfree serve` without importing every other subcommand (faster start)
-    cmd = [sys.executable, "-m", "mapfree.cli.serve", "--db", db_url, "--data", str(data.root), "--gt",
-           str(data.gt), "--workers", str(workers), "--port", str(port), "--lease-seconds", "5",
-           "--max-upload-mb", "2", *extra]
+    cmd = [
+        sys.executable,
+        "-m",
+        "mapfree.cli.serve",
+        "--db",
+        db_url,
+        "--data",
+        str(data.root),
+        "--gt",
+        str(data.gt),
+        "--workers",
+        str(workers),
+        "--port",
+        str(port),
+        "--lease-seconds",
+        "5",
+        "--max-upload-mb",
+        "2",
+        *extra,
+    ]
     logf = open(log_path, "w")
     proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, start_new_session=True)
     url = f"http://127.0.0.1:{port}"
@@ -395,8 +440,9 @@ def make_app(split_data, tmp_path):
     def make(limits: Limits | None = None, **kw) -> App:
         url = f"sqlite:///{tmp_path / f'app{len(clients)}.db'}"
         kw.setdefault("operator_token", OPERATOR_TOKEN)
-        settings = Settings(db_url=url, data_root=split_data.root, gt_root=split_data.gt,
-                            limits=limits or Limits(), **kw)
+        settings = Settings(
+            db_url=url, data_root=split_data.root, gt_root=split_data.gt, limits=limits or Limits(), **kw
+        )
         tokens = create_users(url, {"ann": None, "ben": None})
         client = TestClient(create_app(settings), raise_server_exceptions=False)
         clients.append(client)

@@ -10,7 +10,6 @@ from sqlalchemy import select
 
 from .conftest import png_of as _png
 
-
 IMAGE_CASES = {
     "corrupt image": (lambda: b"\xff\xd8\xff\xe0" + b"\0" * 100, {}, 422, "image"),
     "not an image": (lambda: b"GIF89a not really", {}, 422, "image"),
@@ -36,14 +35,23 @@ def test_hostile_images(server, case):
 
 def test_depth_must_match_the_image(server):
     with server.client("alice") as c:
-        r = c.post("/anchors", files={"image": ("a.png", _png(48, 64)), "depth": ("d.png", _png(10, 10, 1, np.uint16))},
-                   data={"fx": 50, "fy": 50, "cx": 32, "cy": 24})
+        r = c.post(
+            "/anchors",
+            files={"image": ("a.png", _png(48, 64)), "depth": ("d.png", _png(10, 10, 1, np.uint16))},
+            data={"fx": 50, "fy": 50, "cx": 32, "cy": 24},
+        )
         assert r.status_code == 422 and "must match" in r.json()["detail"]
-        r = c.post("/anchors", files={"image": ("a.png", _png(48, 64)), "depth": ("d.png", b"junk")},
-                   data={"fx": 50, "fy": 50, "cx": 32, "cy": 24})
+        r = c.post(
+            "/anchors",
+            files={"image": ("a.png", _png(48, 64)), "depth": ("d.png", b"junk")},
+            data={"fx": 50, "fy": 50, "cx": 32, "cy": 24},
+        )
         assert r.status_code == 422 and "depth" in r.json()["detail"]
-        r = c.post("/anchors", files={"image": ("a.png", _png(48, 64))},
-                   data={"fx": 50, "fy": 50, "cx": 32, "cy": 24, "method": "no_such_method"})
+        r = c.post(
+            "/anchors",
+            files={"image": ("a.png", _png(48, 64))},
+            data={"fx": 50, "fy": 50, "cx": 32, "cy": 24, "method": "no_such_method"},
+        )
         assert r.status_code == 422 and "method" in r.json()["detail"]
 
 
@@ -88,8 +96,16 @@ def test_method_cannot_read_or_probe_server_files(server, tmp_path):
     form = {"fx": "50", "fy": "50", "cx": "32", "cy": "24"}
     answers = []
     with server.client("alice") as c:
-        for method in (str(secret), str(tmp_path / "missing.yaml"), "/proc/self/environ", "/etc/hostname",
-                       "secrets.yaml", "../../etc/passwd", "sift_pnp_hf:/tmp", "best-offline@hf:/tmp"):
+        for method in (
+            str(secret),
+            str(tmp_path / "missing.yaml"),
+            "/proc/self/environ",
+            "/etc/hostname",
+            "secrets.yaml",
+            "../../etc/passwd",
+            "sift_pnp_hf:/tmp",
+            "best-offline@hf:/tmp",
+        ):
             r = c.post("/anchors", files={"image": ("a.png", _png(48, 64))}, data={**form, "method": method})
             assert r.status_code == 422, (method, r.text)
             detail = r.json()["detail"]
@@ -106,8 +122,11 @@ def test_anchor_whose_method_cannot_run_is_refused_at_creation(server):
     if "loftr" in matching.available():
         pytest.skip("LoFTR weights are installed here")
     with server.client("alice") as c:
-        r = c.post("/anchors", files={"image": ("a.png", _png(48, 64)), "depth": ("d.png", _png(48, 64, 1, np.uint16))},
-                   data={"fx": "50", "fy": "50", "cx": "32", "cy": "24", "method": "loftr_emat_sensor"})
+        r = c.post(
+            "/anchors",
+            files={"image": ("a.png", _png(48, 64)), "depth": ("d.png", _png(48, 64, 1, np.uint16))},
+            data={"fx": "50", "fy": "50", "cx": "32", "cy": "24", "method": "loftr_emat_sensor"},
+        )
     assert r.status_code == 422, r.text
     assert "loftr_outdoor.ckpt" in r.json()["detail"] and "/root" not in r.json()["detail"], r.json()
 
@@ -133,9 +152,14 @@ def test_operator_methods_folder_and_old_anchors_whose_method_cannot_run(make_ap
         return
     with app.client.app.state.sessions.begin() as db:
         user = db.scalar(select(User).where(User.name == "ann"))
-        old = Anchor(user_id=user.id, method="loftr_emat_sensor", image=_png(48, 64),
-                     intrinsics={**{k: float(v) for k, v in form.items()}, "width": 64, "height": 48})
+        old = Anchor(
+            user_id=user.id,
+            method="loftr_emat_sensor",
+            image=_png(48, 64),
+            intrinsics={**{k: float(v) for k, v in form.items()}, "width": 64, "height": 48},
+        )
         db.add(old)
-    r = app.client.post(f"/anchors/{old.id}/localize", headers=app.auth("ben"),
-                        files={"image": ("q.png", _png(48, 64))}, data=form)
+    r = app.client.post(
+        f"/anchors/{old.id}/localize", headers=app.auth("ben"), files={"image": ("q.png", _png(48, 64))}, data=form
+    )
     assert r.status_code == 422 and "loftr_outdoor.ckpt" in r.json()["detail"], r.text

@@ -9,15 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select, text
 
 from mapfree.data import Dataset
 from mapfree.geometry import Pose
 from mapfree.service import Limits, Settings, create_app
-from mapfree.service.database.models import Anchor, User, make_engine, session_factory
 from mapfree.service.accounts.quota import check_quota
+from mapfree.service.database.models import Anchor, User, make_engine, session_factory
 from mapfree.service.inputs import UploadError
 
 from .conftest import BACKENDS, create_users, db_url_for
@@ -41,8 +40,10 @@ def _pose_text(p: Pose) -> str:
 
 
 def _files(frame, key: str = "image", depth_key: str = "depth") -> list:
-    return [(key, (frame.image_path.name, frame.image_path.read_bytes(), "image/jpeg")),
-            (depth_key, (frame.depth_path("sensor").name, frame.depth_path("sensor").read_bytes(), "image/png"))]
+    return [
+        (key, (frame.image_path.name, frame.image_path.read_bytes(), "image/jpeg")),
+        (depth_key, (frame.depth_path("sensor").name, frame.depth_path("sensor").read_bytes(), "image/png")),
+    ]
 
 
 def _errors(est: dict, gt: Pose) -> tuple[float, float]:
@@ -52,8 +53,11 @@ def _errors(est: dict, gt: Pose) -> tuple[float, float]:
 
 
 def _localize(client, aid: str, frame) -> dict:
-    r = client.post(f"/anchors/{aid}/localize", data=_form(frame.intrinsics),
-                    files={"image": (frame.image_path.name, frame.image_path.read_bytes(), "image/jpeg")})
+    r = client.post(
+        f"/anchors/{aid}/localize",
+        data=_form(frame.intrinsics),
+        files={"image": (frame.image_path.name, frame.image_path.read_bytes(), "image/jpeg")},
+    )
     assert r.status_code == 200, r.text
     return r.json()
 
@@ -68,15 +72,22 @@ def test_two_photo_anchor_retrieves_the_right_photo_in_the_anchor_frame(server, 
     far, near = scene.frame(FAR_QUERY), scene.frame(NEAR_QUERY)
     with server.client("alice") as alice:
         # one request: photo 0 (the anchor's frame) and photo 1 with its pose relative to photo 0
-        r = alice.post("/anchors", files=_files(ref) + _files(second, "photo_image", "photo_depth"),
-                       data={**_form(ref.intrinsics), **_form(second.intrinsics, "photo_"),
-                             "photo_pose": _pose_text(second.pose), "method": METHOD, "name": "office, 2 photos"})
+        r = alice.post(
+            "/anchors",
+            files=_files(ref) + _files(second, "photo_image", "photo_depth"),
+            data={
+                **_form(ref.intrinsics),
+                **_form(second.intrinsics, "photo_"),
+                "photo_pose": _pose_text(second.pose),
+                "method": METHOD,
+                "name": "office, 2 photos",
+            },
+        )
         assert r.status_code == 201, r.text
         anchor = r.json()
         assert anchor["num_photos"] == 2 and [p["index"] for p in anchor["photos"]] == [0, 1]
         assert all(p["has_depth"] for p in anchor["photos"]) and anchor["photos"][0]["pose"][0] == 1.0
-        assert np.allclose(anchor["photos"][1]["pose"], [float(x) for x in _pose_text(second.pose).split()],
-                           atol=1e-6)
+        assert np.allclose(anchor["photos"][1]["pose"], [float(x) for x in _pose_text(second.pose).split()], atol=1e-6)
         one = alice.post("/anchors", files=_files(ref), data={**_form(ref.intrinsics), "method": METHOD}).json()
         api = alice.get("/openapi.json").json()  # the API docs describe the photo fields and the new endpoint
         assert "post" in api["paths"]["/anchors/{aid}/photos"]
@@ -93,20 +104,32 @@ def test_two_photo_anchor_retrieves_the_right_photo_in_the_anchor_frame(server, 
         # the first photo alone does not localize the far query within that error: the second photo is what did
         alone = _localize(bob, one["id"], far)
         assert not alone["ok"] or _errors(alone, far.pose)[0] > 0.5, alone
-        assert bob.post(f"/anchors/{one['id']}/photos", files=_files(second),
-                        data={**_form(second.intrinsics), "pose": _pose_text(second.pose)}).status_code == 403
+        assert (
+            bob.post(
+                f"/anchors/{one['id']}/photos",
+                files=_files(second),
+                data={**_form(second.intrinsics), "pose": _pose_text(second.pose)},
+            ).status_code
+            == 403
+        )
     with server.client("alice") as alice:
         # growing the single-photo anchor photo by photo gives the same answers (a new version, not the cache)
-        r = alice.post(f"/anchors/{one['id']}/photos", files=_files(second),
-                       data={**_form(second.intrinsics), "pose": _pose_text(second.pose)})
+        r = alice.post(
+            f"/anchors/{one['id']}/photos",
+            files=_files(second),
+            data={**_form(second.intrinsics), "pose": _pose_text(second.pose)},
+        )
         assert r.status_code == 201 and r.json()["num_photos"] == 2, r.text
         assert alice.get(f"/anchors/{one['id']}").json()["photos"][1]["has_depth"]
         est = _localize(alice, one["id"], far)
         assert est["ok"] and est["photo"] == 1 and _errors(est, far.pose)[0] < 0.15, est
         # the relocalize page lists the anchor and localizes a query against it (a token needs no CSRF field)
         assert "office, 2 photos · 2 photos · sift_pnp_sensor" in alice.get("/relocalize").text
-        r = alice.post("/relocalize/anchor", data={"anchor": anchor["id"], **_form(far.intrinsics, "q_")},
-                       files={"query": (far.image_path.name, far.image_path.read_bytes(), "image/jpeg")})
+        r = alice.post(
+            "/relocalize/anchor",
+            data={"anchor": anchor["id"], **_form(far.intrinsics, "q_")},
+            files={"query": (far.image_path.name, far.image_path.read_bytes(), "image/jpeg")},
+        )
         assert r.status_code == 200 and "answered by photo 1" in r.text and 'id="figure"' in r.text, r.text[-2000:]
         assert "Pose found" in r.text
         for a in (anchor, one):
@@ -114,18 +137,26 @@ def test_two_photo_anchor_retrieves_the_right_photo_in_the_anchor_frame(server, 
             assert alice.get(f"/anchors/{a['id']}").status_code == 404
 
 
-@pytest.mark.parametrize("bad, words", [
-    ({"photo_pose": "1 0 0 0 0.1 0.2"}, "photo 1 ('frame_00022.jpg'): pose: expected 7 numbers"),
-    ({"photo_pose": "2 0 0 0 0.1 0.2 0.3"}, "photo 1 ('frame_00022.jpg'): pose: the quaternion"),
-    ({"photo_pose": "1 0 0 0 nan 0 0"}, "photo 1 ('frame_00022.jpg'): pose: every value must be finite"),
-    ({"photo_fx": "-5"}, "photo 1 ('frame_00022.jpg'): intrinsics: focal lengths must lie between"),
-    ({"photo_cx": "99999"}, "photo 1 ('frame_00022.jpg'): intrinsics: principal point"),
-    ({"photo_fy": "abc"}, "photo 1 ('frame_00022.jpg'): intrinsics: fy must be a number"),
-])
+@pytest.mark.parametrize(
+    "bad, words",
+    [
+        ({"photo_pose": "1 0 0 0 0.1 0.2"}, "photo 1 ('frame_00022.jpg'): pose: expected 7 numbers"),
+        ({"photo_pose": "2 0 0 0 0.1 0.2 0.3"}, "photo 1 ('frame_00022.jpg'): pose: the quaternion"),
+        ({"photo_pose": "1 0 0 0 nan 0 0"}, "photo 1 ('frame_00022.jpg'): pose: every value must be finite"),
+        ({"photo_fx": "-5"}, "photo 1 ('frame_00022.jpg'): intrinsics: focal lengths must lie between"),
+        ({"photo_cx": "99999"}, "photo 1 ('frame_00022.jpg'): intrinsics: principal point"),
+        ({"photo_fy": "abc"}, "photo 1 ('frame_00022.jpg'): intrinsics: fy must be a number"),
+    ],
+)
 def test_a_bad_photo_is_a_422_naming_it(server, scene, bad, words):
     ref, second = scene.reference, scene.frame(SECOND)
-    data = {**_form(ref.intrinsics), **_form(second.intrinsics, "photo_"), "photo_pose": _pose_text(second.pose),
-            "method": METHOD, **bad}
+    data = {
+        **_form(ref.intrinsics),
+        **_form(second.intrinsics, "photo_"),
+        "photo_pose": _pose_text(second.pose),
+        "method": METHOD,
+        **bad,
+    }
     with server.client("carol") as c:
         r = c.post("/anchors", files=_files(ref) + _files(second, "photo_image", "photo_depth"), data=data)
     assert r.status_code == 422 and words in r.json()["detail"], r.text
@@ -151,32 +182,52 @@ def test_photo_fields_must_line_up_and_depth_is_checked_per_photo(server, scene)
         wrong = [("photo_depth", ("d.png", ref.depth_path("sensor").read_bytes()[:200], "image/png"))] * 2
         r = c.post("/anchors", files=_files(ref) + imgs + wrong, data={**base, **two, "photo_pose": pose2})
         assert r.status_code == 422 and r.json()["detail"].startswith("photo 1 ('frame_00022.jpg'): depth"), r.text
-        r = c.post("/anchors", files=_files(ref) + [("photo_image", ("x.jpg", b"not a jpeg", "image/jpeg"))],
-                   data={**base, **_form(second.intrinsics, "photo_"), "photo_pose": pose2[0]})
+        r = c.post(
+            "/anchors",
+            files=_files(ref) + [("photo_image", ("x.jpg", b"not a jpeg", "image/jpeg"))],
+            data={**base, **_form(second.intrinsics, "photo_"), "photo_pose": pose2[0]},
+        )
         assert r.status_code == 422 and r.json()["detail"].startswith("photo 1 ('x.jpg'): image"), r.text
         # adding a photo: same checks, the photo named by the index it would get
         a = c.post("/anchors", files=_files(ref), data=base).json()
-        r = c.post(f"/anchors/{a['id']}/photos", files=_files(second),
-                   data={**_form(second.intrinsics), "pose": "0 0 0 0 0 0 0"})
+        r = c.post(
+            f"/anchors/{a['id']}/photos",
+            files=_files(second),
+            data={**_form(second.intrinsics), "pose": "0 0 0 0 0 0 0"},
+        )
         assert r.status_code == 422 and "photo 1 ('frame_00022.jpg'): pose: the quaternion" in r.json()["detail"]
-        r = c.post(f"/anchors/{a['id']}/photos", files=[_files(second)[0]],
-                   data={**_form(second.intrinsics), "pose": _pose_text(second.pose)})
+        r = c.post(
+            f"/anchors/{a['id']}/photos",
+            files=[_files(second)[0]],
+            data={**_form(second.intrinsics), "pose": _pose_text(second.pose)},
+        )
         assert r.status_code == 422 and "photo 1" in r.json()["detail"] and "depth" in r.json()["detail"], r.text
         assert c.get(f"/anchors/{a['id']}").json()["num_photos"] == 1  # nothing stored by the refused ones
         assert c.delete(f"/anchors/{a['id']}").status_code == 204
 
 
 def _make_two_photo_anchor(client, ref, second, name: str = "two") -> dict:
-    r = client.post("/anchors", files=_files(ref) + _files(second, "photo_image", "photo_depth"),
-                    data={**_form(ref.intrinsics), **_form(second.intrinsics, "photo_"), "method": METHOD,
-                          "photo_pose": _pose_text(second.pose), "name": name})
+    r = client.post(
+        "/anchors",
+        files=_files(ref) + _files(second, "photo_image", "photo_depth"),
+        data={
+            **_form(ref.intrinsics),
+            **_form(second.intrinsics, "photo_"),
+            "method": METHOD,
+            "photo_pose": _pose_text(second.pose),
+            "name": name,
+        },
+    )
     assert r.status_code == 201, r.text
     return r.json()
 
 
 def _add(client, aid: str, frame, pose: Pose | None = None):
-    return client.post(f"/anchors/{aid}/photos", files=_files(frame),
-                       data={**_form(frame.intrinsics), "pose": _pose_text(pose or frame.pose)})
+    return client.post(
+        f"/anchors/{aid}/photos",
+        files=_files(frame),
+        data={**_form(frame.intrinsics), "pose": _pose_text(pose or frame.pose)},
+    )
 
 
 def _bytes_of(frame) -> int:
@@ -219,8 +270,9 @@ def test_delete_a_photo_then_localize_uses_the_photos_left(server, scene):
         assert [p["index"] for p in _add(alice, aid, second).json()["photos"]] == [0, 2, 4]
         assert alice.delete(f"/anchors/{aid}/photos/4").status_code == 200
         assert alice.delete(f"/anchors/{aid}").status_code == 204
-        assert alice.get("/api/me").json()["storage_used_bytes"] == used - _bytes_of(ref) - _bytes_of(second) \
-            - _bytes_of(third)
+        assert alice.get("/api/me").json()["storage_used_bytes"] == used - _bytes_of(ref) - _bytes_of(
+            second
+        ) - _bytes_of(third)
 
 
 def test_photo_indices_are_never_reused_in_a_database_from_before_the_retired_indices(make_app, scene):  # noqa: F811
@@ -242,7 +294,9 @@ def test_photo_indices_are_never_reused_in_a_database_from_before_the_retired_in
         assert [p["index"] for p in restarted.delete(f"/anchors/{aid}/photos/1").json()["photos"]] == [0]
         r = _add(restarted, aid, third)
         assert r.status_code == 201 and [p["index"] for p in r.json()["photos"]] == [0, 3], r.text
-        assert r.json()["photos"][1]["pose"] == pytest.approx([float(x) for x in _pose_text(third.pose).split()], abs=1e-6)
+        assert r.json()["photos"][1]["pose"] == pytest.approx(
+            [float(x) for x in _pose_text(third.pose).split()], abs=1e-6
+        )
         assert restarted.get(f"/anchors/{aid}/photos/2").status_code == 404
         assert restarted.delete(f"/anchors/{aid}").status_code == 204
     with TestClient(create_app(app.settings), headers=auth) as again:  # deleting the anchor took its row along
@@ -254,8 +308,10 @@ def test_another_api_process_never_answers_from_a_deleted_photo(server, scene, r
     anchor (the same photo count as now) prepares it again instead of answering from the deleted photo."""
     ref, second, far = scene.reference, scene.frame(SECOND), scene.frame(FAR_QUERY)
     elsewhere = Dataset(realmini_dir).scene("val", "s00001").reference
-    other = TestClient(create_app(Settings(db_url=server.db_url, data_root=server.data.root,
-                                           gt_root=server.data.gt)), raise_server_exceptions=False)
+    other = TestClient(
+        create_app(Settings(db_url=server.db_url, data_root=server.data.root, gt_root=server.data.gt)),
+        raise_server_exceptions=False,
+    )
     other.headers["Authorization"] = f"Bearer {server.tokens['alice']}"
     aid = None
     try:
@@ -279,18 +335,34 @@ def test_anchor_photos_count_against_the_storage_quota(make_app, scene):  # noqa
     ref, second, third = scene.reference, scene.frame(SECOND), scene.frame(THIRD)
     app = make_app(storage_quota_bytes=_bytes_of(ref) + max(_bytes_of(second), _bytes_of(third)) + 100)
     c, auth = app.client, app.auth("ann")
-    r = c.post("/anchors", headers=auth, files=_files(ref) + _files(second, "photo_image", "photo_depth"),
-               data={**_form(ref.intrinsics), **_form(second.intrinsics, "photo_"), "method": METHOD,
-                     "photo_pose": _pose_text(second.pose)})
+    r = c.post(
+        "/anchors",
+        headers=auth,
+        files=_files(ref) + _files(second, "photo_image", "photo_depth"),
+        data={
+            **_form(ref.intrinsics),
+            **_form(second.intrinsics, "photo_"),
+            "method": METHOD,
+            "photo_pose": _pose_text(second.pose),
+        },
+    )
     assert r.status_code == 201, r.text
     aid = r.json()["id"]
     assert c.get("/api/me", headers=auth).json()["storage_used_bytes"] == _bytes_of(ref) + _bytes_of(second)
-    r = c.post(f"/anchors/{aid}/photos", headers=auth, files=_files(third),
-               data={**_form(third.intrinsics), "pose": _pose_text(third.pose)})
+    r = c.post(
+        f"/anchors/{aid}/photos",
+        headers=auth,
+        files=_files(third),
+        data={**_form(third.intrinsics), "pose": _pose_text(third.pose)},
+    )
     assert r.status_code == 413 and "storage quota" in r.json()["detail"] and "anchor photos" in r.json()["detail"]
     assert c.delete(f"/anchors/{aid}/photos/1", headers=auth).status_code == 200  # room again
-    r = c.post(f"/anchors/{aid}/photos", headers=auth, files=_files(third),
-               data={**_form(third.intrinsics), "pose": _pose_text(third.pose)})
+    r = c.post(
+        f"/anchors/{aid}/photos",
+        headers=auth,
+        files=_files(third),
+        data={**_form(third.intrinsics), "pose": _pose_text(third.pose)},
+    )
     assert r.status_code == 201, r.text
     assert c.get("/api/me", headers=auth).json()["storage_used_bytes"] == _bytes_of(ref) + _bytes_of(third)
 
@@ -373,8 +445,9 @@ def _page_files(*frames, depth: bool = True) -> list:
     """The create-anchor form's two multiple file inputs: photos, and depth maps matched by file name."""
     out = [("photos", (f.image_path.name, f.image_path.read_bytes(), "image/jpeg")) for f in frames]
     if depth:
-        out += [("depths", (f.depth_path("sensor").name, f.depth_path("sensor").read_bytes(), "image/png"))
-                for f in frames]
+        out += [
+            ("depths", (f.depth_path("sensor").name, f.depth_path("sensor").read_bytes(), "image/png")) for f in frames
+        ]
     return out
 
 
@@ -387,16 +460,32 @@ def test_the_relocalize_page_creates_an_anchor_and_adds_and_deletes_photos(serve
     with server.client("alice", headers=html) as alice, server.client("bob", headers=html) as bob:
         form = {"name": "lobby", "method": METHOD, "cameras": cameras}
         for files, data, status, words in (
-                (_page_files(ref, second, depth=False) + _page_files(ref)[1:], form, 422,
-                 "photo 1 (&#39;frame_00022.jpg&#39;): method"),  # photo 1 has no depth map
-                (_page_files(ref, second), {**form, "cameras": _camera_line(ref, False) + "\n"
-                                            + _camera_line(second, False)}, 422, "cameras line 2: expected"),
-                (_page_files(ref, second), {**form, "cameras": cameras.replace(_pose_text(second.pose),
-                                                                               "2 0 0 0 0.1 0.2 0.3")},
-                 422, "photo 1 (&#39;frame_00022.jpg&#39;): pose: the quaternion"),
-                (_page_files(ref), form, 422, "cameras line 2: no chosen photo is named &#39;frame_00022.jpg&#39;"),
-                (_page_files(ref, second) + [("depths", ("other.png", b"x", "image/png"))], form, 422,
-                 "depths: &#39;other.png&#39; goes with no chosen photo")):
+            (
+                _page_files(ref, second, depth=False) + _page_files(ref)[1:],
+                form,
+                422,
+                "photo 1 (&#39;frame_00022.jpg&#39;): method",
+            ),  # photo 1 has no depth map
+            (
+                _page_files(ref, second),
+                {**form, "cameras": _camera_line(ref, False) + "\n" + _camera_line(second, False)},
+                422,
+                "cameras line 2: expected",
+            ),
+            (
+                _page_files(ref, second),
+                {**form, "cameras": cameras.replace(_pose_text(second.pose), "2 0 0 0 0.1 0.2 0.3")},
+                422,
+                "photo 1 (&#39;frame_00022.jpg&#39;): pose: the quaternion",
+            ),
+            (_page_files(ref), form, 422, "cameras line 2: no chosen photo is named &#39;frame_00022.jpg&#39;"),
+            (
+                _page_files(ref, second) + [("depths", ("other.png", b"x", "image/png"))],
+                form,
+                422,
+                "depths: &#39;other.png&#39; goes with no chosen photo",
+            ),
+        ):
             r = alice.post("/relocalize/anchors", files=files, data=data)
             assert r.status_code == status and words in r.text, r.text[-3000:]
             assert 'id="anchor-error" role="alert">' in r.text  # shown above the create form, not hidden
@@ -406,8 +495,7 @@ def test_the_relocalize_page_creates_an_anchor_and_adds_and_deletes_photos(serve
         aid = r.headers["location"].rsplit("/", 1)[1]
         anchor = alice.get(f"/anchors/{aid}").json()
         assert anchor["name"] == "lobby" and anchor["num_photos"] == 2 and anchor["photos"][1]["has_depth"]
-        assert np.allclose(anchor["photos"][1]["pose"], [float(x) for x in _pose_text(second.pose).split()],
-                           atol=1e-6)
+        assert np.allclose(anchor["photos"][1]["pose"], [float(x) for x in _pose_text(second.pose).split()], atol=1e-6)
         assert _localize(bob, aid, far)["photo"] == 1
         assert f'href="/relocalize/anchors/{aid}"' in alice.get("/relocalize").text  # listed as hers
         page = alice.get(f"/relocalize/anchors/{aid}").text
@@ -418,8 +506,9 @@ def test_the_relocalize_page_creates_an_anchor_and_adds_and_deletes_photos(serve
         r = alice.post(f"/relocalize/anchors/{aid}/photos", files=_files(third), data=add)
         assert r.status_code == 422 and "photo 2 (&#39;frame_00005.jpg&#39;): pose: expected 7 numbers" in r.text
         assert f'value="{third.intrinsics.fx}"' in r.text and 'value="1 0 0"' in r.text
-        r = alice.post(f"/relocalize/anchors/{aid}/photos", files=_files(third),
-                       data={**add, "pose": _pose_text(third.pose)})
+        r = alice.post(
+            f"/relocalize/anchors/{aid}/photos", files=_files(third), data={**add, "pose": _pose_text(third.pose)}
+        )
         assert r.status_code == 303 and alice.get(f"/anchors/{aid}").json()["num_photos"] == 3
         # delete: photo 0 refused on the page, bob refused, photo 1 deleted
         r = alice.post(f"/relocalize/anchors/{aid}/photos/0/delete")
@@ -433,12 +522,20 @@ def test_the_relocalize_page_creates_an_anchor_and_adds_and_deletes_photos(serve
 
 @pytest.mark.browser
 @pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"{CHROMIUM} is absent (apt-get install chromium)")
-def test_relocalize_page_uses_a_two_photo_anchor_at_phone_width(phone, sqlite_server, scene):
+def test_relocalize_page_uses_a_two_photo_anchor_at_phone_width(phone, sqlite_server, scene):  # noqa: F811
     ref, second, far = scene.reference, scene.frame(SECOND), scene.frame(FAR_QUERY)
     with sqlite_server.client("alice") as alice:
-        aid = alice.post("/anchors", files=_files(ref) + _files(second, "photo_image", "photo_depth"),
-                         data={**_form(ref.intrinsics), **_form(second.intrinsics, "photo_"), "method": METHOD,
-                               "photo_pose": _pose_text(second.pose), "name": "hall"}).json()["id"]
+        aid = alice.post(
+            "/anchors",
+            files=_files(ref) + _files(second, "photo_image", "photo_depth"),
+            data={
+                **_form(ref.intrinsics),
+                **_form(second.intrinsics, "photo_"),
+                "method": METHOD,
+                "photo_pose": _pose_text(second.pose),
+                "name": "hall",
+            },
+        ).json()["id"]
     try:
         _sign_in(phone, sqlite_server, "bob")
         phone.goto("/relocalize")
@@ -472,8 +569,12 @@ def test_a_photo_index_past_the_database_integer_is_a_422_not_a_500(make_app, sc
     an index the database cannot hold is a 422 naming the largest, one it can but the anchor lacks a 404."""
     app = make_app()
     auth = app.auth("ann")
-    r = app.client.post("/anchors", headers=auth, files=_files(scene.reference),
-                        data={**_form(scene.reference.intrinsics), "method": METHOD})
+    r = app.client.post(
+        "/anchors",
+        headers=auth,
+        files=_files(scene.reference),
+        data={**_form(scene.reference.intrinsics), "method": METHOD},
+    )
     assert r.status_code == 201, r.text
     aid = r.json()["id"]
     for k in (2**63, 10**20, 2**31, -1):
@@ -484,8 +585,10 @@ def test_a_photo_index_past_the_database_integer_is_a_422_not_a_500(make_app, sc
     r = app.client.get(f"/anchors/{aid}/photos/{k}", headers=app.auth("ben"))
     assert r.status_code == 404 and f"has no photo {k}" in r.json()["detail"], (k, r.text)
     assert app.client.delete(f"/anchors/{aid}/photos/{k}", headers=auth).status_code == 404
-    assert app.client.get(f"/anchors/{aid}/photos/0", headers=app.auth("ben")).content == \
-        scene.reference.image_path.read_bytes()
+    assert (
+        app.client.get(f"/anchors/{aid}/photos/0", headers=app.auth("ben")).content
+        == scene.reference.image_path.read_bytes()
+    )
 
 
 def test_too_many_photos_are_refused_before_any_is_decoded(make_app):  # noqa: F811
@@ -494,16 +597,20 @@ def test_too_many_photos_are_refused_before_any_is_decoded(make_app):  # noqa: F
     app = make_app(limits=Limits(max_anchor_photos=3))
     junk = b"not an image"
     n = 4
-    files = [("image", ("p0.png", junk, "image/png"))] + [("photo_image", (f"p{i}.png", junk, "image/png"))
-                                                          for i in range(1, n)]
+    files = [("image", ("p0.png", junk, "image/png"))] + [
+        ("photo_image", (f"p{i}.png", junk, "image/png")) for i in range(1, n)
+    ]
     cam = {"fx": "1", "fy": "1", "cx": "1", "cy": "1"}
     data = {**cam, **{f"photo_{k}": [v] * (n - 1) for k, v in cam.items()}, "photo_pose": ["1 0 0 0 0 0 0"] * (n - 1)}
     r = app.client.post("/anchors", headers=app.auth("ann"), files=files, data=data)
     assert r.status_code == 413 and "at most 3 photos; got 4" in r.json()["detail"], r.text
     web, csrf = _web_session(app)
     cameras = "p0.png 1 1 1 1\n" + "".join(f"p{i}.png 1 1 1 1 1 0 0 0 0 0 0\n" for i in range(1, n))
-    r = web.post("/relocalize/anchors", files=[("photos", (f"p{i}.png", junk, "image/png")) for i in range(n)],
-                 data={"cameras": cameras, "csrf_token": csrf})
+    r = web.post(
+        "/relocalize/anchors",
+        files=[("photos", (f"p{i}.png", junk, "image/png")) for i in range(n)],
+        data={"cameras": cameras, "csrf_token": csrf},
+    )
     assert r.status_code == 413 and "at most 3 photos; got 4" in r.text, r.text[-2000:]
 
 
@@ -518,9 +625,11 @@ def test_a_depth_map_whose_name_fits_two_photos_is_refused(make_app, scene):  # 
     assert ok
     app = make_app()
     web, csrf = _web_session(app)
-    files = [("photos", ("frame.jpg", ref.image_path.read_bytes(), "image/jpeg")),
-             ("photos", ("frame.png", png.tobytes(), "image/png")),
-             ("depths", ("frame.sensor.png", ref.depth_path("sensor").read_bytes(), "image/png"))]
+    files = [
+        ("photos", ("frame.jpg", ref.image_path.read_bytes(), "image/jpeg")),
+        ("photos", ("frame.png", png.tobytes(), "image/png")),
+        ("depths", ("frame.sensor.png", ref.depth_path("sensor").read_bytes(), "image/png")),
+    ]
     cameras = f"frame.jpg {K.fx} {K.fy} {K.cx} {K.cy}\nframe.png {K.fx} {K.fy} {K.cx} {K.cy} 1 0 0 0 0.1 0 0\n"
     r = web.post("/relocalize/anchors", files=files, data={"cameras": cameras, "method": METHOD, "csrf_token": csrf})
     assert r.status_code == 422, r.text[-2000:]
@@ -556,8 +665,12 @@ def test_a_photo_is_decoded_without_holding_the_database_write_lock(make_app, sc
         return decode(*args, **kw)
 
     monkeypatch.setattr(api, "photo_upload", probing_decode)
-    r = c.post(f"/anchors/{aid}/photos", headers=auth, files=_files(second),
-               data={**_form(second.intrinsics), "pose": _pose_text(second.pose)})
+    r = c.post(
+        f"/anchors/{aid}/photos",
+        headers=auth,
+        files=_files(second),
+        data={**_form(second.intrinsics), "pose": _pose_text(second.pose)},
+    )
     assert r.status_code == 201, r.text
     assert seen == ["free"] and [p["index"] for p in r.json()["photos"]] == [0, 1]
 
@@ -587,10 +700,14 @@ def test_bytes_after_a_jpegs_end_are_not_stored_or_served(server, realmini_dir):
         assert np.array_equal(decode(cleaned), decode(jpeg))
     K = ref.intrinsics
     with server.client("alice") as c:
-        r = c.post("/anchors", files={"image": ("ref.jpg", baseline + trailer, "image/jpeg"),
-                                      "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")},
-                   data={"fx": str(K.fx), "fy": str(K.fy), "cx": str(K.cx), "cy": str(K.cy),
-                         "method": "sift_pnp_sensor"})
+        r = c.post(
+            "/anchors",
+            files={
+                "image": ("ref.jpg", baseline + trailer, "image/jpeg"),
+                "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png"),
+            },
+            data={"fx": str(K.fx), "fy": str(K.fy), "cx": str(K.cx), "cy": str(K.cy), "method": "sift_pnp_sensor"},
+        )
         assert r.status_code == 201, r.text
         served = c.get(f"/anchors/{r.json()['id']}/photos/0").content
         assert served == baseline  # the photo byte for byte (it has no metadata), without the trailer

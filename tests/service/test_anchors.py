@@ -18,17 +18,24 @@ def test_anchor_lifecycle_and_localize(server, realmini_dir):
     scene = Dataset(realmini_dir).scene("val", "s00000")
     ref, query = scene.reference, scene.frame("seq1/frame_00009.jpg")
     with server.client("alice") as alice:
-        r = alice.post("/anchors", files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
-                                          "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")},
-                       data={**_form(ref.intrinsics), "method": METHOD, "name": "office"})
+        r = alice.post(
+            "/anchors",
+            files={
+                "image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+                "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png"),
+            },
+            data={**_form(ref.intrinsics), "method": METHOD, "name": "office"},
+        )
         assert r.status_code == 201, r.text
         anchor = r.json()
         assert anchor["has_depth"] and anchor["method"] == METHOD
         assert alice.get(f"/anchors/{anchor['id']}").json()["name"] == "office"
     with server.client("bob") as bob:  # any signed-in user can localize against alice's anchor
-        r = bob.post(f"/anchors/{anchor['id']}/localize",
-                     files={"image": ("q.jpg", query.image_path.read_bytes(), "image/jpeg")},
-                     data=_form(query.intrinsics))
+        r = bob.post(
+            f"/anchors/{anchor['id']}/localize",
+            files={"image": ("q.jpg", query.image_path.read_bytes(), "image/jpeg")},
+            data=_form(query.intrinsics),
+        )
         assert r.status_code == 200, r.text
         est = r.json()
         assert est["ok"], est
@@ -39,13 +46,21 @@ def test_anchor_lifecycle_and_localize(server, realmini_dir):
         assert est["confidence"] > 0 and est["timings"]["total"] > 0 and est["num_matches"] >= est["inliers"]
         # a photo of something else: a clean "no estimate" (or a low-confidence one), never an error
         other = Dataset(realmini_dir).scene("val", "s00001").reference
-        r = bob.post(f"/anchors/{anchor['id']}/localize",
-                     files={"image": ("o.jpg", other.image_path.read_bytes(), "image/jpeg")},
-                     data=_form(other.intrinsics))
+        r = bob.post(
+            f"/anchors/{anchor['id']}/localize",
+            files={"image": ("o.jpg", other.image_path.read_bytes(), "image/jpeg")},
+            data=_form(other.intrinsics),
+        )
         assert r.status_code == 200 and isinstance(r.json()["ok"], bool)
         assert bob.delete(f"/anchors/{anchor['id']}").status_code == 403
-        assert bob.post("/anchors/nope/localize", files={"image": ("q.jpg", query.image_path.read_bytes())},
-                        data=_form(query.intrinsics)).status_code == 404
+        assert (
+            bob.post(
+                "/anchors/nope/localize",
+                files={"image": ("q.jpg", query.image_path.read_bytes())},
+                data=_form(query.intrinsics),
+            ).status_code
+            == 404
+        )
     with server.client("alice") as alice:
         assert alice.delete(f"/anchors/{anchor['id']}").status_code == 204
         assert alice.get(f"/anchors/{anchor['id']}").status_code == 404
@@ -56,18 +71,29 @@ def test_anchor_default_method_is_the_registry_preset(server, realmini_dir):
 
     ref = Dataset(realmini_dir).scene("val", "s00001").reference
     with server.client("carol") as c:
-        r = c.post("/anchors", files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
-                                      "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")},
-                   data=_form(ref.intrinsics))
+        r = c.post(
+            "/anchors",
+            files={
+                "image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+                "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png"),
+            },
+            data=_form(ref.intrinsics),
+        )
         assert r.status_code == 201, r.text
         assert r.json()["method"] == default_method() and r.json()["has_depth"]
         assert c.delete(f"/anchors/{r.json()['id']}").status_code == 204
         # the default preset takes its scale from the anchor's depth: without one it could never localize
-        r = c.post("/anchors", files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg")},
-                   data=_form(ref.intrinsics))
+        r = c.post(
+            "/anchors",
+            files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg")},
+            data=_form(ref.intrinsics),
+        )
         assert r.status_code == 422 and "depth" in r.json()["detail"], r.text
-        r = c.post("/anchors", files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg")},
-                   data={**_form(ref.intrinsics), "method": "sift_emat_none"})
+        r = c.post(
+            "/anchors",
+            files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg")},
+            data={**_form(ref.intrinsics), "method": "sift_emat_none"},
+        )
         assert r.status_code == 201 and not r.json()["has_depth"], r.text
         assert c.delete(f"/anchors/{r.json()['id']}").status_code == 204
 
@@ -79,9 +105,13 @@ def test_needs_reference_depth_one_definition_two_questions():
     from mapfree.service.anchors.localizers import needs_reference_depth
 
     table = {  # name: (for the metric scale, for any pose at all)
-        "sift_pnp_sensor": (True, True), "sift_emat_sensor": (True, True),
-        "sift_pnp_none": (False, True), "sift_procrustes_none": (False, True),
-        "sift_emat_none": (False, False), "xfeat_pnp_dpt-kitti": (False, False), "rpr-3d3d": (False, False),
+        "sift_pnp_sensor": (True, True),
+        "sift_emat_sensor": (True, True),
+        "sift_pnp_none": (False, True),
+        "sift_procrustes_none": (False, True),
+        "sift_emat_none": (False, False),
+        "xfeat_pnp_dpt-kitti": (False, False),
+        "rpr-3d3d": (False, False),
     }
     for name, (scale, any_pose) in table.items():
         assert needs_reference_depth(name, scale_free_too=False) is scale, name
@@ -95,18 +125,26 @@ def test_scale_free_pnp_anchor_needs_depth_and_the_try_page_runs_it_without(serv
     with server.client("carol") as c:
         r = c.post("/anchors", files={"image": image}, data={**_form(ref.intrinsics), "method": "sift_pnp_none"})
         assert r.status_code == 422 and "depth" in r.json()["detail"], r.text  # it could never localize
-        r = c.post("/anchors", files={"image": image, "depth": ("d.png", ref.depth_path("sensor").read_bytes(),
-                                                                 "image/png")},
-                   data={**_form(ref.intrinsics), "method": "sift_pnp_none"})
+        r = c.post(
+            "/anchors",
+            files={"image": image, "depth": ("d.png", ref.depth_path("sensor").read_bytes(), "image/png")},
+            data={**_form(ref.intrinsics), "method": "sift_pnp_none"},
+        )
         assert r.status_code == 201, r.text
-        est = c.post(f"/anchors/{r.json()['id']}/localize", data=_form(query.intrinsics),
-                     files={"image": ("q.jpg", query.image_path.read_bytes(), "image/jpeg")}).json()
-        assert est["ok"] and np.linalg.norm(Pose(np.array(est["R"]), np.array(est["t"])).center
-                                            - query.pose.center) < 0.25, est  # metric: the anchor's depth
+        est = c.post(
+            f"/anchors/{r.json()['id']}/localize",
+            data=_form(query.intrinsics),
+            files={"image": ("q.jpg", query.image_path.read_bytes(), "image/jpeg")},
+        ).json()
+        assert (
+            est["ok"] and np.linalg.norm(Pose(np.array(est["R"]), np.array(est["t"])).center - query.pose.center) < 0.25
+        ), est  # metric: the anchor's depth
         assert c.delete(f"/anchors/{r.json()['id']}").status_code == 204
         pair = {"reference": image, "query": ("q.jpg", query.image_path.read_bytes(), "image/jpeg")}
-        form = {**{f"ref_{k}": v for k, v in _form(ref.intrinsics).items()},
-                **{f"q_{k}": v for k, v in _form(query.intrinsics).items()}}
+        form = {
+            **{f"ref_{k}": v for k, v in _form(ref.intrinsics).items()},
+            **{f"q_{k}": v for k, v in _form(query.intrinsics).items()},
+        }
         r = c.post("/relocalize", files=pair, data={**form, "method": "sift_pnp_sensor"})
         assert r.status_code == 422 and "needs the reference depth" in r.text  # refused before anything runs
         r = c.post("/relocalize", files=pair, data={**form, "method": "sift_pnp_none"})

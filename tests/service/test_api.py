@@ -13,8 +13,11 @@ VCRE_AUC = "AUC @ VCRE < 90px"
 
 
 def upload(c, data: bytes, split: str = "val", name: str = "run", public: bool = True):
-    return c.post("/api/submissions", files={"file": ("sub.zip", data, "application/zip")},
-                  data={"split": split, "name": name, "public": str(public).lower()})
+    return c.post(
+        "/api/submissions",
+        files={"file": ("sub.zip", data, "application/zip")},
+        data={"split": split, "name": name, "public": str(public).lower()},
+    )
 
 
 def expected_metrics(server, data: bytes, split: str, tmp_path) -> dict:
@@ -34,8 +37,14 @@ def test_health_and_openapi(server):
         h = c.get("/health/detail", headers=OPERATOR).json()
         assert h["status"] == "ok" and h["db"] == server.backend and len(h["workers"]) >= 2
         paths = c.get("/openapi.json").json()["paths"]
-    for p in ("/api/submissions", "/api/leaderboard/{split}", "/anchors", "/anchors/{aid}/localize",
-              "/anchors/{aid}", "/health"):
+    for p in (
+        "/api/submissions",
+        "/api/leaderboard/{split}",
+        "/anchors",
+        "/anchors/{aid}/localize",
+        "/anchors/{aid}",
+        "/health",
+    ):
         assert p in paths
 
 
@@ -90,9 +99,14 @@ def test_test_split_ground_truth_stays_private(server, tmp_path):
         html = c.get(f"/submissions/{sid}").text
         assert "per-scene" not in html and "Per scene" not in html
         # no route serves dataset files, whatever the path trick
-        for path in ("/data/test/s00525/poses.txt", "/static/../../test/s00525/poses.txt",
-                     "/static/%2e%2e/%2e%2e/config.py", "/test/s00525/poses.txt", "/gt/test",
-                     "/api/submissions/" + sid + "/per_scene"):
+        for path in (
+            "/data/test/s00525/poses.txt",
+            "/static/../../test/s00525/poses.txt",
+            "/static/%2e%2e/%2e%2e/config.py",
+            "/test/s00525/poses.txt",
+            "/gt/test",
+            "/api/submissions/" + sid + "/per_scene",
+        ):
             r = c.get(path)
             assert r.status_code == 404, path
             assert "0.0000" not in r.text
@@ -116,10 +130,18 @@ def test_auth_required_on_every_write(server):
     data = make_submission(server.data.root / "val")
     with server.client() as anon:
         assert upload(anon, data).status_code == 401
-        assert anon.post("/anchors", data={"fx": 1, "fy": 1, "cx": 0, "cy": 0},
-                         files={"image": ("a.png", b"x")}).status_code == 401
-        assert anon.post("/anchors/abc/localize", data={"fx": 1, "fy": 1, "cx": 0, "cy": 0},
-                         files={"image": ("a.png", b"x")}).status_code == 401
+        assert (
+            anon.post(
+                "/anchors", data={"fx": 1, "fy": 1, "cx": 0, "cy": 0}, files={"image": ("a.png", b"x")}
+            ).status_code
+            == 401
+        )
+        assert (
+            anon.post(
+                "/anchors/abc/localize", data={"fx": 1, "fy": 1, "cx": 0, "cy": 0}, files={"image": ("a.png", b"x")}
+            ).status_code
+            == 401
+        )
         assert anon.delete("/anchors/abc").status_code == 401
         assert anon.patch("/api/submissions/abc", json={"public": True}).status_code == 401
         assert anon.get("/api/submissions").status_code == 401
@@ -144,8 +166,11 @@ def test_cookie_writes_need_csrf(server):
         assert r.status_code == 403 and "CSRF" in r.json()["detail"]
         page = c.get("/submit").text
         session_csrf = page.split('name="csrf_token" value="')[1].split('"')[0]
-        r = c.post("/api/submissions", files={"file": ("s.zip", data)},
-                   data={"split": "val", "name": "cookie", "csrf_token": session_csrf})
+        r = c.post(
+            "/api/submissions",
+            files={"file": ("s.zip", data)},
+            data={"split": "val", "name": "cookie", "csrf_token": session_csrf},
+        )
         assert r.status_code == 202, r.text
 
 

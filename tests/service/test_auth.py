@@ -23,8 +23,11 @@ def test_revoke_tokens_ends_browser_sessions(server):
         session_csrf = page.split('name="csrf_token" value="')[1].split('"')[0]
         mapfree("admin", "--db", server.db_url, "revoke-tokens", "dave")
         assert c.get("/api/me").status_code == 401
-        r = c.post("/api/submissions", files={"file": ("s.zip", make_submission(server.data.root / "val"))},
-                   data={"split": "val", "name": "after-revoke", "csrf_token": session_csrf})
+        r = c.post(
+            "/api/submissions",
+            files={"file": ("s.zip", make_submission(server.data.root / "val"))},
+            data={"split": "val", "name": "after-revoke", "csrf_token": session_csrf},
+        )
         assert r.status_code == 401, r.text
 
 
@@ -63,8 +66,10 @@ def test_tokens_and_sessions_never_outlive_the_token_they_were_made_with(server)
         assert c.get("/api/me").status_code == 401
 
     token = create_users(server.db_url, {"fay": None})["fay"]
-    with server.client(follow_redirects=False) as web, server.client(headers={"Authorization": f"Bearer {token}"}) \
-            as api:
+    with (
+        server.client(follow_redirects=False) as web,
+        server.client(headers={"Authorization": f"Bearer {token}"}) as api,
+    ):
         csrf = web.get("/login").text.split('name="csrf_token" value="')[1].split('"')[0]
         assert web.post("/login", data={"token": token, "csrf_token": csrf}).status_code == 303
         page = web.get("/submit").text
@@ -76,14 +81,19 @@ def test_tokens_and_sessions_never_outlive_the_token_they_were_made_with(server)
         assert r.status_code == 200 and r.json()["ended"]["tokens"] == [made["id"]], r.text
         assert len(r.json()["ended"]["sessions"]) == 1
         assert web.get("/api/me").status_code == 401
-        assert httpx.get(server.url + "/api/me", headers={"Authorization": f"Bearer {made['token']}"}).status_code \
-            == 401
+        assert (
+            httpx.get(server.url + "/api/me", headers={"Authorization": f"Bearer {made['token']}"}).status_code == 401
+        )
     with server.client(headers={"Authorization": f"Bearer {server.tokens['alice']}"}) as c:  # the admin's word
         parent = c.post("/api/tokens", data={"expires_in_days": "1"}).json()
         with server.client(headers={"Authorization": f"Bearer {parent['token']}"}) as p:
             grandchild = p.post("/api/tokens", data={"expires_in_days": "1"}).json()
-    out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", server.db_url, "revoke-token",
-                          str(parent["id"])], capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "mapfree.cli.admin", "--db", server.db_url, "revoke-token", str(parent["id"])],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0 and f"and ended 1 tokens made with it ({grandchild['id']})" in out.stderr, out.stderr
 
 
@@ -96,8 +106,12 @@ def test_look_alike_names_and_endless_tokens_are_refused(make_app, tmp_path):
     db = ["--db", f"sqlite:///{tmp_path / 'names.db'}"]
     mapfree("admin", *db, "create-user", "alice")
     for name, why in (("\u0430lice", "ASCII"), ("Alice", "only in case"), (".x", "ASCII")):
-        out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", *db, "create-user", name],
-                             capture_output=True, text=True, timeout=120)
+        out = subprocess.run(
+            [sys.executable, "-m", "mapfree.cli.admin", *db, "create-user", name],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert out.returncode == 1 and why in out.stderr and "Traceback" not in out.stderr, (name, out.stderr)
     app = make_app()
     with app.client as c:

@@ -22,11 +22,22 @@ from .conftest import ARTIFACTS, make_submission
 from .test_leaderboard import fresh_users, submit_done
 
 CHROMIUM = os.environ.get("MAPFREE_CHROMIUM", "/usr/bin/chromium")
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-pytestmark = [pytest.mark.browser,
-              pytest.mark.skipif(not Path(CHROMIUM).exists(),
-                                 reason=f"{CHROMIUM} is absent (apt-get install chromium; .ci/services.sh does)")]
+ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(
+        not Path(CHROMIUM).exists(), reason=f"{CHROMIUM} is absent (apt-get install chromium; .ci/services.sh does)"
+    ),
+]
 PHONE = {"width": 390, "height": 844}
 
 
@@ -103,8 +114,12 @@ def test_submit_watch_leaderboard_and_plots(page, sqlite_server, tmp_path):
     page.wait_for_selector("#status[data-status=done]")  # the page polls and reloads when finished
     assert page.inner_text("#status") == "done"
     metrics = page.inner_text("#metrics")
-    for key in ("AUC @ VCRE < 90px", "AUC @ VCRE < 45px", "Precision @ Pose Error < (50.0cm, 10deg)",
-                "AUC @ Pose Error < (50.0cm, 10deg)"):
+    for key in (
+        "AUC @ VCRE < 90px",
+        "AUC @ VCRE < 45px",
+        "Precision @ Pose Error < (50.0cm, 10deg)",
+        "AUC @ Pose Error < (50.0cm, 10deg)",
+    ):
         assert key in metrics
     assert page.locator("#metrics tr").count() == 12, metrics
     assert "SIFT + PnP on sensor depth" in page.inner_text("#method")
@@ -170,7 +185,7 @@ def test_ties_best_view_scene_csv_and_compare(page, sqlite_server):
     page.click("#apply")
     page.wait_for_url(f"**scene={scene}**")
     assert scene in page.inner_text("h1")
-    want = f'{a["per_scene"][scene]["AUC @ VCRE < 90px"]:.3f}'
+    want = f"{a['per_scene'][scene]['AUC @ VCRE < 90px']:.3f}"
     assert _row(page, a["name"]).locator("td").nth(5).inner_text() == want
     shot(page, "leaderboard-scene")
     # CSV of what is shown
@@ -299,8 +314,9 @@ def test_anchor_from_several_photos_then_add_and_delete_one(page, sqlite_server,
 
     def line(f, pose: bool) -> str:
         K, (q, t) = f.intrinsics, f.pose.qt()
-        return f"{f.image_path.name} {K.fx} {K.fy} {K.cx} {K.cy}" + (" " + " ".join(f"{x:.9f}" for x in [*q, *t])
-                                                                       if pose else "")
+        return f"{f.image_path.name} {K.fx} {K.fy} {K.cx} {K.cy}" + (
+            " " + " ".join(f"{x:.9f}" for x in [*q, *t]) if pose else ""
+        )
 
     cameras = line(ref, False) + "\n" + line(second, True)
     _sign_in(page, sqlite_server, "alice")
@@ -362,9 +378,15 @@ def test_phone_width(phone, sqlite_server):
         done = [s for s in c.get("/api/submissions").json() if s["status"] == "done" and s["split"] == "val"]
     if not done:
         done = [submit_done(sqlite_server, "alice", make_submission(sqlite_server.data.root / "val"), "phone")]
-    pages = {"leaderboard-val": "/leaderboard/val", "leaderboard-test": "/leaderboard/test", "submit": "/submit",
-             "relocalize": "/relocalize", "me": "/me", "submission": done[0]["url"],
-             "compare": f"/compare?id={done[0]['id']}&id={done[-1]['id']}"}
+    pages = {
+        "leaderboard-val": "/leaderboard/val",
+        "leaderboard-test": "/leaderboard/test",
+        "submit": "/submit",
+        "relocalize": "/relocalize",
+        "me": "/me",
+        "submission": done[0]["url"],
+        "compare": f"/compare?id={done[0]['id']}&id={done[-1]['id']}",
+    }
     too_wide = {}
     for name, path in pages.items():
         phone.goto(path)

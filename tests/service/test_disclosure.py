@@ -52,7 +52,7 @@ def trilaterate(d: list[float]) -> np.ndarray | None:
     is not published. c_i = (|c|² + 100² - d_i²) / 200: a quadratic in r = |c|²; the root near the reference."""
     if any(x is None for x in d):
         return None
-    k = (PROBE_M ** 2 - np.square(d)) / (2 * PROBE_M)  # c_i = r / 200 + k_i
+    k = (PROBE_M**2 - np.square(d)) / (2 * PROBE_M)  # c_i = r / 200 + k_i
     a, b, c = 3 / (2 * PROBE_M) ** 2, 2 * k.sum() / (2 * PROBE_M) - 1, float(k @ k)
     disc = b * b - 4 * a * c
     if disc < 0:
@@ -66,9 +66,9 @@ def test_three_probe_submissions_recover_nothing_better_than_a_metre(tmp_path):
     ``to_json``'s ``shown_metrics``): the medians are not published, so nothing places the frame; a control on
     val, where the ground truth is public and the medians stay, shows the same attack working to millimetres."""
     from mapfree.service import Settings
+    from mapfree.service.leaderboard.disclosure import MEDIAN_KEYS
     from mapfree.service.leaderboard.scoring import score
     from mapfree.service.leaderboard.submissions import shown_metrics
-    from mapfree.service.leaderboard.disclosure import MEDIAN_KEYS
 
     root, gt = tmp_path / "data", tmp_path / "gt"
     names, poses = _one_scene_split(root, gt)
@@ -96,8 +96,10 @@ def test_three_probe_submissions_recover_nothing_better_than_a_metre(tmp_path):
     (root / "val").mkdir()
     (root / "test" / "s00900").rename(root / "val" / "s00900")
     (gt / "test" / "s00900" / "poses.txt").replace(root / "val" / "s00900" / "poses.txt")
-    d = [score(settings, "val", tmp_path / f"probe{axis}.zip")[0]["metrics"]["Average Median Translation Error"]
-         for axis in range(3)]
+    d = [
+        score(settings, "val", tmp_path / f"probe{axis}.zip")[0]["metrics"]["Average Median Translation Error"]
+        for axis in range(3)
+    ]
     assert np.linalg.norm(trilaterate(d) - truth) < 0.01
 
 
@@ -106,8 +108,8 @@ def test_no_test_result_carries_a_median(tmp_path, frames_sent):
     """Neither a one-frame probe nor a submission of every frame publishes a median on test; the rest is
     rounded to leaderboard precision."""
     from mapfree.service import Settings
-    from mapfree.service.leaderboard.scoring import score
     from mapfree.service.leaderboard.disclosure import DECIMALS, DEFAULT_DECIMALS, MEDIAN_KEYS
+    from mapfree.service.leaderboard.scoring import score
 
     root, gt = tmp_path / "data", tmp_path / "gt"
     names, poses = _one_scene_split(root, gt)
@@ -115,8 +117,9 @@ def test_no_test_result_carries_a_median(tmp_path, frames_sent):
     lines = []
     for n, p in list(zip(names, poses))[:frames_sent]:
         t = p.t + rng.normal(scale=0.3, size=3)
-        lines.append(f"{n} {' '.join(f'{x:.9f}' for x in p.qt()[0])} {' '.join(f'{x:.9f}' for x in t)} "
-                     f"{rng.uniform(1, 9):.3f}")
+        lines.append(
+            f"{n} {' '.join(f'{x:.9f}' for x in p.qt()[0])} {' '.join(f'{x:.9f}' for x in t)} {rng.uniform(1, 9):.3f}"
+        )
     z = tmp_path / "s.zip"
     z.write_bytes(zip_of({"pose_s00900.txt": ("\n".join(lines) + "\n").encode()}))
     m = score(Settings(data_root=root, gt_root=gt), "test", z)[0]["metrics"]

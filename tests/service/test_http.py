@@ -35,9 +35,12 @@ def test_oversized_request_is_refused_before_reading(server):
 
     u = urlparse(server.url)
     with socket.create_connection((u.hostname, u.port), timeout=30) as s:
-        s.sendall(b"POST /api/submissions HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer " +
-                  server.tokens["alice"].encode() + b"\r\nContent-Type: multipart/form-data; boundary=b\r\n"
-                  b"Content-Length: 10000000000\r\n\r\n")
+        s.sendall(
+            b"POST /api/submissions HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer "
+            + server.tokens["alice"].encode()
+            + b"\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+            b"Content-Length: 10000000000\r\n\r\n"
+        )
         head = s.recv(4096).decode(errors="replace")
     assert head.startswith("HTTP/1.1 413"), head
 
@@ -47,14 +50,23 @@ def test_out_of_range_ids_are_refused_not_a_500(server):
     the driver; now a 422 naming the largest id (JSON for the API, the error page for forms)."""
     huge = "99999999999999999999"
     with server.client("bob") as c:
-        for method, path in (("DELETE", f"/api/tokens/{huge}"), ("DELETE", f"/api/sessions/{2**31}"),
-                             ("POST", f"/me/tokens/{huge}/revoke"), ("POST", f"/me/sessions/{2**31}/end"),
-                             ("GET", f"/anchors/x/photos/{huge}"), ("DELETE", f"/anchors/x/photos/{2**40}")):
+        for method, path in (
+            ("DELETE", f"/api/tokens/{huge}"),
+            ("DELETE", f"/api/sessions/{2**31}"),
+            ("POST", f"/me/tokens/{huge}/revoke"),
+            ("POST", f"/me/sessions/{2**31}/end"),
+            ("GET", f"/anchors/x/photos/{huge}"),
+            ("DELETE", f"/anchors/x/photos/{2**40}"),
+        ):
             r = c.request(method, path)
             assert r.status_code == 422 and "2147483647" in r.text, (method, path, r.status_code, r.text[:200])
         assert c.delete("/api/tokens/2147483647").status_code == 404
-    out = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", server.db_url, "revoke-token", huge],
-                         capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "mapfree.cli.admin", "--db", server.db_url, "revoke-token", huge],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 2 and "no such id" in out.stderr and "Traceback" not in out.stderr, out.stderr
 
 
@@ -72,8 +84,9 @@ def test_unexpected_error_is_a_logged_json_500_with_a_request_id(make_app, caplo
     assert rid and r.headers["x-request-id"] == rid and rid in r.json()["detail"]
     access = [rec for rec in caplog.records if rec.getMessage() == "request" and getattr(rec, "status", 0) == 500]
     assert access and access[0].request_id == rid
-    assert any(rec.getMessage() == "unhandled error" and getattr(rec, "request_id", None) == rid
-               for rec in caplog.records)
+    assert any(
+        rec.getMessage() == "unhandled error" and getattr(rec, "request_id", None) == rid for rec in caplog.records
+    )
 
 
 def test_health_answers_from_a_live_snapshot_and_fails_when_the_database_does(make_app, tmp_path):

@@ -11,9 +11,9 @@ import pytest
 from sqlalchemy import func, select
 
 from mapfree.service.accounts import tokens as auth
-from mapfree.service.leaderboard import jobs
 from mapfree.service.config import Settings
 from mapfree.service.database.models import Result, Submission, SubmissionFile, init_db, make_engine, session_factory
+from mapfree.service.leaderboard import jobs
 
 from .conftest import BACKENDS, db_url_for, make_submission
 
@@ -30,8 +30,10 @@ def sessions(request, tmp_path):
 def _enqueue(sessions, n: int, data: bytes = b"zip", split: str = "val") -> list[str]:
     with sessions.begin() as db:
         user, _ = auth.create_user(db, f"u{time.time_ns()}")
-        subs = [Submission(user_id=user.id, split=split, name=f"j{i}", sha256="0" * 64, created_at=time.time() + i * 1e-3)
-                for i in range(n)]
+        subs = [
+            Submission(user_id=user.id, split=split, name=f"j{i}", sha256="0" * 64, created_at=time.time() + i * 1e-3)
+            for i in range(n)
+        ]
         db.add_all(subs)
         db.flush()
         db.add_all(SubmissionFile(submission_id=s.id, data=data) for s in subs)
@@ -95,8 +97,9 @@ def test_worker_process_finishes_an_abandoned_job(sessions, split_data):
     (sid,) = _enqueue(S, 1, make_submission(split_data.root / "val", noise=0.2))
     assert jobs.claim(S, "killed-worker", 0.3, 3) is not None  # claimed, then its worker "dies"
     time.sleep(0.4)
-    settings = Settings(db_url=url, data_root=split_data.root, gt_root=split_data.gt, lease_seconds=5,
-                        poll_seconds=0.05)
+    settings = Settings(
+        db_url=url, data_root=split_data.root, gt_root=split_data.gt, lease_seconds=5, poll_seconds=0.05
+    )
     assert worker.run(settings, worker_id="rescuer", max_jobs=1) == 1
     with S() as db:
         sub, res = db.get(Submission, sid), db.get(Result, sid)

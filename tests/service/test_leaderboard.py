@@ -111,15 +111,22 @@ def test_compare_two_submissions(server, board_data):
 def test_method_metadata(server, board_data):
     u1, u2 = board_data["users"]
     sid = board_data["a"]["id"]
-    meta = {"description": "SIFT + PnP, tuned", "paper_url": "https://arxiv.org/abs/2210.05494",
-            "code_url": "https://github.com/example/reloc", "runtime_ms": 85.5, "extra_data": True}
+    meta = {
+        "description": "SIFT + PnP, tuned",
+        "paper_url": "https://arxiv.org/abs/2210.05494",
+        "code_url": "https://github.com/example/reloc",
+        "runtime_ms": 85.5,
+        "extra_data": True,
+    }
     with server.client(u1) as c, server.client(u2) as other:
         assert c.put(f"/api/submissions/{sid}/method", json=meta).json() == meta
         assert other.put(f"/api/submissions/{sid}/method", json=meta).status_code == 404
-        for bad, field in (({"paper_url": "javascript:alert(1)"}, "paper_url"),
-                           ({"code_url": "ftp://x/y"}, "code_url"),
-                           ({"description": "evil \u202e txt"}, "description"),
-                           ({"runtime_ms": -3}, "runtime_ms")):
+        for bad, field in (
+            ({"paper_url": "javascript:alert(1)"}, "paper_url"),
+            ({"code_url": "ftp://x/y"}, "code_url"),
+            ({"description": "evil \u202e txt"}, "description"),
+            ({"runtime_ms": -3}, "runtime_ms"),
+        ):
             r = c.put(f"/api/submissions/{sid}/method", json={**meta, **bad})
             assert r.status_code == 422 and field in r.json()["detail"], r.text
     with server.client() as anon:
@@ -132,24 +139,44 @@ def test_method_metadata_with_the_upload(server):
     checked the same way; a bad field refuses the whole upload before anything is stored or counted."""
     (u,) = fresh_users(server, "meta-up")
     data = make_submission(server.data.root / "val", noise=0.2, seed=21)
-    meta = {"description": "LoFTR + PnP\nwith sensor depth", "paper_url": "https://arxiv.org/abs/2210.05494",
-            "code_url": "https://github.com/example/reloc", "runtime_ms": 120.0, "extra_data": True}
+    meta = {
+        "description": "LoFTR + PnP\nwith sensor depth",
+        "paper_url": "https://arxiv.org/abs/2210.05494",
+        "code_url": "https://github.com/example/reloc",
+        "runtime_ms": 120.0,
+        "extra_data": True,
+    }
     form = {**meta, "runtime_ms": "120", "extra_data": "true"}
     with server.client(u) as c:
-        for bad, field in (({"paper_url": "javascript:alert(1)"}, "paper_url"), ({"code_url": "ftp://x/y"}, "code_url"),
-                           ({"description": "evil \u202e txt"}, "description"), ({"runtime_ms": "-3"}, "runtime_ms"),
-                           ({"runtime_ms": "fast"}, "runtime_ms")):
-            r = c.post("/api/submissions", files={"file": ("sub.zip", data, "application/zip")},
-                       data={"split": "val", "name": "bad-meta", **form, **bad})
+        for bad, field in (
+            ({"paper_url": "javascript:alert(1)"}, "paper_url"),
+            ({"code_url": "ftp://x/y"}, "code_url"),
+            ({"description": "evil \u202e txt"}, "description"),
+            ({"runtime_ms": "-3"}, "runtime_ms"),
+            ({"runtime_ms": "fast"}, "runtime_ms"),
+        ):
+            r = c.post(
+                "/api/submissions",
+                files={"file": ("sub.zip", data, "application/zip")},
+                data={"split": "val", "name": "bad-meta", **form, **bad},
+            )
             assert r.status_code == 422 and field in r.json()["detail"], r.text
         assert c.get("/api/submissions").json() == []  # nothing stored, nothing counted
-        r = c.post("/api/submissions", files={"file": ("sub.zip", data, "application/zip")},
-                   data={"split": "val", "name": "with-meta", "public": "true", **form})
+        r = c.post(
+            "/api/submissions",
+            files={"file": ("sub.zip", data, "application/zip")},
+            data={"split": "val", "name": "with-meta", "public": "true", **form},
+        )
         assert r.status_code == 202, r.text
         assert r.json()["method"] == meta
         plain = upload(c, data, "val", "no-meta")
         assert plain.status_code == 202 and plain.json()["method"] == {
-            "description": "", "paper_url": "", "code_url": "", "runtime_ms": None, "extra_data": False}
+            "description": "",
+            "paper_url": "",
+            "code_url": "",
+            "runtime_ms": None,
+            "extra_data": False,
+        }
     sid = r.json()["id"]
     assert server.wait_done(sid, u)["status"] == "done"
     with server.client() as anon:
@@ -202,13 +229,19 @@ def test_a_withdrawn_submission_is_final(server, board_data):
     with server.client(owner) as c, server.client("bob") as bob, server.client() as anon:
         assert sid in str(anon.get("/api/leaderboard/val").json())
         assert c.delete(f"/api/submissions/{sid}").status_code == 204
-        for r in (c.patch(f"/api/submissions/{sid}", json={"public": True}),
-                  c.put(f"/api/submissions/{sid}/method", json=meta),
-                  c.delete(f"/api/submissions/{sid}"), c.get(f"/api/submissions/{sid}/zip")):
+        for r in (
+            c.patch(f"/api/submissions/{sid}", json={"public": True}),
+            c.put(f"/api/submissions/{sid}/method", json=meta),
+            c.delete(f"/api/submissions/{sid}"),
+            c.get(f"/api/submissions/{sid}/zip"),
+        ):
             assert r.status_code == 409, (r.request.method, r.text)
             assert f"submission {sid} ('gone-for-good') was withdrawn on " in r.json()["detail"], r.text
-        for r in (bob.patch(f"/api/submissions/{sid}", json={"public": True}),
-                  bob.put(f"/api/submissions/{sid}/method", json=meta), bob.delete(f"/api/submissions/{sid}")):
+        for r in (
+            bob.patch(f"/api/submissions/{sid}", json={"public": True}),
+            bob.put(f"/api/submissions/{sid}/method", json=meta),
+            bob.delete(f"/api/submissions/{sid}"),
+        ):
             assert r.status_code == 404, r.text  # not theirs: nothing to learn about it
         mine = {s["id"]: s for s in c.get("/api/submissions").json()}
         assert mine[sid]["status"] == "withdrawn" and mine[sid]["public"] is False

@@ -45,8 +45,11 @@ def _angle_deg(a: Pose, b: Pose) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(a.R.T @ b.R) - 1) / 2, -1, 1))))
 
 
-def test_a_4096_photo_is_downscaled_before_extraction_and_keeps_its_pose(make_app, realmini_dir,  # noqa: F811
-                                                                          monkeypatch):
+def test_a_4096_photo_is_downscaled_before_extraction_and_keeps_its_pose(
+    make_app,
+    realmini_dir,  # noqa: F811
+    monkeypatch,
+):
     """A 4096-pixel anchor photo and query reach SIFT at the working size (it used to get them native, and
     upsample them: gigabytes), and the pose is the one of the same photos at their native 720 pixels."""
     from mapfree.matching.sift import SIFTMatcher
@@ -72,12 +75,20 @@ def test_a_4096_photo_is_downscaled_before_extraction_and_keeps_its_pose(make_ap
         else:
             r_img, r_depth, r_K = _upscaled(ref, size)
             q_img, _, q_K = _upscaled(query, size)
-        r = app.client.post("/anchors", headers=app.auth("ann"), data={**_form(r_K), "method": METHOD},
-                            files={"image": ("r.jpg", r_img), "depth": ("d.png", r_depth)})
+        r = app.client.post(
+            "/anchors",
+            headers=app.auth("ann"),
+            data={**_form(r_K), "method": METHOD},
+            files={"image": ("r.jpg", r_img), "depth": ("d.png", r_depth)},
+        )
         assert r.status_code == 201, r.text
         assert r.json()["intrinsics"]["width"] == r_K.width  # stored as uploaded
-        r = app.client.post(f"/anchors/{r.json()['id']}/localize", headers=app.auth("ben"), data=_form(q_K),
-                            files={"image": ("q.jpg", q_img)})
+        r = app.client.post(
+            f"/anchors/{r.json()['id']}/localize",
+            headers=app.auth("ben"),
+            data=_form(q_K),
+            files={"image": ("q.jpg", q_img)},
+        )
         assert r.status_code == 200 and r.json()["ok"], r.text
         poses[size] = _pose(r.json())
     assert max(max(s) for s in seen) == 1024  # the 4096 photos, downscaled
@@ -93,22 +104,31 @@ def test_heavy_requests_past_the_cap_get_429_with_retry_after(make_app, realmini
     app = make_app(heavy_threads=1, heavy_queue=0)
     ref = Dataset(realmini_dir).scene("val", "s00000").reference
     files = {"image": ("r.jpg", ref.image_path.read_bytes()), "depth": ("d.png", ref.depth_path("sensor").read_bytes())}
-    r = app.client.post("/anchors", headers=app.auth("ann"), data={**_form(ref.intrinsics), "method": METHOD},
-                        files=files)
+    r = app.client.post(
+        "/anchors", headers=app.auth("ann"), data={**_form(ref.intrinsics), "method": METHOD}, files=files
+    )
     assert r.status_code == 201, r.text
     aid = r.json()["id"]
     pool = app.client.app.state.heavy
     pool._admit("someone")  # one request in: the pool is full
     try:
-        r = app.client.post(f"/anchors/{aid}/localize", headers=app.auth("ben"), data=_form(ref.intrinsics),
-                            files={"image": ("q.jpg", ref.image_path.read_bytes())})
+        r = app.client.post(
+            f"/anchors/{aid}/localize",
+            headers=app.auth("ben"),
+            data=_form(ref.intrinsics),
+            files={"image": ("q.jpg", ref.image_path.read_bytes())},
+        )
         assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1, r.text
         assert "busy" in r.json()["detail"]
         assert app.client.get("/api/me", headers=app.auth("ben")).status_code == 200
     finally:
         pool._done("someone", 0.0)
-    r = app.client.post(f"/anchors/{aid}/localize", headers=app.auth("ben"), data=_form(ref.intrinsics),
-                        files={"image": ("q.jpg", ref.image_path.read_bytes())})
+    r = app.client.post(
+        f"/anchors/{aid}/localize",
+        headers=app.auth("ben"),
+        data=_form(ref.intrinsics),
+        files={"image": ("q.jpg", ref.image_path.read_bytes())},
+    )
     assert r.status_code == 200, r.text
 
 
@@ -122,8 +142,13 @@ def test_anchor_cache_is_bounded_in_bytes_and_answers_as_uncached(realmini_dir):
     img, depth = ref.image(), ref.depth("sensor")
     h, w = img.shape[:2]
     size = (round(w * 4096 / max(h, w)), round(h * 4096 / max(h, w)))  # a 4096-pixel photo and its depth
-    big = [Photo(cv2.resize(img, size, interpolation=cv2.INTER_CUBIC), ref.intrinsics.resized(*size),
-                 cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST))]
+    big = [
+        Photo(
+            cv2.resize(img, size, interpolation=cv2.INTER_CUBIC),
+            ref.intrinsics.resized(*size),
+            cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST),
+        )
+    ]
     fresh = Localizers(per_method=1, cache_bytes=0)  # nothing kept: every call prepares anew
     want = fresh.localize_photos("a", METHOD, 1, lambda: big, q.image(), q.intrinsics)
     assert len(fresh.anchors) == 0 and want.ok
@@ -135,8 +160,9 @@ def test_anchor_cache_is_bounded_in_bytes_and_answers_as_uncached(realmini_dir):
     ref_prepared = entry.photos[0].reference
     assert ref_prepared.view.image.size == 0  # no pixels
     assert max(ref_prepared.depth.shape) == 1024  # depth at the working size
-    held = (ref_prepared.features.data["descriptors"].nbytes + ref_prepared.features.kpts.nbytes
-            + ref_prepared.depth.nbytes)
+    held = (
+        ref_prepared.features.data["descriptors"].nbytes + ref_prepared.features.kpts.nbytes + ref_prepared.depth.nbytes
+    )
     assert held <= entry.nbytes <= held + (1 << 20)  # measured, not guessed
     assert entry.nbytes < 5 << 20  # the decoded 4096-pixel photo and its depth: 113 MB
 
@@ -170,9 +196,18 @@ def test_a_test_limit_of_zero_means_none_and_unlimited_is_explicit(make_app, spl
 
     app = make_app(test_daily_limit=parse("--test-daily-limit", "0").test_daily_limit)
     data = make_submission(split_data.gt / "test", noise=0.5, seed=3)
-    up = lambda user: app.client.post("/api/submissions", headers=app.auth(user),  # noqa: E731
-                                      files={"file": ("s.zip", data)}, data={"split": "test", "name": "t"})
-    me = lambda user: app.client.get("/api/me", headers=app.auth(user)).json()  # noqa: E731
+
+    def up(user):
+        return app.client.post(
+            "/api/submissions",
+            headers=app.auth(user),
+            files={"file": ("s.zip", data)},
+            data={"split": "test", "name": "t"},
+        )
+
+    def me(user):
+        return app.client.get("/api/me", headers=app.auth(user)).json()
+
     assert me("ben")["test_daily_limit"] == 0 and me("ben")["test_evaluations_left_today"] == 0
     for _ in range(3):
         r = up("ben")
@@ -208,14 +243,23 @@ def test_parallel_uploads_cannot_overrun_the_storage_quota(backend, split_data, 
     line = f"{name} {' '.join(map(str, v))} 5\n".encode()
     data = zip_of({f"pose_{scene.name}.txt": line * (4_600_000 // len(line))}, zipfile.ZIP_STORED)
     assert 4.5e6 < len(data) < 4.7e6
-    srv = start_server(db_url_for(backend, tmp_path), backend, split_data, tmp_path, workers=0,
-                       extra=("--storage-quota-mb", "10", "--max-upload-mb", "5"))
+    srv = start_server(
+        db_url_for(backend, tmp_path),
+        backend,
+        split_data,
+        tmp_path,
+        workers=0,
+        extra=("--storage-quota-mb", "10", "--max-upload-mb", "5"),
+    )
     try:
+
         def upload(i: int) -> int:
-            with httpx.Client(base_url=srv.url, timeout=60,
-                              headers={"Authorization": f"Bearer {srv.tokens['bob']}"}) as c:
-                return c.post("/api/submissions", files={"file": ("s.zip", data)},
-                              data={"split": "val", "name": f"q{i}"}).status_code
+            with httpx.Client(
+                base_url=srv.url, timeout=60, headers={"Authorization": f"Bearer {srv.tokens['bob']}"}
+            ) as c:
+                return c.post(
+                    "/api/submissions", files={"file": ("s.zip", data)}, data={"split": "val", "name": f"q{i}"}
+                ).status_code
 
         with ThreadPoolExecutor(10) as ex:
             codes = list(ex.map(upload, range(10)))
@@ -233,8 +277,8 @@ def test_an_upload_reserves_its_bytes_before_its_copy_starts(make_app, split_dat
     """While one upload is being copied in, a second one of the same account sees its bytes (it saw none until
     the first chunk was stored: the race that let parallel uploads pass the quota); a failed copy frees them."""
     from mapfree.service.accounts import quota as storage
-    from mapfree.service.leaderboard import submissions
     from mapfree.service.database.models import User
+    from mapfree.service.leaderboard import submissions
 
     from .conftest import make_submission
 
@@ -253,8 +297,15 @@ def test_an_upload_reserves_its_bytes_before_its_copy_starts(make_app, split_dat
         return real_copy(db, sid, f)
 
     monkeypatch.setattr(submissions, "copy_in", copy_in)
-    up = lambda: app.client.post("/api/submissions", headers=app.auth("ann"),  # noqa: E731
-                                 files={"file": ("s.zip", data)}, data={"split": "val", "name": "x"})
+
+    def up():
+        return app.client.post(
+            "/api/submissions",
+            headers=app.auth("ann"),
+            files={"file": ("s.zip", data)},
+            data={"split": "val", "name": "x"},
+        )
+
     assert up().status_code == 202
     assert seen == [len(data)]
     r = up()
@@ -304,13 +355,35 @@ def test_leaderboards_are_paged_and_the_csv_streams(make_app):  # noqa: F811
     auc = np.round(rng.uniform(0, 1, n), 2)  # many ties: shared ranks across page boundaries
     with app.client.app.state.sessions.begin() as db:
         uids = list(db.scalars(select(User.id)))
-        subs = [{"id": f"s{i:06d}", "user_id": uids[i % 2], "split": "val", "name": f"m{i}", "public": True,
-                 "status": "done", "sha256": "", "created_at": 1e9 + i} for i in range(n)]
+        subs = [
+            {
+                "id": f"s{i:06d}",
+                "user_id": uids[i % 2],
+                "split": "val",
+                "name": f"m{i}",
+                "public": True,
+                "status": "done",
+                "sha256": "",
+                "created_at": 1e9 + i,
+            }
+            for i in range(n)
+        ]
         db.execute(insert(Submission), subs)
-        db.execute(insert(Result), [{"submission_id": s["id"], "metrics": {METRIC_KEYS[0]: float(a),
-                                                                           METRIC_KEYS[4]: 1.0 - float(a)},
-                                     "per_scene": {}, "problems": [], "worker_id": "w", "attempt": 1,
-                                     "eval_seconds": 0.1} for s, a in zip(subs, auc)])
+        db.execute(
+            insert(Result),
+            [
+                {
+                    "submission_id": s["id"],
+                    "metrics": {METRIC_KEYS[0]: float(a), METRIC_KEYS[4]: 1.0 - float(a)},
+                    "per_scene": {},
+                    "problems": [],
+                    "worker_id": "w",
+                    "attempt": 1,
+                    "eval_seconds": 0.1,
+                }
+                for s, a in zip(subs, auc)
+            ],
+        )
     want = sorted(range(n), key=lambda i: (-auc[i], i))
     c = app.client
     t0 = _time.perf_counter()

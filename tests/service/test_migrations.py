@@ -14,8 +14,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy import inspect
 
 from mapfree.service import Settings, create_app
-from mapfree.service.database.models import Base, make_engine
 from mapfree.service.database.migrations import SchemaVersion, current, head, upgrade
+from mapfree.service.database.models import Base, make_engine
 
 from .conftest import BACKENDS, db_url_for
 
@@ -41,8 +41,15 @@ def schema(url: str) -> dict:
         out[t] = {
             "columns": {c["name"]: (str(c["type"]), c["nullable"], str(c.get("default"))) for c in insp.get_columns(t)},
             "pk": insp.get_pk_constraint(t)["constrained_columns"],
-            "fks": sorted((tuple(f["constrained_columns"]), f["referred_table"], tuple(f["referred_columns"]),
-                           f.get("options", {}).get("ondelete")) for f in insp.get_foreign_keys(t)),
+            "fks": sorted(
+                (
+                    tuple(f["constrained_columns"]),
+                    f["referred_table"],
+                    tuple(f["referred_columns"]),
+                    f.get("options", {}).get("ondelete"),
+                )
+                for f in insp.get_foreign_keys(t)
+            ),
             "indexes": sorted((i["name"], tuple(i["column_names"]), bool(i["unique"])) for i in insp.get_indexes(t)),
             "unique": sorted(tuple(u["column_names"]) for u in insp.get_unique_constraints(t)),
         }
@@ -98,8 +105,12 @@ def test_a_database_newer_than_the_code_is_refused(tmp_path):
     with pytest.raises(SchemaVersion, match="schema version 9999.*newer release"):
         upgrade(engine)
     engine.dispose()
-    r = subprocess.run([sys.executable, "-m", "mapfree.cli.serve", "--db", url, "--workers", "0", "--port", "1"],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "mapfree.cli.serve", "--db", url, "--workers", "0", "--port", "1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 2 and "schema version 9999" in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 

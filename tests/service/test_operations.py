@@ -61,18 +61,27 @@ def test_anchor_photos_are_stored_upright_without_exif(make_app, scene):  # noqa
     c, auth = app.client, app.auth("ann")
     ref, q = scene.reference, scene.frame(QUERY)
     plain = _tagged_jpeg(ref.image())
-    r = c.post("/anchors", headers=auth, data={**_form(ref.intrinsics), "method": METHOD},
-               files={"image": ("ref.jpg", plain, "image/jpeg"),
-                      "depth": ("ref.png", _png(ref.depth("sensor")), "image/png")})
+    r = c.post(
+        "/anchors",
+        headers=auth,
+        data={**_form(ref.intrinsics), "method": METHOD},
+        files={"image": ("ref.jpg", plain, "image/jpeg"), "depth": ("ref.png", _png(ref.depth("sensor")), "image/png")},
+    )
     assert r.status_code == 201, r.text
     served = c.get(f"/anchors/{r.json()['id']}/photos/0", headers=auth).content
     assert b"Exif" not in served and b"SN-0042" not in served and b"PhoneMaker" not in served
     assert np.array_equal(_decode(served), _decode(plain))  # same pixels: only the metadata went
 
     sideways = _tagged_jpeg(orient_pixels(ref.image(), 8), orientation=6)  # displays as the original
-    r = c.post("/anchors", headers=auth, data={**_form(orient_intrinsics(ref.intrinsics, 8)), "method": METHOD},
-               files={"image": ("ref.jpg", sideways, "image/jpeg"),
-                      "depth": ("ref.png", _png(orient_pixels(ref.depth("sensor"), 8)), "image/png")})
+    r = c.post(
+        "/anchors",
+        headers=auth,
+        data={**_form(orient_intrinsics(ref.intrinsics, 8)), "method": METHOD},
+        files={
+            "image": ("ref.jpg", sideways, "image/jpeg"),
+            "depth": ("ref.png", _png(orient_pixels(ref.depth("sensor"), 8)), "image/png"),
+        },
+    )
     assert r.status_code == 201, r.text
     turned = r.json()
     assert turned["intrinsics"]["width"] == ref.intrinsics.width
@@ -82,8 +91,12 @@ def test_anchor_photos_are_stored_upright_without_exif(make_app, scene):  # noqa
     assert _decode(served).shape == ref.image().shape
     assert np.abs(_decode(served).astype(int) - ref.image()).mean() < 4  # upright (JPEG noise only)
 
-    est = c.post(f"/anchors/{turned['id']}/localize", headers=auth, data=_form(q.intrinsics),
-                 files={"image": ("q.jpg", q.image_path.read_bytes(), "image/jpeg")}).json()
+    est = c.post(
+        f"/anchors/{turned['id']}/localize",
+        headers=auth,
+        data=_form(q.intrinsics),
+        files={"image": ("q.jpg", q.image_path.read_bytes(), "image/jpeg")},
+    ).json()
     assert est["ok"], est
     center = -np.array(est["R"]).T @ np.array(est["t"])
     assert np.linalg.norm(center - q.pose.center) < 0.15 and rotation_angle_deg(np.array(est["R"]), q.pose.R) < 5, est
@@ -95,14 +108,21 @@ def test_a_sideways_query_gives_the_pose_of_the_upright_one(make_app, scene):  #
     app = make_app()
     c, auth = app.client, app.auth("ann")
     ref, q = scene.reference, scene.frame(QUERY)
-    r = c.post("/anchors", headers=auth, data={**_form(ref.intrinsics), "method": METHOD},
-               files={"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
-                      "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")})
+    r = c.post(
+        "/anchors",
+        headers=auth,
+        data={**_form(ref.intrinsics), "method": METHOD},
+        files={
+            "image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+            "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png"),
+        },
+    )
     aid = r.json()["id"]
 
     def pose_of(data: bytes, K) -> tuple[np.ndarray, np.ndarray]:
-        est = c.post(f"/anchors/{aid}/localize", headers=auth, data=_form(K),
-                     files={"image": ("q.jpg", data, "image/jpeg")}).json()
+        est = c.post(
+            f"/anchors/{aid}/localize", headers=auth, data=_form(K), files={"image": ("q.jpg", data, "image/jpeg")}
+        ).json()
         assert est.get("ok"), est
         return np.array(est["R"]), -np.array(est["R"]).T @ np.array(est["t"])
 
@@ -111,8 +131,12 @@ def test_a_sideways_query_gives_the_pose_of_the_upright_one(make_app, scene):  #
     for o, undo in ((6, 8), (8, 6), (3, 3)):  # a camera turned about its axis keeps its centre: R is compared too
         R, center = pose_of(_tagged_jpeg(orient_pixels(q.image(), undo), o), orient_intrinsics(q.intrinsics, undo))
         assert np.linalg.norm(center - c0) < 0.06 and rotation_angle_deg(R, R0) < 1.0, o
-    mirrored = c.post(f"/anchors/{aid}/localize", headers=auth, data=_form(q.intrinsics),
-                      files={"image": ("q.jpg", _tagged_jpeg(q.image(), 2), "image/jpeg")})
+    mirrored = c.post(
+        f"/anchors/{aid}/localize",
+        headers=auth,
+        data=_form(q.intrinsics),
+        files={"image": ("q.jpg", _tagged_jpeg(q.image(), 2), "image/jpeg")},
+    )
     assert mirrored.status_code == 422 and "mirrored" in mirrored.json()["detail"]
 
 
@@ -200,8 +224,8 @@ def test_an_upload_cut_off_by_a_killed_server_is_removed_and_refunded(make_app, 
     from sqlalchemy import func, select
 
     from mapfree.service import Settings, create_app
-    from mapfree.service.leaderboard import storage
     from mapfree.service.database.models import Submission, make_engine, session_factory
+    from mapfree.service.leaderboard import storage
 
     from .conftest import make_submission
 
@@ -210,8 +234,20 @@ def test_an_upload_cut_off_by_a_killed_server_is_removed_and_refunded(make_app, 
     assert app.client.get("/api/me", headers=auth).json()["test_evaluations_left_today"] == 2
     zip_path = tmp_path / "test.zip"
     zip_path.write_bytes(make_submission(split_data.root / "test"))
-    proc = subprocess.run([sys.executable, "-c", _KILLED_MID_UPLOAD, app.settings.db_url, str(split_data.root),
-                           str(split_data.gt), str(zip_path)], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            _KILLED_MID_UPLOAD,
+            app.settings.db_url,
+            str(split_data.root),
+            str(split_data.gt),
+            str(zip_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == -9, proc.stderr[-2000:]
     engine = make_engine(app.settings.db_url)
     count = select(func.count()).select_from(Submission).where(Submission.status == "uploading")
@@ -220,8 +256,9 @@ def test_an_upload_cut_off_by_a_killed_server_is_removed_and_refunded(make_app, 
         lease = db.scalar(select(Submission.lease_until))
     assert app.client.get("/api/me", headers=auth).json()["test_evaluations_left_today"] == 1  # spent
     assert lease is not None and lease - time.time() <= storage.UPLOAD_LEASE_SECONDS
-    settings = Settings(db_url=app.settings.db_url, data_root=split_data.root, gt_root=split_data.gt,
-                        test_daily_limit=2)
+    settings = Settings(
+        db_url=app.settings.db_url, data_root=split_data.root, gt_root=split_data.gt, test_daily_limit=2
+    )
     other = create_app(settings)  # another API process starting meanwhile: the lease still runs, could be alive
     with session_factory(engine)() as db:
         assert db.scalar(count) == 1
@@ -249,19 +286,24 @@ def test_a_ground_truth_folder_missing_a_test_scene_is_refused_at_start(split_da
     shutil.rmtree(gt / "test" / scenes[-1])
     db = f"sqlite:///{tmp_path / 'gt.db'}"
     for cmd in (["mapfree.cli.serve", "--workers", "1", "--port", "1"], ["mapfree.service.leaderboard.worker"]):
-        r = subprocess.run([sys.executable, "-m", *cmd, "--db", db, "--data", str(split_data.root), "--gt",
-                            str(gt)], capture_output=True, text=True, timeout=120)
+        r = subprocess.run(
+            [sys.executable, "-m", *cmd, "--db", db, "--data", str(split_data.root), "--gt", str(gt)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert r.returncode == 2, (cmd, r.stderr[-2000:])
         assert scenes[-1] in r.stderr and scenes[0] not in r.stderr and "lacks 1 of" in r.stderr, r.stderr
 
 
-def test_implausible_focals_and_empty_depth_are_refused_and_the_anchor_photo_itself_is_the_identity(
-        make_app, scene):  # noqa: F811
+def test_implausible_focals_and_empty_depth_are_refused_and_the_anchor_photo_itself_is_the_identity(make_app, scene):  # noqa: F811
     app = make_app()
     c, auth = app.client, app.auth("ann")
     ref = scene.reference
-    files = {"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
-             "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")}
+    files = {
+        "image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+        "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png"),
+    }
     for fx in ("1e-300", "0.5", "50"):  # 50 px on a 540 px photo: a 158-degree view, not a pinhole camera
         r = c.post("/anchors", headers=auth, files=files, data={**_form(ref.intrinsics), "fx": fx, "method": METHOD})
         assert r.status_code == 422 and "focal lengths must lie between 54 and 54000 px" in r.json()["detail"], r.text
@@ -271,8 +313,12 @@ def test_implausible_focals_and_empty_depth_are_refused_and_the_anchor_photo_its
 
     r = c.post("/anchors", headers=auth, files=files, data={**_form(ref.intrinsics), "method": METHOD})
     assert r.status_code == 201, r.text
-    est = c.post(f"/anchors/{r.json()['id']}/localize", headers=auth, data=_form(ref.intrinsics),
-                 files={"image": ("same.jpg", ref.image_path.read_bytes(), "image/jpeg")}).json()
+    est = c.post(
+        f"/anchors/{r.json()['id']}/localize",
+        headers=auth,
+        data=_form(ref.intrinsics),
+        files={"image": ("same.jpg", ref.image_path.read_bytes(), "image/jpeg")},
+    ).json()
     assert est["ok"] and est["confidence"] > 100, est  # not "no parallax": taken where the anchor photo was
     assert np.allclose(est["R"], np.eye(3)) and np.allclose(est["t"], 0), est
 
@@ -396,7 +442,10 @@ def test_tokens_expire_and_tokens_and_sessions_are_listed_and_revoked_one_by_one
     second = c.post("/api/tokens", headers=ann, data={"expires_in_days": "30", "label": "laptop"}).json()
     listed = c.get("/api/tokens", headers=ann).json()
     assert [t["label"] for t in listed] == ["", "short", "laptop"] and [t["current"] for t in listed] == [
-        True, False, False]
+        True,
+        False,
+        False,
+    ]
     assert listed[1]["expired"] and not listed[2]["expired"] and "token" not in listed[2]
     assert c.delete(f"/api/tokens/{second['id']}", headers=ann).json()["revoked"]
     assert c.get("/api/me", headers={"Authorization": f"Bearer {second['token']}"}).status_code == 401
@@ -417,8 +466,11 @@ def test_tokens_expire_and_tokens_and_sessions_are_listed_and_revoked_one_by_one
     token = mapfree("admin", "--db", url, "new-token", "ann", "--expires-in", "30d", "--label", "ci").splitlines()[-1]
     assert c.get("/api/me", headers={"Authorization": f"Bearer {token}"}).status_code == 200
     tid = next(t["id"] for t in c.get("/api/tokens", headers=ann).json() if t["label"] == "ci")
-    assert 29.9 * 86400 < next(t["expires_at"] for t in c.get("/api/tokens", headers=ann).json()
-                               if t["label"] == "ci") - time.time() <= 30 * 86400
+    assert (
+        29.9 * 86400
+        < next(t["expires_at"] for t in c.get("/api/tokens", headers=ann).json() if t["label"] == "ci") - time.time()
+        <= 30 * 86400
+    )
     mapfree("admin", "--db", url, "revoke-token", str(tid))
     assert c.get("/api/me", headers={"Authorization": f"Bearer {token}"}).status_code == 401
     sid = mapfree("admin", "--db", url, "list-sessions", "ann").splitlines()[-1].split("\t")[0]
@@ -433,10 +485,16 @@ def test_private_anchor_photos_are_for_the_owner_only(make_app, scene):  # noqa:
     app = make_app()
     c = app.client
     ref, q = scene.reference, scene.frame(QUERY)
-    files = {"image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
-             "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png")}
-    r = c.post("/anchors", headers=app.auth("ann"), files=files,
-               data={**_form(ref.intrinsics), "method": METHOD, "private": "true"})
+    files = {
+        "image": ("ref.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+        "depth": ("ref.png", ref.depth_path("sensor").read_bytes(), "image/png"),
+    }
+    r = c.post(
+        "/anchors",
+        headers=app.auth("ann"),
+        files=files,
+        data={**_form(ref.intrinsics), "method": METHOD, "private": "true"},
+    )
     assert r.status_code == 201 and r.json()["private"], r.text
     aid = r.json()["id"]
     public = c.post("/anchors", headers=app.auth("ann"), files=files, data={**_form(ref.intrinsics), "method": METHOD})
@@ -447,19 +505,31 @@ def test_private_anchor_photos_are_for_the_owner_only(make_app, scene):  # noqa:
     r = c.get(f"/anchors/{aid}/photos/0", headers=app.auth("ben"))
     assert r.status_code == 403 and "private" in r.json()["detail"]
     assert c.get(f"/anchors/{public.json()['id']}/photos/0", headers=app.auth("ben")).status_code == 200
-    est = c.post(f"/anchors/{aid}/localize", headers=app.auth("ben"), data=_form(q.intrinsics),
-                 files={"image": ("q.jpg", q.image_path.read_bytes(), "image/jpeg")}).json()
+    est = c.post(
+        f"/anchors/{aid}/localize",
+        headers=app.auth("ben"),
+        data=_form(q.intrinsics),
+        files={"image": ("q.jpg", q.image_path.read_bytes(), "image/jpeg")},
+    ).json()
     assert est["ok"], est
-    page = c.post("/relocalize/anchor", headers=app.auth("ben"), data={"anchor": aid, **{f"q_{k}": v for k, v in
-                                                                                         _form(q.intrinsics).items()}},
-                  files={"query": ("q.jpg", q.image_path.read_bytes(), "image/jpeg")})
+    page = c.post(
+        "/relocalize/anchor",
+        headers=app.auth("ben"),
+        data={"anchor": aid, **{f"q_{k}": v for k, v in _form(q.intrinsics).items()}},
+        files={"query": ("q.jpg", q.image_path.read_bytes(), "image/jpeg")},
+    )
     assert page.status_code == 200 and "private-figure" in page.text and 'id="figure"' not in page.text
     assert f"/anchors/{aid}/photos/0" not in c.get(f"/relocalize/anchors/{aid}", headers=app.auth("ben")).text
 
     from .test_anchor_photos import _camera_line, _page_files
 
-    r = c.post("/relocalize/anchors", headers=app.auth("ann"), files=_page_files(ref), follow_redirects=False,
-               data={"name": "from the page", "method": METHOD, "cameras": _camera_line(ref, False), "private": "1"})
+    r = c.post(
+        "/relocalize/anchors",
+        headers=app.auth("ann"),
+        files=_page_files(ref),
+        follow_redirects=False,
+        data={"name": "from the page", "method": METHOD, "cameras": _camera_line(ref, False), "private": "1"},
+    )
     assert r.status_code == 303, r.text
     page_aid = r.headers["location"].rsplit("/", 1)[-1]
     assert c.get(f"/anchors/{page_aid}", headers=app.auth("ben")).json()["private"]
@@ -471,7 +541,16 @@ def test_delete_user_takes_their_tokens_sessions_anchors_and_submissions(make_ap
     leaderboard entries too); other accounts keep theirs; the only admin cannot be deleted."""
     from sqlalchemy import func, select
 
-    from mapfree.service.database.models import (Anchor, ApiToken, Submission, SubmissionFile, User, WebSession, make_engine, session_factory)
+    from mapfree.service.database.models import (
+        Anchor,
+        ApiToken,
+        Submission,
+        SubmissionFile,
+        User,
+        WebSession,
+        make_engine,
+        session_factory,
+    )
 
     from .conftest import create_users, make_submission
     from .test_anchor_photos import _web_session
@@ -483,9 +562,14 @@ def test_delete_user_takes_their_tokens_sessions_anchors_and_submissions(make_ap
     for user in ("ann", "ben"):
         c.headers.update(app.auth(user))
         assert upload(c, make_submission(split_data.root / "val"), "val", f"{user}-run").status_code == 202
-        r = c.post("/anchors", files={"image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
-                                      "depth": ("r.png", ref.depth_path("sensor").read_bytes(), "image/png")},
-                   data={**_form(ref.intrinsics), "method": METHOD})
+        r = c.post(
+            "/anchors",
+            files={
+                "image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+                "depth": ("r.png", ref.depth_path("sensor").read_bytes(), "image/png"),
+            },
+            data={**_form(ref.intrinsics), "method": METHOD},
+        )
         assert r.status_code == 201
     c.headers.pop("Authorization")
     _web_session(app)  # ann signs in with a browser too
@@ -495,8 +579,10 @@ def test_delete_user_takes_their_tokens_sessions_anchors_and_submissions(make_ap
     def owned(name: str) -> dict:
         with session_factory(engine)() as db:
             uid = db.scalar(select(User.id).where(User.name == name))
-            n = {t.__name__: db.scalar(select(func.count()).select_from(t).where(t.user_id == uid))
-                 for t in (ApiToken, WebSession, Anchor, Submission)}
+            n = {
+                t.__name__: db.scalar(select(func.count()).select_from(t).where(t.user_id == uid))
+                for t in (ApiToken, WebSession, Anchor, Submission)
+            }
             n["zips"] = db.scalar(select(func.count()).select_from(SubmissionFile))
             n["exists"] = uid is not None
             return n
@@ -505,21 +591,35 @@ def test_delete_user_takes_their_tokens_sessions_anchors_and_submissions(make_ap
     import subprocess
     import sys
 
-    dry = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", url, "delete-user", "ann"],
-                         capture_output=True, text=True, timeout=120)
-    assert dry.returncode == 1 and "would delete user 'ann' with 1 tokens, 1 sessions, 1 anchors, 1 submissions" \
-        in dry.stderr, dry.stderr
+    dry = subprocess.run(
+        [sys.executable, "-m", "mapfree.cli.admin", "--db", url, "delete-user", "ann"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert (
+        dry.returncode == 1
+        and "would delete user 'ann' with 1 tokens, 1 sessions, 1 anchors, 1 submissions" in dry.stderr
+    ), dry.stderr
     assert owned("ann")["exists"]
-    done = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", url, "delete-user", "ann", "--yes"],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "mapfree.cli.admin", "--db", url, "delete-user", "ann", "--yes"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     assert owned("ann") == {"ApiToken": 0, "WebSession": 0, "Anchor": 0, "Submission": 0, "zips": 1, "exists": False}
     assert owned("ben")["Anchor"] == 1 and owned("ben")["Submission"] == 1
     assert c.get("/api/me", headers=app.auth("ann")).status_code == 401
     assert c.get("/api/me", headers=app.auth("ben")).status_code == 200
     create_users(url, {"root": None}, admin=True)
-    only = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", url, "delete-user", "root", "--yes"],
-                          capture_output=True, text=True, timeout=120)
+    only = subprocess.run(
+        [sys.executable, "-m", "mapfree.cli.admin", "--db", url, "delete-user", "root", "--yes"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert only.returncode == 1 and "only admin" in only.stderr
     engine.dispose()
 
@@ -552,8 +652,20 @@ def test_backup_of_a_live_sqlite_database_is_consistent(make_app, tmp_path):  # 
     writer = threading.Thread(target=write)
     writer.start()
     try:
-        r = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", app.settings.db_url, "backup",
-                            str(tmp_path / "copy.db")], capture_output=True, text=True, timeout=120)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "mapfree.cli.admin",
+                "--db",
+                app.settings.db_url,
+                "backup",
+                str(tmp_path / "copy.db"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     finally:
         stop.set()
         writer.join(30)
@@ -566,11 +678,27 @@ def test_backup_of_a_live_sqlite_database_is_consistent(make_app, tmp_path):  # 
     assert copy.execute("SELECT count(*) FROM users").fetchone()[0] == 2
     assert copy.execute("SELECT version_num FROM alembic_version").fetchone()[0]
     copy.close()
-    again = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", app.settings.db_url, "backup",
-                            str(tmp_path / "copy.db")], capture_output=True, text=True, timeout=120)
+    again = subprocess.run(
+        [sys.executable, "-m", "mapfree.cli.admin", "--db", app.settings.db_url, "backup", str(tmp_path / "copy.db")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert again.returncode == 1 and "exists" in again.stderr  # never overwritten
-    pg = subprocess.run([sys.executable, "-m", "mapfree.cli.admin", "--db", "postgresql://svc:s3cret@db.example:5433/mf",
-                         "backup", "/backups/mf.dump"], capture_output=True, text=True, timeout=120)
+    pg = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapfree.cli.admin",
+            "--db",
+            "postgresql://svc:s3cret@db.example:5433/mf",
+            "backup",
+            "/backups/mf.dump",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert pg.returncode == 0 and "pg_dump -h db.example -p 5433 -U svc -Fc -f /backups/mf.dump mf" in pg.stdout
     assert "s3cret" not in pg.stdout
     engine.dispose()
@@ -613,7 +741,7 @@ def test_metadata_stripping_keeps_pixels_and_drops_every_metadata_segment():
     clean = clean_photo(rich)
     for secret in (b"SN-0042", b"GPSLatitude", b"Exif", b"ICC_PROFILE", b"PhoneMaker"):
         assert secret not in clean
-    assert clean.endswith(jpeg[jpeg.index(b"\xff\xda"):])  # the entropy-coded data untouched
+    assert clean.endswith(jpeg[jpeg.index(b"\xff\xda") :])  # the entropy-coded data untouched
     assert np.array_equal(_decode(clean), _decode(jpeg))
     broken = soi + seg(0xFE, com)[:6]  # a segment that claims more bytes than the file has
     assert strip_metadata(broken) is None

@@ -16,8 +16,9 @@ from mapfree.data import Dataset
 
 from .conftest import PG_URL, fresh_postgres, make_submission, start_server, stop_server
 
-pytestmark = pytest.mark.skipif(not PG_URL, reason="MAPFREE_TEST_PG is not set (run .ci/services.sh to start "
-                                                   "PostgreSQL)")
+pytestmark = pytest.mark.skipif(
+    not PG_URL, reason="MAPFREE_TEST_PG is not set (run .ci/services.sh to start PostgreSQL)"
+)
 SUBMISSIONS = 12
 
 
@@ -44,13 +45,24 @@ def test_two_replicas_on_one_database(split_data, realmini_dir, tmp_path):
         # an anchor made through A is served by B; deleted through A, B refuses it at once
         ref = Dataset(realmini_dir).scene("val", "s00000").reference
         query = Dataset(realmini_dir).scene("val", "s00000").frame("seq1/frame_00009.jpg")
-        form = {"fx": str(ref.intrinsics.fx), "fy": str(ref.intrinsics.fy), "cx": str(ref.intrinsics.cx),
-                "cy": str(ref.intrinsics.cy), "method": "sift_pnp_sensor"}
+        form = {
+            "fx": str(ref.intrinsics.fx),
+            "fy": str(ref.intrinsics.fy),
+            "cx": str(ref.intrinsics.cx),
+            "cy": str(ref.intrinsics.cy),
+            "method": "sift_pnp_sensor",
+        }
         q_form = {k: str(getattr(query.intrinsics, k)) for k in ("fx", "fy", "cx", "cy")}
         q_file = {"image": ("q.jpg", query.image_path.read_bytes(), "image/jpeg")}
         with a.client("alice") as ca, b.client("bob") as cb:
-            r = ca.post("/anchors", data=form, files={"image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
-                                                       "depth": ("r.png", ref.depth_path("sensor").read_bytes())})
+            r = ca.post(
+                "/anchors",
+                data=form,
+                files={
+                    "image": ("r.jpg", ref.image_path.read_bytes(), "image/jpeg"),
+                    "depth": ("r.png", ref.depth_path("sensor").read_bytes()),
+                },
+            )
             assert r.status_code == 201, r.text
             aid = r.json()["id"]
             assert cb.post(f"/anchors/{aid}/localize", data=q_form, files=q_file).json()["ok"]
@@ -64,8 +76,9 @@ def test_two_replicas_on_one_database(split_data, realmini_dir, tmp_path):
 
         def upload(srv, name):
             with srv.client("carol") as c:
-                return c.post("/api/submissions", files={"file": ("s.zip", test_zip)},
-                              data={"split": "test", "name": name}).status_code
+                return c.post(
+                    "/api/submissions", files={"file": ("s.zip", test_zip)}, data={"split": "test", "name": name}
+                ).status_code
 
         with ThreadPoolExecutor(4) as ex:
             codes = sorted(ex.map(upload, [a, b, a, b], ["t0", "t1", "t2", "t3"]))
@@ -76,8 +89,9 @@ def test_two_replicas_on_one_database(split_data, realmini_dir, tmp_path):
 
         def submit(i):
             with (a if i % 2 else b).client("bob") as c:
-                r = c.post("/api/submissions", files={"file": ("s.zip", val_zip)}, data={"split": "val",
-                                                                                         "name": f"v{i}"})
+                r = c.post(
+                    "/api/submissions", files={"file": ("s.zip", val_zip)}, data={"split": "val", "name": f"v{i}"}
+                )
                 return r.status_code
 
         with ThreadPoolExecutor(4) as ex:

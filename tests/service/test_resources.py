@@ -35,8 +35,10 @@ def test_method_names_share_a_pool_bounded_in_bytes(pair):
 
     ref_img, ref_K, ref_d, q_img, q_K, q_d = pair
     locs = Localizers(per_method=1, pool_bytes=1 << 30)
-    poses = [locs.localize(f"a{i}", name, ref_img, ref_K, ref_d, q_img, q_K).pose
-             for i, name in enumerate(("sift_pnp_sensor", "sift_pnp_mono", "sift_pnp_dptkitti"))]
+    poses = [
+        locs.localize(f"a{i}", name, ref_img, ref_K, ref_d, q_img, q_K).pose
+        for i, name in enumerate(("sift_pnp_sensor", "sift_pnp_mono", "sift_pnp_dptkitti"))
+    ]
     assert locs.pool.built == 1 and locs.pool.configs() == 1
     assert all(p is not None for p in poses)
 

@@ -9,12 +9,15 @@ import pytest
 
 schemathesis = pytest.importorskip("schemathesis")
 
-from hypothesis import HealthCheck, settings  # noqa: E402
-from schemathesis.checks import not_a_server_error  # noqa: E402
-from schemathesis.specs.openapi.checks import (content_type_conformance, response_schema_conformance,  # noqa: E402
-                                               status_code_conformance)
+from hypothesis import HealthCheck, settings
+from schemathesis.checks import not_a_server_error
+from schemathesis.specs.openapi.checks import (
+    content_type_conformance,
+    response_schema_conformance,
+    status_code_conformance,
+)
 
-from .conftest import create_users  # noqa: E402
+from .conftest import create_users
 
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
 EXAMPLES = 4
@@ -26,8 +29,7 @@ def app_and_token(split_data, tmp_path_factory):
 
     url = f"sqlite:///{tmp_path_factory.mktemp('schema') / 'fuzz.db'}"
     token = create_users(url, {"fuzz": None})["fuzz"]
-    app = create_app(Settings(db_url=url, data_root=split_data.root, gt_root=split_data.gt,
-                              auth_failures_per_minute=0))
+    app = create_app(Settings(db_url=url, data_root=split_data.root, gt_root=split_data.gt, auth_failures_per_minute=0))
     return app, token
 
 
@@ -56,8 +58,9 @@ def test_every_route_answers_as_declared(route, app_and_token):
     operation = schemathesis.openapi.from_asgi("/openapi.json", app)[path][method]
 
     @given(case=operation.as_strategy())
-    @settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
-              suppress_health_check=list(HealthCheck))
+    @settings(
+        max_examples=EXAMPLES, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck)
+    )
     def fuzz(case):
         for headers in ({"Authorization": f"Bearer {token}"}, {}):
             case.call_and_validate(headers=headers, checks=CHECKS)

@@ -27,15 +27,26 @@ def test_localize_flood_does_not_stall_sign_in_or_the_leaderboard(split_data, re
     """45 concurrent localize calls (large photos) used to take every thread of the shared pool: sign-in and
     the leaderboard waited seconds. Now they run on the heavy pool, the overflow gets 429 + Retry-After, and
     the light pages answer at once."""
-    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
-                       extra=("--heavy-threads", "1", "--heavy-queue", "2"))
+    srv = start_server(
+        db_url_for("sqlite", tmp_path),
+        "sqlite",
+        split_data,
+        tmp_path,
+        workers=0,
+        extra=("--heavy-threads", "1", "--heavy-queue", "2"),
+    )
     try:
         scene = Dataset(realmini_dir).scene("val", "s00000")
         ref, q = scene.reference, scene.frame("seq1/frame_00009.jpg")
         with srv.client("alice") as c:
-            r = c.post("/anchors", data={**_form(ref.intrinsics), "method": "sift_pnp_sensor"},
-                       files={"image": ("r.jpg", ref.image_path.read_bytes()),
-                              "depth": ("d.png", ref.depth_path("sensor").read_bytes())})
+            r = c.post(
+                "/anchors",
+                data={**_form(ref.intrinsics), "method": "sift_pnp_sensor"},
+                files={
+                    "image": ("r.jpg", ref.image_path.read_bytes()),
+                    "depth": ("d.png", ref.depth_path("sensor").read_bytes()),
+                },
+            )
             assert r.status_code == 201, r.text
             aid = r.json()["id"]
         img = q.image()
@@ -87,8 +98,9 @@ def _alive(pid: int) -> bool:
 def test_api_processes_and_workers_die_with_a_killed_server(split_data, tmp_path):
     """``kill -9`` of ``serve --api-processes 2`` used to leave its API processes serving the port (no workers)
     and a restart failed with "Address already in use"; now every child ends and the port is free again."""
-    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=1,
-                       extra=("--api-processes", "2"))
+    srv = start_server(
+        db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=1, extra=("--api-processes", "2")
+    )
     port = int(srv.url.rsplit(":", 1)[1])
     kids = _children(srv.proc.pid)
     try:
@@ -100,8 +112,15 @@ def test_api_processes_and_workers_die_with_a_killed_server(split_data, tmp_path
             time.sleep(0.2)
         left = [k for k in kids if _alive(k)]
         assert not left, f"children still running after their parent's kill -9: {left}"
-        again = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=1,
-                             extra=("--api-processes", "2"), port=port)
+        again = start_server(
+            db_url_for("sqlite", tmp_path),
+            "sqlite",
+            split_data,
+            tmp_path,
+            workers=1,
+            extra=("--api-processes", "2"),
+            port=port,
+        )
         try:
             assert httpx.get(again.url + "/health", timeout=10).status_code == 200
             assert "address already in use" not in again.log().lower()
@@ -117,8 +136,14 @@ def test_api_processes_and_workers_die_with_a_killed_server(split_data, tmp_path
 def test_half_sent_requests_are_closed(split_data, tmp_path):
     """A request whose head or body stops half-way used to hold its connection for ever (slowloris); now the
     head must arrive within --header-timeout and each piece of the body within --body-timeout."""
-    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
-                       extra=("--header-timeout", "1", "--body-timeout", "1"))
+    srv = start_server(
+        db_url_for("sqlite", tmp_path),
+        "sqlite",
+        split_data,
+        tmp_path,
+        workers=0,
+        extra=("--header-timeout", "1", "--body-timeout", "1"),
+    )
     host, port = "127.0.0.1", int(srv.url.rsplit(":", 1)[1])
     socks = []
     try:
@@ -127,8 +152,10 @@ def test_half_sent_requests_are_closed(split_data, tmp_path):
             if i % 2:  # half a head
                 s.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
             else:  # a whole head, half a body
-                s.sendall(b"POST /login HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/x-www-form-"
-                          b"urlencoded\r\nContent-Length: 1000\r\n\r\ntoken=mf_")
+                s.sendall(
+                    b"POST /login HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/x-www-form-"
+                    b"urlencoded\r\nContent-Length: 1000\r\n\r\ntoken=mf_"
+                )
             socks.append(s)
         t0 = time.time()
         answers = []
@@ -138,7 +165,7 @@ def test_half_sent_requests_are_closed(split_data, tmp_path):
             try:
                 while chunk := s.recv(65536):
                     data += chunk
-            except socket.timeout:
+            except TimeoutError:
                 pytest.fail(f"a half-sent request was still open after {time.time() - t0:.1f} s")
             answers.append(data)
         assert time.time() - t0 < 8
@@ -159,13 +186,22 @@ def test_x_forwarded_for_is_believed_only_from_configured_proxies(split_data, tm
 
     def statuses(srv) -> list[int]:
         with httpx.Client(base_url=srv.url, timeout=10) as c:
-            return [c.get("/api/me", headers={"Authorization": f"Bearer mf_guess{i}",
-                                              "X-Forwarded-For": f"203.0.113.{i}"}).status_code for i in range(5)]
+            return [
+                c.get(
+                    "/api/me", headers={"Authorization": f"Bearer mf_guess{i}", "X-Forwarded-For": f"203.0.113.{i}"}
+                ).status_code
+                for i in range(5)
+            ]
 
-    for trusted, want in (((), [401, 401, 401, 429, 429]),
-                          (("--forwarded-allow-ips", "127.0.0.1"), [401] * 5)):
-        srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
-                           extra=("--auth-failures-per-minute", "3", *trusted))
+    for trusted, want in (((), [401, 401, 401, 429, 429]), (("--forwarded-allow-ips", "127.0.0.1"), [401] * 5)):
+        srv = start_server(
+            db_url_for("sqlite", tmp_path),
+            "sqlite",
+            split_data,
+            tmp_path,
+            workers=0,
+            extra=("--auth-failures-per-minute", "3", *trusted),
+        )
         try:
             assert statuses(srv) == want, trusted
         finally:
@@ -181,7 +217,7 @@ def _answer(s: socket.socket, within: float) -> bytes:
             data += chunk
             if b"\r\n\r\n" in data and b'"status"' in data:
                 break
-    except (socket.timeout, ConnectionResetError):
+    except (TimeoutError, ConnectionResetError):
         pass
     return data
 
@@ -191,11 +227,19 @@ def test_uploads_without_good_credentials_are_refused_unread_and_a_body_has_a_to
     a byte every few seconds (under the gap timeout) held its connection and file for as long as it liked. Now
     missing or bad credentials are refused from the headers, before the body, and a body that is not all in
     within --body-total-timeout gets 408."""
-    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
-                       extra=("--body-timeout", "30", "--body-total-timeout", "3"))
+    srv = start_server(
+        db_url_for("sqlite", tmp_path),
+        "sqlite",
+        split_data,
+        tmp_path,
+        workers=0,
+        extra=("--body-timeout", "30", "--body-total-timeout", "3"),
+    )
     host, port = "127.0.0.1", int(srv.url.rsplit(":", 1)[1])
-    head = ("POST /api/submissions HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; boundary=xx"
-            "\r\nContent-Length: 60000000\r\n{auth}\r\n")
+    head = (
+        "POST /api/submissions HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: multipart/form-data; boundary=xx"
+        "\r\nContent-Length: 60000000\r\n{auth}\r\n"
+    )
     try:
         for auth, want in (("", b"HTTP/1.1 401"), ("Authorization: Bearer mf_wrong\r\n", b"HTTP/1.1 401")):
             with socket.create_connection((host, port), timeout=10) as s:
@@ -205,15 +249,17 @@ def test_uploads_without_good_credentials_are_refused_unread_and_a_body_has_a_to
                 assert data.startswith(want), (auth, data[:200])
                 assert time.time() - t0 < 3
         with socket.create_connection((host, port), timeout=10) as s:  # a good token, then a trickle
-            s.sendall(head.format(auth=f"Authorization: Bearer {srv.tokens['alice']}\r\n").encode()
-                      + b'--xx\r\nContent-Disposition: form-data; name="file"; filename="s.zip"\r\n\r\n')
+            s.sendall(
+                head.format(auth=f"Authorization: Bearer {srv.tokens['alice']}\r\n").encode()
+                + b'--xx\r\nContent-Disposition: form-data; name="file"; filename="s.zip"\r\n\r\n'
+            )
             t0, data = time.time(), b""
             s.settimeout(0.5)
             while time.time() - t0 < 10 and not data:
                 try:
                     s.sendall(b"x")
                     data = s.recv(65536)
-                except socket.timeout:
+                except TimeoutError:
                     continue
                 except (BrokenPipeError, ConnectionResetError):
                     break
@@ -228,9 +274,14 @@ def test_one_address_cannot_take_every_connection(split_data, tmp_path):
     """Half-open requests from one address (a header byte a second, reopened as the head timeout closes them)
     used to fill --limit-concurrency and make other clients' /health fail with 503. Now one address holds at
     most --max-connections-per-address; past that its new connections are closed at once, others are served."""
-    srv = start_server(db_url_for("sqlite", tmp_path), "sqlite", split_data, tmp_path, workers=0,
-                       extra=("--max-connections-per-address", "5", "--limit-concurrency", "8",
-                              "--header-timeout", "30"))
+    srv = start_server(
+        db_url_for("sqlite", tmp_path),
+        "sqlite",
+        split_data,
+        tmp_path,
+        workers=0,
+        extra=("--max-connections-per-address", "5", "--limit-concurrency", "8", "--header-timeout", "30"),
+    )
     host, port = "127.0.0.1", int(srv.url.rsplit(":", 1)[1])
     held = []
     try:
@@ -270,8 +321,9 @@ def test_operator_mistakes_get_one_line_each(split_data, tmp_path):
     import sys
 
     def run(module: str, *args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", f"mapfree.cli.{module}", *args], capture_output=True,
-                              text=True, timeout=120)
+        return subprocess.run(
+            [sys.executable, "-m", f"mapfree.cli.{module}", *args], capture_output=True, text=True, timeout=120
+        )
 
     db = f"sqlite:///{tmp_path / 'ops.db'}"
     with socket.socket() as busy:
@@ -281,14 +333,22 @@ def test_operator_mistakes_get_one_line_each(split_data, tmp_path):
         cases = [
             (run("serve", "--db", db, "--port", port, "--workers", "0"), 1, f"port {port} on 127.0.0.1 is in use"),
             (run("serve", "--db", db, "--data", str(tmp_path / "nope"), "--workers", "0"), 2, "no such folder"),
-            (run("serve", "--db", "postgresql://svc:s3cret@127.0.0.1:1/mf", "--workers", "0", "--port", "0"), 1,
-             "cannot open the database postgresql"),
-            (run("serve", "--db", "nosuchdriver://x/y", "--workers", "0", "--port", "0"), 1,
-             "not a database URL"),
-            (run("admin", "--db", "postgresql://svc:s3cret@127.0.0.1:1/mf", "list-users"), 1,
-             "cannot open the database"),
-            (run("admin", "--db", f"sqlite:///{tmp_path / 'no' / 'dir.db'}", "list-users"), 1,
-             "cannot open the database"),
+            (
+                run("serve", "--db", "postgresql://svc:s3cret@127.0.0.1:1/mf", "--workers", "0", "--port", "0"),
+                1,
+                "cannot open the database postgresql",
+            ),
+            (run("serve", "--db", "nosuchdriver://x/y", "--workers", "0", "--port", "0"), 1, "not a database URL"),
+            (
+                run("admin", "--db", "postgresql://svc:s3cret@127.0.0.1:1/mf", "list-users"),
+                1,
+                "cannot open the database",
+            ),
+            (
+                run("admin", "--db", f"sqlite:///{tmp_path / 'no' / 'dir.db'}", "list-users"),
+                1,
+                "cannot open the database",
+            ),
         ]
     for out, code, words in cases:
         lines = [x for x in out.stderr.splitlines() if x.strip()]

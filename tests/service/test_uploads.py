@@ -46,15 +46,21 @@ ZIP_CASES = {
     "absolute path": (lambda s: _zip({f"/etc/pose_{_scene(s)}.txt": b"x"}), 422, "path traversal"),
     "folder entry": (lambda s: _zip({f"sub/pose_{_scene(s)}.txt": b"x"}), 422, "not allowed"),
     "wrong entry name": (lambda s: _zip({"poses.txt": b"x"}), 422, "pose_s00460.txt"),
-    "unknown scene": (lambda s: _zip({"pose_s99999.txt": b"seq1/frame_00000.jpg 1 0 0 0 0 0 0 1\n"}), 422,
-                      "not in the val split"),
+    "unknown scene": (
+        lambda s: _zip({"pose_s99999.txt": b"seq1/frame_00000.jpg 1 0 0 0 0 0 0 1\n"}),
+        422,
+        "not in the val split",
+    ),
     "zip bomb": (lambda s: _bomb(), 413, "zip bomb"),
     "lying header": (lambda s: _lying_header(), 422, "corrupt"),
     "too many entries": (lambda s: _zip({f"pose_s{i:05d}.txt": b"" for i in range(2001)}), 413, "entries"),
     "binary content": (lambda s: _zip({f"pose_{_scene(s)}.txt": bytes(range(256)) * 10}), 422, "UTF-8"),
     # parsing pose lines is the workers' job (uploads get cheap checks only): stored, then failed with the reason
-    "no valid line": (lambda s: _zip({f"pose_{_scene(s)}.txt": b"garbage line\nmore garbage\n"}), 202,
-                      "no valid pose line"),
+    "no valid line": (
+        lambda s: _zip({f"pose_{_scene(s)}.txt": b"garbage line\nmore garbage\n"}),
+        202,
+        "no valid pose line",
+    ),
     "empty zip": (lambda s: _zip({}), 422, "no pose_sNNNNN.txt"),
     "too large": (lambda s: np.random.default_rng(0).bytes(3 << 20), 413, "limit"),
 }
@@ -64,8 +70,11 @@ ZIP_CASES = {
 def test_hostile_submissions(server, case):
     build, status, words = ZIP_CASES[case]
     with server.client("alice") as c:
-        r = c.post("/api/submissions", files={"file": ("s.zip", build(server), "application/zip")},
-                   data={"split": "val", "name": case})
+        r = c.post(
+            "/api/submissions",
+            files={"file": ("s.zip", build(server), "application/zip")},
+            data={"split": "val", "name": case},
+        )
     assert r.status_code == status, (case, r.status_code, r.text)
     if status == 202:
         d = server.wait_done(r.json()["id"], "alice")
@@ -108,8 +117,8 @@ def test_bom_is_accepted_by_evaluate_and_the_server(server, tmp_path):
 def test_upload_is_stored_in_chunks_without_parsing_or_holding_it(make_app, split_data, tmp_path):
     """A few-MB submission is checked from its ZIP directory and copied into the database in chunks: the API's
     Python memory peak stays near one chunk (the old path read, inflated and parsed everything)."""
-    from mapfree.service.leaderboard import storage
     from mapfree.service.database.models import Submission, User, ZipChunk
+    from mapfree.service.leaderboard import storage
     from mapfree.service.leaderboard.submissions import accept
 
     app = make_app()
@@ -144,14 +153,14 @@ def test_upload_is_stored_in_chunks_without_parsing_or_holding_it(make_app, spli
 
 
 def test_val_rate_limit_storage_quota_and_retention(make_app, split_data):
-    from mapfree.service.leaderboard import storage
     from mapfree.service.database.models import Submission, SubmissionFile
+    from mapfree.service.leaderboard import storage
 
     data = make_submission(split_data.root / "val")
     app = make_app(val_hourly_limit=2, storage_quota_bytes=int(2.5 * len(data)))
     up = lambda user, name: app.client.post(  # noqa: E731
-        "/api/submissions", headers=app.auth(user), files={"file": ("s.zip", data)},
-        data={"split": "val", "name": name})
+        "/api/submissions", headers=app.auth(user), files={"file": ("s.zip", data)}, data={"split": "val", "name": name}
+    )
     assert up("ann", "a1").status_code == 202 and up("ann", "a2").status_code == 202
     r = up("ann", "a3")
     assert r.status_code == 429 and "hourly limit" in r.json()["detail"] and "2 val" in r.json()["detail"], r.text
@@ -178,8 +187,9 @@ def test_zip_limits_are_named_per_entry_and_in_total(make_app, split_data):
     one_big = _zip({f"pose_{scenes[0]}.txt": line * 30})  # 1110 bytes
     two = _zip({f"pose_{s}.txt": line * 22 for s in scenes[:2]})  # 814 + 814 bytes
     for data, words in ((one_big, "per-file limit is 1000 bytes"), (two, "total limit of 1500 bytes")):
-        r = app.client.post("/api/submissions", headers=app.auth("ann"), files={"file": ("s.zip", data)},
-                            data={"split": "val"})
+        r = app.client.post(
+            "/api/submissions", headers=app.auth("ann"), files={"file": ("s.zip", data)}, data={"split": "val"}
+        )
         assert r.status_code == 413 and words in r.json()["detail"], r.text
 
 
@@ -198,10 +208,13 @@ def test_the_worker_reads_with_the_same_limits(split_data, tmp_path):
 def test_names_with_bidi_controls_are_refused(server):
     data = make_submission(server.data.root / "val")
     with server.client("alice") as c:
-        r = c.post("/api/submissions", files={"file": ("s.zip", data)},
-                   data={"split": "val", "name": "good\u202egnp.exe"})
+        r = c.post(
+            "/api/submissions", files={"file": ("s.zip", data)}, data={"split": "val", "name": "good\u202egnp.exe"}
+        )
         assert r.status_code == 422 and "U+202E" in r.json()["detail"], r.text
-        r = c.post("/anchors", files={"image": ("a.png", _png(48, 64)), "depth": ("d.png", _png(48, 64, 1, np.uint16))},
-                   data={"fx": "50", "fy": "50", "cx": "32", "cy": "24", "method": "sift_pnp_sensor",
-                         "name": "office\u200f"})
+        r = c.post(
+            "/anchors",
+            files={"image": ("a.png", _png(48, 64)), "depth": ("d.png", _png(48, 64, 1, np.uint16))},
+            data={"fx": "50", "fy": "50", "cx": "32", "cy": "24", "method": "sift_pnp_sensor", "name": "office\u200f"},
+        )
         assert r.status_code == 422 and "U+200F" in r.json()["detail"], r.text

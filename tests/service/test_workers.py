@@ -21,8 +21,7 @@ from .conftest import OPERATOR_TOKEN, create_users, free_port, health_detail, st
 from .conftest import pose_text as _pose_text
 from .conftest import zip_of as _zip
 
-
-FAKE_CONCURRENT = '''
+FAKE_CONCURRENT = """
 import importlib.util, os, sys, sysconfig
 with open({marker!r}, "a") as f:
     f.write(f"{{os.getpid()}}\\n")
@@ -32,7 +31,7 @@ _spec = importlib.util.spec_from_file_location("concurrent", os.path.join(_dir, 
 _mod = importlib.util.module_from_spec(_spec)
 sys.modules["concurrent"] = _mod
 _spec.loader.exec_module(_mod)
-'''
+"""
 
 
 def test_workers_ignore_the_working_directory_and_health_drops_dead_workers(split_data, tmp_path):
@@ -45,10 +44,27 @@ def test_workers_ignore_the_working_directory_and_health_drops_dead_workers(spli
     port, db = free_port(), f"sqlite:///{tmp_path / 'iso.db'}"
     log = open(tmp_path / "serve.log", "w")
     # -P: the API process itself must not pick the file up either (what the console script `mapfree` does)
-    proc = subprocess.Popen([sys.executable, "-P", "-m", "mapfree.cli.serve", "--db", db, "--data",
-                             str(split_data.root), "--workers", "1", "--port", str(port)], cwd=hostile,
-                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-                            env={**os.environ, "OMP_NUM_THREADS": "1", "MAPFREE_OPERATOR_TOKEN": OPERATOR_TOKEN})
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-P",
+            "-m",
+            "mapfree.cli.serve",
+            "--db",
+            db,
+            "--data",
+            str(split_data.root),
+            "--workers",
+            "1",
+            "--port",
+            str(port),
+        ],
+        cwd=hostile,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1", "MAPFREE_OPERATOR_TOKEN": OPERATOR_TOKEN},
+    )
     url = f"http://127.0.0.1:{port}"
     try:
         deadline, h = time.time() + 60, {}
@@ -110,13 +126,31 @@ def test_a_burst_of_sigterms_stops_a_worker(split_data, tmp_path, when):
         init_db(engine)
         with session_factory(engine)() as db:
             user = db.scalar(select(User).where(User.name == "ann"))
-            data = _zip({f"pose_{s.name}.txt": _pose_text(s, 20_000, i)
-                         for i, s in enumerate(sorted((split_data.root / "val").iterdir()))}, zipfile.ZIP_DEFLATED)
+            data = _zip(
+                {
+                    f"pose_{s.name}.txt": _pose_text(s, 20_000, i)
+                    for i, s in enumerate(sorted((split_data.root / "val").iterdir()))
+                },
+                zipfile.ZIP_DEFLATED,
+            )
             accept(db, Settings(db_url=db_url, data_root=split_data.root), user, "val", "slow", False, data)
         engine.dispose()
-    proc = subprocess.Popen([sys.executable, "-m", "mapfree.service.leaderboard.worker", "--db", db_url, "--data",
-                             str(split_data.root), "--poll-seconds", "0.05"], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "mapfree.service.leaderboard.worker",
+            "--db",
+            db_url,
+            "--data",
+            str(split_data.root),
+            "--poll-seconds",
+            "0.05",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
     try:
         deadline = time.time() + 60
         while time.time() < deadline and _worker_rows(db_url) == 0:
@@ -166,7 +200,8 @@ def test_a_signal_during_the_stop_handler_cannot_deadlock():
         "    os.kill(os.getpid(), signal.SIGTERM)\n"
         "    os.kill(os.getpid(), signal.SIGTERM)\n"
         "    sum(range(1000))\n"
-        "sys.exit(0 if stop.wait(10) else 1)\n")
+        "sys.exit(0 if stop.wait(10) else 1)\n"
+    )
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=30)
     assert out.returncode == 0, out.stderr
 
@@ -178,7 +213,7 @@ def test_a_serving_process_freezes_its_long_lived_objects(tmp_path):
 import gc
 from mapfree.service import Settings, create_app
 from mapfree.service.http.gc_freeze import after_load, freeze_long_lived
-app = create_app(Settings(db_url="sqlite:///{tmp_path / 'gc.db'}"))
+app = create_app(Settings(db_url="sqlite:///{tmp_path / "gc.db"}"))
 after_load()
 assert gc.get_freeze_count() == 0, "froze without being asked"
 freeze_long_lived()
@@ -188,6 +223,11 @@ keep = [[i] for i in range(20000)]
 after_load()
 assert gc.get_freeze_count() >= frozen + 20000, (frozen, gc.get_freeze_count())
 """
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                       env={**os.environ, "OMP_NUM_THREADS": "1"})
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
     assert r.returncode == 0, r.stderr[-2000:]

@@ -14,10 +14,30 @@ from .submission import Problem, SceneEstimates, SubmissionLimits, from_estimate
 from .truth import SceneTruth, load_scene_truth, load_truth
 
 __all__ = [
-    "evaluate", "score", "aggregate", "EvaluationError", "Report", "format_table", "METRIC_KEYS",
-    "Thresholds", "auc", "precision_ratio_curve", "rotation_error_deg", "translation_error", "vcre",
-    "virtual_points", "Problem", "SceneEstimates", "SubmissionLimits", "from_estimates", "read_submission",
-    "write_submission", "SceneTruth", "load_scene_truth", "load_truth", "save_plots",
+    "evaluate",
+    "score",
+    "aggregate",
+    "EvaluationError",
+    "Report",
+    "format_table",
+    "METRIC_KEYS",
+    "Thresholds",
+    "auc",
+    "precision_ratio_curve",
+    "rotation_error_deg",
+    "translation_error",
+    "vcre",
+    "virtual_points",
+    "Problem",
+    "SceneEstimates",
+    "SubmissionLimits",
+    "from_estimates",
+    "read_submission",
+    "write_submission",
+    "SceneTruth",
+    "load_scene_truth",
+    "load_truth",
+    "save_plots",
 ]
 
 

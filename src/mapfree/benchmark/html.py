@@ -13,9 +13,9 @@ import html
 import io
 import math
 import os
+from collections.abc import Callable
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -70,25 +70,41 @@ def _num(v: float, fmt: str) -> str:
     return format(v, fmt) if v is not None and math.isfinite(v) else "—"
 
 
-def write_html(report: Report, path: os.PathLike | str, *, title: str = "Map-free evaluation",
-               figure: FigureSource | None = None, worst: int = 8, source_note: str = "") -> Path:
+def write_html(
+    report: Report,
+    path: os.PathLike | str,
+    *,
+    title: str = "Map-free evaluation",
+    figure: FigureSource | None = None,
+    worst: int = 8,
+    source_note: str = "",
+) -> Path:
     """Write the report page at ``path`` (parent folders created) and return it."""
     from .plots import FIGURES
 
     n = len(report.estimated)
-    parts = [f"<h1>{html.escape(title)}</h1>",
-             f"<p>{html.escape(report.split)} split, {report.track}-frame track, {len(report.per_scene)} scenes, "
-             f"{n} evaluated frames, {int(report.estimated.sum())} estimated. "
-             f"<span class='muted'>Written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC.</span></p>"]
+    parts = [
+        f"<h1>{html.escape(title)}</h1>",
+        f"<p>{html.escape(report.split)} split, {report.track}-frame track, {len(report.per_scene)} scenes, "
+        f"{n} evaluated frames, {int(report.estimated.sum())} estimated. "
+        f"<span class='muted'>Written {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC.</span></p>",
+    ]
     parts += ["<h2>Metrics</h2>", _table(["metric", "value"], [[k, _fmt(k, v)] for k, v in report.metrics.items()])]
     if report.per_scene:
-        keys = [("Estimates for % of frames", "estimated"), ("Average Median Translation Error", "median t"),
-                ("Average Median Rotation Error", "median R"), ("Precision @ VCRE < 90px", "prec. VCRE"),
-                ("AUC @ VCRE < 90px", "AUC VCRE")]
+        keys = [
+            ("Estimates for % of frames", "estimated"),
+            ("Average Median Translation Error", "median t"),
+            ("Average Median Rotation Error", "median R"),
+            ("Precision @ VCRE < 90px", "prec. VCRE"),
+            ("AUC @ VCRE < 90px", "AUC VCRE"),
+        ]
         rows = [[s, *[_fmt(k, m.get(k)) for k, _ in keys]] for s, m in report.per_scene.items()]
         parts += ["<h2>Per scene</h2>", _table(["scene", *[h for _, h in keys]], rows)]
-    parts += ["<h2>Figures</h2><div class='plots'>", *[_img(_fig_png(make(report)), caption)
-                                                        for _, caption, make in FIGURES], "</div>"]
+    parts += [
+        "<h2>Figures</h2><div class='plots'>",
+        *[_img(_fig_png(make(report)), caption) for _, caption, make in FIGURES],
+        "</div>",
+    ]
     idx = worst_frames(report, worst)
     if idx:
         parts.append(f"<h2>Worst {len(idx)} estimated frames (largest VCRE)</h2>")
@@ -96,24 +112,32 @@ def write_html(report: Report, path: os.PathLike | str, *, title: str = "Map-fre
             parts.append(f"<p class='muted'>{html.escape(source_note)}</p>")
         for i in idx:
             scene, frame = str(report.scene[i]), str(report.frame[i])
-            head = (f"{scene} {frame}: VCRE {_num(report.vcre[i], '.0f')} px, "
-                    f"{_num(report.trans_err[i], '.2f')} m, {_num(report.rot_err[i], '.1f')}°, "
-                    f"confidence {_num(report.confidence[i], '.3g')}")
+            head = (
+                f"{scene} {frame}: VCRE {_num(report.vcre[i], '.0f')} px, "
+                f"{_num(report.trans_err[i], '.2f')} m, {_num(report.rot_err[i], '.1f')}°, "
+                f"confidence {_num(report.confidence[i], '.3g')}"
+            )
             png = figure(scene, frame) if figure is not None else None
-            parts.append(f"<div class='frame'><b>{html.escape(head)}</b><br>"
-                         + (_img(png, f"{scene} {frame}") if png else "<span class='muted'>no figure</span>")
-                         + "</div>")
+            parts.append(
+                f"<div class='frame'><b>{html.escape(head)}</b><br>"
+                + (_img(png, f"{scene} {frame}") if png else "<span class='muted'>no figure</span>")
+                + "</div>"
+            )
     failed = int((~report.estimated).sum()) + report.extra_failures
     if failed:
         missing = sorted({str(s) for s in report.scene[~report.estimated]})
-        parts.append(f"<h2>Frames without an estimate</h2><p>{failed} frame(s), in "
-                     f"{html.escape(', '.join(missing[:20]))}{' …' if len(missing) > 20 else ''}.</p>")
+        parts.append(
+            f"<h2>Frames without an estimate</h2><p>{failed} frame(s), in "
+            f"{html.escape(', '.join(missing[:20]))}{' …' if len(missing) > 20 else ''}.</p>"
+        )
     if report.problems:
         items = "".join(f"<li class='problem'>{html.escape(str(p))}</li>" for p in report.problems[:200])
         more = f"<p>… and {len(report.problems) - 200} more</p>" if len(report.problems) > 200 else ""
         parts += [f"<h2>Problems ({len(report.problems)})</h2><ul>{items}</ul>{more}"]
-    page = (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-            f"<style>{_CSS}</style></head><body>{''.join(parts)}</body></html>\n")
+    page = (
+        f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+        f"<style>{_CSS}</style></head><body>{''.join(parts)}</body></html>\n"
+    )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(page, encoding="utf-8")

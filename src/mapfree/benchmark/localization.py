@@ -9,8 +9,8 @@ K = 10 references): precision against the ratio of confident estimates at VCRE <
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -27,10 +27,20 @@ def localization_thresholds(width: int, height: int) -> Thresholds:
     return Thresholds(pose=((0.05, 5), (0.25, 5)), vcre=(round(0.1 * diag, 1), round(0.05 * diag, 1)))
 
 
-def localization_report(scene: Sequence[str], frame: Sequence[str], q_gt: np.ndarray, t_gt: np.ndarray,
-                        q_est: np.ndarray, t_est: np.ndarray, confidence: np.ndarray, K: np.ndarray,
-                        width: np.ndarray, height: np.ndarray, thresholds: Thresholds | None = None,
-                        split: str = "test") -> Report:
+def localization_report(
+    scene: Sequence[str],
+    frame: Sequence[str],
+    q_gt: np.ndarray,
+    t_gt: np.ndarray,
+    q_est: np.ndarray,
+    t_est: np.ndarray,
+    confidence: np.ndarray,
+    K: np.ndarray,
+    width: np.ndarray,
+    height: np.ndarray,
+    thresholds: Thresholds | None = None,
+    split: str = "test",
+) -> Report:
     """Scores of N query frames (world-to-camera ``q``/``t``; NaN rows of ``q_est`` = no estimate).
 
     ``K`` (N,4) fx fy cx cy; frames must be grouped by ``scene`` (contiguous) for the per-scene medians.
@@ -57,11 +67,26 @@ def localization_report(scene: Sequence[str], frame: Sequence[str], q_gt: np.nda
         ve[i] = vcre(q_gt[i], t_gt[i], q_est[i], t_est[i], np.asarray(K, np.float32)[i], W[i], H[i])
     medians = np.stack([scene_medians(x, bounds, estimated) for x in (te, re, ve)], axis=1)
     metrics = aggregate(bounds, te, re, ve, conf, estimated, 0, th, medians)
-    per_scene = dict(zip(names.tolist(), aggregate_scenes(bounds, te, re, ve, conf, estimated,
-                                                          np.zeros(len(names), np.int64), th, medians)))
-    return Report(metrics=metrics, per_scene=per_scene, scene=scene, frame=np.asarray(frame, dtype=str),
-                  trans_err=te, rot_err=re, vcre=ve, confidence=np.where(estimated, conf, np.nan),
-                  estimated=estimated, diagonal=np.hypot(W, H), split=split, thresholds=th)
+    per_scene = dict(
+        zip(
+            names.tolist(),
+            aggregate_scenes(bounds, te, re, ve, conf, estimated, np.zeros(len(names), np.int64), th, medians),
+        )
+    )
+    return Report(
+        metrics=metrics,
+        per_scene=per_scene,
+        scene=scene,
+        frame=np.asarray(frame, dtype=str),
+        trans_err=te,
+        rot_err=re,
+        vcre=ve,
+        confidence=np.where(estimated, conf, np.nan),
+        estimated=estimated,
+        diagonal=np.hypot(W, H),
+        split=split,
+        thresholds=th,
+    )
 
 
 def comparison_figures(reports: Mapping[str, Report]) -> dict:
@@ -95,11 +120,23 @@ def comparison_figures(reports: Mapping[str, Report]) -> dict:
     if some is not None and len(some.diagonal):
         diag = float(np.median(some.diagonal))
         for frac, style in ((0.05, "--"), (0.10, "-")):
-            ax_c.axvline(frac * diag, color="0.3", ls=style, lw=1, label=f"{frac:.0%} of diagonal ({frac * diag:.0f} px)")
-    ax_p.set(xlim=(0, 1), ylim=(0, 1.02), xlabel="ratio of confident estimates (frames kept / all frames)",
-             ylabel="precision (VCRE < 10 % of diagonal)", title="Precision as the confidence threshold is lowered")
-    ax_c.set(xlim=(0, xmax or 1), ylim=(0, 1), xlabel="VCRE (px)", ylabel="fraction of query frames",
-             title="Cumulative distribution of VCRE")
+            ax_c.axvline(
+                frac * diag, color="0.3", ls=style, lw=1, label=f"{frac:.0%} of diagonal ({frac * diag:.0f} px)"
+            )
+    ax_p.set(
+        xlim=(0, 1),
+        ylim=(0, 1.02),
+        xlabel="ratio of confident estimates (frames kept / all frames)",
+        ylabel="precision (VCRE < 10 % of diagonal)",
+        title="Precision as the confidence threshold is lowered",
+    )
+    ax_c.set(
+        xlim=(0, xmax or 1),
+        ylim=(0, 1),
+        xlabel="VCRE (px)",
+        ylabel="fraction of query frames",
+        title="Cumulative distribution of VCRE",
+    )
     for ax, loc in ((ax_p, "lower left"), (ax_c, "lower right")):
         ax.grid(alpha=0.3)
         ax.legend(loc=loc, fontsize=8)

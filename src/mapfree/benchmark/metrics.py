@@ -60,9 +60,15 @@ def _rotmat(q: np.ndarray) -> np.ndarray:
     w, x, y, z = q.T
     return np.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         axis=-1,
     ).reshape(-1, 3, 3)
@@ -161,9 +167,7 @@ def vcre(
     return out
 
 
-def precision_ratio_curve(
-    confidence: np.ndarray, accepted: np.ndarray, failures: int
-) -> tuple[np.ndarray, np.ndarray]:
+def precision_ratio_curve(confidence: np.ndarray, accepted: np.ndarray, failures: int) -> tuple[np.ndarray, np.ndarray]:
     """Precision against the ratio of frames kept, as the confidence threshold is lowered.
 
     Returns (ratio, precision) at each distinct confidence (only the last of tied values is a

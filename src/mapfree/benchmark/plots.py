@@ -73,8 +73,14 @@ def precision_ratio_figure(report: Report) -> Figure:
             ax.plot([], [], style, color=colors[kind], label=f"{label} (no estimates)")
             continue
         area = float(np.sum(np.diff(np.r_[np.float32(0), ratio]) * prec))
-        ax.step(np.r_[0.0, ratio], np.r_[prec[0], prec], where="pre", ls=style, color=colors[kind],
-                label=f"{label}  (AUC {area:.3f})")
+        ax.step(
+            np.r_[0.0, ratio],
+            np.r_[prec[0], prec],
+            where="pre",
+            ls=style,
+            color=colors[kind],
+            label=f"{label}  (AUC {area:.3f})",
+        )
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1.02)
     ax.set_xlabel("ratio of confident estimates (frames kept / all frames)")
@@ -94,13 +100,19 @@ def vcre_cdf_figure(report: Report) -> Figure:
     diag = float(np.median(report.diagonal)) if len(report.diagonal) else 900.0
     xmax = max(1.5 * 0.1 * diag, float(np.percentile(v, 90)) if len(v) else 0.0)
     if len(v) and total:
-        ax.step(np.r_[0.0, v], np.r_[0.0, np.arange(1, len(v) + 1) / total], where="post", color="tab:blue",
-                label="VCRE")
+        ax.step(
+            np.r_[0.0, v], np.r_[0.0, np.arange(1, len(v) + 1) / total], where="post", color="tab:blue", label="VCRE"
+        )
     for frac, style in ((0.01, ":"), (0.05, "--"), (0.10, "-")):
         ax.axvline(frac * diag, color="0.3", ls=style, lw=1, label=f"{frac:.0%} of diagonal ({frac * diag:.0f} px)")
     if abs(report.thresholds.vcre[0] - 0.1 * diag) > 0.5:  # images other than 540x720
-        ax.axvline(report.thresholds.vcre[0], color="tab:red", lw=1, alpha=0.6,
-                   label=f"benchmark threshold ({report.thresholds.vcre[0]:g} px)")
+        ax.axvline(
+            report.thresholds.vcre[0],
+            color="tab:red",
+            lw=1,
+            alpha=0.6,
+            label=f"benchmark threshold ({report.thresholds.vcre[0]:g} px)",
+        )
     ax.set_xlim(0, xmax)
     ax.set_ylim(0, 1.0)
     ax.set_xlabel("VCRE (px)")
@@ -123,8 +135,17 @@ def scene_scatter_figure(report: Report) -> Figure:
     ]
     if rows:
         r, t, p = (np.array(c, dtype=float) for c in zip(*rows))
-        sc = ax.scatter(np.maximum(r, 1e-2), np.maximum(t, 1e-3), c=p, cmap="viridis", vmin=0, vmax=1,
-                        s=28, edgecolors="k", linewidths=0.4)
+        sc = ax.scatter(
+            np.maximum(r, 1e-2),
+            np.maximum(t, 1e-3),
+            c=p,
+            cmap="viridis",
+            vmin=0,
+            vmax=1,
+            s=28,
+            edgecolors="k",
+            linewidths=0.4,
+        )
         fig.colorbar(sc, ax=ax, label=f"precision (VCRE < {report.thresholds.vcre[0]:g} px)")
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -141,17 +162,27 @@ def scene_scatter_figure(report: Report) -> Figure:
     missing = [s for s, m in report.per_scene.items() if m.get("Average Median Rotation Error") is None]
     if missing:  # a scene without a single estimate has no point: say so instead of dropping it silently
         names = ", ".join(missing[:4]) + (f" and {len(missing) - 4} more" if len(missing) > 4 else "")
-        ax.text(0.99, 0.01, f"no estimates: {names}", ha="right", va="bottom", fontsize=8, color="tab:red",
-                transform=ax.transAxes)
+        ax.text(
+            0.99,
+            0.01,
+            f"no estimates: {names}",
+            ha="right",
+            va="bottom",
+            fontsize=8,
+            color="tab:red",
+            transform=ax.transAxes,
+        )
     ax.set_title(f"Per-scene median errors ({len(rows)} of {len(report.per_scene)} scenes)")
     ax.grid(alpha=0.3, which="both")
     return fig
 
 
 #: The evaluation figures: (file stem, caption, maker), for ``save_plots`` and the HTML report.
-FIGURES = (("precision_ratio", "precision against ratio", precision_ratio_figure),
-           ("vcre_cdf", "VCRE distribution", vcre_cdf_figure),
-           ("scenes", "per-scene errors", scene_scatter_figure))
+FIGURES = (
+    ("precision_ratio", "precision against ratio", precision_ratio_figure),
+    ("vcre_cdf", "VCRE distribution", vcre_cdf_figure),
+    ("scenes", "per-scene errors", scene_scatter_figure),
+)
 
 
 def save_plots(report: Report, outdir: os.PathLike | str, formats=("png", "pdf")) -> list[Path]:

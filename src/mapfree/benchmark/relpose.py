@@ -19,8 +19,15 @@ import numpy as np
 from ..geometry import rotation_angle_deg
 from .report import _clean
 
-__all__ = ["AUC_THRESHOLDS", "RelPoseReport", "pose_auc", "relpose_errors", "relpose_report", "format_relpose",
-           "cumulative_error_figure"]
+__all__ = [
+    "AUC_THRESHOLDS",
+    "RelPoseReport",
+    "pose_auc",
+    "relpose_errors",
+    "relpose_report",
+    "format_relpose",
+    "cumulative_error_figure",
+]
 
 AUC_THRESHOLDS = (5.0, 10.0, 20.0)
 
@@ -71,9 +78,16 @@ class RelPoseReport:
     def to_dict(self, pairs: bool = False) -> dict:
         out: dict = {"metrics": {k: _clean(v) for k, v in self.metrics.items()}}
         if pairs:
-            out["pairs"] = [{"pair": p, "estimated": bool(e), "rot_err": _clean(r), "trans_dir_err": _clean(t),
-                             "trans_err_m": _clean(m)} for p, e, r, t, m in
-                            zip(self.pairs, self.estimated, self.rot_err, self.trans_dir_err, self.trans_err_m)]
+            out["pairs"] = [
+                {
+                    "pair": p,
+                    "estimated": bool(e),
+                    "rot_err": _clean(r),
+                    "trans_dir_err": _clean(t),
+                    "trans_err_m": _clean(m),
+                }
+                for p, e, r, t, m in zip(self.pairs, self.estimated, self.rot_err, self.trans_dir_err, self.trans_err_m)
+            ]
         return out
 
     def to_json(self, pairs: bool = False) -> str:
@@ -138,7 +152,12 @@ def cumulative_error_figure(report: RelPoseReport):
         ax.step(np.r_[0.0, e], np.r_[0.0, np.arange(1, len(e) + 1) / n], where="post", label="pose error")
     for th in AUC_THRESHOLDS:
         ax.axvline(th, color="0.4", ls="--", lw=1)
-    ax.set(xlim=(0, 2 * AUC_THRESHOLDS[-1]), ylim=(0, 1), xlabel="pose error: max(rotation, translation direction) (°)",
-           ylabel="fraction of pairs", title="Cumulative pose error")
+    ax.set(
+        xlim=(0, 2 * AUC_THRESHOLDS[-1]),
+        ylim=(0, 1),
+        xlabel="pose error: max(rotation, translation direction) (°)",
+        ylabel="fraction of pairs",
+        title="Cumulative pose error",
+    )
     ax.grid(alpha=0.3)
     return fig

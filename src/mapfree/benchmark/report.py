@@ -74,8 +74,13 @@ class Report:
         if frames:
             out["frames"] = [
                 {
-                    "scene": str(s), "frame": str(f), "estimated": bool(e), "trans_err": _clean(te),
-                    "rot_err": _clean(re), "vcre": _clean(v), "confidence": _clean(c),
+                    "scene": str(s),
+                    "frame": str(f),
+                    "estimated": bool(e),
+                    "trans_err": _clean(te),
+                    "rot_err": _clean(re),
+                    "vcre": _clean(v),
+                    "confidence": _clean(c),
                 }
                 for s, f, e, te, re, v, c in zip(
                     self.scene, self.frame, self.estimated, self.trans_err, self.rot_err, self.vcre, self.confidence

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import os
 import re
-from typing import BinaryIO, Mapping
+from collections.abc import Mapping
+from typing import BinaryIO
 
 import numpy as np
 
@@ -65,8 +66,7 @@ def evaluate(
         fatal = [p for p in problems if p.fatal]
         if fatal:
             raise EvaluationError(f"the public evaluator aborts here: {fatal[0]}")
-    return score(truth, estimates, problems, compat=compat, thresholds=thresholds, split=split,
-                 track=track)
+    return score(truth, estimates, problems, compat=compat, thresholds=thresholds, split=split, track=track)
 
 
 def _match(t: SceneTruth, sel: np.ndarray, est: SceneEstimates, compat: str) -> np.ndarray:
@@ -182,12 +182,19 @@ def _unscored_track_problem(estimates: Mapping[str, SceneEstimates], matched: in
     numbers = [int(m.group(1)) for n in names if (m := re.search(r"(\d+)\.\w+$", n))]
     multi_like = bool(numbers) and all(k % 10 == 9 for k in numbers)
     single_like = bool(numbers) and all(k % 5 == 0 for k in numbers)
-    hint = ("they are the multi-frame track's frames (9, 19, 29, ...): score it with --track multi"
-            if track == "single" and multi_like else
-            "they are the single-frame track's frames (every 5th): score it with --track single"
-            if track == "multi" and single_like else "check the split and the frame names")
-    return Problem(None, None, f"none of the submission's {len(names)} estimates is for a frame the {track}-frame "
-                               f"track scores, so every frame counts as a failure; {hint}")
+    hint = (
+        "they are the multi-frame track's frames (9, 19, 29, ...): score it with --track multi"
+        if track == "single" and multi_like
+        else "they are the single-frame track's frames (every 5th): score it with --track single"
+        if track == "multi" and single_like
+        else "check the split and the frame names"
+    )
+    return Problem(
+        None,
+        None,
+        f"none of the submission's {len(names)} estimates is for a frame the {track}-frame "
+        f"track scores, so every frame counts as a failure; {hint}",
+    )
 
 
 def scene_medians(values: np.ndarray, bounds: np.ndarray, estimated: np.ndarray) -> np.ndarray:

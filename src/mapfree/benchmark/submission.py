@@ -14,10 +14,11 @@ import re
 import struct
 import zipfile
 import zlib
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from itertools import repeat
 from pathlib import Path
-from typing import BinaryIO, Collection, Iterable, Mapping
+from typing import BinaryIO
 
 import numpy as np
 
@@ -88,19 +89,25 @@ class SceneEstimates:
     def __len__(self) -> int:
         return len(self.names)
 
-    def take(self, idx: np.ndarray) -> "SceneEstimates":
+    def take(self, idx: np.ndarray) -> SceneEstimates:
         idx = np.asarray(idx, dtype=np.int64)
         return SceneEstimates(
-            [self.names[i] for i in idx.tolist()], self.q[idx], self.t[idx], self.confidence[idx],
-            self.lines[idx], self.keys[idx],
+            [self.names[i] for i in idx.tolist()],
+            self.q[idx],
+            self.t[idx],
+            self.confidence[idx],
+            self.lines[idx],
+            self.keys[idx],
         )
 
     @classmethod
-    def concat(cls, parts: list["SceneEstimates"]) -> "SceneEstimates":
+    def concat(cls, parts: list[SceneEstimates]) -> SceneEstimates:
         if len(parts) == 1:
             return parts[0]
-        return cls([n for p in parts for n in p.names], *(np.concatenate([getattr(p, f) for p in parts])
-                                                           for f in ("q", "t", "confidence", "lines", "keys")))
+        return cls(
+            [n for p in parts for n in p.names],
+            *(np.concatenate([getattr(p, f) for p in parts]) for f in ("q", "t", "confidence", "lines", "keys")),
+        )
 
     def to_list(self) -> list[tuple[str, Pose, float]]:
         return [(n, Pose.from_qt(q, t), float(c)) for n, q, t, c in zip(self.names, self.q, self.t, self.confidence)]
@@ -131,7 +138,7 @@ class _Problems(list):
         """Further (non-fatal) problems are only counted."""
         return len(self) >= self.limit
 
-    def merge(self, other: "_Problems") -> None:
+    def merge(self, other: _Problems) -> None:
         for p in other:
             self.add(p.scene, p.line, p.reason, p.fatal)
         self.dropped += other.dropped
@@ -171,10 +178,14 @@ def _parse_file_slow(scene: str, data: bytes, compat: str, problems: _Problems, 
         if "#" in fields[0]:
             continue  # comment
         if len(fields) != 9:
-            problems.add(scene, lineno, f"expected 9 fields (name qw qx qy qz tx ty tz confidence), found {len(fields)}")
+            problems.add(
+                scene, lineno, f"expected 9 fields (name qw qx qy qz tx ty tz confidence), found {len(fields)}"
+            )
             continue
         if _frame_key(fields[0]) < 0:
-            problems.add(scene, lineno, f"frame name {fields[0]!r} does not end in a 5-digit number (like seq1/frame_00012.jpg)")
+            problems.add(
+                scene, lineno, f"frame name {fields[0]!r} does not end in a 5-digit number (like seq1/frame_00012.jpg)"
+            )
             continue
         names.append(fields[0])
         tokens.extend(f.encode("utf-8") for f in fields[1:])
@@ -189,7 +200,7 @@ def _parse_file(scene: str, data: bytes, compat: str, problems: _Problems, line0
     pose file, or of whole lines of one after its first ``line0`` lines. A UTF-8 byte-order mark (Windows
     editors write one) is not part of the first frame's name."""
     if line0 == 0 and data.startswith(_BOM):
-        data = data[len(_BOM):]
+        data = data[len(_BOM) :]
     table = scan_table(data, 8)
     if table is None:
         return _parse_file_slow(scene, data, compat, problems, line0)
@@ -225,7 +236,9 @@ def _validate_rows(
     report(~np.all(np.isfinite(vals), axis=1), "non-finite number (NaN or inf)")
     report(~(np.linalg.norm(np.nan_to_num(est.q), axis=1) > 1e-8), "zero quaternion")  # np.isclose(norm, 0)
     if compat == "official":
-        report(est.confidence < 0, "negative confidence (the public evaluator aborts if this frame is scored)", drop=False)
+        report(
+            est.confidence < 0, "negative confidence (the public evaluator aborts if this frame is scored)", drop=False
+        )
     else:
         report(est.confidence < 0, "negative confidence; line skipped")
     if known is not None:
@@ -245,8 +258,7 @@ def _validate_rows(
     return est if keep.all() else est.take(np.flatnonzero(keep))
 
 
-def _drop_duplicates(scene: str, est: SceneEstimates, compat: str, problems: _Problems,
-                     used: dict) -> SceneEstimates:
+def _drop_duplicates(scene: str, est: SceneEstimates, compat: str, problems: _Problems, used: dict) -> SceneEstimates:
     """Drop (and report) repeated frames: the first estimate wins (default); the public evaluator keys by
     number, the last wins. ``used`` maps each frame kept from earlier pieces of the file to its line
     (default mode, read piece by piece); it is updated."""
@@ -263,8 +275,11 @@ def _drop_duplicates(scene: str, est: SceneEstimates, compat: str, problems: _Pr
             if problems.full:
                 problems.dropped += 1
             else:
-                problems.add(scene, int(est.lines[i]) or None,
-                             f"duplicate frame {est.names[i]!r} (line {used[k] or '?'} is used)")
+                problems.add(
+                    scene,
+                    int(est.lines[i]) or None,
+                    f"duplicate frame {est.names[i]!r} (line {used[k] or '?'} is used)",
+                )
         else:
             used[k] = int(est.lines[i])
     return est.take(np.flatnonzero(~dup)) if dup.any() else est
@@ -321,7 +336,9 @@ def read_submission(
     try:
         f.seek(0, os.SEEK_END)
         if f.tell() > limits.max_zip_bytes:
-            problems.add(None, None, f"submission is {f.tell()} bytes, over the {limits.max_zip_bytes}-byte limit", fatal=True)
+            problems.add(
+                None, None, f"submission is {f.tell()} bytes, over the {limits.max_zip_bytes}-byte limit", fatal=True
+            )
             return out, problems.finish()
         count = _zip_entry_count(f)
         if count is None:
@@ -369,7 +386,9 @@ def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) 
         m = _ENTRY_RE.match(base)
         if "/" in name.replace("\\", "/"):
             if m and not name.startswith("__MACOSX/"):
-                problems.add(m.group(1), None, f"{name!r} is inside a folder: pose files must be at the ZIP root; ignored")
+                problems.add(
+                    m.group(1), None, f"{name!r} is inside a folder: pose files must be at the ZIP root; ignored"
+                )
             else:
                 problems.add(None, None, f"unexpected entry {name!r} in a folder; ignored")
             continue
@@ -386,8 +405,11 @@ def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) 
             continue
         cap = min(limits.max_file_bytes, budget)
         if info.file_size > cap:
-            problems.add(scene, None, f"{name} unpacks to {info.file_size} bytes, over the limit "
-                                      f"({_limit_name(limits, budget)}); ignored")
+            problems.add(
+                scene,
+                None,
+                f"{name} unpacks to {info.file_size} bytes, over the limit ({_limit_name(limits, budget)}); ignored",
+            )
             continue
         known = expected.get(scene) if expected is not None else None
         local = _Problems(max(0, problems.limit - len(problems)))  # kept only if the whole entry is read
@@ -398,8 +420,12 @@ def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) 
             problems.add(scene, None, f"cannot read {name} ({e}); ignored")
             continue
         if est is None:
-            problems.add(scene, None, f"{name} unpacks to more than {cap} bytes, over the limit "
-                                      f"({_limit_name(limits, budget)}; the size in the ZIP directory is wrong); ignored")
+            problems.add(
+                scene,
+                None,
+                f"{name} unpacks to more than {cap} bytes, over the limit "
+                f"({_limit_name(limits, budget)}; the size in the ZIP directory is wrong); ignored",
+            )
             continue
         budget -= size
         problems.merge(local)
@@ -411,8 +437,9 @@ def _read_entries(zf, expected, compat, limits, problems: _Problems, out: dict) 
 CHUNK_BYTES = 1 << 16
 
 
-def _read_member(scene: str, member: BinaryIO, cap: int, compat: str, known: Collection[str] | None,
-                 problems: _Problems) -> tuple[SceneEstimates | None, int]:
+def _read_member(
+    scene: str, member: BinaryIO, cap: int, compat: str, known: Collection[str] | None, problems: _Problems
+) -> tuple[SceneEstimates | None, int]:
     """Read, parse and check one pose file piece by piece -> (its estimates, or None when it unpacks to more
     than ``cap`` bytes; the bytes read). Rows that are dropped (unknown frames, repeats) never accumulate."""
     parts: list[SceneEstimates] = []
@@ -475,8 +502,9 @@ def from_estimates(
             conf = np.array([float(c) for _, _, c in rows], dtype=np.float64)
             est = SceneEstimates([n for n, _, _ in rows], q, t, conf, np.zeros(len(rows), dtype=np.int64))
         known = expected.get(scene) if expected is not None else None
-        out[scene] = _drop_duplicates(scene, _validate_rows(scene, est, None, compat, known, problems), compat,
-                                      problems, {})
+        out[scene] = _drop_duplicates(
+            scene, _validate_rows(scene, est, None, compat, known, problems), compat, problems, {}
+        )
     return out, problems.finish()
 
 

@@ -176,7 +176,10 @@ def _load_intrinsics(path: Path, keys: np.ndarray) -> tuple[np.ndarray, float, f
 
 
 def load_scene_truth(
-    poses_path: os.PathLike | str, intrinsics_path: os.PathLike | str, scene: str | None = None, every: int = EVERY,
+    poses_path: os.PathLike | str,
+    intrinsics_path: os.PathLike | str,
+    scene: str | None = None,
+    every: int = EVERY,
     track: str = "single",
 ) -> SceneTruth:
     """Read one scene's ground truth (``poses.txt`` + ``intrinsics.txt``) for the single- or multi-frame track."""
@@ -192,7 +195,9 @@ def load_scene_truth(
 
 
 def load_truth(
-    dataset_root: os.PathLike | str | None, split: str = "val", gt_root: os.PathLike | str | None = None,
+    dataset_root: os.PathLike | str | None,
+    split: str = "val",
+    gt_root: os.PathLike | str | None = None,
     track: str = "single",
 ) -> dict[str, SceneTruth]:
     """Ground truth of every scene of a split, by scene name.
@@ -221,7 +226,8 @@ def load_truth(
         out[name] = truth
     if all(t.n_keys == 0 for t in out.values()):
         raise FormatError(
-            root / split, None,
-            "no ground-truth poses (all-zero lines, as in the public test split): pass the private ground truth with --gt-root DIR (in Python: gt_root=DIR)"
+            root / split,
+            None,
+            "no ground-truth poses (all-zero lines, as in the public test split): pass the private ground truth with --gt-root DIR (in Python: gt_root=DIR)",
         )
     return out

@@ -8,6 +8,7 @@ import os
 import sys
 import traceback
 
+
 class HelpFormatter(argparse.HelpFormatter):
     """The description wrapped as usual; an epilog that starts with ``examples:`` kept line by line."""
 
@@ -51,8 +52,9 @@ def output_file_problem(flag: str, path, suffixes: tuple[str, ...] = ()) -> str 
 
     path = Path(path)
     if path.is_dir():
-        return f"{flag} {path}: a folder; give a file name" + (f" (e.g. {path / ('out' + suffixes[0])})" if suffixes
-                                                               else "")
+        return f"{flag} {path}: a folder; give a file name" + (
+            f" (e.g. {path / ('out' + suffixes[0])})" if suffixes else ""
+        )
     if suffixes and path.suffix.lower() not in suffixes:
         return f"{flag} {path}: the name must end in {' or '.join(suffixes)} (the format it is written in)"
     return None
@@ -76,8 +78,22 @@ def plural(n: int, word: str, words: str | None = None) -> str:
 
 
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func`` on it.
-COMMANDS = ["demo", "synth", "check", "evaluate", "relocalize", "match", "run", "train", "serve", "admin", "sevenscenes",
-            "scannet", "build", "weights"]
+COMMANDS = [
+    "demo",
+    "synth",
+    "check",
+    "evaluate",
+    "relocalize",
+    "match",
+    "run",
+    "train",
+    "serve",
+    "admin",
+    "sevenscenes",
+    "scannet",
+    "build",
+    "weights",
+]
 #: Set (to anything but 0) to have a command that cannot be loaded print the full traceback under its one line.
 DEBUG_ENV = "MAPFREE_DEBUG"
 
@@ -87,8 +103,10 @@ class CommandLoadError(RuntimeError):
     command imports its heavy dependencies only when it runs). ``command`` names it; the cause is chained."""
 
     def __init__(self, command: str, cause: BaseException):
-        super().__init__(f"the command cannot be loaded: {type(cause).__name__}: {cause}{_raised_at(cause)} "
-                         f"(a broken install or checkout; {DEBUG_ENV}=1 prints the traceback)")
+        super().__init__(
+            f"the command cannot be loaded: {type(cause).__name__}: {cause}{_raised_at(cause)} "
+            f"(a broken install or checkout; {DEBUG_ENV}=1 prints the traceback)"
+        )
         self.command = command
 
 
@@ -157,4 +175,3 @@ def os_error_text(e: OSError) -> str:
     if e.strerror and e.filename:
         return f"{e.filename}: {e.strerror[0].lower()}{e.strerror[1:]}"
     return e.strerror or str(e)
-

@@ -18,8 +18,9 @@ def _limit(text: str) -> int | None:
     try:
         return parse_daily_limit(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of evaluations (0: none), 'unlimited' or 'default'; got "
-                                         f"{str(text)[:40]!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected a number of evaluations (0: none), 'unlimited' or 'default'; got {str(text)[:40]!r}"
+        ) from None
 
 
 def _row_id(text: str) -> int:
@@ -42,32 +43,45 @@ def _shown(limit: int | None) -> str:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("admin", help="manage service accounts, tokens, sessions, the schema and backups",
-                       description="Manage accounts of `mapfree serve`. Tokens are printed once and stored hashed.",
-                       epilog="examples:\n"
-                              "  mapfree admin --db sqlite:///mapfree.db create-user alice --expires-in 90d\n"
-                              "  mapfree admin --db sqlite:///mapfree.db new-token alice --expires-in 30d --label ci\n"
-                              "  mapfree admin --db sqlite:///mapfree.db list-tokens alice\n"
-                              "  mapfree admin --db sqlite:///mapfree.db revoke-token 12\n"
-                              "  mapfree admin --db sqlite:///mapfree.db revoke-tokens alice\n"
-                              "  mapfree admin --db sqlite:///mapfree.db set-limit alice 0   # no test evaluations\n"
-                              "  mapfree admin --db sqlite:///mapfree.db set-limit alice unlimited\n"
-                              "  mapfree admin --db sqlite:///mapfree.db list-users\n"
-                              "  mapfree admin --db sqlite:///mapfree.db delete-user alice --yes\n"
-                              "  mapfree admin --db sqlite:///mapfree.db migrate\n"
-                              "  mapfree admin --db sqlite:///mapfree.db backup /backups/mapfree-2026-01-31.db\n",
-                       formatter_class=HelpFormatter)
-    p.add_argument("--db", default=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
-                   help="database URL (default: $MAPFREE_DB or sqlite:///mapfree.db)")
+    p = sub.add_parser(
+        "admin",
+        help="manage service accounts, tokens, sessions, the schema and backups",
+        description="Manage accounts of `mapfree serve`. Tokens are printed once and stored hashed.",
+        epilog="examples:\n"
+        "  mapfree admin --db sqlite:///mapfree.db create-user alice --expires-in 90d\n"
+        "  mapfree admin --db sqlite:///mapfree.db new-token alice --expires-in 30d --label ci\n"
+        "  mapfree admin --db sqlite:///mapfree.db list-tokens alice\n"
+        "  mapfree admin --db sqlite:///mapfree.db revoke-token 12\n"
+        "  mapfree admin --db sqlite:///mapfree.db revoke-tokens alice\n"
+        "  mapfree admin --db sqlite:///mapfree.db set-limit alice 0   # no test evaluations\n"
+        "  mapfree admin --db sqlite:///mapfree.db set-limit alice unlimited\n"
+        "  mapfree admin --db sqlite:///mapfree.db list-users\n"
+        "  mapfree admin --db sqlite:///mapfree.db delete-user alice --yes\n"
+        "  mapfree admin --db sqlite:///mapfree.db migrate\n"
+        "  mapfree admin --db sqlite:///mapfree.db backup /backups/mapfree-2026-01-31.db\n",
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument(
+        "--db",
+        default=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
+        help="database URL (default: $MAPFREE_DB or sqlite:///mapfree.db)",
+    )
     s = p.add_subparsers(dest="action", metavar="ACTION", required=True)
-    expires = {"metavar": "DURATION", "help": "the token expires after this long (90d, 12h, 30m or seconds; "
-                                              "default: never)"}
+    expires = {
+        "metavar": "DURATION",
+        "help": "the token expires after this long (90d, 12h, 30m or seconds; default: never)",
+    }
     c = s.add_parser("create-user", help="create an account and print its API token")
     c.add_argument("name")
     c.add_argument("--admin", action="store_true", help="may see every submission and delete any anchor")
-    c.add_argument("--test-daily-limit", type=_limit, default=None, metavar="N|unlimited|default",
-                   help="override the server's daily test limit: a count (0: no test evaluations at all), "
-                        "'unlimited', or 'default' (the server's, the default)")
+    c.add_argument(
+        "--test-daily-limit",
+        type=_limit,
+        default=None,
+        metavar="N|unlimited|default",
+        help="override the server's daily test limit: a count (0: no test evaluations at all), "
+        "'unlimited', or 'default' (the server's, the default)",
+    )
     c.add_argument("--expires-in", **expires)
     t = s.add_parser("new-token", help="issue another token for an account")
     t.add_argument("name")
@@ -76,9 +90,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = s.add_parser("revoke-tokens", help="revoke every token of an account (and end its browser sessions)")
     r.add_argument("name")
     s.add_parser("list-tokens", help="an account's tokens: id, prefix, label, created, expires, state").add_argument(
-        "name")
-    s.add_parser("revoke-token", help="revoke one token (by the id list-tokens shows), and the tokens and "
-                                      "sessions made with it").add_argument("id", type=_row_id)
+        "name"
+    )
+    s.add_parser(
+        "revoke-token", help="revoke one token (by the id list-tokens shows), and the tokens and sessions made with it"
+    ).add_argument("id", type=_row_id)
     s.add_parser("list-sessions", help="an account's open browser sessions").add_argument("name")
     s.add_parser("revoke-session", help="end one browser session (by its id)").add_argument("id", type=_row_id)
     d = s.add_parser("delete-user", help="delete an account with its tokens, sessions, anchors and submissions")
@@ -86,9 +102,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--yes", action="store_true", help="really delete (without it: say what would go)")
     lim = s.add_parser("set-limit", help="set an account's daily test-evaluation limit")
     lim.add_argument("name")
-    lim.add_argument("limit", type=_limit, metavar="N|unlimited|default",
-                     help="test evaluations per 24 h: a count (0: none at all), 'unlimited', or 'default' (the "
-                          "server's --test-daily-limit)")
+    lim.add_argument(
+        "limit",
+        type=_limit,
+        metavar="N|unlimited|default",
+        help="test evaluations per 24 h: a count (0: none at all), 'unlimited', or 'default' (the "
+        "server's --test-daily-limit)",
+    )
     s.add_parser("list-users", help="list accounts")
     s.add_parser("init-db", help="create the tables or upgrade them (serve does this too)")
     s.add_parser("migrate", help="upgrade the schema to this version's (serve does this at start) and say so")
@@ -117,16 +137,15 @@ def run(a: argparse.Namespace) -> int:
         except (OSError, ValueError, RuntimeError) as e:
             return fail("admin", e)
         return 0
-    from ..service.database.models import DatabaseUnavailable, open_database
     from ..service.database.migrations import SchemaVersion
+    from ..service.database.models import DatabaseUnavailable, open_database
 
     try:
         engine, (before, after) = open_database(a.db)
     except (SchemaVersion, DatabaseUnavailable) as e:
         return fail("admin", e)
     if a.action == "migrate":
-        print(f"schema version {after}" + (" (already)" if before == after else
-                                            f" (was {before or 'unversioned'})"))
+        print(f"schema version {after}" + (" (already)" if before == after else f" (was {before or 'unversioned'})"))
         return 0
     sessions = session_factory(engine)
 
@@ -177,16 +196,20 @@ def _act(a: argparse.Namespace, sessions, user, lifetime, engine) -> int:
             print("id\tprefix\tlabel\tcreated\texpires\tstate")
             for t in map(token_json, list_tokens(db, user(db, a.name).id)):
                 state = "revoked" if t["revoked"] else "expired" if t["expired"] else "active"
-                print(f"{t['id']}\t{t['prefix']}…\t{t['label'] or '-'}\t{_when(t['created_at'])}\t"
-                      f"{_when(t['expires_at'])}\t{state}")
+                print(
+                    f"{t['id']}\t{t['prefix']}…\t{t['label'] or '-'}\t{_when(t['created_at'])}\t"
+                    f"{_when(t['expires_at'])}\t{state}"
+                )
         elif a.action == "revoke-token":
             row = db.get(ApiToken, a.id)
             if row is None:
                 return fail("admin", f"no token {a.id}")
             ended = auth.revoke_token(db, row)
             also = [f"{len(v)} {k} made with it ({', '.join(map(str, v))})" for k, v in ended.items() if v]
-            print(f"revoked token {a.id} ({row.prefix}…)" + (f" and ended {' and '.join(also)}" if also else ""),
-                  file=sys.stderr)
+            print(
+                f"revoked token {a.id} ({row.prefix}…)" + (f" and ended {' and '.join(also)}" if also else ""),
+                file=sys.stderr,
+            )
         elif a.action == "list-sessions":
             from ..service.accounts.router import list_sessions
 
@@ -206,8 +229,9 @@ def _act(a: argparse.Namespace, sessions, user, lifetime, engine) -> int:
             print(f"{a.name}: daily test limit {_shown(a.limit)}", file=sys.stderr)
         elif a.action == "list-users":
             for u in db.scalars(select(User).order_by(User.id)):
-                n = len(db.scalars(select(ApiToken.id).where(ApiToken.user_id == u.id,
-                                                            ApiToken.revoked.is_(False))).all())
+                n = len(
+                    db.scalars(select(ApiToken.id).where(ApiToken.user_id == u.id, ApiToken.revoked.is_(False))).all()
+                )
                 print(f"{u.name}\tadmin={u.is_admin}\ttokens={n}\ttest_limit={_shown(u.test_daily_limit)}")
     engine.dispose()
     return 0
@@ -225,8 +249,10 @@ def _delete_user(db, u, yes: bool) -> int:
     gone = delete_user(db, u, dry_run=not yes)
     what = ", ".join(f"{n} {k}" for k, n in gone.items())
     if not yes:
-        print(f"would delete user {name!r} with {what} (their leaderboard entries too); add --yes to delete",
-              file=sys.stderr)
+        print(
+            f"would delete user {name!r} with {what} (their leaderboard entries too); add --yes to delete",
+            file=sys.stderr,
+        )
         return 1
     print(f"deleted user {name!r} with {what}", file=sys.stderr)
     return 0

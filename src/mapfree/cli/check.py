@@ -25,18 +25,35 @@ examples:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("check", help="verify a Map-free dataset download: scenes, files, images",
-                              description=DESCRIPTION, epilog=EPILOG, formatter_class=HelpFormatter)
+    p = subparsers.add_parser(
+        "check",
+        help="verify a Map-free dataset download: scenes, files, images",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=HelpFormatter,
+    )
     p.add_argument("root", type=Path, metavar="ROOT", help="dataset root holding train/, val/, test/")
-    p.add_argument("--split", action="append", choices=["train", "val", "test"],
-                   help="check only this split (repeatable; default: all three, or those present with --subset)")
-    p.add_argument("--subset", action="store_true",
-                   help="any subset of sNNNNN scenes is fine (partial copies, synthetic or built data)")
+    p.add_argument(
+        "--split",
+        action="append",
+        choices=["train", "val", "test"],
+        help="check only this split (repeatable; default: all three, or those present with --subset)",
+    )
+    p.add_argument(
+        "--subset",
+        action="store_true",
+        help="any subset of sNNNNN scenes is fine (partial copies, synthetic or built data)",
+    )
     p.add_argument("--deep", action="store_true", help="decode every image and depth map (slow)")
     p.add_argument("--workers", type=int, default=1, help="scenes checked in parallel processes (default 1)")
     p.add_argument("--json", action="store_true", help="print the report as JSON instead of tables")
-    p.add_argument("--max-problems", type=int, default=50, metavar="N",
-                   help="problems printed (all of them with --json; default 50)")
+    p.add_argument(
+        "--max-problems",
+        type=int,
+        default=50,
+        metavar="N",
+        help="problems printed (all of them with --json; default 50)",
+    )
     p.set_defaults(func=run)
 
 
@@ -59,9 +76,16 @@ def run(args: argparse.Namespace) -> int:
         return fail("check", f"{args.root}: {not_a_dataset_folder(args.root)}")
     err = Console(stderr=True)
     show = not args.json and err.is_terminal
-    report = check_dataset(args.root, args.split, subset=args.subset, deep=args.deep, workers=args.workers,
-                           progress=(lambda it, n: track(it, total=n, description="checking scenes", console=err,
-                                                         transient=True)) if show else None)
+    report = check_dataset(
+        args.root,
+        args.split,
+        subset=args.subset,
+        deep=args.deep,
+        workers=args.workers,
+        progress=(lambda it, n: track(it, total=n, description="checking scenes", console=err, transient=True))
+        if show
+        else None,
+    )
     if args.json:
         print(json.dumps(report.to_dict(), indent=2))
         return EXIT_OK if report.ok else EXIT_ERROR
@@ -74,8 +98,15 @@ def run(args: argparse.Namespace) -> int:
     for s in report.splits:
         scenes = f"{s.scenes}" if s.expected is None else f"{s.scenes}/{s.expected}"
         depth = ", ".join(f"{k} {n}" for k, n in sorted(s.depth.items())) or "none"
-        table.add_row(s.split, scenes, str(s.frames), str(s.images_checked), str(s.unlisted_images), depth,
-                      f"[red]{len(s.problems)}[/red]" if s.problems else "0")
+        table.add_row(
+            s.split,
+            scenes,
+            str(s.frames),
+            str(s.images_checked),
+            str(s.unlisted_images),
+            depth,
+            f"[red]{len(s.problems)}[/red]" if s.problems else "0",
+        )
     if report.splits:
         out.print(table)
     problems = report.all_problems
@@ -83,8 +114,10 @@ def run(args: argparse.Namespace) -> int:
         out.print(str(p), markup=False, highlight=False, soft_wrap=True)
     if len(problems) > args.max_problems:
         out.print(f"… and {len(problems) - args.max_problems} more (--max-problems N, or --json for all)")
-    out.print("OK: nothing missing or unreadable" if report.ok else f"{plural(len(problems), 'problem')} found",
-              style="green" if report.ok else "red")
+    out.print(
+        "OK: nothing missing or unreadable" if report.ok else f"{plural(len(problems), 'problem')} found",
+        style="green" if report.ok else "red",
+    )
     if not report.subset and any(s.expected is not None and s.scenes != s.expected for s in report.splits):
         out.print("(a partial copy, or scenes of your own? --subset checks only the scenes that are there)")
     return EXIT_OK if report.ok else EXIT_ERROR

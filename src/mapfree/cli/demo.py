@@ -17,27 +17,42 @@ DEFAULTS = {"scenes": 4, "queries": 30, "seed": 0, "method": DEFAULT_METHOD, "al
 #: What the default demo scores on any working install (the data is the same bytes everywhere; measured on CPU):
 #: metric -> (value, tolerance). Simulated monocular depth errs by about 10% in scale, so fewer than half of the
 #: frames fall within 90 px; with the ground-truth depth (``--method best-offline-pnp@sensor``) nearly all do.
-EXPECTED = {"Estimates for % of frames": (1.0, 0.0), "AUC @ VCRE < 90px": (0.761, 0.06),
-            "Precision @ VCRE < 90px": (0.417, 0.1)}
+EXPECTED = {
+    "Estimates for % of frames": (1.0, 0.0),
+    "AUC @ VCRE < 90px": (0.761, 0.06),
+    "Precision @ VCRE < 90px": (0.417, 0.1),
+}
 
 
 def expectation(args: argparse.Namespace, metrics: dict) -> list[str]:
     """What the user should expect to see, and whether the run shows it: the lines the demo prints after its table,
     so a broken install (wrong weights, a broken OpenCV or torch) can be told from a working one."""
-    lines = ["What to expect: with the default settings every one of the 24 scored frames gets an estimate, "
-             "AUC @ VCRE < 90px is about 0.76 and precision @ VCRE < 90px about 0.42 (the depth is a simulated "
-             "monocular estimate, about 10% off in scale; `--method best-offline-pnp@sensor` uses the true depth)."]
-    used = {"scenes": args.scenes, "queries": args.queries, "seed": args.seed, "method": args.method,
-            "all_frames": args.all_frames}
+    lines = [
+        "What to expect: with the default settings every one of the 24 scored frames gets an estimate, "
+        "AUC @ VCRE < 90px is about 0.76 and precision @ VCRE < 90px about 0.42 (the depth is a simulated "
+        "monocular estimate, about 10% off in scale; `--method best-offline-pnp@sensor` uses the true depth)."
+    ]
+    used = {
+        "scenes": args.scenes,
+        "queries": args.queries,
+        "seed": args.seed,
+        "method": args.method,
+        "all_frames": args.all_frames,
+    }
     changed = [f"--{k.replace('_', '-')} {v}" for k, v in used.items() if v != DEFAULTS[k]]
     if changed:
         lines.append(f"This run changed {', '.join(changed)}: its numbers need not match these.")
         return lines
-    off = [f"{k} {metrics.get(k, float('nan')):.3f} (expected {v:.3f} ± {tol:.2f})"
-           for k, (v, tol) in EXPECTED.items() if not abs(metrics.get(k, float("nan")) - v) <= tol + 1e-9]
+    off = [
+        f"{k} {metrics.get(k, float('nan')):.3f} (expected {v:.3f} ± {tol:.2f})"
+        for k, (v, tol) in EXPECTED.items()
+        if not abs(metrics.get(k, float("nan")) - v) <= tol + 1e-9
+    ]
     if off:
-        lines.append("UNEXPECTED: " + "; ".join(off) + ". Something in this install differs from a working one: "
-                     "check `mapfree weights xfeat` and the installed opencv-python and torch versions.")
+        lines.append(
+            "UNEXPECTED: " + "; ".join(off) + ". Something in this install differs from a working one: "
+            "check `mapfree weights xfeat` and the installed opencv-python and torch versions."
+        )
     else:
         lines.append("This run matches: the install works.")
     return lines
@@ -54,9 +69,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "After the scores it says what a working install scores on this data, and whether this run does."
         ),
         epilog="examples:\n"
-               "  mapfree demo\n"
-               "  mapfree demo --out demo-big --scenes 10 --queries 40 --workers 2\n"
-               "  mapfree demo --method sift_pnp_mono   # another method on the same simulated depth\n",
+        "  mapfree demo\n"
+        "  mapfree demo --out demo-big --scenes 10 --queries 40 --workers 2\n"
+        "  mapfree demo --method sift_pnp_mono   # another method on the same simulated depth\n",
         formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("--out", type=Path, default=Path("demo-out"), help="output folder")
@@ -78,11 +93,16 @@ def run(args: argparse.Namespace) -> int:
     from ..benchmark import evaluate, format_table, save_plots
     from ..data.synth import SynthOptions, generate
     from ..relocalize.run import run_split
-
     from . import fail, output_folder_problem
 
-    bad = next((f"--{k} must be >= 1, got {getattr(args, k)}" for k in ("scenes", "queries", "workers")
-                if getattr(args, k) < 1), None) or output_folder_problem("--out", args.out)
+    bad = next(
+        (
+            f"--{k} must be >= 1, got {getattr(args, k)}"
+            for k in ("scenes", "queries", "workers")
+            if getattr(args, k) < 1
+        ),
+        None,
+    ) or output_folder_problem("--out", args.out)
     if bad:
         return fail("demo", bad)
     out: Path = args.out
@@ -94,8 +114,14 @@ def run(args: argparse.Namespace) -> int:
         print(f"[1/4] synthetic split already in {data} (same parameters), reusing it")
     else:
         print(f"[1/4] generating {args.scenes} synthetic val scenes x {args.queries} queries in {data}")
-        generate(data, "val", n_scenes=args.scenes, n_queries=args.queries, seed=args.seed,
-                 options=SynthOptions(queries=args.queries))
+        generate(
+            data,
+            "val",
+            n_scenes=args.scenes,
+            n_queries=args.queries,
+            seed=args.seed,
+            options=SynthOptions(queries=args.queries),
+        )
         stamp.write_text(json.dumps(params))
 
     sub = out / "submission.zip"
@@ -104,12 +130,13 @@ def run(args: argparse.Namespace) -> int:
     from . import EXIT_NOTHING
 
     try:
-        res = run_split(data, "val", args.method, sub, workers=args.workers, all_frames=args.all_frames,
-                        overwrite=True)
+        res = run_split(data, "val", args.method, sub, workers=args.workers, all_frames=args.all_frames, overwrite=True)
     except (FileNotFoundError, FormatError, KeyError, ValueError) as e:
         return fail("demo", e)
-    print(f"      {res.estimated} estimates, {res.failed} without estimate, {res.seconds:.1f} s "
-          f"(failures logged in {res.failures})")
+    print(
+        f"      {res.estimated} estimates, {res.failed} without estimate, {res.seconds:.1f} s "
+        f"(failures logged in {res.failures})"
+    )
 
     print("[3/4] scoring")
     report = evaluate(sub, data, "val")

@@ -20,36 +20,59 @@ def register(subparsers) -> None:
             "any frame without an estimate or any problem)."
         ),
         epilog="examples:\n"
-               "  mapfree evaluate submission.zip --dataset data/mapfree --split val --per-scene --plots plots/\n"
-               "  mapfree evaluate submission.zip --dataset data/mapfree --json --frames > report.json\n"
-               "  mapfree evaluate test.zip --dataset data/mapfree --split test --gt-root private_gt --compat official\n"
-               "  mapfree evaluate multi.zip --dataset data/mapfree --track multi\n"
-               "  mapfree evaluate sub.zip --dataset data/mapfree --html report.html --viz figures/\n",
+        "  mapfree evaluate submission.zip --dataset data/mapfree --split val --per-scene --plots plots/\n"
+        "  mapfree evaluate submission.zip --dataset data/mapfree --json --frames > report.json\n"
+        "  mapfree evaluate test.zip --dataset data/mapfree --split test --gt-root private_gt --compat official\n"
+        "  mapfree evaluate multi.zip --dataset data/mapfree --track multi\n"
+        "  mapfree evaluate sub.zip --dataset data/mapfree --html report.html --viz figures/\n",
         formatter_class=HelpFormatter,
     )
     p.add_argument("submission", help="submission ZIP file")
-    p.add_argument("--dataset", required=False, default=None,
-                   help="dataset root holding SPLIT/sNNNNN/ (needed unless --gt-root holds everything)")
+    p.add_argument(
+        "--dataset",
+        required=False,
+        default=None,
+        help="dataset root holding SPLIT/sNNNNN/ (needed unless --gt-root holds everything)",
+    )
     p.add_argument("--split", default="val", choices=("train", "val", "test"), help="split to score (default val)")
     p.add_argument("--gt-root", default=None, help="root with private ground truth SPLIT/sNNNNN/poses.txt")
-    p.add_argument("--track", default="single", choices=("single", "multi"),
-                   help="leaderboard whose frames are scored: 'single' (every 5th query, default) or 'multi' "
-                        "(the multi-frame track: queries 9, 19, 29, … of each scene)")
-    p.add_argument("--compat", default="default", choices=("default", "official"),
-                   help="'official' reproduces the public evaluator's quirks, for leaderboard-comparable numbers "
-                        "(default: quirks fixed)")
+    p.add_argument(
+        "--track",
+        default="single",
+        choices=("single", "multi"),
+        help="leaderboard whose frames are scored: 'single' (every 5th query, default) or 'multi' "
+        "(the multi-frame track: queries 9, 19, 29, … of each scene)",
+    )
+    p.add_argument(
+        "--compat",
+        default="default",
+        choices=("default", "official"),
+        help="'official' reproduces the public evaluator's quirks, for leaderboard-comparable numbers "
+        "(default: quirks fixed)",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.add_argument("--frames", action="store_true", help="with --json: include per-frame errors")
     p.add_argument("--per-scene", action="store_true", help="also print a per-scene table")
     p.add_argument("--plots", default=None, metavar="DIR", help="write the evaluation figures (PNG, PDF) here")
-    p.add_argument("--html", default=None, metavar="FILE",
-                   help="write one self-contained HTML report: tables, figures, the worst frames with pictures")
-    p.add_argument("--viz", default=None, metavar="DIR",
-                   help="with --html: the folder `mapfree run --viz DIR` drew into, for the worst frames' figures "
-                        "(default: draw the AR check from the dataset's images)")
+    p.add_argument(
+        "--html",
+        default=None,
+        metavar="FILE",
+        help="write one self-contained HTML report: tables, figures, the worst frames with pictures",
+    )
+    p.add_argument(
+        "--viz",
+        default=None,
+        metavar="DIR",
+        help="with --html: the folder `mapfree run --viz DIR` drew into, for the worst frames' figures "
+        "(default: draw the AR check from the dataset's images)",
+    )
     p.add_argument("--worst", type=int, default=8, metavar="N", help="with --html: frames shown (default 8)")
-    p.add_argument("--strict", action="store_true",
-                   help="exit 3 unless every scored frame has an estimate and the submission has no problem")
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="exit 3 unless every scored frame has an estimate and the submission has no problem",
+    )
     p.set_defaults(func=run)
 
 
@@ -71,8 +94,9 @@ def run(args: argparse.Namespace) -> int:
     from ..data import FormatError
 
     try:
-        report = evaluate(args.submission, args.dataset, args.split, compat=args.compat, gt_root=args.gt_root,
-                          track=args.track)
+        report = evaluate(
+            args.submission, args.dataset, args.split, compat=args.compat, gt_root=args.gt_root, track=args.track
+        )
     except (EvaluationError, FormatError, FileNotFoundError, ValueError) as e:
         return fail("evaluate", e)
     if args.json:
@@ -81,8 +105,9 @@ def run(args: argparse.Namespace) -> int:
         # Only the causes: the "no estimates" lines of every scene that follow from them add nothing.
         for p in report.problems:
             if p.fatal:
-                print(f"mapfree evaluate: error: {args.submission}: {p.reason if p.scene is None else p}",
-                      file=sys.stderr)
+                print(
+                    f"mapfree evaluate: error: {args.submission}: {p.reason if p.scene is None else p}", file=sys.stderr
+                )
         return EXIT_ERROR
     else:
         print(format_table(report, per_scene=args.per_scene), end="")
@@ -95,16 +120,25 @@ def run(args: argparse.Namespace) -> int:
         from ..benchmark.html import write_html
 
         figure, note = _figure_source(args)
-        path = write_html(report, args.html, title=f"Map-free evaluation of {Path(args.submission).name}",
-                          figure=figure, worst=args.worst, source_note=note)
+        path = write_html(
+            report,
+            args.html,
+            title=f"Map-free evaluation of {Path(args.submission).name}",
+            figure=figure,
+            worst=args.worst,
+            source_note=note,
+        )
         print(f"wrote {path}", file=sys.stderr)
     if report.fatal:
         return EXIT_ERROR
     n_est, n = int(report.estimated.sum()), len(report.estimated) + report.extra_failures
     if n_est == 0 or (args.strict and (n_est < n or report.problems)):
         mixup = [p.reason for p in report.problems if p.scene is None and "--track" in p.reason]
-        why = ("; ".join(["no scored frame has an estimate", *mixup]) if n_est == 0 else
-               f"{n - n_est} scored frame(s) without an estimate, {len(report.problems)} problem(s)")
+        why = (
+            "; ".join(["no scored frame has an estimate", *mixup])
+            if n_est == 0
+            else f"{n - n_est} scored frame(s) without an estimate, {len(report.problems)} problem(s)"
+        )
         print(f"mapfree evaluate: {why}", file=sys.stderr)
         return EXIT_NOTHING
     return 0
@@ -138,11 +172,15 @@ def _figure_source(args: argparse.Namespace):
             return None
 
     if args.viz:
-        note = (f"Figures from {args.viz} (drawn by mapfree run --viz: matches and AR check); frames it has no "
-                f"figure for are drawn from the dataset (AR check only).")
+        note = (
+            f"Figures from {args.viz} (drawn by mapfree run --viz: matches and AR check); frames it has no "
+            f"figure for are drawn from the dataset (AR check only)."
+        )
     elif root is not None:
-        note = ("AR check drawn from the dataset's images with the submission's pose (cyan: ground truth, orange: "
-                "estimate); run with --viz DIR and pass --viz DIR here to also see the matches.")
+        note = (
+            "AR check drawn from the dataset's images with the submission's pose (cyan: ground truth, orange: "
+            "estimate); run with --viz DIR and pass --viz DIR here to also see the matches."
+        )
     else:
         note = "No figures: pass --dataset with the images (or --viz DIR of the run)."
     return figure, note

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 from . import HelpFormatter
@@ -26,16 +25,26 @@ examples:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("match", help="correspondences between two photos with any matcher (.npz)",
-                              description=DESCRIPTION, epilog=EPILOG, formatter_class=HelpFormatter)
+    p = subparsers.add_parser(
+        "match",
+        help="correspondences between two photos with any matcher (.npz)",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=HelpFormatter,
+    )
     p.add_argument("image0", type=Path, help="first image (the reference)")
     p.add_argument("image1", type=Path, help="second image (the query)")
     p.add_argument("--matcher", default="sift", help="matcher name (default: sift); see `mapfree run --list-methods`")
     p.add_argument("-o", "--output", type=Path, help="write the matches to this .npz file")
     p.add_argument("--viz", type=Path, help="draw the matches into this .png (or .jpg) file")
     p.add_argument("--device", help="cpu, cuda, cuda:1 … (default: cuda when available); not for sift")
-    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
-                   help="a matcher option (e.g. max_keypoints=1024, weights=DIR); values read as YAML scalars")
+    p.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a matcher option (e.g. max_keypoints=1024, weights=DIR); values read as YAML scalars",
+    )
     p.set_defaults(func=run)
 
 
@@ -58,15 +67,14 @@ def _options(args: argparse.Namespace) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     from ..data import FormatError
-    from ..matching import MissingWeightsError
+    from ..matching import MissingWeightsError, check_options
     from ..matching.export import match_files, save_npz
-
-    from ..matching import check_options
     from ..options import check_device
     from . import fail, output_file_problem
 
     problem = (output_file_problem("-o", args.output) if args.output else None) or (
-        output_file_problem("--viz", args.viz, (".png", ".jpg", ".jpeg")) if args.viz else None)
+        output_file_problem("--viz", args.viz, (".png", ".jpg", ".jpeg")) if args.viz else None
+    )
     if problem:
         return fail("match", problem)
     try:
@@ -84,8 +92,11 @@ def run(args: argparse.Namespace) -> int:
         from ..viz import draw_matches, save_png
 
         m = r.matches
-        where.append(str(save_png(args.viz, draw_matches(read_image(args.image0), read_image(args.image1),
-                                                          m.kpts0, m.kpts1))))
-    print(f"{r.matcher}: {len(r.matches)} matches ({r.keypoints[0]} / {r.keypoints[1]} points) in {r.seconds:.2f} s "
-          f"(+{r.load_seconds:.2f} s loading)" + (f" -> {', '.join(where)}" if where else ""))
+        where.append(
+            str(save_png(args.viz, draw_matches(read_image(args.image0), read_image(args.image1), m.kpts0, m.kpts1)))
+        )
+    print(
+        f"{r.matcher}: {len(r.matches)} matches ({r.keypoints[0]} / {r.keypoints[1]} points) in {r.seconds:.2f} s "
+        f"(+{r.load_seconds:.2f} s loading)" + (f" -> {', '.join(where)}" if where else "")
+    )
     return 0

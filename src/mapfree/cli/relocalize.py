@@ -28,24 +28,38 @@ examples:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("relocalize", help="relative metric pose between two photos (JSON)",
-                              description=DESCRIPTION, epilog=EPILOG,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "relocalize",
+        help="relative metric pose between two photos (JSON)",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("reference", type=Path, help="reference image")
     p.add_argument("query", type=Path, help="query image")
-    p.add_argument("--method", default=BEST_OFFLINE,
-                   help=f"preset name, YAML config or path (default: {BEST_OFFLINE}); see `mapfree run --list-methods`")
+    p.add_argument(
+        "--method",
+        default=BEST_OFFLINE,
+        help=f"preset name, YAML config or path (default: {BEST_OFFLINE}); see `mapfree run --list-methods`",
+    )
     p.add_argument("--depth", default=None, help="override the method's depth: files:SUFFIX, none, hf:MODEL")
     p.add_argument("--intrinsics", type=Path, help="Map-free intrinsics.txt holding lines for both images")
     p.add_argument("--K-ref", help="reference intrinsics fx,fy,cx,cy (pixels)")
     p.add_argument("--K-query", help="query intrinsics fx,fy,cx,cy (pixels)")
     p.add_argument("--depth-ref", type=Path, help="reference depth map (uint16 PNG, mm)")
     p.add_argument("--depth-query", type=Path, help="query depth map (uint16 PNG, mm)")
-    p.add_argument("--gt-pose", help="ground truth: 'qw,qx,qy,qz,tx,ty,tz' (query w.r.t. reference), "
-                                      "a poses.txt holding both frames, or 'auto' (the scene's poses.txt)")
+    p.add_argument(
+        "--gt-pose",
+        help="ground truth: 'qw,qx,qy,qz,tx,ty,tz' (query w.r.t. reference), "
+        "a poses.txt holding both frames, or 'auto' (the scene's poses.txt)",
+    )
     p.add_argument("--viz", type=Path, help="draw the matches and the AR check into this .png (or .jpg) file")
-    p.add_argument("--checkpoint", type=Path, default=None,
-                   help="weights of a regression method (e.g. --method rpr-3d3d --checkpoint 3d3d.ckpt)")
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        help="weights of a regression method (e.g. --method rpr-3d3d --checkpoint 3d3d.ckpt)",
+    )
     p.set_defaults(func=run)
 
 
@@ -149,9 +163,11 @@ def _check_depth_suffix(method, args) -> None:
     if not args.reference.is_file() or depth_path_for(args.reference, suffix).is_file():
         return
     found = depth_suffixes(args.reference)
-    raise InputError(f"method {method.name!r} reads depth maps *.{suffix}.png, but the reference has none "
-                     f"({depth_path_for(args.reference, suffix)}); depth suffixes there: {', '.join(found) or 'none'} "
-                     f"(pick one with NAME@SUFFIX or the method's last part, or pass --depth-ref)")
+    raise InputError(
+        f"method {method.name!r} reads depth maps *.{suffix}.png, but the reference has none "
+        f"({depth_path_for(args.reference, suffix)}); depth suffixes there: {', '.join(found) or 'none'} "
+        f"(pick one with NAME@SUFFIX or the method's last part, or pass --depth-ref)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -183,23 +199,30 @@ def run(args: argparse.Namespace) -> int:
         if not _query_has_depth(method, args):
             fallback = query_depth_fallback(method)
             if fallback is not method:
-                print(f"mapfree relocalize: {args.query} has no depth map ({method.depth}): {method.name} runs with "
-                      f"PnP instead (reference depth only)", file=sys.stderr)
+                print(
+                    f"mapfree relocalize: {args.query} has no depth map ({method.depth}): {method.name} runs with "
+                    f"PnP instead (reference depth only)",
+                    file=sys.stderr,
+                )
                 method = fallback
         for p in (args.reference, args.query):
             if not p.is_file():
                 raise InputError(f"{p}: image not found")
         views = []
-        for image, kflag, dpath, what in ((args.reference, args.K_ref, args.depth_ref, "--K-ref"),
-                                          (args.query, args.K_query, args.depth_query, "--K-query")):
+        for image, kflag, dpath, what in (
+            (args.reference, args.K_ref, args.depth_ref, "--K-ref"),
+            (args.query, args.K_query, args.depth_query, "--K-query"),
+        ):
             K = _intrinsics(args, image, kflag, optional=method.kind == "regression", what=what)
             depth = read_depth(dpath) if dpath else None
             if depth is not None and K is not None:
                 check_depth_size(dpath, depth.shape, K.width, K.height)
             v = as_view((image, K, depth))
             if v.image.shape[:2] != (v.intrinsics.height, v.intrinsics.width):
-                raise InputError(f"{image}: image is {v.image.shape[1]}x{v.image.shape[0]} but its intrinsics "
-                                 f"say {K.width}x{K.height}")
+                raise InputError(
+                    f"{image}: image is {v.image.shape[1]}x{v.image.shape[0]} but its intrinsics "
+                    f"say {K.width}x{K.height}"
+                )
             views.append(v)
         gt = _gt_pose(args)
         loc = Relocalizer.from_method(method)
@@ -222,15 +245,18 @@ def run(args: argparse.Namespace) -> int:
         from ..geometry import rotation_angle_deg
         from ..viz import vcre_px
 
-        out["error"] = {"translation_m": float(np.linalg.norm(est.pose.center - gt.center)),
-                        "rotation_deg": float(rotation_angle_deg(est.pose.R, gt.R)),
-                        "vcre_px": vcre_px(est.pose, gt, query.intrinsics)}
+        out["error"] = {
+            "translation_m": float(np.linalg.norm(est.pose.center - gt.center)),
+            "rotation_deg": float(rotation_angle_deg(est.pose.R, gt.R)),
+            "vcre_px": vcre_px(est.pose, gt, query.intrinsics),
+        }
     if args.viz:
         from ..viz import estimate_figure, save_png
 
         thr = float(method.solver_opts.get("ransac_threshold_px", 3.0))
-        fig = estimate_figure(ref.image, query.image, ref.intrinsics, query.intrinsics, est, gt, threshold_px=thr,
-                              title=method.name)
+        fig = estimate_figure(
+            ref.image, query.image, ref.intrinsics, query.intrinsics, est, gt, threshold_px=thr, title=method.name
+        )
         out["viz"] = str(save_png(args.viz, fig))
     print(json.dumps(out, indent=2, allow_nan=False))
     if est.pose is None:

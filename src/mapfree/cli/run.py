@@ -32,55 +32,115 @@ examples:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("run", help="relocalize a whole split into a submission ZIP (resumable)",
-                              description=DESCRIPTION, epilog=EPILOG,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "run",
+        help="relocalize a whole split into a submission ZIP (resumable)",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("root", nargs="?", type=Path, help="Map-free dataset root (holding val/, test/ …)")
     p.add_argument("--split", default="val", help="split to run (default: val)")
     p.add_argument("--method", help="preset name ({matcher}_{solver}_{depth}), YAML config name or path")
-    p.add_argument("-o", "--output", type=Path, default=Path("submission.zip"),
-                   help="submission ZIP to write (default: submission.zip)")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=Path("submission.zip"),
+        help="submission ZIP to write (default: submission.zip)",
+    )
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes (over scenes; default: 1)")
-    p.add_argument("--batch", type=int, default=None, metavar="N",
-                   help="queries per GPU pass of the batched pipeline (background decoding, batched features and "
-                        "matching, solvers in a thread pool); 0: one pair at a time (default: 16 on a GPU, else 0)")
-    p.add_argument("--all-frames", action="store_true",
-                   help="every query, not only the scored ones (single-frame track only)")
-    p.add_argument("--references", type=int, default=1, metavar="K",
-                   help="represent each scene by K posed seq0 images chosen by K-means over DenseVLAD, and "
-                        "relocalize each query against the most similar (default: 1, the reference image)")
-    p.add_argument("--reference-mode", default="retrieval", choices=("retrieval", "triangulation"),
-                   help="with --references K >= 2: 'triangulation' = the paper's depth-free baseline "
-                        "(relative directions to the two most similar references; default: retrieval)")
-    p.add_argument("--track", default="single", choices=("single", "multi"),
-                   help="'multi': the multi-frame track — relocalize each scored query's 9-frame burst, fuse "
-                        "them through poses_device.txt (derived from ground truth with simulated drift when a "
-                        "scene has none); per-frame results go to OUTPUT.frames.zip (default: single)")
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=None,
+        metavar="N",
+        help="queries per GPU pass of the batched pipeline (background decoding, batched features and "
+        "matching, solvers in a thread pool); 0: one pair at a time (default: 16 on a GPU, else 0)",
+    )
+    p.add_argument(
+        "--all-frames", action="store_true", help="every query, not only the scored ones (single-frame track only)"
+    )
+    p.add_argument(
+        "--references",
+        type=int,
+        default=1,
+        metavar="K",
+        help="represent each scene by K posed seq0 images chosen by K-means over DenseVLAD, and "
+        "relocalize each query against the most similar (default: 1, the reference image)",
+    )
+    p.add_argument(
+        "--reference-mode",
+        default="retrieval",
+        choices=("retrieval", "triangulation"),
+        help="with --references K >= 2: 'triangulation' = the paper's depth-free baseline "
+        "(relative directions to the two most similar references; default: retrieval)",
+    )
+    p.add_argument(
+        "--track",
+        default="single",
+        choices=("single", "multi"),
+        help="'multi': the multi-frame track — relocalize each scored query's 9-frame burst, fuse "
+        "them through poses_device.txt (derived from ground truth with simulated drift when a "
+        "scene has none); per-frame results go to OUTPUT.frames.zip (default: single)",
+    )
     p.add_argument("--resume", action="store_true", help="continue the run journaled beside OUTPUT")
     p.add_argument("--overwrite", action="store_true", help="discard an existing journal and start again")
     p.add_argument("--scenes", help="comma-separated scene names (default: all)")
-    p.add_argument("--confidence", help="extra score to use as the submission confidence "
-                                        "(e.g. confidence_inliers, confidence_score)")
-    p.add_argument("--checkpoint", type=Path, default=None,
-                   help="trained checkpoint for a regression method (e.g. --method rpr --checkpoint best.ckpt)")
-    p.add_argument("--evaluate", action="store_true",
-                   help="score the submission against the split's poses (the table of `mapfree evaluate`)")
+    p.add_argument(
+        "--confidence",
+        help="extra score to use as the submission confidence (e.g. confidence_inliers, confidence_score)",
+    )
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        help="trained checkpoint for a regression method (e.g. --method rpr --checkpoint best.ckpt)",
+    )
+    p.add_argument(
+        "--evaluate",
+        action="store_true",
+        help="score the submission against the split's poses (the table of `mapfree evaluate`)",
+    )
     p.add_argument("--json", action="store_true", help="print the run's summary (and scores) as JSON")
     p.add_argument("--strict", action="store_true", help="exit 3 unless every frame got an estimate")
-    p.add_argument("--viz", type=Path, default=None, metavar="DIR",
-                   help="draw each frame computed (matches + AR check) as DIR/SCENE/seq1_frame_NNNNN.jpg "
-                        "(JPEG, long side <= 1280 px: about 150-300 KB a frame)")
-    p.add_argument("--ray", nargs="?", const="local", default=None, metavar="ADDRESS",
-                   help="compute the frames on Ray workers: without ADDRESS on a Ray instance started here; "
-                        "'auto', HOST:PORT or ray://HOST:PORT joins a running cluster (every node must read ROOT "
-                        "at the same path)")
-    p.add_argument("--cpus-per-task", type=float, default=None, metavar="N",
-                   help="with --ray: CPUs each worker asks for (default: 1)")
-    p.add_argument("--gpus-per-task", type=float, default=None, metavar="N",
-                   help="with --ray: GPUs each worker asks for; a fraction such as 0.25 shares a GPU between "
-                        "workers (default: 1 for a method with networks on a cluster with GPUs, else 0)")
+    p.add_argument(
+        "--viz",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="draw each frame computed (matches + AR check) as DIR/SCENE/seq1_frame_NNNNN.jpg "
+        "(JPEG, long side <= 1280 px: about 150-300 KB a frame)",
+    )
+    p.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        default=None,
+        metavar="ADDRESS",
+        help="compute the frames on Ray workers: without ADDRESS on a Ray instance started here; "
+        "'auto', HOST:PORT or ray://HOST:PORT joins a running cluster (every node must read ROOT "
+        "at the same path)",
+    )
+    p.add_argument(
+        "--cpus-per-task",
+        type=float,
+        default=None,
+        metavar="N",
+        help="with --ray: CPUs each worker asks for (default: 1)",
+    )
+    p.add_argument(
+        "--gpus-per-task",
+        type=float,
+        default=None,
+        metavar="N",
+        help="with --ray: GPUs each worker asks for; a fraction such as 0.25 shares a GPU between "
+        "workers (default: 1 for a method with networks on a cluster with GPUs, else 0)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--list-methods", action="store_true", help="print the method names, each with what it needs, and exit")
+    p.add_argument(
+        "--list-methods", action="store_true", help="print the method names, each with what it needs, and exit"
+    )
     p.set_defaults(func=run)
 
 
@@ -106,8 +166,10 @@ def run(args: argparse.Namespace) -> int:
     elif args.batch is not None and args.batch < 0:
         problem = "--batch must be >= 0"
     elif args.track == "multi" and args.all_frames:
-        problem = ("--all-frames cannot be combined with --track multi (the multi-frame track runs the 9-frame "
-                   "bursts of the scored queries)")
+        problem = (
+            "--all-frames cannot be combined with --track multi (the multi-frame track runs the 9-frame "
+            "bursts of the scored queries)"
+        )
     elif args.viz is not None and args.viz.exists() and not args.viz.is_dir():
         problem = f"--viz {args.viz}: not a folder (it names a file)"
     elif args.scenes is not None and not [s for s in args.scenes.split(",") if s.strip()]:
@@ -129,11 +191,23 @@ def run(args: argparse.Namespace) -> int:
         run = run_split
         if args.track == "multi":
             from ..relocalize.multiframe import run_multi as run
-        res = run(args.root, args.split, method, args.output, workers=args.workers,
-                  all_frames=args.all_frames, resume=args.resume, overwrite=args.overwrite,
-                  confidence=args.confidence, progress=not args.no_progress,
-                  scenes=[s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None,
-                  batch_size=args.batch, viz_dir=args.viz, ray_address=args.ray, ray_options=ray_options)
+        res = run(
+            args.root,
+            args.split,
+            method,
+            args.output,
+            workers=args.workers,
+            all_frames=args.all_frames,
+            resume=args.resume,
+            overwrite=args.overwrite,
+            confidence=args.confidence,
+            progress=not args.no_progress,
+            scenes=[s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None,
+            batch_size=args.batch,
+            viz_dir=args.viz,
+            ray_address=args.ray,
+            ray_options=ray_options,
+        )
     except (ClusterError, FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
         return fail("run", e)
     except KeyboardInterrupt:
@@ -141,14 +215,20 @@ def run(args: argparse.Namespace) -> int:
         from ..relocalize.multiframe import frames_path
 
         jpath = journal_path(frames_path(args.output) if args.track == "multi" else args.output)
-        print(f"mapfree run: interrupted; the {len(read_journal(jpath)[1])} finished frames are kept in {jpath}: "
-              f"run the same command with --resume to continue", file=sys.stderr)
+        print(
+            f"mapfree run: interrupted; the {len(read_journal(jpath)[1])} finished frames are kept in {jpath}: "
+            f"run the same command with --resume to continue",
+            file=sys.stderr,
+        )
         return 130
     out = res.to_dict()
     frames = getattr(res, "frames", res)  # the multi-frame track: the per-frame run behind the fused poses
     if frames.stale_scenes:
-        print(f"mapfree run: the data of {', '.join(frames.stale_scenes)} changed since the journal was written: "
-              f"computed again", file=sys.stderr)
+        print(
+            f"mapfree run: the data of {', '.join(frames.stale_scenes)} changed since the journal was written: "
+            f"computed again",
+            file=sys.stderr,
+        )
     report, error = None, None
     if args.evaluate:
         from ..benchmark import EvaluationError, evaluate
@@ -157,9 +237,11 @@ def run(args: argparse.Namespace) -> int:
             report = evaluate(res.submission, args.root, args.split, track=args.track)
             out["metrics"] = report.metrics
         except (EvaluationError, FormatError, FileNotFoundError, ValueError) as e:
-            error = (f"mapfree run: error: the submission {res.submission} was written but cannot be scored here: "
-                     f"{e}; score it with `mapfree evaluate {res.submission} --dataset {args.root} --split "
-                     f"{args.split} --gt-root GT` when you hold the ground truth")
+            error = (
+                f"mapfree run: error: the submission {res.submission} was written but cannot be scored here: "
+                f"{e}; score it with `mapfree evaluate {res.submission} --dataset {args.root} --split "
+                f"{args.split} --gt-root GT` when you hold the ground truth"
+            )
     if args.json:
         print(json.dumps(out, indent=2, allow_nan=False))
     else:
@@ -183,9 +265,11 @@ def _print_summary(res, frames, args: argparse.Namespace) -> None:
     from . import plural
 
     total = res.estimated + res.failed
-    print(f"wrote {res.submission}: {res.estimated} of {total} frames estimated "
-          f"({frames.computed} computed, {frames.skipped} from the journal, {plural(frames.scenes, 'scene')}, "
-          f"{frames.seconds:.1f} s)")
+    print(
+        f"wrote {res.submission}: {res.estimated} of {total} frames estimated "
+        f"({frames.computed} computed, {frames.skipped} from the journal, {plural(frames.scenes, 'scene')}, "
+        f"{frames.seconds:.1f} s)"
+    )
     if res.failed:
         print(f"frames without an estimate and why: {res.failures}")
     if args.viz is not None and frames.computed:
@@ -193,25 +277,33 @@ def _print_summary(res, frames, args: argparse.Namespace) -> None:
     if frames.cluster:
         c = frames.cluster
         where = "a Ray instance on this machine" if c["address"] == "local" else f"the Ray cluster {c['address']}"
-        print(f"computed on {where}: {c['workers']} workers on {c['nodes']} node(s)"
-              + (f"; {c['requeued']} frame(s) of lost workers computed elsewhere" if c["requeued"] else ""))
+        print(
+            f"computed on {where}: {c['workers']} workers on {c['nodes']} node(s)"
+            + (f"; {c['requeued']} frame(s) of lost workers computed elsewhere" if c["requeued"] else "")
+        )
 
 
 def _ray_options(args: argparse.Namespace):
     """``RayOptions`` of ``--cpus-per-task``/``--gpus-per-task`` (which need ``--ray``); None without ``--ray``."""
-    given = [f for f, v in (("--cpus-per-task", args.cpus_per_task), ("--gpus-per-task", args.gpus_per_task))
-             if v is not None]
+    given = [
+        f
+        for f, v in (("--cpus-per-task", args.cpus_per_task), ("--gpus-per-task", args.gpus_per_task))
+        if v is not None
+    ]
     if args.ray is None:
         if given:
             raise ValueError(f"{given[0]} applies to a run on Ray: add --ray [ADDRESS]")
         return None
     if args.workers != 1:
-        raise ValueError("--workers sizes the local pool; on Ray the cluster's resources decide how many workers run "
-                         "(--cpus-per-task, --gpus-per-task)")
+        raise ValueError(
+            "--workers sizes the local pool; on Ray the cluster's resources decide how many workers run "
+            "(--cpus-per-task, --gpus-per-task)"
+        )
     from ..relocalize.distributed import RayOptions
 
-    return RayOptions(cpus_per_task=1.0 if args.cpus_per_task is None else args.cpus_per_task,
-                      gpus_per_task=args.gpus_per_task)
+    return RayOptions(
+        cpus_per_task=1.0 if args.cpus_per_task is None else args.cpus_per_task, gpus_per_task=args.gpus_per_task
+    )
 
 
 def _with_checkpoint(name: str, checkpoint: Path):

@@ -24,9 +24,13 @@ examples:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("scannet", help="relative pose on a ScanNet pair list (AUC @ 5/10/20°)",
-                              description=DESCRIPTION, epilog=EPILOG,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "scannet",
+        help="relative pose on a ScanNet pair list (AUC @ 5/10/20°)",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("pairs", type=Path, help="pair list (SuperGlue/LoFTR format)")
     p.add_argument("--root", type=Path, help="folder the image paths are relative to (default: the list's folder)")
     p.add_argument("--method", default="sift_emat_depth", help="method name or YAML (default: sift_emat_depth)")
@@ -55,9 +59,13 @@ def run(args: argparse.Namespace) -> int:
         return fail("scannet", e)
     nan_R, nan_t = np.full((3, 3), np.nan), np.full(3, np.nan)
     report = relpose_report(
-        [p.name for p in pairs], [p.T_0to1.R for p in pairs], [p.T_0to1.t for p in pairs],
-        [e.pose.R if e.ok else nan_R for e in ests], [e.pose.t if e.ok else nan_t for e in ests],
-        [e.ok and not e.extras.get("scale_free") and e.extras.get("metric", True) for e in ests])
+        [p.name for p in pairs],
+        [p.T_0to1.R for p in pairs],
+        [p.T_0to1.t for p in pairs],
+        [e.pose.R if e.ok else nan_R for e in ests],
+        [e.pose.t if e.ok else nan_t for e in ests],
+        [e.ok and not e.extras.get("scale_free") and e.extras.get("metric", True) for e in ests],
+    )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "report.json").write_text(report.to_json(pairs=True))
     table = format_relpose(report, f"Relative pose — {args.pairs.name}, {args.method}")
@@ -68,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
         from . import EXIT_NOTHING
 
         reasons = sorted({e.reason for e in ests if e.reason})
-        print(f"mapfree scannet: no pair got an estimate ({'; '.join(reasons[:3]) or 'no reason given'})",
-              file=sys.stderr)
+        print(
+            f"mapfree scannet: no pair got an estimate ({'; '.join(reasons[:3]) or 'no reason given'})", file=sys.stderr
+        )
         return EXIT_NOTHING
     return 0

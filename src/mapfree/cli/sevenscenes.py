@@ -26,20 +26,37 @@ examples:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("sevenscenes", help="7-Scenes localisation with K reference images (paper Fig. 4b)",
-                              description=DESCRIPTION, epilog=EPILOG,
-                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = subparsers.add_parser(
+        "sevenscenes",
+        help="7-Scenes localisation with K reference images (paper Fig. 4b)",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("root", type=Path, help="7-Scenes root (chess/, fire/, … each with seq-XX/ folders)")
     p.add_argument("--method", default="sift_pnp_depth", help="method name or YAML (default: sift_pnp_depth)")
     p.add_argument("--k", default="1,10", help="comma-separated numbers of references per scene (default: 1,10)")
-    p.add_argument("--mode", default="retrieval", choices=("retrieval", "triangulation"),
-                   help="'triangulation': the depth-free pose triangulation baseline (K >= 2; default: retrieval)")
+    p.add_argument(
+        "--mode",
+        default="retrieval",
+        choices=("retrieval", "triangulation"),
+        help="'triangulation': the depth-free pose triangulation baseline (K >= 2; default: retrieval)",
+    )
     p.add_argument("--scenes", help="comma-separated scene names (default: every scene under ROOT)")
-    p.add_argument("--mapping-stride", type=int, default=10,
-                   help="use every N-th training frame as a mapping candidate (default: 10)")
+    p.add_argument(
+        "--mapping-stride",
+        type=int,
+        default=10,
+        help="use every N-th training frame as a mapping candidate (default: 10)",
+    )
     p.add_argument("--query-stride", type=int, default=10, help="localize every N-th test frame (default: 10)")
-    p.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
-                   help="colour camera intrinsics (default: 525 525 320 240)")
+    p.add_argument(
+        "--intrinsics",
+        type=float,
+        nargs=4,
+        metavar=("FX", "FY", "CX", "CY"),
+        help="colour camera intrinsics (default: 525 525 320 240)",
+    )
     p.add_argument("--out", type=Path, default=Path("sevenscenes-out"), help="output folder (default: sevenscenes-out)")
     p.add_argument("--no-plots", action="store_true", help="reports only, no figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -55,8 +72,17 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--k must list numbers >= 1, got {args.k!r}")
         if args.mapping_stride < 1 or args.query_stride < 1:
             raise ValueError("--mapping-stride and --query-stride must be >= 1")
-        reports = evaluate_sevenscenes(args.root, args.method, ks, args.mode, args.scenes, args.mapping_stride,
-                                       args.query_stride, args.intrinsics, progress=not args.no_progress)
+        reports = evaluate_sevenscenes(
+            args.root,
+            args.method,
+            ks,
+            args.mode,
+            args.scenes,
+            args.mapping_stride,
+            args.query_stride,
+            args.intrinsics,
+            progress=not args.no_progress,
+        )
     except (FileNotFoundError, FormatError, KeyError, ValueError) as e:
         from . import fail
 
@@ -70,8 +96,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def evaluate_sevenscenes(root, method, ks, mode="retrieval", scenes=None, mapping_stride=10, query_stride=10,
-                         intrinsics=None, progress=False) -> dict:
+def evaluate_sevenscenes(
+    root, method, ks, mode="retrieval", scenes=None, mapping_stride=10, query_stride=10, intrinsics=None, progress=False
+) -> dict:
     """{"K=k": Report} over the chosen scenes: K references per scene, every query localized and scored."""
     import numpy as np
 
@@ -87,9 +114,11 @@ def evaluate_sevenscenes(root, method, ks, mode="retrieval", scenes=None, mappin
     data = {n: (ds.scene(n).frames("train", mapping_stride), ds.scene(n).frames("test", query_stride)) for n in names}
     for n, (mapping, _) in data.items():
         if len(mapping) < max(ks):  # K is capped by the candidates: say so rather than print a K it never used
-            print(f"mapfree sevenscenes: note: {n} has {len(mapping)} mapping frame(s) at --mapping-stride "
-                  f"{mapping_stride}, so K > {len(mapping)} uses {len(mapping)}; lower the stride for more",
-                  file=sys.stderr)
+            print(
+                f"mapfree sevenscenes: note: {n} has {len(mapping)} mapping frame(s) at --mapping-stride "
+                f"{mapping_stride}, so K > {len(mapping)} uses {len(mapping)}; lower the stride for more",
+                file=sys.stderr,
+            )
     loc = Relocalizer.from_method(method)
     reports = {}
     for k in ks:
@@ -100,21 +129,44 @@ def evaluate_sevenscenes(root, method, ks, mode="retrieval", scenes=None, mappin
                 qg, tg = f.pose.qt()
                 qe, te = e.pose.qt() if e.pose is not None else (np.full(4, np.nan), np.full(3, np.nan))
                 Kf = f.intrinsics
-                for c, v in zip(cols, (n, f.name, qg, tg, qe, te, e.confidence if e.ok else np.nan,
-                                       [Kf.fx, Kf.fy, Kf.cx, Kf.cy], Kf.width, Kf.height)):
+                for c, v in zip(
+                    cols,
+                    (
+                        n,
+                        f.name,
+                        qg,
+                        tg,
+                        qe,
+                        te,
+                        e.confidence if e.ok else np.nan,
+                        [Kf.fx, Kf.fy, Kf.cx, Kf.cy],
+                        Kf.width,
+                        Kf.height,
+                    ),
+                ):
                     cols[c].append(v)
         reports[f"K={k}"] = localization_report(
-            cols["scene"], cols["frame"], np.array(cols["qg"]).reshape(-1, 4), np.array(cols["tg"]).reshape(-1, 3),
-            np.array(cols["qe"]).reshape(-1, 4), np.array(cols["te"]).reshape(-1, 3), np.array(cols["conf"]),
-            np.array(cols["K"]).reshape(-1, 4), np.array(cols["W"]), np.array(cols["H"]), split="7scenes-test")
+            cols["scene"],
+            cols["frame"],
+            np.array(cols["qg"]).reshape(-1, 4),
+            np.array(cols["tg"]).reshape(-1, 3),
+            np.array(cols["qe"]).reshape(-1, 4),
+            np.array(cols["te"]).reshape(-1, 3),
+            np.array(cols["conf"]),
+            np.array(cols["K"]).reshape(-1, 4),
+            np.array(cols["W"]),
+            np.array(cols["H"]),
+            split="7scenes-test",
+        )
     return reports
 
 
 def write_reports(reports: dict, out: Path, plots: bool = True) -> str:
     """One folder per run (report.json, table.txt, plots), the comparison figures, and a summary table."""
+    import io
+
     from rich.console import Console
     from rich.table import Table
-    import io
 
     from ..benchmark import format_table, save_plots
     from ..benchmark.localization import save_comparison
@@ -122,8 +174,18 @@ def write_reports(reports: dict, out: Path, plots: bool = True) -> str:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     summary = Table(title="7-Scenes localisation")
-    for c in ("run", "frames", "est. %", "med. t (m)", "med. R (°)", "med. VCRE (px)", "prec. VCRE<10%",
-              "AUC VCRE<10%", "prec. VCRE<5%", "prec. 5cm,5°"):
+    for c in (
+        "run",
+        "frames",
+        "est. %",
+        "med. t (m)",
+        "med. R (°)",
+        "med. VCRE (px)",
+        "prec. VCRE<10%",
+        "AUC VCRE<10%",
+        "prec. VCRE<5%",
+        "prec. 5cm,5°",
+    ):
         summary.add_column(c, justify="left" if c == "run" else "right")
     for label, r in reports.items():
         d = out / label.replace("=", "")
@@ -153,8 +215,13 @@ def _summary_values(r) -> list:
 
     m, th = r.metrics, r.thresholds
     est = m.get("Estimates for % of frames")
-    return [None if est is None else 100 * est, m["Average Median Translation Error"],
-            m["Average Median Rotation Error"], m["Average Median Reprojection Error"],
-            m.get(f"Precision @ {Thresholds.vcre_name(th.vcre[0])}"), m.get(f"AUC @ {Thresholds.vcre_name(th.vcre[0])}"),
-            m.get(f"Precision @ {Thresholds.vcre_name(th.vcre[1])}"),
-            m.get(f"Precision @ {Thresholds.pose_name(*th.pose[0])}")]
+    return [
+        None if est is None else 100 * est,
+        m["Average Median Translation Error"],
+        m["Average Median Rotation Error"],
+        m["Average Median Reprojection Error"],
+        m.get(f"Precision @ {Thresholds.vcre_name(th.vcre[0])}"),
+        m.get(f"AUC @ {Thresholds.vcre_name(th.vcre[0])}"),
+        m.get(f"Precision @ {Thresholds.vcre_name(th.vcre[1])}"),
+        m.get(f"Precision @ {Thresholds.pose_name(*th.pose[0])}"),
+    ]

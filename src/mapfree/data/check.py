@@ -12,10 +12,10 @@ from __future__ import annotations
 import os
 import re
 import zipfile
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -171,13 +171,20 @@ def check_scene(path: os.PathLike | str, split: str, deep: bool = False) -> Scen
         index = poses.index()
         lacking = [n for n in poses.names if n not in intr]
         if lacking and intr:
-            st.problems.append(Problem(str(path / "intrinsics.txt"),
-                                       f"no intrinsics for {len(lacking)} frame(s) of poses.txt, e.g. {lacking[0]}"))
+            st.problems.append(
+                Problem(
+                    str(path / "intrinsics.txt"),
+                    f"no intrinsics for {len(lacking)} frame(s) of poses.txt, e.g. {lacking[0]}",
+                )
+            )
         if split == "val" and REFERENCE_NAME in index:
             i = index[REFERENCE_NAME]
             if not _is_identity(poses.q[i], poses.t[i]):
-                st.problems.append(Problem(str(path / "poses.txt"), f"the reference {REFERENCE_NAME} must have the "
-                                           "identity pose", i + 1))
+                st.problems.append(
+                    Problem(
+                        str(path / "poses.txt"), f"the reference {REFERENCE_NAME} must have the identity pose", i + 1
+                    )
+                )
     if split in ("val", "test") and intr and REFERENCE_NAME not in intr:
         st.problems.append(Problem(str(path / "intrinsics.txt"), f"no reference image {REFERENCE_NAME} listed"))
 
@@ -221,8 +228,9 @@ def check_scene(path: os.PathLike | str, split: str, deep: bool = False) -> Scen
     return st
 
 
-def _measure(p: Path, decode: Callable[[Path], np.ndarray], header: Callable[[Path], tuple[int, int]], deep: bool,
-             st: SceneStats) -> tuple[int, int] | None:
+def _measure(
+    p: Path, decode: Callable[[Path], np.ndarray], header: Callable[[Path], tuple[int, int]], deep: bool, st: SceneStats
+) -> tuple[int, int] | None:
     """(width, height) of an image file, from its header or (``deep``) by decoding it; None, with the problem
     recorded, when the file is empty or unreadable."""
     try:
@@ -265,9 +273,15 @@ def not_a_dataset_folder(root: Path) -> str:
     return "a file, not a dataset folder"
 
 
-def check_dataset(root: os.PathLike | str, splits: Sequence[str] | None = None, *, subset: bool = False,
-                  deep: bool = False, workers: int = 1,
-                  progress: Callable[[Iterable[SceneStats], int], Iterable[SceneStats]] | None = None) -> CheckReport:
+def check_dataset(
+    root: os.PathLike | str,
+    splits: Sequence[str] | None = None,
+    *,
+    subset: bool = False,
+    deep: bool = False,
+    workers: int = 1,
+    progress: Callable[[Iterable[SceneStats], int], Iterable[SceneStats]] | None = None,
+) -> CheckReport:
     """Check ``root`` (see the module docstring).
 
     ``splits``: the splits to check (default: all three for the release, the ones present with ``subset``).
@@ -307,11 +321,17 @@ def check_dataset(root: os.PathLike | str, splits: Sequence[str] | None = None, 
             missing = sorted(release.difference(scenes))
             if missing:
                 shown = ", ".join(missing[:8]) + (f", … ({len(missing)} in all)" if len(missing) > 8 else "")
-                rep.problems.append(Problem(str(d), f"{len(missing)} of the release's {len(release)} scenes "
-                                            f"missing: {shown}"))
+                rep.problems.append(
+                    Problem(str(d), f"{len(missing)} of the release's {len(release)} scenes missing: {shown}")
+                )
             for n in sorted(set(scenes) - release):
-                rep.problems.append(Problem(str(d / n), f"not a {split} scene of the release "
-                                            f"(s{RELEASE[split].start:05d}–s{RELEASE[split].stop - 1:05d})"))
+                rep.problems.append(
+                    Problem(
+                        str(d / n),
+                        f"not a {split} scene of the release "
+                        f"(s{RELEASE[split].start:05d}–s{RELEASE[split].stop - 1:05d})",
+                    )
+                )
         jobs += [(str(d / n), split, deep) for n in scenes]
 
     if workers > 1 and len(jobs) > 1:

@@ -14,9 +14,9 @@ flagged ``derived=True``, since a simulation is not a phone's log.
 from __future__ import annotations
 
 import zlib
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -25,8 +25,17 @@ from .io import FormatError, iter_records, write_poses
 from .scene import REFERENCE_NAME, Scene, frame_number
 
 __all__ = [
-    "BURST", "EVERY_MULTI", "DEVICE_FILE", "multiframe_bursts", "scene_bursts", "DriftModel", "simulate_device_trajectory",
-    "rebase_bursts", "write_device_poses", "DevicePoses", "load_device_poses",
+    "BURST",
+    "EVERY_MULTI",
+    "DEVICE_FILE",
+    "multiframe_bursts",
+    "scene_bursts",
+    "DriftModel",
+    "simulate_device_trajectory",
+    "rebase_bursts",
+    "write_device_poses",
+    "DevicePoses",
+    "load_device_poses",
 ]
 
 BURST = 9  # frames a multi-frame method may use: the query and the 8 before it
@@ -67,8 +76,9 @@ class DriftModel:
     min_step: float = 0.002  # metres of "travel" charged per frame even when standing still
 
 
-def simulate_device_trajectory(poses: Sequence[Pose], up: np.ndarray, rng: np.random.Generator,
-                               model: DriftModel = DriftModel()) -> list[Pose]:
+def simulate_device_trajectory(
+    poses: Sequence[Pose], up: np.ndarray, rng: np.random.Generator, model: DriftModel = DriftModel()
+) -> list[Pose]:
     """World-to-camera device poses of a scan, in a device frame that coincides with the truth at frame 0.
 
     ``poses`` are the true world-to-camera poses in scan order, ``up`` the world's up direction (unit vector).
@@ -139,11 +149,16 @@ def _derive(scene: Scene, model: DriftModel, seed: int) -> DevicePoses:
     up = ref.R.T @ np.array([0.0, -1.0, 0.0])  # the reference camera is held roughly upright
     rng = np.random.default_rng([seed, zlib.crc32(scene.name.encode())])
     device = dict(zip(order, simulate_device_trajectory([truth[n] for n in order], up, rng, model)))
-    return DevicePoses(rebase_bursts(device, multiframe_bursts(order)), True,
-                       f"derived from {scene.path / 'poses.txt'} with simulated drift (seed {seed})")
+    return DevicePoses(
+        rebase_bursts(device, multiframe_bursts(order)),
+        True,
+        f"derived from {scene.path / 'poses.txt'} with simulated drift (seed {seed})",
+    )
 
 
-def load_device_poses(scene: Scene, derive: bool = True, model: DriftModel = DriftModel(), seed: int = 0) -> DevicePoses:
+def load_device_poses(
+    scene: Scene, derive: bool = True, model: DriftModel = DriftModel(), seed: int = 0
+) -> DevicePoses:
     """The scene's ``poses_device.txt``; without one, poses derived from its ground truth when ``derive``.
 
     Raises ``FormatError`` naming the file when it is malformed, or missing and cannot be derived.

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -81,9 +81,7 @@ def read_intrinsics(path: os.PathLike | str) -> dict[str, Intrinsics]:
 
 
 def write_intrinsics(path: os.PathLike | str, intrinsics: Mapping[str, Intrinsics]) -> None:
-    lines = [
-        f"{n} {k.fx:.6f} {k.fy:.6f} {k.cx:.6f} {k.cy:.6f} {k.width} {k.height}\n" for n, k in intrinsics.items()
-    ]
+    lines = [f"{n} {k.fx:.6f} {k.fy:.6f} {k.cx:.6f} {k.cy:.6f} {k.width} {k.height}\n" for n, k in intrinsics.items()]
     Path(path).write_text("".join(lines))
 
 
@@ -152,7 +150,7 @@ def publish(tmp: os.PathLike | str, path: os.PathLike | str) -> Path:
 def depth_suffixes(image_path: os.PathLike | str) -> list[str]:
     """The depth suffixes of the maps beside an image: ``frame.sensor.png``, ``frame.mono.png`` -> sensor, mono."""
     p = Path(image_path)
-    return sorted({q.name[len(p.stem) + 1: -len(".png")] for q in p.parent.glob(f"{p.stem}.*.png")})
+    return sorted({q.name[len(p.stem) + 1 : -len(".png")] for q in p.parent.glob(f"{p.stem}.*.png")})
 
 
 def _decode(data: np.ndarray, flags: int) -> np.ndarray | None:
@@ -194,8 +192,12 @@ def check_depth_size(path: os.PathLike | str, shape: tuple[int, ...], width: int
     ratio: that is another frame's map, rotated or cropped, and would put depth on the wrong pixels."""
     if not same_aspect(shape, width, height):
         h, w = shape[:2]
-        raise FormatError(path, None, f"depth map is {w}x{h} but the image is {width}x{height} (intrinsics): "
-                                      f"another aspect ratio, so not this frame's map")
+        raise FormatError(
+            path,
+            None,
+            f"depth map is {w}x{h} but the image is {width}x{height} (intrinsics): "
+            f"another aspect ratio, so not this frame's map",
+        )
 
 
 def same_aspect(shape: tuple[int, ...], width: int, height: int) -> bool:

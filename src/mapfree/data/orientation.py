@@ -17,8 +17,18 @@ import numpy as np
 
 from ..geometry import Intrinsics
 
-__all__ = ["UPRIGHT", "ROTATIONS", "OrientationError", "check_orientation", "exif_orientation", "orient_pixels",
-           "orient_intrinsics", "camera_rotation", "displayed_size", "fit_intrinsics"]
+__all__ = [
+    "UPRIGHT",
+    "ROTATIONS",
+    "OrientationError",
+    "check_orientation",
+    "exif_orientation",
+    "orient_pixels",
+    "orient_intrinsics",
+    "camera_rotation",
+    "displayed_size",
+    "fit_intrinsics",
+]
 
 UPRIGHT = 1
 #: Orientations we handle -> quarter turns clockwise that make the stored grid upright.
@@ -36,8 +46,10 @@ def check_orientation(orientation: int, what: str = "image") -> int:
     if orientation in ROTATIONS:
         return orientation
     if orientation in _MIRRORED:
-        raise OrientationError(f"{what}: EXIF orientation {orientation} is a mirrored photo, which no pinhole "
-                               "camera takes; re-save it unmirrored (orientations 1, 3, 6 and 8 are supported)")
+        raise OrientationError(
+            f"{what}: EXIF orientation {orientation} is a mirrored photo, which no pinhole "
+            "camera takes; re-save it unmirrored (orientations 1, 3, 6 and 8 are supported)"
+        )
     raise OrientationError(f"{what}: invalid EXIF orientation {orientation} (1-8 expected)")
 
 
@@ -100,5 +112,7 @@ def fit_intrinsics(K: Intrinsics, width: int, height: int, orientation: int, wha
         return orient_intrinsics(K, orientation)
     if (K.width, K.height) == (width, height):
         return K
-    raise ValueError(f"{what}: the photo is {width}x{height} (EXIF orientation {orientation} applied) but its "
-                     f"intrinsics say {K.width}x{K.height}")
+    raise ValueError(
+        f"{what}: the photo is {width}x{height} (EXIF orientation {orientation} applied) but its "
+        f"intrinsics say {K.width}x{K.height}"
+    )

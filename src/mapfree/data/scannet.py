@@ -84,8 +84,11 @@ def read_pairs(path: os.PathLike | str, root: os.PathLike | str | None = None) -
         if not f or f[0].startswith("#"):
             continue
         if len(f) not in (36, 38):
-            raise FormatError(path, lineno, f"expected 38 fields (img0 img1 exif0 exif1 K0 K1 T_0to1) or 36 "
-                                            f"without EXIF, found {len(f)}")
+            raise FormatError(
+                path,
+                lineno,
+                f"expected 38 fields (img0 img1 exif0 exif1 K0 K1 T_0to1) or 36 without EXIF, found {len(f)}",
+            )
         names, nums = f[:2], f[4:] if len(f) == 38 else f[2:]
         if len(f) == 38 and (f[2], f[3]) != ("0", "0"):
             raise FormatError(path, lineno, f"EXIF rotations {f[2]} {f[3]}: only unrotated pairs (0 0) are supported")
@@ -105,7 +108,7 @@ def read_pairs(path: os.PathLike | str, root: os.PathLike | str | None = None) -
             size = _image_size(img)
             if size is None:
                 raise FormatError(path, lineno, f"image {img} is missing or unreadable")
-            K = _intrinsics(v[9 * i: 9 * i + 9], size, path, lineno, f"K{i}")
+            K = _intrinsics(v[9 * i : 9 * i + 9], size, path, lineno, f"K{i}")
             frames.append(ScanNetFrame(name, img, K))
         U, _, Vt = np.linalg.svd(R)
         pairs.append(PosePair(frames[0], frames[1], Pose(U @ Vt, T[:3, 3]), lineno))

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -118,9 +118,7 @@ class Scene:
             R = np.zeros((len(table), 3, 3))
             R[valid] = quat_to_rotmat(table.q[valid])  # one vectorised call, not one per frame
             pose_of = {n: Pose(R[i], table.t[i]) if valid[i] else None for i, n in enumerate(table.names)}
-        return {
-            n: Frame(n, self.path / n, k, pose_of.get(n)) for n, k in self.intrinsics.items()
-        }
+        return {n: Frame(n, self.path / n, k, pose_of.get(n)) for n, k in self.intrinsics.items()}
 
     def frame(self, name: str) -> Frame:
         try:
@@ -154,8 +152,9 @@ class Dataset:
     def __init__(self, root: os.PathLike | str):
         self.root = Path(root)
         if not self.root.is_dir():
-            raise FileNotFoundError(f"dataset root {self.root} " + ("is a file, not a folder" if self.root.exists()
-                                                                     else "does not exist"))
+            raise FileNotFoundError(
+                f"dataset root {self.root} " + ("is a file, not a folder" if self.root.exists() else "does not exist")
+            )
 
     def splits(self) -> list[str]:
         return [s for s in SPLITS if (self.root / s).is_dir()]

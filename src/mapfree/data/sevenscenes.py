@@ -44,7 +44,9 @@ def read_matrix_pose(path: os.PathLike | str) -> Pose:
     except UnicodeDecodeError:
         raise FormatError(path, None, "not a text file") from None
     if len(rows) != 4 or any(len(r) != 4 for r in rows):
-        raise FormatError(path, None, f"expected a 4x4 matrix, found {len(rows)} line(s) of {[len(r) for r in rows]} values")
+        raise FormatError(
+            path, None, f"expected a 4x4 matrix, found {len(rows)} line(s) of {[len(r) for r in rows]} values"
+        )
     try:
         T = np.array(rows, dtype=np.float64)
     except ValueError:
@@ -52,7 +54,11 @@ def read_matrix_pose(path: os.PathLike | str) -> Pose:
     if not np.all(np.isfinite(T)):
         raise FormatError(path, None, "non-finite number in the pose matrix")
     R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-2 or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
+    if (
+        np.abs(R.T @ R - np.eye(3)).max() > 1e-2
+        or np.linalg.det(R) < 0
+        or not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6)
+    ):
         raise FormatError(path, None, "not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
     U, _, Vt = np.linalg.svd(R)
     return Pose(U @ Vt, T[:3, 3]).inverse()
@@ -138,8 +144,11 @@ class SevenScenes:
         self.camera = tuple(float(c) for c in camera)
 
     def scene_names(self) -> list[str]:
-        return sorted(p.name for p in self.root.iterdir()
-                      if p.is_dir() and any(_SEQ_RE.match(c.name) for c in p.iterdir() if c.is_dir()))
+        return sorted(
+            p.name
+            for p in self.root.iterdir()
+            if p.is_dir() and any(_SEQ_RE.match(c.name) for c in p.iterdir() if c.is_dir())
+        )
 
     def scene(self, name: str) -> SevenScenesScene:
         p = self.root / name

@@ -5,22 +5,21 @@ from __future__ import annotations
 
 import inspect
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
 
 from ..data import Frame
+from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
 from ..weights import BrokenWeightsError, HubModel, MissingWeightsError, check_folder, offline_why, reachable
-from ..options import Options, option
 from .cache import DepthCache
 from .hub import HUB_MODELS
 
 __all__ = ["HUB_MODELS", "HFDepthOptions", "HFDepth", "MissingModelError", "resolve_model"]
-
 
 
 class MissingModelError(MissingWeightsError):

@@ -39,8 +39,15 @@ class Mast3rDepth:
     metric = True
     pairwise = True
 
-    def __init__(self, kind: str = "mast3r", weights: str | None = None, device: str | None = None,
-                 min_conf: float = 0.0, long_side: int = 512, engine: PairEngine | None = None) -> None:
+    def __init__(
+        self,
+        kind: str = "mast3r",
+        weights: str | None = None,
+        device: str | None = None,
+        min_conf: float = 0.0,
+        long_side: int = 512,
+        engine: PairEngine | None = None,
+    ) -> None:
         """``engine``: the matcher's (same network, same checkpoint and input size), else the shared one."""
         self.name = kind
         self.min_conf = min_conf
@@ -57,8 +64,13 @@ class Mast3rDepth:
         mine = isinstance(enc, EncodedImage) and enc.engine_id == id(self.engine)
         return enc if mine else self.engine.encode(image)
 
-    def pair_depth(self, reference: np.ndarray, query: np.ndarray, need_query: bool = True,
-                   features: tuple[Any, Any] = (None, None)) -> tuple[np.ndarray, np.ndarray | None]:
+    def pair_depth(
+        self,
+        reference: np.ndarray,
+        query: np.ndarray,
+        need_query: bool = True,
+        features: tuple[Any, Any] = (None, None),
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """(reference depth, query depth or None) in metres at each image's original size. ``features``: the
         matcher's features of both images, whose encodings are reused when they come from this engine."""
         ref, q = self._encoded(reference, features[0]), self._encoded(query, features[1])

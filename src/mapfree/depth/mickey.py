@@ -45,8 +45,9 @@ class MickeyDepth:
     metric = True
     pairwise = True
 
-    def __init__(self, engine: MickeyEngine | None = None, options: MickeyDepthOptions | None = None,
-                 **overrides: object) -> None:
+    def __init__(
+        self, engine: MickeyEngine | None = None, options: MickeyDepthOptions | None = None, **overrides: object
+    ) -> None:
         """``engine``: the matcher's; else the shared one for the options (those of the ``mickey`` matcher that
         choose the files, ``device`` and ``fp16``: ``MickeyDepthOptions``), checked as every component's are."""
         self.options = MickeyDepthOptions.build(overrides, owner="depth network 'mickey'", base=options)
@@ -65,8 +66,13 @@ class MickeyDepth:
                 return np.zeros(features.image_size[::-1], np.float32)
         return sparse_depth_map(self.engine.extract([image])[0])
 
-    def pair_depth(self, reference: np.ndarray, query: np.ndarray, need_query: bool = True,
-                   features: tuple[Any, Any] = (None, None)) -> tuple[np.ndarray, np.ndarray | None]:
+    def pair_depth(
+        self,
+        reference: np.ndarray,
+        query: np.ndarray,
+        need_query: bool = True,
+        features: tuple[Any, Any] = (None, None),
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """(reference map, query map or None) at each image's original size, from the features when they are
         MicKey's (no network pass), else from the images."""
         d_ref = self._map(reference, features[0])

@@ -13,9 +13,10 @@ import argparse
 import json
 import os
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import torch
 
@@ -24,8 +25,16 @@ from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs,
 from .model import AsymmetricModel
 from .published import MAST3R_WEIGHTS
 
-__all__ = ["Published", "PUBLISHED", "find_checkpoint", "checkpoint_available", "load_model", "read_checkpoint",
-           "model_from_state_dict", "load_error_gist"]
+__all__ = [
+    "Published",
+    "PUBLISHED",
+    "find_checkpoint",
+    "checkpoint_available",
+    "load_model",
+    "read_checkpoint",
+    "model_from_state_dict",
+    "load_error_gist",
+]
 
 
 @dataclass(frozen=True)
@@ -96,8 +105,10 @@ def _load_pth(path: Path) -> tuple[Mapping[str, torch.Tensor], str]:
         with torch.serialization.safe_globals([argparse.Namespace]):
             ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
-        raise ValueError(f"{path}: not a readable MASt3R/DUSt3R checkpoint ({load_error_gist(e)}); expected the "
-                         f"authors' .pth file or a hub folder (config.json + model.safetensors)") from None
+        raise ValueError(
+            f"{path}: not a readable MASt3R/DUSt3R checkpoint ({load_error_gist(e)}); expected the "
+            f"authors' .pth file or a hub folder (config.json + model.safetensors)"
+        ) from None
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("model"), dict) or "args" not in ckpt:
         raise ValueError(f"{path}: not a MASt3R/DUSt3R checkpoint (expected the keys 'model' and 'args')")
     args = ckpt["args"]
@@ -139,21 +150,24 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[ModelConfig, Mapping[str, 
         raise UnsupportedCheckpointError(f"{p}: {e}") from None
 
 
-def model_from_state_dict(cfg: ModelConfig, sd: Mapping[str, torch.Tensor],
-                          source: str = "checkpoint") -> AsymmetricModel:
+def model_from_state_dict(
+    cfg: ModelConfig, sd: Mapping[str, torch.Tensor], source: str = "checkpoint"
+) -> AsymmetricModel:
     """Build the network and load ``sd`` strictly (``dec_blocks2`` copied from ``dec_blocks`` when absent)."""
     sd = dict(sd)
     if not any(k.startswith("dec_blocks2.") for k in sd):
         first = [(k, v) for k, v in sd.items() if k.startswith("dec_blocks.")]
-        sd.update({"dec_blocks2." + k[len("dec_blocks."):]: v for k, v in first})
+        sd.update({"dec_blocks2." + k[len("dec_blocks.") :]: v for k, v in first})
     with torch.device("meta"):
         net = AsymmetricModel(cfg)
     missing = sorted(set(net.state_dict()) - set(sd))
     unexpected = sorted(set(sd) - set(net.state_dict()))
     if missing or unexpected:
-        raise ValueError(f"{source}: state dict does not fit {cfg.class_name}: "
-                         f"{len(missing)} missing (e.g. {missing[:3]}), "
-                         f"{len(unexpected)} unexpected (e.g. {unexpected[:3]})")
+        raise ValueError(
+            f"{source}: state dict does not fit {cfg.class_name}: "
+            f"{len(missing)} missing (e.g. {missing[:3]}), "
+            f"{len(unexpected)} unexpected (e.g. {unexpected[:3]})"
+        )
     try:
         net.load_state_dict(sd, strict=True, assign=True)
     except RuntimeError as e:

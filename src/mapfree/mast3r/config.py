@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import ast
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Any, Mapping
+from typing import Any
 
 __all__ = ["ModelConfig", "Mode", "UnsupportedCheckpointError", "parse_constructor", "config_from_kwargs", "CLASSES"]
 
@@ -51,11 +52,11 @@ class ModelConfig:
 
     @property
     def rope_base(self) -> float:
-        return float(self.pos_embed[len("RoPE"):])
+        return float(self.pos_embed[len("RoPE") :])
 
     @property
     def desc_dim(self) -> int:
-        return int(self.output_mode[len("pts3d+desc"):]) if self.has_descriptors else 0
+        return int(self.output_mode[len("pts3d+desc") :]) if self.has_descriptors else 0
 
     @property
     def class_name(self) -> str:

@@ -3,7 +3,7 @@ upsampled to full resolution; ``num_channels`` output maps (x, y, z, confidence)
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F

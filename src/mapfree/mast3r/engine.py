@@ -11,10 +11,11 @@ from __future__ import annotations
 import threading
 import weakref
 from collections import OrderedDict
+from collections.abc import Callable, Hashable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Hashable, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -50,7 +51,7 @@ class PairOutput:
     desc_conf2: np.ndarray | None = None
     extras: dict[str, Any] = field(default_factory=dict)
 
-    def without_descriptors(self) -> "PairOutput":
+    def without_descriptors(self) -> PairOutput:
         """What the cache keeps (the depth source's part): two 24-D maps are 90% of a pair's output."""
         return PairOutput(self.pts1, self.conf1, self.pts2, self.conf2)
 
@@ -81,8 +82,14 @@ class PairEngine:
     """A loaded network with its caches. Thread-safe (the batched pipeline solves in a thread pool, the
     relocalizer reads the next query ahead): the lock guards the caches, not the network's passes."""
 
-    def __init__(self, model: AsymmetricModel, device: torch.device, name: str = "mast3r", long_side: int = 512,
-                 cache_pairs: int = 32) -> None:
+    def __init__(
+        self,
+        model: AsymmetricModel,
+        device: torch.device,
+        name: str = "mast3r",
+        long_side: int = 512,
+        cache_pairs: int = 32,
+    ) -> None:
         self.model, self.device, self.name, self.long_side = model, device, name, long_side
         self._images = _IdentityCache(cache_pairs)
         self._pairs = _IdentityCache(cache_pairs)
@@ -108,8 +115,9 @@ class PairEngine:
             with torch.inference_mode(), steady_kernels():  # outside the lock: others may use the cache meanwhile
                 enc = self.model.encode(torch.cat([preps[i].tensor for i in group]).to(self.device))
             for j, i in enumerate(group):
-                out[i] = EncodedImage(preps[i], Encoded(enc.tokens[j : j + 1], enc.positions[j : j + 1], enc.hw),
-                                      id(self))
+                out[i] = EncodedImage(
+                    preps[i], Encoded(enc.tokens[j : j + 1], enc.positions[j : j + 1], enc.hw), id(self)
+                )
         with self._lock:
             self.encodes += len(todo)
             for i in todo:
@@ -123,8 +131,9 @@ class PairEngine:
         the depth source later finds the same pass's points here."""
         return self.pair_many(first, [second], descriptors)[0]
 
-    def pair_many(self, first: EncodedImage, seconds: Sequence[EncodedImage], descriptors: bool = False,
-                  on_device: bool = False) -> list[PairOutput]:
+    def pair_many(
+        self, first: EncodedImage, seconds: Sequence[EncodedImage], descriptors: bool = False, on_device: bool = False
+    ) -> list[PairOutput]:
         """``pair`` of ``first`` with each of ``seconds``: the pairs whose second images share a size go through
         the decoders and heads as one batch (``first``'s tokens repeated), each pair's output as it is alone.
         ``on_device``: descriptors stay on the network's device (the matcher searches them there)."""
@@ -136,23 +145,42 @@ class PairEngine:
         for group in _groups(todo, lambda i: seconds[i].encoded.hw):
             b, e1 = len(group), first.encoded
             e1 = Encoded(e1.tokens.expand(b, -1, -1), e1.positions.expand(b, -1, -1), e1.hw)
-            e2 = Encoded(torch.cat([seconds[i].encoded.tokens for i in group]),
-                         torch.cat([seconds[i].encoded.positions for i in group]), seconds[group[0]].encoded.hw)
+            e2 = Encoded(
+                torch.cat([seconds[i].encoded.tokens for i in group]),
+                torch.cat([seconds[i].encoded.positions for i in group]),
+                seconds[group[0]].encoded.hw,
+            )
             with torch.inference_mode(), steady_kernels():
                 r1, r2 = self.model.predict(e1, e2)
-            host = {k: v.float().cpu().numpy() for k, v in (("pts1", r1["pts3d"]), ("conf1", r1["conf"]),
-                                                           ("pts2", r2["pts3d_in_other_view"]), ("conf2", r2["conf"]),
-                                                           ("desc_conf1", r1.get("desc_conf")),
-                                                           ("desc_conf2", r2.get("desc_conf"))) if v is not None}
+            host = {
+                k: v.float().cpu().numpy()
+                for k, v in (
+                    ("pts1", r1["pts3d"]),
+                    ("conf1", r1["conf"]),
+                    ("pts2", r2["pts3d_in_other_view"]),
+                    ("conf2", r2["conf"]),
+                    ("desc_conf1", r1.get("desc_conf")),
+                    ("desc_conf2", r2.get("desc_conf")),
+                )
+                if v is not None
+            }
             desc = {k: r.get("desc") for k, r in (("desc1", r1), ("desc2", r2))}
             for j, i in enumerate(group):
+
                 def d(key: str) -> Any:
                     t = desc[key]
                     return None if t is None else t[j] if on_device else t[j].float().cpu().numpy()
 
-                out[i] = PairOutput(host["pts1"][j], host["conf1"][j], host["pts2"][j], host["conf2"][j],
-                                    d("desc1"), d("desc2"), _row(host.get("desc_conf1"), j),
-                                    _row(host.get("desc_conf2"), j))
+                out[i] = PairOutput(
+                    host["pts1"][j],
+                    host["conf1"][j],
+                    host["pts2"][j],
+                    host["conf2"][j],
+                    d("desc1"),
+                    d("desc2"),
+                    _row(host.get("desc_conf1"), j),
+                    _row(host.get("desc_conf2"), j),
+                )
         with self._lock:
             self.forwards += len(todo)
             for i in todo:
@@ -185,8 +213,9 @@ _ENGINES: dict[tuple[str, str, str, int], PairEngine] = {}
 _ENGINES_LOCK = threading.Lock()
 
 
-def shared_engine(kind: str, weights: str | Path | None = None, device: str | torch.device | None = None,
-                  long_side: int = 512) -> PairEngine:
+def shared_engine(
+    kind: str, weights: str | Path | None = None, device: str | torch.device | None = None, long_side: int = 512
+) -> PairEngine:
     """The one engine per (kind, checkpoint, device, input size): a method's matcher and depth source share it.
 
     The checkpoint is found first, so a missing file fails before any image is read. ``long_side`` 512 is the
@@ -198,7 +227,9 @@ def shared_engine(kind: str, weights: str | Path | None = None, device: str | to
         if key not in _ENGINES:
             model = load_model(path, dev)
             if kind == "mast3r" and not model.cfg.has_descriptors:  # DUSt3R runs on either kind of checkpoint
-                raise ValueError(f"{path}: a {model.cfg.class_name} checkpoint has no descriptor head; "
-                                 f"mast3r needs an AsymmetricMASt3R checkpoint")
+                raise ValueError(
+                    f"{path}: a {model.cfg.class_name} checkpoint has no descriptor head; "
+                    f"mast3r needs an AsymmetricMASt3R checkpoint"
+                )
             _ENGINES[key] = PairEngine(model, dev, kind, int(long_side))
         return _ENGINES[key]

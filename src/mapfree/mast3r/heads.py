@@ -7,7 +7,7 @@ predicts ``desc_dim`` descriptor channels (and a descriptor confidence) for each
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -58,8 +58,10 @@ class PointHead(DPTHead):
 
     def forward(self, tokens: Sequence[torch.Tensor], hw: tuple[int, int]) -> dict[str, torch.Tensor]:
         fmap = self.dpt(tokens, hw).permute(0, 2, 3, 1)
-        return {"pts3d": points_from_raw(fmap[..., :3], self.cfg.depth_mode),
-                "conf": confidence_from_raw(fmap[..., 3], self.cfg.conf_mode)}
+        return {
+            "pts3d": points_from_raw(fmap[..., :3], self.cfg.depth_mode),
+            "conf": confidence_from_raw(fmap[..., 3], self.cfg.conf_mode),
+        }
 
 
 class PointDescHead(DPTHead):
@@ -80,8 +82,10 @@ class PointDescHead(DPTHead):
         local = self.head_local_features(cat).transpose(-1, -2).reshape(b, -1, hw[0] // p, hw[1] // p)
         fmap = torch.cat([dense, F.pixel_shuffle(local, p)], dim=1).permute(0, 2, 3, 1)
         cfg = self.cfg
-        out = {"pts3d": points_from_raw(fmap[..., :3], cfg.depth_mode),
-               "conf": confidence_from_raw(fmap[..., 3], cfg.conf_mode)}
+        out = {
+            "pts3d": points_from_raw(fmap[..., :3], cfg.depth_mode),
+            "conf": confidence_from_raw(fmap[..., 3], cfg.conf_mode),
+        }
         desc = fmap[..., 4 : 4 + cfg.desc_dim]
         out["desc"] = desc / desc.norm(dim=-1, keepdim=True)
         if cfg.two_confs:

@@ -58,14 +58,19 @@ class AsymmetricModel(nn.Module):
         rope = RoPE2D(cfg.rope_base)
         self.patch_embed = _PatchEmbed(cfg.patch_size, cfg.enc_embed_dim)
         self.enc_blocks = nn.ModuleList(
-            [EncoderBlock(cfg.enc_embed_dim, cfg.enc_num_heads, cfg.mlp_ratio, rope) for _ in range(cfg.enc_depth)])
+            [EncoderBlock(cfg.enc_embed_dim, cfg.enc_num_heads, cfg.mlp_ratio, rope) for _ in range(cfg.enc_depth)]
+        )
         self.enc_norm = layer_norm(cfg.enc_embed_dim)
         self.mask_token = nn.Parameter(torch.zeros(1, 1, cfg.dec_embed_dim))  # pretraining only; kept for the keys
         self.decoder_embed = nn.Linear(cfg.enc_embed_dim, cfg.dec_embed_dim)
 
         def decoder() -> nn.ModuleList:
-            return nn.ModuleList([DecoderBlock(cfg.dec_embed_dim, cfg.dec_num_heads, cfg.mlp_ratio, rope,
-                                               cfg.norm_im2_in_dec) for _ in range(cfg.dec_depth)])
+            return nn.ModuleList(
+                [
+                    DecoderBlock(cfg.dec_embed_dim, cfg.dec_num_heads, cfg.mlp_ratio, rope, cfg.norm_im2_in_dec)
+                    for _ in range(cfg.dec_depth)
+                ]
+            )
 
         self.dec_blocks = decoder()
         self.dec_norm = layer_norm(cfg.dec_embed_dim)
@@ -101,6 +106,7 @@ class AsymmetricModel(nn.Module):
         res2["pts3d_in_other_view"] = res2.pop("pts3d")
         return res1, res2
 
-    def forward(self, img1: torch.Tensor,
-                img2: torch.Tensor) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    def forward(
+        self, img1: torch.Tensor, img2: torch.Tensor
+    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         return self.predict(self.encode(img1), self.encode(img2))

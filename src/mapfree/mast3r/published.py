@@ -38,24 +38,35 @@ class Mast3rWeights:
         return Found(*hit) if hit is not None else None
 
     def how(self) -> str:
-        return (f"Download {self.url} (licence {self.licence}) into {target_dir()}, or the hub folder {self.hub_id} "
-                f"as {target_dir() / self.stem}/")
+        return (
+            f"Download {self.url} (licence {self.licence}) into {target_dir()}, or the hub folder {self.hub_id} "
+            f"as {target_dir() / self.stem}/"
+        )
 
     def fetch_command(self) -> str:
         return f"curl -L --create-dirs -o {target_dir() / self.name} {self.url}"
 
     def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError:
         if explicit is not None:
-            return MissingWeightsError(f"{self.what}: checkpoint {explicit} not found (expected a .pth file or a "
-                                       f"folder with config.json and model.safetensors)")
+            return MissingWeightsError(
+                f"{self.what}: checkpoint {explicit} not found (expected a .pth file or a "
+                f"folder with config.json and model.safetensors)"
+            )
         return MissingWeightsError(missing_message(self.what, self.item(), self.name, self.how(), why))
 
 
 _NAVER = "https://download.europe.naverlabs.com/ComputerVision"
 MAST3R_WEIGHTS = {
-    "mast3r": Mast3rWeights("MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric",
-                            "naver/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric",
-                            f"{_NAVER}/MASt3R/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth", "mast3r"),
-    "dust3r": Mast3rWeights("DUSt3R_ViTLarge_BaseDecoder_512_dpt", "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt",
-                            f"{_NAVER}/DUSt3R/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth", "dust3r"),
+    "mast3r": Mast3rWeights(
+        "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric",
+        "naver/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric",
+        f"{_NAVER}/MASt3R/MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth",
+        "mast3r",
+    ),
+    "dust3r": Mast3rWeights(
+        "DUSt3R_ViTLarge_BaseDecoder_512_dpt",
+        "naver/DUSt3R_ViTLarge_BaseDecoder_512_dpt",
+        f"{_NAVER}/DUSt3R/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth",
+        "dust3r",
+    ),
 }

@@ -77,9 +77,15 @@ def merge_pairs(idx1: np.ndarray, idx2: np.ndarray) -> tuple[np.ndarray, np.ndar
     return (key >> 32).astype(np.int64), (key & 0xFFFFFFFF).astype(np.int64)
 
 
-def reciprocal_matches(desc1: np.ndarray | torch.Tensor, desc2: np.ndarray | torch.Tensor, subsample: int = 8,
-                       device: str | torch.device = "cpu", dist: str = "l2", max_iter: int = 10,
-                       brute_force: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+def reciprocal_matches(
+    desc1: np.ndarray | torch.Tensor,
+    desc2: np.ndarray | torch.Tensor,
+    subsample: int = 8,
+    device: str | torch.device = "cpu",
+    dist: str = "l2",
+    max_iter: int = 10,
+    brute_force: bool | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Reciprocal matches between (H1, W1, D) and (H2, W2, D) maps: (N, 2) integer (x, y) in each image,
     sorted by the pixel index in image 1. On the CPU with ``dist`` "l2": KD-trees (the public CPU path), unless
     ``brute_force``; elsewhere blocks of brute force on ``device``."""

@@ -32,8 +32,9 @@ class RoPE2D(torch.nn.Module):
         self.base = float(base)
         self._tables: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
-    def _table(self, dim: int, length: int, device: torch.device,
-               dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    def _table(
+        self, dim: int, length: int, device: torch.device, dtype: torch.dtype
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         key = (dim, length, device, dtype)
         if key not in self._tables:
             inv_freq = 1.0 / (self.base ** (torch.arange(0, dim, 2, device=device).float() / dim))

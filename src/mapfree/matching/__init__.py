@@ -7,14 +7,27 @@ Every matcher has ``extract(image) -> Features`` (run once per reference image) 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Callable
 
 from .base import Features, Matcher, Matches
 from .weights import WEIGHTS_ENV, MissingWeightsError
 
-__all__ = ["Features", "Matches", "Matcher", "MissingWeightsError", "WEIGHTS_ENV", "create", "available", "names",
-           "needs", "option_names", "options_class", "check_options", "registry_key"]
+__all__ = [
+    "Features",
+    "Matches",
+    "Matcher",
+    "MissingWeightsError",
+    "WEIGHTS_ENV",
+    "create",
+    "available",
+    "names",
+    "needs",
+    "option_names",
+    "options_class",
+    "check_options",
+    "registry_key",
+]
 
 
 def _sift(**o: object) -> Matcher:
@@ -103,28 +116,45 @@ _REGISTRY: dict[str, _Entry] = {
     "aliked-lightglue": _Entry(_lightglue("aliked"), "lightglue.LightGlueOptions", _LIGHTGLUE_WHEEL),
     "disk-lightglue": _Entry(_lightglue("disk"), "lightglue.LightGlueOptions", _LIGHTGLUE_WHEEL),
     "superpoint-lightglue": _Entry(
-        _lightglue("superpoint"), "lightglue.LightGlueOptions",
-        "weights: superpoint_v1.pth + superpoint_lightglue.pth (downloaded on first use)"),
+        _lightglue("superpoint"),
+        "lightglue.LightGlueOptions",
+        "weights: superpoint_v1.pth + superpoint_lightglue.pth (downloaded on first use)",
+    ),
     "loftr": _Entry(_loftr("outdoor"), "loftr.LoFTROptions", _LOFTR_OUTDOOR),
     "loftr-outdoor": _Entry(_loftr("outdoor"), "loftr.LoFTROptions", _LOFTR_OUTDOOR),
-    "loftr-indoor": _Entry(_loftr("indoor"), "loftr.LoFTROptions",
-                           "weights: loftr_indoor.ckpt (downloaded on first use)"),
+    "loftr-indoor": _Entry(
+        _loftr("indoor"), "loftr.LoFTROptions", "weights: loftr_indoor.ckpt (downloaded on first use)"
+    ),
     "superglue": _Entry(
-        _superglue("outdoor"), "superglue.SuperGlueOptions",
-        _HF.format("magic-leap-community/superglue_outdoor", "superglue_outdoor") + ", non-commercial"),
+        _superglue("outdoor"),
+        "superglue.SuperGlueOptions",
+        _HF.format("magic-leap-community/superglue_outdoor", "superglue_outdoor") + ", non-commercial",
+    ),
     "superglue-indoor": _Entry(
-        _superglue("indoor"), "superglue.SuperGlueOptions",
-        _HF.format("magic-leap-community/superglue_indoor", "superglue_indoor") + ", non-commercial"),
-    "efficientloftr": _Entry(_efficientloftr, "efficientloftr.EfficientLoFTROptions",
-                             _HF.format("zju-community/efficientloftr", "efficientloftr")),
+        _superglue("indoor"),
+        "superglue.SuperGlueOptions",
+        _HF.format("magic-leap-community/superglue_indoor", "superglue_indoor") + ", non-commercial",
+    ),
+    "efficientloftr": _Entry(
+        _efficientloftr,
+        "efficientloftr.EfficientLoFTROptions",
+        _HF.format("zju-community/efficientloftr", "efficientloftr"),
+    ),
     "mast3r": _Entry(
-        _mast3r("mast3r"), "mast3r.Mast3rOptions",
-        "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in a weights folder, non-commercial"),
-    "dust3r": _Entry(_mast3r("dust3r"), "mast3r.Mast3rOptions",
-                     "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in a weights folder, non-commercial"),
-    "mickey": _Entry(_mickey, "mickey.MickeyOptions",
-                     "weights: mickey.ckpt + dinov2_vitl14_pretrain.pth in the mickey/ folder of a weights folder, "
-                     "non-commercial"),
+        _mast3r("mast3r"),
+        "mast3r.Mast3rOptions",
+        "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in a weights folder, non-commercial",
+    ),
+    "dust3r": _Entry(
+        _mast3r("dust3r"),
+        "mast3r.Mast3rOptions",
+        "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in a weights folder, non-commercial",
+    ),
+    "mickey": _Entry(
+        _mickey,
+        "mickey.MickeyOptions",
+        "weights: mickey.ckpt + dinov2_vitl14_pretrain.pth in the mickey/ folder of a weights folder, non-commercial",
+    ),
 }
 
 

@@ -45,10 +45,10 @@ class Matches:
         return len(self.kpts0)
 
     @classmethod
-    def empty(cls) -> "Matches":
+    def empty(cls) -> Matches:
         return cls(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
 
-    def subset(self, mask: np.ndarray) -> "Matches":
+    def subset(self, mask: np.ndarray) -> Matches:
         return Matches(self.kpts0[mask], self.kpts1[mask], self.scores[mask])
 
 

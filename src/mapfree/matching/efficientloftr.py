@@ -25,8 +25,14 @@ from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_class
 from .published import EFFICIENTLOFTR_MODEL
 from .utils import autocast, checked_or_blank, inside
 
-__all__ = ["EfficientLoFTROptions", "EfficientLoFTRMatcher", "EFFICIENTLOFTR_MODEL", "efficientloftr_available",
-           "mutual_pairs", "refine"]
+__all__ = [
+    "EfficientLoFTROptions",
+    "EfficientLoFTRMatcher",
+    "EFFICIENTLOFTR_MODEL",
+    "efficientloftr_available",
+    "mutual_pairs",
+    "refine",
+]
 
 #: The backbone's coarse map is 1/8 of the input and its aggregated attention pools by 4: sides multiples of 32.
 MULTIPLE = 32
@@ -45,12 +51,14 @@ def efficientloftr_available(weights: str | None = None) -> bool:
     return find_hub_model(EFFICIENTLOFTR_MODEL, weights) is not None
 
 
-def mutual_pairs(conf: torch.Tensor, shape0: tuple[int, int], shape1: tuple[int, int], threshold: float,
-                 border: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def mutual_pairs(
+    conf: torch.Tensor, shape0: tuple[int, int], shape1: tuple[int, int], threshold: float, border: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Mutual best cells of a coarse confidence matrix (N0, N1) above ``threshold``, cells within ``border`` of
     either grid's (rows, cols) edge excluded: (cells of image 0, their partners in image 1, confidences)."""
     keep = conf > threshold
     if border > 0:
+
         def inner(shape: tuple[int, int]) -> torch.Tensor:
             m = torch.zeros(shape, dtype=torch.bool, device=conf.device)
             m[border:-border, border:-border] = True
@@ -66,8 +74,15 @@ def mutual_pairs(conf: torch.Tensor, shape0: tuple[int, int], shape1: tuple[int,
     return i, j, conf[i, j]
 
 
-def refine(fine0: torch.Tensor, fine1: torch.Tensor, kp0: torch.Tensor, kp1: torch.Tensor, slice_dim: int,
-           temperature: float, step: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+def refine(
+    fine0: torch.Tensor,
+    fine1: torch.Tensor,
+    kp0: torch.Tensor,
+    kp1: torch.Tensor,
+    slice_dim: int,
+    temperature: float,
+    step: float = 1.0,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """EfficientLoFTR's two fine stages for M coarse matches.
 
     ``fine0`` (M, W*W, C): image 0's window around each match; ``fine1`` (M, (W+2)^2, C): image 1's, one pixel
@@ -81,11 +96,11 @@ def refine(fine0: torch.Tensor, fine1: torch.Tensor, kp0: torch.Tensor, kp1: tor
     sim = (a0 / c**0.5) @ (a1 / c**0.5).transpose(1, 2)  # (M, WW, (W+2)^2)
     conf = (sim.softmax(1) * sim.softmax(2)).reshape(m, ww, w + 2, w + 2)[..., 1:-1, 1:-1].reshape(m, ww * ww)
     best = conf.argmax(1)
-    l, r = best // ww, best % ww
+    left, r = best // ww, best % ww
     # Window pixel m sits at m - W/2 + 0.5 from the coarse point (8 x cell): the frame the published models were
     # trained in (their fine-level ground truth is built on the same grid), so the output is in image pixels.
     offsets = torch.arange(w, device=fine0.device, dtype=kp0.dtype) - w // 2 + 0.5
-    kp0 = kp0 + torch.stack([offsets[l % w], offsets[l // w]], -1) * step
+    kp0 = kp0 + torch.stack([offsets[left % w], offsets[left // w]], -1) * step
     kp1 = kp1 + torch.stack([offsets[r % w], offsets[r // w]], -1) * step
     # Stage 2: image 0's best pixel against the 3x3 block of image 1's window at (row r//w, col r%w) - 1 + d.
     sim2 = (b0 @ (b1 / slice_dim**0.5).transpose(1, 2)).reshape(m, ww, w + 2, w + 2)
@@ -93,7 +108,7 @@ def refine(fine0: torch.Tensor, fine1: torch.Tensor, kp0: torch.Tensor, kp1: tor
     rows = (r // w)[:, None, None] + d[None, :, None]
     cols = (r % w)[:, None, None] + d[None, None, :]
     idx = torch.arange(m, device=fine0.device)[:, None, None]
-    heat = (sim2[idx, l[:, None, None], rows, cols].reshape(m, 9) / temperature).softmax(1).reshape(m, 3, 3)
+    heat = (sim2[idx, left[:, None, None], rows, cols].reshape(m, 9) / temperature).softmax(1).reshape(m, 3, 3)
     grid = d.to(heat.dtype)  # normalised coordinates -1, 0, 1 of the 3x3 block
     shift = torch.stack([(heat.sum(1) * grid).sum(1), (heat.sum(2) * grid).sum(1)], -1)
     return kp0, kp1 + shift * step
@@ -106,7 +121,8 @@ class EfficientLoFTRMatcher:
 
     def __init__(self, options: EfficientLoFTROptions | None = None, **overrides: object) -> None:
         EfficientLoFTRConfig, EfficientLoFTRForKeypointMatching = transformers_classes(
-            "EfficientLoFTRConfig", "EfficientLoFTRForKeypointMatching")
+            "EfficientLoFTRConfig", "EfficientLoFTRForKeypointMatching"
+        )
 
         self.options = o = EfficientLoFTROptions.build(overrides, owner="matcher 'efficientloftr'", base=options)
         self.device = resolve_device(o.device)
@@ -115,8 +131,9 @@ class EfficientLoFTRMatcher:
             if o.match_threshold is not None:
                 cfg.coarse_matching_threshold = float(o.match_threshold)  # a strict dataclass field
 
-        self.net = load_hub_model(EfficientLoFTRForKeypointMatching, EfficientLoFTRConfig, EFFICIENTLOFTR_MODEL,
-                                  o.weights, configure).to(self.device)
+        self.net = load_hub_model(
+            EfficientLoFTRForKeypointMatching, EfficientLoFTRConfig, EFFICIENTLOFTR_MODEL, o.weights, configure
+        ).to(self.device)
 
     def extract(self, image: np.ndarray) -> Features:
         image, blank = checked_or_blank(image)
@@ -147,8 +164,9 @@ class EfficientLoFTRMatcher:
             flat = coarse[0].flatten(2).transpose(1, 2).float() / c**0.5  # (2, h*w, C)
             sim = flat[0] @ flat[1].t() / cfg.coarse_matching_temperature
             conf = sim if cfg.coarse_matching_skip_softmax else sim.softmax(0) * sim.softmax(1)
-            i, j, score = mutual_pairs(conf, (hc, wc), (hc, wc), cfg.coarse_matching_threshold,
-                                       cfg.coarse_matching_border_removal)
+            i, j, score = mutual_pairs(
+                conf, (hc, wc), (hc, wc), cfg.coarse_matching_threshold, cfg.coarse_matching_border_removal
+            )
             if len(i) == 0:
                 return Matches.empty()
             step = x0.shape[-2] / hc  # input pixels per coarse cell (8)
@@ -156,8 +174,18 @@ class EfficientLoFTRMatcher:
             kp1 = torch.stack([j % wc, j // wc], -1).float() * step
             fine0, fine1 = net.refinement_layer(coarse / cfg.hidden_size**0.5, feats[1:])
             fine_step = x0.shape[-2] / int(hc * step)
-            kp0, kp1 = refine(fine0[0, i].float(), fine1[0, j].float(), kp0, kp1, cfg.fine_matching_slice_dim,
-                              cfg.fine_matching_regress_temperature, fine_step)
-        m = Matches(to_original(kp0.cpu().numpy(), f0.data["scale"]), to_original(kp1.cpu().numpy(), scale1),
-                    score.float().cpu().numpy())
+            kp0, kp1 = refine(
+                fine0[0, i].float(),
+                fine1[0, j].float(),
+                kp0,
+                kp1,
+                cfg.fine_matching_slice_dim,
+                cfg.fine_matching_regress_temperature,
+                fine_step,
+            )
+        m = Matches(
+            to_original(kp0.cpu().numpy(), f0.data["scale"]),
+            to_original(kp1.cpu().numpy(), scale1),
+            score.float().cpu().numpy(),
+        )
         return m.subset(inside(m.kpts0, f0.image_size) & inside(m.kpts1, f1.image_size))

@@ -51,8 +51,7 @@ def resolve_name(name: str) -> str:
     return registry_key(name)
 
 
-def match_files(image0: os.PathLike | str, image1: os.PathLike | str, matcher: str,
-                **options: object) -> PairMatches:
+def match_files(image0: os.PathLike | str, image1: os.PathLike | str, matcher: str, **options: object) -> PairMatches:
     """Read both images (``FormatError`` naming an unreadable one), build ``matcher`` (``KeyError``,
     ``MissingWeightsError``, or ``OptionError`` for an option it does not have or a bad value) and match them."""
     from ..data import read_image
@@ -65,8 +64,17 @@ def match_files(image0: os.PathLike | str, image1: os.PathLike | str, matcher: s
     f0, f1 = mt.extract(im0), mt.extract(im1)
     m = mt.match(f0, f1)
     t2 = time.perf_counter()
-    return PairMatches(m, str(image0), str(image1), (im0.shape[1], im0.shape[0]), (im1.shape[1], im1.shape[0]),
-                       name, t2 - t1, t1 - t0, (len(f0), len(f1)))
+    return PairMatches(
+        m,
+        str(image0),
+        str(image1),
+        (im0.shape[1], im0.shape[0]),
+        (im1.shape[1], im1.shape[0]),
+        name,
+        t2 - t1,
+        t1 - t0,
+        (len(f0), len(f1)),
+    )
 
 
 def save_npz(path: os.PathLike | str, r: PairMatches) -> Path:
@@ -75,10 +83,15 @@ def save_npz(path: os.PathLike | str, r: PairMatches) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     m = r.matches
     arrays = {
-        "kpts0": m.kpts0.astype(np.float32), "kpts1": m.kpts1.astype(np.float32),
-        "scores": m.scores.astype(np.float32), "image0": np.str_(r.image0), "image1": np.str_(r.image1),
-        "size0": np.asarray(r.size0, np.int32), "size1": np.asarray(r.size1, np.int32),
-        "matcher": np.str_(r.matcher), "seconds": np.float64(r.seconds),
+        "kpts0": m.kpts0.astype(np.float32),
+        "kpts1": m.kpts1.astype(np.float32),
+        "scores": m.scores.astype(np.float32),
+        "image0": np.str_(r.image0),
+        "image1": np.str_(r.image1),
+        "size0": np.asarray(r.size0, np.int32),
+        "size1": np.asarray(r.size1, np.int32),
+        "matcher": np.str_(r.matcher),
+        "seconds": np.float64(r.seconds),
     }
     assert list(arrays) == list(NPZ_KEYS)
     with open(path, "wb") as f:  # np.savez would append .npz to a name without it

@@ -70,7 +70,7 @@ class _Side:
         self.desc, self.enc, self.mask = desc, enc, mask
         self.index = torch.arange(mask.shape[1], device=mask.device).expand_as(mask)
 
-    def take(self, rows: torch.Tensor) -> "_Side":
+    def take(self, rows: torch.Tensor) -> _Side:
         out = _Side.__new__(_Side)
         out.desc, out.enc, out.mask, out.index = self.desc[rows], self.enc[:, rows], self.mask[rows], self.index[rows]
         return out
@@ -106,8 +106,9 @@ def _assign(net: LightGlue, layer: int, s0: _Side, s1: _Side, threshold: float):
     return s0.index, m0, ms0
 
 
-def run_glue(net: LightGlue, ref: GlueInput, queries: list[GlueInput], *, mixed_precision: bool = False,
-             bucket: int = BUCKET) -> list[tuple[np.ndarray, np.ndarray]]:
+def run_glue(
+    net: LightGlue, ref: GlueInput, queries: list[GlueInput], *, mixed_precision: bool = False, bucket: int = BUCKET
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Match ``ref`` against every query with the LightGlue ``net``: per pair (indices (K,2) into ref and
     query keypoints, scores (K,)). Uses the net's ``depth_confidence``, ``width_confidence`` and
     ``filter_threshold`` like kornia; early stopping and pruning are decided per pair."""
@@ -120,8 +121,9 @@ def run_glue(net: LightGlue, ref: GlueInput, queries: list[GlueInput], *, mixed_
     amp = mixed_precision and device.type == "cuda"
     with torch.inference_mode(), steady_kernels(), torch.autocast(device.type, dtype=torch.float16, enabled=amp):
         k0, d0, m0 = _pad([ref], bucket_length(len(ref.keypoints), bucket), device)
-        k1, d1, m1 = _pad([queries[i] for i in live], bucket_length(max(len(queries[i].keypoints) for i in live),
-                                                                    bucket), device)
+        k1, d1, m1 = _pad(
+            [queries[i] for i in live], bucket_length(max(len(queries[i].keypoints) for i in live), bucket), device
+        )
         b = len(live)
         pe = net.posenc.Wr.weight.dtype
         enc0 = net.posenc(k0.to(pe)).expand(-1, b, -1, -1, -1)
@@ -132,8 +134,9 @@ def run_glue(net: LightGlue, ref: GlueInput, queries: list[GlueInput], *, mixed_
         prune_from = net.pruning_min_kpts(device)
         done: list[tuple] = []
         for layer in range(conf.n_layers):
-            s0.desc, s1.desc = net.transformers[layer].masked_forward(s0.desc, s1.desc, s0.enc, s1.enc,
-                                                                      s0.attn_mask, s1.attn_mask)
+            s0.desc, s1.desc = net.transformers[layer].masked_forward(
+                s0.desc, s1.desc, s0.enc, s1.enc, s0.attn_mask, s1.attn_mask
+            )
             if layer == conf.n_layers - 1:
                 break
             stop = torch.zeros(len(rows), dtype=torch.bool, device=device)

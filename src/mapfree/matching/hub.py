@@ -10,13 +10,14 @@ folder, before any work; a folder that is there but incomplete or cut short: a `
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
 
-from ..weights import BrokenWeightsError, HubModel, MissingWeightsError, check_folder, offline_why, reachable
+from ..weights import BrokenWeightsError, HubModel, check_folder, offline_why, reachable
 from .utils import matching_size
 
 __all__ = ["HubModel", "find_hub_model", "load_hub_model", "transformers_classes", "grey_pixels", "GREY_WEIGHTS"]
@@ -40,8 +41,9 @@ def transformers_classes(*names: str) -> tuple[Any, ...]:
 
     missing = [n for n in names if not hasattr(transformers, n)]
     if missing:
-        raise ImportError(f"transformers {transformers.__version__} has no {', '.join(missing)}: "
-                          f"pip install -U transformers")
+        raise ImportError(
+            f"transformers {transformers.__version__} has no {', '.join(missing)}: pip install -U transformers"
+        )
     return tuple(getattr(transformers, n) for n in names)
 
 
@@ -50,7 +52,10 @@ class _OptionError(ValueError):
 
 
 def load_hub_model(
-    model_cls: Any, config_cls: Any, hm: HubModel, explicit: str | os.PathLike | None = None,
+    model_cls: Any,
+    config_cls: Any,
+    hm: HubModel,
+    explicit: str | os.PathLike | None = None,
     configure: Callable[[Any], None] | None = None,
 ) -> Any:
     """``model_cls.from_pretrained`` of ``hm`` from its local source (or a download when online), its config
@@ -80,8 +85,7 @@ def load_hub_model(
                 configure(config)
             except (TypeError, ValueError) as e:
                 raise _OptionError(f"{hm.what}: an option has a value of the wrong type ({e})") from None
-        net, info = model_cls.from_pretrained(src, config=config, local_files_only=local_only,
-                                              output_loading_info=True)
+        net, info = model_cls.from_pretrained(src, config=config, local_files_only=local_only, output_loading_info=True)
         # transformers fills missing weights with random ones and only warns: refuse such a folder instead
         bad = [*info.get("missing_keys", ()), *info.get("mismatched_keys", ())]
         if bad:
@@ -94,8 +98,9 @@ def load_hub_model(
         if isinstance(e, RuntimeError) and "size" in first:  # transformers' refusal of mismatched sizes says only that
             first = "weights of the wrong shape for its config.json"
         if Path(src).is_dir():
-            raise BrokenWeightsError(f"{hm.what}: model folder {src} is refused: not a {hm.what} model folder "
-                                     f"({first})") from None
+            raise BrokenWeightsError(
+                f"{hm.what}: model folder {src} is refused: not a {hm.what} model folder ({first})"
+            ) from None
         raise hm.missing(first) from None
 
 

@@ -5,9 +5,9 @@ from a local path or a download on first use."""
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -18,15 +18,14 @@ from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
 from .base import Features, Matches
 from .glue import glue_input, run_glue
+from .published import SHIPPED, SUPERPOINT_LIGHTGLUE_WEIGHTS, SUPERPOINT_WEIGHTS
 from .superpoint import SuperPoint
 from .utils import autocast, check_image, image_tensor, is_textureless, resize_for_matching
-from .published import SHIPPED, SUPERPOINT_LIGHTGLUE_WEIGHTS, SUPERPOINT_WEIGHTS
 from .weights import MissingWeightsError, WeightFile, find_local, load_checkpoint, resolve_weights, shipped_weights
 
 __all__ = ["LightGlueOptions", "LightGlueMatcher", "FEATURES", "SUPERPOINT_WEIGHTS", "SUPERPOINT_LIGHTGLUE_WEIGHTS"]
 
 FEATURES = ("aliked", "disk", "superpoint")
-
 
 
 @dataclass
@@ -71,8 +70,6 @@ def _load_strict(module: torch.nn.Module, sd: dict, what: str, path: Path) -> No
             f"{path}: not a {what} checkpoint (missing {missing[:3]}, unexpected {res.unexpected_keys[:3]})"
         )
     module.eval()
-
-
 
 
 def shipped_file(filename: str) -> Path:
@@ -154,8 +151,15 @@ class LightGlueMatcher:
             return [(f.keypoints, f.descriptors) for f in self.extractor(x)]
         return [(f["keypoints"], f["descriptors"]) for f in self.extractor(x)]
 
-    def _features(self, image: np.ndarray, small: np.ndarray, scale, kp: torch.Tensor, desc: torch.Tensor,
-                  kp_host: np.ndarray | None = None) -> Features:
+    def _features(
+        self,
+        image: np.ndarray,
+        small: np.ndarray,
+        scale,
+        kp: torch.Tensor,
+        desc: torch.Tensor,
+        kp_host: np.ndarray | None = None,
+    ) -> Features:
         resized = (small.shape[1], small.shape[0])
         data = {"keypoints": kp.float(), "descriptors": desc, "scale": scale, "resized": resized}
         host = kp.float().cpu().numpy() if kp_host is None else kp_host
@@ -185,8 +189,9 @@ class LightGlueMatcher:
             with autocast(self.device, self.options.mixed_precision), steady_kernels():
                 res = self._run_extractor(x)
             # One device-to-host copy for the whole group's keypoints.
-            host = np.split(torch.cat([kp.float() for kp, _ in res]).cpu().numpy(),
-                            np.cumsum([len(kp) for kp, _ in res])[:-1])
+            host = np.split(
+                torch.cat([kp.float() for kp, _ in res]).cpu().numpy(), np.cumsum([len(kp) for kp, _ in res])[:-1]
+            )
             for i, (kp, desc), kh in zip(idx, res, host):
                 out[i] = self._features(images[i], prepared[i][0], prepared[i][1], kp, desc.float(), kh)
         return out  # type: ignore[return-value]
@@ -224,5 +229,10 @@ def superpoint_weights_available(folder: str | os.PathLike | None = None) -> boo
     return all(find_local(wf, folder) is not None for wf in (SUPERPOINT_WEIGHTS, SUPERPOINT_LIGHTGLUE_WEIGHTS))
 
 
-__all__ += ["superpoint_weights_available", "lightglue_weights_available", "shipped_file", "SHIPPED",
-            "MissingWeightsError"]
+__all__ += [
+    "superpoint_weights_available",
+    "lightglue_weights_available",
+    "shipped_file",
+    "SHIPPED",
+    "MissingWeightsError",
+]

@@ -16,6 +16,7 @@ from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
 from .base import Features, Matches
+from .published import LOFTR_WEIGHTS
 from .utils import (
     autocast,
     checked_or_blank,
@@ -23,12 +24,9 @@ from .utils import (
     inside,
     resize_for_matching,
 )
-from .published import LOFTR_WEIGHTS
 from .weights import find_local, load_checkpoint, resolve_weights
 
 __all__ = ["LoFTROptions", "LoFTRMatcher", "LOFTR_WEIGHTS", "loftr_weights_available"]
-
-
 
 
 @dataclass

@@ -8,14 +8,14 @@ pixels' confidences. The same forward pass serves the ``mast3r``/``dust3r`` dept
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
 from ..mast3r.engine import EncodedImage, PairEngine, PairOutput, shared_engine
-from ..options import Options, option
 from ..mast3r.reciprocal import reciprocal_matches
+from ..options import Options, option
 from .base import Features, Matches
 from .utils import checked_or_blank
 
@@ -37,8 +37,9 @@ class Mast3rMatcher:
     """Dense matcher on MASt3R descriptors or DUSt3R pointmaps; keypoints in original-image pixels."""
 
     def __init__(self, options: Mast3rOptions | None = None, **overrides: object) -> None:
-        self.options = o = Mast3rOptions.build(overrides, owner=f"matcher {overrides.get('kind', 'mast3r')!r}",
-                                               base=options)
+        self.options = o = Mast3rOptions.build(
+            overrides, owner=f"matcher {overrides.get('kind', 'mast3r')!r}", base=options
+        )
         if o.kind not in ("mast3r", "dust3r"):
             raise ValueError(f"unknown kind {o.kind!r}; choose mast3r or dust3r")
         self.name = o.kind
@@ -90,8 +91,9 @@ class Mast3rMatcher:
         else:  # 3-D points in view 1's frame: KD-trees on the CPU, as the public code
             xy0, xy1 = reciprocal_matches(out.pts1, out.pts2, self.options.subsample, self.engine.device)
             c0, c1 = out.conf1, out.conf2
-        keep = _away_from_border(xy0, c0.shape, self.options.border_px) & _away_from_border(xy1, c1.shape,
-                                                                                              self.options.border_px)
+        keep = _away_from_border(xy0, c0.shape, self.options.border_px) & _away_from_border(
+            xy1, c1.shape, self.options.border_px
+        )
         xy0, xy1 = xy0[keep], xy1[keep]
         scores = np.minimum(c0[xy0[:, 1], xy0[:, 0]], c1[xy1[:, 1], xy1[:, 0]]).astype(np.float64)
         m = Matches(e0.prepared.to_original(xy0), e1.prepared.to_original(xy1), scores)

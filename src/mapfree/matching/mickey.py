@@ -9,8 +9,8 @@ solver draws from it, and the ``mickey`` depth source reads the keypoints' depth
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import torch

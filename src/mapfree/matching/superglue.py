@@ -24,7 +24,6 @@ from .utils import autocast, checked_or_blank
 __all__ = ["SuperGlueOptions", "SuperGlueMatcher", "SUPERGLUE_MODELS", "superglue_available"]
 
 
-
 @dataclass
 class SuperGlueOptions(Options):
     weights_kind: str = option("outdoor", choices=("outdoor", "indoor"))
@@ -57,8 +56,9 @@ class SuperGlueMatcher:
     """``superglue`` (outdoor weights) / ``superglue-indoor``."""
 
     def __init__(self, options: SuperGlueOptions | None = None, **overrides: object) -> None:
-        SuperGlueConfig, SuperGlueForKeypointMatching = transformers_classes("SuperGlueConfig",
-                                                                            "SuperGlueForKeypointMatching")
+        SuperGlueConfig, SuperGlueForKeypointMatching = transformers_classes(
+            "SuperGlueConfig", "SuperGlueForKeypointMatching"
+        )
 
         self.options = o = SuperGlueOptions.build(overrides, owner="matcher 'superglue'", base=options)
         if o.weights_kind not in SUPERGLUE_MODELS:
@@ -74,8 +74,9 @@ class SuperGlueMatcher:
             sp.max_keypoints, sp.nms_radius = int(o.max_keypoints), int(o.nms_radius)
             sp.keypoint_threshold = float(o.keypoint_threshold)
 
-        net = load_hub_model(SuperGlueForKeypointMatching, SuperGlueConfig, SUPERGLUE_MODELS[o.weights_kind],
-                             o.weights, configure)
+        net = load_hub_model(
+            SuperGlueForKeypointMatching, SuperGlueConfig, SUPERGLUE_MODELS[o.weights_kind], o.weights, configure
+        )
         self.net = net.to(self.device)
 
     @torch.inference_mode()
@@ -90,8 +91,12 @@ class SuperGlueMatcher:
         n = int(det.mask[0].sum())
         # SuperPoint reports keypoints relative to the input size; times (w, h) they are its integer pixels.
         kp = det.keypoints[0, :n].float() * det.keypoints.new_tensor([w, h]).float()
-        data = {"keypoints": kp, "scores": det.scores[0, :n].float(), "descriptors": det.descriptors[0, :n].float(),
-                "resized": (w, h)}
+        data = {
+            "keypoints": kp,
+            "scores": det.scores[0, :n].float(),
+            "descriptors": det.descriptors[0, :n].float(),
+            "resized": (w, h),
+        }
         return Features(to_original(kp.cpu().numpy(), scale), (image.shape[1], image.shape[0]), data)
 
     @torch.inference_mode()
@@ -116,4 +121,3 @@ class SuperGlueMatcher:
         s0 = match_scores[0, 0, :n0].float().cpu().numpy()
         ok = (m0 > -1) & (m0 < n1)
         return Matches(f0.kpts[ok], f1.kpts[m0[ok]], s0[ok])
-

@@ -63,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
         im0, im1 = (cv2.resize(im, (w, h), interpolation=cv2.INTER_LINEAR) for im in (im0, im1))
     dev = a.device or ("cuda" if torch.cuda.is_available() else "cpu")
     print(f"{im0.shape[1]}x{im0.shape[0]} images, device {dev}, {a.threads} thread(s)")
-    print(f"{'matcher':20s} {'extract':>8s} {'match':>8s} {'pair':>8s} {'pair cpu':>8s} {'kpts':>6s} {'matches':>7s}  (ms)")
+    print(
+        f"{'matcher':20s} {'extract':>8s} {'match':>8s} {'pair':>8s} {'pair cpu':>8s} {'kpts':>6s} {'matches':>7s}  (ms)"
+    )
     for name in a.names or available():
         r = time_matcher(name, im0, im1, a.repeats, device=dev)
         pair = 2 * r["extract_ms"] + r["match_ms"]

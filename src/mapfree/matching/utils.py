@@ -6,7 +6,8 @@ command then starts without loading torch (a second or more of every ``mapfree``
 from __future__ import annotations
 
 import contextlib
-from typing import TYPE_CHECKING, Iterator
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np

@@ -18,6 +18,18 @@ from ..weights import (
     weights_dir,
 )
 
-__all__ = ["MissingWeightsError", "BrokenWeightsError", "WeightFile", "WEIGHTS_ENV", "OFFLINE_ENV", "find_local",
-           "resolve_weights", "package_file", "shipped_weights", "load_checkpoint", "reachable", "in_hf_cache",
-           "weights_dir"]
+__all__ = [
+    "MissingWeightsError",
+    "BrokenWeightsError",
+    "WeightFile",
+    "WEIGHTS_ENV",
+    "OFFLINE_ENV",
+    "find_local",
+    "resolve_weights",
+    "package_file",
+    "shipped_weights",
+    "load_checkpoint",
+    "reachable",
+    "in_hf_cache",
+    "weights_dir",
+]

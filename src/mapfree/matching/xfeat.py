@@ -6,8 +6,8 @@ from __future__ import annotations
 import contextlib
 import io
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -19,7 +19,6 @@ from ..runtime import resolve_device, steady_kernels
 from .base import Features, Matches
 from .glue import glue_input, run_glue
 from .published import XFEAT_WEIGHTS
-from .weights import load_checkpoint, resolve_weights
 from .utils import (
     check_image,
     image_tensor,
@@ -28,6 +27,7 @@ from .utils import (
     mutual_nearest,
     resize_for_matching,
 )
+from .weights import load_checkpoint, resolve_weights
 
 __all__ = ["XFeatOptions", "XFeatMatcher", "MODES"]
 
@@ -126,8 +126,14 @@ class XFeatMatcher:
             with steady_kernels():
                 if self.mode == "star":
                     dense = self.net.detectAndComputeDense(x, top_k=self.top_k, multiscale=True)
-                    datas = [{"keypoints": dense["keypoints"][b], "descriptors": dense["descriptors"][b],
-                              "scales": dense["scales"][b]} for b in range(len(group))]
+                    datas = [
+                        {
+                            "keypoints": dense["keypoints"][b],
+                            "descriptors": dense["descriptors"][b],
+                            "scales": dense["scales"][b],
+                        }
+                        for b in range(len(group))
+                    ]
                 else:
                     th = self.options.detection_threshold
                     datas = [dict(o) for o in self.net.detectAndCompute(x, top_k=self.top_k, detection_threshold=th)]
@@ -172,8 +178,7 @@ class XFeatMatcher:
         ref, out = glue_input(f0), []
         for start in range(0, len(f1s), batch_size):
             chunk = f1s[start : start + batch_size]
-            res = run_glue(self.glue, ref, [glue_input(f) for f in chunk],
-                           mixed_precision=self.options.mixed_precision)
+            res = run_glue(self.glue, ref, [glue_input(f) for f in chunk], mixed_precision=self.options.mixed_precision)
             out += [Matches(f0.kpts[i[:, 0]], f1.kpts[i[:, 1]], s) for f1, (i, s) in zip(chunk, res)]
         return out
 

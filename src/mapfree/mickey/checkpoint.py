@@ -20,9 +20,10 @@ from __future__ import annotations
 import os
 import pickle
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import torch
 
@@ -33,9 +34,23 @@ from .dinov2 import ViTShape
 from .model import MickeyNet
 from .published import MICKEY_CHECKPOINTS, MICKEY_DINOV2, MICKEY_ZIP_URL
 
-__all__ = ["MickeyFiles", "CHECKPOINTS", "WEIGHTS_ZIP_URL", "DINOV2_URL", "SUBDIR", "find_files", "files_available",
-           "read_checkpoint", "read_dinov2", "network_from_state_dicts", "load_network", "published_key",
-           "EXTRACTOR_PREFIX", "DUSTBIN_KEY", "DINOV2_FILE"]
+__all__ = [
+    "MickeyFiles",
+    "CHECKPOINTS",
+    "WEIGHTS_ZIP_URL",
+    "DINOV2_URL",
+    "SUBDIR",
+    "find_files",
+    "files_available",
+    "read_checkpoint",
+    "read_dinov2",
+    "network_from_state_dicts",
+    "load_network",
+    "published_key",
+    "EXTRACTOR_PREFIX",
+    "DUSTBIN_KEY",
+    "DINOV2_FILE",
+]
 
 SUBDIR = MICKEY_DINOV2.folder
 CHECKPOINTS = tuple(MICKEY_CHECKPOINTS)
@@ -64,9 +79,13 @@ def _config(path: str | os.PathLike) -> Path:
     return p
 
 
-def find_files(checkpoint: str = "mickey", weights: str | os.PathLike | None = None,
-               dinov2: str | os.PathLike | None = None, config: str | os.PathLike | None = None,
-               download: bool = True) -> MickeyFiles:
+def find_files(
+    checkpoint: str = "mickey",
+    weights: str | os.PathLike | None = None,
+    dinov2: str | os.PathLike | None = None,
+    config: str | os.PathLike | None = None,
+    download: bool = True,
+) -> MickeyFiles:
     """The checkpoint (``checkpoint`` = ``mickey`` | ``mickey_sc``, or the file ``weights``), the DINOv2 file and
     the config YAML (the one beside the checkpoint when there is one; else the published defaults are used), by
     the weights rule. A missing file is a ``MissingWeightsError`` naming it, where it was looked for and where it is
@@ -94,7 +113,7 @@ def files_available(checkpoint: str = "mickey") -> bool:
 class _Inert:
     """Stands for any non-tensor object a checkpoint pickles (never constructed from the file's data)."""
 
-    def __new__(cls, *args: Any, **kwargs: Any) -> "_Inert":
+    def __new__(cls, *args: Any, **kwargs: Any) -> _Inert:
         return object.__new__(cls)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -140,8 +159,9 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     ckpt = _load_tensors(path, "MicKey checkpoint", expected)
     sd = ckpt.get("state_dict") if isinstance(ckpt, dict) and "state_dict" in ckpt else ckpt
     if not isinstance(sd, Mapping) or not any(str(k).startswith(EXTRACTOR_PREFIX) for k in sd):
-        raise BrokenWeightsError(f"{path}: not a MicKey checkpoint (no 'state_dict' with {EXTRACTOR_PREFIX}* keys); "
-                         f"expected {expected}")
+        raise BrokenWeightsError(
+            f"{path}: not a MicKey checkpoint (no 'state_dict' with {EXTRACTOR_PREFIX}* keys); expected {expected}"
+        )
     return {k: v for k, v in sd.items() if not k.startswith(_CKPT_DINOV2) and isinstance(v, torch.Tensor)}
 
 
@@ -150,26 +170,32 @@ def read_dinov2(path: str | os.PathLike) -> dict[str, torch.Tensor]:
     path = Path(path)
     sd = _load_tensors(path, "DINOv2 weight file", f"{DINOV2_FILE} from {DINOV2_URL}")
     if not isinstance(sd, Mapping) or "pos_embed" not in sd:
-        raise BrokenWeightsError(f"{path}: not a DINOv2 weight file (no 'pos_embed'); expected {DINOV2_FILE} from "
-                         f"{DINOV2_URL}")
+        raise BrokenWeightsError(
+            f"{path}: not a DINOv2 weight file (no 'pos_embed'); expected {DINOV2_FILE} from {DINOV2_URL}"
+        )
     return dict(sd)
 
 
 def published_key(key: str) -> str:
     """Our network's parameter name -> the published file's (the backbone's: the DINOv2 file's own key)."""
     if key.startswith("backbone."):
-        return key[len("backbone."):]
+        return key[len("backbone.") :]
     return DUSTBIN_KEY if key == "dustbin_score" else EXTRACTOR_PREFIX + key
 
 
-def network_from_state_dicts(cfg: MickeyConfig, heads: Mapping[str, torch.Tensor],
-                             dinov2: Mapping[str, torch.Tensor], source: str = "checkpoint",
-                             dinov2_source: str = "DINOv2 weights") -> MickeyNet:
+def network_from_state_dicts(
+    cfg: MickeyConfig,
+    heads: Mapping[str, torch.Tensor],
+    dinov2: Mapping[str, torch.Tensor],
+    source: str = "checkpoint",
+    dinov2_source: str = "DINOv2 weights",
+) -> MickeyNet:
     """Build the network (DINOv2's size from its state dict) and load both state dicts strictly."""
     vit = ViTShape.from_state_dict(dinov2, dinov2_source)
     if cfg.channel_dim is not None and cfg.channel_dim != vit.dim:
-        raise ValueError(f"{dinov2_source}: a DINOv2 of width {vit.dim}, but the MicKey config says CHANNEL_DIM "
-                         f"{cfg.channel_dim}")
+        raise ValueError(
+            f"{dinov2_source}: a DINOv2 of width {vit.dim}, but the MicKey config says CHANNEL_DIM {cfg.channel_dim}"
+        )
     with torch.device("meta"):
         net = MickeyNet(cfg, vit)
     ours = net.state_dict()
@@ -184,8 +210,10 @@ def network_from_state_dicts(cfg: MickeyConfig, heads: Mapping[str, torch.Tensor
     for what, have, want in ((source, set(heads), head_keys), (dinov2_source, set(dinov2), dino_keys)):
         missing, unexpected = sorted(want - have), sorted(have - want)
         if missing or unexpected:
-            raise ValueError(f"{what}: state dict does not fit MicKey ({len(missing)} missing, e.g. {missing[:2]}; "
-                             f"{len(unexpected)} unexpected, e.g. {unexpected[:2]})")
+            raise ValueError(
+                f"{what}: state dict does not fit MicKey ({len(missing)} missing, e.g. {missing[:2]}; "
+                f"{len(unexpected)} unexpected, e.g. {unexpected[:2]})"
+            )
     try:
         net.load_state_dict(sd, strict=True, assign=True)
     except RuntimeError as e:
@@ -198,7 +226,8 @@ def load_network(files: MickeyFiles, device: str | torch.device = "cpu", fp16: b
     """The files -> the network in eval mode on ``device``; DINOv2 in float16 when ``fp16``, or (None) where
     the config says so and ``device`` is a GPU (CPU half kernels are slow)."""
     cfg = config_from_yaml(files.config) if files.config is not None else MickeyConfig()
-    net = network_from_state_dicts(cfg, read_checkpoint(files.checkpoint), read_dinov2(files.dinov2),
-                                   str(files.checkpoint), str(files.dinov2))
+    net = network_from_state_dicts(
+        cfg, read_checkpoint(files.checkpoint), read_dinov2(files.dinov2), str(files.checkpoint), str(files.dinov2)
+    )
     half = cfg.float16 and torch.device(device).type == "cuda" if fp16 is None else bool(fp16)
     return net.to(device).half_backbone(half)

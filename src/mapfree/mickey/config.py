@@ -9,9 +9,10 @@ as the solver's defaults (``mapfree.solvers.mickey``).
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from ..yamlio import read_yaml
 
@@ -67,8 +68,12 @@ def config_from_mapping(tree: Mapping[str, Any], where: str = "config") -> Micke
     use_tf = _get(tree, "FEATURE_MATCHER.USE_TRANSFORMER", False)
     need(not use_tf, "FEATURE_MATCHER.USE_TRANSFORMER", use_tf, "no matching transformer in the published model")
     blocks = tuple(int(v) for v in _get(tree, "MICKEY.KP_HEADS.BLOCKS_DIM", d.kp_blocks))
-    need(len(blocks) == 4 and blocks[2] == ATTENTION_DIM, "MICKEY.KP_HEADS.BLOCKS_DIM", list(blocks),
-         f"four blocks, the third {ATTENTION_DIM} wide (the attention layers' width)")
+    need(
+        len(blocks) == 4 and blocks[2] == ATTENTION_DIM,
+        "MICKEY.KP_HEADS.BLOCKS_DIM",
+        list(blocks),
+        f"four blocks, the third {ATTENTION_DIM} wide (the attention layers' width)",
+    )
     down = int(_get(tree, "MICKEY.DINOV2.DOWN_FACTOR", 14))
     need(down == 14, "MICKEY.DINOV2.DOWN_FACTOR", down, "DINOv2 ViT/14")
     channel = _get(tree, "MICKEY.DINOV2.CHANNEL_DIM", None)
@@ -92,8 +97,12 @@ def config_from_mapping(tree: Mapping[str, Any], where: str = "config") -> Micke
         down_factor=down,
     )
     need(cfg.temperature > 0, "FEATURE_MATCHER.DUAL_SOFTMAX.TEMPERATURE", cfg.temperature, "must be positive")
-    need(cfg.width >= 14 * 8 and cfg.height >= 14 * 8, "DATASET.WIDTH/HEIGHT", (cfg.width, cfg.height),
-         "at least 8 patches a side (the score map's 3-cell border)")
+    need(
+        cfg.width >= 14 * 8 and cfg.height >= 14 * 8,
+        "DATASET.WIDTH/HEIGHT",
+        (cfg.width, cfg.height),
+        "at least 8 patches a side (the score map's 3-cell border)",
+    )
     return cfg
 
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import torch
 import torch.nn.functional as F
@@ -44,7 +44,7 @@ class ViTShape:
         return self.dim // HEAD_DIM
 
     @classmethod
-    def from_state_dict(cls, sd: Mapping[str, torch.Tensor], source: str = "DINOv2 weights") -> "ViTShape":
+    def from_state_dict(cls, sd: Mapping[str, torch.Tensor], source: str = "DINOv2 weights") -> ViTShape:
         """Width, depth, patch and grid of ``sd`` (the DINOv2 file's keys); ``ValueError`` naming what is off."""
         try:
             proj, pos = sd["patch_embed.proj.weight"], sd["pos_embed"]
@@ -55,12 +55,16 @@ class ViTShape:
         blocks = {int(m.group(1)) for k in sd if (m := re.match(r"blocks\.(\d+)\.", k))}
         depth = len(blocks)
         if blocks != set(range(depth)):
-            raise ValueError(f"{source}: block indices {sorted(blocks)[:5]}... are not 0..{depth - 1} (a chunked "
-                             f"checkpoint? MicKey's backbone has unchunked blocks)")
+            raise ValueError(
+                f"{source}: block indices {sorted(blocks)[:5]}... are not 0..{depth - 1} (a chunked "
+                f"checkpoint? MicKey's backbone has unchunked blocks)"
+            )
         grid = math.isqrt(int(pos.shape[1]) - 1)
         if grid * grid != int(pos.shape[1]) - 1 or dim % HEAD_DIM:
-            raise ValueError(f"{source}: position embedding {tuple(pos.shape)} / width {dim} do not fit a square "
-                             f"grid of {HEAD_DIM}-channel heads")
+            raise ValueError(
+                f"{source}: position embedding {tuple(pos.shape)} / width {dim} do not fit a square "
+                f"grid of {HEAD_DIM}-channel heads"
+            )
         return cls(dim, depth, patch, grid, hidden)
 
 
@@ -108,7 +112,7 @@ class DinoV2(nn.Module):
         super().__init__()
         self.shape = shape
         self.cls_token = nn.Parameter(torch.zeros(1, 1, shape.dim))
-        self.pos_embed = nn.Parameter(torch.zeros(1, shape.grid ** 2 + 1, shape.dim))
+        self.pos_embed = nn.Parameter(torch.zeros(1, shape.grid**2 + 1, shape.dim))
         self.mask_token = nn.Parameter(torch.zeros(1, shape.dim))  # pretraining only; kept for the keys
         self.patch_embed = _PatchEmbed(shape.patch, shape.dim)
         self.blocks = nn.ModuleList([Block(shape) for _ in range(shape.depth)])

@@ -9,8 +9,8 @@ query against it without running the network on the reference again.
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -72,7 +72,7 @@ class MickeyEngine:
         out: list[MickeyImage] = []
         step = max(1, int(batch_size))
         for i in range(0, len(images), step):
-            preps: list[Prepared] = [prepare_array(im, self.input_size) for im in images[i:i + step]]
+            preps: list[Prepared] = [prepare_array(im, self.input_size) for im in images[i : i + step]]
             x = torch.stack([p.tensor for p in preps]).to(self.device)
             with torch.inference_mode():
                 k = self.net.extract(x)
@@ -86,10 +86,11 @@ class MickeyEngine:
         out: list[torch.Tensor] = []
         step = max(1, int(batch_size))
         for i in range(0, len(others), step):
-            chunk = others[i:i + step]
-            k1 = Keypoints(*(torch.cat([getattr(o.keypoints, f) for o in chunk]) for f in ("xy", "depth", "score",
-                                                                                              "desc")),
-                           chunk[0].keypoints.grid)
+            chunk = others[i : i + step]
+            k1 = Keypoints(
+                *(torch.cat([getattr(o.keypoints, f) for o in chunk]) for f in ("xy", "depth", "score", "desc")),
+                chunk[0].keypoints.grid,
+            )
             with torch.inference_mode():
                 _, final = self.net.scores(ref.keypoints, k1)
             out += list(final)
@@ -102,9 +103,14 @@ _ENGINES: dict[tuple, MickeyEngine] = {}
 _ENGINES_LOCK = threading.Lock()
 
 
-def shared_engine(checkpoint: str = "mickey", weights: str | None = None, dinov2: str | None = None,
-                  config: str | None = None, device: str | torch.device | None = None,
-                  fp16: bool | None = None) -> MickeyEngine:
+def shared_engine(
+    checkpoint: str = "mickey",
+    weights: str | None = None,
+    dinov2: str | None = None,
+    config: str | None = None,
+    device: str | torch.device | None = None,
+    fp16: bool | None = None,
+) -> MickeyEngine:
     """The one engine per (files, device, precision). Files are found first, so a missing one fails before any
     image is read. ``fp16`` None: DINOv2 in float16 where the config says so and the device is a GPU (CPU half
     kernels are slow), float32 elsewhere."""

@@ -23,8 +23,16 @@ from torch import nn
 
 from .config import ATTENTION_DIM, MickeyConfig
 
-__all__ = ["ResBlock", "SelfAttentionStack", "ScoreHead", "OffsetHead", "DepthHead", "DescriptorHead",
-           "SCORE_BORDER", "SCORE_TEMPERATURE"]
+__all__ = [
+    "ResBlock",
+    "SelfAttentionStack",
+    "ScoreHead",
+    "OffsetHead",
+    "DepthHead",
+    "DescriptorHead",
+    "SCORE_BORDER",
+    "SCORE_TEMPERATURE",
+]
 
 #: Cells at each side of the score map that never hold a keypoint.
 SCORE_BORDER = 3
@@ -116,7 +124,7 @@ class ScoreHead(_Trunk):
         """``x`` with the ``SCORE_BORDER`` cells at each side set to zero."""
         mask = torch.zeros_like(x)
         b = SCORE_BORDER
-        mask[:, :, b:x.shape[2] - b, b:x.shape[3] - b] = 1
+        mask[:, :, b : x.shape[2] - b, b : x.shape[3] - b] = 1
         return x * mask
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

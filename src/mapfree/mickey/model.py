@@ -34,9 +34,11 @@ class Keypoints:
     def __len__(self) -> int:
         return int(self.xy.shape[0])
 
-    def item(self, i: int) -> "Keypoints":
+    def item(self, i: int) -> Keypoints:
         """The ``i``-th image of the batch, as a batch of one."""
-        return Keypoints(self.xy[i:i + 1], self.depth[i:i + 1], self.score[i:i + 1], self.desc[i:i + 1], self.grid)
+        return Keypoints(
+            self.xy[i : i + 1], self.depth[i : i + 1], self.score[i : i + 1], self.desc[i : i + 1], self.grid
+        )
 
 
 class MickeyNet(nn.Module):
@@ -55,7 +57,7 @@ class MickeyNet(nn.Module):
             self.dustbin_score = nn.Parameter(torch.tensor(1.0))
         self.backbone_dtype = torch.float32
 
-    def half_backbone(self, on: bool) -> "MickeyNet":
+    def half_backbone(self, on: bool) -> MickeyNet:
         """DINOv2 in float16 (as the published config runs it on a GPU) or float32; the heads stay float32."""
         self.backbone_dtype = torch.float16 if on else torch.float32
         self.backbone.to(self.backbone_dtype)
@@ -66,14 +68,13 @@ class MickeyNet(nn.Module):
         p = self.vit.patch
         b, _, h, w = images.shape
         rows, cols = h // p, w // p
-        x = images[:, :, :rows * p, :cols * p]
+        x = images[:, :, : rows * p, : cols * p]
         feats = self.backbone(x.to(self.backbone_dtype)).float()
         scores = self.det_head(feats)
         offsets = self.det_offset(feats)
         depths = self.depth_head(feats)
         descs = self.dsc_head(feats)
-        gy, gx = torch.meshgrid(torch.arange(rows, device=x.device), torch.arange(cols, device=x.device),
-                                indexing="ij")
+        gy, gx = torch.meshgrid(torch.arange(rows, device=x.device), torch.arange(cols, device=x.device), indexing="ij")
         cells = torch.stack((gx, gy)).to(offsets.dtype)  # (2, rows, cols): x = column, y = row
         xy = ((offsets + cells) * p).flatten(2).transpose(1, 2)
         return Keypoints(xy, depths.flatten(1), scores.flatten(1), descs.flatten(2).transpose(1, 2), (rows, cols))
@@ -86,8 +87,9 @@ class MickeyNet(nn.Module):
             return F.softmax(s, 1) * F.softmax(s, 2)
         b, m, n = s.shape
         bin_ = self.dustbin_score.to(s.dtype)
-        full = torch.cat([torch.cat([s, bin_.expand(b, m, 1)], -1),
-                          torch.cat([bin_.expand(b, 1, n), bin_.expand(b, 1, 1)], -1)], 1)
+        full = torch.cat(
+            [torch.cat([s, bin_.expand(b, m, 1)], -1), torch.cat([bin_.expand(b, 1, n), bin_.expand(b, 1, 1)], -1)], 1
+        )
         return (F.softmax(full, 1) * F.softmax(full, 2))[:, :-1, :-1]
 
     def scores(self, k0: Keypoints, k1: Keypoints) -> tuple[torch.Tensor, torch.Tensor]:

@@ -14,12 +14,23 @@ _MICKEY_LICENCE = "Niantic non-commercial licence: mapfree does not ship it"
 #: ``mickey_weights/`` folder): the checkpoints (with the ``config.yaml`` beside them) and the DINOv2 backbone,
 #: which is also found in the weights folder itself and in torch's hub cache (where the public code downloads it).
 MICKEY_CHECKPOINTS = {
-    name: WeightFile(f"{name}.ckpt", "MicKey", (MICKEY_ZIP_URL,), aliases=(f"mickey/mickey_weights/{name}.ckpt",),
-                     licence=_MICKEY_LICENCE, archive=True, folder="mickey", torch_hub=False)
+    name: WeightFile(
+        f"{name}.ckpt",
+        "MicKey",
+        (MICKEY_ZIP_URL,),
+        aliases=(f"mickey/mickey_weights/{name}.ckpt",),
+        licence=_MICKEY_LICENCE,
+        archive=True,
+        folder="mickey",
+        torch_hub=False,
+    )
     for name in ("mickey", "mickey_sc")
 }
 MICKEY_DINOV2 = WeightFile(
-    "dinov2_vitl14_pretrain.pth", "MicKey's DINOv2 ViT-L/14 backbone",
+    "dinov2_vitl14_pretrain.pth",
+    "MicKey's DINOv2 ViT-L/14 backbone",
     ("https://dl.fbaipublicfiles.com/dinov2/dinov2_vitl14/dinov2_vitl14_pretrain.pth",),
     aliases=("mickey/mickey_weights/dinov2_vitl14_pretrain.pth", "dinov2_vitl14_pretrain.pth"),
-    licence="Meta's DINOv2, Apache 2.0", folder="mickey")
+    licence="Meta's DINOv2, Apache 2.0",
+    folder="mickey",
+)

@@ -7,6 +7,17 @@ from .run import RunResult, failures_path, frames_to_run, journal_path, read_jou
 _methods.register_kind("matching", build_matching)
 
 __all__ = [
-    "Relocalizer", "Localizer", "Anchor", "View", "ViewLike", "as_view", "MIN_PARALLAX_PX", "run_split",
-    "RunResult", "journal_path", "failures_path", "read_journal", "frames_to_run",
+    "Relocalizer",
+    "Localizer",
+    "Anchor",
+    "View",
+    "ViewLike",
+    "as_view",
+    "MIN_PARALLAX_PX",
+    "run_split",
+    "RunResult",
+    "journal_path",
+    "failures_path",
+    "read_journal",
+    "frames_to_run",
 ]

@@ -13,10 +13,11 @@ import inspect
 import os
 import time
 from collections import deque
+from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from itertools import islice
-from typing import TYPE_CHECKING, Iterable, Iterator
+from typing import TYPE_CHECKING
 
 from ..estimate import Estimate
 from ..matching.base import Features, Matches
@@ -50,7 +51,7 @@ def _depth_in_workers(source: object) -> bool:
     return bool(getattr(source, "reads_files", False)) or not hasattr(source, "depth_many")
 
 
-def _read(loc: "Relocalizer", query: "ViewLike") -> "_Prepared":
+def _read(loc: Relocalizer, query: ViewLike) -> _Prepared:
     """Decode one query and read its depth file (no network work): a decode worker's job."""
     from .pipeline import _error, _fit_depth, _Prepared, as_view
 
@@ -69,7 +70,7 @@ def _read(loc: "Relocalizer", query: "ViewLike") -> "_Prepared":
     return _Prepared(view, None, depth, {"read": t1 - t0, "depth": t2 - t1})
 
 
-def _network_depth(loc: "Relocalizer", batch: list["_Prepared"]) -> None:
+def _network_depth(loc: Relocalizer, batch: list[_Prepared]) -> None:
     """Depth from a network for the batch's frames in one ``depth_many`` call (cached on disk by the source)."""
     from .pipeline import _fit_depth
 
@@ -85,7 +86,7 @@ def _network_depth(loc: "Relocalizer", batch: list["_Prepared"]) -> None:
         p.timings["depth"] = p.timings.get("depth", 0.0) + share
 
 
-def _extract(loc: "Relocalizer", batch: list["_Prepared"]) -> None:
+def _extract(loc: Relocalizer, batch: list[_Prepared]) -> None:
     """Features of the batch's readable queries in one ``extract_many`` call; if the batch fails (a bad
     image), each query is extracted alone so only the bad one fails."""
     from .pipeline import _error
@@ -96,8 +97,9 @@ def _extract(loc: "Relocalizer", batch: list["_Prepared"]) -> None:
     t0 = time.perf_counter()
     many = getattr(loc.matcher, "extract_many", None)
     try:
-        feats: list[Features] = many([p.view.image for p in ok]) if many else [loc.matcher.extract(p.view.image)
-                                                                            for p in ok]
+        feats: list[Features] = (
+            many([p.view.image for p in ok]) if many else [loc.matcher.extract(p.view.image) for p in ok]
+        )
     except Exception:
         feats = []
         for p in ok:
@@ -112,7 +114,7 @@ def _extract(loc: "Relocalizer", batch: list["_Prepared"]) -> None:
         p.timings["extract"] = share
 
 
-def _match(loc: "Relocalizer", anchor: "Anchor", batch: list["_Prepared"]) -> tuple[list[Matches | None], float]:
+def _match(loc: Relocalizer, anchor: Anchor, batch: list[_Prepared]) -> tuple[list[Matches | None], float]:
     """Matches of the batch's extracted queries against the anchor, all in one network pass where the
     matcher's ``match_many`` takes a ``batch_size``."""
     from .pipeline import _error
@@ -139,15 +141,18 @@ def _match(loc: "Relocalizer", anchor: "Anchor", batch: list["_Prepared"]) -> tu
     return out, (time.perf_counter() - t0) / len(ok)
 
 
-def localize_batched(loc: "Relocalizer", anchor: "Anchor", queries: Iterable["ViewLike"],
-                     options: BatchOptions | None = None) -> Iterator[Estimate]:
+def localize_batched(
+    loc: Relocalizer, anchor: Anchor, queries: Iterable[ViewLike], options: BatchOptions | None = None
+) -> Iterator[Estimate]:
     """Estimates for ``queries`` in order (see the module docstring); ``loc`` must have passed its precheck."""
     o = options or BatchOptions()
     size = max(1, o.batch_size)
     solvers = o.solve_workers or min(8, os.cpu_count() or 1)
     it = iter(queries)
-    with ThreadPoolExecutor(max(1, o.decode_workers), thread_name_prefix="mapfree-decode") as decode, \
-            ThreadPoolExecutor(solvers, thread_name_prefix="mapfree-solve") as solve:
+    with (
+        ThreadPoolExecutor(max(1, o.decode_workers), thread_name_prefix="mapfree-decode") as decode,
+        ThreadPoolExecutor(solvers, thread_name_prefix="mapfree-solve") as solve,
+    ):
         reading: deque[Future] = deque(decode.submit(_read, loc, q) for q in islice(it, size * max(1, o.ahead)))
         solving: deque[Future] = deque()
         while reading:

@@ -27,13 +27,23 @@ import os
 import socket
 import time
 from collections import deque
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any
 
-from .run import FrameResult, SceneReference, _append, _localizer, _sigint_ignored, check_depth_source, open_scene, \
-    save_figure, scene_results, set_threads
-
+from .run import (
+    FrameResult,
+    SceneReference,
+    _append,
+    _localizer,
+    _sigint_ignored,
+    check_depth_source,
+    open_scene,
+    save_figure,
+    scene_results,
+    set_threads,
+)
 
 __all__ = ["RayOptions", "ClusterError", "connect", "check_root", "task_slots", "plan_chunks", "run_on_ray"]
 
@@ -121,8 +131,10 @@ def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
     except OSError as e:
-        raise ClusterError(f"cannot reach the Ray cluster at {address}: {e.strerror or e} (is `ray start --head` "
-                           f"running there, and the port open?)") from None
+        raise ClusterError(
+            f"cannot reach the Ray cluster at {address}: {e.strerror or e} (is `ray start --head` "
+            f"running there, and the port open?)"
+        ) from None
 
 
 def _alive_nodes(ray: Any) -> list[dict]:
@@ -142,8 +154,14 @@ def task_slots(nodes: Sequence[dict], cpus: float, gpus: float) -> int:
 
 
 def _describe(nodes: Sequence[dict]) -> str:
-    return "; ".join(f"{n.get('NodeManagerAddress', '?')}: {n['Resources'].get('CPU', 0):g} CPU, "
-                     f"{n['Resources'].get('GPU', 0):g} GPU" for n in nodes) or "none alive"
+    return (
+        "; ".join(
+            f"{n.get('NodeManagerAddress', '?')}: {n['Resources'].get('CPU', 0):g} CPU, "
+            f"{n['Resources'].get('GPU', 0):g} GPU"
+            for n in nodes
+        )
+        or "none alive"
+    )
 
 
 def _node_name() -> str:
@@ -181,8 +199,12 @@ def _check_nodes(ray: Any, nodes: Sequence[dict], root: str, split: str, scene_d
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     check = ray.remote(num_cpus=0, max_retries=0)(_node_check)
-    refs = [check.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False))
-            .remote(root, split, list(scene_dirs)) for n in nodes]
+    refs = [
+        check.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote(
+            root, split, list(scene_dirs)
+        )
+        for n in nodes
+    ]
     try:
         answers = ray.get(refs, timeout=300)
     except ray.exceptions.GetTimeoutError:
@@ -193,8 +215,10 @@ def _check_nodes(ray: Any, nodes: Sequence[dict], root: str, split: str, scene_d
 
 
 def _unreadable(node: str, root: str, problem: str) -> FileNotFoundError:
-    return FileNotFoundError(f"node {node} cannot read the dataset root {root} ({problem}): every node needs the "
-                             f"dataset at the same path (shared storage)")
+    return FileNotFoundError(
+        f"node {node} cannot read the dataset root {root} ({problem}): every node needs the "
+        f"dataset at the same path (shared storage)"
+    )
 
 
 # --------------------------------------------------------------------------- the worker
@@ -254,7 +278,7 @@ class _Queue:
     def __init__(self, todo: Sequence[tuple[str, list[str]]], size: int) -> None:
         self.scenes: dict[str, deque[list[str]]] = {}
         for scene, frames in todo:
-            self.scenes[scene] = deque(frames[i:i + size] for i in range(0, len(frames), size))
+            self.scenes[scene] = deque(frames[i : i + size] for i in range(0, len(frames), size))
 
     def __len__(self) -> int:
         return sum(len(q) for q in self.scenes.values())
@@ -303,9 +327,18 @@ class ClusterRun:
         return dict(self.__dict__)
 
 
-def run_on_ray(method: Any, todo: Sequence[tuple[str, list[str]]], journal: Path, bar: Any, address: str,
-               options: RayOptions, root: str, split: str, batch_size: int | None = None,
-               viz_dir: str | None = None) -> ClusterRun:
+def run_on_ray(
+    method: Any,
+    todo: Sequence[tuple[str, list[str]]],
+    journal: Path,
+    bar: Any,
+    address: str,
+    options: RayOptions,
+    root: str,
+    split: str,
+    batch_size: int | None = None,
+    viz_dir: str | None = None,
+) -> ClusterRun:
     """Compute ``todo`` (``[(absolute scene folder, frame names)]``) on the Ray cluster at ``address``, appending
     each frame's record to ``journal`` as it arrives (see the module docstring). ``method``: a ``Method``."""
     ray = _ray()
@@ -318,9 +351,20 @@ def run_on_ray(method: Any, todo: Sequence[tuple[str, list[str]]], journal: Path
 
 
 class _Driver:
-    def __init__(self, ray: Any, method: Any, todo: Sequence[tuple[str, list[str]]], journal: Path, bar: Any,
-                 address: str, options: RayOptions, root: str, split: str, batch_size: int | None,
-                 viz_dir: str | None) -> None:
+    def __init__(
+        self,
+        ray: Any,
+        method: Any,
+        todo: Sequence[tuple[str, list[str]]],
+        journal: Path,
+        bar: Any,
+        address: str,
+        options: RayOptions,
+        root: str,
+        split: str,
+        batch_size: int | None,
+        viz_dir: str | None,
+    ) -> None:
         self.ray, self.method, self.todo, self.journal, self.bar = ray, method, todo, journal, bar
         self.root, self.split, self.scene_dirs = root, split, [scene for scene, _ in todo]
         self.options, self.batch_size, self.viz_dir = options, batch_size, viz_dir
@@ -345,7 +389,8 @@ class _Driver:
     def _start_worker(self) -> None:
         cpus, gpus = self.resources
         actor = self.worker_cls.options(num_cpus=cpus, num_gpus=gpus, max_restarts=0, max_task_retries=0).remote(
-            self.md, max(1, int(cpus)))
+            self.md, max(1, int(cpus))
+        )
         self.slots.append(_Slot(actor, setup=actor.setup.remote(self.root, self.split, self.scene_dirs)))
 
     def _grow(self, nodes: Sequence[dict] | None = None) -> None:
@@ -362,9 +407,11 @@ class _Driver:
         self.resources = self._resources(nodes)
         slots = task_slots(nodes, *self.resources)
         if slots == 0:
-            raise ValueError(f"no node of the Ray cluster has room for a worker of {self.resources[0]:g} CPU(s) and "
-                             f"{self.resources[1]:g} GPU(s) (--cpus-per-task, --gpus-per-task); its nodes: "
-                             f"{_describe(nodes)}")
+            raise ValueError(
+                f"no node of the Ray cluster has room for a worker of {self.resources[0]:g} CPU(s) and "
+                f"{self.resources[1]:g} GPU(s) (--cpus-per-task, --gpus-per-task); its nodes: "
+                f"{_describe(nodes)}"
+            )
         self.queue = _Queue(self.todo, plan_chunks(self.todo, slots, self.options.chunk_frames))
         self.worker_cls = ray.remote(FrameWorker)
         try:
@@ -389,13 +436,14 @@ class _Driver:
             self.start_failures += 1
             if not self.seen_nodes and self.start_failures >= 2 * max(1, task_slots(self.nodes, *self.resources)):
                 why = _one_line(e)
-                raise ClusterError(f"the Ray cluster ended all {self.start_failures} workers started so far before "
-                                   f"any ran ({why}); see its logs (the driver's included)") from None
+                raise ClusterError(
+                    f"the Ray cluster ended all {self.start_failures} workers started so far before "
+                    f"any ran ({why}); see its logs (the driver's included)"
+                ) from None
             return
         except ray.exceptions.RayError as e:
             last = str(e).strip().splitlines()[-1]  # a task error's text ends with the exception
-            raise ClusterError(f"a worker could not start: {last} (is mapfree installed "
-                               f"on every node?)") from None
+            raise ClusterError(f"a worker could not start: {last} (is mapfree installed on every node?)") from None
         if "unreadable" in answer:
             raise _unreadable(answer["node"], self.root, answer["unreadable"])
         if "error" in answer:
@@ -403,8 +451,10 @@ class _Driver:
         from .. import __version__
 
         if answer["version"] != __version__:
-            raise ClusterError(f"node {answer['node']} runs mapfree {answer['version']}, this machine {__version__}: "
-                               f"install the same version on every node")
+            raise ClusterError(
+                f"node {answer['node']} runs mapfree {answer['version']}, this machine {__version__}: "
+                f"install the same version on every node"
+            )
         slot.node, slot.node_id = answer["node"], answer["node_id"]
         self.seen_nodes.add(slot.node_id)
 
@@ -457,8 +507,10 @@ class _Driver:
         if slot.stream is not None and slot.frames:
             self.queue.give_back(slot.scene, slot.frames)
             self.info.requeued += len(slot.frames)
-            self.bar.write(f"mapfree run: lost the worker on node {slot.node or '?'}: its {len(slot.frames)} "
-                           f"unfinished frame(s) go to another worker")
+            self.bar.write(
+                f"mapfree run: lost the worker on node {slot.node or '?'}: its {len(slot.frames)} "
+                f"unfinished frame(s) go to another worker"
+            )
         self.slots.remove(slot)
         self.ray.kill(slot.actor, no_restart=True)
 
@@ -516,7 +568,9 @@ class _Driver:
             if self._live():
                 lost_since = now
             elif now - lost_since > self.options.lost_wait_s:
-                raise ClusterError(f"every worker was lost and the cluster has had no room for a new one for "
-                                   f"{self.options.lost_wait_s:.0f} s (nodes: {_describe(_alive_nodes(ray))}); the "
-                                   f"finished frames are journaled: run again with --resume")
+                raise ClusterError(
+                    f"every worker was lost and the cluster has had no room for a new one for "
+                    f"{self.options.lost_wait_s:.0f} s (nodes: {_describe(_alive_nodes(ray))}); the "
+                    f"finished frames are journaled: run again with --resume"
+                )
             self._show()

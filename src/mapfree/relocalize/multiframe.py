@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -55,8 +56,9 @@ class Hypothesis:
     confidence: float
 
 
-def hypotheses(query: str, burst: Sequence[str], estimates: Mapping[str, tuple[Pose, float]],
-               device: DevicePoses) -> list[Hypothesis]:
+def hypotheses(
+    query: str, burst: Sequence[str], estimates: Mapping[str, tuple[Pose, float]], device: DevicePoses
+) -> list[Hypothesis]:
     """Bring each burst frame's estimate (world-to-camera, confidence) to ``query`` through the device poses."""
     out = []
     for name in burst:
@@ -77,8 +79,9 @@ def _agree(R: np.ndarray, C: np.ndarray, R0: np.ndarray, c0: np.ndarray, opts: F
     cos = (np.einsum("iab,jab->ij", R, R0) - 1.0) / 2.0
     angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
     dist = np.linalg.norm(C[:, None] - c0[None], axis=2)
-    tol = opts.translation_m + opts.translation_rel * 0.5 * (np.linalg.norm(C, axis=1)[:, None]
-                                                             + np.linalg.norm(c0, axis=1)[None])
+    tol = opts.translation_m + opts.translation_rel * 0.5 * (
+        np.linalg.norm(C, axis=1)[:, None] + np.linalg.norm(c0, axis=1)[None]
+    )
     return (angle < opts.rotation_deg) & (dist < tol)
 
 
@@ -115,9 +118,14 @@ def fuse(hyps: Sequence[Hypothesis], n_frames: int | None = None, options: Fusio
     fused_conf = float(w[inl].sum()) * k / n_frames
     pose = Pose(R_m, -R_m @ c_m)
     spread_deg = float(np.degrees(Rotation.from_matrix(R[inl] @ R_m.T).magnitude()).max())
-    extras = {"support": k, "hypotheses": len(hyps), "frames": n_frames, "spread_deg": spread_deg,
-              "spread_m": float(np.linalg.norm(C[inl] - c_m, axis=1).max()),
-              "frames_used": [h.frame for h, used in zip(hyps, inl) if used]}
+    extras = {
+        "support": k,
+        "hypotheses": len(hyps),
+        "frames": n_frames,
+        "spread_deg": spread_deg,
+        "spread_m": float(np.linalg.norm(C[inl] - c_m, axis=1).max()),
+        "frames_used": [h.frame for h, used in zip(hyps, inl) if used],
+    }
     return Estimate(pose, fused_conf, k, "", {}, extras)
 
 
@@ -189,8 +197,9 @@ def run_multi(
     ``all_frames`` is refused (``ValueError``): the frames run are the bursts, never every query.
     """
     if run_kwargs.pop("all_frames", False):
-        raise ValueError("all_frames does not apply to the multi-frame track (it runs the bursts of the "
-                         "scored queries)")
+        raise ValueError(
+            "all_frames does not apply to the multi-frame track (it runs the bursts of the scored queries)"
+        )
     output = Path(output)
     scene_list = Dataset(root).scenes(split)
     if scenes:
@@ -198,14 +207,24 @@ def run_multi(
     plan: dict[str, tuple[list, DevicePoses]] = {}
     for s in scene_list:
         bursts = scene_bursts(s)
-        plan[s.name] = (bursts, load_device_poses(s, derive=derive_device_poses) if bursts else
-                        DevicePoses({}, False, "no bursts"))
+        plan[s.name] = (
+            bursts,
+            load_device_poses(s, derive=derive_device_poses) if bursts else DevicePoses({}, False, "no bursts"),
+        )
 
     def select(scene: Scene) -> list[str]:
         return [n for _, burst in plan[scene.name][0] for n in burst if n in scene.intrinsics]
 
-    frames = run_split(root, split, method, frames_path(output), scenes=sorted(plan), confidence=confidence,
-                       select=select, **run_kwargs)
+    frames = run_split(
+        root,
+        split,
+        method,
+        frames_path(output),
+        scenes=sorted(plan),
+        confidence=confidence,
+        select=select,
+        **run_kwargs,
+    )
     _, recs = read_journal(frames.journal)
     est = _frame_estimates(recs, confidence)
     by_scene: dict[str, list] = {name: [] for name in plan}
@@ -213,8 +232,14 @@ def run_multi(
     for name, (bursts, device) in plan.items():
         for query, burst in bursts:
             fused = fuse(hypotheses(query, burst, est.get(name, {}), device), len(burst), options)
-            entry = {"scene": name, "frame": query, "ok": fused.ok, "confidence": fused.confidence,
-                     "reason": fused.reason, **{k: v for k, v in fused.extras.items()}}
+            entry = {
+                "scene": name,
+                "frame": query,
+                "ok": fused.ok,
+                "confidence": fused.confidence,
+                "reason": fused.reason,
+                **{k: v for k, v in fused.extras.items()},
+            }
             log.append(entry)
             if fused.ok:
                 by_scene[name].append((query, fused.pose, fused.confidence))
@@ -226,5 +251,12 @@ def run_multi(
     failures_path(output).write_text("".join(json.dumps(f) + "\n" for f in failures))
     fusion_path(output).write_text("".join(json.dumps(e, allow_nan=False) + "\n" for e in log))
     derived = sorted(n for n, (_, d) in plan.items() if d.derived)
-    return MultiRunResult(output, fusion_path(output), failures_path(output), frames,
-                          sum(len(v) for v in by_scene.values()), len(failures), derived)
+    return MultiRunResult(
+        output,
+        fusion_path(output),
+        failures_path(output),
+        frames,
+        sum(len(v) for v in by_scene.values()),
+        len(failures),
+        derived,
+    )

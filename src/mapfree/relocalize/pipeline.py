@@ -10,11 +10,12 @@ import logging
 import os
 import time
 from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from itertools import islice
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, Protocol, Union
+from typing import TYPE_CHECKING, Any, Protocol
 
 import cv2
 import numpy as np
@@ -37,8 +38,12 @@ __all__ = ["View", "Anchor", "Localizer", "Relocalizer", "as_view", "ViewLike", 
 #: Median keypoint displacement (px) below which the query is seen from the reference's viewpoint (identity pose).
 MIN_PARALLAX_PX = 0.5
 #: Which depth maps each solver needs (anything else: both).
-_DEPTH_NEEDS = {"essential": ("ref", "query"), "pnp": ("ref",), "procrustes": ("ref", "query"),
-                "mickey": ()}  # MicKey's solver lifts with the depths its matcher's candidates carry
+_DEPTH_NEEDS = {
+    "essential": ("ref", "query"),
+    "pnp": ("ref",),
+    "procrustes": ("ref", "query"),
+    "mickey": (),
+}  # MicKey's solver lifts with the depths its matcher's candidates carry
 
 
 @dataclass
@@ -54,7 +59,7 @@ class View:
     orientation: int = 1
 
 
-ViewLike = Union[View, Frame, tuple]
+ViewLike = View | Frame | tuple
 
 
 def _read_image_any(image: Any) -> tuple[np.ndarray, Path | None]:
@@ -96,8 +101,9 @@ def as_view(x: ViewLike) -> View:
     raise TypeError(f"expected a Frame, a View or (image, intrinsics[, depth]); got {type(x).__name__}")
 
 
-def _upright(image: np.ndarray, K: Intrinsics, path: Path | None,
-             depth: np.ndarray | None) -> tuple[Intrinsics, np.ndarray | None, int]:
+def _upright(
+    image: np.ndarray, K: Intrinsics, path: Path | None, depth: np.ndarray | None
+) -> tuple[Intrinsics, np.ndarray | None, int]:
     """Intrinsics and depth for the upright pixels of an image file: given for its stored grid (a tagged phone
     photo), they are turned with it. Returns them and the orientation applied to them (1: none)."""
     o = exif_orientation(path) if path is not None else 1
@@ -123,8 +129,10 @@ def _fit_depth(depth: np.ndarray | None, K: Intrinsics, owned: bool = False) -> 
         raise ValueError(f"depth map must be 2-D, got shape {d.shape}")
     if d.shape != (K.height, K.width):
         if not same_aspect(d.shape, K.width, K.height):
-            raise ValueError(f"depth map is {d.shape[1]}x{d.shape[0]} but the image is {K.width}x{K.height}: another "
-                             f"aspect ratio, so not this image's map (a map at another resolution is resized)")
+            raise ValueError(
+                f"depth map is {d.shape[1]}x{d.shape[0]} but the image is {K.width}x{K.height}: another "
+                f"aspect ratio, so not this image's map (a map at another resolution is resized)"
+            )
         d = cv2.resize(d, (K.width, K.height), interpolation=cv2.INTER_NEAREST)
     # min >= 0 and max < inf: no NaN (it would be the min), no negative, no infinity: nothing to replace.
     if (owned or d is not depth) and d.size and d.min() >= 0 and d.max() < np.inf:
@@ -225,7 +233,7 @@ class Relocalizer:
         self.anchor: Anchor | None = None
 
     @classmethod
-    def from_method(cls, method: Any) -> "Localizer":
+    def from_method(cls, method: Any) -> Localizer:
         """Build a method by name, YAML path or ``Method`` (regression methods build their own kind)."""
         from .. import methods
 
@@ -255,8 +263,9 @@ class Relocalizer:
                 d = orient_pixels(d, view.orientation)  # a stored map of a tagged photo: turned like its pixels
             return _fit_depth(d, view.intrinsics, owned=True)
         if hasattr(self.depth_source, "predict"):  # a network: predict from the pixels themselves
-            return _fit_depth(self.depth_source.predict([view.image], [view.intrinsics.fx])[0], view.intrinsics,
-                              owned=True)
+            return _fit_depth(
+                self.depth_source.predict([view.image], [view.intrinsics.fx])[0], view.intrinsics, owned=True
+            )
         return None
 
     def prepare(self, reference: ViewLike) -> Anchor:
@@ -346,8 +355,9 @@ class Relocalizer:
         early = self._precheck(anchor)
         return early if early is not None else self._finish(anchor, self._prepare_query(query))
 
-    def localize_many(self, queries: Iterable[ViewLike], anchor: Anchor | None = None,
-                      prefetch: int = 1) -> Iterator[Estimate]:
+    def localize_many(
+        self, queries: Iterable[ViewLike], anchor: Anchor | None = None, prefetch: int = 1
+    ) -> Iterator[Estimate]:
         """``localize`` over many queries, in order; with ``prefetch`` > 0 the next queries are read and their
         features extracted in a background thread while the current one is matched and solved."""
         anchor = self._anchor(anchor)
@@ -357,8 +367,9 @@ class Relocalizer:
             return
         yield from (self._finish(anchor, prep) for prep in ahead(self._prepare_query, queries, prefetch))
 
-    def localize_batched(self, queries: Iterable[ViewLike], anchor: Anchor | None = None,
-                         options: "BatchOptions | None" = None) -> Iterator[Estimate]:
+    def localize_batched(
+        self, queries: Iterable[ViewLike], anchor: Anchor | None = None, options: BatchOptions | None = None
+    ) -> Iterator[Estimate]:
         """``localize`` over many queries, in order, through the batched pipeline (``batched.py``): decoding
         in background threads, features and matches in batches on the device, solvers in a thread pool."""
         from .batched import BatchOptions, localize_batched
@@ -381,8 +392,14 @@ class Relocalizer:
             return Estimate.failure("no depth for the reference image", total=0.0)
         return None
 
-    def _solve(self, anchor: Anchor, view: View, matches: Matches, depth_q: np.ndarray | None,
-               features_q: Features | None = None) -> tuple[Estimate, float]:
+    def _solve(
+        self,
+        anchor: Anchor,
+        view: View,
+        matches: Matches,
+        depth_q: np.ndarray | None,
+        features_q: Features | None = None,
+    ) -> tuple[Estimate, float]:
         """The estimate, and the seconds spent on depth from the pair (a two-view network's; counted as depth)."""
         flow = np.linalg.norm(matches.kpts1 - matches.kpts0, axis=1)
         if len(matches) and float(np.median(flow)) <= MIN_PARALLAX_PX:
@@ -392,9 +409,12 @@ class Relocalizer:
         depth_ref = anchor.depth
         if self.pairwise_depth and needs and (depth_ref is None or ("query" in needs and depth_q is None)):
             t0 = time.perf_counter()
-            pair_ref, pair_q = self.depth_source.pair_depth(anchor.view.image, view.image,
-                                                            need_query="query" in needs and depth_q is None,
-                                                            features=(anchor.features, features_q))
+            pair_ref, pair_q = self.depth_source.pair_depth(
+                anchor.view.image,
+                view.image,
+                need_query="query" in needs and depth_q is None,
+                features=(anchor.features, features_q),
+            )
             depth_ref = depth_ref if depth_ref is not None else _fit_depth(pair_ref, anchor.view.intrinsics, owned=True)
             depth_q = depth_q if depth_q is not None else _fit_depth(pair_q, view.intrinsics, owned=True)
             pair_s = time.perf_counter() - t0
@@ -424,5 +444,11 @@ def _same_viewpoint(flow: np.ndarray, mode: str) -> Estimate:
 
 def build_matching(method: Any) -> Relocalizer:
     """Factory of the ``matching`` method kind (registered with ``mapfree.methods``)."""
-    return Relocalizer(method.matcher, method.depth, method.solver, matcher_opts=method.matcher_opts,
-                       solver_opts=method.solver_opts, name=method.name)
+    return Relocalizer(
+        method.matcher,
+        method.depth,
+        method.solver,
+        matcher_opts=method.matcher_opts,
+        solver_opts=method.solver_opts,
+        name=method.name,
+    )

@@ -4,8 +4,9 @@ journal was written for the same frames; each refusal is one ``ValueError`` line
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from ..data import Scene
 
@@ -16,8 +17,9 @@ def check_output(output: Path) -> None:
     """Refuse an output path that cannot take the submission (a folder, a folder that cannot be made or written
     in) before any work, naming it: not after the whole split was computed, with the system's errno text."""
     if output.is_dir():
-        raise ValueError(f"the output {output} is a folder: give the submission ZIP's path "
-                         f"(e.g. {output / 'submission.zip'})")
+        raise ValueError(
+            f"the output {output} is a folder: give the submission ZIP's path (e.g. {output / 'submission.zip'})"
+        )
     blocker = next((p for p in output.parents if p.exists()), None)
     if blocker is not None and not blocker.is_dir():
         raise ValueError(f"the output {output} cannot be written: {blocker} is a file, not a folder")
@@ -38,8 +40,10 @@ def check_confidence(confidence: str | None, m: Any) -> None:
 
     known = [f"confidence_{c}" for c in CONFIDENCE_MODES]
     if m.kind != "matching":
-        raise ValueError(f"--confidence {confidence}: method {m.name!r} ({m.kind}) has its own confidence only "
-                         f"(the alternatives {', '.join(known)} come from a matching method's solver)")
+        raise ValueError(
+            f"--confidence {confidence}: method {m.name!r} ({m.kind}) has its own confidence only "
+            f"(the alternatives {', '.join(known)} come from a matching method's solver)"
+        )
     if confidence not in known:
         import difflib
 
@@ -68,5 +72,7 @@ def check_same_selection(jpath: Path, header: dict, selection: str) -> None:
         had = "all" if header.get("all_frames") else "scored"
     if had != selection:
         was, now = (_SELECTION_WORDS.get(x, x) for x in (had, selection))
-        raise ValueError(f"{jpath} holds a run of {was}, this one asks for {now}: resuming would mix the two; "
-                         f"run it as it was, or use --overwrite or another output path")
+        raise ValueError(
+            f"{jpath} holds a run of {was}, this one asks for {now}: resuming would mix the two; "
+            f"run it as it was, or use --overwrite or another output path"
+        )

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Iterable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -24,8 +25,15 @@ from .pipeline import View, ViewLike, ahead, as_view
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MODES", "ReferenceOptions", "ReferenceSet", "ReferencedLocalizer", "mapping_frames",
-           "scene_references", "check_scene_references"]
+__all__ = [
+    "MODES",
+    "ReferenceOptions",
+    "ReferenceSet",
+    "ReferencedLocalizer",
+    "mapping_frames",
+    "scene_references",
+    "check_scene_references",
+]
 
 MODES = ("retrieval", "triangulation")
 
@@ -66,8 +74,16 @@ def _pose_of(item: ViewLike, pose: Pose | None) -> Pose:
 class ReferenceSet:
     """The chosen references of one place: views, world-to-camera poses, global descriptors."""
 
-    def __init__(self, views: list[View], poses: list[Pose], descriptors: np.ndarray | None, describer: Any,
-                 options: ReferenceOptions, mapping_size: int, indices: np.ndarray) -> None:
+    def __init__(
+        self,
+        views: list[View],
+        poses: list[Pose],
+        descriptors: np.ndarray | None,
+        describer: Any,
+        options: ReferenceOptions,
+        mapping_size: int,
+        indices: np.ndarray,
+    ) -> None:
         self.views, self.poses, self.descriptors, self.describer = views, poses, descriptors, describer
         self.options, self.mapping_size, self.indices = options, mapping_size, indices
         self._anchors: dict[tuple[int, int], Any] = {}
@@ -81,8 +97,13 @@ class ReferenceSet:
         return [v.name for v in self.views]
 
     @classmethod
-    def build(cls, mapping: Sequence[ViewLike], poses: Sequence[Pose | None] | None = None,
-              options: ReferenceOptions | None = None, **overrides: Any) -> "ReferenceSet":
+    def build(
+        cls,
+        mapping: Sequence[ViewLike],
+        poses: Sequence[Pose | None] | None = None,
+        options: ReferenceOptions | None = None,
+        **overrides: Any,
+    ) -> ReferenceSet:
         """Choose ``k`` references among ``mapping`` (Frames with poses, Views, or (image, K[, depth]) with
         ``poses``). Every image is read once to describe it; only the chosen ones are kept in memory."""
         from .. import retrieval
@@ -97,7 +118,9 @@ class ReferenceSet:
             chosen, G, describer = np.arange(len(mapping)), None, None  # nothing to choose or retrieve
         else:
             describer = retrieval.create(o.descriptor, **o.descriptor_opts)
-            fit_idx = np.unique(np.linspace(0, len(mapping) - 1, min(len(mapping), o.max_fit_images)).round().astype(int))
+            fit_idx = np.unique(
+                np.linspace(0, len(mapping) - 1, min(len(mapping), o.max_fit_images)).round().astype(int)
+            )
             describer.fit(as_view(mapping[i]).image for i in fit_idx)
             G = np.stack([describer.describe(as_view(m).image) for m in mapping])
             chosen = retrieval.select_references(G, o.k, seed=o.seed)
@@ -178,8 +201,10 @@ class ReferenceSet:
             est = solver.solve(matcher.match(anchor.features, qf), anchor.view.intrinsics, view.intrinsics, None, None)
             names.append(self.views[i].name)
             if est.pose is None:
-                return Estimate.failure(f"pose triangulation: no relative pose to {self.views[i].name}: {est.reason}",
-                                        total=time.perf_counter() - t0)
+                return Estimate.failure(
+                    f"pose triangulation: no relative pose to {self.views[i].name}: {est.reason}",
+                    total=time.perf_counter() - t0,
+                )
             rel.append(est.pose)
             refs.append(self.poses[i])
             weights.append(max(est.inliers, 1))
@@ -209,8 +234,14 @@ class ReferencedLocalizer:
         self.localizer, self.references = localizer, references
 
     @classmethod
-    def build(cls, localizer: Any, mapping: Sequence[ViewLike], k: int = 1, poses: Sequence[Pose | None] | None = None,
-              **options: Any) -> "ReferencedLocalizer":
+    def build(
+        cls,
+        localizer: Any,
+        mapping: Sequence[ViewLike],
+        k: int = 1,
+        poses: Sequence[Pose | None] | None = None,
+        **options: Any,
+    ) -> ReferencedLocalizer:
         """``localizer`` (a built localizer, or a method name, path or ``Method``) bound to ``k`` references
         chosen among ``mapping`` (Frames with poses, or views with ``poses``); ``options``: ``ReferenceOptions``
         fields, e.g. ``mode="triangulation"`` (the depth-free baseline) or ``top``."""
@@ -277,9 +308,11 @@ def check_scene_references(scenes: Sequence[Scene], method_dict: dict) -> None:
         listed = ", ".join(f"{n} ({c})" for n, c in short[:5])
         listed += f" and {len(short) - 5} more" if len(short) > 5 else ""
         what = "pose triangulation needs" if mode == "triangulation" else f"--references {k} needs"
-        raise ValueError(f"{what} {need} posed seq0 (mapping) frames per scene; these scenes have fewer: {listed}. "
-                         f"Use --references {min(c for _, c in short) or 1} or fewer, or leave those scenes out "
-                         f"with --scenes")
+        raise ValueError(
+            f"{what} {need} posed seq0 (mapping) frames per scene; these scenes have fewer: {listed}. "
+            f"Use --references {min(c for _, c in short) or 1} or fewer, or leave those scenes out "
+            f"with --scenes"
+        )
 
 
 def bind_scene_references(loc: Any, scene: Scene, method_dict: dict, ref_pose: Pose) -> tuple[Any, Pose]:
@@ -292,9 +325,16 @@ def bind_scene_references(loc: Any, scene: Scene, method_dict: dict, ref_pose: P
     return ReferencedLocalizer(loc, refs), Pose.identity()
 
 
-def localize_with_references(method: Any, mapping: Sequence[ViewLike], queries: Sequence[ViewLike], k: int,
-                             mode: str = "retrieval", top: int = 1, progress: bool = False,
-                             localizer: Any = None) -> tuple[ReferenceSet, list[Estimate]]:
+def localize_with_references(
+    method: Any,
+    mapping: Sequence[ViewLike],
+    queries: Sequence[ViewLike],
+    k: int,
+    mode: str = "retrieval",
+    top: int = 1,
+    progress: bool = False,
+    localizer: Any = None,
+) -> tuple[ReferenceSet, list[Estimate]]:
     """Choose ``k`` references among ``mapping`` and localize every query with ``method`` (a name, path,
     ``Method`` or, through ``localizer``, an already built one); estimates are world-to-camera poses in the
     frame of the mapping poses. A bad query is a failed estimate, never an exception."""

@@ -16,11 +16,12 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -34,8 +35,19 @@ from .references import bind_scene_references, check_scene_references
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RunResult", "run_split", "journal_path", "failures_path", "read_journal", "frames_to_run",
-           "estimate_scores", "scene_fingerprint", "check_available", "check_depth_source", "write_frame_figure"]
+__all__ = [
+    "RunResult",
+    "run_split",
+    "journal_path",
+    "failures_path",
+    "read_journal",
+    "frames_to_run",
+    "estimate_scores",
+    "scene_fingerprint",
+    "check_available",
+    "check_depth_source",
+    "write_frame_figure",
+]
 
 JOURNAL_VERSION = 1
 
@@ -90,10 +102,17 @@ def estimate_scores(est: Estimate) -> dict[str, float]:
 
 
 def _record(scene: str, frame: str, est: Estimate, world_pose: Pose | None) -> dict[str, Any]:
-    rec: dict[str, Any] = {"kind": "frame", "scene": scene, "frame": frame, "ok": world_pose is not None,
-                           "confidence": est.confidence, "inliers": int(est.inliers), "reason": est.reason,
-                           "timings": {k: round(float(v), 6) for k, v in est.timings.items()},
-                           "scores": estimate_scores(est)}
+    rec: dict[str, Any] = {
+        "kind": "frame",
+        "scene": scene,
+        "frame": frame,
+        "ok": world_pose is not None,
+        "confidence": est.confidence,
+        "inliers": int(est.inliers),
+        "reason": est.reason,
+        "timings": {k: round(float(v), 6) for k, v in est.timings.items()},
+        "scores": estimate_scores(est),
+    }
     if world_pose is not None:
         q, t = world_pose.qt()
         rec["q"], rec["t"] = q.tolist(), t.tolist()
@@ -150,8 +169,9 @@ def _drop_stale(header: dict | None, recs: list[dict], fingerprints: dict[str, s
     changed (or have no recorded print: a journal of an older version), whose records are dropped (the run's
     ``stale_scenes``: the CLI says so)."""
     known = (header or {}).get("data", {})
-    stale = sorted({r["scene"] for r in recs if r["scene"] in fingerprints
-                    and known.get(r["scene"]) != fingerprints[r["scene"]]})
+    stale = sorted(
+        {r["scene"] for r in recs if r["scene"] in fingerprints and known.get(r["scene"]) != fingerprints[r["scene"]]}
+    )
     return [r for r in recs if r["scene"] not in stale], stale
 
 
@@ -231,8 +251,9 @@ def open_scene(method_dict: dict, scene_path: str) -> SceneReference:
     return SceneReference(scene, loc, ref_pose)
 
 
-def scene_results(ref: SceneReference, method_dict: dict, frames: Sequence[str], batch_size: int | None = None,
-                  figures: bool = False) -> Iterator[FrameResult]:
+def scene_results(
+    ref: SceneReference, method_dict: dict, frames: Sequence[str], batch_size: int | None = None, figures: bool = False
+) -> Iterator[FrameResult]:
     """Relocalize ``frames`` of a scene against its reference, one ``FrameResult`` per frame in order (the same
     wherever it runs: a pool worker, a Ray worker, this process). ``figures``: draw each one (``--viz``)."""
     scene = ref.scene
@@ -264,9 +285,15 @@ def save_figure(viz_dir: os.PathLike | str | None, result: FrameResult) -> None:
         log.warning("no figure for %s %s: %s", result.record["scene"], result.record["frame"], e)
 
 
-def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: str,
-               on_frame: Callable[[dict], None] | None = None, batch_size: int | None = None,
-               viz_dir: str | None = None) -> int:
+def _run_scene(
+    method_dict: dict,
+    scene_path: str,
+    frames: list[str],
+    journal: str,
+    on_frame: Callable[[dict], None] | None = None,
+    batch_size: int | None = None,
+    viz_dir: str | None = None,
+) -> int:
     """Relocalize ``frames`` of one scene against its reference, appending each result to the journal."""
     if _stopping():  # a scene already handed to this worker when the parent asked to stop: not started
         return 0
@@ -281,8 +308,14 @@ def _run_scene(method_dict: dict, scene_path: str, frames: list[str], journal: s
     return len(frames)
 
 
-def frame_figure(scene: Scene, frame: str, est: Estimate, world: Pose | None, method_dict: dict,
-                 ref_image: Callable[[], np.ndarray] | None = None) -> np.ndarray | None:
+def frame_figure(
+    scene: Scene,
+    frame: str,
+    est: Estimate,
+    world: Pose | None,
+    method_dict: dict,
+    ref_image: Callable[[], np.ndarray] | None = None,
+) -> np.ndarray | None:
     """One frame's figure for ``run --viz`` (matches + AR check against the scene's reference image, ground truth
     when the split has it). Methods that relocalize against other references than the scene's
     (``--references K``) get the AR check alone: their matches are with another image. A figure that cannot be
@@ -297,15 +330,30 @@ def frame_figure(scene: Scene, frame: str, est: Estimate, world: Pose | None, me
         extras = {} if (method_dict.get("options") or {}).get("references") else est.extras
         shown = Estimate(rel, est.confidence, est.inliers, est.reason, extras=extras)
         thr = float((method_dict.get("solver_opts") or {}).get("ransac_threshold_px", 3.0))
-        return estimate_figure((ref_image or ref.image)(), query.image(), ref.intrinsics, query.intrinsics, shown,
-                               gt, threshold_px=thr, title=f"{scene.name} {frame}  {method_dict.get('name', '')}")
+        return estimate_figure(
+            (ref_image or ref.image)(),
+            query.image(),
+            ref.intrinsics,
+            query.intrinsics,
+            shown,
+            gt,
+            threshold_px=thr,
+            title=f"{scene.name} {frame}  {method_dict.get('name', '')}",
+        )
     except Exception as e:  # a figure is a by-product: the frame's result is journaled already
         log.warning("no figure for %s %s: %s", scene.name, frame, e)
         return None
 
 
-def write_frame_figure(viz_dir: Path, scene: Scene, frame: str, est: Estimate, world: Pose | None,
-                       method_dict: dict, ref_image: Callable[[], np.ndarray] | None = None) -> Path | None:
+def write_frame_figure(
+    viz_dir: Path,
+    scene: Scene,
+    frame: str,
+    est: Estimate,
+    world: Pose | None,
+    method_dict: dict,
+    ref_image: Callable[[], np.ndarray] | None = None,
+) -> Path | None:
     """Draw one frame's figure (``frame_figure``) into ``frame_figure_path(viz_dir, …)``; None when it could not
     be drawn or written (logged, never raised)."""
     from ..viz import save_figure as save_jpeg
@@ -435,13 +483,17 @@ def run_split(
     jpath = journal_path(output)
     header, recs = read_journal(jpath)
     if recs and not resume and not overwrite:
-        raise FileExistsError(f"{jpath} already holds {len(recs)} results: run again with --resume to continue "
-                              f"that run or --overwrite to start again (in Python: resume=True, overwrite=True)")
+        raise FileExistsError(
+            f"{jpath} already holds {len(recs)} results: run again with --resume to continue "
+            f"that run or --overwrite to start again (in Python: resume=True, overwrite=True)"
+        )
     selection = selection_of(all_frames, select)
     if resume and header is not None and not overwrite:
         if not _same_method(header["method"], m.to_dict()):
-            raise ValueError(f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
-                             f"use another output path or --overwrite")
+            raise ValueError(
+                f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
+                f"use another output path or --overwrite"
+            )
         check_same_selection(jpath, header, selection)
     fresh = overwrite or not resume or header is None
     if fresh:
@@ -475,9 +527,21 @@ def run_split(
         check_available(m, keep=workers <= 1 or len(todo) <= 1)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
     if fresh:
-        jpath.write_text(json.dumps({"kind": "header", "version": JOURNAL_VERSION, "method": m.to_dict(),
-                                     "root": str(root), "split": split, "all_frames": all_frames,
-                                     "frames": selection, "data": fingerprints}) + "\n")
+        jpath.write_text(
+            json.dumps(
+                {
+                    "kind": "header",
+                    "version": JOURNAL_VERSION,
+                    "method": m.to_dict(),
+                    "root": str(root),
+                    "split": split,
+                    "all_frames": all_frames,
+                    "frames": selection,
+                    "data": fingerprints,
+                }
+            )
+            + "\n"
+        )
     else:  # the records read back whole: a torn last line goes with the rewrite
         _rewrite_journal(jpath, {**header, "data": {**header.get("data", {}), **fingerprints}}, recs)
     total = sum(len(f) for _, f in todo)
@@ -490,12 +554,29 @@ def run_split(
             from .distributed import RayOptions, run_on_ray
 
             work = [(os.path.abspath(s.path), names) for s, names in todo]  # workers do not share our cwd
-            cluster = run_on_ray(m, work, jpath, bar, ray_address, ray_options or RayOptions(),
-                                 os.path.abspath(root), split, batch_size, viz).to_dict()
+            cluster = run_on_ray(
+                m,
+                work,
+                jpath,
+                bar,
+                ray_address,
+                ray_options or RayOptions(),
+                os.path.abspath(root),
+                split,
+                batch_size,
+                viz,
+            ).to_dict()
         elif workers <= 1 or len(todo) <= 1:
             for s, names in todo:
-                _run_scene(md, str(s.path), names, str(jpath), on_frame=lambda r: bar.update(1),
-                           batch_size=batch_size, viz_dir=viz)
+                _run_scene(
+                    md,
+                    str(s.path),
+                    names,
+                    str(jpath),
+                    on_frame=lambda r: bar.update(1),
+                    batch_size=batch_size,
+                    viz_dir=viz,
+                )
         else:
             _run_parallel(md, todo, jpath, workers, bar, batch_size, viz)
     finally:
@@ -506,9 +587,20 @@ def run_split(
     for r in recs:
         for k, v in r.get("timings", {}).items():
             timing_sums[k] = timing_sums.get(k, 0.0) + v
-    return RunResult(output, jpath, failures_path(output), computed=total, skipped=len(done), estimated=estimated,
-                     failed=failed, seconds=time.perf_counter() - t_start, scenes=len(scene_list),
-                     timings=timing_sums, stale_scenes=stale, cluster=cluster)
+    return RunResult(
+        output,
+        jpath,
+        failures_path(output),
+        computed=total,
+        skipped=len(done),
+        estimated=estimated,
+        failed=failed,
+        seconds=time.perf_counter() - t_start,
+        scenes=len(scene_list),
+        timings=timing_sums,
+        stale_scenes=stale,
+        cluster=cluster,
+    )
 
 
 def _pick_scenes(scene_list: list[Scene], names: Sequence[str], split: str) -> list[Scene]:
@@ -522,8 +614,10 @@ def _pick_scenes(scene_list: list[Scene], names: Sequence[str], split: str) -> l
         for n in unknown:
             close = difflib.get_close_matches(n, have, n=2, cutoff=0.6)
             hints.append(f"{n} (did you mean {' or '.join(close)}?)" if close else n)
-        raise ValueError(f"the {split} split has no scene {', '.join(hints)}; it holds {len(have)} scene(s)"
-                         + (f": {', '.join(have[:8])}{' …' if len(have) > 8 else ''}" if have else ""))
+        raise ValueError(
+            f"the {split} split has no scene {', '.join(hints)}; it holds {len(have)} scene(s)"
+            + (f": {', '.join(have[:8])}{' …' if len(have) > 8 else ''}" if have else "")
+        )
     wanted = set(names)
     return [s for s in scene_list if s.name in wanted]
 
@@ -571,25 +665,31 @@ def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
     if not refs or any(f.has_depth(suffix) for f in refs):
         return
     found = sorted({s for f in refs for s in depth_suffixes(f.image_path)})
-    raise ValueError(f"method {m.name!r} reads depth maps *.{suffix}.png, but no reference image of the {split} "
-                     f"split has one (e.g. {refs[0].depth_path(suffix)}); depth suffixes there: "
-                     f"{', '.join(found) or 'none'} (pick one with NAME@SUFFIX or the method's last part)")
+    raise ValueError(
+        f"method {m.name!r} reads depth maps *.{suffix}.png, but no reference image of the {split} "
+        f"split has one (e.g. {refs[0].depth_path(suffix)}); depth suffixes there: "
+        f"{', '.join(found) or 'none'} (pick one with NAME@SUFFIX or the method's last part)"
+    )
 
 
-def _run_parallel(md: dict, todo: list, jpath: Path, workers: int, bar: Any, batch_size: int | None = None,
-                  viz_dir: str | None = None) -> None:
+def _run_parallel(
+    md: dict, todo: list, jpath: Path, workers: int, bar: Any, batch_size: int | None = None, viz_dir: str | None = None
+) -> None:
     threads = max(1, (os.cpu_count() or 1) // workers)
     offset = jpath.stat().st_size
     ctx = mp.get_context("spawn")  # torch and OpenCV threads do not survive fork reliably
     stop = ctx.Event()
-    with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_init_worker,
-                             initargs=(threads, stop)) as pool:
+    with ProcessPoolExecutor(
+        max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_init_worker, initargs=(threads, stop)
+    ) as pool:
         # Largest scenes first so that the last worker to finish is not left with a big one. The workers are
         # spawned here, while Ctrl-C is ignored: they inherit that, so one pressed while a worker still imports
         # (seconds, before ``_init_worker``) no longer prints a KeyboardInterrupt traceback from it.
         with _sigint_ignored():
-            futures = [pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size, viz_dir)
-                       for s, names in sorted(todo, key=lambda x: -len(x[1]))]
+            futures = [
+                pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size, viz_dir)
+                for s, names in sorted(todo, key=lambda x: -len(x[1]))
+            ]
         pending = set(futures)
         try:
             while pending:

@@ -10,7 +10,7 @@ A sibling of ``matching`` (pixels in, descriptors out); it imports only ``matchi
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 from .densevlad import DenseVLAD, DenseVLADOptions, dense_rootsift
 from .select import retrieve, select_references

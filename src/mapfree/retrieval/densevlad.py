@@ -8,8 +8,8 @@ cosine similarity.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -79,7 +79,7 @@ class DenseVLAD:
     def dim(self) -> int:
         return self.options.words * 128
 
-    def fit(self, images: Iterable[np.ndarray]) -> "DenseVLAD":
+    def fit(self, images: Iterable[np.ndarray]) -> DenseVLAD:
         """Learn the vocabulary by K-means on dense RootSIFT of ``images`` (the mapping images)."""
         self._fit_dense([dense_rootsift(im, self.options) for im in images])
         return self

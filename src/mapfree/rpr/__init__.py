@@ -13,14 +13,32 @@ import os
 from typing import Any
 
 __all__ = [
-    "load_method", "RPRMethod", "RPRNet", "RPRModule", "RPRDataModule", "RPRConfig", "load_config",
-    "Parameterisation", "PoseOutput", "PoseLoss", "procrustes", "build_from_method",
+    "load_method",
+    "RPRMethod",
+    "RPRNet",
+    "RPRModule",
+    "RPRDataModule",
+    "RPRConfig",
+    "load_config",
+    "Parameterisation",
+    "PoseOutput",
+    "PoseLoss",
+    "procrustes",
+    "build_from_method",
 ]
 
 _LAZY = {
-    "load_method": "inference", "RPRMethod": "inference", "RPRNet": "model", "RPRModule": "module",
-    "RPRDataModule": "data", "RPRConfig": "config", "load_config": "config", "Parameterisation": "params",
-    "PoseOutput": "params", "PoseLoss": "losses", "procrustes": "procrustes",
+    "load_method": "inference",
+    "RPRMethod": "inference",
+    "RPRNet": "model",
+    "RPRModule": "module",
+    "RPRDataModule": "data",
+    "RPRConfig": "config",
+    "load_config": "config",
+    "Parameterisation": "params",
+    "PoseOutput": "params",
+    "PoseLoss": "losses",
+    "procrustes": "procrustes",
 }
 
 
@@ -41,8 +59,10 @@ def build_from_method(method: Any) -> Any:
         ckpt = find_weights(config)
     ckpt = ckpt or os.environ.get("MAPFREE_RPR_CHECKPOINT")
     if not ckpt:
-        raise ValueError(f"method {getattr(method, 'name', 'rpr')!r} needs a checkpoint: pass --checkpoint CKPT "
-                         "(options.checkpoint in a method YAML, or $MAPFREE_RPR_CHECKPOINT)")
+        raise ValueError(
+            f"method {getattr(method, 'name', 'rpr')!r} needs a checkpoint: pass --checkpoint CKPT "
+            "(options.checkpoint in a method YAML, or $MAPFREE_RPR_CHECKPOINT)"
+        )
     from .inference import load_method
 
     return load_method(ckpt, opts.get("device"), config=config)
@@ -55,18 +75,30 @@ def _register() -> None:
     methods.register_kind("regression", build_from_method)
     registry = getattr(methods, "_REGISTRY", {})
     if "rpr" not in registry:
-        methods.register(methods.Method(
-            name="rpr", kind="regression", matcher="", solver="", depth="none",
-            description="relative pose regression network (mapfree train); needs --checkpoint CKPT",
-        ))
+        methods.register(
+            methods.Method(
+                name="rpr",
+                kind="regression",
+                matcher="",
+                solver="",
+                depth="none",
+                description="relative pose regression network (mapfree train); needs --checkpoint CKPT",
+            )
+        )
     for config in OFFICIAL_CONFIGS:
         if f"rpr-{config}" not in registry:
-            methods.register(methods.Method(
-                name=f"rpr-{config}", kind="regression", matcher="", solver="", depth="none",
-                options={"config": config},
-                description=f"published Map-free RPR model {config} (configs/rpr/{config}.yaml); "
-                            f"--checkpoint CKPT or {config}.ckpt in a weights folder (`mapfree weights`)",
-            ))
+            methods.register(
+                methods.Method(
+                    name=f"rpr-{config}",
+                    kind="regression",
+                    matcher="",
+                    solver="",
+                    depth="none",
+                    options={"config": config},
+                    description=f"published Map-free RPR model {config} (configs/rpr/{config}.yaml); "
+                    f"--checkpoint CKPT or {config}.ckpt in a weights folder (`mapfree weights`)",
+                )
+            )
 
 
 try:

@@ -50,11 +50,12 @@ def _argmax_rows(q: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     rows = max(1, _ARGMAX_CHUNK // max(B * k.shape[1], 1))
     kt = k.transpose(1, 2)
     with torch.autocast(device_type=q.device.type, enabled=False):
-        return torch.cat([(q[:, i:i + rows] @ kt).argmax(2) for i in range(0, N0, rows)], 1)
+        return torch.cat([(q[:, i : i + rows] @ kt).argmax(2) for i in range(0, N0, rows)], 1)
 
 
-def soft_warp(q: torch.Tensor, k: torch.Tensor, values: torch.Tensor, scale: float = 1.0,
-              max_score: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+def soft_warp(
+    q: torch.Tensor, k: torch.Tensor, values: torch.Tensor, scale: float = 1.0, max_score: bool = True
+) -> tuple[torch.Tensor, torch.Tensor | None]:
     """``softmax(scale · q kᵀ) @ values`` (B, N0, D) and each row's peak probability (B, N0), or None.
 
     q (B, N0, C), k (B, N1, C), values (B, N1, D). Fused attention returns only normalised outputs, so the peak
@@ -70,8 +71,9 @@ def soft_warp(q: torch.Tensor, k: torch.Tensor, values: torch.Tensor, scale: flo
     dt = torch.get_autocast_dtype(dev) if torch.is_autocast_enabled(dev) else q.dtype  # what attention runs in
     if not max_score:
         with sdpa_kernel(_SDPA_BACKENDS):
-            out = F.scaled_dot_product_attention(_pad8(q.to(dt))[:, None], _pad8(k.to(dt))[:, None],
-                                                 _pad8(values.to(dt))[:, None], scale=scale)
+            out = F.scaled_dot_product_attention(
+                _pad8(q.to(dt))[:, None], _pad8(k.to(dt))[:, None], _pad8(values.to(dt))[:, None], scale=scale
+            )
         return out[:, 0, :, :D], None
     q32, k32 = q.float(), k.float()
     idx = _argmax_rows(q32, k32)
@@ -82,8 +84,9 @@ def soft_warp(q: torch.Tensor, k: torch.Tensor, values: torch.Tensor, scale: flo
     k1 = torch.cat([F.pad(k.to(dt), (0, 1)), F.pad(one, (C, 0))], 1)  # (B, N1 + 1, C + 1): the sink key last
     v1 = torch.cat([F.pad(values.to(dt), (0, 1)), F.pad(one, (D, 0))], 1)
     with sdpa_kernel(_SDPA_BACKENDS):
-        out = F.scaled_dot_product_attention(_pad8(q1)[:, None], _pad8(k1)[:, None], _pad8(v1)[:, None],
-                                             scale=scale)[:, 0].float()
+        out = F.scaled_dot_product_attention(_pad8(q1)[:, None], _pad8(k1)[:, None], _pad8(v1)[:, None], scale=scale)[
+            :, 0
+        ].float()
     rest = 1.0 - out[..., D]
     # exp(scale (m - c)): 1 up to c's rounding, and the gradient of s_i through m_i.
     peak = torch.exp(scale * (m - c.float())) * out[..., D] / rest
@@ -93,8 +96,16 @@ def soft_warp(q: torch.Tensor, k: torch.Tensor, values: torch.Tensor, scale: flo
 class CorrelationAggregator(nn.Module):
     """Correlation-volume warping (``qkv=False``) or its query/key/value variant (``qkv=True``)."""
 
-    def __init__(self, dim: int = 32, position: bool = True, max_score: bool = True, qkv: bool = False,
-                 temperature: float = 0.0, own_position: bool = False, fused: bool = True):
+    def __init__(
+        self,
+        dim: int = 32,
+        position: bool = True,
+        max_score: bool = True,
+        qkv: bool = False,
+        temperature: float = 0.0,
+        own_position: bool = False,
+        fused: bool = True,
+    ):
         super().__init__()
         self.fused = fused  # soft_warp (attention kernels); False: the explicit correlation volume (reference)
         self.dim, self.position, self.max_score, self.qkv = dim, position, max_score, qkv
@@ -178,8 +189,14 @@ class ConcatAggregator(nn.Module):
         return torch.cat([f0, f1], 1)
 
 
-def build_aggregator(kind: str, dim: int, position: bool = True, max_score: bool = True, temperature: float = 0.0,
-                     own_position: bool = False) -> nn.Module:
+def build_aggregator(
+    kind: str,
+    dim: int,
+    position: bool = True,
+    max_score: bool = True,
+    temperature: float = 0.0,
+    own_position: bool = False,
+) -> nn.Module:
     if kind == "concat":
         return ConcatAggregator(dim)
     if kind in ("warp", "qkv"):

@@ -11,8 +11,17 @@ import yaml
 
 from ..yamlio import read_yaml_with_base
 
-__all__ = ["ModelConfig", "LossConfig", "DataConfig", "TrainConfig", "RPRConfig", "load_config", "apply_overrides",
-           "config_dir", "resolve_config"]
+__all__ = [
+    "ModelConfig",
+    "LossConfig",
+    "DataConfig",
+    "TrainConfig",
+    "RPRConfig",
+    "load_config",
+    "apply_overrides",
+    "config_dir",
+    "resolve_config",
+]
 
 ROTATIONS = ("quat", "6d", "euler_bins", "3d3d")
 AGGREGATORS = ("warp", "qkv", "concat")
@@ -26,7 +35,9 @@ class ModelConfig:
 
     rotation: str = "6d"  # quat | 6d | euler_bins | 3d3d (joint: predicted points + Procrustes)
     translation: str = "t"  # t | s_tdir | s_tbins (ignored for 3d3d)
-    encoder: str = "resunet"  # resunet (the paper's, trained) | xfeat (frozen pretrained XFeat, 64-d at 1/8; beyond the paper)
+    encoder: str = (
+        "resunet"  # resunet (the paper's, trained) | xfeat (frozen pretrained XFeat, 64-d at 1/8; beyond the paper)
+    )
     encoder_channels: tuple[int, ...] = (64, 128, 256)  # ResUNet stage widths (bottleneck outputs are 4x these)
     encoder_blocks: int = 3  # pre-activation bottlenecks per stage
     feature_dim: int = 32  # encoder output channels at 1/4 resolution
@@ -129,34 +140,38 @@ class RPRConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any], source: str = "<dict>") -> "RPRConfig":
+    def from_dict(cls, d: dict[str, Any], source: str = "<dict>") -> RPRConfig:
         return _build(cls, d or {}, source)
 
-    def validate(self) -> "RPRConfig":
-        m, l = self.model, self.loss
+    def validate(self) -> RPRConfig:
+        m, loss = self.model, self.loss
         if m.rotation not in ROTATIONS:
             raise ValueError(f"model.rotation must be one of {ROTATIONS}, got {m.rotation!r}")
         if m.translation not in TRANSLATIONS:
             raise ValueError(f"model.translation must be one of {TRANSLATIONS}, got {m.translation!r}")
-        if (m.rotation == "euler_bins") != (l.rotation == "ce"):
+        if (m.rotation == "euler_bins") != (loss.rotation == "ce"):
             raise ValueError("rotation bins need loss.rotation: ce (and ce needs model.rotation: euler_bins)")
-        if m.rotation != "3d3d" and (m.translation == "s_tbins") != (l.translation == "ce"):
+        if m.rotation != "3d3d" and (m.translation == "s_tbins") != (loss.translation == "ce"):
             raise ValueError("translation bins need loss.translation: ce (and ce needs model.translation: s_tbins)")
-        if l.rotation == "quat_l1" and m.rotation != "quat":
+        if loss.rotation == "quat_l1" and m.rotation != "quat":
             raise ValueError("loss.rotation quat_l1 needs model.rotation: quat")
-        if m.rotation == "3d3d" and (l.rotation in ("ce", "quat_l1") or l.translation == "ce"):
+        if m.rotation == "3d3d" and (loss.rotation in ("ce", "quat_l1") or loss.translation == "ce"):
             raise ValueError("3d3d is supervised through its decoded pose: use a matrix rotation loss")
         if m.encoder not in ("resunet", "xfeat"):
             raise ValueError(f"model.encoder must be resunet or xfeat, got {m.encoder!r}")
         if len(m.t_mean) != 3 or len(m.t_std) != 3 or min(m.t_std) <= 0:
-            raise ValueError(f"model.t_mean needs 3 values and model.t_std 3 positive values, got {m.t_mean}, {m.t_std}")
+            raise ValueError(
+                f"model.t_mean needs 3 values and model.t_std 3 positive values, got {m.t_mean}, {m.t_std}"
+            )
         if m.R_mean is not None and len(m.R_mean) != 9:
             raise ValueError(f"model.R_mean needs 9 values (row-major 3×3), got {len(m.R_mean)}")
         if self.train.scheduler not in ("none", "cosine"):
             raise ValueError(f"train.scheduler must be none or cosine, got {self.train.scheduler!r}")
         if self.train.cache_features and ((m.encoder != "xfeat" and self.train.freeze == "none") or self.data.augment):
-            raise ValueError("train.cache_features needs a frozen encoder (model.encoder: xfeat or train.freeze) and "
-                             "data.augment: false (augmented pixels would change the features)")
+            raise ValueError(
+                "train.cache_features needs a frozen encoder (model.encoder: xfeat or train.freeze) and "
+                "data.augment: false (augmented pixels would change the features)"
+            )
         if self.train.freeze not in FREEZE:
             raise ValueError(f"train.freeze must be one of {FREEZE}, got {self.train.freeze!r}")
         if self.train.freeze == "pose" and not m.uncertainty:
@@ -165,10 +180,10 @@ class RPRConfig:
             raise ValueError(f"model.aggregator must be one of {AGGREGATORS}, got {m.aggregator!r}")
         if not m.avg_pool and not self.data.image_size:
             raise ValueError("model.avg_pool: false flattens a fixed-size map: set data.image_size [W, H]")
-        if l.virtual_points < 0:
-            raise ValueError(f"loss.virtual_points must be >= 0, got {l.virtual_points}")
-        if l.weighting not in ("fixed", "learned"):
-            raise ValueError(f"loss.weighting must be fixed or learned, got {l.weighting!r}")
+        if loss.virtual_points < 0:
+            raise ValueError(f"loss.virtual_points must be >= 0, got {loss.virtual_points}")
+        if loss.weighting not in ("fixed", "learned"):
+            raise ValueError(f"loss.weighting must be fixed or learned, got {loss.weighting!r}")
         return self
 
 
@@ -178,8 +193,9 @@ def _build(cls: type, d: dict[str, Any], source: str) -> Any:
     known = {f.name: f for f in fields(cls)}
     unknown = sorted(set(d) - set(known))
     if unknown:
-        raise ValueError(f"{source}: unknown key(s) {', '.join(unknown)} in {cls.__name__} "
-                         f"(allowed: {', '.join(known)})")
+        raise ValueError(
+            f"{source}: unknown key(s) {', '.join(unknown)} in {cls.__name__} (allowed: {', '.join(known)})"
+        )
     kwargs = {}
     defaults = cls()
     for k, v in d.items():

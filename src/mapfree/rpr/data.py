@@ -31,8 +31,22 @@ from .config import DataConfig
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Pair", "pose_statistics", "sample_pairs", "val_pairs", "PairDataset", "RPRDataModule", "resolve_size",
-           "load_pair_image", "resized_image", "to_input", "as_float_input", "EpochPairs", "TrainPairs", "EpochSampler"]
+__all__ = [
+    "Pair",
+    "pose_statistics",
+    "sample_pairs",
+    "val_pairs",
+    "PairDataset",
+    "RPRDataModule",
+    "resolve_size",
+    "load_pair_image",
+    "resized_image",
+    "to_input",
+    "as_float_input",
+    "EpochPairs",
+    "TrainPairs",
+    "EpochSampler",
+]
 
 
 @dataclass(frozen=True)
@@ -44,8 +58,9 @@ class Pair:
     name1: str
 
 
-def sample_pairs(scenes: list[Scene], per_scene: int, rng: np.random.Generator,
-                 min_overlap: float = 0.4, max_overlap: float = 0.8) -> list[Pair]:
+def sample_pairs(
+    scenes: list[Scene], per_scene: int, rng: np.random.Generator, min_overlap: float = 0.4, max_overlap: float = 0.8
+) -> list[Pair]:
     """``per_scene`` pairs from each scene's overlaps with ``min < overlap < max`` (with replacement)."""
     pairs: list[Pair] = []
     for scene in scenes:
@@ -88,7 +103,7 @@ def val_pairs(scenes: list[Scene], every_query: int = 5) -> list[Pair]:
     """Reference–query pairs of val scenes: the benchmark's scored queries (5) or all of them (1)."""
     pairs = []
     for scene in scenes:
-        queries = scene.scored_queries() if every_query == 5 else scene.queries[::max(every_query, 1)]
+        queries = scene.scored_queries() if every_query == 5 else scene.queries[:: max(every_query, 1)]
         pairs += [Pair(str(scene.path), scene.reference.name, q.name) for q in queries if q.pose is not None]
     return pairs
 
@@ -105,8 +120,9 @@ def resolve_size(frame_size: tuple[int, int], cfg: DataConfig) -> tuple[int, int
 _IMAGE_CACHE: dict[tuple[str, tuple[int, int]], np.ndarray] = {}
 
 
-def resized_image(frame: Frame, size: tuple[int, int], cache: bool = False,
-                  cache_dir: os.PathLike | str | None = None) -> np.ndarray:
+def resized_image(
+    frame: Frame, size: tuple[int, int], cache: bool = False, cache_dir: os.PathLike | str | None = None
+) -> np.ndarray:
     """(H,W,3) uint8 RGB resized to ``size`` = (W,H): from memory (``cache``), from ``cache_dir`` (raw ``.npy``
     written on first use, refreshed when the image is newer), or decoded and resized now."""
     key = (str(frame.image_path), tuple(size))
@@ -125,8 +141,14 @@ def resized_image(frame: Frame, size: tuple[int, int], cache: bool = False,
         img = frame.image()
         h, w = img.shape[:2]
         if (w, h) != (frame.intrinsics.width, frame.intrinsics.height):
-            log.debug("%s: image is %dx%d but intrinsics say %dx%d", frame.image_path, w, h,
-                      frame.intrinsics.width, frame.intrinsics.height)
+            log.debug(
+                "%s: image is %dx%d but intrinsics say %dx%d",
+                frame.image_path,
+                w,
+                h,
+                frame.intrinsics.width,
+                frame.intrinsics.height,
+            )
         img = np.ascontiguousarray(cv2.resize(img, tuple(size)) if (w, h) != tuple(size) else img)
         if stored is not None:
             stored.parent.mkdir(parents=True, exist_ok=True)
@@ -142,11 +164,14 @@ def resized_image(frame: Frame, size: tuple[int, int], cache: bool = False,
 def _cache_path(frame: Frame, size: tuple[int, int], cache_dir: os.PathLike | str) -> Path:
     """``cache_dir/WxH/<split>/<scene>/<seq>/<frame>.npy``: one file per frame and input size."""
     scene = frame.image_path.parents[len(Path(frame.name).parts) - 1]
-    return Path(cache_dir) / f"{size[0]}x{size[1]}" / scene.parent.name / scene.name / Path(frame.name).with_suffix(".npy")
+    return (
+        Path(cache_dir) / f"{size[0]}x{size[1]}" / scene.parent.name / scene.name / Path(frame.name).with_suffix(".npy")
+    )
 
 
-def load_pair_image(frame: Frame, size: tuple[int, int], cache: bool = False,
-                    cache_dir: os.PathLike | str | None = None) -> tuple[np.ndarray, Intrinsics]:
+def load_pair_image(
+    frame: Frame, size: tuple[int, int], cache: bool = False, cache_dir: os.PathLike | str | None = None
+) -> tuple[np.ndarray, Intrinsics]:
     """(H,W,3) float32 RGB in [0,1] resized to ``size`` = (W,H), with the matching intrinsics."""
     return to_input(resized_image(frame, size, cache, cache_dir), size), frame.intrinsics.resized(*size)
 
@@ -183,9 +208,17 @@ class PairDataset(TorchDataset):
     divides by 255) unless ``augment`` jitters them in float. ``cache_dir``: see ``resized_image``.
     """
 
-    def __init__(self, pairs: list[Pair], size: tuple[int, int], augment: bool = False, seed: int = 0,
-                 cache: bool = False, scenes: dict[str, Scene] | None = None, cache_dir: str | None = None,
-                 uint8: bool = False):
+    def __init__(
+        self,
+        pairs: list[Pair],
+        size: tuple[int, int],
+        augment: bool = False,
+        seed: int = 0,
+        cache: bool = False,
+        scenes: dict[str, Scene] | None = None,
+        cache_dir: str | None = None,
+        uint8: bool = False,
+    ):
         self.pairs, self.size, self.augment, self.seed, self.cache = pairs, size, augment, seed, cache
         self.cache_dir, self.uint8 = cache_dir or None, uint8
         self._scenes: dict[str, Scene] = {} if scenes is None else scenes
@@ -252,17 +285,26 @@ class EpochPairs:
             if p not in cache:
                 cache[p] = Scene(Path(p))
         scenes = [cache[p] for p in self.scenes]
-        return sample_pairs(scenes, self.per_scene, np.random.default_rng([self.seed, epoch]), self.min_overlap,
-                            self.max_overlap)
+        return sample_pairs(
+            scenes, self.per_scene, np.random.default_rng([self.seed, epoch]), self.min_overlap, self.max_overlap
+        )
 
 
 class TrainPairs(PairDataset):
     """Training dataset indexed by ``(epoch, i)``: resamples its pairs when the epoch changes, so one dataset
     (and persistent loader workers) serves every epoch. Pair counts are the same every epoch."""
 
-    def __init__(self, sampling: EpochPairs, size: tuple[int, int], augment: bool = False, seed: int = 0,
-                 cache: bool = False, scenes: dict[str, Scene] | None = None, cache_dir: str | None = None,
-                 uint8: bool = False):
+    def __init__(
+        self,
+        sampling: EpochPairs,
+        size: tuple[int, int],
+        augment: bool = False,
+        seed: int = 0,
+        cache: bool = False,
+        scenes: dict[str, Scene] | None = None,
+        cache_dir: str | None = None,
+        uint8: bool = False,
+    ):
         super().__init__([], size, augment, seed, cache, scenes, cache_dir, uint8)
         self.sampling = sampling
         self.epoch = 0
@@ -314,8 +356,11 @@ class RPRDataModule(pl.LightningDataModule):
         ds = Dataset(self.cfg.root)
         self.train_scenes = ds.scenes("train") if "train" in ds.splits() else []
         self.val_scenes = ds.scenes(self.cfg.val_split) if self.cfg.val_split in ds.splits() else []
-        first = next(iter((self.train_scenes or self.val_scenes)[0].frames.values()), None) if (
-            self.train_scenes or self.val_scenes) else None
+        first = (
+            next(iter((self.train_scenes or self.val_scenes)[0].frames.values()), None)
+            if (self.train_scenes or self.val_scenes)
+            else None
+        )
         if first is None:
             raise ValueError(f"{self.cfg.root}: no train or {self.cfg.val_split} scenes with frames")
         self.size = resolve_size((first.intrinsics.width, first.intrinsics.height), self.cfg)
@@ -327,25 +372,47 @@ class RPRDataModule(pl.LightningDataModule):
 
     def sampling(self) -> EpochPairs:
         c = self.cfg
-        return EpochPairs(tuple(str(s.path) for s in self.train_scenes), c.pairs_per_scene, c.seed, c.min_overlap,
-                          c.max_overlap)
+        return EpochPairs(
+            tuple(str(s.path) for s in self.train_scenes), c.pairs_per_scene, c.seed, c.min_overlap, c.max_overlap
+        )
 
     def train_pairs(self, epoch: int | None = None) -> list[Pair]:
         return self.sampling()(self._epoch() if epoch is None else epoch, self._scene_cache)
 
     def _loader(self, ds: TorchDataset, batch_size: int, **kw) -> DataLoader:
         workers = self.cfg.num_workers
-        return DataLoader(ds, batch_size=batch_size, num_workers=workers, persistent_workers=workers > 0,
-                          pin_memory=torch.cuda.is_available(), prefetch_factor=4 if workers > 0 else None, **kw)
+        return DataLoader(
+            ds,
+            batch_size=batch_size,
+            num_workers=workers,
+            persistent_workers=workers > 0,
+            pin_memory=torch.cuda.is_available(),
+            prefetch_factor=4 if workers > 0 else None,
+            **kw,
+        )
 
     def train_dataloader(self) -> DataLoader:
-        ds = TrainPairs(self.sampling(), self.size, self.cfg.augment, seed=self.cfg.seed, cache=self.cfg.cache_images,
-                        scenes=self._scene_cache, cache_dir=self.cfg.cache_dir, uint8=True)
+        ds = TrainPairs(
+            self.sampling(),
+            self.size,
+            self.cfg.augment,
+            seed=self.cfg.seed,
+            cache=self.cfg.cache_images,
+            scenes=self._scene_cache,
+            cache_dir=self.cfg.cache_dir,
+            uint8=True,
+        )
         if not ds.pairs:
-            raise ValueError(f"{self.cfg.root}/train: no training pairs inside the overlap bounds "
-                             f"({self.cfg.min_overlap} < overlap < {self.cfg.max_overlap})")
-        return self._loader(ds, self.cfg.batch_size, sampler=EpochSampler(len(ds), self._epoch, self.cfg.seed),
-                            drop_last=len(ds) > self.cfg.batch_size)
+            raise ValueError(
+                f"{self.cfg.root}/train: no training pairs inside the overlap bounds "
+                f"({self.cfg.min_overlap} < overlap < {self.cfg.max_overlap})"
+            )
+        return self._loader(
+            ds,
+            self.cfg.batch_size,
+            sampler=EpochSampler(len(ds), self._epoch, self.cfg.seed),
+            drop_last=len(ds) > self.cfg.batch_size,
+        )
 
     def val_pairs(self) -> list[Pair]:
         pairs = val_pairs(self.val_scenes, self.cfg.val_every_query)
@@ -355,6 +422,13 @@ class RPRDataModule(pl.LightningDataModule):
         pairs = self.val_pairs()
         if not pairs:
             return []
-        ds = PairDataset(pairs, self.size, augment=False, cache=self.cfg.cache_images, scenes=self._scene_cache,
-                         cache_dir=self.cfg.cache_dir, uint8=True)
+        ds = PairDataset(
+            pairs,
+            self.size,
+            augment=False,
+            cache=self.cfg.cache_images,
+            scenes=self._scene_cache,
+            cache_dir=self.cfg.cache_dir,
+            uint8=True,
+        )
         return self._loader(ds, self.cfg.val_batch_size, shuffle=False)

@@ -91,7 +91,9 @@ class _UpConv(nn.Module):
 
 
 def _stage(cin: int, cout: int, blocks: int, stride: int) -> nn.Sequential:
-    return nn.Sequential(PreActBottleneck(cin, cout, stride), *[PreActBottleneck(cout, cout) for _ in range(blocks - 1)])
+    return nn.Sequential(
+        PreActBottleneck(cin, cout, stride), *[PreActBottleneck(cout, cout) for _ in range(blocks - 1)]
+    )
 
 
 class ResUNet(nn.Module):
@@ -123,8 +125,10 @@ class ResUNet(nn.Module):
     def output_size(height: int, width: int) -> tuple[int, int]:
         """Feature map (h, w) for an input of ``height`` × ``width``: 4× the 1/16 stage (the decoder upsamples it
         twice and fits the skips to it), e.g. 92×68 for 360×270."""
+
         def one(n: int) -> int:
             return 4 * conv_out(conv_out(conv_out(conv_out(n, 7, 2, 3))))
+
         return one(height), one(width)
 
     @staticmethod
@@ -168,7 +172,7 @@ class XFeatEncoder(nn.Module):
     def output_size(height: int, width: int) -> tuple[int, int]:
         return height // 8, width // 8
 
-    def train(self, mode: bool = True) -> "XFeatEncoder":
+    def train(self, mode: bool = True) -> XFeatEncoder:
         super().train(mode)
         self.net.eval()  # frozen: its BatchNorm statistics stay the pretrained ones
         return self

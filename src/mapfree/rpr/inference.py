@@ -75,7 +75,9 @@ class RPRMethod:
     @torch.inference_mode()
     def predict(self, batch: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
         """``img0``, ``img1`` (B,3,H,W) in [0,1] (or uint8) -> R (B,3,3), t (B,3), confidence (B,), log_sigma (B,2)|absent."""
-        out = self.module.net(as_float_input(batch["img0"].to(self.device)), as_float_input(batch["img1"].to(self.device)))
+        out = self.module.net(
+            as_float_input(batch["img0"].to(self.device)), as_float_input(batch["img1"].to(self.device))
+        )
         res = {"R": out.R.float().cpu().numpy().astype(np.float64), "t": out.t.float().cpu().numpy().astype(np.float64)}
         if out.log_sigma is not None:
             res["log_sigma"] = out.log_sigma.float().cpu().numpy()
@@ -97,8 +99,9 @@ class RPRMethod:
         if "log_sigma" in res:
             extras["sigma_rot_deg"] = float(np.degrees(np.exp(res["log_sigma"][i, 0])))
             extras["sigma_trans_m"] = float(np.exp(res["log_sigma"][i, 1]))
-        return Estimate(Pose(res["R"][i], res["t"][i]), float(res["confidence"][i]), 0, "",
-                        {"regression": seconds}, extras)
+        return Estimate(
+            Pose(res["R"][i], res["t"][i]), float(res["confidence"][i]), 0, "", {"regression": seconds}, extras
+        )
 
     # The Localizer protocol of mapfree.relocalize: set_reference / localize / relocalize.
     def set_reference(self, reference: Any) -> Any:
@@ -127,15 +130,16 @@ class RPRMethod:
         out: list[Estimate] = []
         for s in range(0, len(queries), batch_size):
             t0 = time.perf_counter()
-            q = torch.cat([self._tensor(image_of(x), size) for x in queries[s:s + batch_size]])
+            q = torch.cat([self._tensor(image_of(x), size) for x in queries[s : s + batch_size]])
             res = self.predict({"img0": ref_t.expand(len(q), -1, -1, -1), "img1": q})
             dt = (time.perf_counter() - t0) / len(q)
             out += [self._estimate(res, i, dt) for i in range(len(q))]
         return out
 
 
-def load_method(checkpoint: os.PathLike | str, device: str | torch.device | None = None,
-                config: str | None = None) -> RPRMethod:
+def load_method(
+    checkpoint: os.PathLike | str, device: str | torch.device | None = None, config: str | None = None
+) -> RPRMethod:
     """A checkpoint -> an ``RPRMethod`` (CPU/GPU picked automatically).
 
     Ours (written by ``mapfree train``) carry their config; a public Map-free checkpoint is built from

@@ -9,10 +9,23 @@ import torch.nn.functional as F
 from .metrics import virtual_points
 from .params import PoseOutput
 from .rotations import (
-    _safe_norm, angle_between, direction_to_spherical, euler_bin_index, euler_from_matrix, geodesic_angle, spherical_bin_index,
+    _safe_norm,
+    angle_between,
+    direction_to_spherical,
+    euler_bin_index,
+    euler_from_matrix,
+    geodesic_angle,
+    spherical_bin_index,
 )
 
-__all__ = ["rotation_loss", "translation_loss", "virtual_point_loss", "PoseLoss", "ROTATION_LOSSES", "TRANSLATION_LOSSES"]
+__all__ = [
+    "rotation_loss",
+    "translation_loss",
+    "virtual_point_loss",
+    "PoseLoss",
+    "ROTATION_LOSSES",
+    "TRANSLATION_LOSSES",
+]
 
 ROTATION_LOSSES = ("geodesic", "frobenius", "l1", "quat_l1", "ce")
 TRANSLATION_LOSSES = ("l1", "l2", "angle", "scale_dir", "ce")
@@ -20,7 +33,7 @@ TRANSLATION_LOSSES = ("l1", "l2", "angle", "scale_dir", "ce")
 
 def _bins_ce(logits: list[torch.Tensor], index: torch.Tensor) -> torch.Tensor:
     """Mean over bin groups of the cross-entropy against each group's target bin: (B,)."""
-    return sum(F.cross_entropy(l.float(), index[..., i], reduction="none") for i, l in enumerate(logits)) / len(logits)
+    return sum(F.cross_entropy(g.float(), index[..., i], reduction="none") for i, g in enumerate(logits)) / len(logits)
 
 
 def rotation_loss(kind: str, out: PoseOutput, R_gt: torch.Tensor, q_gt: torch.Tensor | None = None) -> torch.Tensor:
@@ -31,7 +44,9 @@ def rotation_loss(kind: str, out: PoseOutput, R_gt: torch.Tensor, q_gt: torch.Te
     if kind == "frobenius":
         return ((out.R - R_gt) ** 2).mean((-1, -2))  # = the public mean((R_gt^T R - I)^2) for rotations
     if kind == "l1":
-        return (out.R.transpose(-1, -2) @ R_gt - torch.eye(3, dtype=R_gt.dtype, device=R_gt.device)).abs().mean((-1, -2))
+        return (
+            (out.R.transpose(-1, -2) @ R_gt - torch.eye(3, dtype=R_gt.dtype, device=R_gt.device)).abs().mean((-1, -2))
+        )
     if kind == "quat_l1":
         if "quat" not in out.raw or q_gt is None:
             raise ValueError("quat_l1 needs a quaternion output and a ground-truth quaternion")
@@ -71,8 +86,11 @@ def virtual_point_loss(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) 
     dt = torch.promote_types(out.R.dtype, torch.float32)  # float32 at least, also under mixed precision
     X = torch.as_tensor(virtual_points(), device=R_gt.device, dtype=dt)  # in the true query camera
     R_rel = out.R.to(dt) @ R_gt.to(dt).transpose(1, 2)  # true query camera -> estimated query camera
-    Xe = torch.einsum("bij,nj->bni", R_rel, X) - (R_rel @ t_gt.to(dt).unsqueeze(-1)).transpose(1, 2) \
+    Xe = (
+        torch.einsum("bij,nj->bni", R_rel, X)
+        - (R_rel @ t_gt.to(dt).unsqueeze(-1)).transpose(1, 2)
         + out.t.to(dt).unsqueeze(1)
+    )
     return _safe_norm(Xe - X).mean(-1)
 
 
@@ -91,8 +109,9 @@ class PoseLoss(nn.Module):
             self.s_rot = nn.Parameter(torch.full((1,), float(cfg.init_s_rot)))
             self.s_trans = nn.Parameter(torch.full((1,), float(cfg.init_s_trans)))
 
-    def forward(self, out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor,
-                q_gt: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def forward(
+        self, out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor, q_gt: torch.Tensor | None = None
+    ) -> dict[str, torch.Tensor]:
         l_rot = rotation_loss(self.cfg.rotation, out, R_gt, q_gt).mean()
         l_trans = translation_loss(self.cfg.translation, out, t_gt).mean()
         if self.cfg.weighting == "learned":
@@ -118,7 +137,9 @@ class PoseLoss(nn.Module):
 def pose_errors(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torch.Tensor:
     """(B,2) rotation angle (rad) and translation error (m, ‖t − t_gt‖), detached."""
     with torch.no_grad():
-        return torch.stack([geodesic_angle(out.R.float(), R_gt.float()), (out.t.float() - t_gt.float()).norm(dim=-1)], -1)
+        return torch.stack(
+            [geodesic_angle(out.R.float(), R_gt.float()), (out.t.float() - t_gt.float()).norm(dim=-1)], -1
+        )
 
 
 def uncertainty_nll(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torch.Tensor:

@@ -81,7 +81,11 @@ def summarize(trans_err, rot_err, vcre, confidence, vcre_px_max: float = 90.0) -
     pose_ok = (trans_err < 0.25) & (rot_err < 5.0)
     vcre_ok = vcre < vcre_px_max
     return {
-        "trans_err_med": float(np.median(trans_err)), "rot_err_med": float(np.median(rot_err)),
-        "vcre_med": float(np.median(vcre)), "pose_prec": float(pose_ok.mean()), "vcre_prec": float(vcre_ok.mean()),
-        "pose_auc": auc(confidence, pose_ok), "vcre_auc": auc(confidence, vcre_ok),
+        "trans_err_med": float(np.median(trans_err)),
+        "rot_err_med": float(np.median(rot_err)),
+        "vcre_med": float(np.median(vcre)),
+        "pose_prec": float(pose_ok.mean()),
+        "vcre_prec": float(vcre_ok.mean()),
+        "pose_auc": auc(confidence, pose_ok),
+        "vcre_auc": auc(confidence, vcre_ok),
     }

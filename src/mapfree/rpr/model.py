@@ -30,8 +30,15 @@ class PoseHead(nn.Module):
     """Stride-2 pre-activation residual blocks, global average pooling (or flattening of a fixed-size map),
     an MLP to the parameterisation's output vector, and its decoding (public ``DeepResBlock`` heads)."""
 
-    def __init__(self, cin: int, channels: tuple[int, ...], mlp: tuple[int, ...], param: Parameterisation,
-                 avg_pool: bool = True, grid: tuple[int, int] | None = None):
+    def __init__(
+        self,
+        cin: int,
+        channels: tuple[int, ...],
+        mlp: tuple[int, ...],
+        param: Parameterisation,
+        avg_pool: bool = True,
+        grid: tuple[int, int] | None = None,
+    ):
         super().__init__()
         chans = [cin, *channels]
         for i in range(len(channels)):
@@ -85,11 +92,13 @@ class RPRNet(nn.Module):
         else:
             self.encoder = ResUNet(tuple(cfg.encoder_channels), cfg.encoder_blocks, cfg.feature_dim)
             dim = cfg.feature_dim
-        self.aggregator = build_aggregator(cfg.aggregator, dim, cfg.position, cfg.max_score, cfg.temperature,
-                                           cfg.own_position)
+        self.aggregator = build_aggregator(
+            cfg.aggregator, dim, cfg.position, cfg.max_score, cfg.temperature, cfg.own_position
+        )
         grid = None if input_size is None else self.encoder.output_size(int(input_size[1]), int(input_size[0]))
-        self.head = PoseHead(self.aggregator.out_channels, tuple(cfg.head_channels), tuple(cfg.mlp), self.param,
-                             cfg.avg_pool, grid)
+        self.head = PoseHead(
+            self.aggregator.out_channels, tuple(cfg.head_channels), tuple(cfg.mlp), self.param, cfg.avg_pool, grid
+        )
         if cfg.uncertainty:
             self.uncertainty = nn.Sequential(nn.Linear(self.head.feature_dim, 64), nn.ReLU(), nn.Linear(64, 2))
 

@@ -46,7 +46,7 @@ class RPRModule(pl.LightningModule):
             m.eval()
         return parts
 
-    def train(self, mode: bool = True) -> "RPRModule":
+    def train(self, mode: bool = True) -> RPRModule:
         super().train(mode)
         for m in getattr(self, "_frozen", []):
             m.eval()
@@ -129,8 +129,11 @@ class RPRModule(pl.LightningModule):
         params = [p for p in self.parameters() if p.requires_grad]
         # On a GPU, one fused kernel for the whole update instead of several per parameter tensor.
         fused = {"fused": True} if params and params[0].is_cuda else {}
-        opt = (torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay, eps=tc.adam_eps, **fused)
-               if tc.weight_decay else torch.optim.Adam(params, lr=tc.lr, eps=tc.adam_eps, **fused))
+        opt = (
+            torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay, eps=tc.adam_eps, **fused)
+            if tc.weight_decay
+            else torch.optim.Adam(params, lr=tc.lr, eps=tc.adam_eps, **fused)
+        )
         if tc.scheduler == "none":
             return opt
         total = max(int(self.trainer.estimated_stepping_batches), 1) if self.trainer is not None else 1

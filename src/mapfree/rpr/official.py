@@ -17,14 +17,31 @@ from ..weights import MissingWeightsError, WeightFile, find_in_dirs, missing_mes
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["OFFICIAL_CONFIGS", "WEIGHTS_URL", "RPR_WEIGHTS", "find_weights", "is_public", "read_checkpoint",
-           "load_weights", "official_config_for"]
+__all__ = [
+    "OFFICIAL_CONFIGS",
+    "WEIGHTS_URL",
+    "RPR_WEIGHTS",
+    "find_weights",
+    "is_public",
+    "read_checkpoint",
+    "load_weights",
+    "official_config_for",
+]
 
 #: The 12 single-frame configurations of the public release (its file names, our config names).
 OFFICIAL_CONFIGS = (
-    "3d3d", "3d3d_lowoverlap", "3d3d_no_posencoder", "3d3d_no_warping", "3d3d_weighted_loss", "rot6d_trans",
-    "rotbin_trans", "rotbin_transdirectionbin_scale", "rotbin_transdirectionbin_scale_lowoverlap",
-    "rotbin_transdirectionbin_scale_qkv", "rotquat_trans", "rotquat_transdirection_scale",
+    "3d3d",
+    "3d3d_lowoverlap",
+    "3d3d_no_posencoder",
+    "3d3d_no_warping",
+    "3d3d_weighted_loss",
+    "rot6d_trans",
+    "rotbin_trans",
+    "rotbin_transdirectionbin_scale",
+    "rotbin_transdirectionbin_scale_lowoverlap",
+    "rotbin_transdirectionbin_scale_qkv",
+    "rotquat_trans",
+    "rotquat_transdirection_scale",
 )
 WEIGHTS_URL = "https://storage.googleapis.com/niantic-lon-static/research/map-free-reloc/assets/mapfree_rpr_weights.zip"
 _LOSS_KEYS = {"s_r": "criterion.s_rot", "s_t": "criterion.s_trans"}
@@ -33,10 +50,17 @@ _LOSS_KEYS = {"s_r": "criterion.s_rot", "s_t": "criterion.s_trans"}
 _LICENCE = "Niantic's non-commercial licence"
 #: The published checkpoints as ``mapfree.weights`` files: found by the one rule, ``<name>.ckpt`` (or as unzipped,
 #: ``mapfree/<name>.ckpt``) in ``$MAPFREE_WEIGHTS_DIR`` or the default folder.
-RPR_WEIGHTS = {name: WeightFile(f"{name}.ckpt", f"rpr-{name}", (WEIGHTS_URL,),
-                                aliases=(f"mapfree/{name}.ckpt", f"weights/mapfree/{name}.ckpt"), licence=_LICENCE,
-                                archive=True)
-               for name in OFFICIAL_CONFIGS}
+RPR_WEIGHTS = {
+    name: WeightFile(
+        f"{name}.ckpt",
+        f"rpr-{name}",
+        (WEIGHTS_URL,),
+        aliases=(f"mapfree/{name}.ckpt", f"weights/mapfree/{name}.ckpt"),
+        licence=_LICENCE,
+        archive=True,
+    )
+    for name in OFFICIAL_CONFIGS
+}
 
 
 def find_weights(name: str) -> Path:
@@ -44,8 +68,9 @@ def find_weights(name: str) -> Path:
     wf = RPR_WEIGHTS.get(name) or WeightFile(f"{name}.ckpt", f"rpr-{name}", (WEIGHTS_URL,), archive=True)
     hit = find_in_dirs(wf.filename, *wf.aliases)
     if hit is None:
-        raise MissingWeightsError(missing_message(wf.what, wf.item(), wf.filename,
-                                                  f"{wf.how()}, or pass --checkpoint FILE"))
+        raise MissingWeightsError(
+            missing_message(wf.what, wf.item(), wf.filename, f"{wf.how()}, or pass --checkpoint FILE")
+        )
     return hit[0]
 
 
@@ -75,8 +100,10 @@ def official_config_for(path: os.PathLike | str, name: str | None = None) -> str
     """The configuration of a public checkpoint: ``name`` if given, else the file's stem (``3d3d.ckpt``)."""
     name = name or Path(path).stem
     if name not in OFFICIAL_CONFIGS:
-        raise ValueError(f"{path}: a public Map-free checkpoint; say which configuration it is with "
-                         f"--method rpr-<config>, <config> one of {', '.join(OFFICIAL_CONFIGS)}")
+        raise ValueError(
+            f"{path}: a public Map-free checkpoint; say which configuration it is with "
+            f"--method rpr-<config>, <config> one of {', '.join(OFFICIAL_CONFIGS)}"
+        )
     return name
 
 
@@ -92,11 +119,16 @@ def load_weights(module: torch.nn.Module, ckpt: dict[str, Any], source: str = "c
     own = module.state_dict()
     unexpected = sorted(k for k in sd if k not in own)
     missing = sorted(k for k in own if k not in sd and not k.startswith("net.uncertainty."))
-    shapes = sorted(f"{k} {tuple(sd[k].shape)} vs {tuple(own[k].shape)}" for k in sd
-                    if k in own and tuple(sd[k].shape) != tuple(own[k].shape))
+    shapes = sorted(
+        f"{k} {tuple(sd[k].shape)} vs {tuple(own[k].shape)}"
+        for k in sd
+        if k in own and tuple(sd[k].shape) != tuple(own[k].shape)
+    )
     if unexpected or missing or shapes:
-        parts = [f"unexpected: {', '.join(unexpected[:5])}" if unexpected else "",
-                 f"missing: {', '.join(missing[:5])}" if missing else "",
-                 f"shape: {', '.join(shapes[:5])}" if shapes else ""]
+        parts = [
+            f"unexpected: {', '.join(unexpected[:5])}" if unexpected else "",
+            f"missing: {', '.join(missing[:5])}" if missing else "",
+            f"shape: {', '.join(shapes[:5])}" if shapes else "",
+        ]
         raise ValueError(f"{source}: does not match the configured network ({'; '.join(p for p in parts if p)})")
     module.load_state_dict(sd, strict=False)

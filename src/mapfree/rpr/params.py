@@ -20,7 +20,12 @@ import torch.nn.functional as F
 from ..geometry import rotmat_to_quat
 from .procrustes import procrustes
 from .rotations import (
-    EULER_BINS, SPHERICAL_BINS, euler_bin_angles, matrix_from_euler, quat_to_matrix, rot6d_to_matrix,
+    EULER_BINS,
+    SPHERICAL_BINS,
+    euler_bin_angles,
+    matrix_from_euler,
+    quat_to_matrix,
+    rot6d_to_matrix,
     spherical_to_direction,
 )
 
@@ -115,8 +120,16 @@ class _ScaleBins(_Part):
 class Parameterisation:
     """Splits the MLP output into a rotation and a translation part, or [3D-3D] points."""
 
-    def __init__(self, rotation: str = "6d", translation: str = "t", n_points: int = 6, basis: bool = True,
-                 t_mean=(0.0, 0.0, 0.0), t_std=(1.0, 1.0, 1.0), R_mean=None):
+    def __init__(
+        self,
+        rotation: str = "6d",
+        translation: str = "t",
+        n_points: int = 6,
+        basis: bool = True,
+        t_mean=(0.0, 0.0, 0.0),
+        t_std=(1.0, 1.0, 1.0),
+        R_mean=None,
+    ):
         self.rotation, self.translation = rotation, translation
         self.n_points, self.basis = n_points, basis
         self.R_mean = None if R_mean is None else np.asarray(R_mean, dtype=np.float64).reshape(3, 3)
@@ -127,7 +140,9 @@ class Parameterisation:
             self._rot = self._trans = None
         else:
             self._rot = {"quat": _Quat, "6d": _SixD, "euler_bins": _EulerBins}[rotation]()
-            self._trans = _T(t_mean, t_std) if translation == "t" else {"s_tdir": _ScaleDir, "s_tbins": _ScaleBins}[translation]()
+            self._trans = (
+                _T(t_mean, t_std) if translation == "t" else {"s_tdir": _ScaleDir, "s_tbins": _ScaleBins}[translation]()
+            )
             self.dim = self._rot.dim + self._trans.dim
 
     @property
@@ -154,7 +169,7 @@ class Parameterisation:
             n = self.n_points
             pts = x.reshape(x.shape[0], n, 3)
             eye = torch.eye(3, dtype=x.dtype, device=x.device).expand(x.shape[0], 3, 3)
-            P0, P1 = (eye, pts) if n == 3 else (pts[:, : n // 2], pts[:, n // 2:])
+            P0, P1 = (eye, pts) if n == 3 else (pts[:, : n // 2], pts[:, n // 2 :])
             if self.basis:
                 P0 = P0 + eye if n == 6 else P0
                 P1 = P1 + eye if n in (3, 6) else P1
@@ -162,7 +177,7 @@ class Parameterisation:
             R, t = procrustes(P0, P1)
             return PoseOutput(R, t, raw)
         R = self._rot.decode(x[..., : self._rot.dim], raw)
-        t = self._trans.decode(x[..., self._rot.dim:], raw)
+        t = self._trans.decode(x[..., self._rot.dim :], raw)
         return PoseOutput(R, t, raw)
 
 

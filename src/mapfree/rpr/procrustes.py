@@ -7,7 +7,9 @@ import torch
 __all__ = ["procrustes"]
 
 
-def procrustes(X: torch.Tensor, Y: torch.Tensor, weights: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def procrustes(
+    X: torch.Tensor, Y: torch.Tensor, weights: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(B,N,3) source and target points (N >= 3, not collinear) -> R (B,3,3) with det +1, t (B,3).
 
     Gradients flow through ``torch.linalg.svd``; they are well defined while the cross-covariance has

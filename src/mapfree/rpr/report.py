@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import csv
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -17,14 +17,17 @@ from .metrics import pose_errors, summarize, vcre_px
 __all__ = ["mean_training_pose", "evaluate_pairs", "plot_curves"]
 
 
-def mean_training_pose(root: os.PathLike | str, cfg: DataConfig | None = None, epochs: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def mean_training_pose(
+    root: os.PathLike | str, cfg: DataConfig | None = None, epochs: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """The average relative pose of the training pairs: chordal mean rotation (SVD projection) and mean t."""
     cfg = cfg or DataConfig()
     scenes = Dataset(root).scenes("train")
     Rs, ts = [], []
     for e in range(epochs):
-        for p in sample_pairs(scenes, cfg.pairs_per_scene, np.random.default_rng([cfg.seed, e]), cfg.min_overlap,
-                              cfg.max_overlap):
+        for p in sample_pairs(
+            scenes, cfg.pairs_per_scene, np.random.default_rng([cfg.seed, e]), cfg.min_overlap, cfg.max_overlap
+        ):
             s = PairDataset([p], (1, 1)).scene(p.scene)
             rel = s.frame(p.name1).pose.relative_to(s.frame(p.name0).pose)
             Rs.append(rel.R)
@@ -34,9 +37,15 @@ def mean_training_pose(root: os.PathLike | str, cfg: DataConfig | None = None, e
     return R, np.mean(ts, 0)
 
 
-def evaluate_pairs(predict: Callable[[dict], dict] | None, root: os.PathLike | str, cfg: DataConfig,
-                   split: str = "val", every_query: int = 1, constant: tuple[np.ndarray, np.ndarray] | None = None,
-                   batch_size: int = 16) -> dict[str, float]:
+def evaluate_pairs(
+    predict: Callable[[dict], dict] | None,
+    root: os.PathLike | str,
+    cfg: DataConfig,
+    split: str = "val",
+    every_query: int = 1,
+    constant: tuple[np.ndarray, np.ndarray] | None = None,
+    batch_size: int = 16,
+) -> dict[str, float]:
     """Metrics over reference–query pairs of ``split`` for a ``predict(batch)`` function or a constant pose."""
     import torch
     from torch.utils.data import DataLoader
@@ -77,8 +86,12 @@ def _read_csv(path: Path) -> dict[str, list[tuple[float, float]]]:
     return series
 
 
-def plot_curves(metrics_csv: os.PathLike | str, out_png: os.PathLike | str, title: str = "",
-                baselines: dict[str, float] | None = None) -> Path:
+def plot_curves(
+    metrics_csv: os.PathLike | str,
+    out_png: os.PathLike | str,
+    title: str = "",
+    baselines: dict[str, float] | None = None,
+) -> Path:
     """Loss curves (train per step, val per epoch) and validation VCRE precision/AUC from Lightning's CSV log.
 
     ``baselines``: label -> value drawn as dashed horizontal lines on the validation panel (e.g. the
@@ -91,8 +104,14 @@ def plot_curves(metrics_csv: os.PathLike | str, out_png: os.PathLike | str, titl
 
     s = _read_csv(Path(metrics_csv))
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4))
-    for key, style in (("train/loss", "-"), ("train/loss_rot", ":"), ("train/loss_trans", ":"), ("train/loss_vp", ":"),
-                       ("val/loss", "o-"), ("val/loss_pose", "s-")):
+    for key, style in (
+        ("train/loss", "-"),
+        ("train/loss_rot", ":"),
+        ("train/loss_trans", ":"),
+        ("train/loss_vp", ":"),
+        ("val/loss", "o-"),
+        ("val/loss_pose", "s-"),
+    ):
         if key in s:
             x, y = zip(*s[key])
             ax0.plot(x, y, style, label=key, ms=4)
@@ -118,5 +137,3 @@ def plot_curves(metrics_csv: os.PathLike | str, out_png: os.PathLike | str, titl
     fig.savefig(out, dpi=100)
     plt.close(fig)
     return out
-
-

@@ -9,9 +9,21 @@ import torch
 import torch.nn.functional as F
 
 __all__ = [
-    "rot6d_to_matrix", "matrix_to_rot6d", "quat_to_matrix", "geodesic_angle", "euler_from_matrix",
-    "matrix_from_euler", "euler_bin_index", "euler_bin_angles", "direction_to_spherical", "spherical_bin_index",
-    "spherical_to_direction", "EULER_BINS", "EULER_OFFSETS", "SPHERICAL_BINS", "angle_between",
+    "rot6d_to_matrix",
+    "matrix_to_rot6d",
+    "quat_to_matrix",
+    "geodesic_angle",
+    "euler_from_matrix",
+    "matrix_from_euler",
+    "euler_bin_index",
+    "euler_bin_angles",
+    "direction_to_spherical",
+    "spherical_bin_index",
+    "spherical_to_direction",
+    "EULER_BINS",
+    "EULER_OFFSETS",
+    "SPHERICAL_BINS",
+    "angle_between",
 ]
 
 #: Whole-degree bins of the public release: angles about x, y, z (extrinsic "xyz"), index = angle + offset.
@@ -41,9 +53,15 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(q.shape[:-1] + (3, 3))
@@ -74,9 +92,20 @@ def matrix_from_euler(euler_deg: torch.Tensor) -> torch.Tensor:
     x, y, z, w = q.unbind(-1)
     x2, y2, z2, w2 = x * x, y * y, z * z, w * w
     xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
-    R = torch.stack([x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw),
-                     2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw),
-                     2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2], -1).reshape(q.shape[:-1] + (3, 3))
+    R = torch.stack(
+        [
+            x2 - y2 - z2 + w2,
+            2 * (xy - zw),
+            2 * (xz + yw),
+            2 * (xy + zw),
+            -x2 + y2 - z2 + w2,
+            2 * (yz - xw),
+            2 * (xz - yw),
+            2 * (yz + xw),
+            -x2 - y2 + z2 + w2,
+        ],
+        -1,
+    ).reshape(q.shape[:-1] + (3, 3))
     dtype = euler_deg.dtype if euler_deg.is_floating_point() else torch.float32
     return R.to(dtype)
 
@@ -95,8 +124,10 @@ def _quat_compose(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     px, py, pz, pw = p.unbind(-1)
     qx, qy, qz, qw = q.unbind(-1)
     cx, cy, cz = py * qz - pz * qy, pz * qx - px * qz, px * qy - py * qx
-    return torch.stack([pw * qx + qw * px + cx, pw * qy + qw * py + cy, pw * qz + qw * pz + cz,
-                        pw * qw - px * qx - py * qy - pz * qz], -1)
+    return torch.stack(
+        [pw * qx + qw * px + cx, pw * qy + qw * py + cy, pw * qz + qw * pz + cz, pw * qw - px * qx - py * qy - pz * qz],
+        -1,
+    )
 
 
 def euler_from_matrix(R: torch.Tensor) -> torch.Tensor:
@@ -129,7 +160,9 @@ def direction_to_spherical(d: torch.Tensor) -> torch.Tensor:
 def spherical_bin_index(angles_deg: torch.Tensor) -> torch.Tensor:
     """(B,2) phi, theta in degrees -> (B,2) whole-degree bins (phi 360 wraps to 0, theta clamped to 179)."""
     idx = torch.round(angles_deg).long()
-    return torch.stack([torch.remainder(idx[..., 0], SPHERICAL_BINS[0]), idx[..., 1].clamp(0, SPHERICAL_BINS[1] - 1)], -1)
+    return torch.stack(
+        [torch.remainder(idx[..., 0], SPHERICAL_BINS[0]), idx[..., 1].clamp(0, SPHERICAL_BINS[1] - 1)], -1
+    )
 
 
 def spherical_to_direction(angles_deg: torch.Tensor) -> torch.Tensor:
@@ -149,4 +182,3 @@ def _safe_norm(v: torch.Tensor) -> torch.Tensor:
     sq = (v * v).sum(-1)
     pos = sq > 0
     return torch.where(pos, torch.sqrt(torch.where(pos, sq, torch.ones_like(sq))), torch.zeros_like(sq))
-

@@ -55,19 +55,31 @@ def _loggers(out: Path) -> list:
     return loggers
 
 
-def build_trainer(cfg: RPRConfig, out: os.PathLike | str, opts: TrainerOptions | None = None,
-                  has_val: bool = True) -> pl.Trainer:
+def build_trainer(
+    cfg: RPRConfig, out: os.PathLike | str, opts: TrainerOptions | None = None, has_val: bool = True
+) -> pl.Trainer:
     opts = opts or TrainerOptions()
     out = Path(out)
     monitor = cfg.train.monitor if has_val else "train/loss"
     mode = cfg.train.monitor_mode if has_val else "min"
     # Two callbacks: Lightning's ``save_last`` only refreshes last.ckpt when a new best is written.
-    best = ModelCheckpoint(dirpath=str(out / "checkpoints"), filename="best", monitor=monitor, mode=mode,
-                           save_top_k=1, auto_insert_metric_name=False, enable_version_counter=False)
-    last = ModelCheckpoint(dirpath=str(out / "checkpoints"), filename="last", monitor=None, save_top_k=1,
-                           enable_version_counter=False)
+    best = ModelCheckpoint(
+        dirpath=str(out / "checkpoints"),
+        filename="best",
+        monitor=monitor,
+        mode=mode,
+        save_top_k=1,
+        auto_insert_metric_name=False,
+        enable_version_counter=False,
+    )
+    last = ModelCheckpoint(
+        dirpath=str(out / "checkpoints"), filename="last", monitor=None, save_top_k=1, enable_version_counter=False
+    )
     kwargs: dict[str, Any] = dict(
-        accelerator=opts.accelerator, devices=opts.devices, num_nodes=opts.num_nodes, strategy=opts.strategy,
+        accelerator=opts.accelerator,
+        devices=opts.devices,
+        num_nodes=opts.num_nodes,
+        strategy=opts.strategy,
         precision=opts.precision or cfg.train.precision,
         max_epochs=opts.max_epochs if opts.max_epochs is not None else cfg.train.max_epochs,
         max_steps=opts.max_steps if opts.max_steps is not None else cfg.train.max_steps,
@@ -91,8 +103,9 @@ def build_trainer(cfg: RPRConfig, out: os.PathLike | str, opts: TrainerOptions |
     return pl.Trainer(**kwargs)
 
 
-def fit(cfg: RPRConfig, out: os.PathLike | str, opts: TrainerOptions | None = None,
-        resume: os.PathLike | str | None = None) -> tuple[pl.Trainer, RPRModule]:
+def fit(
+    cfg: RPRConfig, out: os.PathLike | str, opts: TrainerOptions | None = None, resume: os.PathLike | str | None = None
+) -> tuple[pl.Trainer, RPRModule]:
     """Train ``cfg`` into ``out`` (checkpoints/, logs/metrics.csv, tensorboard/, config.yaml, curves.png)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -130,8 +143,12 @@ def with_target_statistics(cfg: RPRConfig, dm: RPRDataModule, epochs: int = 3) -
     if cfg.data.augment:  # swapped pairs have the inverse pose: centre on no motion, widen the scale
         R, t, s = np.eye(3), np.zeros(3), np.sqrt(s**2 + t**2)
     log.info("target statistics over %d pairs: t mean %s std %s", len(pairs), np.round(t, 3), np.round(s, 3))
-    model = replace(cfg.model, t_mean=tuple(float(v) for v in t), t_std=tuple(float(v) for v in s),
-                    R_mean=tuple(float(v) for v in R.reshape(-1)))
+    model = replace(
+        cfg.model,
+        t_mean=tuple(float(v) for v in t),
+        t_std=tuple(float(v) for v in s),
+        R_mean=tuple(float(v) for v in R.reshape(-1)),
+    )
     return replace(cfg, model=model).validate()
 
 

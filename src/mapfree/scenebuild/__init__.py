@@ -13,6 +13,14 @@ from .place import BuildError, BuildOptions, PlaceResult, build_place
 from .sfm import SfmOptions
 
 __all__ = [
-    "BuildOptions", "BuildError", "PlaceResult", "build_place", "SfmOptions", "CorrespondenceOptions",
-    "read_correspondences", "Place", "Scan", "read_place",
+    "BuildOptions",
+    "BuildError",
+    "PlaceResult",
+    "build_place",
+    "SfmOptions",
+    "CorrespondenceOptions",
+    "read_correspondences",
+    "Place",
+    "Scan",
+    "read_place",
 ]

@@ -48,9 +48,13 @@ def compare_to_truth(scene: Path, truth_place: Path) -> dict:
     seq = np.array([n.split("/")[0] for n in names])
     extent = {s: float(np.linalg.norm(np.ptp(Ct[seq == s], axis=0))) for s in set(seq)}
     rel = centre_err / np.array([extent[s] for s in seq])
-    out = {"frames": len(names), "rotation_median_deg": float(np.median(rot_err)),
-           "centre_median_m": float(np.median(centre_err)), "centre_median_rel": float(np.median(rel)),
-           "scan_extent_m": extent}
+    out = {
+        "frames": len(names),
+        "rotation_median_deg": float(np.median(rot_err)),
+        "centre_median_m": float(np.median(centre_err)),
+        "centre_median_rel": float(np.median(rel)),
+        "scan_extent_m": extent,
+    }
     if (scene / "overlaps.npz").is_file() and (truth_place / "overlaps.npz").is_file():
         ob, ot = read_overlaps(scene / "overlaps.npz"), read_overlaps(truth_place / "overlaps.npz")
         # Built names -> (scan index, position in the scan) of the truth.
@@ -60,7 +64,9 @@ def compare_to_truth(scene: Path, truth_place: Path) -> dict:
             key[k] = (int(Path(src).parent.name.removeprefix("scan") or 0), int(Path(src).stem[-5:]))
         kept = set(key.values())
         vb = {key[(a, b)] + key[(c, d)]: v for (a, b, c, d), v in zip(ob.idxs.tolist(), ob.overlaps) if (a, b) in key}
-        vt = {tuple(r): v for r, v in zip(ot.idxs.tolist(), ot.overlaps) if tuple(r[:2]) in kept and tuple(r[2:]) in kept}
+        vt = {
+            tuple(r): v for r, v in zip(ot.idxs.tolist(), ot.overlaps) if tuple(r[:2]) in kept and tuple(r[2:]) in kept
+        }
         pairs = sorted(set(vb) | set(vt))
         x = np.array([vb.get(p, 0.0) for p in pairs])
         y = np.array([vt.get(p, 0.0) for p in pairs])

@@ -30,9 +30,16 @@ class CorrespondenceOptions:
     max_pairs: int = 2000  # per scene, the highest-overlap pairs first
 
 
-def depth_correspondences(depth_a: np.ndarray, K_a: Intrinsics, pose_a: Pose, depth_b: np.ndarray, K_b: Intrinsics,
-                          pose_b: Pose, opts: CorrespondenceOptions = CorrespondenceOptions(),
-                          sparse: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def depth_correspondences(
+    depth_a: np.ndarray,
+    K_a: Intrinsics,
+    pose_a: Pose,
+    depth_b: np.ndarray,
+    K_b: Intrinsics,
+    pose_b: Pose,
+    opts: CorrespondenceOptions = CorrespondenceOptions(),
+    sparse: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
     """``(kpts_a (n,2), kpts_b (n,2))`` float32 pixels of A's depth pixels that B sees at a consistent depth.
 
     ``sparse``: the depth maps hold SfM points only; every one of A's is tried and B's is dilated.
@@ -60,8 +67,9 @@ def depth_correspondences(depth_a: np.ndarray, K_a: Intrinsics, pose_a: Pose, de
     return uv[ok].astype(np.float32), uv_b[ok].astype(np.float32)
 
 
-def write_correspondences(path: os.PathLike | str, pairs: list[tuple[int, int, int, int]],
-                          matches: list[tuple[np.ndarray, np.ndarray]]) -> None:
+def write_correspondences(
+    path: os.PathLike | str, pairs: list[tuple[int, int, int, int]], matches: list[tuple[np.ndarray, np.ndarray]]
+) -> None:
     sizes = np.array([len(a) for a, _ in matches], np.int64)
     offsets = np.r_[0, np.cumsum(sizes)].astype(np.int64)
     k0 = np.concatenate([a for a, _ in matches]) if matches else np.zeros((0, 2), np.float32)
@@ -73,4 +81,4 @@ def read_correspondences(path: os.PathLike | str) -> dict[tuple[int, int, int, i
     """``{(seqA, frameA, seqB, frameB): (kpts0, kpts1)}`` from ``correspondences.npz``."""
     with np.load(path) as z:
         pairs, off, k0, k1 = z["pairs"], z["offsets"], z["kpts0"], z["kpts1"]
-    return {tuple(int(x) for x in p): (k0[off[i]:off[i + 1]], k1[off[i]:off[i + 1]]) for i, p in enumerate(pairs)}
+    return {tuple(int(x) for x in p): (k0[off[i] : off[i + 1]], k1[off[i] : off[i + 1]]) for i, p in enumerate(pairs)}

@@ -24,7 +24,16 @@ from ..data.io import FormatError, iter_records, read_intrinsics
 from ..data.orientation import ROTATIONS, orient_intrinsics
 from ..geometry import Intrinsics, Pose
 
-__all__ = ["ScanFrame", "Scan", "Place", "read_place", "read_tum", "interpolate_track", "exif_intrinsics", "DEVICE_AXES"]
+__all__ = [
+    "ScanFrame",
+    "Scan",
+    "Place",
+    "read_place",
+    "read_tum",
+    "interpolate_track",
+    "exif_intrinsics",
+    "DEVICE_AXES",
+]
 
 IMAGE_EXT = {".jpg", ".jpeg", ".png"}
 VIDEO_EXT = {".mp4", ".mov", ".avi", ".mkv", ".m4v"}
@@ -77,9 +86,13 @@ def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if not np.isfinite(t):
             raise FormatError(path, lineno, f"timestamp {first!r} is not finite")
         if prev is not None and not t > prev[0]:
-            raise FormatError(path, lineno, f"timestamp {first} is {'equal to' if t == prev[0] else 'before'} the "
-                                            f"previous one ({prev[0]!r}, line {prev[1]}): a device track's times "
-                                            "must increase from line to line")
+            raise FormatError(
+                path,
+                lineno,
+                f"timestamp {first} is {'equal to' if t == prev[0] else 'before'} the "
+                f"previous one ({prev[0]!r}, line {prev[1]}): a device track's times "
+                "must increase from line to line",
+            )
         if not np.linalg.norm(v[3:]) > 0:
             raise FormatError(path, lineno, "zero quaternion")
         times.append(t)
@@ -91,8 +104,9 @@ def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.asarray(times), arr[:, :3], Rotation.from_quat(arr[:, 3:]).as_matrix()
 
 
-def interpolate_track(times: np.ndarray, centres: np.ndarray, rots: np.ndarray, at: np.ndarray,
-                      max_gap: float = 1.0) -> list[Pose | None]:
+def interpolate_track(
+    times: np.ndarray, centres: np.ndarray, rots: np.ndarray, at: np.ndarray, max_gap: float = 1.0
+) -> list[Pose | None]:
     """Camera-to-world poses at times ``at`` (linear centres, slerp rotations); None outside the track."""
     out: list[Pose | None] = [None] * len(at)
     if len(times) == 1:

@@ -44,8 +44,10 @@ def sfm_overlaps(point_ids: list[np.ndarray], seq: np.ndarray, number: np.ndarra
     rows = np.repeat(np.arange(len(sets)), [len(s) for s in sets])
     cols = np.concatenate(sets) if sets else np.zeros(0, np.int64)
     _, cols = np.unique(cols, return_inverse=True)
-    V = sparse.csr_matrix((np.ones(len(rows), np.float32), (rows, cols.ravel())),
-                          shape=(len(sets), int(cols.max()) + 1 if len(cols) else 0))
+    V = sparse.csr_matrix(
+        (np.ones(len(rows), np.float32), (rows, cols.ravel())),
+        shape=(len(sets), int(cols.max()) + 1 if len(cols) else 0),
+    )
     return covisibility_overlaps(V, seq, number)
 
 
@@ -58,8 +60,9 @@ def _grid_samples(depth: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([u[pick], v[pick]], 1).astype(np.float64), depth[v[pick], u[pick]].astype(np.float64)
 
 
-def visible_in_depth(X_world: np.ndarray, pose: Pose, K: Intrinsics, depth: np.ndarray,
-                     abs_tol: float = 0.05, rel_tol: float = 0.05) -> np.ndarray:
+def visible_in_depth(
+    X_world: np.ndarray, pose: Pose, K: Intrinsics, depth: np.ndarray, abs_tol: float = 0.05, rel_tol: float = 0.05
+) -> np.ndarray:
     """(N,) bool: the point projects inside the frame, in front, onto a pixel with depth, and is not behind
     that surface by more than the tolerance (occluded). One-sided: a point a little in front of the surface
     (pose error on a grazing floor) still counts, as the surface seen there is its own."""
@@ -75,9 +78,17 @@ def visible_in_depth(X_world: np.ndarray, pose: Pose, K: Intrinsics, depth: np.n
     return ok & (d > 0) & (z - d <= abs_tol + rel_tol * d)
 
 
-def depth_overlaps(poses: list[Pose], intrinsics: list[Intrinsics], depths: list[np.ndarray], seq: np.ndarray,
-                   number: np.ndarray, points_per_frame: int = 300, abs_tol: float = 0.05,
-                   rel_tol: float = 0.05, window: float = 0.025) -> Overlaps:
+def depth_overlaps(
+    poses: list[Pose],
+    intrinsics: list[Intrinsics],
+    depths: list[np.ndarray],
+    seq: np.ndarray,
+    number: np.ndarray,
+    points_per_frame: int = 300,
+    abs_tol: float = 0.05,
+    rel_tol: float = 0.05,
+    window: float = 0.025,
+) -> Overlaps:
     """Overlaps from metric depth and metric world-to-camera poses (see the module docstring).
 
     The occlusion test takes the farthest depth within a window of ``window`` x the image's longer side:

@@ -19,8 +19,7 @@ import cv2
 import numpy as np
 
 from ..data.device import DEVICE_FILE, multiframe_bursts, rebase_bursts, write_device_poses
-from ..data.io import (FormatError, depth_path_for, read_depth, read_image, write_depth, write_intrinsics,
-                       write_poses)
+from ..data.io import FormatError, depth_path_for, read_depth, read_image, write_depth, write_intrinsics, write_poses
 from ..data.overlaps import Overlaps, write_overlaps
 from ..data.scene import REFERENCE_NAME, frame_number
 from ..geometry import Intrinsics, Pose
@@ -68,8 +67,9 @@ class PlaceResult:
     report: dict = field(default_factory=dict)
 
 
-def _stage(place: Place, images: Path) -> tuple[dict[str, Path], dict[str, Intrinsics | None], dict[str, Pose | None],
-                                                dict[str, int]]:
+def _stage(
+    place: Place, images: Path
+) -> tuple[dict[str, Path], dict[str, Intrinsics | None], dict[str, Pose | None], dict[str, int]]:
     """Link every frame as ``seqK/frame_NNNNN.jpg`` (PNG inputs re-encoded); returns sources, intrinsics, device."""
     src, intr, dev, seq_of = {}, {}, {}, {}
     for k, scan in enumerate(place.scans):
@@ -91,28 +91,39 @@ def _depth_suffixes(path: Path) -> list[str]:
     return sorted(p.name[len(stem) + 1 : -4] for p in path.parent.glob(f"{stem}.*.png"))
 
 
-def _check_registration(place: Place, model: SfmModel | None, seq_of: dict[str, int], min_fraction: float,
-                        dropped_by_device: int = 0) -> dict:
+def _check_registration(
+    place: Place, model: SfmModel | None, seq_of: dict[str, int], min_fraction: float, dropped_by_device: int = 0
+) -> dict:
     total = {s.name: len(s.frames) for s in place.scans}
     reg = {s.name: 0 for s in place.scans}
-    for n in (model.poses if model else {}):
+    for n in model.poses if model else {}:
         reg[place.scans[seq_of[n]].name] += 1
     stats = {s: {"images": total[s], "registered": reg[s]} for s in total}
     if model is None or not model.poses:
         raise BuildError("SfM reconstructed nothing (too few matches: blurred, textureless or tiny images?)")
     for s in place.scans:
         if reg[s.name] == 0 and model.models > 1:
-            raise BuildError(f"scans do not overlap: {s.name} was not registered with the others "
-                             f"(SfM made {model.models} separate models)")
+            raise BuildError(
+                f"scans do not overlap: {s.name} was not registered with the others "
+                f"(SfM made {model.models} separate models)"
+            )
         if reg[s.name] < max(2, min_fraction * total[s.name]):
             dropped = f", {dropped_by_device} inconsistent with the device track" if dropped_by_device else ""
-            raise BuildError(f"too few images registered in {s.name}: {reg[s.name]}/{total[s.name]} "
-                             f"(need {min_fraction:.0%}{dropped})")
+            raise BuildError(
+                f"too few images registered in {s.name}: {reg[s.name]}/{total[s.name]} "
+                f"(need {min_fraction:.0%}{dropped})"
+            )
     return stats
 
 
-def _metric_scale(place: Place, model: SfmModel, seq_of: dict[str, int], device: dict[str, Pose | None],
-                  images: Path, allow_unscaled: bool) -> ScaleFit:
+def _metric_scale(
+    place: Place,
+    model: SfmModel,
+    seq_of: dict[str, int],
+    device: dict[str, Pose | None],
+    images: Path,
+    allow_unscaled: bool,
+) -> ScaleFit:
     sfm_p: dict[str, dict] = {}
     dev_p: dict[str, dict] = {}
     for n, p in model.poses.items():
@@ -140,8 +151,10 @@ def _metric_scale(place: Place, model: SfmModel, seq_of: dict[str, int], device:
         return fit
     if allow_unscaled:
         return ScaleFit(1.0, "none", float("nan"))
-    raise BuildError("no metric scale: no scan has device poses (device_poses.txt) for 4+ registered images and "
-                     "no depth maps were found; pass --allow-unscaled to keep SfM units")
+    raise BuildError(
+        "no metric scale: no scan has device poses (device_poses.txt) for 4+ registered images and "
+        "no depth maps were found; pass --allow-unscaled to keep SfM units"
+    )
 
 
 def _copy(src: Path, dst: Path) -> None:
@@ -166,14 +179,25 @@ def _sparse_depth(model: SfmModel, name: str, pose: Pose, K: Intrinsics) -> np.n
 def _histogram(ov: Overlaps) -> dict:
     bins = np.linspace(0, 1, 11)
     cross = ov.idxs[:, 0] != ov.idxs[:, 2]
-    return {"bins": bins.round(2).tolist(),
-            "within": np.histogram(ov.overlaps[~cross], bins)[0].tolist(),
-            "across": np.histogram(ov.overlaps[cross], bins)[0].tolist()}
+    return {
+        "bins": bins.round(2).tolist(),
+        "within": np.histogram(ov.overlaps[~cross], bins)[0].tolist(),
+        "across": np.histogram(ov.overlaps[cross], bins)[0].tolist(),
+    }
 
 
-def _write_scene(out: Path, place: Place, model: SfmModel, fit: ScaleFit, src: dict[str, Path],
-                 images: Path, device: dict[str, Pose | None], seq_of: dict[str, int], opts: BuildOptions,
-                 private_gt: Path | None) -> dict:
+def _write_scene(
+    out: Path,
+    place: Place,
+    model: SfmModel,
+    fit: ScaleFit,
+    src: dict[str, Path],
+    images: Path,
+    device: dict[str, Pose | None],
+    seq_of: dict[str, int],
+    opts: BuildOptions,
+    private_gt: Path | None,
+) -> dict:
     """The Map-free layout in ``out``; returns the report's layout section."""
     metric = {n: Pose(p.R, p.t * fit.scale) for n, p in model.poses.items()}
     scan0 = sorted(n for n in metric if seq_of[n] == 0)
@@ -208,18 +232,31 @@ def _write_scene(out: Path, place: Place, model: SfmModel, fit: ScaleFit, src: d
     _write_device(out, keep, rename, device, seq_of, opts.split)
     seq = np.array([int(rename[n][3]) for n in keep])
     number = np.array([frame_number(rename[n]) for n in keep])
-    ov, points = _overlaps(model, keep, poses, [model.intrinsics[n] for n in keep], images, seq, number,
-                           opts.overlap_points)
+    ov, points = _overlaps(
+        model, keep, poses, [model.intrinsics[n] for n in keep], images, seq, number, opts.overlap_points
+    )
     write_overlaps(out / "overlaps.npz", ov)
-    section = {"frames": {rename[n]: str(src[n]) for n in keep}, "overlap_pairs": len(ov), "overlap_points": points,
-               "overlap_histogram": _histogram(ov)}
+    section = {
+        "frames": {rename[n]: str(src[n]) for n in keep},
+        "overlap_pairs": len(ov),
+        "overlap_points": points,
+        "overlap_histogram": _histogram(ov),
+    }
     if opts.correspondences:
         section["correspondences"] = _write_correspondences(out, names, poses, intr, ov, opts.corr)
     return section
 
 
-def _overlaps(model: SfmModel, keep: list[str], poses: list[Pose], intr: list[Intrinsics], images: Path,
-              seq: np.ndarray, number: np.ndarray, mode: str) -> tuple[Overlaps, str]:
+def _overlaps(
+    model: SfmModel,
+    keep: list[str],
+    poses: list[Pose],
+    intr: list[Intrinsics],
+    images: Path,
+    seq: np.ndarray,
+    number: np.ndarray,
+    mode: str,
+) -> tuple[Overlaps, str]:
     """Depth-based overlaps where every frame has metric depth (and ``mode`` allows), else SfM tracks."""
     if mode not in ("auto", "depth", "sfm"):
         raise ValueError(f"overlap_points must be auto, depth or sfm, not {mode!r}")
@@ -232,8 +269,14 @@ def _overlaps(model: SfmModel, keep: list[str], poses: list[Pose], intr: list[In
     return sfm_overlaps([model.observations[n][1] for n in keep], seq, number), "sfm"
 
 
-def _write_device(out: Path, keep: list[str], rename: dict[str, str], device: dict[str, Pose | None],
-                  seq_of: dict[str, int], split: str) -> None:
+def _write_device(
+    out: Path,
+    keep: list[str],
+    rename: dict[str, str],
+    device: dict[str, Pose | None],
+    seq_of: dict[str, int],
+    split: str,
+) -> None:
     """``poses_device.txt``: val/test re-based per multi-frame burst; train per scan (first frame = I)."""
     dev = {rename[n]: device[n] for n in keep if device.get(n) is not None}
     if not dev:
@@ -252,12 +295,16 @@ def _write_device(out: Path, keep: list[str], rename: dict[str, str], device: di
         write_device_poses(out / DEVICE_FILE, rebased)
 
 
-def _write_correspondences(out: Path, names: list[str], poses: list[Pose], intr: dict[str, Intrinsics],
-                           ov: Overlaps, co: CorrespondenceOptions) -> dict:
+def _write_correspondences(
+    out: Path, names: list[str], poses: list[Pose], intr: dict[str, Intrinsics], ov: Overlaps, co: CorrespondenceOptions
+) -> dict:
     pose_of = dict(zip(names, poses))
     by_key = {(int(n[3]), frame_number(n)): n for n in names}
-    rows = [i for i in ov.within(co.min_overlap, co.max_overlap)
-            if (ov.idxs[i, 0], ov.idxs[i, 1]) < (ov.idxs[i, 2], ov.idxs[i, 3])]
+    rows = [
+        i
+        for i in ov.within(co.min_overlap, co.max_overlap)
+        if (ov.idxs[i, 0], ov.idxs[i, 1]) < (ov.idxs[i, 2], ov.idxs[i, 3])
+    ]
     rows = sorted(rows, key=lambda i: -ov.overlaps[i])[: co.max_pairs]
     dense = [s for s in _depth_suffixes(out / names[0]) if s != SFM_DEPTH_SUFFIX]
     suffix = dense[0] if dense else SFM_DEPTH_SUFFIX
@@ -271,8 +318,9 @@ def _write_correspondences(out: Path, names: list[str], poses: list[Pose], intr:
     pairs, matches = [], []
     for i in sorted(rows):
         a, b = by_key[tuple(ov.idxs[i, :2])], by_key[tuple(ov.idxs[i, 2:])]
-        k0, k1 = depth_correspondences(depth(a), intr[a], pose_of[a], depth(b), intr[b], pose_of[b], co,
-                                       sparse=suffix == SFM_DEPTH_SUFFIX)
+        k0, k1 = depth_correspondences(
+            depth(a), intr[a], pose_of[a], depth(b), intr[b], pose_of[b], co, sparse=suffix == SFM_DEPTH_SUFFIX
+        )
         pairs.append(tuple(int(x) for x in ov.idxs[i]))
         matches.append((k0, k1))
     write_correspondences(out / "correspondences.npz", pairs, matches)
@@ -280,8 +328,13 @@ def _write_correspondences(out: Path, names: list[str], poses: list[Pose], intr:
     return {"pairs": len(pairs), "depth": suffix, "median_per_pair": float(np.median(counts)) if counts else 0.0}
 
 
-def build_place(place_dir: Path, scene_dir: Path, options: BuildOptions = BuildOptions(),
-                private_gt: Path | None = None, force: bool = False) -> PlaceResult:
+def build_place(
+    place_dir: Path,
+    scene_dir: Path,
+    options: BuildOptions = BuildOptions(),
+    private_gt: Path | None = None,
+    force: bool = False,
+) -> PlaceResult:
     """Build ``place_dir`` into ``scene_dir``; never raises for a bad place (the result says why it failed)."""
     place_dir, scene_dir = Path(place_dir), Path(scene_dir)
     if not force and (scene_dir / REPORT_FILE).is_file():
@@ -291,8 +344,12 @@ def build_place(place_dir: Path, scene_dir: Path, options: BuildOptions = BuildO
     shutil.rmtree(work, ignore_errors=True)
     staged, images = work / "scene", work / "images"
     t0 = time.perf_counter()
-    report: dict = {"place": str(place_dir), "scene": scene_dir.name, "split": options.split,
-                    "options": _jsonable(asdict(options))}
+    report: dict = {
+        "place": str(place_dir),
+        "scene": scene_dir.name,
+        "split": options.split,
+        "options": _jsonable(asdict(options)),
+    }
     try:
         place = read_place(place_dir, options.fps, work / "video", options.device_axes)
         src, intr, device, seq_of = _stage(place, images)
@@ -316,8 +373,20 @@ def build_place(place_dir: Path, scene_dir: Path, options: BuildOptions = BuildO
             report["scans"] = _check_registration(place, model, seq_of, options.min_registered, len(fit.outliers))
             report["registered"] = len(model.poses)
         staged.mkdir(parents=True)
-        report.update(_write_scene(staged, place, model, fit, src, images, device, seq_of, options,
-                                   private_gt / scene_dir.name if private_gt else None))
+        report.update(
+            _write_scene(
+                staged,
+                place,
+                model,
+                fit,
+                src,
+                images,
+                device,
+                seq_of,
+                options,
+                private_gt / scene_dir.name if private_gt else None,
+            )
+        )
         report["status"] = "ok"
     except (BuildError, FormatError, OSError, ValueError) as e:
         report.update(status="failed", reason=str(e))
@@ -339,8 +408,9 @@ def build_place(place_dir: Path, scene_dir: Path, options: BuildOptions = BuildO
         shutil.rmtree(staged, ignore_errors=True)
         work.mkdir(parents=True, exist_ok=True)
         (work / REPORT_FILE).write_text(json.dumps(report, indent=1))
-    return PlaceResult(place_dir.name, scene_dir.name, report["status"], report.get("reason", ""),
-                       report["seconds"], report)
+    return PlaceResult(
+        place_dir.name, scene_dir.name, report["status"], report.get("reason", ""), report["seconds"], report
+    )
 
 
 def _jsonable(x):

@@ -39,14 +39,18 @@ def plot_report(scene: Path, report: dict, out: Path) -> None:
         ax1.legend(fontsize=8)
     ax1.set(title="overlap of frame pairs", xlabel="overlap", ylabel="pairs")
     scale = report.get("scale", {})
-    lines = [f"place {Path(report['place']).name} -> {report['scene']} ({report['split']})",
-             f"registered {report.get('registered')}/{report.get('images')} images"]
+    lines = [
+        f"place {Path(report['place']).name} -> {report['scene']} ({report['split']})",
+        f"registered {report.get('registered')}/{report.get('images')} images",
+    ]
     lines += [f"  {k}: {v['registered']}/{v['images']}" for k, v in report.get("scans", {}).items()]
     rep = report.get("reprojection_error_px")
-    lines += [f"3D points {report.get('points3D')}, reprojection {rep:.2f} px" if rep is not None else "",
-              f"scale {scale.get('scale', float('nan')):.4g} from {scale.get('source')}",
-              f"scale residual {100 * (scale.get('residual') or 0):.2f} %",
-              f"{report.get('seconds', 0):.1f} s"]
+    lines += [
+        f"3D points {report.get('points3D')}, reprojection {rep:.2f} px" if rep is not None else "",
+        f"scale {scale.get('scale', float('nan')):.4g} from {scale.get('source')}",
+        f"scale residual {100 * (scale.get('residual') or 0):.2f} %",
+        f"{report.get('seconds', 0):.1f} s",
+    ]
     ax2.axis("off")
     ax2.text(0, 1, "\n".join(lines), va="top", family="monospace", fontsize=9)
     fig.tight_layout()

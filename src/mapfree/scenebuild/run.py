@@ -29,8 +29,10 @@ def list_places(scans_root: Path, first_scene: int = 0) -> list[tuple[Path, str]
         raise FileNotFoundError(f"{root}: scans folder not found")
     places = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
     if not places:
-        raise FileNotFoundError(f"{root}: no place folders, so nothing to build (expected one sub-folder per place "
-                                f"holding its scans: a video or images per scan)")
+        raise FileNotFoundError(
+            f"{root}: no place folders, so nothing to build (expected one sub-folder per place "
+            f"holding its scans: a video or images per scan)"
+        )
     if all(_SCENE_RE.match(p.name) for p in places):
         return [(p, p.name) for p in places]
     return [(p, f"s{first_scene + i:05d}") for i, p in enumerate(places)]
@@ -52,8 +54,13 @@ def _run_ray(jobs: list[tuple], address: str, workers: int, on_result) -> None:
 
     if not ray.is_initialized():
         if address == "local":
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False, configure_logging=False,
-                     object_store_memory=80 * 1024 * 1024)
+            ray.init(
+                num_cpus=workers,
+                include_dashboard=False,
+                log_to_driver=False,
+                configure_logging=False,
+                object_store_memory=80 * 1024 * 1024,
+            )
         else:
             ray.init(address=address, log_to_driver=False, configure_logging=False)
     task = ray.remote(num_cpus=1)(_job)
@@ -64,9 +71,17 @@ def _run_ray(jobs: list[tuple], address: str, workers: int, on_result) -> None:
             on_result(pending.pop(ref), ray.get(ref))
 
 
-def build_all(scans_root: Path, out_root: Path, options: BuildOptions = BuildOptions(), workers: int = 1,
-              ray_address: str | None = None, private_gt: Path | None = None, force: bool = False,
-              first_scene: int = 0, progress: bool = True) -> list[PlaceResult]:
+def build_all(
+    scans_root: Path,
+    out_root: Path,
+    options: BuildOptions = BuildOptions(),
+    workers: int = 1,
+    ray_address: str | None = None,
+    private_gt: Path | None = None,
+    force: bool = False,
+    first_scene: int = 0,
+    progress: bool = True,
+) -> list[PlaceResult]:
     """Build every place under ``scans_root`` into ``out_root/SPLIT/sNNNNN``; never stops at a failed place."""
     from tqdm.auto import tqdm
 

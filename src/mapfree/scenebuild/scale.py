@@ -44,8 +44,13 @@ def _robust_sim3(src: np.ndarray, dst: np.ndarray, rel_threshold: float):
     return None if sim is None else (sim["tgt_from_src"], extent)
 
 
-def scale_from_device(sfm: dict[str, dict[str, Pose]], device: dict[str, dict[str, Pose]],
-                      rel_threshold: float = 0.05, max_rotation_deg: float = 5.0, min_frames: int = 4) -> ScaleFit | None:
+def scale_from_device(
+    sfm: dict[str, dict[str, Pose]],
+    device: dict[str, dict[str, Pose]],
+    rel_threshold: float = 0.05,
+    max_rotation_deg: float = 5.0,
+    min_frames: int = 4,
+) -> ScaleFit | None:
     """Scale from ``{scan: {frame: world-to-camera pose}}`` of SfM and of the device; None without enough frames.
 
     Frames whose SfM pose disagrees with the fitted device track (centre off by more than ``rel_threshold``

@@ -94,8 +94,13 @@ def _write_matches(db: Path, image_root: Path, names: list[str], pairs_file: Pat
     pairs_file.write_text("".join(pairs))
 
 
-def reconstruct(image_root: Path, names: list[str], intrinsics: dict[str, Intrinsics | None], work: Path,
-                options: SfmOptions = SfmOptions()) -> SfmModel | None:
+def reconstruct(
+    image_root: Path,
+    names: list[str],
+    intrinsics: dict[str, Intrinsics | None],
+    work: Path,
+    options: SfmOptions = SfmOptions(),
+) -> SfmModel | None:
     """SfM of ``image_root/names`` (names like ``seq0/frame_00000.jpg``); None when nothing reconstructs.
     COLMAP logs warnings and errors only: its INFO lines (hundreds per place) would bury the progress."""
     import pycolmap
@@ -108,8 +113,9 @@ def reconstruct(image_root: Path, names: list[str], intrinsics: dict[str, Intrin
         pycolmap.logging.minloglevel = level
 
 
-def _reconstruct(image_root: Path, names: list[str], intrinsics: dict[str, Intrinsics | None], work: Path,
-                 options: SfmOptions) -> SfmModel | None:
+def _reconstruct(
+    image_root: Path, names: list[str], intrinsics: dict[str, Intrinsics | None], work: Path, options: SfmOptions
+) -> SfmModel | None:
     import pycolmap
 
     shutil.rmtree(work, ignore_errors=True)
@@ -125,8 +131,15 @@ def _reconstruct(image_root: Path, names: list[str], intrinsics: dict[str, Intri
     extract.sift.max_num_features = options.max_features
     mode = pycolmap.CameraMode.PER_IMAGE if known else pycolmap.CameraMode.PER_FOLDER
     if options.matcher == "colmap":
-        pycolmap.extract_features(db, image_root, image_names=names, camera_mode=mode, reader_options=reader,
-                                  extraction_options=extract, device=pycolmap.Device.cpu)
+        pycolmap.extract_features(
+            db,
+            image_root,
+            image_names=names,
+            camera_mode=mode,
+            reader_options=reader,
+            extraction_options=extract,
+            device=pycolmap.Device.cpu,
+        )
     else:
         pycolmap.Database.open(db).close()  # import_images wants an existing database
         pycolmap.import_images(db, image_root, camera_mode=mode, image_names=names, options=reader)
@@ -146,8 +159,7 @@ def _reconstruct(image_root: Path, names: list[str], intrinsics: dict[str, Intri
     verify.min_num_inliers = options.min_inliers
     verify.ransac.random_seed = options.seed
     if options.matcher == "colmap":
-        pycolmap.match_exhaustive(db, matching_options=match, verification_options=verify,
-                                  device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(db, matching_options=match, verification_options=verify, device=pycolmap.Device.cpu)
     else:
         _write_matches(db, image_root, names, work / "pairs.txt", options)
         pycolmap.verify_matches(db, work / "pairs.txt", verify)

@@ -20,8 +20,20 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from .accounts import tokens as auth
-from .anchors.domain import (add_photo, anchor_json, check_photo_count, find_anchor, localize_anchor, make_anchor,
-                             may_see_photos, photo_name, photo_rows, photo_upload, remove_photo, stored_photo)
+from .anchors.domain import (
+    add_photo,
+    anchor_json,
+    check_photo_count,
+    find_anchor,
+    localize_anchor,
+    make_anchor,
+    may_see_photos,
+    photo_name,
+    photo_rows,
+    photo_upload,
+    remove_photo,
+    stored_photo,
+)
 from .anchors.localizers import check_method, default_method, estimate_json, figure_png, needs_reference_depth
 from .anchors.photos import Photo, Upload
 from .anchors.photos import read_upload as read_photo_upload
@@ -29,17 +41,37 @@ from .database.models import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .http.caller import LOGIN_CSRF_COOKIE, SESSION_COOKIE, RowId, db_session, identify, require_writer
 from .http.heavy import heavy
 from .inputs import UploadError, spooled_upload
-from .leaderboard.boards import (MAX_PER_PAGE, PER_PAGE, VIEWS, board, check_sort, check_split, compare, meta_json,
-                                 ordered_metrics, parse_meta, reference_rows, save_meta, visible_json)
+from .leaderboard.boards import (
+    MAX_PER_PAGE,
+    PER_PAGE,
+    VIEWS,
+    board,
+    check_sort,
+    check_split,
+    compare,
+    meta_json,
+    ordered_metrics,
+    parse_meta,
+    reference_rows,
+    save_meta,
+    visible_json,
+)
 from .leaderboard.own import Withdrawn, own_submission, test_quota, withdraw, zip_response
 from .leaderboard.scoring import LOWER_IS_BETTER, SHORT, known_scenes
 from .leaderboard.submissions import accept, to_json, visible_submission
 
 router = APIRouter(include_in_schema=False)
 templates = Jinja2Templates(directory=str(Path(__file__).parent / "templates"))
-LABELS = {"vcre_auc": "VCRE AUC", "vcre_prec": "VCRE prec.", "pose_auc": "Pose AUC", "pose_prec": "Pose prec.",
-          "med_trans": "Med. trans. (m)", "med_rot": "Med. rot. (°)", "med_vcre": "Med. VCRE (px)",
-          "estimates": "Estimates (frac.)"}
+LABELS = {
+    "vcre_auc": "VCRE AUC",
+    "vcre_prec": "VCRE prec.",
+    "pose_auc": "Pose AUC",
+    "pose_prec": "Pose prec.",
+    "med_trans": "Med. trans. (m)",
+    "med_rot": "Med. rot. (°)",
+    "med_vcre": "Med. VCRE (px)",
+    "estimates": "Estimates (frac.)",
+}
 #: Offered on the relocalization page; the note says what each needs.
 RELOC_CHOICES = {
     "best-offline": "XFeat + 3D-3D; needs the reference depth (the query's too, else PnP runs)",
@@ -70,9 +102,12 @@ templates.env.filters["diff"] = _fmt_diff
 
 def page(request: Request, name: str, db: Session, status: int = 200, **ctx) -> HTMLResponse:
     caller = identify(request, db)
-    return templates.TemplateResponse(request, name, {"user": caller.user, "csrf": caller.csrf,
-                                                      "splits": request.app.state.settings.splits, **ctx},
-                                      status_code=status)
+    return templates.TemplateResponse(
+        request,
+        name,
+        {"user": caller.user, "csrf": caller.csrf, "splits": request.app.state.settings.splits, **ctx},
+        status_code=status,
+    )
 
 
 def error_page(request: Request, status: int, message: str, headers: dict | None = None) -> HTMLResponse:
@@ -84,9 +119,13 @@ def error_page(request: Request, status: int, message: str, headers: dict | None
             user, csrf = caller.user, caller.csrf
     except Exception:  # a bad token, or the database is down: an anonymous header is still a useful page
         pass
-    return templates.TemplateResponse(request, "error.html", {"status": status, "message": message, "user": user,
-                                                              "csrf": csrf, "splits": request.app.state.settings.splits},
-                                      status_code=status, headers=headers)
+    return templates.TemplateResponse(
+        request,
+        "error.html",
+        {"status": status, "message": message, "user": user, "csrf": csrf, "splits": request.app.state.settings.splits},
+        status_code=status,
+        headers=headers,
+    )
 
 
 def _problem(exc: UploadError | HTTPException) -> tuple[int, str]:
@@ -108,8 +147,14 @@ def login_form(request: Request, db: Session = Depends(db_session)):
 def _login_page(request: Request, db: Session, status: int = 200, error: str = "") -> HTMLResponse:
     token = secrets.token_urlsafe(24)  # double-submit: no session exists yet
     resp = page(request, "login.html", db, status, login_csrf=token, error=error)
-    resp.set_cookie(LOGIN_CSRF_COOKIE, token, httponly=True, samesite="strict",
-                    secure=request.app.state.settings.secure_cookies, max_age=3600)
+    resp.set_cookie(
+        LOGIN_CSRF_COOKIE,
+        token,
+        httponly=True,
+        samesite="strict",
+        secure=request.app.state.settings.secure_cookies,
+        max_age=3600,
+    )
     return resp
 
 
@@ -130,8 +175,14 @@ def login(request: Request, token: str = Form(...), csrf_token: str = Form(""), 
     sid, _ = auth.open_session(db, row, settings.session_hours)  # ends with the token, at the latest
     db.commit()
     resp = RedirectResponse("/me", status_code=303)
-    resp.set_cookie(SESSION_COOKIE, sid, httponly=True, samesite="lax", secure=settings.secure_cookies,
-                    max_age=int(settings.session_hours * 3600))
+    resp.set_cookie(
+        SESSION_COOKIE,
+        sid,
+        httponly=True,
+        samesite="lax",
+        secure=settings.secure_cookies,
+        max_age=int(settings.session_hours * 3600),
+    )
     resp.delete_cookie(LOGIN_CSRF_COOKIE)
     return resp
 
@@ -159,10 +210,19 @@ def history(request: Request, db: Session = Depends(db_session)):
 
 
 def _history(request: Request, db: Session, user: User, status: int = 200, error: str = "") -> HTMLResponse:
-    subs = db.scalars(select(Submission).where(Submission.user_id == user.id)
-                      .order_by(Submission.created_at.desc()).limit(500)).all()
-    return page(request, "history.html", db, status, subs=[to_json(db, s, user.name) for s in subs],
-                labels=LABELS, quota=test_quota(db, request.app.state.settings, user), error=error)
+    subs = db.scalars(
+        select(Submission).where(Submission.user_id == user.id).order_by(Submission.created_at.desc()).limit(500)
+    ).all()
+    return page(
+        request,
+        "history.html",
+        db,
+        status,
+        subs=[to_json(db, s, user.name) for s in subs],
+        labels=LABELS,
+        quota=test_quota(db, request.app.state.settings, user),
+        error=error,
+    )
 
 
 def withdrawn_page(request: Request, exc: Withdrawn) -> HTMLResponse:
@@ -178,10 +238,18 @@ def withdrawn_page(request: Request, exc: Withdrawn) -> HTMLResponse:
 # ------------------------------------------------------------------------------------------- submissions
 
 
-def _submit_page(request: Request, db: Session, user: User, status: int = 200, error: str = "",
-                 form: dict | None = None) -> HTMLResponse:
-    return page(request, "submit.html", db, status, error=error, form=form or {},
-                quota=test_quota(db, request.app.state.settings, user))
+def _submit_page(
+    request: Request, db: Session, user: User, status: int = 200, error: str = "", form: dict | None = None
+) -> HTMLResponse:
+    return page(
+        request,
+        "submit.html",
+        db,
+        status,
+        error=error,
+        form=form or {},
+        quota=test_quota(db, request.app.state.settings, user),
+    )
 
 
 @router.get("/submit", response_class=HTMLResponse)
@@ -190,13 +258,31 @@ def submit_form(request: Request, db: Session = Depends(db_session)):
 
 
 @router.post("/submit")
-def submit(request: Request, file: UploadFile = File(...), split: str = Form(...), name: str = Form(""),
-           public: bool = Form(False), description: str = Form(""), paper_url: str = Form(""),
-           code_url: str = Form(""), runtime_ms: str = Form(""), extra_data: bool = Form(False),
-           csrf_token: str = Form(""), db: Session = Depends(db_session)):
+def submit(
+    request: Request,
+    file: UploadFile = File(...),
+    split: str = Form(...),
+    name: str = Form(""),
+    public: bool = Form(False),
+    description: str = Form(""),
+    paper_url: str = Form(""),
+    code_url: str = Form(""),
+    runtime_ms: str = Form(""),
+    extra_data: bool = Form(False),
+    csrf_token: str = Form(""),
+    db: Session = Depends(db_session),
+):
     """Upload from the form; on a problem the form comes back filled in, with the error above it."""
-    form = {"split": split, "name": name, "public": public, "description": description, "paper_url": paper_url,
-            "code_url": code_url, "runtime_ms": runtime_ms, "extra_data": extra_data}
+    form = {
+        "split": split,
+        "name": name,
+        "public": public,
+        "description": description,
+        "paper_url": paper_url,
+        "code_url": code_url,
+        "runtime_ms": runtime_ms,
+        "extra_data": extra_data,
+    }
     caller = require_writer(request, db, csrf_token)
     settings = request.app.state.settings
     try:
@@ -224,15 +310,30 @@ def _submission(request: Request, db: Session, sid: str, status: int = 200, erro
     sub = visible_submission(db, user, sid, withdrawn=True)
     data = to_json(db, sub)
     first_scene = next(iter((data.get("per_scene") or {}).values()), None) or {}
-    return page(request, "submission.html", db, status, sub=data, labels=LABELS, short=SHORT,
-                metric_keys=ordered_metrics(data["metrics"]), scene_keys=ordered_metrics(first_scene),
-                method=meta_json(db.get(MethodInfo, sub.id)), error=error,
-                owner=user is not None and user.id == sub.user_id)
+    return page(
+        request,
+        "submission.html",
+        db,
+        status,
+        sub=data,
+        labels=LABELS,
+        short=SHORT,
+        metric_keys=ordered_metrics(data["metrics"]),
+        scene_keys=ordered_metrics(first_scene),
+        method=meta_json(db.get(MethodInfo, sub.id)),
+        error=error,
+        owner=user is not None and user.id == sub.user_id,
+    )
 
 
 @router.post("/submissions/{sid}/visibility")
-def visibility(sid: str, request: Request, public: bool = Form(False), csrf_token: str = Form(""),
-               db: Session = Depends(db_session)):
+def visibility(
+    sid: str,
+    request: Request,
+    public: bool = Form(False),
+    csrf_token: str = Form(""),
+    db: Session = Depends(db_session),
+):
     caller = require_writer(request, db, csrf_token)
     sub = own_submission(db, caller.user, sid)
     sub.public = public
@@ -241,9 +342,17 @@ def visibility(sid: str, request: Request, public: bool = Form(False), csrf_toke
 
 
 @router.post("/submissions/{sid}/method")
-def edit_method(sid: str, request: Request, description: str = Form(""), paper_url: str = Form(""),
-                code_url: str = Form(""), runtime_ms: str = Form(""), extra_data: bool = Form(False),
-                csrf_token: str = Form(""), db: Session = Depends(db_session)):
+def edit_method(
+    sid: str,
+    request: Request,
+    description: str = Form(""),
+    paper_url: str = Form(""),
+    code_url: str = Form(""),
+    runtime_ms: str = Form(""),
+    extra_data: bool = Form(False),
+    csrf_token: str = Form(""),
+    db: Session = Depends(db_session),
+):
     caller = require_writer(request, db, csrf_token)
     sub = own_submission(db, caller.user, sid)
     try:
@@ -276,21 +385,49 @@ def leaderboard_default(request: Request):
 
 
 @router.get("/leaderboard/{split}", response_class=HTMLResponse)
-def leaderboard_page(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
-                     scene: str = Query(""), page_no: int = Query(1, ge=1, alias="page"),
-                     per_page: int = Query(PER_PAGE, ge=1, le=MAX_PER_PAGE), db: Session = Depends(db_session)):
+def leaderboard_page(
+    split: str,
+    request: Request,
+    sort: str = Query("vcre_auc"),
+    view: str = Query("all"),
+    scene: str = Query(""),
+    page_no: int = Query(1, ge=1, alias="page"),
+    per_page: int = Query(PER_PAGE, ge=1, le=MAX_PER_PAGE),
+    db: Session = Depends(db_session),
+):
     check_split(request, split)
     check_sort(sort)
     b = board(db, split, sort, view, scene or None, page_no, per_page)
     query = urlencode({"sort": sort, "view": view, **({"scene": scene} if scene else {})})
-    pages = {"prev": b.page - 1 if b.page > 1 else None, "next": b.page + 1 if b.page < b.pages else None,
-             "first": 1, "last": b.pages}
-    page_url = {k: f"?{query}&page={n}" + (f"&per_page={b.per_page}" if b.per_page != PER_PAGE else "")
-                for k, n in pages.items() if n is not None}
-    return page(request, "leaderboard.html", db, split=split, sort=sort, view=view, views=VIEWS, scene=scene,
-                scenes=[] if split == "test" else sorted(known_scenes(request.app.state.settings, split) or ()),
-                entries=b.entries, board=b, page_url=page_url, labels=LABELS, lower=LOWER_IS_BETTER,
-                reference=reference_rows(), csv_url=f"/api/leaderboard/{split}.csv?{query}")
+    pages = {
+        "prev": b.page - 1 if b.page > 1 else None,
+        "next": b.page + 1 if b.page < b.pages else None,
+        "first": 1,
+        "last": b.pages,
+    }
+    page_url = {
+        k: f"?{query}&page={n}" + (f"&per_page={b.per_page}" if b.per_page != PER_PAGE else "")
+        for k, n in pages.items()
+        if n is not None
+    }
+    return page(
+        request,
+        "leaderboard.html",
+        db,
+        split=split,
+        sort=sort,
+        view=view,
+        views=VIEWS,
+        scene=scene,
+        scenes=[] if split == "test" else sorted(known_scenes(request.app.state.settings, split) or ()),
+        entries=b.entries,
+        board=b,
+        page_url=page_url,
+        labels=LABELS,
+        lower=LOWER_IS_BETTER,
+        reference=reference_rows(),
+        csv_url=f"/api/leaderboard/{split}.csv?{query}",
+    )
 
 
 @router.get("/compare", response_class=HTMLResponse)
@@ -311,20 +448,32 @@ def _anchor_choices(request: Request, db: Session) -> list[dict]:
     user = identify(request, db).user
     if user is None:
         return []
-    rows = db.execute(select(Anchor.id, Anchor.name, Anchor.method, Anchor.user_id, func.count(AnchorPhoto.seq))
-                      .outerjoin(AnchorPhoto, AnchorPhoto.anchor_id == Anchor.id)
-                      .group_by(Anchor.id, Anchor.name, Anchor.method, Anchor.user_id, Anchor.created_at)
-                      .order_by(Anchor.created_at.desc()).limit(50)).all()
-    return [{"id": r[0], "name": r[1] or r[0][:8], "method": r[2], "photos": 1 + r[4], "mine": r[3] == user.id}
-            for r in rows]
+    rows = db.execute(
+        select(Anchor.id, Anchor.name, Anchor.method, Anchor.user_id, func.count(AnchorPhoto.seq))
+        .outerjoin(AnchorPhoto, AnchorPhoto.anchor_id == Anchor.id)
+        .group_by(Anchor.id, Anchor.name, Anchor.method, Anchor.user_id, Anchor.created_at)
+        .order_by(Anchor.created_at.desc())
+        .limit(50)
+    ).all()
+    return [
+        {"id": r[0], "name": r[1] or r[0][:8], "method": r[2], "photos": 1 + r[4], "mine": r[3] == user.id}
+        for r in rows
+    ]
 
 
 def _reloc_page(request: Request, db: Session, status: int = 200, **ctx) -> HTMLResponse:
     ctx.setdefault("form", {})
     ctx.setdefault("method", default_method(request.app.state.settings.default_method))
-    return page(request, "relocalize.html", db, status, choices=RELOC_CHOICES,
-                anchors=_anchor_choices(request, db), max_photos=request.app.state.settings.limits.max_anchor_photos,
-                **ctx)
+    return page(
+        request,
+        "relocalize.html",
+        db,
+        status,
+        choices=RELOC_CHOICES,
+        anchors=_anchor_choices(request, db),
+        max_photos=request.app.state.settings.limits.max_anchor_photos,
+        **ctx,
+    )
 
 
 @router.get("/relocalize", response_class=HTMLResponse)
@@ -334,41 +483,80 @@ def relocalize_form(request: Request, db: Session = Depends(db_session)):
 
 def _form_fields(form: dict, prefix: str) -> dict:
     """The form's ``{prefix}fx`` ... fields as ``fx`` ...."""
-    return {k[len(prefix):]: v for k, v in form.items() if k.startswith(prefix)}
+    return {k[len(prefix) :]: v for k, v in form.items() if k.startswith(prefix)}
 
 
 def _query_photo(query: UploadFile, lim, form: dict) -> Photo:
     """The page's query photo with its ``q_*`` intrinsics (guessed when left empty), at the working size."""
-    return read_photo_upload(query.file.read(lim.max_image_bytes + 1), lim, _form_fields(form, "q_"),
-                             what="query photo", intr_what="query intrinsics", guess=True).photo
+    return read_photo_upload(
+        query.file.read(lim.max_image_bytes + 1),
+        lim,
+        _form_fields(form, "q_"),
+        what="query photo",
+        intr_what="query intrinsics",
+        guess=True,
+    ).photo
 
 
 @router.post("/relocalize", response_class=HTMLResponse)
 @heavy
-def relocalize_try(request: Request, reference: UploadFile = File(...), query: UploadFile = File(...),
-                   reference_depth: UploadFile | None = File(None), method: str = Form(""),
-                   ref_fx: str = Form(""), ref_fy: str = Form(""), ref_cx: str = Form(""), ref_cy: str = Form(""),
-                   q_fx: str = Form(""), q_fy: str = Form(""), q_cx: str = Form(""), q_cy: str = Form(""),
-                   csrf_token: str = Form(""), db: Session = Depends(db_session)):
+def relocalize_try(
+    request: Request,
+    reference: UploadFile = File(...),
+    query: UploadFile = File(...),
+    reference_depth: UploadFile | None = File(None),
+    method: str = Form(""),
+    ref_fx: str = Form(""),
+    ref_fy: str = Form(""),
+    ref_cx: str = Form(""),
+    ref_cy: str = Form(""),
+    q_fx: str = Form(""),
+    q_fy: str = Form(""),
+    q_cx: str = Form(""),
+    q_cy: str = Form(""),
+    csrf_token: str = Form(""),
+    db: Session = Depends(db_session),
+):
     """Two photos in, the matches and the virtual grid at the estimated pose out (nothing is stored). A method
     that needs the reference depth is refused without one, before anything runs."""
     caller = require_writer(request, db, csrf_token)
-    form = {"ref_fx": ref_fx, "ref_fy": ref_fy, "ref_cx": ref_cx, "ref_cy": ref_cy,
-            "q_fx": q_fx, "q_fy": q_fy, "q_cx": q_cx, "q_cy": q_cy}
+    form = {
+        "ref_fx": ref_fx,
+        "ref_fy": ref_fy,
+        "ref_cx": ref_cx,
+        "ref_cy": ref_cy,
+        "q_fx": q_fx,
+        "q_fy": q_fy,
+        "q_cx": q_cx,
+        "q_cy": q_cy,
+    }
     lim = request.app.state.settings.limits
     m = method.strip() or default_method(request.app.state.settings.default_method)
     try:
         m = check_method(m)
-        ref_depth = (reference_depth.file.read(lim.max_image_bytes + 1)
-                     if reference_depth is not None and reference_depth.filename else None)
-        ref = read_photo_upload(reference.file.read(lim.max_image_bytes + 1), lim, _form_fields(form, "ref_"),
-                                ref_depth, what="reference photo", intr_what="reference intrinsics",
-                                depth_what="reference depth", guess=True).photo  # at the size the matches are in
+        ref_depth = (
+            reference_depth.file.read(lim.max_image_bytes + 1)
+            if reference_depth is not None and reference_depth.filename
+            else None
+        )
+        ref = read_photo_upload(
+            reference.file.read(lim.max_image_bytes + 1),
+            lim,
+            _form_fields(form, "ref_"),
+            ref_depth,
+            what="reference photo",
+            intr_what="reference intrinsics",
+            depth_what="reference depth",
+            guess=True,
+        ).photo  # at the size the matches are in
         q = _query_photo(query, lim, form)
         if ref_depth is None and needs_reference_depth(m, scale_free_too=False):
-            raise UploadError(422, f"method {m} needs the reference depth map (a uint16 PNG in millimetres, the "
-                                   "size of the reference photo) for a metric pose; choose one, or a method "
-                                   "without depth such as sift_emat_none (direction only, no metric scale)")
+            raise UploadError(
+                422,
+                f"method {m} needs the reference depth map (a uint16 PNG in millimetres, the "
+                "size of the reference photo) for a metric pose; choose one, or a method "
+                "without depth such as sift_emat_none (direction only, no metric scale)",
+            )
     except UploadError as e:
         return _reloc_page(request, db, e.status, method=m, form=form, error=e.message)
     key = "try-" + secrets.token_hex(8)
@@ -376,15 +564,29 @@ def relocalize_try(request: Request, reference: UploadFile = File(...), query: U
     est = loc.localize(key, m, ref.image, ref.intrinsics, ref.depth, q.image, q.intrinsics, owner=caller.user.id)
     loc.forget(key)
     png = figure_png(ref.image, q.image, ref.intrinsics, q.intrinsics, est, title=m)
-    return _reloc_page(request, db, method=m, form=form, result=estimate_json(est, m),
-                       figure="data:image/png;base64," + base64.b64encode(png).decode())
+    return _reloc_page(
+        request,
+        db,
+        method=m,
+        form=form,
+        result=estimate_json(est, m),
+        figure="data:image/png;base64," + base64.b64encode(png).decode(),
+    )
 
 
 @router.post("/relocalize/anchor", response_class=HTMLResponse)
 @heavy
-def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFile = File(...),
-                      q_fx: str = Form(""), q_fy: str = Form(""), q_cx: str = Form(""), q_cy: str = Form(""),
-                      csrf_token: str = Form(""), db: Session = Depends(db_session)):
+def relocalize_anchor(
+    request: Request,
+    anchor: str = Form(...),
+    query: UploadFile = File(...),
+    q_fx: str = Form(""),
+    q_fy: str = Form(""),
+    q_cx: str = Form(""),
+    q_cy: str = Form(""),
+    csrf_token: str = Form(""),
+    db: Session = Depends(db_session),
+):
     """A query photo against a stored anchor (one or several photos): the pose in the anchor's frame, which
     photo answered, and the figure drawn against that photo."""
     caller = require_writer(request, db, csrf_token)
@@ -403,10 +605,18 @@ def relocalize_anchor(request: Request, anchor: str = Form(...), query: UploadFi
         return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8])
     photo = stored_photo(a, rows, result.get("photo") or 0, lim)  # only the one drawn, not every photo again
     shown = replace(est, pose=est.pose @ photo.pose.inverse()) if est.pose is not None else est  # vs that photo
-    png = figure_png(photo.image, q.image, photo.intrinsics, q.intrinsics, shown,
-                     title=f"{a.method}, photo {result.get('photo', 0)}")
-    return _reloc_page(request, db, method=a.method, form=form, result=result, anchor_name=a.name or a.id[:8],
-                       figure="data:image/png;base64," + base64.b64encode(png).decode())
+    png = figure_png(
+        photo.image, q.image, photo.intrinsics, q.intrinsics, shown, title=f"{a.method}, photo {result.get('photo', 0)}"
+    )
+    return _reloc_page(
+        request,
+        db,
+        method=a.method,
+        form=form,
+        result=result,
+        anchor_name=a.name or a.id[:8],
+        figure="data:image/png;base64," + base64.b64encode(png).decode(),
+    )
 
 
 # ------------------------------------------------------------------------------------ anchors from the page
@@ -426,14 +636,23 @@ def _camera_lines(text: str) -> list[tuple[int, str, list[str], str | None]]:
         except ValueError as e:
             raise UploadError(422, f"cameras line {no}: {e}") from None
         if len(parts) not in (5, 12) or (len(parts) == 12) != bool(out):
-            want = "NAME fx fy cx cy qw qx qy qz tx ty tz" if out else "NAME fx fy cx cy (no pose: its camera is " \
-                                                                       "the anchor's frame)"
-            raise UploadError(422, f"cameras line {no}: expected {want!r} for {'a further' if out else 'the first'} "
-                                   f"photo; got {len(parts)} value(s)")
+            want = (
+                "NAME fx fy cx cy qw qx qy qz tx ty tz"
+                if out
+                else "NAME fx fy cx cy (no pose: its camera is the anchor's frame)"
+            )
+            raise UploadError(
+                422,
+                f"cameras line {no}: expected {want!r} for {'a further' if out else 'the first'} "
+                f"photo; got {len(parts)} value(s)",
+            )
         out.append((no, parts[0], parts[1:5], " ".join(parts[5:]) if len(parts) == 12 else None))
     if not out:
-        raise UploadError(422, "cameras: give one line per photo, the first 'NAME fx fy cx cy', each further one "
-                               "'NAME fx fy cx cy qw qx qy qz tx ty tz'")
+        raise UploadError(
+            422,
+            "cameras: give one line per photo, the first 'NAME fx fy cx cy', each further one "
+            "'NAME fx fy cx cy qw qx qy qz tx ty tz'",
+        )
     return out
 
 
@@ -442,8 +661,9 @@ def _stem(name: str) -> str:
     return Path(name).name.split(".", 1)[0]
 
 
-def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
-                 cameras: str) -> tuple[list[Upload], list[str]]:
+def _form_photos(
+    lim, photos: list[UploadFile], depths: list[UploadFile], cameras: str
+) -> tuple[list[Upload], list[str]]:
     """The create-anchor form's photos (a multiple file input), depth maps (another, matched by file name) and
     cameras lines, checked as ``POST /anchors`` checks its fields, errors naming the photo the same way."""
     files = {Path(f.filename or "").name: f for f in photos if f.filename or f.size}
@@ -456,8 +676,9 @@ def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
     seen: set[str] = set()
     for no, name, _, _ in lines:
         if name not in files:
-            raise UploadError(422, f"cameras line {no}: no chosen photo is named {name!r} (chosen: "
-                                   f"{', '.join(sorted(files))[:300]})")
+            raise UploadError(
+                422, f"cameras line {no}: no chosen photo is named {name!r} (chosen: {', '.join(sorted(files))[:300]})"
+            )
         if name in seen:
             raise UploadError(422, f"cameras line {no}: {name!r} has a line already")
         seen.add(name)
@@ -473,29 +694,45 @@ def _form_photos(lim, photos: list[UploadFile], depths: list[UploadFile],
             continue
         owners = by_stem.get(_stem(d.filename or ""), [])
         if len(owners) > 1:
-            raise UploadError(422, f"depths: {Path(d.filename or '').name!r} could go with any of "
-                                   f"{', '.join(map(repr, sorted(owners)))[:300]} (a depth map is matched by the "
-                                   "part of its name before the first dot); rename the photos apart")
+            raise UploadError(
+                422,
+                f"depths: {Path(d.filename or '').name!r} could go with any of "
+                f"{', '.join(map(repr, sorted(owners)))[:300]} (a depth map is matched by the "
+                "part of its name before the first dot); rename the photos apart",
+            )
         owner = owners[0] if owners else None
         if owner is None:
-            raise UploadError(422, f"depths: {Path(d.filename or '').name!r} goes with no chosen photo (a depth map "
-                                   "is matched by the part of its name before the first dot: frame_00000.sensor.png "
-                                   "goes with frame_00000.jpg)")
+            raise UploadError(
+                422,
+                f"depths: {Path(d.filename or '').name!r} goes with no chosen photo (a depth map "
+                "is matched by the part of its name before the first dot: frame_00000.sensor.png "
+                "goes with frame_00000.jpg)",
+            )
         if owner in depth_of:
             raise UploadError(422, f"depths: two depth maps for {owner!r}")
         depth_of[owner] = d
     several = len(lines) > 1  # one photo: the API's messages for a lone photo, without "photo 0"
     names = [photo_name(i, files[name]) if several else "" for i, (_, name, _, _) in enumerate(lines)]
-    ups = [photo_upload(lim, names[i], files[name], *intr, depth_of.get(name), pose)
-           for i, (_, name, intr, pose) in enumerate(lines)]
+    ups = [
+        photo_upload(lim, names[i], files[name], *intr, depth_of.get(name), pose)
+        for i, (_, name, intr, pose) in enumerate(lines)
+    ]
     return ups, names
 
 
 @router.post("/relocalize/anchors")
 @heavy
-def create_anchor_form(request: Request, photos: list[UploadFile] = File([]), depths: list[UploadFile] = File([]),
-                       cameras: str = Form(""), name: str = Form(""), method: str = Form(""),
-                       private: str = Form(""), csrf_token: str = Form(""), db: Session = Depends(db_session)):
+def create_anchor_form(
+    request: Request,
+    photos: list[UploadFile] = File([]),
+    depths: list[UploadFile] = File([]),
+    cameras: str = Form(""),
+    name: str = Form(""),
+    method: str = Form(""),
+    private: str = Form(""),
+    csrf_token: str = Form(""),
+    db: Session = Depends(db_session),
+):
     """Create an anchor from the page (what ``POST /anchors`` does, same limits and errors): on success its page;
     on a problem the relocalize page with the error above this form, its values kept."""
     caller = require_writer(request, db, csrf_token)
@@ -510,14 +747,24 @@ def create_anchor_form(request: Request, photos: list[UploadFile] = File([]), de
     return RedirectResponse(f"/relocalize/anchors/{a.id}", status_code=303)
 
 
-def _anchor_page(request: Request, db: Session, aid: str, status: int = 200, error: str = "",
-                 form: dict | None = None) -> HTMLResponse:
+def _anchor_page(
+    request: Request, db: Session, aid: str, status: int = 200, error: str = "", form: dict | None = None
+) -> HTMLResponse:
     user = _signed_in(request, db)
     a = find_anchor(db, aid)
     data = anchor_json(a, photo_rows(db, a.id))
-    return page(request, "anchor.html", db, status, anchor=data, error=error, form=form or {},
-                owner=user.id == a.user_id or user.is_admin, show_photos=may_see_photos(a, user),
-                max_photos=request.app.state.settings.limits.max_anchor_photos)
+    return page(
+        request,
+        "anchor.html",
+        db,
+        status,
+        anchor=data,
+        error=error,
+        form=form or {},
+        owner=user.id == a.user_id or user.is_admin,
+        show_photos=may_see_photos(a, user),
+        max_photos=request.app.state.settings.limits.max_anchor_photos,
+    )
 
 
 @router.get("/relocalize/anchors/{aid}", response_class=HTMLResponse)
@@ -528,10 +775,19 @@ def anchor_page(aid: str, request: Request, db: Session = Depends(db_session)):
 
 @router.post("/relocalize/anchors/{aid}/photos")
 @heavy
-def add_photo_form(aid: str, request: Request, image: UploadFile | None = File(None),
-                   depth: UploadFile | None = File(None), fx: str = Form(""), fy: str = Form(""),
-                   cx: str = Form(""), cy: str = Form(""), pose: str = Form(""), csrf_token: str = Form(""),
-                   db: Session = Depends(db_session)):
+def add_photo_form(
+    aid: str,
+    request: Request,
+    image: UploadFile | None = File(None),
+    depth: UploadFile | None = File(None),
+    fx: str = Form(""),
+    fy: str = Form(""),
+    cx: str = Form(""),
+    cy: str = Form(""),
+    pose: str = Form(""),
+    csrf_token: str = Form(""),
+    db: Session = Depends(db_session),
+):
     """``POST /anchors/{id}/photos`` from the anchor's page; a problem shows above the form, values kept."""
     caller = require_writer(request, db, csrf_token)
     try:
@@ -539,14 +795,14 @@ def add_photo_form(aid: str, request: Request, image: UploadFile | None = File(N
     except (UploadError, HTTPException) as e:
         db.rollback()
         status, message = _problem(e)
-        return _anchor_page(request, db, aid, status, message,
-                            {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "pose": pose})
+        return _anchor_page(request, db, aid, status, message, {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "pose": pose})
     return RedirectResponse(f"/relocalize/anchors/{aid}", status_code=303)
 
 
 @router.post("/relocalize/anchors/{aid}/photos/{k}/delete")
-def delete_photo_form(aid: str, k: RowId, request: Request, csrf_token: str = Form(""),
-                      db: Session = Depends(db_session)):
+def delete_photo_form(
+    aid: str, k: RowId, request: Request, csrf_token: str = Form(""), db: Session = Depends(db_session)
+):
     """``DELETE /anchors/{id}/photos/{k}`` from the anchor's page; a refusal shows on the page."""
     caller = require_writer(request, db, csrf_token)
     try:

@@ -4,14 +4,14 @@ FastAPI checks each answer against its model. Routes whose answers leave out key
 
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..geometry import Intrinsics
 
 #: A metric's value: a number, or null where it is not defined (or not published: medians on test).
-Metric = Optional[float]
+Metric = float | None
 
 
 class _Out(BaseModel):
@@ -23,7 +23,7 @@ class ErrorOut(_Out):
 
     detail: str = Field(description="what is wrong, naming the field, file or limit")
     status: int
-    request_id: Optional[str] = Field(None, description="the X-Request-ID of this request, for the logs")
+    request_id: str | None = Field(None, description="the X-Request-ID of this request, for the logs")
 
 
 # ------------------------------------------------------------------------------------------- operations
@@ -43,10 +43,10 @@ class WorkerOut(_Out):
 class HealthDetailOut(_Out):
     status: Literal["ok", "degraded", "error"]
     db: str = Field(description="the database's dialect, or 'unreachable'")
-    jobs: Optional[dict[str, int]] = None
-    workers: Optional[list[WorkerOut]] = None
-    age_ms: Optional[float] = None
-    db_ms: Optional[float] = None
+    jobs: dict[str, int] | None = None
+    workers: list[WorkerOut] | None = None
+    age_ms: float | None = None
+    db_ms: float | None = None
 
 
 # -------------------------------------------------------------------------------------------- accounts
@@ -66,7 +66,7 @@ class TokenOut(_Out):
     prefix: str
     label: str
     created_at: float
-    expires_at: Optional[float]
+    expires_at: float | None
     revoked: bool
     expired: bool
     current: bool
@@ -87,7 +87,7 @@ class RevokedTokenOut(TokenOut):
 
 class SessionOut(_Out):
     id: int
-    created_at: Optional[float]
+    created_at: float | None
     expires_at: float
     current: bool
 
@@ -104,7 +104,7 @@ class MethodMetaOut(_Out):
     description: str
     paper_url: str
     code_url: str
-    runtime_ms: Optional[float]
+    runtime_ms: float | None
     extra_data: bool
 
 
@@ -113,24 +113,24 @@ class SubmissionOut(_Out):
     name: str
     split: str
     public: bool
-    user: Optional[str]
+    user: str | None
     status: Literal["uploading", "queued", "running", "done", "failed", "withdrawn"]
     attempts: int
-    error: Optional[str]
+    error: str | None
     created_at: float
-    started_at: Optional[float]
-    finished_at: Optional[float]
-    withdrawn_at: Optional[float]
+    started_at: float | None
+    finished_at: float | None
+    withdrawn_at: float | None
     size_bytes: int
     sha256: str
     url: str
     api_url: str
-    metrics: Optional[dict[str, Metric]]
+    metrics: dict[str, Metric] | None
     problems: list[str]
     plots: list[str]
-    per_scene: Optional[dict[str, dict[str, Metric]]] = Field(None, description="val only: per scene")
-    eval_seconds: Optional[float] = Field(None, description="once scored")
-    method: Optional[MethodMetaOut] = Field(None, description="at upload: the method's description")
+    per_scene: dict[str, dict[str, Metric]] | None = Field(None, description="val only: per scene")
+    eval_seconds: float | None = Field(None, description="once scored")
+    method: MethodMetaOut | None = Field(None, description="at upload: the method's description")
 
 
 # ------------------------------------------------------------------------------------------ leaderboard
@@ -141,7 +141,7 @@ class EntryOut(_Out):
     name: str
     user: str
     created_at: float
-    rank: Optional[int]
+    rank: int | None
     url: str
     method: MethodMetaOut
     metrics: dict[str, Metric]
@@ -158,19 +158,19 @@ class BoardOut(_Out):
     split: str
     sort: str
     view: str
-    scene: Optional[str]
+    scene: str | None
     entries: list[EntryOut]
     page: int
     per_page: int
     total: int
     pages: int
-    reference: Optional[list[ReferenceOut]] = Field(None, description="published results, unless reference=false")
+    reference: list[ReferenceOut] | None = Field(None, description="published results, unless reference=false")
 
 
 class SideOut(_Out):
     id: str
     name: str
-    user: Optional[str]
+    user: str | None
     url: str
 
 
@@ -179,7 +179,7 @@ class CompareRowOut(_Out):
     a: Metric
     b: Metric
     diff: Metric
-    better: Optional[Literal["a", "b"]]
+    better: Literal["a", "b"] | None
 
 
 class CompareOut(_Out):
@@ -219,15 +219,15 @@ class LocalizeOut(_Out):
     inliers: int
     reason: str
     timings: dict[str, float]
-    q_wxyz: Optional[list[float]] = None
-    t: Optional[list[float]] = None
-    R: Optional[list[list[float]]] = None
-    center: Optional[list[float]] = None
+    q_wxyz: list[float] | None = None
+    t: list[float] | None = None
+    R: list[list[float]] | None = None
+    center: list[float] | None = None
     method: str
     num_matches: int
     scale_free: bool
-    photo: Optional[int] = Field(None, description="the index of the anchor's photo that answered")
-    retrieval_similarity: Optional[float] = None
+    photo: int | None = Field(None, description="the index of the anchor's photo that answered")
+    retrieval_similarity: float | None = None
     anchor: str
 
 

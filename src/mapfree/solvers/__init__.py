@@ -22,10 +22,24 @@ from .procrustes import ProcrustesOptions, ProcrustesSolver
 from .scale import scale_vote, scale_vote_bruteforce
 
 __all__ = [
-    "Solver", "create", "available", "options_for", "option_names", "check_options", "PRESETS", "CONFIDENCE_MODES",
-    "EssentialOptions", "EssentialSolver", "MickeySolver", "MickeySolverOptions", "PnPOptions", "PnPSolver",
-    "ProcrustesOptions", "ProcrustesSolver",
-    "scale_vote", "scale_vote_bruteforce",
+    "Solver",
+    "create",
+    "available",
+    "options_for",
+    "option_names",
+    "check_options",
+    "PRESETS",
+    "CONFIDENCE_MODES",
+    "EssentialOptions",
+    "EssentialSolver",
+    "MickeySolver",
+    "MickeySolverOptions",
+    "PnPOptions",
+    "PnPSolver",
+    "ProcrustesOptions",
+    "ProcrustesSolver",
+    "scale_vote",
+    "scale_vote_bruteforce",
 ]
 
 SOLVERS: dict[str, tuple[type, type]] = {

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Iterator
 
 import cv2
 import numpy as np
@@ -167,8 +167,14 @@ class GuardedSolver:
     def __init__(self, options=None, **overrides) -> None:
         self.options = self.Options.build(overrides, owner=f"solver {self.name!r}", base=options)
 
-    def solve(self, matches, K_ref: Intrinsics, K_query: Intrinsics,
-              depth_ref: np.ndarray | None, depth_query: np.ndarray | None = None) -> Estimate:
+    def solve(
+        self,
+        matches,
+        K_ref: Intrinsics,
+        K_query: Intrinsics,
+        depth_ref: np.ndarray | None,
+        depth_query: np.ndarray | None = None,
+    ) -> Estimate:
         timer = Timer()
         try:
             with timer("solve"):

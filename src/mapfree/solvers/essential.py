@@ -16,8 +16,8 @@ from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose
 from ..options import Options, option
 from .common import (
-    GuardedSolver,
     DEPTH_SAMPLING,
+    GuardedSolver,
     SolverError,
     Timer,
     backproject_keypoints,
@@ -29,7 +29,13 @@ from .common import (
 from .confidence import CONFIDENCE_MODES, choose, confidences
 from .scale import scale_vote
 
-__all__ = ["EssentialOptions", "EssentialSolver", "relative_pose_opencv", "relative_pose_poselib", "triangulated_depths"]
+__all__ = [
+    "EssentialOptions",
+    "EssentialSolver",
+    "relative_pose_opencv",
+    "relative_pose_poselib",
+    "triangulated_depths",
+]
 
 BACKENDS = ("opencv", "poselib")
 
@@ -55,10 +61,15 @@ def triangulated_depths(x0: np.ndarray, x1: np.ndarray, R: np.ndarray, t: np.nda
     """Depths of the DLT-triangulated normalised correspondences in both cameras (``X1 = R X0 + t``)."""
     P0 = np.hstack([np.eye(3), np.zeros((3, 1))])
     P1 = np.hstack([R, t.reshape(3, 1)])
-    A = np.stack([
-        x0[:, :1] * P0[2] - P0[0], x0[:, 1:2] * P0[2] - P0[1],
-        x1[:, :1] * P1[2] - P1[0], x1[:, 1:2] * P1[2] - P1[1],
-    ], axis=1)
+    A = np.stack(
+        [
+            x0[:, :1] * P0[2] - P0[0],
+            x0[:, 1:2] * P0[2] - P0[1],
+            x1[:, :1] * P1[2] - P1[0],
+            x1[:, 1:2] * P1[2] - P1[1],
+        ],
+        axis=1,
+    )
     X = np.linalg.svd(A)[2][:, -1]  # (N,4) homogeneous
     with np.errstate(divide="ignore", invalid="ignore"):
         z0 = X[:, 2] / X[:, 3]
@@ -68,15 +79,23 @@ def triangulated_depths(x0: np.ndarray, x1: np.ndarray, R: np.ndarray, t: np.nda
 
 def relative_pose_opencv(x0: np.ndarray, x1: np.ndarray, opt: EssentialOptions, threshold: float):
     """(R, t̂, ransac mask, pose mask) with cv2 MAGSAC++ and recoverPose's cheirality + distance check."""
-    E, mask = cv2.findEssentialMat(x0, x1, np.eye(3), method=cv2.USAC_MAGSAC, prob=opt.ransac_confidence,
-                                   threshold=threshold, maxIters=int(opt.max_iters))
+    E, mask = cv2.findEssentialMat(
+        x0,
+        x1,
+        np.eye(3),
+        method=cv2.USAC_MAGSAC,
+        prob=opt.ransac_confidence,
+        threshold=threshold,
+        maxIters=int(opt.max_iters),
+    )
     if E is None or mask is None or E.ndim != 2 or E.shape[1] != 3 or E.shape[0] % 3 or not np.all(np.isfinite(E)):
         raise SolverError("essential matrix estimation failed")
     ransac_mask = mask.reshape(-1) != 0
     best = None
     for Ei in np.split(E, E.shape[0] // 3):
-        n, R, t, m, _ = cv2.recoverPose(Ei, x0, x1, np.eye(3), distanceThresh=float(opt.distance_threshold),
-                                        mask=mask.copy())
+        n, R, t, m, _ = cv2.recoverPose(
+            Ei, x0, x1, np.eye(3), distanceThresh=float(opt.distance_threshold), mask=mask.copy()
+        )
         if n > 0 and (best is None or n > best[0]):
             best = (n, R, t.reshape(3), m.reshape(-1) != 0)
     if best is None:
@@ -84,16 +103,24 @@ def relative_pose_opencv(x0: np.ndarray, x1: np.ndarray, opt: EssentialOptions, 
     return best[1], best[2], ransac_mask, best[3]
 
 
-def refine_relative_pose(kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, K1: Intrinsics, R: np.ndarray,
-                         t: np.ndarray, threshold_px: float) -> tuple[np.ndarray, np.ndarray]:
+def refine_relative_pose(
+    kpts0: np.ndarray,
+    kpts1: np.ndarray,
+    K0: Intrinsics,
+    K1: Intrinsics,
+    R: np.ndarray,
+    t: np.ndarray,
+    threshold_px: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """Non-linear least squares on the inliers (poselib); returns the input when refinement fails."""
     import poselib
 
     init = poselib.CameraPose()
     init.R, init.t = R, t
     scale = 0.5 * threshold_px / np.mean([K0.fx, K0.fy, K1.fx, K1.fy])
-    pose, _ = poselib.refine_relative_pose(kpts0, kpts1, init, _camera(K0), _camera(K1),
-                                           {"loss_type": "CAUCHY", "loss_scale": float(scale)})
+    pose, _ = poselib.refine_relative_pose(
+        kpts0, kpts1, init, _camera(K0), _camera(K1), {"loss_type": "CAUCHY", "loss_scale": float(scale)}
+    )
     R2, t2 = np.asarray(pose.R, dtype=np.float64), np.asarray(pose.t, dtype=np.float64).reshape(3)
     norm = np.linalg.norm(t2)
     if not (np.all(np.isfinite(R2)) and np.isfinite(norm) and norm > 0 and float(t2 @ t) > 0):
@@ -110,12 +137,25 @@ def relative_pose_poselib(kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, 
     import poselib
 
     pose, info = poselib.estimate_relative_pose(
-        kpts0, kpts1, _camera(K0), _camera(K1),
-        {"max_epipolar_error": float(opt.ransac_threshold_px), "success_prob": float(opt.ransac_confidence),
-         "max_iterations": int(opt.max_iters)}, {})
+        kpts0,
+        kpts1,
+        _camera(K0),
+        _camera(K1),
+        {
+            "max_epipolar_error": float(opt.ransac_threshold_px),
+            "success_prob": float(opt.ransac_confidence),
+            "max_iterations": int(opt.max_iters),
+        },
+        {},
+    )
     ransac_mask = np.asarray(info.get("inliers", []), dtype=bool).reshape(-1)
     R, t = np.asarray(pose.R, dtype=np.float64), np.asarray(pose.t, dtype=np.float64).reshape(3)
-    if len(ransac_mask) != len(kpts0) or not ransac_mask.any() or not np.all(np.isfinite(R)) or not np.linalg.norm(t) > 0:
+    if (
+        len(ransac_mask) != len(kpts0)
+        or not ransac_mask.any()
+        or not np.all(np.isfinite(R))
+        or not np.linalg.norm(t) > 0
+    ):
         raise SolverError("essential matrix estimation failed")
     t = t / np.linalg.norm(t)
     x0, x1 = normalize_points(kpts0, K0), normalize_points(kpts1, K1)
@@ -151,13 +191,20 @@ class EssentialSolver(GuardedSolver):
                 thr = opt.ransac_threshold_px / np.mean([K_ref.fx, K_ref.fy, K_query.fx, K_query.fy])
                 R, t_hat, ransac_mask, pose_mask = relative_pose_opencv(x0, x1, opt, float(thr))
             if opt.refine:
-                R, t_hat = refine_relative_pose(k0[pose_mask], k1[pose_mask], K_ref, K_query, R, t_hat,
-                                                opt.ransac_threshold_px)
+                R, t_hat = refine_relative_pose(
+                    k0[pose_mask], k1[pose_mask], K_ref, K_query, R, t_hat, opt.ransac_threshold_px
+                )
         if not rotation_is_valid(R) or not np.all(np.isfinite(t_hat)):
             raise SolverError("degenerate relative pose")
         n_ransac, n_pose = int(ransac_mask.sum()), int(pose_mask.sum())
-        extras: dict = {"n_matches": n, "n_ransac_inliers": n_ransac, "n_pose_inliers": n_pose,
-                        "inlier_ratio": n_ransac / n, "backend": opt.backend, "metric": metric}
+        extras: dict = {
+            "n_matches": n,
+            "n_ransac_inliers": n_ransac,
+            "n_pose_inliers": n_pose,
+            "inlier_ratio": n_ransac / n,
+            "backend": opt.backend,
+            "metric": metric,
+        }
 
         if not metric:
             values = confidences(n_pose, n_ransac / n)

@@ -47,9 +47,17 @@ def _point_to_plane_step(p: np.ndarray, q: np.ndarray, n: np.ndarray) -> tuple[n
     return _rotvec(x[:3]), x[3:]
 
 
-def icp(src: np.ndarray, dst: np.ndarray, R: np.ndarray, t: np.ndarray, max_distance: float,
-        max_iterations: int = 30, relative_fitness: float = 1e-4, relative_rmse: float = 1e-4,
-        method: str = "point_to_point"):
+def icp(
+    src: np.ndarray,
+    dst: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    max_distance: float,
+    max_iterations: int = 30,
+    relative_fitness: float = 1e-4,
+    relative_rmse: float = 1e-4,
+    method: str = "point_to_point",
+):
     """Refine ``dst ≈ R src + t`` from an initial guess. Returns (R, t, fitness, inlier rmse).
 
     Fitness is the fraction of ``src`` with a neighbour within ``max_distance``. Stops when fitness and

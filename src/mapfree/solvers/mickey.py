@@ -30,8 +30,14 @@ from .confidence import CONFIDENCE_MODES, choose
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["MickeySolverOptions", "MickeySolver", "ProcrustesResult", "probabilistic_procrustes", "lift",
-           "kabsch_torch"]
+__all__ = [
+    "MickeySolverOptions",
+    "MickeySolver",
+    "ProcrustesResult",
+    "probabilistic_procrustes",
+    "lift",
+    "kabsch_torch",
+]
 
 
 @dataclass
@@ -60,14 +66,14 @@ class MickeySolverOptions(Options):
 class ProcrustesResult:
     """Per pair of a batch: the pose (``X1 = R X0 + t``), the soft and hard inlier counts over the best draw."""
 
-    R: "torch.Tensor"  # (B, 3, 3)
-    t: "torch.Tensor"  # (B, 3)
-    soft_inliers: "torch.Tensor"  # (B,)
-    inliers: "torch.Tensor"  # (B,) hard count at inlier_threshold
+    R: torch.Tensor  # (B, 3, 3)
+    t: torch.Tensor  # (B, 3)
+    soft_inliers: torch.Tensor  # (B,)
+    inliers: torch.Tensor  # (B,) hard count at inlier_threshold
     drawn: int  # correspondences per draw
 
 
-def lift(kpts: "torch.Tensor", depth: "torch.Tensor", K: np.ndarray) -> "torch.Tensor":
+def lift(kpts: torch.Tensor, depth: torch.Tensor, K: np.ndarray) -> torch.Tensor:
     """(N, 2) pixels and (N,) depths -> (N, 3) camera points ``depth * K^-1 (u, v, 1)``, float32."""
     import torch
 
@@ -76,8 +82,7 @@ def lift(kpts: "torch.Tensor", depth: "torch.Tensor", K: np.ndarray) -> "torch.T
     return (depth.double()[:, None] * (uv1 @ Kinv.T)).float()
 
 
-def kabsch_torch(A: "torch.Tensor", B: "torch.Tensor", w: "torch.Tensor | None" = None) -> tuple["torch.Tensor",
-                                                                                                   "torch.Tensor"]:
+def kabsch_torch(A: torch.Tensor, B: torch.Tensor, w: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Rigid (R, t) with ``B ~ R A + t``, batched: A, B (..., N, 3). With ``w`` (..., N) the means are weighted by
     ``w / sum w`` and the cross-covariance by ``w`` (MicKey's refinement on an inlier mask)."""
     import torch
@@ -98,13 +103,12 @@ def kabsch_torch(A: "torch.Tensor", B: "torch.Tensor", w: "torch.Tensor | None" 
     return R, t[..., 0, :]
 
 
-def _distance(X: "torch.Tensor", Y: "torch.Tensor", R: "torch.Tensor", t: "torch.Tensor") -> "torch.Tensor":
+def _distance(X: torch.Tensor, Y: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """|R X + t - Y| (with the public code's 1e-6 under the root), X, Y (..., N, 3), R (..., 3, 3), t (..., 3)."""
     return (((X @ R.transpose(-1, -2) + t[..., None, :] - Y) ** 2).sum(-1) + 1e-6).sqrt()
 
 
-def _hypothesis_distances(X: "torch.Tensor", Y: "torch.Tensor", R: "torch.Tensor",
-                          t: "torch.Tensor") -> "torch.Tensor":
+def _hypothesis_distances(X: torch.Tensor, Y: torch.Tensor, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """``_distance`` of every hypothesis of a draw over the draw: X, Y (D, k, 3), R (D, H, 3, 3), t (D, H, 3) ->
     (D, H, k), as one matrix product per draw (3x3 products batched one by one are ~10x slower)."""
     d, h = R.shape[:2]
@@ -114,15 +118,19 @@ def _hypothesis_distances(X: "torch.Tensor", Y: "torch.Tensor", R: "torch.Tensor
     return (((moved - Y[:, :, None]) ** 2).sum(-1) + 1e-6).sqrt().transpose(1, 2)
 
 
-def _soft_count(dist: "torch.Tensor", th: float) -> "torch.Tensor":
+def _soft_count(dist: torch.Tensor, th: float) -> torch.Tensor:
     import torch
 
     return torch.sigmoid(5.0 / th * (th - dist)).sum(-1)
 
 
-def probabilistic_procrustes(scores: "torch.Tensor", X0: "torch.Tensor", X1: "torch.Tensor",
-                             options: MickeySolverOptions | None = None,
-                             generator: "torch.Generator | None" = None) -> ProcrustesResult:
+def probabilistic_procrustes(
+    scores: torch.Tensor,
+    X0: torch.Tensor,
+    X1: torch.Tensor,
+    options: MickeySolverOptions | None = None,
+    generator: torch.Generator | None = None,
+) -> ProcrustesResult:
     """Poses of a batch of pairs: ``scores`` (B, N0, N1) >= 0 (at least ``sample_size`` positive per pair),
     ``X0`` (B, N0, 3) and ``X1`` (B, N1, 3) the keypoints in each camera's frame. Each draw takes ``draw_size``
     candidates, or as many as the pair with the fewest positive scores has."""
@@ -136,7 +144,7 @@ def probabilistic_procrustes(scores: "torch.Tensor", X0: "torch.Tensor", X1: "to
         raise SolverError(f"only {positives} candidate matches have a positive score (< {o.sample_size})")
     k, D, Hy = min(o.draw_size, positives), o.draws, o.hypotheses
     # draws: one multinomial per (pair, draw) row; the same stream as one call on the rows tiled (public)
-    idx = torch.cat([torch.multinomial(flat[b:b + 1], k, generator=generator) for b in range(B) for _ in range(D)])
+    idx = torch.cat([torch.multinomial(flat[b : b + 1], k, generator=generator) for b in range(B) for _ in range(D)])
     pair = torch.arange(B, device=scores.device).repeat_interleave(D)[:, None]  # (B*D, 1)
     X = X0[pair, torch.div(idx, n1, rounding_mode="trunc")]  # (B*D, k, 3)
     Y = X1[pair, idx % n1]
@@ -147,8 +155,15 @@ def probabilistic_procrustes(scores: "torch.Tensor", X0: "torch.Tensor", X1: "to
     R, t = kabsch_torch(X[row, sub], Y[row, sub])  # (B*D*Hy, 3, 3), (B*D*Hy, 3)
     R, t = R.view(B * D, Hy, 3, 3), t.view(B * D, Hy, 3)
     step = max(1, (1 << 24) // (Hy * k * 3))  # draws scored at once: about 64 MB of float32 per temporary
-    soft = torch.cat([_soft_count(_hypothesis_distances(X[i:i + step], Y[i:i + step], R[i:i + step], t[i:i + step]),
-                                  o.soft_threshold) for i in range(0, B * D, step)])  # (B*D, Hy)
+    soft = torch.cat(
+        [
+            _soft_count(
+                _hypothesis_distances(X[i : i + step], Y[i : i + step], R[i : i + step], t[i : i + step]),
+                o.soft_threshold,
+            )
+            for i in range(0, B * D, step)
+        ]
+    )  # (B*D, Hy)
     soft = torch.nan_to_num(soft, nan=-1.0).view(B, D * Hy)
     best = soft.argmax(dim=1)
     b = torch.arange(B, device=scores.device)
@@ -184,8 +199,10 @@ class MickeySolver(GuardedSolver):
         if not isinstance(matches, CandidateMatches) or matches.candidates is None:
             if len(matches) == 0:
                 raise SolverError("no matches")
-            raise SolverError("the mickey solver draws from the mickey matcher's scored candidates (every keypoint "
-                              "pair with its metric depth); these matches carry none")
+            raise SolverError(
+                "the mickey solver draws from the mickey matcher's scored candidates (every keypoint "
+                "pair with its metric depth); these matches carry none"
+            )
         c = matches.candidates
         o = self.options
         with timer("ransac"):
@@ -199,6 +216,12 @@ class MickeySolver(GuardedSolver):
             raise SolverError("degenerate rigid alignment")
         soft, hard = float(res.soft_inliers[0]), int(res.inliers[0])
         values = {"confidence_inliers": soft, "confidence_score": soft * hard / res.drawn}
-        extras = {**values, "n_matches": len(matches), "n_drawn": res.drawn, "n_inliers": hard,
-                  "inlier_ratio": hard / res.drawn, "metric": True}
+        extras = {
+            **values,
+            "n_matches": len(matches),
+            "n_drawn": res.drawn,
+            "n_inliers": hard,
+            "inlier_ratio": hard / res.drawn,
+            "metric": True,
+        }
         return Estimate(Pose(R, t), choose(o.confidence, values), hard, extras=extras)

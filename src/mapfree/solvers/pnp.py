@@ -11,8 +11,8 @@ from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose, project
 from ..options import Options, option
 from .common import (
-    GuardedSolver,
     DEPTH_SAMPLING,
+    GuardedSolver,
     SolverError,
     Timer,
     backproject_keypoints,
@@ -42,17 +42,33 @@ class PnPOptions(Options):
     confidence: str = option("inliers", choices=CONFIDENCE_MODES)
 
 
-def _pnp_opencv(X: np.ndarray, uv: np.ndarray, K: np.ndarray, opt: PnPOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _pnp_opencv(
+    X: np.ndarray, uv: np.ndarray, K: np.ndarray, opt: PnPOptions
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
-        X, uv, K, None, iterationsCount=int(opt.ransac_iterations),
-        reprojectionError=float(opt.reprojection_threshold_px), confidence=float(opt.ransac_confidence),
-        flags=cv2.SOLVEPNP_P3P)
+        X,
+        uv,
+        K,
+        None,
+        iterationsCount=int(opt.ransac_iterations),
+        reprojectionError=float(opt.reprojection_threshold_px),
+        confidence=float(opt.ransac_confidence),
+        flags=cv2.SOLVEPNP_P3P,
+    )
     if not ok or inl is None or len(inl) == 0:
         raise SolverError("PnP RANSAC found no solution")
     inl = inl.reshape(-1)
     if len(inl) >= opt.min_refine_inliers:
-        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(X[inl], uv[inl], K, None, useExtrinsicGuess=True,
-                                                 rvec=rvec.copy(), tvec=tvec.copy(), flags=cv2.SOLVEPNP_ITERATIVE)
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            X[inl],
+            uv[inl],
+            K,
+            None,
+            useExtrinsicGuess=True,
+            rvec=rvec.copy(),
+            tvec=tvec.copy(),
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
         if n > 0 and np.all(np.isfinite(rvecs[0])) and np.all(np.isfinite(tvecs[0])):
             rvec, tvec = rvecs[0], tvecs[0]
     mask = np.zeros(len(X), dtype=bool)
@@ -65,8 +81,16 @@ def _pnp_poselib(X: np.ndarray, uv: np.ndarray, K: Intrinsics, opt: PnPOptions):
 
     cam = {"model": "PINHOLE", "width": int(K.width), "height": int(K.height), "params": [K.fx, K.fy, K.cx, K.cy]}
     pose, info = poselib.estimate_absolute_pose(
-        uv, X, cam, {"max_reproj_error": float(opt.reprojection_threshold_px), "max_iterations": int(opt.ransac_iterations),
-                     "success_prob": float(opt.ransac_confidence)}, {})
+        uv,
+        X,
+        cam,
+        {
+            "max_reproj_error": float(opt.reprojection_threshold_px),
+            "max_iterations": int(opt.ransac_iterations),
+            "success_prob": float(opt.ransac_confidence),
+        },
+        {},
+    )
     mask = np.asarray(info.get("inliers", []), dtype=bool).reshape(-1)
     if len(mask) != len(X) or not mask.any():
         raise SolverError("PnP RANSAC found no solution")
@@ -105,10 +129,21 @@ class PnPSolver(GuardedSolver):
         # Reprojection error of the final pose on the RANSAC inliers (a diagnostic for the score).
         Xc = X[mask] @ R.T + t
         front = Xc[:, 2] > 0
-        err = np.linalg.norm(project(Xc[front], K_query.K) - uv[mask][front], axis=1) if front.any() else np.array([np.inf])
+        err = (
+            np.linalg.norm(project(Xc[front], K_query.K) - uv[mask][front], axis=1)
+            if front.any()
+            else np.array([np.inf])
+        )
         ratio = n_in / n_valid
         values = confidences(n_in, ratio)
-        extras = {"n_matches": n, "n_depth_valid": n_valid, "n_inliers": n_in, "inlier_ratio": ratio,
-                  "median_reprojection_px": float(np.median(err)) if np.all(np.isfinite(err)) else -1.0,
-                  "backend": opt.backend, "metric": True, **values}
+        extras = {
+            "n_matches": n,
+            "n_depth_valid": n_valid,
+            "n_inliers": n_in,
+            "inlier_ratio": ratio,
+            "median_reprojection_px": float(np.median(err)) if np.all(np.isfinite(err)) else -1.0,
+            "backend": opt.backend,
+            "metric": True,
+            **values,
+        }
         return Estimate(Pose(R, t), choose(opt.confidence, values), n_in, extras=extras)

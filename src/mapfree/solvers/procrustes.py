@@ -14,9 +14,9 @@ from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose, backproject_depth
 from ..options import Options, option
 from .common import (
-    GuardedSolver,
     DEPTH_SAMPLING,
     MAX_DEPTH,
+    GuardedSolver,
     SolverError,
     Timer,
     backproject_keypoints,
@@ -54,8 +54,15 @@ def _count(P: np.ndarray, Q: np.ndarray, R: np.ndarray, t: np.ndarray, thr: floa
     return np.linalg.norm(P @ R.T + t - Q, axis=1) < thr
 
 
-def ransac_rigid(P: np.ndarray, Q: np.ndarray, threshold: float, max_iterations: int = 100_000,
-                 confidence: float = 0.999, refine_steps: int = 3, seed: int = 0):
+def ransac_rigid(
+    P: np.ndarray,
+    Q: np.ndarray,
+    threshold: float,
+    max_iterations: int = 100_000,
+    confidence: float = 0.999,
+    refine_steps: int = 3,
+    seed: int = 0,
+):
     """Robust rigid (R, t) with ``Q ≈ R P + t`` from (N,3) correspondences; returns (R, t, inlier mask)."""
     n = len(P)
     rng = np.random.default_rng(seed)
@@ -78,7 +85,7 @@ def ransac_rigid(P: np.ndarray, Q: np.ndarray, threshold: float, max_iterations:
         if counts[j] > best:
             best, best_R, best_t = int(counts[j]), R[j], t[j]
             w = best / n
-            p_fail = 1.0 - w ** 3
+            p_fail = 1.0 - w**3
             needed = 0 if p_fail <= 0 else int(np.ceil(np.log(1 - confidence) / np.log(p_fail)))
     if best_R is None or best < 3:
         raise SolverError("rigid RANSAC found no consistent triplet")
@@ -136,16 +143,21 @@ class ProcrustesSolver(GuardedSolver):
         if _collinear(P) or _collinear(Q):
             raise SolverError("degenerate geometry: the points are collinear")
         with timer("ransac"):
-            R, t, mask = ransac_rigid(P, Q, opt.inlier_threshold, opt.max_iterations, opt.ransac_confidence,
-                                      opt.refine_steps, opt.seed)
+            R, t, mask = ransac_rigid(
+                P, Q, opt.inlier_threshold, opt.max_iterations, opt.ransac_confidence, opt.refine_steps, opt.seed
+            )
         if _collinear(P[mask]):
             raise SolverError("degenerate geometry: the inlier points are collinear")
         extras: dict = {"n_matches": n, "n_depth_valid": n_valid, "icp": bool(opt.icp), "metric": True}
         if opt.icp:
             with timer("icp"):
-                src, dst = _cloud(depth_ref, K_ref, opt.icp_max_points), _cloud(depth_query, K_query, opt.icp_max_points)
-                R, t, fitness, rmse = icp(src, dst, R, t, opt.inlier_threshold, opt.icp_max_iterations,
-                                          method=opt.icp_method)
+                src, dst = (
+                    _cloud(depth_ref, K_ref, opt.icp_max_points),
+                    _cloud(depth_query, K_query, opt.icp_max_points),
+                )
+                R, t, fitness, rmse = icp(
+                    src, dst, R, t, opt.inlier_threshold, opt.icp_max_iterations, method=opt.icp_method
+                )
             extras.update(icp_fitness=fitness, icp_rmse=rmse)
             mask = _count(P, Q, R, t, opt.inlier_threshold)
         if not rotation_is_valid(R) or not np.all(np.isfinite(t)):
@@ -154,6 +166,7 @@ class ProcrustesSolver(GuardedSolver):
         res = np.linalg.norm(P[mask] @ R.T + t - Q[mask], axis=1)
         ratio = n_in / n_valid
         values = confidences(n_in, ratio)
-        extras.update(values, n_inliers=n_in, inlier_ratio=ratio,
-                      rmse=float(np.sqrt(np.mean(res ** 2))) if n_in else -1.0)
+        extras.update(
+            values, n_inliers=n_in, inlier_ratio=ratio, rmse=float(np.sqrt(np.mean(res**2))) if n_in else -1.0
+        )
         return Estimate(Pose(R, t), choose(opt.confidence, values), n_in, extras=extras)

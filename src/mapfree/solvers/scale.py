@@ -21,7 +21,7 @@ class ScaleVote(tuple):
 
     __slots__ = ()
 
-    def __new__(cls, index: int, votes: int, counts: np.ndarray) -> "ScaleVote":
+    def __new__(cls, index: int, votes: int, counts: np.ndarray) -> ScaleVote:
         return super().__new__(cls, (index, votes, counts))
 
     @property

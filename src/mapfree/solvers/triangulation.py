@@ -9,8 +9,8 @@ between the references, not from depth.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -47,8 +47,12 @@ def _mean_rotation(Rs: np.ndarray, w: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
-def triangulate_pose(ref_poses: Sequence[Pose], relative: Sequence[Pose], weights: Sequence[float] | None = None,
-                     options: TriangulationOptions | None = None) -> Estimate:
+def triangulate_pose(
+    ref_poses: Sequence[Pose],
+    relative: Sequence[Pose],
+    weights: Sequence[float] | None = None,
+    options: TriangulationOptions | None = None,
+) -> Estimate:
     """World-to-camera query pose from n >= 2 references' poses and the query's up-to-scale relative poses.
 
     ``relative[i]`` maps reference ``i``'s camera to the query camera (``X_q = R_i X_i + s t̂_i``); only the
@@ -82,6 +86,10 @@ def triangulate_pose(ref_poses: Sequence[Pose], relative: Sequence[Pose], weight
     miss = np.linalg.norm(np.einsum("nij,nj->ni", P, center - origins), axis=1)
     R = _mean_rotation(np.stack([rel.R @ ref.R for ref, rel in zip(ref_poses, relative)]), w / w.sum())
     pose = Pose(R, -R @ center)
-    extras = {"ray_angle_deg": widest, "ray_miss_m": float(miss.max()), "baseline_m": baseline,
-              "distances_m": along.tolist()}
+    extras = {
+        "ray_angle_deg": widest,
+        "ray_miss_m": float(miss.max()),
+        "baseline_m": baseline,
+        "distances_m": along.tolist(),
+    }
     return Estimate(pose, float(w.min()), int(w.min()), extras=extras)

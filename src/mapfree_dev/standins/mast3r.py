@@ -10,8 +10,8 @@ import argparse
 import json
 import math
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import torch
@@ -19,8 +19,14 @@ import torch
 from mapfree.mast3r.config import ModelConfig, parse_constructor
 from mapfree.mast3r.model import AsymmetricModel
 
-__all__ = ["fill_value", "synthetic_state_dict", "iter_synthetic_state_dict", "save_pth", "save_hub",
-           "write_published_standin"]
+__all__ = [
+    "fill_value",
+    "synthetic_state_dict",
+    "iter_synthetic_state_dict",
+    "save_pth",
+    "save_hub",
+    "write_published_standin",
+]
 
 
 def fill_value(key: str, shape: tuple[int, ...]) -> np.ndarray:

@@ -49,8 +49,9 @@ def published_layout(vit: ViTShape, cfg: MickeyConfig | None = None) -> dict[str
 StateDict = dict[str, torch.Tensor]
 
 
-def synthetic_state_dicts(vit: ViTShape, cfg: MickeyConfig | None = None,
-                          dtype: torch.dtype = torch.float32) -> tuple[StateDict, StateDict]:
+def synthetic_state_dicts(
+    vit: ViTShape, cfg: MickeyConfig | None = None, dtype: torch.dtype = torch.float32
+) -> tuple[StateDict, StateDict]:
     """(checkpoint state dict, DINOv2 state dict), published key names, filled by the rule."""
     heads: dict[str, torch.Tensor] = {}
     dino: dict[str, torch.Tensor] = {}
@@ -62,8 +63,9 @@ def synthetic_state_dicts(vit: ViTShape, cfg: MickeyConfig | None = None,
     return heads, dino
 
 
-def write_standin(folder: str | Path, size: str = "full", dtype: torch.dtype = torch.float32,
-                  checkpoint: str = "mickey") -> Path:
+def write_standin(
+    folder: str | Path, size: str = "full", dtype: torch.dtype = torch.float32, checkpoint: str = "mickey"
+) -> Path:
     """``folder/mickey/{checkpoint}.ckpt`` (a Lightning-style ``{"state_dict": ...}``) and ``folder/mickey/
     dinov2_vitl14_pretrain.pth`` with fill-rule weights of ``size`` (``full`` | ``tiny``): a ``$MAPFREE_WEIGHTS_DIR``
     for runs without the real files (``dtype`` float16 halves them; the loader computes in float32)."""

@@ -11,6 +11,12 @@ from .generate import EST_DEPTH_SUFFIX, GT_DEPTH_SUFFIX, SynthOptions, generate,
 from .overlap import depth_overlap
 
 __all__ = [
-    "GT_DEPTH_SUFFIX", "EST_DEPTH_SUFFIX", "SynthOptions", "generate", "generate_scene",
-    "MonoDepthModel", "simulate_mono_depth", "depth_overlap",
+    "GT_DEPTH_SUFFIX",
+    "EST_DEPTH_SUFFIX",
+    "SynthOptions",
+    "generate",
+    "generate_scene",
+    "MonoDepthModel",
+    "simulate_mono_depth",
+    "depth_overlap",
 ]

@@ -34,8 +34,9 @@ def jitter_intrinsics(rng: np.random.Generator, width: int, height: int, focal: 
     aspect = 1 + rng.normal(0, 0.002, n)
     cx = (width - 1) / 2 + rng.normal(0, 1.5, n)
     cy = (height - 1) / 2 + rng.normal(0, 1.5, n)
-    return [Intrinsics(float(f[i]), float(f[i] * aspect[i]), float(cx[i]), float(cy[i]), width, height)
-            for i in range(n)]
+    return [
+        Intrinsics(float(f[i]), float(f[i] * aspect[i]), float(cx[i]), float(cy[i]), width, height) for i in range(n)
+    ]
 
 
 def _smooth(rng: np.random.Generator, n: int, sigma: float, waves: int = 3) -> np.ndarray:
@@ -70,7 +71,8 @@ def walk(
     r0, r1 = rng.uniform(r_lo, r_hi, 2)
     radius = np.clip(r0 + (r1 - r0) * s + _smooth(rng, n, 0.6), r_lo, r_hi)
     height = np.clip(rng.uniform(1.35, 1.75) + _smooth(rng, n, 0.08) + 0.02 * np.sin(40 * s), 1.1, 2.0)
-    aim = world.target + np.stack([_smooth(rng, n, aim_noise), _smooth(rng, n, aim_noise),
-                                   _smooth(rng, n, aim_noise * 0.5)], 1)
+    aim = world.target + np.stack(
+        [_smooth(rng, n, aim_noise), _smooth(rng, n, aim_noise), _smooth(rng, n, aim_noise * 0.5)], 1
+    )
     roll = _smooth(rng, n, 3.0) + rng.normal(0, 0.5, n)
     return [look_at(orbit_point(world, theta[i], radius[i], height[i]), aim[i], roll[i]) for i in range(n)]

@@ -26,7 +26,9 @@ class MonoDepthModel:
     sky_depth: float = 60.0  # value given to pixels without ground-truth depth (before the scale bias)
 
 
-def simulate_mono_depth(depth: np.ndarray, rng: np.random.Generator, model: MonoDepthModel = MonoDepthModel()) -> tuple[np.ndarray, float]:
+def simulate_mono_depth(
+    depth: np.ndarray, rng: np.random.Generator, model: MonoDepthModel = MonoDepthModel()
+) -> tuple[np.ndarray, float]:
     """``(estimate (H,W) float32 metres, its scale bias)`` for a ground-truth depth map (0 = invalid)."""
     H, W = depth.shape
     scale = float(np.exp(rng.normal(0.0, model.scale_sigma)))

@@ -17,7 +17,14 @@ import cv2
 import numpy as np
 
 from ...geometry import Intrinsics, Pose
-from ..device import DEVICE_FILE, DriftModel, multiframe_bursts, rebase_bursts, simulate_device_trajectory, write_device_poses
+from ..device import (
+    DEVICE_FILE,
+    DriftModel,
+    multiframe_bursts,
+    rebase_bursts,
+    simulate_device_trajectory,
+    write_device_poses,
+)
 from ..io import depth_path_for, write_depth, write_intrinsics, write_poses
 from ..overlaps import Overlaps, write_overlaps
 from ..scene import SPLITS
@@ -83,7 +90,9 @@ def _streams(seed: int, split: str, number: int) -> list[np.random.Generator]:
 class _FrameWriter:
     """Shades and writes the frames of one scene: JPEG, ground-truth depth and the simulated estimate."""
 
-    def __init__(self, world: World, opts: SynthOptions, noise_rng: np.random.Generator, depth_rng: np.random.Generator):
+    def __init__(
+        self, world: World, opts: SynthOptions, noise_rng: np.random.Generator, depth_rng: np.random.Generator
+    ):
         self.world, self.opts = world, opts
         self.atlas = load_atlas(opts.texture_size)
         H, W = opts.height, opts.width
@@ -130,8 +139,11 @@ def _train_scene(out: Path, world: World, opts: SynthOptions, rngs: list[np.rand
         poses = walk(cam, world, n, start, sweep, (1.0, 10.0))
         Ks = jitter_intrinsics(cam, opts.width, opts.height, opts.focal_px, n)
         scans.append(_Scan(seq, poses, Ks, random_lighting(lit, opts.lighting_change)))
-    sampled = [sample_frame_points(world, p, K, opts.points_per_frame, rngs[0])
-               for scan in scans for p, K in zip(scan.poses, scan.intrinsics)]
+    sampled = [
+        sample_frame_points(world, p, K, opts.points_per_frame, rngs[0])
+        for scan in scans
+        for p, K in zip(scan.poses, scan.intrinsics)
+    ]
     points = np.concatenate([p for p, _ in sampled])
     point_quad = np.concatenate([q for _, q in sampled])
     writer = _FrameWriter(world, opts, noise, drng)
@@ -166,8 +178,15 @@ def _look_away(cam: np.random.Generator, world: World, center: np.ndarray, ref: 
     return look_along(center, fwd, cam.normal(0, 2))
 
 
-def _pair_scene(out: Path, world: World, opts: SynthOptions, rngs: list[np.random.Generator], n_queries: int,
-                hide_poses: bool, private_dir: Path | None) -> None:
+def _pair_scene(
+    out: Path,
+    world: World,
+    opts: SynthOptions,
+    rngs: list[np.random.Generator],
+    n_queries: int,
+    hide_poses: bool,
+    private_dir: Path | None,
+) -> None:
     _, cam, lit, noise, drng, device_rng = rngs
     o = world.object_radius
     # The reference photographs the place of interest: a mural from its painted side, a sculpture from anywhere.
@@ -194,8 +213,11 @@ def _pair_scene(out: Path, world: World, opts: SynthOptions, rngs: list[np.rando
             for attempt in range(8):
                 cand = _look_away(cam, world, pose.center, ref, attempt)
                 cq, cd = rasterize(world, cand, K)
-                if all(depth_overlap(ref_depth, K_ref, ref, cd, K, cand, step=s) == 0
-                       and depth_overlap(cd, K, cand, ref_depth, K_ref, ref, step=s) == 0 for s in (4, 1)):
+                if all(
+                    depth_overlap(ref_depth, K_ref, ref, cd, K, cand, step=s) == 0
+                    and depth_overlap(cd, K, cand, ref_depth, K_ref, ref, step=s) == 0
+                    for s in (4, 1)
+                ):
                     pose, qid, depth = cand, cq, cd
                     break
         name = _name(1, i)
@@ -221,8 +243,15 @@ def _pair_scene(out: Path, world: World, opts: SynthOptions, rngs: list[np.rando
         write_poses(private_dir / "poses.txt", names, rel)
 
 
-def generate_scene(root: os.PathLike | str, split: str, number: int, seed: int = 0, n_queries: int | None = None,
-                   private_gt_dir: os.PathLike | str | None = None, options: SynthOptions | None = None) -> Path:
+def generate_scene(
+    root: os.PathLike | str,
+    split: str,
+    number: int,
+    seed: int = 0,
+    n_queries: int | None = None,
+    private_gt_dir: os.PathLike | str | None = None,
+    options: SynthOptions | None = None,
+) -> Path:
     """Write one scene ``root/split/s{number:05d}`` and return its folder."""
     opts = options or SynthOptions()
     if split not in SPLITS:

@@ -17,8 +17,9 @@ from .world import World
 __all__ = ["sample_frame_points", "visible_points", "overlap_matrix", "overlap_pairs", "depth_overlap"]
 
 
-def sample_frame_points(world: World, pose: Pose, K: Intrinsics, n: int, rng: np.random.Generator,
-                        scale: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def sample_frame_points(
+    world: World, pose: Pose, K: Intrinsics, n: int, rng: np.random.Generator, scale: float = 0.5
+) -> tuple[np.ndarray, np.ndarray]:
     """``(points (m,3) world, quad (m,))``: up to ``n`` surface points seen at random pixels of a frame.
 
     Rendered at ``scale`` resolution (the points are exact surface points whatever the resolution).
@@ -45,7 +46,9 @@ def _pixels(X_cam: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray, n
     return np.where(ok, u, 0), np.where(ok, v, 0), ok
 
 
-def visible_points(points: np.ndarray, point_quad: np.ndarray, pose: Pose, K: Intrinsics, qid: np.ndarray) -> np.ndarray:
+def visible_points(
+    points: np.ndarray, point_quad: np.ndarray, pose: Pose, K: Intrinsics, qid: np.ndarray
+) -> np.ndarray:
     """(N,) bool: the point is in front, inside the image, and the surface seen at its pixel is its own.
 
     Comparing surface ids is the depth test made exact: an occluder at any depth, even a poster 2 cm in
@@ -74,8 +77,15 @@ def overlap_pairs(ov: np.ndarray, seq: np.ndarray, number: np.ndarray) -> tuple[
 
 
 def depth_overlap(
-    depth_a: np.ndarray, K_a: Intrinsics, pose_a: Pose, depth_b: np.ndarray, K_b: Intrinsics, pose_b: Pose,
-    step: int = 1, rel_tol: float = 0.03, abs_tol: float = 0.03,
+    depth_a: np.ndarray,
+    K_a: Intrinsics,
+    pose_a: Pose,
+    depth_b: np.ndarray,
+    K_b: Intrinsics,
+    pose_b: Pose,
+    step: int = 1,
+    rel_tol: float = 0.03,
+    abs_tol: float = 0.03,
 ) -> float:
     """Fraction of A's valid pixels (every ``step``-th) seen by B on a surface at the depth B measures there.
 

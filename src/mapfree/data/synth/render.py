@@ -194,7 +194,7 @@ def shade(
     light: Lighting,
     noise: np.ndarray | None = None,
     exposure: float = 1.0,
-    shadow_map: "ShadowMap | None" = None,
+    shadow_map: ShadowMap | None = None,
 ) -> np.ndarray:
     """(H,W,3) uint8 RGB of the rasterised frame: textured, lit, tone-mapped; ``noise`` (H,W) is added."""
     f32 = np.float32
@@ -218,8 +218,11 @@ def shade(
     for lv in (l0, np.minimum(l0 + 1, f32(atlas.levels - 1))):
         scale = np.exp2(-lv)
         level_x = 2 * S * (1 - scale) + 2 * pad * lv  # where this level starts in the texture's atlas row
-        looks.append(cv2.remap(atlas.image, ox + level_x + mu * scale, oy + mv * scale, cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_REFLECT))
+        looks.append(
+            cv2.remap(
+                atlas.image, ox + level_x + mu * scale, oy + mv * scale, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+            )
+        )
     tex = cv2.blendLinear(looks[0], looks[1], 1 - w, w)
 
     lit = cv2.merge(c[12:15])
@@ -251,15 +254,21 @@ class ShadowMap:
     strength: float
 
     @classmethod
-    def build(cls, world: World, atlas: TextureAtlas, light: Lighting, cells: int = 1024) -> "ShadowMap":
+    def build(cls, world: World, atlas: TextureAtlas, light: Lighting, cells: int = 1024) -> ShadowMap:
         g = world.ground_quad
         o, e1, e2 = world.origin[g], world.e1[g], world.e2[g]
         grid = np.zeros((cells, cells), np.uint8)
         if light.sun[2] > 0:
             d = light.sun / light.sun[2]
             for q in range(world.object_quads):
-                corners = np.stack([world.origin[q], world.origin[q] + world.e1[q],
-                                    world.origin[q] + world.e1[q] + world.e2[q], world.origin[q] + world.e2[q]])
+                corners = np.stack(
+                    [
+                        world.origin[q],
+                        world.origin[q] + world.e1[q],
+                        world.origin[q] + world.e1[q] + world.e2[q],
+                        world.origin[q] + world.e2[q],
+                    ]
+                )
                 flat = corners - corners[:, 2:3] * d  # along the sun ray down to z = 0
                 ab = np.stack([(flat - o) @ e1 / (e1 @ e1), (flat - o) @ e2 / (e2 @ e2)], 1)
                 pts = np.round((ab * cells - 0.5) * 16).astype(np.int32)
@@ -277,9 +286,16 @@ class ShadowMap:
         return np.where(ground, 1.0 - self.strength * (1.0 - lit), np.float32(1.0)).astype(np.float32)
 
 
-def render(world: World, atlas: TextureAtlas, pose: Pose, K: Intrinsics, light: Lighting,
-           noise: np.ndarray | None = None, exposure: float = 1.0,
-           shadow_map: ShadowMap | None = None) -> tuple[np.ndarray, np.ndarray]:
+def render(
+    world: World,
+    atlas: TextureAtlas,
+    pose: Pose,
+    K: Intrinsics,
+    light: Lighting,
+    noise: np.ndarray | None = None,
+    exposure: float = 1.0,
+    shadow_map: ShadowMap | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """``(image (H,W,3) uint8 RGB, depth (H,W) float32 metres, 0 = sky)`` of one frame."""
     qid, depth = rasterize(world, pose, K)
     img = shade(world, atlas, pose, K, qid, depth, light, noise, exposure, shadow_map)

@@ -79,8 +79,13 @@ def _rng(seed: int, number: int) -> list[np.random.Generator]:
     return [np.random.default_rng(s) for s in ss.spawn(7)]
 
 
-def generate_place(root: os.PathLike | str, number: int, seed: int = 0, options: ScanOptions | None = None,
-                   private_gt_dir: os.PathLike | str | None = None) -> Path:
+def generate_place(
+    root: os.PathLike | str,
+    number: int,
+    seed: int = 0,
+    options: ScanOptions | None = None,
+    private_gt_dir: os.PathLike | str | None = None,
+) -> Path:
     """Write the raw scans of one place ``root/scans/s{number:05d}`` and return its folder."""
     o = options or ScanOptions()
     s = o.synth
@@ -114,8 +119,9 @@ def generate_place(root: os.PathLike | str, number: int, seed: int = 0, options:
             seqs.append(k)
             nums.append(i)
         write_intrinsics(folder / "intrinsics.txt", dict(zip(names, Ks)))
-        (folder / "rgb.txt").write_text("# timestamp filename\n" + "".join(
-            f"{times[i * o.device_rate]:.6f} {n}\n" for i, n in enumerate(names)))
+        (folder / "rgb.txt").write_text(
+            "# timestamp filename\n" + "".join(f"{times[i * o.device_rate]:.6f} {n}\n" for i, n in enumerate(names))
+        )
         write_tum(folder / "device_poses.txt", times, device_track(dev, dense, o.drift))
         gt_names.append(names)
         gt_poses.append(poses)
@@ -137,9 +143,15 @@ def _one(args: tuple) -> Path:
     return generate_place(*args)
 
 
-def generate_scans(root: os.PathLike | str, n_places: int = 2, seed: int = 0, options: ScanOptions | None = None,
-                   private_gt_dir: os.PathLike | str | None = None, first_place: int = 0,
-                   progress: bool = True) -> list[Path]:
+def generate_scans(
+    root: os.PathLike | str,
+    n_places: int = 2,
+    seed: int = 0,
+    options: ScanOptions | None = None,
+    private_gt_dir: os.PathLike | str | None = None,
+    first_place: int = 0,
+    progress: bool = True,
+) -> list[Path]:
     """Write ``n_places`` places of raw scans under ``root/scans``; returns their folders."""
     o = options or ScanOptions()
     if n_places < 0 or o.frames < 3 or o.scans < 1 or o.device_rate < 1:
@@ -148,5 +160,7 @@ def generate_scans(root: os.PathLike | str, n_places: int = 2, seed: int = 0, op
         o = replace(o, synth=replace(o.synth, write_mono=False))  # raw scans carry sensor depth only
     from tqdm.auto import tqdm
 
-    return [_one((root, first_place + k, seed, o, private_gt_dir))
-            for k in tqdm(range(n_places), desc="synth scans", unit="place", disable=not progress)]
+    return [
+        _one((root, first_place + k, seed, o, private_gt_dir))
+        for k in tqdm(range(n_places), desc="synth scans", unit="place", disable=not progress)
+    ]

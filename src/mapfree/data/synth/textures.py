@@ -17,7 +17,15 @@ __all__ = ["PHOTOS", "SURFACES", "GROUNDS", "TextureAtlas", "load_atlas"]
 
 # Photos for the "place of interest" (sculpture faces, murals, posters) and repeating surface materials.
 PHOTOS = (
-    "astronaut", "coffee", "chelsea", "rocket", "motorcycle", "immunohistochemistry", "camera", "coins", "moon",
+    "astronaut",
+    "coffee",
+    "chelsea",
+    "rocket",
+    "motorcycle",
+    "immunohistochemistry",
+    "camera",
+    "coins",
+    "moon",
 )
 SURFACES = ("brick", "gravel", "grass", "page", "text")
 # Softer (lower-contrast) variants of the ground materials: pavement seen from eye height is not all edges.
@@ -27,10 +35,20 @@ _PAD = 2
 
 
 _FILES = {
-    "astronaut": "astronaut.png", "coffee": "coffee.png", "chelsea": "chelsea.png", "rocket": "rocket.jpg",
-    "motorcycle": "motorcycle_left.png", "immunohistochemistry": "ihc.png", "camera": "camera.png",
-    "coins": "coins.png", "moon": "moon.png", "brick": "brick.png", "gravel": "gravel.png", "grass": "grass.png",
-    "page": "page.png", "text": "text.png",
+    "astronaut": "astronaut.png",
+    "coffee": "coffee.png",
+    "chelsea": "chelsea.png",
+    "rocket": "rocket.jpg",
+    "motorcycle": "motorcycle_left.png",
+    "immunohistochemistry": "ihc.png",
+    "camera": "camera.png",
+    "coins": "coins.png",
+    "moon": "moon.png",
+    "brick": "brick.png",
+    "gravel": "gravel.png",
+    "grass": "grass.png",
+    "page": "page.png",
+    "text": "text.png",
 }
 
 
@@ -74,20 +92,20 @@ class TextureAtlas:
 
 
 def _build(names: tuple[str, ...], size: int, levels: int) -> TextureAtlas:
-    row_w = sum((size >> l) + 2 * _PAD for l in range(levels))
+    row_w = sum((size >> k) + 2 * _PAD for k in range(levels))
     row_h = size + 2 * _PAD
     atlas = np.zeros((row_h * len(names), row_w, 3), np.uint8)
     offsets = np.zeros((len(names), levels, 2), np.float32)
     for i, name in enumerate(names):
         level = _square(_load(name), size)
         x = 0
-        for l in range(levels):
-            s = size >> l
-            if l:
+        for k in range(levels):
+            s = size >> k
+            if k:
                 level = cv2.resize(level, (s, s), interpolation=cv2.INTER_AREA)
             padded = cv2.copyMakeBorder(level, _PAD, _PAD, _PAD, _PAD, cv2.BORDER_REFLECT)
             atlas[i * row_h : i * row_h + s + 2 * _PAD, x : x + s + 2 * _PAD] = padded
-            offsets[i, l] = (x + _PAD, i * row_h + _PAD)
+            offsets[i, k] = (x + _PAD, i * row_h + _PAD)
             x += s + 2 * _PAD
     return TextureAtlas(atlas, names, size, levels, offsets)
 

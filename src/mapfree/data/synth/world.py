@@ -58,8 +58,16 @@ class _Builder:
     def quad(self, origin, e1, e2, normal, texture: str, repeats=(1.0, 1.0), tint=(1.0, 1.0, 1.0), two_sided=False):
         n = np.asarray(normal, float)
         self.rows.append(
-            (np.asarray(origin, float), np.asarray(e1, float), np.asarray(e2, float), n / np.linalg.norm(n),
-             self.atlas.index(texture), np.asarray(repeats, float), np.asarray(tint, float), bool(two_sided))
+            (
+                np.asarray(origin, float),
+                np.asarray(e1, float),
+                np.asarray(e2, float),
+                n / np.linalg.norm(n),
+                self.atlas.index(texture),
+                np.asarray(repeats, float),
+                np.asarray(tint, float),
+                bool(two_sided),
+            )
         )
 
     def facade(self, center, normal, width: float, height: float, texture: str, repeats=(1.0, 1.0), tint=(1, 1, 1)):
@@ -70,8 +78,17 @@ class _Builder:
         top_left = np.asarray(center, float) - right * width / 2 + UP * height
         self.quad(top_left, right * width, -UP * height, n, texture, repeats, tint)
 
-    def box(self, center_xy, base_z: float, size, yaw: float, side_textures, top_texture: str, tint=(1, 1, 1),
-            side_repeats=None):
+    def box(
+        self,
+        center_xy,
+        base_z: float,
+        size,
+        yaw: float,
+        side_textures,
+        top_texture: str,
+        tint=(1, 1, 1),
+        side_repeats=None,
+    ):
         """A yawed box (no bottom face): four photo-covered sides and a top."""
         sx, sy, sz = size
         c, s = np.cos(yaw), np.sin(yaw)
@@ -87,9 +104,18 @@ class _Builder:
     def build(self, target, object_radius: float, half_size: float, object_quads: int, facing=()) -> World:
         cols = list(zip(*self.rows))
         return World(
-            np.stack(cols[0]), np.stack(cols[1]), np.stack(cols[2]), np.stack(cols[3]),
-            np.array(cols[4], np.int64), np.stack(cols[5]), np.stack(cols[6]), np.array(cols[7], bool),
-            np.asarray(target, float), float(object_radius), float(half_size), int(object_quads),
+            np.stack(cols[0]),
+            np.stack(cols[1]),
+            np.stack(cols[2]),
+            np.stack(cols[3]),
+            np.array(cols[4], np.int64),
+            np.stack(cols[5]),
+            np.stack(cols[6]),
+            np.array(cols[7], bool),
+            np.asarray(target, float),
+            float(object_radius),
+            float(half_size),
+            int(object_quads),
             tuple(float(a) for a in facing),
         )
 
@@ -115,9 +141,9 @@ def make_world(rng: np.random.Generator, atlas: TextureAtlas, half_size: float =
     if rng.random() < 0.6:  # sculpture: 1–3 stacked boxes on a plinth
         radius, z = 0.0, 0.0
         for level in range(int(rng.integers(1, 4))):
-            w = rng.uniform(1.6, 3.0) * (0.75 ** level)
-            d = rng.uniform(1.2, 2.4) * (0.75 ** level)
-            h = rng.uniform(1.0, 1.8) * (0.85 ** level)
+            w = rng.uniform(1.6, 3.0) * (0.75**level)
+            d = rng.uniform(1.2, 2.4) * (0.75**level)
+            h = rng.uniform(1.0, 1.8) * (0.85**level)
             yaw = rng.uniform(0, np.pi)
             off = rng.normal(0, 0.1, 2)
             b.box(off, z, (w, d, h), yaw, [pick() for _ in range(4)], "gravel", _tint(rng, 0.05))
@@ -127,8 +153,16 @@ def make_world(rng: np.random.Generator, atlas: TextureAtlas, half_size: float =
     else:  # mural: a free-standing painted wall
         w, h, d = rng.uniform(3.0, 5.0), rng.uniform(2.2, 3.2), 0.3
         yaw = rng.uniform(0, 2 * np.pi)
-        b.box((0.0, 0.0), 0.0, (d, w, h), yaw, [pick(), pick(), "brick", "brick"], "brick", (1, 1, 1),
-              side_repeats=[(1, 1), (1, 1), (1, h / 1.2), (1, h / 1.2)])
+        b.box(
+            (0.0, 0.0),
+            0.0,
+            (d, w, h),
+            yaw,
+            [pick(), pick(), "brick", "brick"],
+            "brick",
+            (1, 1, 1),
+            side_repeats=[(1, 1), (1, 1), (1, h / 1.2), (1, h / 1.2)],
+        )
         radius = w / 2
         facing = (yaw, yaw + np.pi)  # the two painted sides
         target = np.array([0.0, 0.0, 0.45 * h])

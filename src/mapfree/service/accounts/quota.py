@@ -24,11 +24,17 @@ def stored_bytes(db: Session, user_id: int) -> int:
     and released with that row when the copy fails), and the image and depth bytes of every photo of their
     anchors."""
     stored = exists().where(SubmissionFile.submission_id == Submission.id)
-    zips = db.scalar(select(func.coalesce(func.sum(Submission.size_bytes), 0))
-                     .where(Submission.user_id == user_id, or_(stored, Submission.status == "uploading")))
+    zips = db.scalar(
+        select(func.coalesce(func.sum(Submission.size_bytes), 0)).where(
+            Submission.user_id == user_id, or_(stored, Submission.status == "uploading")
+        )
+    )
     firsts = db.scalar(select(func.coalesce(func.sum(_blob_bytes(Anchor)), 0)).where(Anchor.user_id == user_id))
-    photos = db.scalar(select(func.coalesce(func.sum(_blob_bytes(AnchorPhoto)), 0))
-                       .join(Anchor, Anchor.id == AnchorPhoto.anchor_id).where(Anchor.user_id == user_id))
+    photos = db.scalar(
+        select(func.coalesce(func.sum(_blob_bytes(AnchorPhoto)), 0))
+        .join(Anchor, Anchor.id == AnchorPhoto.anchor_id)
+        .where(Anchor.user_id == user_id)
+    )
     return int(zips or 0) + int(firsts or 0) + int(photos or 0)
 
 
@@ -50,7 +56,10 @@ def check_quota(db: Session, settings: Settings, user_id: int, adding: int, what
     lock_user(db, user_id)
     used = stored_bytes(db, user_id)
     if used + adding > quota:
-        raise UploadError(413, f"storage quota reached: your stored submission ZIPs and anchor photos may total "
-                               f"{quota} bytes; {used} are stored and {what} would add {adding}; withdraw old "
-                               "submissions, delete anchors or anchor photos, or wait for ZIPs older than "
-                               f"{settings.zip_retention_days:g} days to be deleted")
+        raise UploadError(
+            413,
+            f"storage quota reached: your stored submission ZIPs and anchor photos may total "
+            f"{quota} bytes; {used} are stored and {what} would add {adding}; withdraw old "
+            "submissions, delete anchors or anchor photos, or wait for ZIPs older than "
+            f"{settings.zip_retention_days:g} days to be deleted",
+        )

@@ -24,14 +24,20 @@ MAX_SELF_SERVICE_DAYS = 365.0
 
 def token_json(t: ApiToken, current_hash: str = "") -> dict:
     expired = t.expires_at is not None and t.expires_at <= now()
-    return {"id": t.id, "prefix": t.prefix, "label": t.label, "created_at": t.created_at,
-            "expires_at": t.expires_at, "revoked": t.revoked, "expired": expired,
-            "current": t.token_hash == current_hash}
+    return {
+        "id": t.id,
+        "prefix": t.prefix,
+        "label": t.label,
+        "created_at": t.created_at,
+        "expires_at": t.expires_at,
+        "revoked": t.revoked,
+        "expired": expired,
+        "current": t.token_hash == current_hash,
+    }
 
 
 def session_json(s: WebSession, current_hash: str = "") -> dict:
-    return {"id": s.id, "created_at": s.created_at, "expires_at": s.expires_at,
-            "current": s.sid_hash == current_hash}
+    return {"id": s.id, "created_at": s.created_at, "expires_at": s.expires_at, "current": s.sid_hash == current_hash}
 
 
 def list_tokens(db: Session, user_id: int) -> list[ApiToken]:
@@ -39,8 +45,13 @@ def list_tokens(db: Session, user_id: int) -> list[ApiToken]:
 
 
 def list_sessions(db: Session, user_id: int) -> list[WebSession]:
-    return list(db.scalars(select(WebSession).where(WebSession.user_id == user_id, WebSession.expires_at > now())
-                           .order_by(WebSession.id)))
+    return list(
+        db.scalars(
+            select(WebSession)
+            .where(WebSession.user_id == user_id, WebSession.expires_at > now())
+            .order_by(WebSession.id)
+        )
+    )
 
 
 def _current_token_hash(request: Request) -> str:
@@ -72,9 +83,13 @@ def my_tokens(request: Request, db: Session = Depends(db_session)):
 
 
 @router.post("/api/tokens", status_code=201, tags=["accounts"], response_model=NewTokenOut)
-def create_token(request: Request, expires_in_days: float = Form(..., description="lifetime in days (max 365)"),
-                 label: str = Form("", description="what the token is for"), csrf_token: str | None = Form(None),
-                 db: Session = Depends(db_session)):
+def create_token(
+    request: Request,
+    expires_in_days: float = Form(..., description="lifetime in days (max 365)"),
+    label: str = Form("", description="what the token is for"),
+    csrf_token: str | None = Form(None),
+    db: Session = Depends(db_session),
+):
     """A new API token of yours that expires (shown once, in ``token``). It never outlives the token this request
     is made with (or that its browser session was signed in with), and revoking that one revokes it."""
     caller = require_writer(request, db, csrf_token)
@@ -82,8 +97,13 @@ def create_token(request: Request, expires_in_days: float = Form(..., descriptio
         raise HTTPException(422, f"expires_in_days must lie in (0, {MAX_SELF_SERVICE_DAYS:g}]")
 
     try:
-        token = auth.issue_token(db, caller.user, expires_in_days * 86400, check_name(label, 64, "label"),
-                                 parent=current_token(request, db, caller))
+        token = auth.issue_token(
+            db,
+            caller.user,
+            expires_in_days * 86400,
+            check_name(label, 64, "label"),
+            parent=current_token(request, db, caller),
+        )
     except auth.TokenLimit as e:
         raise HTTPException(409, str(e)) from None
     db.commit()
@@ -130,9 +150,13 @@ def access_page(request: Request, db: Session = Depends(db_session)):
     caller = require_user(request, db)
     sid = request.cookies.get(SESSION_COOKIE)
     current = auth.hash_secret(sid) if sid else ""
-    return page(request, "access.html", db, tokens=[token_json(t, _current_token_hash(request))
-                                                    for t in list_tokens(db, caller.user.id)],
-                sessions=[session_json(s, current) for s in list_sessions(db, caller.user.id)])
+    return page(
+        request,
+        "access.html",
+        db,
+        tokens=[token_json(t, _current_token_hash(request)) for t in list_tokens(db, caller.user.id)],
+        sessions=[session_json(s, current) for s in list_sessions(db, caller.user.id)],
+    )
 
 
 @router.post("/me/tokens/{tid}/revoke", include_in_schema=False)
@@ -143,8 +167,9 @@ def revoke_token_form(tid: RowId, request: Request, csrf_token: str = Form(""), 
 
 
 @router.post("/me/sessions/{session_id}/end", include_in_schema=False)
-def end_session_form(session_id: RowId, request: Request, csrf_token: str = Form(""),
-                     db: Session = Depends(db_session)):
+def end_session_form(
+    session_id: RowId, request: Request, csrf_token: str = Form(""), db: Session = Depends(db_session)
+):
     db.delete(_own_row(request, db, WebSession, session_id, "session", csrf_token))
     db.commit()
     return RedirectResponse("/me/access", status_code=303)
@@ -155,7 +180,6 @@ def delete_user(db: Session, user, dry_run: bool = False) -> dict[str, int]:
     their ZIPs, results and plots (their leaderboard entries go with them). The database's cascades do the
     deleting; returns what was there, by kind (``dry_run``: only that)."""
     from sqlalchemy import func
-
 
     counts = {
         "tokens": db.scalar(select(func.count()).select_from(ApiToken).where(ApiToken.user_id == user.id)),
@@ -174,6 +198,11 @@ def me(request: Request, db: Session = Depends(db_session)):
     caller = require_user(request, db)
     u = caller.user
     quota = test_quota(db, request.app.state.settings, u)
-    return {"name": u.name, "admin": u.is_admin, "test_evaluations_left_today": quota.left,
-            "test_daily_limit": quota.shown_limit, "storage_used_bytes": stored_bytes(db, u.id),
-            "storage_quota_bytes": request.app.state.settings.storage_quota_bytes}
+    return {
+        "name": u.name,
+        "admin": u.is_admin,
+        "test_evaluations_left_today": quota.left,
+        "test_daily_limit": quota.shown_limit,
+        "storage_used_bytes": stored_bytes(db, u.id),
+        "storage_quota_bytes": request.app.state.settings.storage_quota_bytes,
+    }

@@ -44,12 +44,17 @@ def create_user(db: Session, name: str, admin: bool = False, expires_in: float |
     ``issue_token``)."""
     name = name.strip()
     if not USER_NAME_RE.fullmatch(name):
-        raise ValueError("user name must be 1-64 ASCII letters, digits, '-', '_' or '.', starting with a letter or "
-                         "digit (so that no name can pass for another with look-alike letters)")
+        raise ValueError(
+            "user name must be 1-64 ASCII letters, digits, '-', '_' or '.', starting with a letter or "
+            "digit (so that no name can pass for another with look-alike letters)"
+        )
     same = db.scalar(select(User.name).where(func.lower(User.name) == name.lower()))
     if same is not None:
-        raise ValueError(f"user {name!r} already exists" if same == name else
-                         f"user name {name!r} differs from the existing {same!r} only in case")
+        raise ValueError(
+            f"user {name!r} already exists"
+            if same == name
+            else f"user name {name!r} differs from the existing {same!r} only in case"
+        )
     user = User(name=name, is_admin=admin)
     db.add(user)
     db.flush()
@@ -64,22 +69,39 @@ def _ends(lifetime: float | None, parent: ApiToken | None) -> float | None:
     return ends
 
 
-def issue_token(db: Session, user: User, expires_in: float | None = None, label: str = "",
-                parent: ApiToken | None = None) -> str:
+def issue_token(
+    db: Session, user: User, expires_in: float | None = None, label: str = "", parent: ApiToken | None = None
+) -> str:
     """A new token of ``user`` (valid ``expires_in`` seconds; None: until revoked); the plain token is returned
     once and only its hash stored. ``parent``: the token it is created with; it never outlives that one, and
     revoking that one revokes it."""
     if expires_in is not None and not (math.isfinite(expires_in) and expires_in > 0):
         raise ValueError(f"a token's lifetime must be positive, got {expires_in} s")
-    active = db.scalar(select(func.count()).select_from(ApiToken).where(
-        ApiToken.user_id == user.id, ApiToken.revoked.is_(False),
-        or_(ApiToken.expires_at.is_(None), ApiToken.expires_at > now())))
+    active = db.scalar(
+        select(func.count())
+        .select_from(ApiToken)
+        .where(
+            ApiToken.user_id == user.id,
+            ApiToken.revoked.is_(False),
+            or_(ApiToken.expires_at.is_(None), ApiToken.expires_at > now()),
+        )
+    )
     if active >= MAX_TOKENS:
-        raise TokenLimit(f"account {user.name!r} holds {active} active tokens, the most it may; revoke some first "
-                         "(DELETE /api/tokens/{id}, the access page, or mapfree admin revoke-token)")
+        raise TokenLimit(
+            f"account {user.name!r} holds {active} active tokens, the most it may; revoke some first "
+            "(DELETE /api/tokens/{id}, the access page, or mapfree admin revoke-token)"
+        )
     token = new_token()
-    db.add(ApiToken(user_id=user.id, token_hash=hash_secret(token), prefix=token[:10], label=label[:64],
-                    expires_at=_ends(expires_in, parent), parent_id=parent.id if parent is not None else None))
+    db.add(
+        ApiToken(
+            user_id=user.id,
+            token_hash=hash_secret(token),
+            prefix=token[:10],
+            label=label[:64],
+            expires_at=_ends(expires_in, parent),
+            parent_id=parent.id if parent is not None else None,
+        )
+    )
     return token
 
 
@@ -91,8 +113,10 @@ def find_token(db: Session, token: str) -> tuple[ApiToken | None, str]:
     if row is None:
         return None, "invalid or revoked API token"
     if row.expires_at is not None and row.expires_at <= now():
-        return None, (f"API token {row.prefix}… expired on {utc(row.expires_at)}; ask for a new one (mapfree "
-                      "admin new-token) or create one while signed in (POST /api/tokens)")
+        return None, (
+            f"API token {row.prefix}… expired on {utc(row.expires_at)}; ask for a new one (mapfree "
+            "admin new-token) or create one while signed in (POST /api/tokens)"
+        )
     return row, ""
 
 
@@ -149,8 +173,15 @@ def open_session(db: Session, token: ApiToken, hours: float) -> tuple[str, str]:
     """A new browser session signed in with ``token`` -> (session id for the cookie, its CSRF token). It ends
     after ``hours``, when the token expires, or when the token is revoked, whichever comes first."""
     sid, csrf = secrets.token_urlsafe(32), secrets.token_urlsafe(24)
-    db.add(WebSession(sid_hash=hash_secret(sid), user_id=token.user_id, csrf=csrf,
-                      expires_at=_ends(hours * 3600, token), token_id=token.id))
+    db.add(
+        WebSession(
+            sid_hash=hash_secret(sid),
+            user_id=token.user_id,
+            csrf=csrf,
+            expires_at=_ends(hours * 3600, token),
+            token_id=token.id,
+        )
+    )
     return sid, csrf
 
 

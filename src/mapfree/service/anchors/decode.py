@@ -68,8 +68,7 @@ def _image_size(data: bytes, what: str, formats: tuple[str, ...] = ("JPEG", "PNG
     try:
         with Image.open(io.BytesIO(data)) as im:
             if im.format not in formats:
-                raise UploadError(422, f"{what}: {im.format} images are not accepted ({' or '.join(formats)} "
-                                       "expected)")
+                raise UploadError(422, f"{what}: {im.format} images are not accepted ({' or '.join(formats)} expected)")
             return im.size
     except UploadError:
         raise
@@ -93,12 +92,16 @@ def parse_intrinsics(values: dict, width: int, height: int, what: str = "intrins
         out[k] = f
     fmin, fmax = MIN_FOCAL_FACTOR * max(width, height), MAX_FOCAL_FACTOR * max(width, height)
     if not (fmin <= out["fx"] < fmax and fmin <= out["fy"] < fmax):
-        raise UploadError(422, f"{what}: focal lengths must lie between {fmin:g} and {fmax:g} px "
-                               f"({MIN_FOCAL_FACTOR} to {MAX_FOCAL_FACTOR} x the image's longest side, {max(width, height)} "
-                               f"px; in pixels, not millimetres); got fx={out['fx']:g}, fy={out['fy']:g}")
+        raise UploadError(
+            422,
+            f"{what}: focal lengths must lie between {fmin:g} and {fmax:g} px "
+            f"({MIN_FOCAL_FACTOR} to {MAX_FOCAL_FACTOR} x the image's longest side, {max(width, height)} "
+            f"px; in pixels, not millimetres); got fx={out['fx']:g}, fy={out['fy']:g}",
+        )
     if not (0 <= out["cx"] <= width and 0 <= out["cy"] <= height):
-        raise UploadError(422, f"{what}: principal point ({out['cx']:g}, {out['cy']:g}) must lie inside the "
-                               f"{width}x{height} image")
+        raise UploadError(
+            422, f"{what}: principal point ({out['cx']:g}, {out['cy']:g}) must lie inside the {width}x{height} image"
+        )
     out.update(width=int(width), height=int(height))
     return out
 
@@ -113,8 +116,11 @@ def parse_pose(text: str | None, what: str = "pose") -> list[float]:
     ``MAX_POSE_METRES`` is refused: it almost always means the values are in another order or unit."""
     parts = (text or "").replace(",", " ").split()
     if len(parts) != 7:
-        raise UploadError(422, f"{what}: expected 7 numbers 'qw qx qy qz tx ty tz' (world-to-camera from the "
-                               f"anchor's first photo, metres), got {len(parts)}")
+        raise UploadError(
+            422,
+            f"{what}: expected 7 numbers 'qw qx qy qz tx ty tz' (world-to-camera from the "
+            f"anchor's first photo, metres), got {len(parts)}",
+        )
     try:
         v = [float(p) for p in parts]
     except ValueError:
@@ -125,6 +131,8 @@ def parse_pose(text: str | None, what: str = "pose") -> list[float]:
     if abs(n - 1.0) > 0.01:
         raise UploadError(422, f"{what}: the quaternion (qw qx qy qz) must have unit length, got {n:.4g}")
     if math.sqrt(sum(x * x for x in v[4:])) > MAX_POSE_METRES:
-        raise UploadError(422, f"{what}: the translation is over {MAX_POSE_METRES:g} m from the anchor's first "
-                               "photo (metres expected)")
+        raise UploadError(
+            422,
+            f"{what}: the translation is over {MAX_POSE_METRES:g} m from the anchor's first photo (metres expected)",
+        )
     return [x / n for x in v[:4]] + v[4:]

@@ -45,15 +45,26 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
     photo's ``pose`` is world-to-camera from that frame as ``[qw, qx, qy, qz, tx, ty, tz]``. A photo keeps its
     ``index`` for life (deleting one leaves a gap)."""
     photos = [{"index": 0, "intrinsics": a.intrinsics, "has_depth": a.depth is not None, "pose": IDENTITY}]
-    photos += [{"index": r.seq, "intrinsics": r.intrinsics, "has_depth": r.depth is not None, "pose": r.pose}
-               for r in rows]
-    return {"id": a.id, "name": a.name, "method": a.method, "intrinsics": a.intrinsics, "private": bool(a.private),
-            "has_depth": a.depth is not None, "num_photos": len(photos), "photos": photos,
-            "created_at": a.created_at, "url": f"/anchors/{a.id}"}
+    photos += [
+        {"index": r.seq, "intrinsics": r.intrinsics, "has_depth": r.depth is not None, "pose": r.pose} for r in rows
+    ]
+    return {
+        "id": a.id,
+        "name": a.name,
+        "method": a.method,
+        "intrinsics": a.intrinsics,
+        "private": bool(a.private),
+        "has_depth": a.depth is not None,
+        "num_photos": len(photos),
+        "photos": photos,
+        "created_at": a.created_at,
+        "url": f"/anchors/{a.id}",
+    }
 
 
-def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth: UploadFile | None,
-                 pose: str | None) -> Upload:
+def photo_upload(
+    lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth: UploadFile | None, pose: str | None
+) -> Upload:
     """Read and check one photo of an anchor (image, intrinsics, depth, pose: ``photos.read_upload``, with what
     is stored of it); every error names ``what`` (the photo) if given. ``pose=None``: the anchor's first photo,
     whose camera is the anchor's frame."""
@@ -61,11 +72,19 @@ def photo_upload(lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth
         img_bytes = read_upload(image, lim.max_image_bytes, "image")
         if img_bytes is None:
             raise UploadError(400, "image: no file uploaded")
-        up = read_photo_upload(img_bytes, lim, {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
-                               read_upload(depth, lim.max_image_bytes, "depth"), store=True)
+        up = read_photo_upload(
+            img_bytes,
+            lim,
+            {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
+            read_upload(depth, lim.max_image_bytes, "depth"),
+            store=True,
+        )
         if up.depth is not None and not up.depth_measured:
-            raise UploadError(422, "depth: every pixel is 0 (no measurement), so the photo could never give a "
-                                   "metric pose; send its real depth map, or none with a method that needs none")
+            raise UploadError(
+                422,
+                "depth: every pixel is 0 (no measurement), so the photo could never give a "
+                "metric pose; send its real depth map, or none with a method that needs none",
+            )
         q = IDENTITY if pose is None else parse_pose(pose)
     except UploadError as e:
         raise UploadError(e.status, f"{what}: {e.message}" if what else e.message) from None
@@ -86,36 +105,71 @@ def _runnable(m: str, ups: list[Upload], names: list[str]) -> None:
         except UploadError as e:
             if not names[i]:
                 raise
-            raise UploadError(e.status, f"{names[i]}: method {m} takes its metric scale from each photo's depth map "
-                                        "and this photo has none: upload its depth (a single-channel uint16 PNG in "
-                                        "millimetres)") from None
+            raise UploadError(
+                e.status,
+                f"{names[i]}: method {m} takes its metric scale from each photo's depth map "
+                "and this photo has none: upload its depth (a single-channel uint16 PNG in "
+                "millimetres)",
+            ) from None
 
 
-def _extra_photos(lim, images: list[UploadFile], fx: list[str], fy: list[str], cx: list[str], cy: list[str],
-                  poses: list[str], depths: list[UploadFile], first: int) -> tuple[list[Upload], list[str]]:
+def _extra_photos(
+    lim,
+    images: list[UploadFile],
+    fx: list[str],
+    fy: list[str],
+    cx: list[str],
+    cy: list[str],
+    poses: list[str],
+    depths: list[UploadFile],
+    first: int,
+) -> tuple[list[Upload], list[str]]:
     """The repeated ``photo_*`` fields of a request: one value per ``photo_image``, in the same order. Depth
     maps are all or none (an empty file part is dropped, so it cannot stand for a missing one): photos of
     which only some have depth are added one by one (``POST /anchors/{id}/photos``)."""
     images = [f for f in images if f.filename or f.size]
     n = len(images)
-    for field_name, vals in (("photo_fx", fx), ("photo_fy", fy), ("photo_cx", cx), ("photo_cy", cy),
-                             ("photo_pose", poses)):
+    for field_name, vals in (
+        ("photo_fx", fx),
+        ("photo_fy", fy),
+        ("photo_cx", cx),
+        ("photo_cy", cy),
+        ("photo_pose", poses),
+    ):
         if len(vals) != n:
-            raise UploadError(422, f"{field_name}: {len(vals)} value(s) for {n} photo_image file(s); give one per "
-                                   "photo, in the same order")
+            raise UploadError(
+                422,
+                f"{field_name}: {len(vals)} value(s) for {n} photo_image file(s); give one per "
+                "photo, in the same order",
+            )
     if depths and len(depths) != n:
-        raise UploadError(422, f"photo_depth: {len(depths)} file(s) for {n} photo_image file(s); give none, or one "
-                               "per photo in the same order (or add the photos one by one: POST "
-                               "/anchors/{id}/photos)")
+        raise UploadError(
+            422,
+            f"photo_depth: {len(depths)} file(s) for {n} photo_image file(s); give none, or one "
+            "per photo in the same order (or add the photos one by one: POST "
+            "/anchors/{id}/photos)",
+        )
     names = [photo_name(first + i, f) for i, f in enumerate(images)]
-    ups = [photo_upload(lim, names[i], f, fx[i], fy[i], cx[i], cy[i], depths[i] if depths else None, poses[i])
-           for i, f in enumerate(images)]
+    ups = [
+        photo_upload(lim, names[i], f, fx[i], fy[i], cx[i], cy[i], depths[i] if depths else None, poses[i])
+        for i, f in enumerate(images)
+    ]
     return ups, names
 
 
 def _photo_rows_of(aid: str, ups: list[Upload], first_seq: int) -> list[AnchorPhoto]:
-    return [AnchorPhoto(anchor_id=aid, seq=first_seq + i, intrinsics=u.intrinsics, pose=u.pose, image=u.image,
-                        depth=u.depth, created_at=now()) for i, u in enumerate(ups)]
+    return [
+        AnchorPhoto(
+            anchor_id=aid,
+            seq=first_seq + i,
+            intrinsics=u.intrinsics,
+            pose=u.pose,
+            image=u.image,
+            depth=u.depth,
+            created_at=now(),
+        )
+        for i, u in enumerate(ups)
+    ]
 
 
 def check_photo_count(lim, n: int) -> None:
@@ -125,8 +179,16 @@ def check_photo_count(lim, n: int) -> None:
         raise UploadError(413, f"an anchor holds at most {lim.max_anchor_photos} photos; got {n}")
 
 
-def make_anchor(request: Request, db: Session, user: User, name: str, method: str, ups: list[Upload],
-                names: list[str], private: bool = False) -> tuple[Anchor, list[AnchorPhoto]]:
+def make_anchor(
+    request: Request,
+    db: Session,
+    user: User,
+    name: str,
+    method: str,
+    ups: list[Upload],
+    names: list[str],
+    private: bool = False,
+) -> tuple[Anchor, list[AnchorPhoto]]:
     """Store a new anchor of ``user`` from checked photos (``ups[0]``: the anchor's frame; ``names``: how errors
     name them, "" for a lone photo), refused (4xx) past the photo limit or the storage quota, or when its method
     cannot run on it here; ``private``: its photos are served to its owner and admins only, from the start.
@@ -151,8 +213,17 @@ def make_anchor(request: Request, db: Session, user: User, name: str, method: st
         request.app.state.localizers.forget(aid)
         raise
     first = ups[0]
-    a = Anchor(id=aid, user_id=user.id, name=name, method=m, intrinsics=first.intrinsics, image=first.image,
-               depth=first.depth, private=bool(private), created_at=now())
+    a = Anchor(
+        id=aid,
+        user_id=user.id,
+        name=name,
+        method=m,
+        intrinsics=first.intrinsics,
+        image=first.image,
+        depth=first.depth,
+        private=bool(private),
+        created_at=now(),
+    )
     db.add(a)
     db.flush()
     db.add_all(rows)
@@ -165,7 +236,11 @@ def find_anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
     its photos (the next index) on PostgreSQL too."""
     a = None
     if len(aid) <= 32:
-        a = db.scalars(select(Anchor).where(Anchor.id == aid).with_for_update()).first() if lock else db.get(Anchor, aid)
+        a = (
+            db.scalars(select(Anchor).where(Anchor.id == aid).with_for_update()).first()
+            if lock
+            else db.get(Anchor, aid)
+        )
     if a is None:
         raise HTTPException(404, "no such anchor")
     return a
@@ -198,8 +273,19 @@ def retire_photo_index(db: Session, aid: str, k: int) -> None:
         row.highest = k
 
 
-def add_photo(request: Request, db: Session, user: User, aid: str, image: UploadFile | None, fx, fy, cx, cy,
-              depth: UploadFile | None, pose: str) -> tuple[Anchor, list[AnchorPhoto]]:
+def add_photo(
+    request: Request,
+    db: Session,
+    user: User,
+    aid: str,
+    image: UploadFile | None,
+    fx,
+    fy,
+    cx,
+    cy,
+    depth: UploadFile | None,
+    pose: str,
+) -> tuple[Anchor, list[AnchorPhoto]]:
     """Check and store one more photo of anchor ``aid`` (owner or admin), at the index after the highest one it
     ever had (``next_photo_index``); the same limits and errors as at creation. Shared by the API and the anchor's page."""
     lim = request.app.state.settings.limits
@@ -236,14 +322,18 @@ def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) ->
     _own_anchor(a, user, "delete its photos")
     rows = photo_rows(db, a.id)
     if k == 0:
-        raise HTTPException(409, f"photo 0 of anchor {a.id} cannot be deleted: its camera is the anchor's frame, "
-                                 "the one every photo's pose and every localize answer is given in; delete the "
-                                 "whole anchor instead (DELETE /anchors/{id}) and create a new one from the photos "
-                                 "to keep")
+        raise HTTPException(
+            409,
+            f"photo 0 of anchor {a.id} cannot be deleted: its camera is the anchor's frame, "
+            "the one every photo's pose and every localize answer is given in; delete the "
+            "whole anchor instead (DELETE /anchors/{id}) and create a new one from the photos "
+            "to keep",
+        )
     row = next((r for r in rows if r.seq == k), None)
     if row is None:
-        raise HTTPException(404, f"anchor {a.id} has no photo {k} (its photos: "
-                                 f"{', '.join(map(str, photo_indices(rows)))})")
+        raise HTTPException(
+            404, f"anchor {a.id} has no photo {k} (its photos: {', '.join(map(str, photo_indices(rows)))})"
+        )
     db.delete(row)
     retire_photo_index(db, a.id, k)
     db.commit()
@@ -260,16 +350,24 @@ def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim) -> Photo:
     return decode_stored(row.image, row.intrinsics, row.depth, row.pose, lim, f"anchor photo {k}")
 
 
-def localize_anchor(request: Request, a: Anchor, rows: list[AnchorPhoto], query: Photo,
-                    owner: int | None = None) -> Estimate:
+def localize_anchor(
+    request: Request, a: Anchor, rows: list[AnchorPhoto], query: Photo, owner: int | None = None
+) -> Estimate:
     """The query's pose in the anchor's frame against its current photos (decoded from ``rows`` only when this
     process has not prepared this version of the anchor, and then counted against ``owner``'s share of the
     cache: the account asking); ``extras["photo"]`` is the answering photo's index."""
     lim = request.app.state.settings.limits
     indices = photo_indices(rows)
     est = request.app.state.localizers.localize_photos(
-        a.id, a.method, anchor_version(rows), lambda: (stored_photo(a, rows, k, lim) for k in indices),
-        query.image, query.intrinsics, query.depth, owner)
+        a.id,
+        a.method,
+        anchor_version(rows),
+        lambda: (stored_photo(a, rows, k, lim) for k in indices),
+        query.image,
+        query.intrinsics,
+        query.depth,
+        owner,
+    )
     if est.extras.get("photo") is not None:  # the position among the photos prepared -> its index
         est.extras["photo"] = indices[est.extras["photo"]]
     return est

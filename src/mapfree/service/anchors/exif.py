@@ -67,9 +67,9 @@ def _strip_jpeg(data: bytes) -> bytes | None:
             i += 1
             continue
         if marker == 0xD9:  # end of image: nothing after it is kept
-            out.append(data[i:i + 2])
+            out.append(data[i : i + 2])
             return b"".join(out)
-        length = struct.unpack(">H", data[i + 2:i + 4])[0] if i + 4 <= len(data) else 0
+        length = struct.unpack(">H", data[i + 2 : i + 4])[0] if i + 4 <= len(data) else 0
         if length < 2 or i + 2 + length > len(data):
             return None
         if marker == 0xDA:  # start of scan: its header, then entropy-coded data up to the next marker
@@ -80,7 +80,7 @@ def _strip_jpeg(data: bytes) -> bytes | None:
             i = end
             continue
         if not ((0xE1 <= marker <= 0xEF and marker not in _JPEG_KEEP_APP) or marker == 0xFE):
-            out.append(data[i:i + 2 + length])
+            out.append(data[i : i + 2 + length])
         i += 2 + length
     return None  # not a layout we walk: the caller re-encodes
 
@@ -88,8 +88,8 @@ def _strip_jpeg(data: bytes) -> bytes | None:
 def _strip_png(data: bytes) -> bytes | None:
     out, i = [_PNG_SIG], len(_PNG_SIG)
     while i + 12 <= len(data):
-        (length,) = struct.unpack(">I", data[i:i + 4])
-        kind = data[i + 4:i + 8]
+        (length,) = struct.unpack(">I", data[i : i + 4])
+        kind = data[i + 4 : i + 8]
         end = i + 12 + length
         if end > len(data):
             return None
@@ -126,8 +126,11 @@ def clean_photo(data: bytes, upright: np.ndarray | None = None, orientation: int
             raise ValueError("not a decodable photo")  # never stored: uploads are decoded before
         upright = orient_pixels(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), orientation)
     png = data.startswith(_PNG_SIG)
-    ok, buf = cv2.imencode(".png" if png else ".jpg", cv2.cvtColor(upright, cv2.COLOR_RGB2BGR),
-                           [] if png else [cv2.IMWRITE_JPEG_QUALITY, 95])
+    ok, buf = cv2.imencode(
+        ".png" if png else ".jpg",
+        cv2.cvtColor(upright, cv2.COLOR_RGB2BGR),
+        [] if png else [cv2.IMWRITE_JPEG_QUALITY, 95],
+    )
     if not ok:  # pragma: no cover - encoding a decoded image does not fail
         raise ValueError("could not re-encode the photo")
     return buf.tobytes()

@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable, Hashable, Iterable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Callable, Hashable, Iterable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -16,8 +17,8 @@ from ...estimate import Estimate
 from ...geometry import Intrinsics
 from ..inputs import UploadError
 from .methodpool import MethodPool
-from .prepared import ByteLRU, PreparedAnchor, localize_prepared, prepare_anchor
 from .photos import Photo
+from .prepared import ByteLRU, PreparedAnchor, localize_prepared, prepare_anchor
 from .worksize import DEFAULT_MAX_SIDE, fit_photo
 
 log = logging.getLogger("mapfree.service")
@@ -52,8 +53,10 @@ def allowed_methods() -> str:
     from ... import matching, methods
 
     named = ", ".join(methods.list_methods(depths=()))
-    return (f"{named}; or a preset {{matcher}}_{{emat|pnp|procrustes}}_{{depth}} with matcher in "
-            f"{', '.join(matching.available())} and depth 'none' or a depth-file suffix such as 'sensor'")
+    return (
+        f"{named}; or a preset {{matcher}}_{{emat|pnp|procrustes}}_{{depth}} with matcher in "
+        f"{', '.join(matching.available())} and depth 'none' or a depth-file suffix such as 'sensor'"
+    )
 
 
 def check_method(name: str) -> str:
@@ -70,12 +73,15 @@ def check_method(name: str) -> str:
         except (KeyError, ValueError, FileNotFoundError, OSError):
             pass
         else:
-            suffix = m.depth[len("files:"):] if m.kind == "matching" and m.depth.startswith("files:") else ""
+            suffix = m.depth[len("files:") :] if m.kind == "matching" and m.depth.startswith("files:") else ""
             if suffix and suffix not in DEPTH_SUFFIXES:
-                raise UploadError(422, f"method: {name[:64]!r} names depth files '.{suffix[:20]}.png', which a "
-                                       "request cannot carry: the depth here is the map uploaded with the photo; "
-                                       f"use the suffix {' or '.join(DEPTH_SUFFIXES)} (e.g. "
-                                       f"{m.matcher}_{m.solver.replace('essential', 'emat')}_sensor)")
+                raise UploadError(
+                    422,
+                    f"method: {name[:64]!r} names depth files '.{suffix[:20]}.png', which a "
+                    "request cannot carry: the depth here is the map uploaded with the photo; "
+                    f"use the suffix {' or '.join(DEPTH_SUFFIXES)} (e.g. "
+                    f"{m.matcher}_{m.solver.replace('essential', 'emat')}_sensor)",
+                )
             return m.name
     raise UploadError(422, f"method: unknown method {name[:64]!r}; allowed: {allowed_methods()}")
 
@@ -103,8 +109,6 @@ class MethodUnavailable(UploadError):
         super().__init__(422, message)
 
 
-
-
 def needs_reference_depth(method: Any, *, scale_free_too: bool) -> bool:
     """Whether ``method`` (a name or ``Method``) needs a depth map uploaded with the reference photo.
 
@@ -130,7 +134,8 @@ def check_runnable(name: str, has_reference_depth: bool) -> None:
         raise MethodUnavailable(
             f"method {name} takes its metric scale from the anchor's depth map, and this anchor has none: upload "
             "'depth' (a single-channel uint16 PNG in millimetres), or choose a method that works without depth "
-            "(e.g. sift_emat_none: scale-free pose; or a monocular depth network such as xfeat_pnp_dpt-kitti)")
+            "(e.g. sift_emat_none: scale-free pose; or a monocular depth network such as xfeat_pnp_dpt-kitti)"
+        )
 
 
 def _unavailable(name: str, e: Exception) -> MethodUnavailable:
@@ -140,8 +145,10 @@ def _unavailable(name: str, e: Exception) -> MethodUnavailable:
     if isinstance(e, MissingWeightsError):
         m = re.search(r"weights file '([^']+)'", str(e))
         what = str(e).split(":", 1)[0]
-        return MethodUnavailable(f"method {name} cannot run on this server: the {what} weights "
-                                 f"({m.group(1) if m else 'file'}) are missing; ask the operator to install them")
+        return MethodUnavailable(
+            f"method {name} cannot run on this server: the {what} weights "
+            f"({m.group(1) if m else 'file'}) are missing; ask the operator to install them"
+        )
     msg = str(e).split(" (", 1)[0][:200] if isinstance(e, (ValueError, KeyError, ImportError)) else type(e).__name__
     return MethodUnavailable(f"method {name} cannot run on this server: {msg}")
 
@@ -166,8 +173,13 @@ class Localizers:
     process is never answered from a stale cache. Built relocalizers live in a ``MethodPool`` of at most
     ``pool_bytes``, shared by equal configurations (``methodpool.py``)."""
 
-    def __init__(self, per_method: int = 2, cache_bytes: int = 256 << 20, max_side: int = DEFAULT_MAX_SIDE,
-                 pool_bytes: int = 1 << 30):
+    def __init__(
+        self,
+        per_method: int = 2,
+        cache_bytes: int = 256 << 20,
+        max_side: int = DEFAULT_MAX_SIDE,
+        pool_bytes: int = 1 << 30,
+    ):
         self.max_side = max_side
         self.pool = MethodPool(self._build, per_method, pool_bytes)
         self.anchors = ByteLRU(cache_bytes)
@@ -200,8 +212,9 @@ class Localizers:
         except Exception as e:  # e.g. a depth network whose weights are gone
             raise _unavailable(name, e) from e
 
-    def check(self, anchor_id: str, method: str, photos: list[Photo], version: Hashable = (),
-              owner: Hashable = None) -> None:
+    def check(
+        self, anchor_id: str, method: str, photos: list[Photo], version: Hashable = (), owner: Hashable = None
+    ) -> None:
         """Build the method and prepare the anchor now (both kept for the first ``localize``), so that an
         anchor whose method cannot run here is refused at creation (``MethodUnavailable``), not at use."""
         plain, with_depth = effective_method(method, False), effective_method(method, True)
@@ -218,16 +231,41 @@ class Localizers:
     def forget(self, anchor_id: str) -> None:
         self.anchors.drop(lambda k: k[0] == anchor_id)
 
-    def localize(self, anchor_id: str, method: str, ref_image: np.ndarray, ref_K: Intrinsics,
-                 ref_depth: np.ndarray | None, query_image: np.ndarray, query_K: Intrinsics,
-                 query_depth: np.ndarray | None = None, owner: Hashable = None) -> Estimate:
+    def localize(
+        self,
+        anchor_id: str,
+        method: str,
+        ref_image: np.ndarray,
+        ref_K: Intrinsics,
+        ref_depth: np.ndarray | None,
+        query_image: np.ndarray,
+        query_K: Intrinsics,
+        query_depth: np.ndarray | None = None,
+        owner: Hashable = None,
+    ) -> Estimate:
         """Pose of the query relative to one reference photo; ``est.extras["method"]`` names what ran."""
-        return self.localize_photos(anchor_id, method, (), lambda: [Photo(ref_image, ref_K, ref_depth)],
-                                    query_image, query_K, query_depth, owner)
+        return self.localize_photos(
+            anchor_id,
+            method,
+            (),
+            lambda: [Photo(ref_image, ref_K, ref_depth)],
+            query_image,
+            query_K,
+            query_depth,
+            owner,
+        )
 
-    def localize_photos(self, anchor_id: str, method: str, version: Hashable, photos: Callable[[], Iterable[Photo]],
-                        query_image: np.ndarray, query_K: Intrinsics,
-                        query_depth: np.ndarray | None = None, owner: Hashable = None) -> Estimate:
+    def localize_photos(
+        self,
+        anchor_id: str,
+        method: str,
+        version: Hashable,
+        photos: Callable[[], Iterable[Photo]],
+        query_image: np.ndarray,
+        query_K: Intrinsics,
+        query_depth: np.ndarray | None = None,
+        owner: Hashable = None,
+    ) -> Estimate:
         """World-to-camera pose of the query in the anchor's frame. ``photos`` is called (decoding the stored
         images) only when this process has not prepared this version of the anchor yet; what it prepares counts
         against ``owner``'s share of the cache (the account asking: ``prepared.ByteLRU``). With several photos
@@ -266,16 +304,23 @@ def estimate_json(est: Estimate, method: str) -> dict:
     return d
 
 
-def figure_png(ref_image: np.ndarray, query_image: np.ndarray, ref_K: Intrinsics, query_K: Intrinsics,
-               est: Estimate, title: str = "") -> bytes:
+def figure_png(
+    ref_image: np.ndarray,
+    query_image: np.ndarray,
+    ref_K: Intrinsics,
+    query_K: Intrinsics,
+    est: Estimate,
+    title: str = "",
+) -> bytes:
     """Matches on top and the virtual grid rendered into the query at the estimated pose below, as PNG bytes."""
     from ... import viz
 
     m = est.extras.get("matches")
     k0 = np.asarray(getattr(m, "kpts0", np.zeros((0, 2))), float).reshape(-1, 2)
     k1 = np.asarray(getattr(m, "kpts1", np.zeros((0, 2))), float).reshape(-1, 2)
-    fig = viz.relocalization_figure(ref_image, query_image, ref_K, query_K, k0, k1, est.pose, title=title,
-                                    reason=est.reason)
+    fig = viz.relocalization_figure(
+        ref_image, query_image, ref_K, query_K, k0, k1, est.pose, title=title, reason=est.reason
+    )
     ok, buf = cv2.imencode(".png", cv2.cvtColor(fig, cv2.COLOR_RGB2BGR))
     if not ok:
         raise RuntimeError("could not encode the figure")

@@ -13,8 +13,9 @@ from __future__ import annotations
 import json
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any, Callable
+from typing import Any
 
 from ..http.gc_freeze import after_load, after_unload
 from .prepared import deep_nbytes

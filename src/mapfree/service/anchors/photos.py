@@ -68,9 +68,18 @@ class Upload:
         return len(self.image) + len(self.depth or b"")
 
 
-def read_upload(data: bytes, lim: Limits, fields: dict, depth: bytes | None = None, *, store: bool = False,
-                what: str = "image", intr_what: str = "intrinsics", depth_what: str = "depth",
-                guess: bool = False) -> Upload:
+def read_upload(
+    data: bytes,
+    lim: Limits,
+    fields: dict,
+    depth: bytes | None = None,
+    *,
+    store: bool = False,
+    what: str = "image",
+    intr_what: str = "intrinsics",
+    depth_what: str = "depth",
+    guess: bool = False,
+) -> Upload:
     """Uploaded bytes, the client's ``fx fy cx cy`` and optional uint16 depth PNG, both for the file's stored
     grid -> the checked ``Upload`` (each problem an ``UploadError`` naming ``what``, ``intr_what`` or
     ``depth_what``). ``store``: also what is kept of it (an anchor's photo; a query keeps nothing). ``guess``: all
@@ -90,11 +99,13 @@ def read_upload(data: bytes, lim: Limits, fields: dict, depth: bytes | None = No
     return Upload(photo, intr, stored, stored_depth, bool(d is not None and d.any()))
 
 
-def decode_stored(image: bytes, intrinsics: dict, depth: bytes | None, pose: list[float], lim: Limits,
-                  what: str) -> Photo:
+def decode_stored(
+    image: bytes, intrinsics: dict, depth: bytes | None, pose: list[float], lim: Limits, what: str
+) -> Photo:
     """A stored photo (upright, without metadata; its intrinsics and depth as stored) -> its ``Photo`` at the
     working size, with ``pose`` (``[qw, qx, qy, qz, tx, ty, tz]``)."""
     img, _ = decode_photo(image, lim, what)
     d = decode_depth(depth, lim, img.shape[:2], f"{what} depth") if depth is not None else None
-    return fit_photo(Photo(img, intrinsics_of(intrinsics), d, pose=Pose.from_qt(pose[:4], pose[4:])),
-                     lim.work_max_side)  # one full-size photo in memory at a time
+    return fit_photo(
+        Photo(img, intrinsics_of(intrinsics), d, pose=Pose.from_qt(pose[:4], pose[4:])), lim.work_max_side
+    )  # one full-size photo in memory at a time

@@ -11,8 +11,9 @@ from __future__ import annotations
 import sys
 import threading
 from collections import OrderedDict
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, field, fields, is_dataclass, replace
-from typing import Any, Hashable, Sequence
+from typing import Any
 
 import numpy as np
 

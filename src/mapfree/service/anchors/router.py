@@ -12,8 +12,21 @@ from ..http.caller import RowId, db_session, require_user, require_writer
 from ..http.heavy import heavy
 from ..inputs import read_upload
 from ..schemas import AnchorOut, LocalizeOut
-from .domain import (_extra_photos, _own_anchor, add_photo, anchor_json, check_photo_count, find_anchor,
-                     localize_anchor, make_anchor, may_see_photos, photo_name, photo_rows, photo_upload, remove_photo)
+from .domain import (
+    _extra_photos,
+    _own_anchor,
+    add_photo,
+    anchor_json,
+    check_photo_count,
+    find_anchor,
+    localize_anchor,
+    make_anchor,
+    may_see_photos,
+    photo_name,
+    photo_rows,
+    photo_upload,
+    remove_photo,
+)
 from .exif import clean_photo
 from .localizers import estimate_json
 from .photos import read_upload as read_photo_upload
@@ -23,19 +36,33 @@ router = APIRouter(tags=["relocalization"])
 
 @router.post("/anchors", status_code=201, response_model=AnchorOut)
 @heavy
-def create_anchor(request: Request, image: UploadFile = File(..., description="reference photo (JPEG/PNG)"),
-                  fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
-                  depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
-                  method: str = Form(""), name: str = Form(""), csrf_token: str | None = Form(None),
-                  photo_image: list[UploadFile] = File([], description="further photos of the place (repeat)"),
-                  photo_fx: list[str] = Form([], description="one per photo_image"),
-                  photo_fy: list[str] = Form([]), photo_cx: list[str] = Form([]), photo_cy: list[str] = Form([]),
-                  photo_pose: list[str] = Form([], description="one per photo_image: 'qw qx qy qz tx ty tz', "
-                                               "world-to-camera from the first photo's camera, metres"),
-                  photo_depth: list[UploadFile] = File([], description="none, or one per photo_image, in order"),
-                  private: bool = Form(False, description="its photos are served to you (and admins) only; "
-                                                          "others may still localize against it"),
-                  db: Session = Depends(db_session)):
+def create_anchor(
+    request: Request,
+    image: UploadFile = File(..., description="reference photo (JPEG/PNG)"),
+    fx: float = Form(...),
+    fy: float = Form(...),
+    cx: float = Form(...),
+    cy: float = Form(...),
+    depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
+    method: str = Form(""),
+    name: str = Form(""),
+    csrf_token: str | None = Form(None),
+    photo_image: list[UploadFile] = File([], description="further photos of the place (repeat)"),
+    photo_fx: list[str] = Form([], description="one per photo_image"),
+    photo_fy: list[str] = Form([]),
+    photo_cx: list[str] = Form([]),
+    photo_cy: list[str] = Form([]),
+    photo_pose: list[str] = Form(
+        [],
+        description="one per photo_image: 'qw qx qy qz tx ty tz', "
+        "world-to-camera from the first photo's camera, metres",
+    ),
+    photo_depth: list[UploadFile] = File([], description="none, or one per photo_image, in order"),
+    private: bool = Form(
+        False, description="its photos are served to you (and admins) only; others may still localize against it"
+    ),
+    db: Session = Depends(db_session),
+):
     """Register a place (user A) that anyone signed in can localize against: its first photo (``image``, whose
     camera is the anchor's frame) and optionally further photos (``photo_*``, repeated, one per photo, each
     with its own intrinsics, optional depth and pose in the anchor's frame). Errors name the photo: photo 0 is
@@ -61,12 +88,19 @@ def get_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
 
 @router.post("/anchors/{aid}/photos", status_code=201, response_model=AnchorOut)
 @heavy
-def add_anchor_photo(aid: str, request: Request, image: UploadFile = File(..., description="photo (JPEG/PNG)"),
-                     fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
-                     pose: str = Form(..., description="'qw qx qy qz tx ty tz': world-to-camera from the anchor's "
-                                                       "first photo, metres"),
-                     depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
-                     csrf_token: str | None = Form(None), db: Session = Depends(db_session)):
+def add_anchor_photo(
+    aid: str,
+    request: Request,
+    image: UploadFile = File(..., description="photo (JPEG/PNG)"),
+    fx: float = Form(...),
+    fy: float = Form(...),
+    cx: float = Form(...),
+    cy: float = Form(...),
+    pose: str = Form(..., description="'qw qx qy qz tx ty tz': world-to-camera from the anchor's first photo, metres"),
+    depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
+    csrf_token: str | None = Form(None),
+    db: Session = Depends(db_session),
+):
     """Add a photo of the place to one of your anchors (its owner, or an admin). Localizing then retrieves the
     most similar photo for each query; poses stay in the anchor's frame. It gets the index after the highest
     one the anchor ever had (a deleted photo's index is never given again) and counts against the owner's
@@ -84,8 +118,12 @@ def delete_anchor_photo(aid: str, k: RowId, request: Request, db: Session = Depe
     return anchor_json(*remove_photo(request, db, caller.user, aid, k))
 
 
-@router.get("/anchors/{aid}/photos/{k}", tags=["relocalization"], response_class=Response,
-            responses={200: {"content": {"image/jpeg": {}, "image/png": {}}, "description": "the photo"}})
+@router.get(
+    "/anchors/{aid}/photos/{k}",
+    tags=["relocalization"],
+    response_class=Response,
+    responses={200: {"content": {"image/jpeg": {}, "image/png": {}}, "description": "the photo"}},
+)
 def anchor_photo_image(aid: str, k: RowId, request: Request, db: Session = Depends(db_session)):
     """The stored image of photo ``k`` (JPEG or PNG, upright, without EXIF metadata), for anyone signed in; a
     private anchor's for its owner and admins only."""
@@ -114,13 +152,20 @@ def delete_anchor(aid: str, request: Request, db: Session = Depends(db_session))
     return Response(status_code=204)
 
 
-@router.post("/anchors/{aid}/localize", response_model=LocalizeOut,
-             response_model_exclude_unset=True)
+@router.post("/anchors/{aid}/localize", response_model=LocalizeOut, response_model_exclude_unset=True)
 @heavy
-def localize(aid: str, request: Request, image: UploadFile = File(..., description="query photo (JPEG/PNG)"),
-             fx: float = Form(...), fy: float = Form(...), cx: float = Form(...), cy: float = Form(...),
-             depth: UploadFile | None = File(None), csrf_token: str | None = Form(None),
-             db: Session = Depends(db_session)):
+def localize(
+    aid: str,
+    request: Request,
+    image: UploadFile = File(..., description="query photo (JPEG/PNG)"),
+    fx: float = Form(...),
+    fy: float = Form(...),
+    cx: float = Form(...),
+    cy: float = Form(...),
+    depth: UploadFile | None = File(None),
+    csrf_token: str | None = Form(None),
+    db: Session = Depends(db_session),
+):
     """Metric pose of the query camera in the anchor's frame, the camera of its first photo
     (``X_query = R X_anchor + t``), with confidence and timings. With several photos the most similar one
     (DenseVLAD) answers: ``photo`` says which (its index), ``retrieval_similarity`` how similar. ``ok: false``
@@ -130,8 +175,12 @@ def localize(aid: str, request: Request, image: UploadFile = File(..., descripti
     rows = photo_rows(db, a.id)
     db.commit()  # release the read transaction before the long computation
     lim = request.app.state.settings.limits
-    q = read_photo_upload(read_upload(image, lim.max_image_bytes, "image") or b"", lim,
-                          {"fx": fx, "fy": fy, "cx": cx, "cy": cy}, read_upload(depth, lim.max_image_bytes, "depth")).photo
+    q = read_photo_upload(
+        read_upload(image, lim.max_image_bytes, "image") or b"",
+        lim,
+        {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
+        read_upload(depth, lim.max_image_bytes, "depth"),
+    ).photo
     out = estimate_json(localize_anchor(request, a, rows, q, caller.user.id), a.method)
     out["anchor"] = a.id
     return out

@@ -24,8 +24,9 @@ def work_scale(width: int, height: int, max_side: int) -> float:
     return 1.0 if max_side <= 0 or long <= max_side else max_side / long
 
 
-def fit_image(image: np.ndarray, K: Intrinsics, depth: np.ndarray | None,
-              max_side: int) -> tuple[np.ndarray, Intrinsics, np.ndarray | None]:
+def fit_image(
+    image: np.ndarray, K: Intrinsics, depth: np.ndarray | None, max_side: int
+) -> tuple[np.ndarray, Intrinsics, np.ndarray | None]:
     """``(image, K, depth)`` with the long side at most ``max_side`` -> the same, downscaled (area filter for
     the pixels, nearest neighbour for depth so that holes stay holes); unchanged when it fits."""
     h, w = image.shape[:2]
@@ -35,8 +36,7 @@ def fit_image(image: np.ndarray, K: Intrinsics, depth: np.ndarray | None,
     nw, nh = max(1, round(w * s)), max(1, round(h * s))
     small = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
     K2 = K.resized(nw, nh)  # per-axis factors nw/w, nh/h: the pixel grid actually produced
-    d2 = None if depth is None else cv2.resize(np.asarray(depth, np.float32), (nw, nh),
-                                               interpolation=cv2.INTER_NEAREST)
+    d2 = None if depth is None else cv2.resize(np.asarray(depth, np.float32), (nw, nh), interpolation=cv2.INTER_NEAREST)
     return small, K2, d2
 
 

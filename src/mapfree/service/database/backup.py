@@ -50,12 +50,14 @@ def pg_dump_advice(url: str, dest: str) -> str:
     host = f" -h {u.host}" if u.host else ""
     port = f" -p {u.port}" if u.port else ""
     user = f" -U {u.username}" if u.username else ""
-    return (f"PostgreSQL: back it up with pg_dump (a consistent snapshot while the server runs):\n"
-            f"  PGPASSWORD=... pg_dump{host}{port}{user} -Fc -f {dest} {u.database}\n"
-            f"restore into an empty database with:\n"
-            f"  pg_restore{host}{port}{user} -d NEWDB {dest}\n"
-            f"(use the pg_dump of the server's major version or newer; pass the password via PGPASSWORD or "
-            f"~/.pgpass, never on the command line)")
+    return (
+        f"PostgreSQL: back it up with pg_dump (a consistent snapshot while the server runs):\n"
+        f"  PGPASSWORD=... pg_dump{host}{port}{user} -Fc -f {dest} {u.database}\n"
+        f"restore into an empty database with:\n"
+        f"  pg_restore{host}{port}{user} -d NEWDB {dest}\n"
+        f"(use the pg_dump of the server's major version or newer; pass the password via PGPASSWORD or "
+        f"~/.pgpass, never on the command line)"
+    )
 
 
 def backup(url: str, dest: str) -> str:

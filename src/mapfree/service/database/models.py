@@ -10,8 +10,20 @@ import os
 import time
 import uuid
 
-from sqlalchemy import (JSON, Boolean, Float, ForeignKey, Integer, LargeBinary, String, Text, UniqueConstraint,
-                        create_engine, event, false)
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    Float,
+    ForeignKey,
+    Integer,
+    LargeBinary,
+    String,
+    Text,
+    UniqueConstraint,
+    create_engine,
+    event,
+    false,
+)
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
@@ -98,8 +110,9 @@ class ZipChunk(Base):
     """Chunk ``seq`` (1, 2, ...) of a stored ZIP, so that uploads and workers stream it with bounded memory."""
 
     __tablename__ = "zip_chunks"
-    submission_id: Mapped[str] = mapped_column(ForeignKey("submission_files.submission_id", ondelete="CASCADE"),
-                                               primary_key=True)
+    submission_id: Mapped[str] = mapped_column(
+        ForeignKey("submission_files.submission_id", ondelete="CASCADE"), primary_key=True
+    )
     seq: Mapped[int] = mapped_column(Integer, primary_key=True)
     data: Mapped[bytes] = mapped_column(LargeBinary)
 
@@ -112,7 +125,9 @@ class Result(Base):
     metrics: Mapped[dict] = mapped_column(JSON)
     per_scene: Mapped[dict | None] = mapped_column(JSON, nullable=True)  # always None for test
     problems: Mapped[list] = mapped_column(JSON, default=list)
-    plot_data: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True, deferred=True)  # packed report; never for test
+    plot_data: Mapped[bytes | None] = mapped_column(
+        LargeBinary, nullable=True, deferred=True
+    )  # packed report; never for test
     worker_id: Mapped[str] = mapped_column(String(64))
     attempt: Mapped[int] = mapped_column(Integer)
     eval_seconds: Mapped[float] = mapped_column(Float)
@@ -200,9 +215,9 @@ def normalize_url(url: str) -> str:
     if "://" not in url:
         return f"sqlite:///{url}"
     if url.startswith("postgres://"):
-        url = "postgresql://" + url[len("postgres://"):]
+        url = "postgresql://" + url[len("postgres://") :]
     if url.startswith("postgresql://"):
-        url = "postgresql+psycopg://" + url[len("postgresql://"):]
+        url = "postgresql+psycopg://" + url[len("postgresql://") :]
     return url
 
 
@@ -273,12 +288,15 @@ def open_database(url: str) -> tuple[Engine, tuple[str | None, str]]:
     try:
         engine = make_engine(url)
     except (ArgumentError, NoSuchModuleError, ValueError) as e:
-        raise DatabaseUnavailable(f"not a database URL this server can use: {shown_url(url)} "
-                                  f"({str(e).splitlines()[0][:200]}); expected sqlite:///PATH or "
-                                  "postgresql://USER:PASSWORD@HOST:PORT/NAME") from None
+        raise DatabaseUnavailable(
+            f"not a database URL this server can use: {shown_url(url)} "
+            f"({str(e).splitlines()[0][:200]}); expected sqlite:///PATH or "
+            "postgresql://USER:PASSWORD@HOST:PORT/NAME"
+        ) from None
     except (ImportError, OSError) as e:
-        raise DatabaseUnavailable(f"cannot open the database {shown_url(url)}: {str(e).splitlines()[0][:200]}") \
-            from None
+        raise DatabaseUnavailable(
+            f"cannot open the database {shown_url(url)}: {str(e).splitlines()[0][:200]}"
+        ) from None
     try:
         return engine, upgrade(engine)
     except SQLAlchemyError as e:

@@ -66,21 +66,29 @@ def create_app(settings: Settings) -> FastAPI:
     engine = make_engine(settings.db_url)
     init_db(engine)
     with session_factory(engine).begin() as db:  # uploads cut off when a server was killed: refund them now
-        if (n := drop_interrupted_uploads(db)):
-            log.warning("interrupted uploads removed; their quota and test evaluations refunded",
-                        extra={"submissions": n})
+        if n := drop_interrupted_uploads(db):
+            log.warning(
+                "interrupted uploads removed; their quota and test evaluations refunded", extra={"submissions": n}
+            )
     # /docs and /redoc with their assets served from /docs-assets (fastapi-offline): no CDN, so they work offline
-    app = FastAPIOffline(title="mapfree service", version=__version__, static_url="/docs-assets",
-                         max_body_size=settings.limits.max_request_bytes, responses=ERRORS,
-                         description="Map-free benchmark evaluation server and metric relocalization API.")
+    app = FastAPIOffline(
+        title="mapfree service",
+        version=__version__,
+        static_url="/docs-assets",
+        max_body_size=settings.limits.max_request_bytes,
+        responses=ERRORS,
+        description="Map-free benchmark evaluation server and metric relocalization API.",
+    )
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
     app.state.health = HealthMonitor(engine)
     app.state.metrics = Metrics(engine)
     app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue)
-    app.state.localizers = Localizers(per_method=default_threads(),
-                                      cache_bytes=int(settings.anchor_cache_mb * (1 << 20)),
-                                      max_side=settings.limits.work_max_side,
-                                      pool_bytes=int(settings.method_pool_mb * (1 << 20)))
+    app.state.localizers = Localizers(
+        per_method=default_threads(),
+        cache_bytes=int(settings.anchor_cache_mb * (1 << 20)),
+        max_side=settings.limits.work_max_side,
+        pool_bytes=int(settings.method_pool_mb * (1 << 20)),
+    )
     if settings.methods_dir is not None:
         register_methods_dir(settings.methods_dir)
 
@@ -124,8 +132,11 @@ def create_app(settings: Settings) -> FastAPI:
         try:
             response = await call_next(request)
         except Exception as exc:
-            log.error("unhandled error", exc_info=exc, extra={"request_id": rid, "method": request.method,
-                                                              "path": request.url.path})
+            log.error(
+                "unhandled error",
+                exc_info=exc,
+                extra={"request_id": rid, "method": request.method, "path": request.url.path},
+            )
             response = error_response(request, 500, f"internal server error (request id {rid})")
         client = client_address(request)
         if response.status_code == 401 and throttle.credentialed(request):
@@ -139,10 +150,18 @@ def create_app(settings: Settings) -> FastAPI:
         response.headers.setdefault("Referrer-Policy", "same-origin")
         if not request.url.path.startswith(("/docs", "/redoc")):
             response.headers.setdefault("Content-Security-Policy", CSP)
-        log.info("request", extra={"method": method, "route": getattr(route, "path", "?"),
-                                   "status": response.status_code, "ms": round(seconds * 1000, 2),
-                                   "request_id": rid, "client": client,
-                                   "user_id": getattr(request.state, "user_id", None)})
+        log.info(
+            "request",
+            extra={
+                "method": method,
+                "route": getattr(route, "path", "?"),
+                "status": response.status_code,
+                "ms": round(seconds * 1000, 2),
+                "request_id": rid,
+                "client": client,
+                "user_id": getattr(request.state, "user_id", None),
+            },
+        )
         return response
 
     app.add_middleware(BodyTimeout, seconds=settings.body_timeout, total_seconds=settings.body_total_timeout)
@@ -177,12 +196,15 @@ def app_from_env() -> FastAPI:
         d["splits"] = tuple(d.get("splits", ("val", "test")))
         s = Settings(**d)
     else:
-        s = Settings(db_url=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
-                     data_root=os.environ.get("MAPFREE_DATA") or None, gt_root=os.environ.get("MAPFREE_GT") or None,
-                     default_method=os.environ.get("MAPFREE_METHOD", ""),
-                     test_daily_limit=parse_daily_limit(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
-                     secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1",
-                     operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""))
+        s = Settings(
+            db_url=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
+            data_root=os.environ.get("MAPFREE_DATA") or None,
+            gt_root=os.environ.get("MAPFREE_GT") or None,
+            default_method=os.environ.get("MAPFREE_METHOD", ""),
+            test_daily_limit=parse_daily_limit(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
+            secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1",
+            operator_token=os.environ.get("MAPFREE_OPERATOR_TOKEN", ""),
+        )
     app = create_app(s)
     freeze_long_lived()
     return app

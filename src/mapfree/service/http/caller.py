@@ -49,8 +49,9 @@ def token_user(request: Request, db: Session, header: str) -> User:
     """The account of an ``Authorization`` header's bearer token; a 401 naming why not (unknown, revoked,
     expired), or a 429 past the failures allowed from the caller's address."""
     scheme, _, token = header.partition(" ")
-    user, why = (auth.check_token(db, token.strip()) if scheme.lower() == "bearer" else
-                 (None, "invalid or revoked API token"))
+    user, why = (
+        auth.check_token(db, token.strip()) if scheme.lower() == "bearer" else (None, "invalid or revoked API token")
+    )
     if user is None:
         request.app.state.auth_throttle.refuse(request)
         raise HTTPException(401, why, headers={"WWW-Authenticate": "Bearer"})
@@ -118,7 +119,8 @@ def require_operator(request: Request) -> None:
     with request.app.state.sessions() as db:
         caller = identify(request, db)
     if caller.user is None:
-        raise HTTPException(401, "authentication required: the operator token or an admin's",
-                            headers={"WWW-Authenticate": "Bearer"})
+        raise HTTPException(
+            401, "authentication required: the operator token or an admin's", headers={"WWW-Authenticate": "Bearer"}
+        )
     if not caller.user.is_admin:
         raise HTTPException(403, "only admins and the operator token may read this")

@@ -60,8 +60,11 @@ class AuthThrottle:
         (the caller answers 401, which the access-log middleware counts)."""
         wait = self.retry_after(client_address(request))
         if wait:
-            raise HTTPException(429, f"too many failed token checks from this address; try again in {wait} s",
-                                headers={"Retry-After": str(wait)})
+            raise HTTPException(
+                429,
+                f"too many failed token checks from this address; try again in {wait} s",
+                headers={"Retry-After": str(wait)},
+            )
 
     def failed(self, client: str) -> None:
         if self.per_minute <= 0:
@@ -89,8 +92,11 @@ class CredentialGate:
         self.app = app
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] != "http" or scope["method"] not in _BODY_METHODS \
-                or (scope["method"], scope["path"]) in _ANONYMOUS_WRITES:
+        if (
+            scope["type"] != "http"
+            or scope["method"] not in _BODY_METHODS
+            or (scope["method"], scope["path"]) in _ANONYMOUS_WRITES
+        ):
             return await self.app(scope, receive, send)
         from starlette.concurrency import run_in_threadpool
 

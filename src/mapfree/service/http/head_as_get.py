@@ -3,7 +3,8 @@ routed as a ``GET`` and the body is dropped, its headers (``Content-Length`` inc
 
 from __future__ import annotations
 
-from typing import Any, Awaitable, Callable
+from collections.abc import Awaitable, Callable
+from typing import Any
 
 Scope = dict[str, Any]
 Message = dict[str, Any]

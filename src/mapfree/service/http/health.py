@@ -126,8 +126,16 @@ class HealthMonitor:
         if snap.error is not None or age > STALE_SECONDS:
             return 503, {"status": "error", "db": "unreachable"}
         t = now()
-        workers = [{"id": w.id, "pid": w.pid, "host": w.host, "jobs_done": w.jobs_done} for w in snap.workers
-                   if w.last_seen > t - 3 * SEEN_SECONDS and alive(w)]
-        return 200, {"status": "ok" if workers else "degraded", "db": self.engine.dialect.name,
-                     "jobs": snap.counts, "workers": workers, "age_ms": round(age * 1000, 1),
-                     "db_ms": snap.read_ms}
+        workers = [
+            {"id": w.id, "pid": w.pid, "host": w.host, "jobs_done": w.jobs_done}
+            for w in snap.workers
+            if w.last_seen > t - 3 * SEEN_SECONDS and alive(w)
+        ]
+        return 200, {
+            "status": "ok" if workers else "degraded",
+            "db": self.engine.dialect.name,
+            "jobs": snap.counts,
+            "workers": workers,
+            "age_ms": round(age * 1000, 1),
+            "db_ms": snap.read_ms,
+        }

@@ -17,8 +17,9 @@ import os
 import threading
 import time
 from collections import OrderedDict, deque
+from collections.abc import Callable, Hashable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Callable, Hashable
+from typing import Any
 
 from fastapi import HTTPException, Request
 
@@ -62,8 +63,9 @@ class HeavyPool:
             if self.admitted >= self.capacity:
                 raise self._busy(f"the server is busy with {self.admitted} relocalization requests (its limit)")
             if self._in.get(account, 0) >= self.per_account:
-                raise self._busy(f"this account has {self.per_account} relocalization requests in already (its "
-                                 "share of the server)")
+                raise self._busy(
+                    f"this account has {self.per_account} relocalization requests in already (its share of the server)"
+                )
             self.admitted += 1
             if account not in self._in:  # one turn ahead of the accounts in (none starves a newcomer, nor it them)
                 self._turns[account] = max(0, min(self._turns.values(), default=0) - 1)

@@ -47,7 +47,8 @@ class _Database:
                 oldest = db.scalar(select(func.min(Submission.created_at)).where(Submission.status == "queued"))
                 workers = db.execute(select(WorkerRow.id, WorkerRow.last_seen, WorkerRow.jobs_done)).all()
                 n_scored, scoring_s = db.execute(
-                    select(func.count(), func.coalesce(func.sum(Result.eval_seconds), 0.0))).one()
+                    select(func.count(), func.coalesce(func.sum(Result.eval_seconds), 0.0))
+                ).one()
                 db.rollback()
         except Exception:  # the database is down: say so, and still serve the request metrics
             log.warning("metrics: database unreadable", exc_info=True)
@@ -58,15 +59,23 @@ class _Database:
         for s in sorted(set(STATUSES) | set(by_status)):
             jobs.add_metric([s], float(by_status.get(s, 0)))
         yield jobs
-        yield GaugeMetricFamily("mapfree_queue_depth", "Submissions waiting for a worker (queued)",
-                                value=float(by_status.get("queued", 0)))
-        yield GaugeMetricFamily("mapfree_queue_oldest_age_seconds", "Age of the oldest queued submission (0: none)",
-                                value=max(0.0, t - oldest) if oldest is not None else 0.0)
+        yield GaugeMetricFamily(
+            "mapfree_queue_depth", "Submissions waiting for a worker (queued)", value=float(by_status.get("queued", 0))
+        )
+        yield GaugeMetricFamily(
+            "mapfree_queue_oldest_age_seconds",
+            "Age of the oldest queued submission (0: none)",
+            value=max(0.0, t - oldest) if oldest is not None else 0.0,
+        )
         alive = [w for w in workers if w.last_seen > t - 3 * SEEN_SECONDS]
-        yield GaugeMetricFamily("mapfree_workers_alive", "Evaluation workers that reported in the last "
-                                f"{3 * SEEN_SECONDS:g} s", value=float(len(alive)))
-        seen = GaugeMetricFamily("mapfree_worker_last_seen_age_seconds", "Seconds since each live worker reported",
-                                 labels=["worker"])
+        yield GaugeMetricFamily(
+            "mapfree_workers_alive",
+            f"Evaluation workers that reported in the last {3 * SEEN_SECONDS:g} s",
+            value=float(len(alive)),
+        )
+        seen = GaugeMetricFamily(
+            "mapfree_worker_last_seen_age_seconds", "Seconds since each live worker reported", labels=["worker"]
+        )
         done = CounterMetricFamily("mapfree_worker_jobs", "Jobs finished by each live worker", labels=["worker"])
         for w in alive:
             seen.add_metric([w.id], max(0.0, t - w.last_seen))
@@ -76,8 +85,9 @@ class _Database:
         scoring = CounterMetricFamily("mapfree_scoring_seconds", "Time workers spent scoring stored results")
         scoring.add_metric([], float(scoring_s))
         yield scoring
-        yield CounterMetricFamily("mapfree_scored_submissions", "Stored results (scored submissions)",
-                                  value=float(n_scored))
+        yield CounterMetricFamily(
+            "mapfree_scored_submissions", "Stored results (scored submissions)", value=float(n_scored)
+        )
 
 
 class Metrics:
@@ -85,8 +95,13 @@ class Metrics:
 
     def __init__(self, engine: Engine):
         self.registry = CollectorRegistry(auto_describe=False)
-        self.latency = Histogram("mapfree_http_request_duration_seconds", "HTTP request latency (this API process)",
-                                 ["method", "route", "status"], buckets=BUCKETS, registry=self.registry)
+        self.latency = Histogram(
+            "mapfree_http_request_duration_seconds",
+            "HTTP request latency (this API process)",
+            ["method", "route", "status"],
+            buckets=BUCKETS,
+            registry=self.registry,
+        )
         self.registry.register(_Database(engine))
 
     def observe(self, method: str, route: str, status: int, seconds: float) -> None:

@@ -14,8 +14,7 @@ from .metrics import CONTENT_TYPE_LATEST
 router = APIRouter(tags=["operations"])
 
 
-@router.get("/health", tags=["operations"], response_model=HealthOut,
-            responses={503: {"model": HealthOut}})
+@router.get("/health", tags=["operations"], response_model=HealthOut, responses={503: {"model": HealthOut}})
 async def health(request: Request):
     """Public liveness: ``ok``, ``degraded`` (no evaluation worker alive: submissions would wait) or ``error``
     (503: the database cannot be read). Nothing else: host names, process ids and queue counts are in
@@ -24,8 +23,13 @@ async def health(request: Request):
     return JSONResponse({"status": body["status"]}, status_code=status)
 
 
-@router.get("/health/detail", tags=["operations"], response_model=HealthDetailOut, response_model_exclude_unset=True,
-            responses={503: {"model": HealthDetailOut}})
+@router.get(
+    "/health/detail",
+    tags=["operations"],
+    response_model=HealthDetailOut,
+    response_model_exclude_unset=True,
+    responses={503: {"model": HealthDetailOut}},
+)
 async def health_detail(request: Request):
     """Readiness in detail (an admin's token or session, or the operator token): database, queue counts, live
     workers. Answered on the event loop from the state a background thread reads every 0.25 s (``age_ms`` old;
@@ -36,8 +40,12 @@ async def health_detail(request: Request):
     return JSONResponse(body, status_code=status)
 
 
-@router.get("/metrics", tags=["operations"], response_class=Response,
-            responses={200: {"content": {CONTENT_TYPE_LATEST: {}}, "description": "Prometheus text format"}})
+@router.get(
+    "/metrics",
+    tags=["operations"],
+    response_class=Response,
+    responses={200: {"content": {CONTENT_TYPE_LATEST: {}}, "description": "Prometheus text format"}},
+)
 def metrics(request: Request):
     """Prometheus metrics (admins and the operator token): request latency of this API process, queue depth and
     oldest job age, worker liveness, scoring time."""

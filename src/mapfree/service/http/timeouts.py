@@ -34,7 +34,6 @@ def _exempt() -> set[str]:
     return {a.strip() for a in os.environ.get(EXEMPT_ENV, "").split(",") if a.strip()}
 
 
-
 class HeadTimeoutProtocol(H11Protocol):
     """uvicorn's h11 protocol, closing a connection whose request head takes longer than ``header_timeout``, and
     one from an address that holds ``MAPFREE_CONNECTIONS_PER_ADDRESS`` open already (per API process; 0: no
@@ -94,8 +93,7 @@ class HeadTimeoutProtocol(H11Protocol):
         super().connection_lost(exc)
 
 
-def head_timeout_protocol(header_timeout: float, per_address: int = DEFAULT_PER_ADDRESS,
-                          exempt: str = "") -> str:
+def head_timeout_protocol(header_timeout: float, per_address: int = DEFAULT_PER_ADDRESS, exempt: str = "") -> str:
     """What to give uvicorn as ``http=`` for this head timeout (0: none) and cap of connections per client
     address (0: none; ``exempt``: comma-separated addresses without a cap, the trusted proxies). The values
     travel in the environment, so that the API processes of ``--api-processes N`` read them too."""
@@ -128,19 +126,36 @@ class BodyTimeout:
                 return await receive() if not timed_out else {"type": "http.disconnect"}
             if deadline is None and self.total_seconds > 0:
                 deadline = loop.time() + self.total_seconds
-            waits = [w for w in (self.seconds if self.seconds > 0 else None,
-                                 None if deadline is None else max(0.0, deadline - loop.time())) if w is not None]
+            waits = [
+                w
+                for w in (
+                    self.seconds if self.seconds > 0 else None,
+                    None if deadline is None else max(0.0, deadline - loop.time()),
+                )
+                if w is not None
+            ]
             try:
                 message = await asyncio.wait_for(receive(), min(waits))
             except asyncio.TimeoutError:
                 timed_out = True
                 if not started:
-                    why = (f"not all in within {self.total_seconds:g} s" if deadline is not None
-                           and loop.time() >= deadline else f"nothing came for {self.seconds:g} s")
+                    why = (
+                        f"not all in within {self.total_seconds:g} s"
+                        if deadline is not None and loop.time() >= deadline
+                        else f"nothing came for {self.seconds:g} s"
+                    )
                     body = f'{{"detail": "request body not received: {why}", "status": 408}}'.encode()
-                    await send({"type": "http.response.start", "status": 408,
-                                "headers": [(b"content-type", b"application/json"), (b"connection", b"close"),
-                                            (b"content-length", str(len(body)).encode())]})
+                    await send(
+                        {
+                            "type": "http.response.start",
+                            "status": 408,
+                            "headers": [
+                                (b"content-type", b"application/json"),
+                                (b"connection", b"close"),
+                                (b"content-length", str(len(body)).encode()),
+                            ],
+                        }
+                    )
                     await send({"type": "http.response.body", "body": body})
                 return {"type": "http.disconnect"}
             body_done = message.get("type") != "http.request" or not message.get("more_body", False)

@@ -10,8 +10,8 @@ import io
 import math
 import re
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
-from typing import Iterator
 from urllib.parse import urlsplit
 
 from fastapi import HTTPException, Request
@@ -80,11 +80,21 @@ def _runtime(value: str | float | None) -> float | None:
     return ms
 
 
-def parse_meta(description: str | None = "", paper_url: str | None = "", code_url: str | None = "",
-               runtime_ms: str | float | None = None, extra_data: bool = False) -> MethodMeta:
+def parse_meta(
+    description: str | None = "",
+    paper_url: str | None = "",
+    code_url: str | None = "",
+    runtime_ms: str | float | None = None,
+    extra_data: bool = False,
+) -> MethodMeta:
     """Checked metadata (422 naming the field otherwise): plain text, http(s) links only (no ``javascript:``)."""
-    return MethodMeta(_text(description, MAX_DESCRIPTION, "description"), _url(paper_url, "paper_url"),
-                      _url(code_url, "code_url"), _runtime(runtime_ms), bool(extra_data))
+    return MethodMeta(
+        _text(description, MAX_DESCRIPTION, "description"),
+        _url(paper_url, "paper_url"),
+        _url(code_url, "code_url"),
+        _runtime(runtime_ms),
+        bool(extra_data),
+    )
 
 
 def save_meta(db: Session, submission_id: str, meta: MethodMeta) -> None:
@@ -129,8 +139,9 @@ def competition_ranks(values: list[float | None]) -> list[int | None]:
 PER_PAGE, MAX_PER_PAGE = 50, 200
 
 
-def ranking(db: Session, split: str, sort: str = "vcre_auc", view: str = "all",
-            scene: str | None = None) -> list[tuple[str, int | None]]:
+def ranking(
+    db: Session, split: str, sort: str = "vcre_auc", view: str = "all", scene: str | None = None
+) -> list[tuple[str, int | None]]:
     """Public finished submissions of ``split`` as (id, rank), best first by ``sort`` (ties by age); ``view="best"``
     keeps each account's best entry; ``scene`` ranks by that scene's scores (not for ``test``: it has no
     per-scene results). Only ids, dates and the one sort value are read (the database extracts it from the
@@ -141,14 +152,22 @@ def ranking(db: Session, split: str, sort: str = "vcre_auc", view: str = "all",
     if scene is not None and split == "test":
         raise UploadError(422, "the test split has no per-scene results")
     key = SHORT[sort]
-    query = (select(Submission.id, Submission.created_at, Submission.user_id,
-                    (Result.metrics[key] if scene is None else Result.per_scene[(scene, key)]).as_float())
-             .join(Result, Result.submission_id == Submission.id)
-             .where(Submission.split == split, Submission.public.is_(True), Submission.status == "done"))
+    query = (
+        select(
+            Submission.id,
+            Submission.created_at,
+            Submission.user_id,
+            (Result.metrics[key] if scene is None else Result.per_scene[(scene, key)]).as_float(),
+        )
+        .join(Result, Result.submission_id == Submission.id)
+        .where(Submission.split == split, Submission.public.is_(True), Submission.status == "done")
+    )
     if scene is not None:  # submissions with results for that scene (every scored scene has an estimate ratio)
         query = query.where(Result.per_scene[(scene, SHORT["estimates"])].as_float().is_not(None))
-    rows = [(sid, created, uid, shown_metrics(split, {key: v})[key] if v is not None else None)
-            for sid, created, uid, v in db.execute(query).all()]
+    rows = [
+        (sid, created, uid, shown_metrics(split, {key: v})[key] if v is not None else None)
+        for sid, created, uid, v in db.execute(query).all()
+    ]
     lower = sort in LOWER_IS_BETTER
     rows.sort(key=lambda r: (r[3] is None, 0.0 if r[3] is None else (r[3] if lower else -r[3]), r[1], r[0]))
     if view == "best":
@@ -162,7 +181,8 @@ def entries_of(db: Session, split: str, ranked: list[tuple[str, int | None]], sc
     scores = Result.metrics if scene is None else Result.per_scene  # only the column needed (per_scene is big)
     rows = db.execute(
         select(Submission.id, Submission.name, Submission.created_at, User.name, scores, MethodInfo)
-        .join(Result, Result.submission_id == Submission.id).join(User, User.id == Submission.user_id)
+        .join(Result, Result.submission_id == Submission.id)
+        .join(User, User.id == Submission.user_id)
         .outerjoin(MethodInfo, MethodInfo.submission_id == Submission.id)
         .where(Submission.id.in_([sid for sid, _ in ranked]))
     ).all()
@@ -173,9 +193,18 @@ def entries_of(db: Session, split: str, ranked: list[tuple[str, int | None]], sc
             continue
         _, name, created_at, uname, values, info = by_id[sid]
         values = shown_metrics(split, values) if scene is None else (values or {}).get(scene) or {}
-        entries.append({"id": sid, "name": name, "user": uname, "created_at": created_at, "rank": rank,
-                        "url": f"/submissions/{sid}", "method": meta_json(info),
-                        "metrics": {short: values.get(long) for short, long in SHORT.items()}})
+        entries.append(
+            {
+                "id": sid,
+                "name": name,
+                "user": uname,
+                "created_at": created_at,
+                "rank": rank,
+                "url": f"/submissions/{sid}",
+                "method": meta_json(info),
+                "metrics": {short: values.get(long) for short, long in SHORT.items()},
+            }
+        )
     return entries
 
 
@@ -193,29 +222,54 @@ class Page:
         return max(1, -(-self.total // self.per_page))
 
 
-def board(db: Session, split: str, sort: str = "vcre_auc", view: str = "all", scene: str | None = None,
-          page: int = 1, per_page: int = PER_PAGE) -> Page:
+def board(
+    db: Session,
+    split: str,
+    sort: str = "vcre_auc",
+    view: str = "all",
+    scene: str | None = None,
+    page: int = 1,
+    per_page: int = PER_PAGE,
+) -> Page:
     """Page ``page`` (from 1) of the board, ``per_page`` rows (at most ``MAX_PER_PAGE``)."""
     per_page = max(1, min(MAX_PER_PAGE, per_page))
     ranked = ranking(db, split, sort, view, scene)
     first = (max(1, page) - 1) * per_page
-    return Page(entries_of(db, split, ranked[first:first + per_page], scene), len(ranked), max(1, page), per_page)
+    return Page(entries_of(db, split, ranked[first : first + per_page], scene), len(ranked), max(1, page), per_page)
 
 
 def reference_rows() -> list[dict]:
     """Published results, best VCRE AUC first within each dataset; never ranked with submissions."""
-    rows = [{"name": r["name"], "dataset": r["dataset"], "note": r["note"],
-             "metrics": {k: r["metrics"].get(k) for k in SHORT}} for r in REFERENCE_ROWS]
+    rows = [
+        {
+            "name": r["name"],
+            "dataset": r["dataset"],
+            "note": r["note"],
+            "metrics": {k: r["metrics"].get(k) for k in SHORT},
+        }
+        for r in REFERENCE_ROWS
+    ]
     return sorted(rows, key=lambda r: (r["dataset"], -(r["metrics"]["vcre_auc"] or 0)))
 
 
-CSV_HEADER = ["rank", "name", "user", "submitted_utc", *METRIC_KEYS, "runtime_ms", "extra_data", "paper_url",
-              "code_url", "url"]
+CSV_HEADER = [
+    "rank",
+    "name",
+    "user",
+    "submitted_utc",
+    *METRIC_KEYS,
+    "runtime_ms",
+    "extra_data",
+    "paper_url",
+    "code_url",
+    "url",
+]
 
 
 def csv_rows(entries: list[dict]) -> str:
     """Board rows as CSV lines (full metric names as headers: ``CSV_HEADER``). Text cells that a spreadsheet
     would run as a formula get a leading apostrophe."""
+
     def cell(v):
         if isinstance(v, str) and v[:1] in ("=", "+", "-", "@", "\t", "\r"):
             return "'" + v
@@ -225,20 +279,34 @@ def csv_rows(entries: list[dict]) -> str:
     w = csv.writer(out, lineterminator="\n")
     for e in entries:
         date = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(e["created_at"]))
-        w.writerow([cell(x) for x in (e["rank"], e["name"], e["user"], date,
-                                      *(e["metrics"][s] for s in SHORT), e["method"]["runtime_ms"],
-                                      e["method"]["extra_data"], e["method"]["paper_url"], e["method"]["code_url"],
-                                      e["url"])])
+        w.writerow(
+            [
+                cell(x)
+                for x in (
+                    e["rank"],
+                    e["name"],
+                    e["user"],
+                    date,
+                    *(e["metrics"][s] for s in SHORT),
+                    e["method"]["runtime_ms"],
+                    e["method"]["extra_data"],
+                    e["method"]["paper_url"],
+                    e["method"]["code_url"],
+                    e["url"],
+                )
+            ]
+        )
     return out.getvalue()
 
 
-def stream_csv(sessions, split: str, ranked: list[tuple[str, int | None]], scene: str | None,
-               chunk: int = 500) -> Iterator[str]:
+def stream_csv(
+    sessions, split: str, ranked: list[tuple[str, int | None]], scene: str | None, chunk: int = 500
+) -> Iterator[str]:
     """The CSV of a ranked board, ``chunk`` rows at a time, each read in a short transaction of its own."""
     yield ",".join(CSV_HEADER) + "\n"
     for i in range(0, len(ranked), chunk):
         with sessions() as db:
-            yield csv_rows(entries_of(db, split, ranked[i:i + chunk], scene))
+            yield csv_rows(entries_of(db, split, ranked[i : i + chunk], scene))
 
 
 # ----------------------------------------------------------------------------------------------- compare
@@ -267,9 +335,13 @@ def compare(a: dict, b: dict) -> dict:
             out.append({"metric": k, "a": va, "b": vb, "diff": diff, "better": better})
         return out
 
-    result = {"split": a["split"], "a": {k: a[k] for k in ("id", "name", "user", "url")},
-              "b": {k: b[k] for k in ("id", "name", "user", "url")},
-              "metrics": rows(a["metrics"] or {}, b["metrics"] or {}), "per_scene": {}}
+    result = {
+        "split": a["split"],
+        "a": {k: a[k] for k in ("id", "name", "user", "url")},
+        "b": {k: b[k] for k in ("id", "name", "user", "url")},
+        "metrics": rows(a["metrics"] or {}, b["metrics"] or {}),
+        "per_scene": {},
+    }
     sa, sb = a.get("per_scene") or {}, b.get("per_scene") or {}
     for scene in sorted({*sa, *sb}):
         result["per_scene"][scene] = rows(sa.get(scene) or {}, sb.get(scene) or {})

@@ -26,21 +26,26 @@ from __future__ import annotations
 
 from typing import Any
 
-MEDIAN_KEYS = ("Average Median Translation Error", "Average Median Rotation Error",
-               "Average Median Reprojection Error")
+MEDIAN_KEYS = ("Average Median Translation Error", "Average Median Rotation Error", "Average Median Reprojection Error")
 #: Decimals kept per metric (metres, degrees, pixels); every other metric (fractions, AUCs): ``DEFAULT_DECIMALS``.
 DECIMALS = dict(zip(MEDIAN_KEYS, (2, 1, 1)))
 DEFAULT_DECIMALS = 3
 #: The note a test result carries in its problems, saying why its medians are empty.
-MEDIANS_NOTE = ("median errors are not published for test: a median over estimates the submitter chooses can be "
-                "made to equal one frame's private error; the leaderboard ranks test by VCRE and pose AUC and "
-                "precision")
+MEDIANS_NOTE = (
+    "median errors are not published for test: a median over estimates the submitter chooses can be "
+    "made to equal one frame's private error; the leaderboard ranks test by VCRE and pose AUC and "
+    "precision"
+)
 
 
 def coarsen(metrics: dict[str, Any]) -> dict[str, Any]:
     """Every number rounded to leaderboard precision (idempotent; ``None`` stays ``None``)."""
-    return {k: round(float(v), DECIMALS.get(k, DEFAULT_DECIMALS)) if isinstance(v, (int, float))
-            and not isinstance(v, bool) else v for k, v in metrics.items()}
+    return {
+        k: round(float(v), DECIMALS.get(k, DEFAULT_DECIMALS))
+        if isinstance(v, (int, float)) and not isinstance(v, bool)
+        else v
+        for k, v in metrics.items()
+    }
 
 
 def without_medians(metrics: dict[str, Any]) -> dict[str, Any]:

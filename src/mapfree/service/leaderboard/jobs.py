@@ -25,8 +25,7 @@ class Claim:
 
 
 def _claimable(t: float):
-    return or_(Submission.status == "queued",
-               and_(Submission.status == "running", Submission.lease_until < t))
+    return or_(Submission.status == "queued", and_(Submission.status == "running", Submission.lease_until < t))
 
 
 def claim(sessions: sessionmaker, worker_id: str, lease_seconds: float, max_attempts: int) -> Claim | None:
@@ -36,28 +35,49 @@ def claim(sessions: sessionmaker, worker_id: str, lease_seconds: float, max_atte
             t = now()
             cand = db.execute(
                 select(Submission.id, Submission.attempts, Submission.split)
-                .where(_claimable(t)).order_by(Submission.created_at, Submission.id).limit(1)
+                .where(_claimable(t))
+                .order_by(Submission.created_at, Submission.id)
+                .limit(1)
                 .with_for_update(skip_locked=True)
             ).first()
             if cand is None:
                 return None
             sid, attempts, split = cand
             if attempts >= max_attempts:  # died too often: give up on it, look for another
-                db.execute(update(Submission).where(Submission.id == sid, _claimable(t)).values(
-                    status="failed", finished_at=t, lease_until=None,
-                    error=f"evaluation interrupted {attempts} times (worker lost); giving up"))
+                db.execute(
+                    update(Submission)
+                    .where(Submission.id == sid, _claimable(t))
+                    .values(
+                        status="failed",
+                        finished_at=t,
+                        lease_until=None,
+                        error=f"evaluation interrupted {attempts} times (worker lost); giving up",
+                    )
+                )
                 continue
-            res = db.execute(update(Submission).where(Submission.id == sid, _claimable(t)).values(
-                status="running", worker_id=worker_id, lease_until=t + lease_seconds,
-                attempts=Submission.attempts + 1, started_at=t))
+            res = db.execute(
+                update(Submission)
+                .where(Submission.id == sid, _claimable(t))
+                .values(
+                    status="running",
+                    worker_id=worker_id,
+                    lease_until=t + lease_seconds,
+                    attempts=Submission.attempts + 1,
+                    started_at=t,
+                )
+            )
             if res.rowcount == 1:
                 return Claim(sid, attempts + 1, split)
         # somebody else got it between our read and write (cannot happen under the locks above): retry
 
 
 def _owned(c: Claim, worker_id: str):
-    return and_(Submission.id == c.submission_id, Submission.status == "running",
-                Submission.worker_id == worker_id, Submission.attempts == c.attempt)
+    return and_(
+        Submission.id == c.submission_id,
+        Submission.status == "running",
+        Submission.worker_id == worker_id,
+        Submission.attempts == c.attempt,
+    )
 
 
 def heartbeat(sessions: sessionmaker, c: Claim, worker_id: str, lease_seconds: float) -> bool:
@@ -67,27 +87,46 @@ def heartbeat(sessions: sessionmaker, c: Claim, worker_id: str, lease_seconds: f
         return res.rowcount == 1
 
 
-def finish(sessions: sessionmaker, c: Claim, worker_id: str, result: dict, plot_data: bytes | None,
-           eval_seconds: float) -> bool:
+def finish(
+    sessions: sessionmaker, c: Claim, worker_id: str, result: dict, plot_data: bytes | None, eval_seconds: float
+) -> bool:
     """Store the result once, atomically with the status change; False if the job was taken from us."""
     with sessions.begin() as db:
-        res = db.execute(update(Submission).where(_owned(c, worker_id)).values(
-            status="done", finished_at=now(), lease_until=None, error=None))
+        res = db.execute(
+            update(Submission)
+            .where(_owned(c, worker_id))
+            .values(status="done", finished_at=now(), lease_until=None, error=None)
+        )
         if res.rowcount != 1:
             return False  # nothing changed; the transaction commits empty
-        db.add(Result(submission_id=c.submission_id, metrics=result["metrics"], per_scene=result.get("per_scene"),
-                      problems=result.get("problems", []), plot_data=plot_data, worker_id=worker_id,
-                      attempt=c.attempt, eval_seconds=eval_seconds))
-        db.execute(update(WorkerRow).where(WorkerRow.id == worker_id).values(
-            jobs_done=WorkerRow.jobs_done + 1, last_seen=now()))
+        db.add(
+            Result(
+                submission_id=c.submission_id,
+                metrics=result["metrics"],
+                per_scene=result.get("per_scene"),
+                problems=result.get("problems", []),
+                plot_data=plot_data,
+                worker_id=worker_id,
+                attempt=c.attempt,
+                eval_seconds=eval_seconds,
+            )
+        )
+        db.execute(
+            update(WorkerRow)
+            .where(WorkerRow.id == worker_id)
+            .values(jobs_done=WorkerRow.jobs_done + 1, last_seen=now())
+        )
     return True
 
 
 def fail(sessions: sessionmaker, c: Claim, worker_id: str, error: str) -> bool:
     """A deterministic failure (the submission cannot be scored): recorded once, not retried."""
     with sessions.begin() as db:
-        res = db.execute(update(Submission).where(_owned(c, worker_id)).values(
-            status="failed", finished_at=now(), lease_until=None, error=error[:2000]))
+        res = db.execute(
+            update(Submission)
+            .where(_owned(c, worker_id))
+            .values(status="failed", finished_at=now(), lease_until=None, error=error[:2000])
+        )
         return res.rowcount == 1
 
 

@@ -50,10 +50,13 @@ class Withdrawn(HTTPException):
 
     def __init__(self, sub: Submission):
         when = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(sub.finished_at)) if sub.finished_at else "earlier"
-        super().__init__(409, f"submission {sub.id} ({sub.name!r}) was withdrawn on {when}: its results and ZIP "
-                              "are deleted and it stays off every board for good, so its visibility, method "
-                              "description and ZIP can no longer be changed or downloaded (upload it again as a "
-                              "new submission)")
+        super().__init__(
+            409,
+            f"submission {sub.id} ({sub.name!r}) was withdrawn on {when}: its results and ZIP "
+            "are deleted and it stays off every board for good, so its visibility, method "
+            "description and ZIP can no longer be changed or downloaded (upload it again as a "
+            "new submission)",
+        )
 
 
 def own_submission(db: Session, user: User, sid: str) -> Submission:
@@ -83,6 +86,12 @@ def zip_response(request: Request, db: Session, sub: Submission) -> Response:
         raise HTTPException(410, "the ZIP of this submission is no longer stored")
     db.commit()
     name = f"mapfree-{sub.split}-{sub.id}.zip"
-    return StreamingResponse(stream_zip(request.app.state.sessions, sub.id), media_type="application/zip",
-                             headers={"Content-Disposition": f'attachment; filename="{name}"',
-                                      "Content-Length": str(sub.size_bytes), "Cache-Control": "private"})
+    return StreamingResponse(
+        stream_zip(request.app.state.sessions, sub.id),
+        media_type="application/zip",
+        headers={
+            "Content-Disposition": f'attachment; filename="{name}"',
+            "Content-Length": str(sub.size_bytes),
+            "Cache-Control": "private",
+        },
+    )

@@ -40,18 +40,27 @@ router = APIRouter()
 log = logging.getLogger("mapfree.leaderboard")
 
 
-@router.post("/api/submissions", tags=["submissions"], status_code=202, response_model=SubmissionOut,
-             response_model_exclude_unset=True)
-def create_submission(request: Request, file: UploadFile = File(..., description="submission ZIP"),
-                            split: str = Form(..., description="val or test"), name: str = Form(""),
-                            public: bool = Form(False), csrf_token: str | None = Form(None),
-                            description: str = Form("", description="the method, shown on the leaderboard"),
-                            paper_url: str = Form("", description="http(s) link to the paper"),
-                            code_url: str = Form("", description="http(s) link to the code"),
-                            runtime_ms: str = Form("", description="runtime per query in ms"),
-                            extra_data: bool = Form(False, description="trained or tuned on data beyond the train "
-                                                                       "split"),
-                            db: Session = Depends(db_session)):
+@router.post(
+    "/api/submissions",
+    tags=["submissions"],
+    status_code=202,
+    response_model=SubmissionOut,
+    response_model_exclude_unset=True,
+)
+def create_submission(
+    request: Request,
+    file: UploadFile = File(..., description="submission ZIP"),
+    split: str = Form(..., description="val or test"),
+    name: str = Form(""),
+    public: bool = Form(False),
+    csrf_token: str | None = Form(None),
+    description: str = Form("", description="the method, shown on the leaderboard"),
+    paper_url: str = Form("", description="http(s) link to the paper"),
+    code_url: str = Form("", description="http(s) link to the code"),
+    runtime_ms: str = Form("", description="runtime per query in ms"),
+    extra_data: bool = Form(False, description="trained or tuned on data beyond the train split"),
+    db: Session = Depends(db_session),
+):
     """Upload a submission ZIP, optionally with its method's metadata (as ``PUT …/method``; a bad field is a
     422 naming it, before anything is stored). It is stored and queued before this answers 202; poll
     ``api_url``."""
@@ -66,13 +75,15 @@ def create_submission(request: Request, file: UploadFile = File(..., description
     return {**to_json(db, sub, caller.user.name), "method": meta_json(db.get(MethodInfo, sub.id))}
 
 
-@router.get("/api/submissions", tags=["submissions"], response_model=list[SubmissionOut],
-            response_model_exclude_unset=True)
+@router.get(
+    "/api/submissions", tags=["submissions"], response_model=list[SubmissionOut], response_model_exclude_unset=True
+)
 def my_submissions(request: Request, db: Session = Depends(db_session)):
     """The caller's own submissions (private history), newest first."""
     caller = require_user(request, db)
-    subs = db.scalars(select(Submission).where(Submission.user_id == caller.user.id)
-                      .order_by(Submission.created_at.desc()).limit(500)).all()
+    subs = db.scalars(
+        select(Submission).where(Submission.user_id == caller.user.id).order_by(Submission.created_at.desc()).limit(500)
+    ).all()
     return [to_json(db, s, caller.user.name) for s in subs]
 
 
@@ -80,8 +91,9 @@ def _visible_submission(request: Request, db: Session, sid: str) -> Submission:
     return visible_submission(db, identify(request, db).user, sid)
 
 
-@router.get("/api/submissions/{sid}", tags=["submissions"], response_model=SubmissionOut,
-            response_model_exclude_unset=True)
+@router.get(
+    "/api/submissions/{sid}", tags=["submissions"], response_model=SubmissionOut, response_model_exclude_unset=True
+)
 def get_submission(sid: str, request: Request, db: Session = Depends(db_session)):
     """A submission you may see. Once withdrawn, its owner (and admins) still get it, as their list shows it:
     status ``withdrawn``, ``withdrawn_at``, no results; everyone else gets 404."""
@@ -92,8 +104,9 @@ class Visibility(BaseModel):
     public: bool
 
 
-@router.patch("/api/submissions/{sid}", tags=["submissions"], response_model=SubmissionOut,
-              response_model_exclude_unset=True)
+@router.patch(
+    "/api/submissions/{sid}", tags=["submissions"], response_model=SubmissionOut, response_model_exclude_unset=True
+)
 def set_visibility(sid: str, body: Visibility, request: Request, db: Session = Depends(db_session)):
     """Make one of your submissions public or private (409 once it is withdrawn: it stays hidden for good)."""
     caller = require_writer(request, db)
@@ -103,8 +116,12 @@ def set_visibility(sid: str, body: Visibility, request: Request, db: Session = D
     return to_json(db, sub)
 
 
-@router.get("/submissions/{sid}/plots/{name}.png", tags=["submissions"], response_class=Response,
-            responses={200: {"content": {"image/png": {}}, "description": "the figure"}})
+@router.get(
+    "/submissions/{sid}/plots/{name}.png",
+    tags=["submissions"],
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}, "description": "the figure"}},
+)
 def plot_png(sid: str, name: str, request: Request, db: Session = Depends(db_session)):
     sub = _visible_submission(request, db, sid)
     png = render_plot(db, sub, name)
@@ -122,8 +139,12 @@ def withdraw_submission(sid: str, request: Request, db: Session = Depends(db_ses
     return Response(status_code=204)
 
 
-@router.get("/api/submissions/{sid}/zip", tags=["submissions"], response_class=Response,
-            responses={200: {"content": {"application/zip": {}}, "description": "the ZIP as uploaded"}})
+@router.get(
+    "/api/submissions/{sid}/zip",
+    tags=["submissions"],
+    response_class=Response,
+    responses={200: {"content": {"application/zip": {}}, "description": "the ZIP as uploaded"}},
+)
 def download_zip(sid: str, request: Request, db: Session = Depends(db_session)):
     """The ZIP you uploaded (owner or admin only; 409 once withdrawn, 410 once past the retention time)."""
     caller = require_user(request, db)
@@ -150,10 +171,20 @@ def describe_method(sid: str, body: MethodBody, request: Request, db: Session = 
     return meta_json(db.get(MethodInfo, sub.id))
 
 
-@router.get("/api/leaderboard/{split}.csv", tags=["leaderboard"], response_class=Response,
-            responses={200: {"content": {"text/csv": {}}, "description": "the whole board"}})
-def leaderboard_csv(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
-                    scene: str | None = Query(None), db: Session = Depends(db_session)):
+@router.get(
+    "/api/leaderboard/{split}.csv",
+    tags=["leaderboard"],
+    response_class=Response,
+    responses={200: {"content": {"text/csv": {}}, "description": "the whole board"}},
+)
+def leaderboard_csv(
+    split: str,
+    request: Request,
+    sort: str = Query("vcre_auc"),
+    view: str = Query("all"),
+    scene: str | None = Query(None),
+    db: Session = Depends(db_session),
+):
     """The whole leaderboard as a CSV file (same parameters as the JSON board, no paging), streamed."""
     check_split(request, split)
     ranked = ranking(db, split, sort, view, scene)
@@ -162,16 +193,24 @@ def leaderboard_csv(split: str, request: Request, sort: str = Query("vcre_auc"),
     return StreamingResponse(
         stream_csv(request.app.state.sessions, split, ranked, scene),  # a plain iterator: run in the thread pool
         media_type="text/csv; charset=utf-8",
-        headers={"Content-Disposition": f'attachment; filename="{re.sub("[^A-Za-z0-9_.-]", "", fname)}"'})
+        headers={"Content-Disposition": f'attachment; filename="{re.sub("[^A-Za-z0-9_.-]", "", fname)}"'},
+    )
 
 
-@router.get("/api/leaderboard/{split}", tags=["leaderboard"], response_model=BoardOut,
-            response_model_exclude_unset=True)
-def leaderboard(split: str, request: Request, sort: str = Query("vcre_auc"), view: str = Query("all"),
-                scene: str | None = Query(None), reference: bool = Query(True),
-                page: int = Query(1, ge=1, description="page number, from 1"),
-                per_page: int = Query(PER_PAGE, ge=1, le=MAX_PER_PAGE, description="rows per page"),
-                db: Session = Depends(db_session)):
+@router.get(
+    "/api/leaderboard/{split}", tags=["leaderboard"], response_model=BoardOut, response_model_exclude_unset=True
+)
+def leaderboard(
+    split: str,
+    request: Request,
+    sort: str = Query("vcre_auc"),
+    view: str = Query("all"),
+    scene: str | None = Query(None),
+    reference: bool = Query(True),
+    page: int = Query(1, ge=1, description="page number, from 1"),
+    per_page: int = Query(PER_PAGE, ge=1, le=MAX_PER_PAGE, description="rows per page"),
+    db: Session = Depends(db_session),
+):
     """Public results of a split, best first by ``sort`` (vcre_auc, vcre_prec, pose_auc, pose_prec, med_trans,
     med_rot, med_vcre, estimates); equal scores share a rank. ``view=best``: each account's best entry;
     ``scene``: one scene's scores (val only). Paged: ``page`` (from 1) of ``per_page`` rows (at most
@@ -179,15 +218,28 @@ def leaderboard(split: str, request: Request, sort: str = Query("vcre_auc"), vie
     apart, under ``reference``."""
     check_split(request, split)
     b = board(db, split, sort, view, scene, page, per_page)
-    out = {"split": split, "sort": sort, "view": view, "scene": scene, "entries": b.entries, "page": b.page,
-           "per_page": b.per_page, "total": b.total, "pages": b.pages}
+    out = {
+        "split": split,
+        "sort": sort,
+        "view": view,
+        "scene": scene,
+        "entries": b.entries,
+        "page": b.page,
+        "per_page": b.per_page,
+        "total": b.total,
+        "pages": b.pages,
+    }
     if reference:
         out["reference"] = reference_rows()
     return out
 
 
 @router.get("/api/compare", tags=["leaderboard"], response_model=CompareOut)
-def compare_submissions(request: Request, a: str = Query(..., description="submission id"),
-                 b: str = Query(..., description="submission id"), db: Session = Depends(db_session)):
+def compare_submissions(
+    request: Request,
+    a: str = Query(..., description="submission id"),
+    b: str = Query(..., description="submission id"),
+    db: Session = Depends(db_session),
+):
     """Two submissions side by side: each metric, b − a, and which is better (per scene too, except test)."""
     return compare(visible_json(request, db, a), visible_json(request, db, b))

@@ -26,8 +26,14 @@ METRIC_KEYS = (
 )
 #: Short names for URLs and table headers, in the leaderboard's column order (VCRE AUC first).
 SHORT = {
-    "vcre_auc": METRIC_KEYS[0], "vcre_prec": METRIC_KEYS[1], "pose_auc": METRIC_KEYS[2], "pose_prec": METRIC_KEYS[3],
-    "med_trans": METRIC_KEYS[4], "med_rot": METRIC_KEYS[5], "med_vcre": METRIC_KEYS[6], "estimates": METRIC_KEYS[7],
+    "vcre_auc": METRIC_KEYS[0],
+    "vcre_prec": METRIC_KEYS[1],
+    "pose_auc": METRIC_KEYS[2],
+    "pose_prec": METRIC_KEYS[3],
+    "med_trans": METRIC_KEYS[4],
+    "med_rot": METRIC_KEYS[5],
+    "med_vcre": METRIC_KEYS[6],
+    "estimates": METRIC_KEYS[7],
 }
 #: Errors sort ascending, everything else descending.
 LOWER_IS_BETTER = {"med_trans", "med_rot", "med_vcre"}
@@ -91,9 +97,12 @@ def score(settings: Settings, split: str, zip_path: Path) -> tuple[dict, bytes |
     if split == "test" and settings.gt_root is None:
         raise SubmissionRejected("the server has no private test ground truth configured (--gt)")
     lim = settings.limits  # the upload check's limits, enforced on what the entries really unpack to
-    limits = benchmark.SubmissionLimits(max_zip_bytes=lim.max_submission_bytes, max_entries=lim.max_zip_entries,
-                                        max_file_bytes=lim.max_zip_entry_bytes,
-                                        max_total_bytes=lim.max_zip_uncompressed_bytes)
+    limits = benchmark.SubmissionLimits(
+        max_zip_bytes=lim.max_submission_bytes,
+        max_entries=lim.max_zip_entries,
+        max_file_bytes=lim.max_zip_entry_bytes,
+        max_total_bytes=lim.max_zip_uncompressed_bytes,
+    )
     try:
         report = benchmark.evaluate(zip_path, settings.data_root, split, truth=_truth(settings, split), limits=limits)
     except (ValueError, OSError, KeyError, benchmark.EvaluationError) as e:
@@ -102,8 +111,10 @@ def score(settings: Settings, split: str, zip_path: Path) -> tuple[dict, bytes |
     if fatal:
         raise SubmissionRejected(str(fatal[0]))
     if report.problems and not np.any(report.estimated):
-        raise SubmissionRejected("no valid pose line; expected 'seq1/frame_00000.jpg qw qx qy qz tx ty tz "
-                                 f"confidence' (first problem: {report.problems[0]})")
+        raise SubmissionRejected(
+            "no valid pose line; expected 'seq1/frame_00000.jpg qw qx qy qz tx ty tz "
+            f"confidence' (first problem: {report.problems[0]})"
+        )
     result = redact(report.to_dict(), _problems(report), split)
     # Per-frame data would leak test ground truth: kept (for plots) only for public-GT splits.
     return result, (None if split == "test" else pack_report(report))
@@ -189,5 +200,7 @@ def check_ground_truth(settings: Settings) -> None:
     missing = missing_ground_truth(settings)
     if missing:
         shown = ", ".join(missing[:20]) + (f" and {len(missing) - 20} more" if len(missing) > 20 else "")
-        raise ValueError(f"the ground-truth folder {settings.gt_root} lacks {len(missing)} of the dataset's test "
-                         f"scenes ({shown}): expected {settings.gt_root}/test/SCENE/poses.txt for each")
+        raise ValueError(
+            f"the ground-truth folder {settings.gt_root} lacks {len(missing)} of the dataset's test "
+            f"scenes ({shown}): expected {settings.gt_root}/test/SCENE/poses.txt for each"
+        )

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import hashlib
-from typing import BinaryIO, Iterator
+from collections.abc import Iterator
+from typing import BinaryIO
 
 from sqlalchemy import and_, delete, exists, insert, or_, select, update
 from sqlalchemy.orm import Session
@@ -38,12 +39,14 @@ def copy_in(db: Session, sid: str, f: BinaryIO) -> tuple[int, str]:
         sha.update(chunk)
         size += len(chunk)
         # Core inserts: the ORM would keep every chunk alive in the session until the commit
-        db.execute(insert(SubmissionFile).values(submission_id=sid, data=chunk) if seq == 0 else
-                   insert(ZipChunk).values(submission_id=sid, seq=seq, data=chunk))
+        db.execute(
+            insert(SubmissionFile).values(submission_id=sid, data=chunk)
+            if seq == 0
+            else insert(ZipChunk).values(submission_id=sid, seq=seq, data=chunk)
+        )
         seq += 1
         if seq % CHUNKS_PER_TRANSACTION == 0 or len(chunk) < CHUNK_BYTES:
-            db.execute(update(Submission).where(Submission.id == sid).values(
-                lease_until=now() + UPLOAD_LEASE_SECONDS))
+            db.execute(update(Submission).where(Submission.id == sid).values(lease_until=now() + UPLOAD_LEASE_SECONDS))
             db.commit()
         if len(chunk) < CHUNK_BYTES:
             break
@@ -60,8 +63,9 @@ def chunks(db: Session, sid: str) -> Iterator[bytes]:
         return
     yield first
     seq = 1
-    while (data := db.scalar(select(ZipChunk.data).where(ZipChunk.submission_id == sid, ZipChunk.seq == seq))) \
-            is not None:
+    while (
+        data := db.scalar(select(ZipChunk.data).where(ZipChunk.submission_id == sid, ZipChunk.seq == seq))
+    ) is not None:
         db.commit()
         yield data
         seq += 1
@@ -87,8 +91,9 @@ def sweep(db: Session, retention_days: float) -> int:
     t = now()
     gone = 0
     if retention_days > 0:
-        old = select(Submission.id).where(Submission.status.in_(("done", "failed")),
-                                          Submission.finished_at < t - retention_days * 86400)
+        old = select(Submission.id).where(
+            Submission.status.in_(("done", "failed")), Submission.finished_at < t - retention_days * 86400
+        )
         gone += db.execute(delete(SubmissionFile).where(SubmissionFile.submission_id.in_(old))).rowcount or 0
     return gone + drop_interrupted_uploads(db)
 
@@ -97,7 +102,11 @@ def drop_interrupted_uploads(db: Session) -> int:
     """Delete the submissions whose upload was cut off mid-copy (lease lapsed; rows from before upload leases:
     an hour old), with their chunks: the quota and the test evaluation they counted against are refunded."""
     t = now()
-    stale = select(Submission.id).where(Submission.status == "uploading", or_(
-        Submission.lease_until < t, and_(Submission.lease_until.is_(None),
-                                         Submission.created_at < t - STALE_UPLOAD_SECONDS)))
+    stale = select(Submission.id).where(
+        Submission.status == "uploading",
+        or_(
+            Submission.lease_until < t,
+            and_(Submission.lease_until.is_(None), Submission.created_at < t - STALE_UPLOAD_SECONDS),
+        ),
+    )
     return db.execute(delete(Submission).where(Submission.id.in_(stale))).rowcount or 0

@@ -30,8 +30,14 @@ def daily_test_limit(settings: Settings, user: User) -> int:
 
 def recent_count(db: Session, user: User, split: str, window_s: float) -> int:
     """How many submissions ``user`` made to ``split`` in the last ``window_s`` (withdrawn ones included)."""
-    return int(db.scalar(select(func.count()).select_from(Submission).where(
-        Submission.user_id == user.id, Submission.split == split, Submission.created_at > now() - window_s)) or 0)
+    return int(
+        db.scalar(
+            select(func.count())
+            .select_from(Submission)
+            .where(Submission.user_id == user.id, Submission.split == split, Submission.created_at > now() - window_s)
+        )
+        or 0
+    )
 
 
 def _limit_reached(db: Session, user: User, split: str, window_s: float, limit: int, what: str) -> None:
@@ -40,19 +46,27 @@ def _limit_reached(db: Session, user: User, split: str, window_s: float, limit: 
     if limit < 0:
         return
     if limit == 0:
-        raise UploadError(429, f"{what} limit: this account may make no {split} submissions (its limit is 0; "
-                               "ask the operator)")
+        raise UploadError(
+            429, f"{what} limit: this account may make no {split} submissions (its limit is 0; ask the operator)"
+        )
     since = now() - window_s
     if recent_count(db, user, split, window_s) >= limit:
-        first = db.scalar(select(func.min(Submission.created_at)).where(
-            Submission.user_id == user.id, Submission.split == split, Submission.created_at > since))
+        first = db.scalar(
+            select(func.min(Submission.created_at)).where(
+                Submission.user_id == user.id, Submission.split == split, Submission.created_at > since
+            )
+        )
         wait = max(1, int((first or now()) + window_s - now()) + 1)
-        raise UploadError(429, f"{what} limit reached: {limit} {split} submissions per {window_s / 3600:g} h; "
-                               f"the next one is possible in {wait} s")
+        raise UploadError(
+            429,
+            f"{what} limit reached: {limit} {split} submissions per {window_s / 3600:g} h; "
+            f"the next one is possible in {wait} s",
+        )
 
 
-def accept(db: Session, settings: Settings, user: User, split: str, name: str, public: bool,
-           data: bytes | BinaryIO) -> Submission:
+def accept(
+    db: Session, settings: Settings, user: User, split: str, name: str, public: bool, data: bytes | BinaryIO
+) -> Submission:
     """Check a submission cheaply (ZIP directory, entry names and sizes), count it against the account's limits,
     and store it with its queued job. ``data`` may be a file (the spooled upload): it is copied into the
     database in chunks, never read whole. Parsing the pose lines is the workers' job."""
@@ -68,8 +82,17 @@ def accept(db: Session, settings: Settings, user: User, split: str, name: str, p
         hourly = settings.val_hourly_limit if settings.val_hourly_limit > 0 else UNLIMITED  # 0: no limit
         _limit_reached(db, user, split, 3600, hourly, "hourly")
     check_quota(db, settings, user.id, size, "this submission")
-    sub = Submission(user_id=user.id, split=split, name=name, public=bool(public), status="uploading",
-                     size_bytes=size, sha256="", created_at=now(), lease_until=now() + UPLOAD_LEASE_SECONDS)
+    sub = Submission(
+        user_id=user.id,
+        split=split,
+        name=name,
+        public=bool(public),
+        status="uploading",
+        size_bytes=size,
+        sha256="",
+        created_at=now(),
+        lease_until=now() + UPLOAD_LEASE_SECONDS,
+    )
     db.add(sub)
     db.commit()
     try:
@@ -101,8 +124,9 @@ def visible(sub: Submission | None, user: User | None, withdrawn: bool = False) 
     return sub.public or mine
 
 
-def visible_submission(db: Session, user: User | None, sid: str, what: str = "no such submission",
-                       withdrawn: bool = False) -> Submission:
+def visible_submission(
+    db: Session, user: User | None, sid: str, what: str = "no such submission", withdrawn: bool = False
+) -> Submission:
     """Submission ``sid`` if ``user`` may see it (``withdrawn``: its owner sees it once withdrawn, too); a 404
     ``"{what} (or it is private)"`` otherwise."""
     sub = db.get(Submission, sid) if len(sid) <= 32 else None
@@ -121,13 +145,24 @@ def to_json(db: Session, sub: Submission, owner_name: str | None = None) -> dict
             plots = list(PLOT_NAMES)  # rendered on first view
     owner = owner_name or db.scalar(select(User.name).where(User.id == sub.user_id))
     out = {
-        "id": sub.id, "name": sub.name, "split": sub.split, "public": sub.public, "user": owner,
-        "status": sub.status, "attempts": sub.attempts, "error": sub.error,
-        "created_at": sub.created_at, "started_at": sub.started_at, "finished_at": sub.finished_at,
+        "id": sub.id,
+        "name": sub.name,
+        "split": sub.split,
+        "public": sub.public,
+        "user": owner,
+        "status": sub.status,
+        "attempts": sub.attempts,
+        "error": sub.error,
+        "created_at": sub.created_at,
+        "started_at": sub.started_at,
+        "finished_at": sub.finished_at,
         "withdrawn_at": sub.finished_at if sub.status == "withdrawn" else None,
-        "size_bytes": sub.size_bytes, "sha256": sub.sha256,
-        "url": f"/submissions/{sub.id}", "api_url": f"/api/submissions/{sub.id}",
-        "metrics": shown_metrics(sub.split, res.metrics) if res else None, "problems": res.problems if res else [],
+        "size_bytes": sub.size_bytes,
+        "sha256": sub.sha256,
+        "url": f"/submissions/{sub.id}",
+        "api_url": f"/api/submissions/{sub.id}",
+        "metrics": shown_metrics(sub.split, res.metrics) if res else None,
+        "problems": res.problems if res else [],
         "plots": [f"/submissions/{sub.id}/plots/{n}.png" for n in sorted(plots)],
     }
     if sub.split != "test":

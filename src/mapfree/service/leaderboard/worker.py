@@ -76,17 +76,29 @@ def process(sessions, settings: Settings, claim: jobs.Claim, worker_id: str) -> 
         status = "failed" if jobs.fail(sessions, claim, worker_id, f"cannot score submission: {e}") else "lost"
     except Exception as e:
         log.exception("evaluation crashed", extra={"submission": claim.submission_id})
-        status = "failed" if jobs.fail(sessions, claim, worker_id, f"internal error while scoring: "
-                                       f"{type(e).__name__}") else "lost"
+        status = (
+            "failed"
+            if jobs.fail(sessions, claim, worker_id, f"internal error while scoring: {type(e).__name__}")
+            else "lost"
+        )
     finally:
         beat.stopped.set()
-    log.info("job finished", extra={"submission": claim.submission_id, "status": status, "attempt": claim.attempt,
-                                    "seconds": round(time.perf_counter() - t0, 3), "worker": worker_id})
+    log.info(
+        "job finished",
+        extra={
+            "submission": claim.submission_id,
+            "status": status,
+            "attempt": claim.attempt,
+            "seconds": round(time.perf_counter() - t0, 3),
+            "worker": worker_id,
+        },
+    )
     return status
 
 
-def run(settings: Settings, worker_id: str | None = None, stop: threading.Event | None = None,
-        max_jobs: int | None = None) -> int:
+def run(
+    settings: Settings, worker_id: str | None = None, stop: threading.Event | None = None, max_jobs: int | None = None
+) -> int:
     """Work until ``stop`` is set (or ``max_jobs`` are done); returns the number of jobs processed."""
     engine = make_engine(settings.db_url)
     init_db(engine)
@@ -94,8 +106,16 @@ def run(settings: Settings, worker_id: str | None = None, stop: threading.Event 
     worker_id = worker_id or f"{socket.gethostname()[:40]}-{os.getpid()}-{new_id()[:6]}"
     stop = stop or threading.Event()
     with sessions.begin() as db:
-        db.merge(WorkerRow(id=worker_id, host=socket.gethostname()[:128], pid=os.getpid(), started_at=now(),
-                           last_seen=now(), jobs_done=0))
+        db.merge(
+            WorkerRow(
+                id=worker_id,
+                host=socket.gethostname()[:128],
+                pid=os.getpid(),
+                started_at=now(),
+                last_seen=now(),
+                jobs_done=0,
+            )
+        )
     log.info("worker started", extra={"worker": worker_id, "pid": os.getpid()})
     done, last_seen, last_sweep = 0, 0.0, 0.0
     while not stop.is_set() and (max_jobs is None or done < max_jobs):
@@ -103,7 +123,7 @@ def run(settings: Settings, worker_id: str | None = None, stop: threading.Event 
             last_sweep = time.time()
             try:
                 with sessions.begin() as db:
-                    if (n := storage.sweep(db, settings.zip_retention_days)):
+                    if n := storage.sweep(db, settings.zip_retention_days):
                         log.info("stored ZIPs deleted (retention)", extra={"submissions": n})
             except Exception:
                 log.warning("retention sweep failed", exc_info=True)
@@ -138,8 +158,11 @@ def main(argv: list[str] | None = None) -> int:
     from ..http.logs import setup_logging
 
     p = argparse.ArgumentParser(prog="python -m mapfree.service.leaderboard.worker", description=__doc__)
-    p.add_argument("--db", default=os.environ.get("MAPFREE_DB"),
-                   help="database URL (default: $MAPFREE_DB, which keeps a password off the command line)")
+    p.add_argument(
+        "--db",
+        default=os.environ.get("MAPFREE_DB"),
+        help="database URL (default: $MAPFREE_DB, which keeps a password off the command line)",
+    )
     p.add_argument("--data", type=Path)
     p.add_argument("--gt", type=Path)
     p.add_argument("--lease-seconds", type=float, default=60.0)
@@ -153,9 +176,16 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(a.log_level)
     if not a.db:
         p.error("no database: pass --db or set MAPFREE_DB")
-    settings = Settings(db_url=a.db, data_root=a.data, gt_root=a.gt, lease_seconds=a.lease_seconds,
-                        max_attempts=a.max_attempts, poll_seconds=a.poll_seconds,
-                        zip_retention_days=a.zip_retention_days, limits=Limits(**json.loads(a.limits)))
+    settings = Settings(
+        db_url=a.db,
+        data_root=a.data,
+        gt_root=a.gt,
+        lease_seconds=a.lease_seconds,
+        max_attempts=a.max_attempts,
+        poll_seconds=a.poll_seconds,
+        zip_retention_days=a.zip_retention_days,
+        limits=Limits(**json.loads(a.limits)),
+    )
     try:
         check_ground_truth(settings)
     except ValueError as e:

@@ -26,8 +26,7 @@ class ZipInfo:
 SNIFF_BYTES = 4096
 
 
-def check_submission_zip(data: bytes | BinaryIO, limits: Limits, split: str,
-                         known_scenes: set[str] | None) -> ZipInfo:
+def check_submission_zip(data: bytes | BinaryIO, limits: Limits, split: str, known_scenes: set[str] | None) -> ZipInfo:
     """The cheap checks an upload gets before it is stored, in bounded time and memory: a real ZIP (its central
     directory), few entries, flat ``pose_sNNNNN.txt`` names only (no traversal), known scenes, declared sizes
     within the per-entry and total limits and a sane ratio (zip bombs), and the first few kB of each entry
@@ -53,8 +52,11 @@ def check_submission_zip(data: bytes | BinaryIO, limits: Limits, split: str,
         if info.is_dir():
             raise UploadError(422, f"ZIP entry {name!r}: folders are not allowed; put pose_sNNNNN.txt at the root")
         if name.startswith(("/", "\\")) or ".." in name or "/" in name or "\\" in name or ":" in name:
-            raise UploadError(422, f"ZIP entry {name!r}: paths are not allowed (path traversal); "
-                                   "entries must be pose_sNNNNN.txt at the root")
+            raise UploadError(
+                422,
+                f"ZIP entry {name!r}: paths are not allowed (path traversal); "
+                "entries must be pose_sNNNNN.txt at the root",
+            )
         m = ENTRY_RE.match(name)
         if not m:
             raise UploadError(422, f"ZIP entry {name!r}: expected a name like pose_s00460.txt")
@@ -68,15 +70,23 @@ def check_submission_zip(data: bytes | BinaryIO, limits: Limits, split: str,
             raise UploadError(422, f"ZIP entry {name!r}: scene {m.group(1)} is not in the {split} split")
         ratio = info.file_size / max(info.compress_size, 1)
         if info.file_size > (1 << 20) and ratio > limits.max_zip_ratio:
-            raise UploadError(413, f"ZIP entry {name!r}: compression ratio {ratio:.0f}:1 looks like a zip bomb "
-                                   f"(the limit is {limits.max_zip_ratio:g}:1)")
+            raise UploadError(
+                413,
+                f"ZIP entry {name!r}: compression ratio {ratio:.0f}:1 looks like a zip bomb "
+                f"(the limit is {limits.max_zip_ratio:g}:1)",
+            )
         if info.file_size > limits.max_zip_entry_bytes:
-            raise UploadError(413, f"ZIP entry {name!r} unpacks to {info.file_size} bytes; the per-file limit is "
-                                   f"{limits.max_zip_entry_bytes} bytes")
+            raise UploadError(
+                413,
+                f"ZIP entry {name!r} unpacks to {info.file_size} bytes; the per-file limit is "
+                f"{limits.max_zip_entry_bytes} bytes",
+            )
         total += info.file_size
         if total > limits.max_zip_uncompressed_bytes:
-            raise UploadError(413, f"ZIP unpacks to more than the total limit of {limits.max_zip_uncompressed_bytes} "
-                                   "bytes (zip bomb?)")
+            raise UploadError(
+                413,
+                f"ZIP unpacks to more than the total limit of {limits.max_zip_uncompressed_bytes} bytes (zip bomb?)",
+            )
         scenes.append(m.group(1))
     if not scenes:
         raise UploadError(422, "ZIP holds no pose_sNNNNN.txt files")

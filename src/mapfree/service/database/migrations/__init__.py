@@ -84,9 +84,13 @@ def upgrade(engine: Engine) -> tuple[str | None, str]:
         before = _current(conn)
         if before == head():
             return before, before
-        if before is not None and before not in {s.revision for s in ScriptDirectory.from_config(_config()).walk_revisions()}:
-            raise SchemaVersion(f"the database is at schema version {before}, which this mapfree does not know "
-                                f"(its newest is {head()}): it was upgraded by a newer release; run that one")
+        if before is not None and before not in {
+            s.revision for s in ScriptDirectory.from_config(_config()).walk_revisions()
+        }:
+            raise SchemaVersion(
+                f"the database is at schema version {before}, which this mapfree does not know "
+                f"(its newest is {head()}): it was upgraded by a newer release; run that one"
+            )
         cfg = _config()
         cfg.attributes["connection"] = conn
         if before is None and not inspect(conn).get_table_names():

@@ -16,8 +16,11 @@ depends_on = None
 
 
 def upgrade() -> None:
-    add_missing("api_tokens", sa.Column("expires_at", sa.Float, nullable=True),
-                sa.Column("label", sa.String(64), nullable=False, server_default=""))
+    add_missing(
+        "api_tokens",
+        sa.Column("expires_at", sa.Float, nullable=True),
+        sa.Column("label", sa.String(64), nullable=False, server_default=""),
+    )
     add_missing("web_sessions", sa.Column("created_at", sa.Float, nullable=True))
 
 
