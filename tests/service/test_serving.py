@@ -24,9 +24,10 @@ def _form(K) -> dict:
 
 
 def test_localize_flood_does_not_stall_sign_in_or_the_leaderboard(split_data, realmini_dir, tmp_path):
-    """45 concurrent localize calls (large photos) used to take every thread of the shared pool: sign-in and
-    the leaderboard waited seconds. Now they run on the heavy pool, the overflow gets 429 + Retry-After, and
-    the light pages answer at once."""
+    """45 concurrent localize calls (large photos, three accounts) used to take every thread of the shared pool:
+    sign-in and the leaderboard waited seconds. Now they run on the heavy pool, the overflow gets 429 +
+    Retry-After, and the light pages answer at once. Each account has a share of the pool (here one request
+    in at a time), so every account's first request is served."""
     srv = start_server(
         db_url_for("sqlite", tmp_path),
         "sqlite",
@@ -54,8 +55,8 @@ def test_localize_flood_does_not_stall_sign_in_or_the_leaderboard(split_data, re
         jpg = cv2.imencode(".jpg", cv2.cvtColor(big, cv2.COLOR_RGB2BGR))[1].tobytes()
         K = q.intrinsics.resized(big.shape[1], big.shape[0])
 
-        def localize(_):
-            with srv.client("bob") as c:
+        def localize(i):
+            with srv.client(("alice", "bob", "carol")[i % 3]) as c:
                 r = c.post(f"/anchors/{aid}/localize", data=_form(K), files={"image": ("q.jpg", jpg)})
                 return r.status_code, r.headers.get("retry-after")
 
