@@ -304,7 +304,8 @@ class Supervisor:
         stable_s: float = 30.0,
         env: dict[str, str] | None = None,
     ):
-        self.cmd, self.n, self.procs, self.stopping = cmd, n, [], threading.Event()
+        self.cmd, self.n, self.stopping = cmd, n, threading.Event()
+        self.procs: list[subprocess.Popen] = []
         self.env = env
         self.backoff, self.max_backoff, self.stable_s = backoff, max_backoff, stable_s
         self.started: list[float] = []

@@ -81,17 +81,17 @@ RELOC_CHOICES = {
 }
 
 
-def _fmt_time(t, fmt: str = "%Y-%m-%d %H:%M:%S UTC"):
+def _fmt_time(t: float | None, fmt: str = "%Y-%m-%d %H:%M:%S UTC") -> str:
     return time.strftime(fmt, time.gmtime(t)) if t else ""
 
 
-def _fmt_num(v):
+def _fmt_num(v: object) -> str:
     if v is None:
         return "–"
     return f"{v:.3f}" if isinstance(v, float) else str(v)
 
 
-def _fmt_diff(v):
+def _fmt_diff(v: float | None) -> str:
     return "–" if v is None else f"{v:+.3f}"
 
 
@@ -174,8 +174,8 @@ def login(request: Request, token: str = Form(...), csrf_token: str = Form(""), 
     settings = request.app.state.settings
     sid, _ = auth.open_session(db, row, settings.session_hours)  # ends with the token, at the latest
     db.commit()
-    resp = RedirectResponse("/me", status_code=303)
-    resp.set_cookie(
+    signed_in = RedirectResponse("/me", status_code=303)
+    signed_in.set_cookie(
         SESSION_COOKIE,
         sid,
         httponly=True,
@@ -183,8 +183,8 @@ def login(request: Request, token: str = Form(...), csrf_token: str = Form(""), 
         secure=settings.secure_cookies,
         max_age=int(settings.session_hours * 3600),
     )
-    resp.delete_cookie(LOGIN_CSRF_COOKIE)
-    return resp
+    signed_in.delete_cookie(LOGIN_CSRF_COOKIE)
+    return signed_in
 
 
 @router.post("/logout")
@@ -622,12 +622,16 @@ def relocalize_anchor(
 # ------------------------------------------------------------------------------------ anchors from the page
 
 
-def _camera_lines(text: str) -> list[tuple[int, str, list[str], str | None]]:
+#: One line of the "cameras" box: (line number, file name, fx fy cx cy, pose or None).
+CameraLine = tuple[int, str, tuple[str, str, str, str], str | None]
+
+
+def _camera_lines(text: str) -> list[CameraLine]:
     """The page's "cameras" box: one line per photo, in the anchor's order, ``NAME fx fy cx cy`` and, for every
     photo but the first, its pose ``qw qx qy qz tx ty tz`` -> (line number, file name, intrinsics, pose). A
     name with spaces is quoted; blank lines and ``#`` comments are skipped. Values are checked per photo later,
     with the API's messages."""
-    out = []
+    out: list[CameraLine] = []
     for no, line in enumerate(text.splitlines(), 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
@@ -646,7 +650,8 @@ def _camera_lines(text: str) -> list[tuple[int, str, list[str], str | None]]:
                 f"cameras line {no}: expected {want!r} for {'a further' if out else 'the first'} "
                 f"photo; got {len(parts)} value(s)",
             )
-        out.append((no, parts[0], parts[1:5], " ".join(parts[5:]) if len(parts) == 12 else None))
+        intrinsics = (parts[1], parts[2], parts[3], parts[4])
+        out.append((no, parts[0], intrinsics, " ".join(parts[5:]) if len(parts) == 12 else None))
     if not out:
         raise UploadError(
             422,

@@ -107,7 +107,7 @@ def create_token(
     except auth.TokenLimit as e:
         raise HTTPException(409, str(e)) from None
     db.commit()
-    row = db.scalar(select(ApiToken).where(ApiToken.token_hash == auth.hash_secret(token)))
+    row = db.execute(select(ApiToken).where(ApiToken.token_hash == auth.hash_secret(token))).scalar_one()
     return {"token": token, **token_json(row)}
 
 

@@ -179,6 +179,12 @@ def create_app(settings: Settings) -> FastAPI:
     return app
 
 
+def _env_path(name: str) -> Path | None:
+    """The folder an environment variable names (unset or empty: None)."""
+    value = os.environ.get(name)
+    return Path(value) if value else None
+
+
 def app_from_env() -> FastAPI:
     """Factory for ``uvicorn --factory mapfree.service.http.app:app_from_env`` (settings from MAPFREE_* variables)."""
     from .logs import setup_logging
@@ -198,8 +204,8 @@ def app_from_env() -> FastAPI:
     else:
         s = Settings(
             db_url=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
-            data_root=os.environ.get("MAPFREE_DATA") or None,
-            gt_root=os.environ.get("MAPFREE_GT") or None,
+            data_root=_env_path("MAPFREE_DATA"),
+            gt_root=_env_path("MAPFREE_GT"),
             default_method=os.environ.get("MAPFREE_METHOD", ""),
             test_daily_limit=parse_daily_limit(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
             secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1",

@@ -10,6 +10,7 @@ import uuid
 from collections import OrderedDict, deque
 
 from fastapi import HTTPException, Request
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 _RID_RE = re.compile(r"[A-Za-z0-9._-]{1,64}")
 
@@ -88,10 +89,10 @@ class CredentialGate:
     upload used to be read whole (spooled to disk) and only then refused. The account found is kept in
     ``request.state.account`` (the heavy pool's fair share is per account)."""
 
-    def __init__(self, app):
+    def __init__(self, app: ASGIApp):
         self.app = app
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if (
             scope["type"] != "http"
             or scope["method"] not in _BODY_METHODS

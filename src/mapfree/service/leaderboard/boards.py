@@ -171,8 +171,10 @@ def ranking(
     lower = sort in LOWER_IS_BETTER
     rows.sort(key=lambda r: (r[3] is None, 0.0 if r[3] is None else (r[3] if lower else -r[3]), r[1], r[0]))
     if view == "best":
-        seen: set[int] = set()
-        rows = [r for r in rows if not (r[2] in seen or seen.add(r[2]))]
+        best: dict[int, tuple] = {}
+        for r in rows:
+            best.setdefault(r[2], r)  # an author's first row in this order is their best
+        rows = list(best.values())
     return list(zip((r[0] for r in rows), competition_ranks([r[3] for r in rows])))
 
 
@@ -192,7 +194,7 @@ def entries_of(db: Session, split: str, ranked: list[tuple[str, int | None]], sc
         if sid not in by_id:  # withdrawn meanwhile
             continue
         _, name, created_at, uname, values, info = by_id[sid]
-        values = shown_metrics(split, values) if scene is None else (values or {}).get(scene) or {}
+        values = (shown_metrics(split, values) if scene is None else (values or {}).get(scene)) or {}
         entries.append(
             {
                 "id": sid,
@@ -270,7 +272,7 @@ def csv_rows(entries: list[dict]) -> str:
     """Board rows as CSV lines (full metric names as headers: ``CSV_HEADER``). Text cells that a spreadsheet
     would run as a formula get a leading apostrophe."""
 
-    def cell(v):
+    def cell(v: object) -> object:
         if isinstance(v, str) and v[:1] in ("=", "+", "-", "@", "\t", "\r"):
             return "'" + v
         return "" if v is None else v

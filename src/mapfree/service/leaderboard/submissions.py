@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import io
 import threading
-from typing import BinaryIO
+from typing import BinaryIO, overload
 
 from fastapi import HTTPException
 from sqlalchemy import delete, func, select
@@ -107,6 +107,12 @@ def accept(
     return sub
 
 
+@overload
+def shown_metrics(split: str, metrics: dict) -> dict: ...
+@overload
+def shown_metrics(split: str, metrics: None) -> None: ...
+@overload
+def shown_metrics(split: str, metrics: dict | None) -> dict | None: ...
 def shown_metrics(split: str, metrics: dict | None) -> dict | None:
     """Stored metrics as shown: for ``test`` without medians and rounded, also where a result was stored before
     either (``disclosure.py``)."""
@@ -130,7 +136,7 @@ def visible_submission(
     """Submission ``sid`` if ``user`` may see it (``withdrawn``: its owner sees it once withdrawn, too); a 404
     ``"{what} (or it is private)"`` otherwise."""
     sub = db.get(Submission, sid) if len(sid) <= 32 else None
-    if not visible(sub, user, withdrawn):
+    if sub is None or not visible(sub, user, withdrawn):
         raise HTTPException(404, f"{what} (or it is private)")
     return sub
 
