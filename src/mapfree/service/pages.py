@@ -8,14 +8,12 @@ from __future__ import annotations
 import base64
 import secrets
 import shlex
-import time
 from dataclasses import replace
 from pathlib import Path
 from urllib.parse import urlencode
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, UploadFile
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
-from fastapi.templating import Jinja2Templates
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
@@ -40,6 +38,7 @@ from .anchors.photos import read_upload as read_photo_upload
 from .database.models import Anchor, AnchorPhoto, MethodInfo, Submission, User
 from .http.caller import LOGIN_CSRF_COOKIE, SESSION_COOKIE, RowId, db_session, identify, require_writer
 from .http.heavy import heavy
+from .http.render import error_page, page
 from .inputs import UploadError, spooled_upload
 from .leaderboard.boards import (
     MAX_PER_PAGE,
@@ -61,7 +60,6 @@ from .leaderboard.scoring import LOWER_IS_BETTER, SHORT, known_scenes
 from .leaderboard.submissions import accept, to_json, visible_submission
 
 router = APIRouter(include_in_schema=False)
-templates = Jinja2Templates(directory=str(Path(__file__).parent / "templates"))
 LABELS = {
     "vcre_auc": "VCRE AUC",
     "vcre_prec": "VCRE prec.",
@@ -79,53 +77,6 @@ RELOC_CHOICES = {
     "sift_pnp_sensor": "SIFT + PnP; needs the reference depth",
     "sift_emat_none": "SIFT + essential matrix; no depth, so direction only: no metric scale",
 }
-
-
-def _fmt_time(t: float | None, fmt: str = "%Y-%m-%d %H:%M:%S UTC") -> str:
-    return time.strftime(fmt, time.gmtime(t)) if t else ""
-
-
-def _fmt_num(v: object) -> str:
-    if v is None:
-        return "–"
-    return f"{v:.3f}" if isinstance(v, float) else str(v)
-
-
-def _fmt_diff(v: float | None) -> str:
-    return "–" if v is None else f"{v:+.3f}"
-
-
-templates.env.filters["time"] = _fmt_time
-templates.env.filters["num"] = _fmt_num
-templates.env.filters["diff"] = _fmt_diff
-
-
-def page(request: Request, name: str, db: Session, status: int = 200, **ctx) -> HTMLResponse:
-    caller = identify(request, db)
-    return templates.TemplateResponse(
-        request,
-        name,
-        {"user": caller.user, "csrf": caller.csrf, "splits": request.app.state.settings.splits, **ctx},
-        status_code=status,
-    )
-
-
-def error_page(request: Request, status: int, message: str, headers: dict | None = None) -> HTMLResponse:
-    """The HTML error page, with the navigation of whoever is signed in (never "sign in" to a signed-in user)."""
-    user, csrf = None, ""
-    try:
-        with request.app.state.sessions() as db:
-            caller = identify(request, db)
-            user, csrf = caller.user, caller.csrf
-    except Exception:  # a bad token, or the database is down: an anonymous header is still a useful page
-        pass
-    return templates.TemplateResponse(
-        request,
-        "error.html",
-        {"status": status, "message": message, "user": user, "csrf": csrf, "splits": request.app.state.settings.splits},
-        status_code=status,
-        headers=headers,
-    )
 
 
 def _problem(exc: UploadError | HTTPException) -> tuple[int, str]:

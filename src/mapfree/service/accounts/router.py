@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 
 from ..database.models import Anchor, ApiToken, Submission, WebSession, now
 from ..http.caller import SESSION_COOKIE, RowId, db_session, require_user, require_writer
+from ..http.render import page
 from ..inputs import check_name
 from ..leaderboard.own import test_quota
 from ..schemas import MeOut, NewTokenOut, RevokedTokenOut, SessionEndedOut, SessionOut, TokenOut
@@ -145,8 +146,6 @@ def end_session(session_id: RowId, request: Request, db: Session = Depends(db_se
 @router.get("/me/access", response_class=HTMLResponse, include_in_schema=False)
 def access_page(request: Request, db: Session = Depends(db_session)):
     """Your tokens and browser sessions, each with a button that revokes it."""
-    from ..pages import page
-
     caller = require_user(request, db)
     sid = request.cookies.get(SESSION_COOKIE)
     current = auth.hash_secret(sid) if sid else ""

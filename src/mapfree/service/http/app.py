@@ -11,7 +11,6 @@ from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from starlette.concurrency import run_in_threadpool
@@ -26,6 +25,7 @@ from ..leaderboard.own import Withdrawn
 from ..leaderboard.storage import drop_interrupted_uploads
 from ..process import die_with_parent, parent_from_env
 from ..schemas import ERRORS
+from .errors import error_response, wants_html
 from .gc_freeze import freeze_long_lived
 from .guard import AuthThrottle, CredentialGate, client_address, request_id
 from .head_as_get import HeadAsGet
@@ -35,23 +35,7 @@ from .metrics import Metrics
 from .timeouts import BodyTimeout
 
 log = logging.getLogger("mapfree.http")
-_API_PREFIXES = ("/api/", "/anchors", "/health", "/metrics", "/openapi.json")
 CSP = "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; frame-ancestors 'none'"
-
-
-def _wants_html(request: Request) -> bool:
-    p = request.url.path
-    return not p.startswith(_API_PREFIXES) and "text/html" in request.headers.get("accept", "")
-
-
-def error_response(request: Request, status: int, message: str, headers: dict | None = None):
-    """A request's error: the HTML error page for a browser, else JSON ``{detail, status, request_id}``."""
-    if _wants_html(request):
-        from ..pages import error_page
-
-        return error_page(request, status, message, headers)
-    rid = getattr(request.state, "request_id", None)
-    return JSONResponse({"detail": message, "status": status, "request_id": rid}, status_code=status, headers=headers)
 
 
 def _validation_message(exc: RequestValidationError) -> str:
@@ -98,7 +82,7 @@ def create_app(settings: Settings) -> FastAPI:
 
     @app.exception_handler(Withdrawn)
     async def _withdrawn(request: Request, exc: Withdrawn):
-        if _wants_html(request):
+        if wants_html(request):
             from ..pages import withdrawn_page
 
             return await run_in_threadpool(withdrawn_page, request, exc)

@@ -10,7 +10,11 @@ import uuid
 from collections import OrderedDict, deque
 
 from fastapi import HTTPException, Request
+from starlette.concurrency import run_in_threadpool
 from starlette.types import ASGIApp, Receive, Scope, Send
+
+from .caller import check_credentials
+from .errors import error_response
 
 _RID_RE = re.compile(r"[A-Za-z0-9._-]{1,64}")
 
@@ -99,16 +103,10 @@ class CredentialGate:
             or (scope["method"], scope["path"]) in _ANONYMOUS_WRITES
         ):
             return await self.app(scope, receive, send)
-        from starlette.concurrency import run_in_threadpool
-
-        from .caller import check_credentials
-
         request = Request(scope)
         try:
             scope.setdefault("state", {})["account"] = await run_in_threadpool(check_credentials, request)
         except HTTPException as e:
-            from .app import error_response
-
             headers = {**(e.headers or {}), "Connection": "close"}  # the unread body ends the connection
             response = await run_in_threadpool(error_response, request, e.status_code, str(e.detail), headers)
             return await response(scope, receive, send)
