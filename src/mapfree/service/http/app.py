@@ -47,6 +47,7 @@ def _validation_message(exc: RequestValidationError) -> str:
 
 
 def create_app(settings: Settings) -> FastAPI:
+    """The app of ``mapfree.service.create_app`` (documented there): database, state, middlewares, routes."""
     engine = make_engine(settings.db_url)
     init_db(engine)
     with session_factory(engine).begin() as db:  # uploads cut off when a server was killed: refund them now

@@ -41,6 +41,13 @@ class Quota:
 
 
 def test_quota(db: Session, settings: Settings, user: User) -> Quota:
+    """The test evaluations an account has used in the last 24 h and may still make.
+
+    Args:
+        db: The request's database session.
+        settings: The server's settings (its daily test limit).
+        user: The account (its own limit, when set, replaces the server's).
+    """
     return Quota(recent_count(db, user, "test", 86400), int(daily_test_limit(settings, user)))
 
 
@@ -60,8 +67,20 @@ class Withdrawn(HTTPException):
 
 
 def own_submission(db: Session, user: User, sid: str) -> Submission:
-    """One of ``user``'s submissions (admins: any) that can still change: 404 when there is no such submission
-    of theirs, ``Withdrawn`` (409) when it was withdrawn."""
+    """One of the caller's submissions (admins: any) that can still change.
+
+    Args:
+        db: The request's database session.
+        user: The caller's account.
+        sid: The submission's id.
+
+    Returns:
+        The submission.
+
+    Raises:
+        HTTPException: 404 when there is no such submission of theirs.
+        Withdrawn: 409 when it was withdrawn.
+    """
     sub = db.get(Submission, sid) if len(sid) <= 32 else None
     if sub is None or (sub.user_id != user.id and not user.is_admin):
         raise HTTPException(404, "no such submission of yours")
@@ -71,8 +90,14 @@ def own_submission(db: Session, user: User, sid: str) -> Submission:
 
 
 def withdraw(db: Session, sub: Submission) -> None:
-    """Take a submission off every board for good: results, plots, metadata and ZIP deleted, status
-    ``withdrawn``. A job still queued is never run; one running is dropped (its worker no longer owns it)."""
+    """Take a submission off every board for good: results, plots, method description and ZIP deleted, status
+    ``withdrawn``. A job still queued is never run; one running is dropped (its worker no longer owns it). The
+    row stays, so that the submission still counts against the account's limits.
+
+    Args:
+        db: The request's database session; committed.
+        sub: The submission (``own_submission``).
+    """
     for table in (Plot, Result, MethodInfo, SubmissionFile):
         db.execute(delete(table).where(table.submission_id == sub.id))
     sub.status, sub.public, sub.lease_until, sub.worker_id = WITHDRAWN, False, None, None
@@ -81,7 +106,20 @@ def withdraw(db: Session, sub: Submission) -> None:
 
 
 def zip_response(request: Request, db: Session, sub: Submission) -> Response:
-    """The stored ZIP as a download, streamed chunk by chunk (``storage.stream_zip``); 410 once it is gone."""
+    """The stored ZIP of a submission as a download, streamed chunk by chunk, each read in a short transaction of
+    its own (``storage.stream_zip``).
+
+    Args:
+        request: The request (the app's database sessions).
+        db: The request's database session; committed.
+        sub: The submission (``own_submission``).
+
+    Returns:
+        A streaming ``application/zip`` attachment.
+
+    Raises:
+        HTTPException: 410 once the ZIP is no longer stored (``Settings.zip_retention_days``).
+    """
     if not is_stored(db, sub.id):
         raise HTTPException(410, "the ZIP of this submission is no longer stored")
     db.commit()
