@@ -25,7 +25,7 @@ def _limit(text: str) -> int | None:
 
 def _row_id(text: str) -> int:
     """A token's or session's id as listed: a number from 0 to 2^31 - 1 (the database's integer)."""
-    from ..service.http.caller import MAX_ROW_ID
+    from ..service.accounts.caller import MAX_ROW_ID
 
     try:
         n = int(text)

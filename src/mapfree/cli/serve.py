@@ -441,7 +441,7 @@ def run(a: argparse.Namespace) -> int:
             os.environ["MAPFREE_SETTINGS"] = json.dumps(dataclasses.asdict(settings), default=str)
             os.environ[PARENT_PID_ENV] = str(os.getpid())  # they end with this process, even on kill -9
             uvicorn.run(
-                "mapfree.service.http.app:app_from_env",
+                "mapfree.service.app:app_from_env",
                 factory=True,
                 host=a.host,
                 port=a.port,

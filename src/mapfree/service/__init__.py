@@ -46,6 +46,6 @@ def create_app(settings: Settings) -> FastAPI:
         uvicorn.run(app, host="127.0.0.1", port=8000)
         ```
     """
-    from .http.app import create_app as _create
+    from .app import create_app as _create
 
     return _create(settings)

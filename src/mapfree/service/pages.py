@@ -18,6 +18,17 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from .accounts import tokens as auth
+from .accounts.caller import (
+    LOGIN_CSRF_COOKIE,
+    SESSION_COOKIE,
+    RowId,
+    db_session,
+    identify,
+    require_user,
+    require_writer,
+)
+from .accounts.quota import test_quota
+from .accounts.router import current_token_hash, list_sessions, list_tokens, session_json, token_json
 from .anchors.domain import (
     add_photo,
     anchor_json,
@@ -36,7 +47,6 @@ from .anchors.localizers import check_method, default_method, estimate_json, fig
 from .anchors.photos import Photo, Upload
 from .anchors.photos import read_upload as read_photo_upload
 from .database.models import Anchor, AnchorPhoto, MethodInfo, Submission, User
-from .http.caller import LOGIN_CSRF_COOKIE, SESSION_COOKIE, RowId, db_session, identify, require_writer
 from .http.heavy import heavy
 from .http.render import error_page, page
 from .inputs import UploadError, spooled_upload
@@ -55,7 +65,7 @@ from .leaderboard.boards import (
     save_meta,
     visible_json,
 )
-from .leaderboard.own import Withdrawn, own_submission, test_quota, withdraw, zip_response
+from .leaderboard.own import Withdrawn, own_submission, withdraw, zip_response
 from .leaderboard.scoring import LOWER_IS_BETTER, SHORT, known_scenes
 from .leaderboard.submissions import accept, to_json, visible_submission
 
@@ -184,6 +194,21 @@ def withdrawn_page(request: Request, exc: Withdrawn) -> HTMLResponse:
         if user is None:
             return error_page(request, exc.status_code, str(exc.detail))
         return _history(request, db, user, exc.status_code, str(exc.detail))
+
+
+@router.get("/me/access", response_class=HTMLResponse)
+def access_page(request: Request, db: Session = Depends(db_session)):
+    """Your tokens and browser sessions, each with a button that revokes it."""
+    caller = require_user(request, db)
+    sid = request.cookies.get(SESSION_COOKIE)
+    current = auth.hash_secret(sid) if sid else ""
+    return page(
+        request,
+        "access.html",
+        db,
+        tokens=[token_json(t, current_token_hash(request)) for t in list_tokens(db, caller.user.id)],
+        sessions=[session_json(s, current) for s in list_sessions(db, caller.user.id)],
+    )
 
 
 # ------------------------------------------------------------------------------------------- submissions

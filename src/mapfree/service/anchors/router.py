@@ -7,8 +7,8 @@ from fastapi.responses import Response
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from ..accounts.caller import RowId, db_session, require_user, require_writer
 from ..database.models import AnchorPhoto
-from ..http.caller import RowId, db_session, require_user, require_writer
 from ..http.heavy import heavy
 from ..inputs import read_upload
 from ..schemas import AnchorOut, LocalizeOut

@@ -13,7 +13,7 @@ from fastapi import HTTPException, Request
 from starlette.concurrency import run_in_threadpool
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from .caller import check_credentials
+from ..accounts.caller import check_credentials
 from .errors import error_response
 
 _RID_RE = re.compile(r"[A-Za-z0-9._-]{1,64}")

@@ -13,7 +13,7 @@ from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 from sqlalchemy.orm import Session
 
-from .caller import identify
+from ..accounts.caller import identify
 
 templates = Jinja2Templates(directory=str(Path(__file__).parents[1] / "templates"))
 

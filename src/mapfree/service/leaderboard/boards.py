@@ -18,8 +18,8 @@ from fastapi import HTTPException, Request
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from ..accounts.caller import identify
 from ..database.models import MethodInfo, Result, Submission, User
-from ..http.caller import identify
 from ..inputs import UploadError
 from .published import REFERENCE_ROWS
 from .scoring import LOWER_IS_BETTER, METRIC_KEYS, SHORT

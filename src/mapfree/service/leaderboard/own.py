@@ -1,5 +1,6 @@
 """What an account does with its own submissions: withdraw one (results, plots and ZIP deleted; the row stays so
-that it still counts against the quotas), download its ZIP, describe its method, and see the test quota left.
+that it still counts against the quotas), download its ZIP, describe its method (the test quota it has left is
+``accounts.quota.test_quota``).
 
 Withdrawing is final: every later action of the owner on that submission (visibility, method, withdrawing again,
 downloading) is refused with a 409 ``Withdrawn`` that says so; only its owner (and admins) still see its record,
@@ -8,47 +9,16 @@ marked withdrawn (``GET /api/submissions/{id}``, its page); boards, compare and 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 
 from fastapi import HTTPException, Request
 from fastapi.responses import Response, StreamingResponse
 from sqlalchemy import delete
 from sqlalchemy.orm import Session
 
-from ..config import Settings, shown_limit
 from ..database.models import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
 from .storage import is_stored, stream_zip
-from .submissions import daily_test_limit, recent_count
 
 WITHDRAWN = "withdrawn"
-
-
-@dataclass
-class Quota:
-    """Test evaluations: used in the last 24 h (withdrawn ones included), the limit, and what is left; both
-    ``"unlimited"`` when the account has no limit."""
-
-    used: int
-    limit: int  # UNLIMITED (negative): no limit
-
-    @property
-    def left(self) -> int | str:
-        return shown_limit(self.limit) if self.limit < 0 else max(0, self.limit - self.used)
-
-    @property
-    def shown_limit(self) -> int | str:
-        return shown_limit(self.limit)
-
-
-def test_quota(db: Session, settings: Settings, user: User) -> Quota:
-    """The test evaluations an account has used in the last 24 h and may still make.
-
-    Args:
-        db: The request's database session.
-        settings: The server's settings (its daily test limit).
-        user: The account (its own limit, when set, replaces the server's).
-    """
-    return Quota(recent_count(db, user, "test", 86400), int(daily_test_limit(settings, user)))
 
 
 class Withdrawn(HTTPException):

@@ -12,7 +12,7 @@ from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from ..accounts.quota import check_quota, lock_user
+from ..accounts.quota import check_quota, daily_test_limit, lock_user, recent_count
 from ..config import UNLIMITED, Settings
 from ..database.models import Plot, Result, Submission, User, now
 from ..inputs import UploadError, check_name
@@ -20,24 +20,6 @@ from .disclosure import without_medians
 from .scoring import PLOT_NAMES, known_scenes, render_plots, unpack_report
 from .storage import UPLOAD_LEASE_SECONDS, copy_in
 from .zipcheck import check_submission_zip
-
-
-def daily_test_limit(settings: Settings, user: User) -> int:
-    """The account's own limit when set, else the server's; ``UNLIMITED`` (negative): no limit, 0: none."""
-    limit = user.test_daily_limit if user.test_daily_limit is not None else settings.test_daily_limit
-    return UNLIMITED if limit < 0 else limit
-
-
-def recent_count(db: Session, user: User, split: str, window_s: float) -> int:
-    """How many submissions ``user`` made to ``split`` in the last ``window_s`` (withdrawn ones included)."""
-    return int(
-        db.scalar(
-            select(func.count())
-            .select_from(Submission)
-            .where(Submission.user_id == user.id, Submission.split == split, Submission.created_at > now() - window_s)
-        )
-        or 0
-    )
 
 
 def _limit_reached(db: Session, user: User, split: str, window_s: float, limit: int, what: str) -> None:

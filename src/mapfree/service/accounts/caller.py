@@ -13,8 +13,8 @@ from typing import Annotated
 from fastapi import HTTPException, Path, Request
 from sqlalchemy.orm import Session
 
-from ..accounts import tokens as auth
 from ..database.models import User, WebSession
+from . import tokens as auth
 
 #: The largest row id the database holds (a 32-bit integer on PostgreSQL): a larger one in a path is a 422,
 #: not a query that overflows (a 500 from 2^63 on SQLite, from 2^31 on PostgreSQL).
