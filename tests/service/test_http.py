@@ -97,7 +97,7 @@ def test_health_answers_from_a_live_snapshot_and_fails_when_the_database_does(ma
     from sqlalchemy import create_engine
 
     from mapfree.service.database.models import WorkerRow, make_engine, session_factory
-    from mapfree.service.http.health import STALE_SECONDS, HealthMonitor, Snapshot
+    from mapfree.service.operations.health import STALE_SECONDS, HealthMonitor, Snapshot
 
     app = make_app()
     h = app.client.get("/health/detail", headers=OPERATOR).json()

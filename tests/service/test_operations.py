@@ -375,7 +375,7 @@ def test_junk_requests_add_no_metric_series(sqlite_server):
     no route matches is ``unmatched``, so they add nothing past the first."""
     import httpx
 
-    from mapfree.service.http.metrics import METHODS
+    from mapfree.service.operations.metrics import METHODS
 
     with httpx.Client(base_url=sqlite_server.url, timeout=10) as c:
         c.request("JUNK0", "/nope/0")
@@ -411,7 +411,7 @@ def test_metrics_show_a_waiting_queue(make_app, split_data):  # noqa: F811
 
     from sqlalchemy import create_engine
 
-    from mapfree.service.http.metrics import Metrics
+    from mapfree.service.operations.metrics import Metrics
 
     down = Metrics(create_engine(f"sqlite:///{app.settings.db_url.split('///')[-1]}.missing/x.db"))
     down.observe("GET", "/health", 200, 0.01)

@@ -7,6 +7,7 @@ import importlib
 import os
 import sys
 import traceback
+from typing import NoReturn
 
 
 class HelpFormatter(argparse.HelpFormatter):
@@ -26,7 +27,7 @@ class Parser(argparse.ArgumentParser):
     """argparse's parser, but a command line it cannot parse is one line (which argument, what is wrong, where the
     help is) with exit status 2, not the whole usage block before it."""
 
-    def error(self, message: str):  # type: ignore[override]
+    def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (`{self.prog} --help` shows the usage)\n")
 
 

@@ -25,7 +25,7 @@ def _limit(text: str) -> int | None:
 
 def _row_id(text: str) -> int:
     """A token's or session's id as listed: a number from 0 to 2^31 - 1 (the database's integer)."""
-    from ..service.http.caller import MAX_ROW_ID
+    from ..service.accounts.caller import MAX_ROW_ID
 
     try:
         n = int(text)
@@ -125,6 +125,7 @@ def _when(t: float | None) -> str:
 
 def run(a: argparse.Namespace) -> int:
     from sqlalchemy import select
+    from sqlalchemy.orm import Session
 
     from ..service.accounts import tokens as auth
     from ..service.database.models import User, session_factory
@@ -149,7 +150,7 @@ def run(a: argparse.Namespace) -> int:
         return 0
     sessions = session_factory(engine)
 
-    def user(db, name):
+    def user(db: Session, name: str) -> User:
         u = db.scalar(select(User).where(User.name == name))
         if u is None:
             raise LookupError(f"no user {name!r}")

@@ -6,8 +6,12 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..method_names import BEST_OFFLINE
+
+if TYPE_CHECKING:
+    from ..geometry import Pose
 
 DESCRIPTION = """\
 Estimate the metric 6-DoF pose of QUERY relative to REF (X_query = R X_ref + t) and print it as JSON
@@ -121,7 +125,7 @@ def _intrinsics(args, image: Path, flag: str | None, optional: bool = False, wha
     return _lookup(read_intrinsics(source), image, source)
 
 
-def _gt_pose(args):
+def _gt_pose(args: argparse.Namespace) -> Pose | None:
     from ..data import read_poses
     from ..geometry import Pose
 

@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ..relocalize import RunResult
 
 DESCRIPTION = """\
 Relocalize every query the benchmark scores (every 5th; --all-frames for all) of every scene of a split
@@ -178,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
         return fail("run", problem)
     from ..relocalize import run_split
     from ..relocalize.distributed import ClusterError
+    from ..relocalize.multiframe import MultiRunResult, frames_path, run_multi
 
     try:
         ray_options = _ray_options(args)
@@ -188,9 +194,7 @@ def run(args: argparse.Namespace) -> int:
             from ..relocalize.references import with_references
 
             method = with_references(method, args.references, args.reference_mode)
-        run = run_split
-        if args.track == "multi":
-            from ..relocalize.multiframe import run_multi as run
+        run: Callable[..., RunResult | MultiRunResult] = run_multi if args.track == "multi" else run_split
         res = run(
             args.root,
             args.split,
@@ -212,7 +216,6 @@ def run(args: argparse.Namespace) -> int:
         return fail("run", e)
     except KeyboardInterrupt:
         from ..relocalize import journal_path, read_journal
-        from ..relocalize.multiframe import frames_path
 
         jpath = journal_path(frames_path(args.output) if args.track == "multi" else args.output)
         print(
@@ -222,7 +225,7 @@ def run(args: argparse.Namespace) -> int:
         )
         return 130
     out = res.to_dict()
-    frames = getattr(res, "frames", res)  # the multi-frame track: the per-frame run behind the fused poses
+    frames = res.frames if isinstance(res, MultiRunResult) else res  # multi-frame: the per-frame run behind it
     if frames.stale_scenes:
         print(
             f"mapfree run: the data of {', '.join(frames.stale_scenes)} changed since the journal was written: "

@@ -62,8 +62,8 @@ def run(args: argparse.Namespace) -> int:
         [p.name for p in pairs],
         [p.T_0to1.R for p in pairs],
         [p.T_0to1.t for p in pairs],
-        [e.pose.R if e.ok else nan_R for e in ests],
-        [e.pose.t if e.ok else nan_t for e in ests],
+        [e.pose.R if e.pose is not None else nan_R for e in ests],
+        [e.pose.t if e.pose is not None else nan_t for e in ests],
         [e.ok and not e.extras.get("scale_free") and e.extras.get("metric", True) for e in ests],
     )
     args.out.mkdir(parents=True, exist_ok=True)

@@ -304,7 +304,8 @@ class Supervisor:
         stable_s: float = 30.0,
         env: dict[str, str] | None = None,
     ):
-        self.cmd, self.n, self.procs, self.stopping = cmd, n, [], threading.Event()
+        self.cmd, self.n, self.stopping = cmd, n, threading.Event()
+        self.procs: list[subprocess.Popen] = []
         self.env = env
         self.backoff, self.max_backoff, self.stable_s = backoff, max_backoff, stable_s
         self.started: list[float] = []
@@ -440,7 +441,7 @@ def run(a: argparse.Namespace) -> int:
             os.environ["MAPFREE_SETTINGS"] = json.dumps(dataclasses.asdict(settings), default=str)
             os.environ[PARENT_PID_ENV] = str(os.getpid())  # they end with this process, even on kill -9
             uvicorn.run(
-                "mapfree.service.http.app:app_from_env",
+                "mapfree.service.app:app_from_env",
                 factory=True,
                 host=a.host,
                 port=a.port,

@@ -126,6 +126,7 @@ def evaluate_sevenscenes(
         for n, (mapping, queries) in data.items():
             _, ests = localize_with_references(method, mapping, queries, k, mode, progress=progress, localizer=loc)
             for f, e in zip(queries, ests):
+                assert f.pose is not None  # SevenScenesScene.frames reads every frame's pose
                 qg, tg = f.pose.qt()
                 qe, te = e.pose.qt() if e.pose is not None else (np.full(4, np.nan), np.full(3, np.nan))
                 Kf = f.intrinsics
@@ -197,9 +198,9 @@ def write_reports(reports: dict, out: Path, plots: bool = True) -> str:
         summary.add_row(label, str(len(r.estimated)), *[_fmt(v) for v in _summary_values(r)])
     if plots and reports:
         save_comparison(reports, out)
-    console = Console(file=io.StringIO(), width=160, color_system=None)
-    console.print(summary)
-    text = console.file.getvalue()
+    buffer = io.StringIO()
+    Console(file=buffer, width=160, color_system=None).print(summary)
+    text = buffer.getvalue()
     (out / "summary.txt").write_text(text)
     (out / "summary.json").write_text(json.dumps({k: r.to_dict()["metrics"] for k, r in reports.items()}, indent=2))
     return text

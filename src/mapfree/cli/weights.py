@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import TYPE_CHECKING
 
 from . import EXIT_ERROR, EXIT_OK, HelpFormatter, fail
+
+if TYPE_CHECKING:
+    from ..weights import Model
 
 DESCRIPTION = """\
 List the published weights the methods use (matchers, depth networks, MASt3R/DUSt3R, the RPR networks), where
@@ -46,13 +50,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _rows(names: list[str]) -> list[tuple[object, list[str]]]:
+def _rows(names: list[str]) -> list[tuple[Model, list[str]]]:
     """(model, names that need it) for the names given, else for every published model."""
     from ..methods import all_weight_models, weight_models
 
     if not names:
         return all_weight_models()
-    rows: dict[str, tuple[object, list[str]]] = {}
+    rows: dict[str, tuple[Model, list[str]]] = {}
     for name in names:
         for model in weight_models(name):
             rows.setdefault(model.name, (model, []))[1].append(name)

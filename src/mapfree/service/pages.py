@@ -8,18 +8,27 @@ from __future__ import annotations
 import base64
 import secrets
 import shlex
-import time
 from dataclasses import replace
 from pathlib import Path
 from urllib.parse import urlencode
 
 from fastapi import APIRouter, Depends, File, Form, HTTPException, Query, Request, UploadFile
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
-from fastapi.templating import Jinja2Templates
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from .accounts import tokens as auth
+from .accounts.caller import (
+    LOGIN_CSRF_COOKIE,
+    SESSION_COOKIE,
+    RowId,
+    db_session,
+    identify,
+    require_user,
+    require_writer,
+)
+from .accounts.quota import test_quota
+from .accounts.router import current_token_hash, list_sessions, list_tokens, session_json, token_json
 from .anchors.domain import (
     add_photo,
     anchor_json,
@@ -38,8 +47,8 @@ from .anchors.localizers import check_method, default_method, estimate_json, fig
 from .anchors.photos import Photo, Upload
 from .anchors.photos import read_upload as read_photo_upload
 from .database.models import Anchor, AnchorPhoto, MethodInfo, Submission, User
-from .http.caller import LOGIN_CSRF_COOKIE, SESSION_COOKIE, RowId, db_session, identify, require_writer
 from .http.heavy import heavy
+from .http.render import error_page, page
 from .inputs import UploadError, spooled_upload
 from .leaderboard.boards import (
     MAX_PER_PAGE,
@@ -56,12 +65,11 @@ from .leaderboard.boards import (
     save_meta,
     visible_json,
 )
-from .leaderboard.own import Withdrawn, own_submission, test_quota, withdraw, zip_response
+from .leaderboard.own import Withdrawn, own_submission, withdraw, zip_response
 from .leaderboard.scoring import LOWER_IS_BETTER, SHORT, known_scenes
 from .leaderboard.submissions import accept, to_json, visible_submission
 
 router = APIRouter(include_in_schema=False)
-templates = Jinja2Templates(directory=str(Path(__file__).parent / "templates"))
 LABELS = {
     "vcre_auc": "VCRE AUC",
     "vcre_prec": "VCRE prec.",
@@ -79,53 +87,6 @@ RELOC_CHOICES = {
     "sift_pnp_sensor": "SIFT + PnP; needs the reference depth",
     "sift_emat_none": "SIFT + essential matrix; no depth, so direction only: no metric scale",
 }
-
-
-def _fmt_time(t, fmt: str = "%Y-%m-%d %H:%M:%S UTC"):
-    return time.strftime(fmt, time.gmtime(t)) if t else ""
-
-
-def _fmt_num(v):
-    if v is None:
-        return "–"
-    return f"{v:.3f}" if isinstance(v, float) else str(v)
-
-
-def _fmt_diff(v):
-    return "–" if v is None else f"{v:+.3f}"
-
-
-templates.env.filters["time"] = _fmt_time
-templates.env.filters["num"] = _fmt_num
-templates.env.filters["diff"] = _fmt_diff
-
-
-def page(request: Request, name: str, db: Session, status: int = 200, **ctx) -> HTMLResponse:
-    caller = identify(request, db)
-    return templates.TemplateResponse(
-        request,
-        name,
-        {"user": caller.user, "csrf": caller.csrf, "splits": request.app.state.settings.splits, **ctx},
-        status_code=status,
-    )
-
-
-def error_page(request: Request, status: int, message: str, headers: dict | None = None) -> HTMLResponse:
-    """The HTML error page, with the navigation of whoever is signed in (never "sign in" to a signed-in user)."""
-    user, csrf = None, ""
-    try:
-        with request.app.state.sessions() as db:
-            caller = identify(request, db)
-            user, csrf = caller.user, caller.csrf
-    except Exception:  # a bad token, or the database is down: an anonymous header is still a useful page
-        pass
-    return templates.TemplateResponse(
-        request,
-        "error.html",
-        {"status": status, "message": message, "user": user, "csrf": csrf, "splits": request.app.state.settings.splits},
-        status_code=status,
-        headers=headers,
-    )
 
 
 def _problem(exc: UploadError | HTTPException) -> tuple[int, str]:
@@ -174,8 +135,8 @@ def login(request: Request, token: str = Form(...), csrf_token: str = Form(""), 
     settings = request.app.state.settings
     sid, _ = auth.open_session(db, row, settings.session_hours)  # ends with the token, at the latest
     db.commit()
-    resp = RedirectResponse("/me", status_code=303)
-    resp.set_cookie(
+    signed_in = RedirectResponse("/me", status_code=303)
+    signed_in.set_cookie(
         SESSION_COOKIE,
         sid,
         httponly=True,
@@ -183,8 +144,8 @@ def login(request: Request, token: str = Form(...), csrf_token: str = Form(""), 
         secure=settings.secure_cookies,
         max_age=int(settings.session_hours * 3600),
     )
-    resp.delete_cookie(LOGIN_CSRF_COOKIE)
-    return resp
+    signed_in.delete_cookie(LOGIN_CSRF_COOKIE)
+    return signed_in
 
 
 @router.post("/logout")
@@ -233,6 +194,21 @@ def withdrawn_page(request: Request, exc: Withdrawn) -> HTMLResponse:
         if user is None:
             return error_page(request, exc.status_code, str(exc.detail))
         return _history(request, db, user, exc.status_code, str(exc.detail))
+
+
+@router.get("/me/access", response_class=HTMLResponse)
+def access_page(request: Request, db: Session = Depends(db_session)):
+    """Your tokens and browser sessions, each with a button that revokes it."""
+    caller = require_user(request, db)
+    sid = request.cookies.get(SESSION_COOKIE)
+    current = auth.hash_secret(sid) if sid else ""
+    return page(
+        request,
+        "access.html",
+        db,
+        tokens=[token_json(t, current_token_hash(request)) for t in list_tokens(db, caller.user.id)],
+        sessions=[session_json(s, current) for s in list_sessions(db, caller.user.id)],
+    )
 
 
 # ------------------------------------------------------------------------------------------- submissions
@@ -622,12 +598,16 @@ def relocalize_anchor(
 # ------------------------------------------------------------------------------------ anchors from the page
 
 
-def _camera_lines(text: str) -> list[tuple[int, str, list[str], str | None]]:
+#: One line of the "cameras" box: (line number, file name, fx fy cx cy, pose or None).
+CameraLine = tuple[int, str, tuple[str, str, str, str], str | None]
+
+
+def _camera_lines(text: str) -> list[CameraLine]:
     """The page's "cameras" box: one line per photo, in the anchor's order, ``NAME fx fy cx cy`` and, for every
     photo but the first, its pose ``qw qx qy qz tx ty tz`` -> (line number, file name, intrinsics, pose). A
     name with spaces is quoted; blank lines and ``#`` comments are skipped. Values are checked per photo later,
     with the API's messages."""
-    out = []
+    out: list[CameraLine] = []
     for no, line in enumerate(text.splitlines(), 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
@@ -646,7 +626,8 @@ def _camera_lines(text: str) -> list[tuple[int, str, list[str], str | None]]:
                 f"cameras line {no}: expected {want!r} for {'a further' if out else 'the first'} "
                 f"photo; got {len(parts)} value(s)",
             )
-        out.append((no, parts[0], parts[1:5], " ".join(parts[5:]) if len(parts) == 12 else None))
+        intrinsics = (parts[1], parts[2], parts[3], parts[4])
+        out.append((no, parts[0], intrinsics, " ".join(parts[5:]) if len(parts) == 12 else None))
     if not out:
         raise UploadError(
             422,

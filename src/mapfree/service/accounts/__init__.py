@@ -1,1 +1,2 @@
-"""Accounts: API tokens and browser sessions, their lineage, the storage quota."""
+"""Accounts: API tokens and browser sessions, their lineage, who is calling a request, the quotas (storage, and
+test evaluations per day)."""

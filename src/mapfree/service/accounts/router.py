@@ -5,17 +5,16 @@ and label, never the token."""
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Form, HTTPException, Request
-from fastapi.responses import HTMLResponse, RedirectResponse
+from fastapi.responses import RedirectResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from ..database.models import Anchor, ApiToken, Submission, WebSession, now
-from ..http.caller import SESSION_COOKIE, RowId, db_session, require_user, require_writer
 from ..inputs import check_name
-from ..leaderboard.own import test_quota
 from ..schemas import MeOut, NewTokenOut, RevokedTokenOut, SessionEndedOut, SessionOut, TokenOut
 from . import tokens as auth
-from .quota import stored_bytes
+from .caller import SESSION_COOKIE, Caller, RowId, db_session, require_user, require_writer
+from .quota import stored_bytes, test_quota
 
 router = APIRouter()
 #: The longest lifetime a user may give a token they create themselves (an admin's CLI may give any).
@@ -54,15 +53,16 @@ def list_sessions(db: Session, user_id: int) -> list[WebSession]:
     )
 
 
-def _current_token_hash(request: Request) -> str:
+def current_token_hash(request: Request) -> str:
+    """The hash of the request's bearer token ("" without one): how a listing marks the token in use."""
     scheme, _, token = request.headers.get("authorization", "").partition(" ")
     return auth.hash_secret(token.strip()) if scheme.lower() == "bearer" and token.strip() else ""
 
 
-def current_token(request: Request, db: Session, caller) -> ApiToken | None:
+def current_token(request: Request, db: Session, caller: Caller) -> ApiToken | None:
     """The token a request is made with: its bearer token, or the one its browser session was signed in with."""
     if caller.via_token:
-        return db.scalar(select(ApiToken).where(ApiToken.token_hash == _current_token_hash(request)))
+        return db.scalar(select(ApiToken).where(ApiToken.token_hash == current_token_hash(request)))
     return db.get(ApiToken, caller.session.token_id) if caller.session and caller.session.token_id else None
 
 
@@ -79,7 +79,7 @@ def _own_row(request: Request, db: Session, model, row_id: int, what: str, csrf:
 def my_tokens(request: Request, db: Session = Depends(db_session)):
     """Your API tokens (prefix, label, creation, expiry, revoked); ``current``: the one this request used."""
     caller = require_user(request, db)
-    return [token_json(t, _current_token_hash(request)) for t in list_tokens(db, caller.user.id)]
+    return [token_json(t, current_token_hash(request)) for t in list_tokens(db, caller.user.id)]
 
 
 @router.post("/api/tokens", status_code=201, tags=["accounts"], response_model=NewTokenOut)
@@ -107,7 +107,7 @@ def create_token(
     except auth.TokenLimit as e:
         raise HTTPException(409, str(e)) from None
     db.commit()
-    row = db.scalar(select(ApiToken).where(ApiToken.token_hash == auth.hash_secret(token)))
+    row = db.execute(select(ApiToken).where(ApiToken.token_hash == auth.hash_secret(token))).scalar_one()
     return {"token": token, **token_json(row)}
 
 
@@ -139,24 +139,7 @@ def end_session(session_id: RowId, request: Request, db: Session = Depends(db_se
     return {"id": session_id, "ended": True}
 
 
-# ------------------------------------------------------------------------------------------------ the page
-
-
-@router.get("/me/access", response_class=HTMLResponse, include_in_schema=False)
-def access_page(request: Request, db: Session = Depends(db_session)):
-    """Your tokens and browser sessions, each with a button that revokes it."""
-    from ..pages import page
-
-    caller = require_user(request, db)
-    sid = request.cookies.get(SESSION_COOKIE)
-    current = auth.hash_secret(sid) if sid else ""
-    return page(
-        request,
-        "access.html",
-        db,
-        tokens=[token_json(t, _current_token_hash(request)) for t in list_tokens(db, caller.user.id)],
-        sessions=[session_json(s, current) for s in list_sessions(db, caller.user.id)],
-    )
+# ------------------------------------------------------------- the forms of the access page (``pages.access_page``)
 
 
 @router.post("/me/tokens/{tid}/revoke", include_in_schema=False)

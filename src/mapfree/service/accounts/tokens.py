@@ -77,7 +77,7 @@ def issue_token(
     revoking that one revokes it."""
     if expires_in is not None and not (math.isfinite(expires_in) and expires_in > 0):
         raise ValueError(f"a token's lifetime must be positive, got {expires_in} s")
-    active = db.scalar(
+    active = db.execute(
         select(func.count())
         .select_from(ApiToken)
         .where(
@@ -85,7 +85,7 @@ def issue_token(
             ApiToken.revoked.is_(False),
             or_(ApiToken.expires_at.is_(None), ApiToken.expires_at > now()),
         )
-    )
+    ).scalar_one()
     if active >= MAX_TOKENS:
         raise TokenLimit(
             f"account {user.name!r} holds {active} active tokens, the most it may; revoke some first "

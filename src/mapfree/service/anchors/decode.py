@@ -83,6 +83,8 @@ def parse_intrinsics(values: dict, width: int, height: int, what: str = "intrins
     out = {}
     for k in ("fx", "fy", "cx", "cy"):
         v = values.get(k)
+        if v is None:
+            raise UploadError(422, f"{what}: {k} must be a number, got None")
         try:
             f = float(v)
         except (TypeError, ValueError):
@@ -114,7 +116,8 @@ def parse_pose(text: str | None, what: str = "pose") -> list[float]:
     """``"qw qx qy qz tx ty tz"`` (world-to-camera, Map-free ``poses.txt`` order; commas allowed) -> the seven
     numbers with the quaternion normalised. A quaternion far from unit length or a translation beyond
     ``MAX_POSE_METRES`` is refused: it almost always means the values are in another order or unit."""
-    parts = (text or "").replace(",", " ").split()
+    text = text or ""
+    parts = text.replace(",", " ").split()
     if len(parts) != 7:
         raise UploadError(
             422,

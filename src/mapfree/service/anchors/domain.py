@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session
 from ...estimate import Estimate
 from ...geometry import Pose
 from ..accounts.quota import check_quota
+from ..config import Limits
 from ..database.models import Anchor, AnchorPhoto, RetiredPhotoIndex, User, new_id, now
 from ..inputs import UploadError, check_name, read_upload
 from .decode import parse_pose
@@ -24,7 +25,15 @@ IDENTITY = [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
 
 
 def photo_rows(db: Session, aid: str) -> list[AnchorPhoto]:
-    """The anchor's further photos, by index (1, 2, …; deleted ones leave gaps)."""
+    """The further photos of an anchor (all but photo 0, which is the anchor row's own).
+
+    Args:
+        db: The request's database session.
+        aid: The anchor's id.
+
+    Returns:
+        Its photo rows by index (1, 2, …; a deleted photo leaves a gap).
+    """
     return list(db.scalars(select(AnchorPhoto).where(AnchorPhoto.anchor_id == aid).order_by(AnchorPhoto.seq)))
 
 
@@ -41,9 +50,20 @@ def photo_indices(rows: list[AnchorPhoto]) -> list[int]:
 
 
 def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
-    """An anchor and its photos: photo 0 is the anchor's own (its camera is the anchor's frame); each further
-    photo's ``pose`` is world-to-camera from that frame as ``[qw, qx, qy, qz, tx, ty, tz]``. A photo keeps its
-    ``index`` for life (deleting one leaves a gap)."""
+    """An anchor and its photos as the API shows them (``AnchorOut``).
+
+    Photo 0 is the anchor's own: its camera is the anchor's frame. Each further photo's ``pose`` is
+    world-to-camera from that frame as ``[qw, qx, qy, qz, tx, ty, tz]`` (metres). A photo keeps its ``index`` for
+    life (deleting one leaves a gap).
+
+    Args:
+        a: The anchor.
+        rows: Its further photos (``photo_rows``).
+
+    Returns:
+        ``id``, ``name``, ``method``, ``intrinsics``, ``private``, ``has_depth``, ``num_photos``, ``photos``
+        (``index``, ``intrinsics``, ``has_depth``, ``pose`` each), ``created_at`` (UNIX seconds) and ``url``.
+    """
     photos = [{"index": 0, "intrinsics": a.intrinsics, "has_depth": a.depth is not None, "pose": IDENTITY}]
     photos += [
         {"index": r.seq, "intrinsics": r.intrinsics, "has_depth": r.depth is not None, "pose": r.pose} for r in rows
@@ -63,11 +83,38 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
 
 
 def photo_upload(
-    lim, what: str, image: UploadFile | None, fx, fy, cx, cy, depth: UploadFile | None, pose: str | None
+    lim: Limits,
+    what: str,
+    image: UploadFile | None,
+    fx: str | float,
+    fy: str | float,
+    cx: str | float,
+    cy: str | float,
+    depth: UploadFile | None,
+    pose: str | None,
 ) -> Upload:
-    """Read and check one photo of an anchor (image, intrinsics, depth, pose: ``photos.read_upload``, with what
-    is stored of it); every error names ``what`` (the photo) if given. ``pose=None``: the anchor's first photo,
-    whose camera is the anchor's frame."""
+    """Read and check one uploaded photo of an anchor, with what is stored of it (``photos.read_upload``).
+
+    Args:
+        lim: The server's limits (file sizes, pixels, the working size).
+        what: How errors name the photo (``photo_name``; "" for a lone photo).
+        image: The photo file (JPEG or PNG); turned upright by its EXIF orientation.
+        fx: Focal length along x of the uploaded image, in pixels.
+        fy: Focal length along y, in pixels.
+        cx: Principal point x, in pixels.
+        cy: Principal point y, in pixels.
+        depth: Optional depth map: a single-channel uint16 PNG in millimetres, of the photo's size.
+        pose: ``"qw qx qy qz tx ty tz"``, world-to-camera from the anchor's frame (metres); None for the
+            anchor's first photo, whose camera is that frame.
+
+    Returns:
+        The checked photo at the working size, and what is stored of it.
+
+    Raises:
+        UploadError: A missing or undecodable image (400, 422), a file or image over the limits (413), bad
+            intrinsics or pose, or a depth map without a single measurement (422); the message starts with
+            ``what``.
+    """
     try:
         img_bytes = read_upload(image, lim.max_image_bytes, "image")
         if img_bytes is None:
@@ -92,7 +139,15 @@ def photo_upload(
 
 
 def photo_name(i: int, f: UploadFile | None) -> str:
-    """How errors name a photo: its index in the anchor (0: the first) and the uploaded file's name."""
+    """How errors name a photo.
+
+    Args:
+        i: Its index in the anchor (0: the first).
+        f: The uploaded file, whose name is added when it has one.
+
+    Returns:
+        ``"photo 2 ('kitchen.jpg')"``, or ``"photo 2"`` without a file name.
+    """
     fname = check_name((f.filename or "") if f is not None else "", 80, "file name") if f is not None else ""
     return f"photo {i}" + (f" ({fname!r})" if fname else "")
 
@@ -113,8 +168,8 @@ def _runnable(m: str, ups: list[Upload], names: list[str]) -> None:
             ) from None
 
 
-def _extra_photos(
-    lim,
+def extra_photos(
+    lim: Limits,
     images: list[UploadFile],
     fx: list[str],
     fy: list[str],
@@ -124,9 +179,29 @@ def _extra_photos(
     depths: list[UploadFile],
     first: int,
 ) -> tuple[list[Upload], list[str]]:
-    """The repeated ``photo_*`` fields of a request: one value per ``photo_image``, in the same order. Depth
-    maps are all or none (an empty file part is dropped, so it cannot stand for a missing one): photos of
-    which only some have depth are added one by one (``POST /anchors/{id}/photos``)."""
+    """The further photos of ``POST /anchors``: its repeated ``photo_*`` fields, one value per ``photo_image``
+    in the same order, each photo read and checked (``photo_upload``).
+
+    Depth maps are all or none (an empty file part is dropped, so it cannot stand for a missing one): photos of
+    which only some have depth are added one by one (``POST /anchors/{id}/photos``).
+
+    Args:
+        lim: The server's limits.
+        images: The photo files; empty parts are skipped.
+        fx: One focal length along x per photo, in pixels.
+        fy: One focal length along y per photo, in pixels.
+        cx: One principal point x per photo, in pixels.
+        cy: One principal point y per photo, in pixels.
+        poses: One ``"qw qx qy qz tx ty tz"`` per photo, world-to-camera from the anchor's frame (metres).
+        depths: No depth maps, or one per photo.
+        first: The index of the first of these photos in the anchor (errors name photos by it).
+
+    Returns:
+        The checked photos, and how errors name each one.
+
+    Raises:
+        UploadError: A field with a count other than the photos' (422), or a photo ``photo_upload`` refuses.
+    """
     images = [f for f in images if f.filename or f.size]
     n = len(images)
     for field_name, vals in (
@@ -172,9 +247,17 @@ def _photo_rows_of(aid: str, ups: list[Upload], first_seq: int) -> list[AnchorPh
     ]
 
 
-def check_photo_count(lim, n: int) -> None:
-    """A 413 when an anchor would hold more than the limit of photos. Called before any photo is decoded too:
-    a small PNG can decode to tens of MB, so a request of a thousand of them must be refused unread."""
+def check_photo_count(lim: Limits, n: int) -> None:
+    """Refuse an anchor of more photos than the limit. Called before any photo is decoded too: a small PNG can
+    decode to tens of MB, so a request of a thousand of them must be refused unread.
+
+    Args:
+        lim: The server's limits (``max_anchor_photos``).
+        n: The photos the anchor would hold, the first included.
+
+    Raises:
+        UploadError: 413 past the limit.
+    """
     if n > lim.max_anchor_photos:
         raise UploadError(413, f"an anchor holds at most {lim.max_anchor_photos} photos; got {n}")
 
@@ -189,10 +272,26 @@ def make_anchor(
     names: list[str],
     private: bool = False,
 ) -> tuple[Anchor, list[AnchorPhoto]]:
-    """Store a new anchor of ``user`` from checked photos (``ups[0]``: the anchor's frame; ``names``: how errors
-    name them, "" for a lone photo), refused (4xx) past the photo limit or the storage quota, or when its method
-    cannot run on it here; ``private``: its photos are served to its owner and admins only, from the start.
-    Shared by ``POST /anchors`` and the relocalize page."""
+    """Store a new anchor of ``user``, after its method has prepared it here (so that an anchor that could never
+    localize is refused now, not at its first query). Shared by ``POST /anchors`` and the relocalize page.
+
+    Args:
+        request: The request (the app's settings and relocalizers).
+        db: The request's database session; committed.
+        user: The owner.
+        name: The anchor's name (checked; may be empty).
+        method: A method name a client may send (``localizers.check_method``); empty: the server's default.
+        ups: The checked photos (``photo_upload``); ``ups[0]``'s camera is the anchor's frame.
+        names: How errors name each photo ("" for a lone photo).
+        private: Serve its photos to its owner and admins only (anyone signed in may still localize).
+
+    Returns:
+        The stored anchor and its further photo rows.
+
+    Raises:
+        UploadError: Past the photo limit or the owner's storage quota (413), an unknown method (422), or a
+            method that cannot run on these photos here (``MethodUnavailable``, 422).
+    """
     settings = request.app.state.settings
     lim = settings.limits
     check_photo_count(lim, len(ups))
@@ -232,8 +331,20 @@ def make_anchor(
 
 
 def find_anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
-    """Anchor ``aid`` (404 otherwise); ``lock``: its row locked for the transaction, which serialises changes to
-    its photos (the next index) on PostgreSQL too."""
+    """The anchor of an id.
+
+    Args:
+        db: The request's database session.
+        aid: The anchor's id.
+        lock: Lock its row for the transaction, which serialises changes to its photos (the next index) on
+            PostgreSQL too.
+
+    Returns:
+        The anchor.
+
+    Raises:
+        HTTPException: 404 when there is none.
+    """
     a = None
     if len(aid) <= 32:
         a = (
@@ -247,12 +358,27 @@ def find_anchor(db: Session, aid: str, lock: bool = False) -> Anchor:
 
 
 def may_see_photos(a: Anchor, user: User | None) -> bool:
-    """Whether ``user`` may see the anchor's photos: anyone signed in, unless the anchor is private."""
+    """Whether an account may see the anchor's photos: anyone signed in, unless the anchor is private (then its
+    owner and admins).
+
+    Args:
+        a: The anchor.
+        user: The caller's account; None: nobody signed in.
+    """
     return user is not None and (not a.private or a.user_id == user.id or user.is_admin)
 
 
-def _own_anchor(a: Anchor, user: User, what: str) -> None:
-    """A 403 unless ``user`` owns the anchor or is an admin (anyone signed in may see and use it)."""
+def own_anchor(a: Anchor, user: User, what: str) -> None:
+    """Refuse a change to an anchor by anyone but its owner or an admin (anyone signed in may see and use it).
+
+    Args:
+        a: The anchor.
+        user: The caller's account.
+        what: The change, for the message ("delete it").
+
+    Raises:
+        HTTPException: 403 for anyone else.
+    """
     if a.user_id != user.id and not user.is_admin:
         raise HTTPException(403, f"only the anchor's owner can {what}")
 
@@ -279,20 +405,43 @@ def add_photo(
     user: User,
     aid: str,
     image: UploadFile | None,
-    fx,
-    fy,
-    cx,
-    cy,
+    fx: str | float,
+    fy: str | float,
+    cx: str | float,
+    cy: str | float,
     depth: UploadFile | None,
     pose: str,
 ) -> tuple[Anchor, list[AnchorPhoto]]:
-    """Check and store one more photo of anchor ``aid`` (owner or admin), at the index after the highest one it
-    ever had (``next_photo_index``); the same limits and errors as at creation. Shared by the API and the anchor's page."""
+    """Check and store one more photo of an anchor, at the index after the highest one it ever had
+    (``next_photo_index``), with the same limits and errors as at creation. Every API process then prepares
+    the anchor afresh. Shared by the API and the anchor's page.
+
+    Args:
+        request: The request (the app's settings and relocalizers).
+        db: The request's database session; committed.
+        user: The caller's account: the anchor's owner or an admin.
+        aid: The anchor's id.
+        image: The photo file (JPEG or PNG).
+        fx: Focal length along x of the uploaded image, in pixels.
+        fy: Focal length along y, in pixels.
+        cx: Principal point x, in pixels.
+        cy: Principal point y, in pixels.
+        depth: Optional depth map: a single-channel uint16 PNG in millimetres.
+        pose: ``"qw qx qy qz tx ty tz"``, world-to-camera from the anchor's frame (metres).
+
+    Returns:
+        The anchor and its further photo rows, the new one included.
+
+    Raises:
+        HTTPException: No such anchor (404), or not the caller's (403).
+        UploadError: A photo ``photo_upload`` refuses, an anchor at its photo limit or its owner's storage
+            quota (413), or a photo without the depth map the anchor's method needs (422).
+    """
     lim = request.app.state.settings.limits
 
     def checks(lock: bool) -> tuple[Anchor, int, str]:
         a = find_anchor(db, aid, lock=lock)
-        _own_anchor(a, user, "add photos to it")
+        own_anchor(a, user, "add photos to it")
         rows = photo_rows(db, a.id)
         seq = next_photo_index(db, a.id, rows)
         what = photo_name(seq, image)
@@ -315,11 +464,24 @@ def add_photo(
 
 
 def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) -> tuple[Anchor, list[AnchorPhoto]]:
-    """Delete photo ``k`` of anchor ``aid`` (owner or admin) with its stored bytes; every API process then
-    prepares the anchor afresh from the photos left. Photo 0 is the anchor's frame and stays (409), so an
-    anchor always keeps at least that photo."""
+    """Delete a photo of an anchor with its stored bytes; every API process then prepares the anchor afresh from
+    the photos left. Its index is never given again.
+
+    Args:
+        request: The request (the app's relocalizers).
+        db: The request's database session; committed.
+        user: The caller's account: the anchor's owner or an admin.
+        aid: The anchor's id.
+        k: The photo's index (1 or more: photo 0 is the anchor's frame and stays).
+
+    Returns:
+        The anchor and the further photo rows left.
+
+    Raises:
+        HTTPException: No such anchor or photo (404), not the caller's (403), or photo 0 (409).
+    """
     a = find_anchor(db, aid, lock=True)
-    _own_anchor(a, user, "delete its photos")
+    own_anchor(a, user, "delete its photos")
     rows = photo_rows(db, a.id)
     if k == 0:
         raise HTTPException(
@@ -341,9 +503,18 @@ def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) ->
     return a, photo_rows(db, a.id)
 
 
-def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim) -> Photo:
-    """Photo ``k`` of the anchor (0: the anchor row's; else the row with that index) decoded from the database,
-    at the working size."""
+def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim: Limits) -> Photo:
+    """A stored photo of an anchor, decoded from the database at the working size.
+
+    Args:
+        a: The anchor.
+        rows: Its further photos (``photo_rows``).
+        k: The photo's index (0: the anchor row's own).
+        lim: The server's limits (the working size).
+
+    Returns:
+        The photo with its intrinsics, depth map (if stored) and pose in the anchor's frame.
+    """
     row = next(r for r in rows if r.seq == k) if k else None
     if row is None:
         return decode_stored(a.image, a.intrinsics, a.depth, IDENTITY, lim, f"anchor photo {k}")
@@ -353,9 +524,27 @@ def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim) -> Photo:
 def localize_anchor(
     request: Request, a: Anchor, rows: list[AnchorPhoto], query: Photo, owner: int | None = None
 ) -> Estimate:
-    """The query's pose in the anchor's frame against its current photos (decoded from ``rows`` only when this
-    process has not prepared this version of the anchor, and then counted against ``owner``'s share of the
-    cache: the account asking); ``extras["photo"]`` is the answering photo's index."""
+    """Localize a query photo against an anchor with the anchor's method: its metric pose in the anchor's frame.
+
+    The stored photos are decoded only when this process has not prepared this version of the anchor; what it
+    prepares counts against ``owner``'s share of the cache. With several photos the most similar one answers.
+
+    Args:
+        request: The request (the app's settings and relocalizers).
+        a: The anchor.
+        rows: Its further photos (``photo_rows``), as they are now.
+        query: The query photo at the working size (``photos.read_upload``), with its intrinsics and optional
+            depth map.
+        owner: The account asking (its share of the prepared-anchor cache).
+
+    Returns:
+        The estimate: world-to-camera pose of the query in the anchor's frame (metres), confidence, timings;
+        no pose, with a reason, when the method finds none. ``extras["photo"]`` is the answering photo's index,
+        ``extras["method"]`` the method that ran.
+
+    Raises:
+        MethodUnavailable: The anchor's method cannot run here (weights missing, depth it needs absent).
+    """
     lim = request.app.state.settings.limits
     indices = photo_indices(rows)
     est = request.app.state.localizers.localize_photos(

@@ -8,7 +8,7 @@ import re
 from collections.abc import Callable, Hashable, Iterable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -20,6 +20,10 @@ from .methodpool import MethodPool
 from .photos import Photo
 from .prepared import ByteLRU, PreparedAnchor, localize_prepared, prepare_anchor
 from .worksize import DEFAULT_MAX_SIDE, fit_photo
+
+if TYPE_CHECKING:
+    from ...methods import Method
+    from ...relocalize import Localizer
 
 log = logging.getLogger("mapfree.service")
 FALLBACK_METHOD = "sift_pnp_sensor"  # reference depth only: what an anchor with a depth map can always use
@@ -153,7 +157,7 @@ def _unavailable(name: str, e: Exception) -> MethodUnavailable:
     return MethodUnavailable(f"method {name} cannot run on this server: {msg}")
 
 
-def effective_method(name: str, has_query_depth: bool):
+def effective_method(name: str, has_query_depth: bool) -> Method:
     """The ``Method`` to run: ``name``, or its PnP twin when the query has no depth map but the method's solver
     would need one (so that the default preset answers for a plain photo, at the anchor's metric scale)."""
     from ... import methods
@@ -189,7 +193,7 @@ class Localizers:
         return fit_photo(photo, self.max_side)
 
     @staticmethod
-    def _build(method):
+    def _build(method: Method) -> Localizer:
         from ...relocalize import Relocalizer
 
         try:
@@ -197,13 +201,13 @@ class Localizers:
         except Exception as e:
             raise _unavailable(method.name, e) from e
 
-    def _take(self, method):
+    def _take(self, method: Method) -> Localizer:
         return self.pool.take(method)
 
-    def _give(self, method, loc) -> None:
+    def _give(self, method: Method, loc: Localizer) -> None:
         self.pool.give(method, loc)
 
-    def _prepare(self, loc, name: str, photos: Iterable[Photo]) -> PreparedAnchor:
+    def _prepare(self, loc: Localizer, name: str, photos: Iterable[Photo]) -> PreparedAnchor:
         """Every photo prepared at the working size (``prepared.prepare_anchor``; each one fitted as it comes,
         so that a generator of decoded photos holds one at its native size at a time); a method that cannot
         run here is a 422, not a 500."""
@@ -271,13 +275,13 @@ class Localizers:
         against ``owner``'s share of the cache (the account asking: ``prepared.ByteLRU``). With several photos
         ``est.extras`` names the retrieved one (``photo``, ``retrieval_similarity``). Keypoints in
         ``extras["matches"]`` are in the working-size pixels (``fit``)."""
-        method = effective_method(method, query_depth is not None)
-        loc = self._take(method)
+        chosen = effective_method(method, query_depth is not None)
+        loc = self._take(chosen)
         try:
-            key = (anchor_id, method.name, version)
+            key = (anchor_id, chosen.name, version)
             prepared = self.anchors.get(key)
             if prepared is None:
-                prepared = self._prepare(loc, method.name, photos())
+                prepared = self._prepare(loc, chosen.name, photos())
                 self.anchors.put(key, prepared, prepared.nbytes, owner)
             q = self.fit(Photo(query_image, query_K, query_depth))
             try:
@@ -285,11 +289,11 @@ class Localizers:
             except MethodUnavailable:
                 raise
             except Exception as e:  # a method that fails outright on this input (not a "no pose")
-                raise _unavailable(method.name, e) from e
-            est.extras["method"] = method.name
+                raise _unavailable(chosen.name, e) from e
+            est.extras["method"] = chosen.name
             return est
         finally:
-            self._give(method, loc)
+            self._give(chosen, loc)
 
 
 def estimate_json(est: Estimate, method: str) -> dict:

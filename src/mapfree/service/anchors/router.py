@@ -7,21 +7,21 @@ from fastapi.responses import Response
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from ..accounts.caller import RowId, db_session, require_user, require_writer
 from ..database.models import AnchorPhoto
-from ..http.caller import RowId, db_session, require_user, require_writer
 from ..http.heavy import heavy
 from ..inputs import read_upload
 from ..schemas import AnchorOut, LocalizeOut
 from .domain import (
-    _extra_photos,
-    _own_anchor,
     add_photo,
     anchor_json,
     check_photo_count,
+    extra_photos,
     find_anchor,
     localize_anchor,
     make_anchor,
     may_see_photos,
+    own_anchor,
     photo_name,
     photo_rows,
     photo_upload,
@@ -74,7 +74,7 @@ def create_anchor(
     several = n_extra > 0  # one photo: messages as before, without "photo 0"
     name0 = photo_name(0, image) if several else ""
     first = photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
-    extra, names = _extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
+    extra, names = extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
     a, rows = make_anchor(request, db, caller.user, name, method, [first, *extra], [name0, *names], private)
     return anchor_json(a, rows)
 
@@ -145,7 +145,7 @@ def anchor_photo_image(aid: str, k: RowId, request: Request, db: Session = Depen
 def delete_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
     caller = require_writer(request, db)
     a = find_anchor(db, aid)
-    _own_anchor(a, caller.user, "delete it")
+    own_anchor(a, caller.user, "delete it")
     db.delete(a)
     db.commit()
     request.app.state.localizers.forget(aid)

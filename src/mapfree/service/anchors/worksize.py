@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from ...geometry import Intrinsics
+from ...relocalize import View
 from ..config import Limits
 
 #: The default long side (``Limits.work_max_side``).
@@ -40,7 +41,7 @@ def fit_image(
     return small, K2, d2
 
 
-ViewT = TypeVar("ViewT")
+ViewT = TypeVar("ViewT", bound=View)
 
 
 def fit_photo(photo: ViewT, max_side: int) -> ViewT:

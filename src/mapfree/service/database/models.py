@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import time
 import uuid
+from typing import Any, cast
 
 from sqlalchemy import (
     JSON,
@@ -24,7 +25,8 @@ from sqlalchemy import (
     event,
     false,
 )
-from sqlalchemy.engine import Engine, make_url
+from sqlalchemy.engine import Connection, CursorResult, Engine, make_url
+from sqlalchemy.engine import Result as Rows
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
 
@@ -34,6 +36,12 @@ def now() -> float:
 
 def new_id() -> str:
     return uuid.uuid4().hex
+
+
+def changed_rows(result: Rows[Any]) -> int:
+    """How many rows an UPDATE or DELETE run through a ``Session`` changed. The session returns a ``CursorResult``
+    for those statements, which its signature types as a plain ``Result``."""
+    return cast("CursorResult[Any]", result).rowcount
 
 
 class Base(DeclarativeBase):
@@ -247,7 +255,7 @@ def make_engine(url: str) -> Engine:
         engine = create_engine(url, connect_args={"timeout": 30, "check_same_thread": False})
 
         @event.listens_for(engine, "connect")
-        def _connect(dbapi_conn, _record):  # pragma: no cover - driver hook
+        def _connect(dbapi_conn: Any, _record: Any) -> None:  # pragma: no cover - driver hook
             dbapi_conn.isolation_level = None  # let us issue BEGIN ourselves
             cur = dbapi_conn.cursor()
             cur.execute("PRAGMA journal_mode=WAL")
@@ -256,7 +264,7 @@ def make_engine(url: str) -> Engine:
             cur.close()
 
         @event.listens_for(engine, "begin")
-        def _begin(conn):  # pragma: no cover - driver hook
+        def _begin(conn: Connection) -> None:  # pragma: no cover - driver hook
             # a connection marked read-only reads a WAL snapshot without queueing for the write lock
             conn.exec_driver_sql("BEGIN" if conn.get_execution_options().get(READ_ONLY) else "BEGIN IMMEDIATE")
 

@@ -1,1 +1,3 @@
-"""HTTP plumbing of the service: the app, who is calling, guards and limits, metrics, health."""
+"""HTTP plumbing of the service: guards and limits (credentials checked from the headers, throttled failures, body
+timeouts, the heavy-request pool), HTML rendering and error answers, logging. The app that assembles it is
+``service/app.py``."""

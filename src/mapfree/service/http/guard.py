@@ -10,6 +10,11 @@ import uuid
 from collections import OrderedDict, deque
 
 from fastapi import HTTPException, Request
+from starlette.concurrency import run_in_threadpool
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from ..accounts.caller import check_credentials
+from .errors import error_response
 
 _RID_RE = re.compile(r"[A-Za-z0-9._-]{1,64}")
 
@@ -88,26 +93,20 @@ class CredentialGate:
     upload used to be read whole (spooled to disk) and only then refused. The account found is kept in
     ``request.state.account`` (the heavy pool's fair share is per account)."""
 
-    def __init__(self, app):
+    def __init__(self, app: ASGIApp):
         self.app = app
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if (
             scope["type"] != "http"
             or scope["method"] not in _BODY_METHODS
             or (scope["method"], scope["path"]) in _ANONYMOUS_WRITES
         ):
             return await self.app(scope, receive, send)
-        from starlette.concurrency import run_in_threadpool
-
-        from .caller import check_credentials
-
         request = Request(scope)
         try:
             scope.setdefault("state", {})["account"] = await run_in_threadpool(check_credentials, request)
         except HTTPException as e:
-            from .app import error_response
-
             headers = {**(e.headers or {}), "Connection": "close"}  # the unread body ends the connection
             response = await run_in_threadpool(error_response, request, e.status_code, str(e.detail), headers)
             return await response(scope, receive, send)

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import asyncio
 import os
-from typing import Any
 
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 DEFAULT_HEADER_TIMEOUT = 10.0
@@ -110,17 +110,17 @@ class BodyTimeout:
     Only reads of the body are timed, not a wait for a disconnect after it; the application sees a disconnect,
     and whatever it answers then is dropped."""
 
-    def __init__(self, app: Any, seconds: float, total_seconds: float = 0.0):
+    def __init__(self, app: ASGIApp, seconds: float, total_seconds: float = 0.0):
         self.app, self.seconds, self.total_seconds = app, seconds, total_seconds
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or (self.seconds <= 0 and self.total_seconds <= 0):
             return await self.app(scope, receive, send)
         body_done = timed_out = started = False
         deadline: float | None = None
         loop = asyncio.get_running_loop()
 
-        async def timed_receive():
+        async def timed_receive() -> Message:
             nonlocal body_done, timed_out, deadline
             if body_done or timed_out:
                 return await receive() if not timed_out else {"type": "http.disconnect"}
@@ -161,7 +161,7 @@ class BodyTimeout:
             body_done = message.get("type") != "http.request" or not message.get("more_body", False)
             return message
 
-        async def guarded_send(message):
+        async def guarded_send(message: Message) -> None:
             nonlocal started
             if timed_out:
                 return  # the 408 went out already

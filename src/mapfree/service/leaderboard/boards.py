@@ -16,10 +16,10 @@ from urllib.parse import urlsplit
 
 from fastapi import HTTPException, Request
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
+from ..accounts.caller import identify
 from ..database.models import MethodInfo, Result, Submission, User
-from ..http.caller import identify
 from ..inputs import UploadError
 from .published import REFERENCE_ROWS
 from .scoring import LOWER_IS_BETTER, METRIC_KEYS, SHORT
@@ -87,7 +87,23 @@ def parse_meta(
     runtime_ms: str | float | None = None,
     extra_data: bool = False,
 ) -> MethodMeta:
-    """Checked metadata (422 naming the field otherwise): plain text, http(s) links only (no ``javascript:``)."""
+    """What an author states about the method behind a submission, checked: plain text, and http(s) links only
+    (no ``javascript:``).
+
+    Args:
+        description: Free text, at most ``MAX_DESCRIPTION`` characters.
+        paper_url: A link to the paper (http or https).
+        code_url: A link to the code (http or https).
+        runtime_ms: Runtime per query, in milliseconds (a number or its text; empty: not stated).
+        extra_data: Whether the method was trained or tuned on data beyond the benchmark's train split.
+
+    Returns:
+        The metadata.
+
+    Raises:
+        UploadError: 422 naming the field: too long, control or bidirectional-override characters, a link
+            that is not http(s), a runtime that is not a positive number.
+    """
     return MethodMeta(
         _text(description, MAX_DESCRIPTION, "description"),
         _url(paper_url, "paper_url"),
@@ -98,7 +114,13 @@ def parse_meta(
 
 
 def save_meta(db: Session, submission_id: str, meta: MethodMeta) -> None:
-    """Store (or replace) a submission's metadata; the caller commits."""
+    """Store (or replace) the method description of a submission; the caller commits.
+
+    Args:
+        db: The request's database session.
+        submission_id: The submission's id.
+        meta: The checked description (``parse_meta``).
+    """
     row = db.get(MethodInfo, submission_id)
     if row is None:
         db.add(MethodInfo(submission_id=submission_id, **asdict(meta)))
@@ -108,6 +130,12 @@ def save_meta(db: Session, submission_id: str, meta: MethodMeta) -> None:
 
 
 def meta_json(row: MethodInfo | None) -> dict:
+    """A submission's method description as the API shows it (``MethodMetaOut``); the empty one when none
+    was given.
+
+    Args:
+        row: The stored description, or None.
+    """
     if row is None:
         return asdict(MethodMeta())
     return {k: getattr(row, k) for k in asdict(MethodMeta())}
@@ -117,6 +145,17 @@ def meta_json(row: MethodInfo | None) -> dict:
 
 
 def check_sort(key: str) -> str:
+    """A board's sort key, checked.
+
+    Args:
+        key: A short metric name (``scoring.SHORT``: ``vcre_auc``, ``pose_auc``, ``med_trans``, …).
+
+    Returns:
+        The key.
+
+    Raises:
+        UploadError: 422 naming the keys for any other.
+    """
     if key not in SHORT:
         raise UploadError(422, f"unknown sort key {key!r}; use one of {', '.join(SHORT)}")
     return key
@@ -142,10 +181,24 @@ PER_PAGE, MAX_PER_PAGE = 50, 200
 def ranking(
     db: Session, split: str, sort: str = "vcre_auc", view: str = "all", scene: str | None = None
 ) -> list[tuple[str, int | None]]:
-    """Public finished submissions of ``split`` as (id, rank), best first by ``sort`` (ties by age); ``view="best"``
-    keeps each account's best entry; ``scene`` ranks by that scene's scores (not for ``test``: it has no
-    per-scene results). Only ids, dates and the one sort value are read (the database extracts it from the
-    stored JSON), so that a board of 20,000 entries costs milliseconds, not the decoding of every result."""
+    """The public scored submissions of a split, ranked. Equal scores share a rank; ties are ordered by age.
+    Only ids, dates and the one sort value are read (the database extracts it from the stored JSON), so that a
+    board of 20,000 entries costs milliseconds, not the decoding of every result.
+
+    Args:
+        db: The request's database session.
+        split: The split.
+        sort: The metric to rank by (``check_sort``); lower is better for the medians.
+        view: ``"all"``, or ``"best"``: each account's best entry only.
+        scene: Rank by this scene's scores instead of the split's (not for ``test``: it has no per-scene
+            results).
+
+    Returns:
+        ``(submission id, rank)`` pairs, best first; entries without the metric come last, without a rank.
+
+    Raises:
+        UploadError: 422 for an unknown sort key or view, or a scene of ``test``.
+    """
     check_sort(sort)
     if view not in VIEWS:
         raise UploadError(422, f"view must be one of {', '.join(VIEWS)}; got {view!r}")
@@ -171,8 +224,10 @@ def ranking(
     lower = sort in LOWER_IS_BETTER
     rows.sort(key=lambda r: (r[3] is None, 0.0 if r[3] is None else (r[3] if lower else -r[3]), r[1], r[0]))
     if view == "best":
-        seen: set[int] = set()
-        rows = [r for r in rows if not (r[2] in seen or seen.add(r[2]))]
+        best: dict[int, tuple] = {}
+        for r in rows:
+            best.setdefault(r[2], r)  # an author's first row in this order is their best
+        rows = list(best.values())
     return list(zip((r[0] for r in rows), competition_ranks([r[3] for r in rows])))
 
 
@@ -192,7 +247,7 @@ def entries_of(db: Session, split: str, ranked: list[tuple[str, int | None]], sc
         if sid not in by_id:  # withdrawn meanwhile
             continue
         _, name, created_at, uname, values, info = by_id[sid]
-        values = shown_metrics(split, values) if scene is None else (values or {}).get(scene) or {}
+        values = (shown_metrics(split, values) if scene is None else (values or {}).get(scene)) or {}
         entries.append(
             {
                 "id": sid,
@@ -231,7 +286,23 @@ def board(
     page: int = 1,
     per_page: int = PER_PAGE,
 ) -> Page:
-    """Page ``page`` (from 1) of the board, ``per_page`` rows (at most ``MAX_PER_PAGE``)."""
+    """One page of a leaderboard (``ranking``), each row with its name, author, method and metrics.
+
+    Args:
+        db: The request's database session.
+        split: The split.
+        sort: The metric to rank by (``check_sort``).
+        view: ``"all"``, or ``"best"``: each account's best entry only.
+        scene: Rank and show this scene's scores instead of the split's (not for ``test``).
+        page: The page, from 1.
+        per_page: Rows per page, at most ``MAX_PER_PAGE``.
+
+    Returns:
+        The page's rows and where it sits among all the entries.
+
+    Raises:
+        UploadError: 422 for an unknown sort key or view, or a scene of ``test``.
+    """
     per_page = max(1, min(MAX_PER_PAGE, per_page))
     ranked = ranking(db, split, sort, view, scene)
     first = (max(1, page) - 1) * per_page
@@ -239,7 +310,12 @@ def board(
 
 
 def reference_rows() -> list[dict]:
-    """Published results, best VCRE AUC first within each dataset; never ranked with submissions."""
+    """The published results of the literature shown beside a board (never ranked with submissions), best VCRE
+    AUC first within each dataset.
+
+    Returns:
+        Rows of ``name``, ``dataset``, ``note`` and ``metrics`` (by short name).
+    """
     rows = [
         {
             "name": r["name"],
@@ -270,7 +346,7 @@ def csv_rows(entries: list[dict]) -> str:
     """Board rows as CSV lines (full metric names as headers: ``CSV_HEADER``). Text cells that a spreadsheet
     would run as a formula get a leading apostrophe."""
 
-    def cell(v):
+    def cell(v: object) -> object:
         if isinstance(v, str) and v[:1] in ("=", "+", "-", "@", "\t", "\r"):
             return "'" + v
         return "" if v is None else v
@@ -300,9 +376,21 @@ def csv_rows(entries: list[dict]) -> str:
 
 
 def stream_csv(
-    sessions, split: str, ranked: list[tuple[str, int | None]], scene: str | None, chunk: int = 500
+    sessions: sessionmaker, split: str, ranked: list[tuple[str, int | None]], scene: str | None, chunk: int = 500
 ) -> Iterator[str]:
-    """The CSV of a ranked board, ``chunk`` rows at a time, each read in a short transaction of its own."""
+    """The CSV export of a ranked board, streamed: a header (``CSV_HEADER``), then ``chunk`` rows at a time, each
+    chunk read in a short transaction of its own. Text cells a spreadsheet would run as a formula are quoted.
+
+    Args:
+        sessions: The app's session factory.
+        split: The split.
+        ranked: The board's ``(submission id, rank)`` pairs (``ranking``).
+        scene: The scene whose scores the rows show (None: the split's).
+        chunk: Rows read per transaction.
+
+    Yields:
+        The CSV text, a chunk of lines at a time.
+    """
     yield ",".join(CSV_HEADER) + "\n"
     for i in range(0, len(ranked), chunk):
         with sessions() as db:
@@ -320,8 +408,20 @@ def ordered_metrics(metrics: dict | None) -> list[str]:
 
 
 def compare(a: dict, b: dict) -> dict:
-    """Two visible submissions of one split (``submissions.to_json`` dicts): every metric both have, the
-    difference b − a and which is better; per scene as well where both have per-scene results."""
+    """Two submissions of one split side by side: every metric either has, the difference b − a and which is
+    better; per scene as well where they have per-scene results.
+
+    Args:
+        a: A submission the caller may see (``submissions.to_json``).
+        b: Another one.
+
+    Returns:
+        ``split``; ``a`` and ``b`` (``id``, ``name``, ``user``, ``url``); ``metrics``: rows of ``metric``, ``a``,
+        ``b``, ``diff`` and ``better`` (``"a"``, ``"b"`` or None); ``per_scene``: such rows by scene.
+
+    Raises:
+        UploadError: 422 for submissions of different splits.
+    """
     if a["split"] != b["split"]:
         raise UploadError(422, f"compare submissions of the same split (got {a['split']} and {b['split']})")
     lower = {SHORT[k] for k in LOWER_IS_BETTER}
@@ -349,10 +449,28 @@ def compare(a: dict, b: dict) -> dict:
 
 
 def check_split(request: Request, split: str) -> None:
+    """Refuse a board of a split this server does not take submissions for.
+
+    Args:
+        request: The request (the app's settings).
+        split: The split named in the path.
+
+    Raises:
+        HTTPException: 404 for any split not in ``Settings.splits``.
+    """
     if split not in request.app.state.settings.splits:
         raise HTTPException(404, f"no leaderboard for split {split!r}")
 
 
 def visible_json(request: Request, db: Session, sid: str) -> dict:
-    """A submission the caller may see, as ``to_json`` (404 otherwise)."""
+    """A submission the caller may see (``submissions.visible_submission``), as the API shows it (``to_json``).
+
+    Args:
+        request: The request (who is calling).
+        db: The request's database session.
+        sid: The submission's id.
+
+    Raises:
+        HTTPException: 404 when there is none the caller may see.
+    """
     return to_json(db, visible_submission(db, identify(request, db).user, sid, f"no such submission {sid[:40]!r}"))

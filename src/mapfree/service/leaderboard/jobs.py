@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from ..database.models import Result, Submission, WorkerRow, now
+from ..database.models import Result, Submission, WorkerRow, changed_rows, now
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,7 @@ def claim(sessions: sessionmaker, worker_id: str, lease_seconds: float, max_atte
                     started_at=t,
                 )
             )
-            if res.rowcount == 1:
+            if changed_rows(res) == 1:
                 return Claim(sid, attempts + 1, split)
         # somebody else got it between our read and write (cannot happen under the locks above): retry
 
@@ -84,7 +84,7 @@ def heartbeat(sessions: sessionmaker, c: Claim, worker_id: str, lease_seconds: f
     """Extend the lease; False means the job is no longer ours."""
     with sessions.begin() as db:
         res = db.execute(update(Submission).where(_owned(c, worker_id)).values(lease_until=now() + lease_seconds))
-        return res.rowcount == 1
+        return changed_rows(res) == 1
 
 
 def finish(
@@ -97,7 +97,7 @@ def finish(
             .where(_owned(c, worker_id))
             .values(status="done", finished_at=now(), lease_until=None, error=None)
         )
-        if res.rowcount != 1:
+        if changed_rows(res) != 1:
             return False  # nothing changed; the transaction commits empty
         db.add(
             Result(
@@ -127,7 +127,7 @@ def fail(sessions: sessionmaker, c: Claim, worker_id: str, error: str) -> bool:
             .where(_owned(c, worker_id))
             .values(status="failed", finished_at=now(), lease_until=None, error=error[:2000])
         )
-        return res.rowcount == 1
+        return changed_rows(res) == 1
 
 
 def counts(db: Session) -> dict[str, int]:

@@ -1,5 +1,6 @@
 """What an account does with its own submissions: withdraw one (results, plots and ZIP deleted; the row stays so
-that it still counts against the quotas), download its ZIP, describe its method, and see the test quota left.
+that it still counts against the quotas), download its ZIP, describe its method (the test quota it has left is
+``accounts.quota.test_quota``).
 
 Withdrawing is final: every later action of the owner on that submission (visibility, method, withdrawing again,
 downloading) is refused with a 409 ``Withdrawn`` that says so; only its owner (and admins) still see its record,
@@ -8,40 +9,16 @@ marked withdrawn (``GET /api/submissions/{id}``, its page); boards, compare and 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 
 from fastapi import HTTPException, Request
 from fastapi.responses import Response, StreamingResponse
 from sqlalchemy import delete
 from sqlalchemy.orm import Session
 
-from ..config import Settings, shown_limit
 from ..database.models import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
 from .storage import is_stored, stream_zip
-from .submissions import daily_test_limit, recent_count
 
 WITHDRAWN = "withdrawn"
-
-
-@dataclass
-class Quota:
-    """Test evaluations: used in the last 24 h (withdrawn ones included), the limit, and what is left; both
-    ``"unlimited"`` when the account has no limit."""
-
-    used: int
-    limit: int  # UNLIMITED (negative): no limit
-
-    @property
-    def left(self) -> int | str:
-        return shown_limit(self.limit) if self.limit < 0 else max(0, self.limit - self.used)
-
-    @property
-    def shown_limit(self) -> int | str:
-        return shown_limit(self.limit)
-
-
-def test_quota(db: Session, settings: Settings, user: User) -> Quota:
-    return Quota(recent_count(db, user, "test", 86400), int(daily_test_limit(settings, user)))
 
 
 class Withdrawn(HTTPException):
@@ -60,8 +37,20 @@ class Withdrawn(HTTPException):
 
 
 def own_submission(db: Session, user: User, sid: str) -> Submission:
-    """One of ``user``'s submissions (admins: any) that can still change: 404 when there is no such submission
-    of theirs, ``Withdrawn`` (409) when it was withdrawn."""
+    """One of the caller's submissions (admins: any) that can still change.
+
+    Args:
+        db: The request's database session.
+        user: The caller's account.
+        sid: The submission's id.
+
+    Returns:
+        The submission.
+
+    Raises:
+        HTTPException: 404 when there is no such submission of theirs.
+        Withdrawn: 409 when it was withdrawn.
+    """
     sub = db.get(Submission, sid) if len(sid) <= 32 else None
     if sub is None or (sub.user_id != user.id and not user.is_admin):
         raise HTTPException(404, "no such submission of yours")
@@ -71,8 +60,14 @@ def own_submission(db: Session, user: User, sid: str) -> Submission:
 
 
 def withdraw(db: Session, sub: Submission) -> None:
-    """Take a submission off every board for good: results, plots, metadata and ZIP deleted, status
-    ``withdrawn``. A job still queued is never run; one running is dropped (its worker no longer owns it)."""
+    """Take a submission off every board for good: results, plots, method description and ZIP deleted, status
+    ``withdrawn``. A job still queued is never run; one running is dropped (its worker no longer owns it). The
+    row stays, so that the submission still counts against the account's limits.
+
+    Args:
+        db: The request's database session; committed.
+        sub: The submission (``own_submission``).
+    """
     for table in (Plot, Result, MethodInfo, SubmissionFile):
         db.execute(delete(table).where(table.submission_id == sub.id))
     sub.status, sub.public, sub.lease_until, sub.worker_id = WITHDRAWN, False, None, None
@@ -81,7 +76,20 @@ def withdraw(db: Session, sub: Submission) -> None:
 
 
 def zip_response(request: Request, db: Session, sub: Submission) -> Response:
-    """The stored ZIP as a download, streamed chunk by chunk (``storage.stream_zip``); 410 once it is gone."""
+    """The stored ZIP of a submission as a download, streamed chunk by chunk, each read in a short transaction of
+    its own (``storage.stream_zip``).
+
+    Args:
+        request: The request (the app's database sessions).
+        db: The request's database session; committed.
+        sub: The submission (``own_submission``).
+
+    Returns:
+        A streaming ``application/zip`` attachment.
+
+    Raises:
+        HTTPException: 410 once the ZIP is no longer stored (``Settings.zip_retention_days``).
+    """
     if not is_stored(db, sub.id):
         raise HTTPException(410, "the ZIP of this submission is no longer stored")
     db.commit()

@@ -13,8 +13,8 @@ from pydantic import BaseModel, Field
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from ..accounts.caller import db_session, identify, require_user, require_writer
 from ..database.models import MethodInfo, Submission
-from ..http.caller import db_session, identify, require_user, require_writer
 from ..inputs import spooled_upload
 from ..schemas import BoardOut, CompareOut, MethodMetaOut, SubmissionOut
 from .boards import (

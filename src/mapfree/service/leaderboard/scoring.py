@@ -3,15 +3,19 @@ render plots. Workers call ``score`` (uploads get only the cheap checks of ``zip
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 import numpy as np
 
 from ..config import Settings
 from .disclosure import public_test_metrics
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 #: The benchmark's aggregate keys; for ``test`` nothing else leaves the server.
 METRIC_KEYS = (
@@ -124,23 +128,29 @@ def score(settings: Settings, split: str, zip_path: Path) -> tuple[dict, bytes |
 PLOT_NAMES = ("precision_ratio", "vcre_cdf", "scenes")
 
 
+def _record(v: object) -> TypeGuard[DataclassInstance]:
+    """Whether ``v`` is a dataclass instance (``dataclasses.is_dataclass`` is true of the classes too)."""
+    return dataclasses.is_dataclass(v) and not isinstance(v, type)
+
+
 def pack_report(report: Any) -> bytes:
     """A report as bytes without pickle: arrays in an .npz, everything else as JSON inside it."""
-    import dataclasses
     import io
     import json
 
     import numpy as np
 
-    arrays, rest = {}, {}
+    # Any: numpy's stub matches a ``**`` mapping against savez's own keyword (allow_pickle: bool) too
+    arrays: dict[str, Any] = {}
+    rest: dict[str, Any] = {}
     for f in dataclasses.fields(report):
         v = getattr(report, f.name)
         if isinstance(v, np.ndarray):
             arrays[f.name] = v.astype(str) if v.dtype == object else v
-        elif dataclasses.is_dataclass(v):
+        elif _record(v):
             rest[f.name] = dataclasses.asdict(v)
         elif isinstance(v, list):
-            rest[f.name] = [dataclasses.asdict(x) if dataclasses.is_dataclass(x) else x for x in v]
+            rest[f.name] = [dataclasses.asdict(x) if _record(x) else x for x in v]
         else:
             rest[f.name] = v
     buf = io.BytesIO()

@@ -1,4 +1,7 @@
-""""""
+"""Stored submission ZIPs, streamed in chunks: an upload is copied from its spooled file into the database in
+1 MiB rows (a few per transaction, so no request waits long for SQLite's write lock), and a worker copies them
+back to a file; neither holds a whole ZIP in memory. Retention of the stored ZIPs, and the sweep of uploads cut
+off mid-copy."""
 
 from __future__ import annotations
 
@@ -9,7 +12,7 @@ from typing import BinaryIO
 from sqlalchemy import and_, delete, exists, insert, or_, select, update
 from sqlalchemy.orm import Session
 
-from ..database.models import Submission, SubmissionFile, ZipChunk, now
+from ..database.models import Submission, SubmissionFile, ZipChunk, changed_rows, now
 
 CHUNK_BYTES = 1 << 20
 
@@ -94,7 +97,7 @@ def sweep(db: Session, retention_days: float) -> int:
         old = select(Submission.id).where(
             Submission.status.in_(("done", "failed")), Submission.finished_at < t - retention_days * 86400
         )
-        gone += db.execute(delete(SubmissionFile).where(SubmissionFile.submission_id.in_(old))).rowcount or 0
+        gone += changed_rows(db.execute(delete(SubmissionFile).where(SubmissionFile.submission_id.in_(old))))
     return gone + drop_interrupted_uploads(db)
 
 
@@ -109,4 +112,4 @@ def drop_interrupted_uploads(db: Session) -> int:
             and_(Submission.lease_until.is_(None), Submission.created_at < t - STALE_UPLOAD_SECONDS),
         ),
     )
-    return db.execute(delete(Submission).where(Submission.id.in_(stale))).rowcount or 0
+    return changed_rows(db.execute(delete(Submission).where(Submission.id.in_(stale))))

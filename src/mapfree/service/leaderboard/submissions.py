@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import io
 import threading
-from typing import BinaryIO
+from typing import BinaryIO, overload
 
 from fastapi import HTTPException
 from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from ..accounts.quota import check_quota, lock_user
+from ..accounts.quota import check_quota, daily_test_limit, lock_user, recent_count
 from ..config import UNLIMITED, Settings
 from ..database.models import Plot, Result, Submission, User, now
 from ..inputs import UploadError, check_name
@@ -20,24 +20,6 @@ from .disclosure import without_medians
 from .scoring import PLOT_NAMES, known_scenes, render_plots, unpack_report
 from .storage import UPLOAD_LEASE_SECONDS, copy_in
 from .zipcheck import check_submission_zip
-
-
-def daily_test_limit(settings: Settings, user: User) -> int:
-    """The account's own limit when set, else the server's; ``UNLIMITED`` (negative): no limit, 0: none."""
-    limit = user.test_daily_limit if user.test_daily_limit is not None else settings.test_daily_limit
-    return UNLIMITED if limit < 0 else limit
-
-
-def recent_count(db: Session, user: User, split: str, window_s: float) -> int:
-    """How many submissions ``user`` made to ``split`` in the last ``window_s`` (withdrawn ones included)."""
-    return int(
-        db.scalar(
-            select(func.count())
-            .select_from(Submission)
-            .where(Submission.user_id == user.id, Submission.split == split, Submission.created_at > now() - window_s)
-        )
-        or 0
-    )
 
 
 def _limit_reached(db: Session, user: User, split: str, window_s: float, limit: int, what: str) -> None:
@@ -67,9 +49,27 @@ def _limit_reached(db: Session, user: User, split: str, window_s: float, limit: 
 def accept(
     db: Session, settings: Settings, user: User, split: str, name: str, public: bool, data: bytes | BinaryIO
 ) -> Submission:
-    """Check a submission cheaply (ZIP directory, entry names and sizes), count it against the account's limits,
-    and store it with its queued job. ``data`` may be a file (the spooled upload): it is copied into the
-    database in chunks, never read whole. Parsing the pose lines is the workers' job."""
+    """Check a submission cheaply, count it against the account's limits, and store it with its queued job; an
+    evaluation worker scores it later. Only the ZIP's directory (entry names and sizes) is read here: parsing
+    the pose lines is the workers' job.
+
+    Args:
+        db: The request's database session; committed.
+        settings: The server's settings (splits, limits, quotas, the dataset's scenes).
+        user: The submitting account.
+        split: The split it is for (one of ``settings.splits``).
+        name: Its name (checked; empty: "unnamed").
+        public: Whether it shows on the leaderboard once scored.
+        data: The ZIP: bytes, or a file (the spooled upload), copied into the database in chunks and never
+            read whole.
+
+    Returns:
+        The stored submission, status ``queued``.
+
+    Raises:
+        UploadError: An unknown split (422), a ZIP that is empty, invalid or over the limits (400, 413, 422),
+            the account's test or val submission limit (429), or its storage quota (413).
+    """
     if split not in settings.splits:
         raise UploadError(422, f"split must be one of {', '.join(settings.splits)}; got {split!r}")
     name = check_name(name, settings.limits.max_name_chars) or "unnamed"
@@ -107,6 +107,12 @@ def accept(
     return sub
 
 
+@overload
+def shown_metrics(split: str, metrics: dict) -> dict: ...
+@overload
+def shown_metrics(split: str, metrics: None) -> None: ...
+@overload
+def shown_metrics(split: str, metrics: dict | None) -> dict | None: ...
 def shown_metrics(split: str, metrics: dict | None) -> dict | None:
     """Stored metrics as shown: for ``test`` without medians and rounded, also where a result was stored before
     either (``disclosure.py``)."""
@@ -127,16 +133,41 @@ def visible(sub: Submission | None, user: User | None, withdrawn: bool = False) 
 def visible_submission(
     db: Session, user: User | None, sid: str, what: str = "no such submission", withdrawn: bool = False
 ) -> Submission:
-    """Submission ``sid`` if ``user`` may see it (``withdrawn``: its owner sees it once withdrawn, too); a 404
-    ``"{what} (or it is private)"`` otherwise."""
+    """A submission the caller may see: public, or theirs (admins: any).
+
+    Args:
+        db: The request's database session.
+        user: The caller's account; None: nobody signed in.
+        sid: The submission's id.
+        what: The start of the 404's message.
+        withdrawn: Whether its owner (and admins) may see it once withdrawn, too.
+
+    Returns:
+        The submission.
+
+    Raises:
+        HTTPException: 404 ``"{what} (or it is private)"`` when there is none the caller may see.
+    """
     sub = db.get(Submission, sid) if len(sid) <= 32 else None
-    if not visible(sub, user, withdrawn):
+    if sub is None or not visible(sub, user, withdrawn):
         raise HTTPException(404, f"{what} (or it is private)")
     return sub
 
 
 def to_json(db: Session, sub: Submission, owner_name: str | None = None) -> dict:
-    """What a viewer may see of a submission (test: aggregates only, no per-scene data, no plots)."""
+    """What a viewer may see of a submission, as the API shows it (``SubmissionOut``): for ``test`` the
+    aggregate scores only, rounded, without medians, per-scene data or plots.
+
+    Args:
+        db: The request's database session.
+        sub: A submission the viewer may see (``visible_submission``).
+        owner_name: Its owner's account name, when the caller has it already (else it is read).
+
+    Returns:
+        Its record (``id``, ``name``, ``split``, ``public``, ``user``, ``status``, times, ``size_bytes``,
+        ``sha256``, URLs), its ``metrics`` once scored (else None), ``problems`` and ``plots``; besides for val
+        ``per_scene``, and ``eval_seconds`` once scored.
+    """
     res = db.get(Result, sub.id)
     plots: list[str] = []
     if sub.split != "test" and res is not None:
@@ -176,7 +207,17 @@ _PLOT_LOCK = threading.Lock()
 
 
 def plot_png(db: Session, sub: Submission, name: str) -> bytes | None:
-    """A figure of a (non-test) submission: stored PNG, or rendered from the packed report on first view."""
+    """A figure of a scored val submission: the stored PNG, or rendered from the packed report on its first view
+    (and then stored).
+
+    Args:
+        db: The request's database session; committed (no transaction is held while drawing).
+        sub: A submission the viewer may see.
+        name: The figure's name (``scoring.PLOT_NAMES``).
+
+    Returns:
+        The PNG bytes; None for ``test``, an unknown name, or a submission without a report.
+    """
     if sub.split == "test":
         return None
     png = db.scalar(select(Plot.png).where(Plot.submission_id == sub.id, Plot.name == name))

@@ -13,9 +13,13 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from sqlalchemy import inspect, text
 from sqlalchemy.engine import Connection, Engine
+
+if TYPE_CHECKING:
+    from alembic.config import Config
 
 __all__ = ["upgrade", "current", "head", "add_missing", "SchemaVersion"]
 
@@ -23,7 +27,7 @@ _LOCK_KEY = 0x6D617066  # PostgreSQL advisory lock id of migrations ("mapf")
 
 
 @lru_cache(maxsize=1)
-def _config():
+def _config() -> Config:
     from alembic.config import Config
 
     cfg = Config()
@@ -36,7 +40,10 @@ def head() -> str:
     """The newest revision this code knows."""
     from alembic.script import ScriptDirectory
 
-    return ScriptDirectory.from_config(_config()).get_current_head()
+    newest = ScriptDirectory.from_config(_config()).get_current_head()
+    if newest is None:  # the versions folder is missing from the installation
+        raise RuntimeError(f"no schema migrations in {Path(__file__).parent / 'versions'}: reinstall mapfree")
+    return newest
 
 
 def _current(conn: Connection) -> str | None:

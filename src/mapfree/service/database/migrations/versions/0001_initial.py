@@ -15,8 +15,12 @@ branch_labels = None
 depends_on = None
 
 
+def _owned_by(target: str) -> sa.ForeignKey:
+    """A foreign key whose row goes when ``target``'s row does."""
+    return sa.ForeignKey(target, ondelete="CASCADE")
+
+
 def _tables() -> list[tuple[str, tuple, dict]]:
-    cascade = {"ondelete": "CASCADE"}
     return [
         (
             "users",
@@ -33,7 +37,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
             "api_tokens",
             (
                 sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
-                sa.Column("user_id", sa.Integer, sa.ForeignKey("users.id", **cascade), nullable=False, index=True),
+                sa.Column("user_id", sa.Integer, _owned_by("users.id"), nullable=False, index=True),
                 sa.Column("token_hash", sa.String(64), nullable=False, unique=True),
                 sa.Column("prefix", sa.String(16), nullable=False),
                 sa.Column("revoked", sa.Boolean, nullable=False),
@@ -46,7 +50,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
             (
                 sa.Column("id", sa.Integer, primary_key=True, autoincrement=True),
                 sa.Column("sid_hash", sa.String(64), nullable=False, unique=True),
-                sa.Column("user_id", sa.Integer, sa.ForeignKey("users.id", **cascade), nullable=False, index=True),
+                sa.Column("user_id", sa.Integer, _owned_by("users.id"), nullable=False, index=True),
                 sa.Column("csrf", sa.String(64), nullable=False),
                 sa.Column("expires_at", sa.Float, nullable=False),
             ),
@@ -56,7 +60,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
             "submissions",
             (
                 sa.Column("id", sa.String(32), primary_key=True),
-                sa.Column("user_id", sa.Integer, sa.ForeignKey("users.id", **cascade), nullable=False, index=True),
+                sa.Column("user_id", sa.Integer, _owned_by("users.id"), nullable=False, index=True),
                 sa.Column("split", sa.String(16), nullable=False, index=True),
                 sa.Column("name", sa.String(128), nullable=False),
                 sa.Column("public", sa.Boolean, nullable=False),
@@ -76,7 +80,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
         (
             "submission_files",
             (
-                sa.Column("submission_id", sa.String(32), sa.ForeignKey("submissions.id", **cascade), primary_key=True),
+                sa.Column("submission_id", sa.String(32), _owned_by("submissions.id"), primary_key=True),
                 sa.Column("data", sa.LargeBinary, nullable=False),
             ),
             {},
@@ -87,7 +91,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
                 sa.Column(
                     "submission_id",
                     sa.String(32),
-                    sa.ForeignKey("submission_files.submission_id", **cascade),
+                    _owned_by("submission_files.submission_id"),
                     primary_key=True,
                 ),
                 sa.Column("seq", sa.Integer, primary_key=True),
@@ -98,7 +102,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
         (
             "results",
             (
-                sa.Column("submission_id", sa.String(32), sa.ForeignKey("submissions.id", **cascade), primary_key=True),
+                sa.Column("submission_id", sa.String(32), _owned_by("submissions.id"), primary_key=True),
                 sa.Column("metrics", sa.JSON, nullable=False),
                 sa.Column("per_scene", sa.JSON, nullable=True),
                 sa.Column("problems", sa.JSON, nullable=False),
@@ -113,7 +117,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
         (
             "method_info",
             (
-                sa.Column("submission_id", sa.String(32), sa.ForeignKey("submissions.id", **cascade), primary_key=True),
+                sa.Column("submission_id", sa.String(32), _owned_by("submissions.id"), primary_key=True),
                 sa.Column("description", sa.Text, nullable=False),
                 sa.Column("paper_url", sa.String(500), nullable=False),
                 sa.Column("code_url", sa.String(500), nullable=False),
@@ -129,7 +133,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
                 sa.Column(
                     "submission_id",
                     sa.String(32),
-                    sa.ForeignKey("submissions.id", **cascade),
+                    _owned_by("submissions.id"),
                     nullable=False,
                     index=True,
                 ),
@@ -143,7 +147,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
             "anchors",
             (
                 sa.Column("id", sa.String(32), primary_key=True),
-                sa.Column("user_id", sa.Integer, sa.ForeignKey("users.id", **cascade), nullable=False, index=True),
+                sa.Column("user_id", sa.Integer, _owned_by("users.id"), nullable=False, index=True),
                 sa.Column("name", sa.String(128), nullable=False),
                 sa.Column("method", sa.String(64), nullable=False),
                 sa.Column("intrinsics", sa.JSON, nullable=False),
@@ -156,7 +160,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
         (
             "anchor_photos",
             (
-                sa.Column("anchor_id", sa.String(32), sa.ForeignKey("anchors.id", **cascade), primary_key=True),
+                sa.Column("anchor_id", sa.String(32), _owned_by("anchors.id"), primary_key=True),
                 sa.Column("seq", sa.Integer, primary_key=True),
                 sa.Column("intrinsics", sa.JSON, nullable=False),
                 sa.Column("pose", sa.JSON, nullable=False),
@@ -169,7 +173,7 @@ def _tables() -> list[tuple[str, tuple, dict]]:
         (
             "anchor_retired_indices",
             (
-                sa.Column("anchor_id", sa.String(32), sa.ForeignKey("anchors.id", **cascade), primary_key=True),
+                sa.Column("anchor_id", sa.String(32), _owned_by("anchors.id"), primary_key=True),
                 sa.Column("highest", sa.Integer, nullable=False),
             ),
             {},

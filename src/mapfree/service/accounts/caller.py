@@ -6,14 +6,15 @@ browser session cookie plus that session's CSRF token (form field ``csrf_token``
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import HTTPException, Path, Request
 from sqlalchemy.orm import Session
 
-from ..accounts import tokens as auth
 from ..database.models import User, WebSession
+from . import tokens as auth
 
 #: The largest row id the database holds (a 32-bit integer on PostgreSQL): a larger one in a path is a 422,
 #: not a query that overflows (a 500 from 2^63 on SQLite, from 2^31 on PostgreSQL).
@@ -27,16 +28,27 @@ LOGIN_CSRF_COOKIE = "mapfree_login_csrf"
 
 @dataclass
 class Caller:
+    """Who sent a request: an account (``user``; None: nobody signed in) and how it proved so."""
+
     user: User | None
     session: WebSession | None = None  # set when authenticated by cookie
     via_token: bool = False
 
     @property
     def csrf(self) -> str:
+        """The CSRF token the caller's forms must carry (empty for token callers and anonymous ones)."""
         return self.session.csrf if self.session else ""
 
 
-def db_session(request: Request):
+@dataclass
+class SignedIn(Caller):
+    """A caller with an account: what ``require_user`` and ``require_writer`` return."""
+
+    user: User
+
+
+def db_session(request: Request) -> Iterator[Session]:
+    """The request's database session (a FastAPI dependency: closed when the response is sent)."""
     with request.app.state.sessions() as db:
         yield db
 
@@ -90,15 +102,15 @@ def identify(request: Request, db: Session) -> Caller:
     return Caller(None)
 
 
-def require_user(request: Request, db: Session) -> Caller:
+def require_user(request: Request, db: Session) -> SignedIn:
     """A signed-in caller (token or session), for reading what needs an account; a 401 otherwise."""
     caller = identify(request, db)
     if caller.user is None:
         raise HTTPException(401, "authentication required", headers={"WWW-Authenticate": "Bearer"})
-    return caller
+    return SignedIn(caller.user, caller.session, caller.via_token)
 
 
-def require_writer(request: Request, db: Session, form_csrf: str | None = None) -> Caller:
+def require_writer(request: Request, db: Session, form_csrf: str | None = None) -> SignedIn:
     """A signed-in caller allowed to write: token callers, or cookie callers with the right CSRF token."""
     caller = identify(request, db)
     if caller.user is None:
@@ -107,7 +119,7 @@ def require_writer(request: Request, db: Session, form_csrf: str | None = None) 
         given = form_csrf or request.headers.get("x-csrf-token")
         if not auth.same_secret(given, caller.csrf):
             raise HTTPException(403, "CSRF check failed: reload the page and submit the form again")
-    return caller
+    return SignedIn(caller.user, caller.session, caller.via_token)
 
 
 def require_operator(request: Request) -> None:

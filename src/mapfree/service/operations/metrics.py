@@ -9,9 +9,10 @@ database gauges are read at scrape time in one short read-only transaction.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Histogram, generate_latest
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from sqlalchemy import func, select
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
@@ -36,10 +37,10 @@ class _Database:
     def __init__(self, engine: Engine):
         self.engine = engine
 
-    def describe(self):  # no collect() at registration time: the database may not be there yet
+    def describe(self) -> list[Metric]:  # no collect() at registration time: the database may not be there yet
         return []
 
-    def collect(self):
+    def collect(self) -> Iterator[Metric]:
         t = now()
         try:
             with self.engine.connect().execution_options(**{READ_ONLY: True}) as conn, Session(conn) as db:

@@ -1,4 +1,4 @@
-"""Operations routes: public liveness (``/health``), readiness in detail and Prometheus ``/metrics`` for admins and the
+"""The operations routes: public liveness (``/health``), readiness in detail and Prometheus ``/metrics`` for admins and the
 operator token."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, Response
 from starlette.concurrency import run_in_threadpool
 
+from ..accounts.caller import require_operator
 from ..schemas import HealthDetailOut, HealthOut
-from .caller import require_operator
 from .metrics import CONTENT_TYPE_LATEST
 
 router = APIRouter(tags=["operations"])

@@ -11,47 +11,31 @@ from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from ... import __version__
-from ..anchors.localizers import Localizers, register_methods_dir
-from ..config import Settings, parse_daily_limit
-from ..database.models import init_db, make_engine, session_factory
-from ..inputs import UploadError
-from ..leaderboard.own import Withdrawn
-from ..leaderboard.storage import drop_interrupted_uploads
-from ..process import die_with_parent, parent_from_env
-from ..schemas import ERRORS
-from .gc_freeze import freeze_long_lived
-from .guard import AuthThrottle, CredentialGate, client_address, request_id
-from .head_as_get import HeadAsGet
-from .health import HealthMonitor
-from .heavy import HeavyPool, default_threads
-from .metrics import Metrics
-from .timeouts import BodyTimeout
+from .. import __version__
+from .anchors.localizers import Localizers, register_methods_dir
+from .config import Settings, parse_daily_limit
+from .database.models import init_db, make_engine, session_factory
+from .http.errors import error_response, wants_html
+from .http.gc_freeze import freeze_long_lived
+from .http.guard import AuthThrottle, CredentialGate, client_address, request_id
+from .http.head_as_get import HeadAsGet
+from .http.heavy import HeavyPool, default_threads
+from .http.timeouts import BodyTimeout
+from .inputs import UploadError
+from .leaderboard.own import Withdrawn
+from .leaderboard.storage import drop_interrupted_uploads
+from .operations.health import HealthMonitor
+from .operations.metrics import Metrics
+from .process import die_with_parent, parent_from_env
+from .schemas import ERRORS
 
 log = logging.getLogger("mapfree.http")
-_API_PREFIXES = ("/api/", "/anchors", "/health", "/metrics", "/openapi.json")
 CSP = "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; frame-ancestors 'none'"
-
-
-def _wants_html(request: Request) -> bool:
-    p = request.url.path
-    return not p.startswith(_API_PREFIXES) and "text/html" in request.headers.get("accept", "")
-
-
-def error_response(request: Request, status: int, message: str, headers: dict | None = None):
-    """A request's error: the HTML error page for a browser, else JSON ``{detail, status, request_id}``."""
-    if _wants_html(request):
-        from ..pages import error_page
-
-        return error_page(request, status, message, headers)
-    rid = getattr(request.state, "request_id", None)
-    return JSONResponse({"detail": message, "status": status, "request_id": rid}, status_code=status, headers=headers)
 
 
 def _validation_message(exc: RequestValidationError) -> str:
@@ -63,6 +47,7 @@ def _validation_message(exc: RequestValidationError) -> str:
 
 
 def create_app(settings: Settings) -> FastAPI:
+    """The app of ``mapfree.service.create_app`` (documented there): database, state, middlewares, routes."""
     engine = make_engine(settings.db_url)
     init_db(engine)
     with session_factory(engine).begin() as db:  # uploads cut off when a server was killed: refund them now
@@ -98,8 +83,8 @@ def create_app(settings: Settings) -> FastAPI:
 
     @app.exception_handler(Withdrawn)
     async def _withdrawn(request: Request, exc: Withdrawn):
-        if _wants_html(request):
-            from ..pages import withdrawn_page
+        if wants_html(request):
+            from .pages import withdrawn_page
 
             return await run_in_threadpool(withdrawn_page, request, exc)
         return error_response(request, exc.status_code, str(exc.detail))
@@ -166,22 +151,28 @@ def create_app(settings: Settings) -> FastAPI:
 
     app.add_middleware(BodyTimeout, seconds=settings.body_timeout, total_seconds=settings.body_total_timeout)
 
-    from .. import pages
-    from ..accounts import router as accounts
-    from ..anchors import router as anchors
-    from ..leaderboard import router as leaderboard
-    from . import operations
+    from . import pages
+    from .accounts import router as accounts
+    from .anchors import router as anchors
+    from .leaderboard import router as leaderboard
+    from .operations import router as operations
 
     for r in (operations, accounts, leaderboard, anchors, pages):
         app.include_router(r.router)
-    app.mount("/static", StaticFiles(directory=str(Path(__file__).parents[1] / "static")), name="static")
+    app.mount("/static", StaticFiles(directory=str(Path(__file__).parent / "static")), name="static")
     app.add_middleware(HeadAsGet)
     return app
 
 
+def _env_path(name: str) -> Path | None:
+    """The folder an environment variable names (unset or empty: None)."""
+    value = os.environ.get(name)
+    return Path(value) if value else None
+
+
 def app_from_env() -> FastAPI:
-    """Factory for ``uvicorn --factory mapfree.service.http.app:app_from_env`` (settings from MAPFREE_* variables)."""
-    from .logs import setup_logging
+    """Factory for ``uvicorn --factory mapfree.service.app:app_from_env`` (settings from MAPFREE_* variables)."""
+    from .http.logs import setup_logging
 
     setup_logging(os.environ.get("MAPFREE_LOG_LEVEL", "info"))
     raw = os.environ.get("MAPFREE_SETTINGS")
@@ -189,7 +180,7 @@ def app_from_env() -> FastAPI:
     if parent is not None:  # an API process of `mapfree serve --api-processes N`: it ends with that process
         die_with_parent(parent)
     if raw:  # written by `mapfree serve --api-processes N`
-        from ..config import Limits
+        from .config import Limits
 
         d = json.loads(raw)
         d["limits"] = Limits(**d.get("limits", {}))
@@ -198,8 +189,8 @@ def app_from_env() -> FastAPI:
     else:
         s = Settings(
             db_url=os.environ.get("MAPFREE_DB", "sqlite:///mapfree.db"),
-            data_root=os.environ.get("MAPFREE_DATA") or None,
-            gt_root=os.environ.get("MAPFREE_GT") or None,
+            data_root=_env_path("MAPFREE_DATA"),
+            gt_root=_env_path("MAPFREE_GT"),
             default_method=os.environ.get("MAPFREE_METHOD", ""),
             test_daily_limit=parse_daily_limit(os.environ.get("MAPFREE_TEST_DAILY_LIMIT", "5")),
             secure_cookies=os.environ.get("MAPFREE_SECURE_COOKIES", "") == "1",
