@@ -15,14 +15,15 @@ from __future__ import annotations
 import contextlib
 import functools
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 if TYPE_CHECKING:
     import torch
 
 __all__ = ["resolve_device", "STEADY_BACKENDS", "steady_kernels", "with_steady_kernels"]  # noqa: F822 (lazy)
 
-F = TypeVar("F", bound=Callable)
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
 def resolve_device(device: str | torch.device | None = None) -> torch.device:
@@ -63,12 +64,12 @@ def steady_kernels() -> Iterator[None]:
         torch.backends.cudnn.benchmark = bench
 
 
-def with_steady_kernels(fn: F) -> F:
+def with_steady_kernels(fn: Callable[P, R]) -> Callable[P, R]:
     """Decorator form of ``steady_kernels`` for a network's forward entry points."""
 
     @functools.wraps(fn)
-    def wrapped(*args, **kwargs):
+    def wrapped(*args: P.args, **kwargs: P.kwargs) -> R:
         with steady_kernels():
             return fn(*args, **kwargs)
 
-    return wrapped  # type: ignore[return-value]
+    return wrapped

@@ -266,7 +266,7 @@ def _record_sha256(path: Path) -> str | None:
 
     for dist in metadata.distributions():
         files = dist.files or []
-        base = Path(dist.locate_file(""))
+        base = Path(str(dist.locate_file("")))
         try:
             rel = path.resolve().relative_to(base.resolve())
         except ValueError:

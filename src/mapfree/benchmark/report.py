@@ -112,7 +112,8 @@ def format_table(report: Report, per_scene: bool = False, width: int = 100, max_
     from rich.console import Console
     from rich.table import Table
 
-    console = Console(file=io.StringIO(), width=width, force_terminal=False, color_system=None)
+    buf = io.StringIO()
+    console = Console(file=buf, width=width, force_terminal=False, color_system=None)
     n = len(report.estimated)
     title = (
         f"Map-free benchmark — {report.split}, {len(report.per_scene)} scenes, "
@@ -151,4 +152,4 @@ def format_table(report: Report, per_scene: bool = False, width: int = 100, max_
             console.print(f"  {'FATAL ' if p.fatal else ''}{p}", markup=False, highlight=False)
         if len(report.problems) > max_problems:
             console.print(f"  … {len(report.problems) - max_problems} more (see --json)")
-    return console.file.getvalue()
+    return buf.getvalue()

@@ -89,7 +89,15 @@ def score(
 ) -> Report:
     """Per-frame errors for every evaluated frame of every scene, then the aggregates (``track``: which
     leaderboard's frames ``truth`` holds, recorded in the report)."""
-    scenes, frames, gt_q, gt_t, K, W, H, est_rows, est_of = [], [], [], [], [], [], [], [], []
+    scenes: list[np.ndarray] = []
+    frames: list[str] = []
+    q_parts: list[np.ndarray] = []
+    t_parts: list[np.ndarray] = []
+    K_parts: list[np.ndarray] = []
+    W_parts: list[np.ndarray] = []
+    H_parts: list[np.ndarray] = []
+    est_rows: list[np.ndarray] = []
+    est_of: list[str] = []
     extra: dict[str, int] = {}
     problems = list(problems or [])
     for scene in sorted(truth):
@@ -108,14 +116,17 @@ def score(
             rows = _match(t, sel, e, compat)
         scenes.append(np.full(m, scene, dtype=object))
         frames.extend(t.names[i] for i in np.flatnonzero(sel).tolist())
-        gt_q.append(t.q[sel]), gt_t.append(t.t[sel]), K.append(t.K[sel])
-        W.append(np.full(m, t.width)), H.append(np.full(m, t.height))
+        q_parts.append(t.q[sel])
+        t_parts.append(t.t[sel])
+        K_parts.append(t.K[sel])
+        W_parts.append(np.full(m, t.width))
+        H_parts.append(np.full(m, t.height))
         est_rows.append(rows)
         est_of.append(scene)
     cat = lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape)  # noqa: E731
     scene_arr = cat(scenes, (0,)).astype(object)
-    gt_q, gt_t, K = cat(gt_q, (0, 4)), cat(gt_t, (0, 3)), cat(K, (0, 4)).astype(np.float32)
-    W, H = cat(W, (0,)), cat(H, (0,))
+    gt_q, gt_t, K = cat(q_parts, (0, 4)), cat(t_parts, (0, 3)), cat(K_parts, (0, 4)).astype(np.float32)
+    W, H = cat(W_parts, (0,)), cat(H_parts, (0,))
     n = len(scene_arr)
     q_est, t_est, conf = np.full((n, 4), np.nan), np.full((n, 3), np.nan), np.full(n, np.nan)
     lines = np.zeros(n, dtype=np.int64)

@@ -40,6 +40,7 @@ COMPAT_MODES = ("default", "official")
 _ENTRY_RE = re.compile(r"^pose_(s\d{5})\.txt$")
 _BOM = b"\xef\xbb\xbf"
 _FIELDS = ("name", "qw", "qx", "qy", "qz", "tx", "ty", "tz", "confidence")
+_UNSET_KEYS = np.zeros(0, np.int64)  # SceneEstimates.keys' default, replaced by the names' frame numbers
 _EMPTY = (np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
 ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # entries' timestamp in a written submission (the ZIP epoch): reproducible bytes
 
@@ -80,10 +81,10 @@ class SceneEstimates:
     t: np.ndarray  # (n,3)
     confidence: np.ndarray  # (n,)
     lines: np.ndarray  # (n,)
-    keys: np.ndarray = field(default=None)  # (n,) frame numbers, int(name[-9:-4])
+    keys: np.ndarray = field(default_factory=lambda: _UNSET_KEYS)  # (n,) frame numbers, int(name[-9:-4])
 
     def __post_init__(self) -> None:
-        if self.keys is None:
+        if self.keys is _UNSET_KEYS:  # not given: read from the names
             self.keys = np.array([_frame_key(n) for n in self.names], dtype=np.int64)
 
     def __len__(self) -> int:
@@ -164,7 +165,9 @@ def _parse_file_slow(scene: str, data: bytes, compat: str, problems: _Problems, 
     """Line-by-line parse of a file (or a piece of one after ``line0`` lines) that is not clean:
     (names, keys, vals, bad, lines, number of lines)."""
     text = data.decode("utf-8", errors="surrogateescape")
-    names, tokens, lines = [], [], []
+    names: list[str] = []
+    tokens: list[bytes] = []
+    lines: list[int] = []
     all_lines = _split_lines(text)
     for lineno, line in enumerate(all_lines, line0 + 1):
         try:
@@ -231,7 +234,7 @@ def _validate_rows(
             keep[mask] = False
 
     if bad is not None and bad.any():
-        report(bad.any(axis=1), lambda i: f"unparseable number in field {_FIELDS[1 + int(np.argmax(bad[i]))]}")
+        report(np.any(bad, axis=1), lambda i: f"unparseable number in field {_FIELDS[1 + int(np.argmax(bad[i]))]}")
     vals = np.concatenate([est.q, est.t, est.confidence[:, None]], axis=1)
     report(~np.all(np.isfinite(vals), axis=1), "non-finite number (NaN or inf)")
     report(~(np.linalg.norm(np.nan_to_num(est.q), axis=1) > 1e-8), "zero quaternion")  # np.isclose(norm, 0)
@@ -326,10 +329,10 @@ def read_submission(
         f: BinaryIO
         if isinstance(source, (bytes, bytearray)):
             f = io.BytesIO(source)
-        elif hasattr(source, "read"):
-            f = source  # type: ignore[assignment]
-        else:
+        elif isinstance(source, (str, os.PathLike)):
             f = open(source, "rb")
+        else:
+            f = source
     except OSError as e:
         problems.add(None, None, f"cannot open submission: {e.strerror or e}", fatal=True)
         return out, problems.finish()

@@ -206,9 +206,12 @@ def load_truth(
     its scenes define the split, and intrinsics missing there are read from ``dataset_root``.
     ``track``: "single" (every 5th query) or "multi" (the multi-frame leaderboard's queries 9, 19, …).
     """
-    if gt_root is None and dataset_root is None:
+    if gt_root is not None:
+        root = Path(gt_root)
+    elif dataset_root is not None:
+        root = Path(dataset_root)
+    else:
         raise ValueError("need a dataset root or a ground-truth root")
-    root = Path(gt_root) if gt_root is not None else Path(dataset_root)
     if gt_root is not None and not root.is_dir():
         raise FileNotFoundError(f"ground-truth root {root} (--gt-root) does not exist")
     if dataset_root is not None and not Path(dataset_root).is_dir():

@@ -143,12 +143,13 @@ def _derive(scene: Scene, model: DriftModel, seed: int) -> DevicePoses:
     path = scene.path / DEVICE_FILE
     truth = {n: f.pose for n, f in scene.frames.items()}
     order = sorted((n for n in truth if n.startswith("seq1/")), key=lambda n: (frame_number(n), n))
-    if not order or any(truth[n] is None for n in order):
+    track = [p for n in order if (p := truth[n]) is not None]
+    if not order or len(track) != len(order):
         raise FormatError(path, None, "missing, and the scene has no ground-truth query poses to derive it from")
     ref = truth.get(REFERENCE_NAME) or Pose.identity()
     up = ref.R.T @ np.array([0.0, -1.0, 0.0])  # the reference camera is held roughly upright
     rng = np.random.default_rng([seed, zlib.crc32(scene.name.encode())])
-    device = dict(zip(order, simulate_device_trajectory([truth[n] for n in order], up, rng, model)))
+    device = dict(zip(order, simulate_device_trajectory(track, up, rng, model)))
     return DevicePoses(
         rebase_bursts(device, multiframe_bursts(order)),
         True,

@@ -141,7 +141,8 @@ class SevenScenes:
             raise FileNotFoundError(f"7-Scenes root {self.root} does not exist")
         if len(camera) != 4 or not all(np.isfinite(camera)) or camera[0] <= 0 or camera[1] <= 0:
             raise ValueError(f"camera must be fx fy cx cy with positive focal lengths, got {camera}")
-        self.camera = tuple(float(c) for c in camera)
+        fx, fy, cx, cy = (float(c) for c in camera)
+        self.camera = (fx, fy, cx, cy)
 
     def scene_names(self) -> list[str]:
         return sorted(

@@ -108,21 +108,22 @@ class PairEngine:
     def encode_many(self, images: Sequence[np.ndarray]) -> list[EncodedImage]:
         """``encode`` for several images: those of one network input size go through the encoder together."""
         with self._lock:
-            out: list[EncodedImage | None] = [self._images.get(im) for im in images]
-        todo = [i for i, hit in enumerate(out) if hit is None]
+            cached: list[EncodedImage | None] = [self._images.get(im) for im in images]
+        todo = [i for i, hit in enumerate(cached) if hit is None]
+        fresh: dict[int, EncodedImage] = {}
         preps = dict(zip(todo, _prepare_all([images[i] for i in todo], self.long_side)))
         for group in _groups(todo, lambda i: preps[i].true_shape):
             with torch.inference_mode(), steady_kernels():  # outside the lock: others may use the cache meanwhile
                 enc = self.model.encode(torch.cat([preps[i].tensor for i in group]).to(self.device))
             for j, i in enumerate(group):
-                out[i] = EncodedImage(
+                fresh[i] = EncodedImage(
                     preps[i], Encoded(enc.tokens[j : j + 1], enc.positions[j : j + 1], enc.hw), id(self)
                 )
         with self._lock:
             self.encodes += len(todo)
             for i in todo:
-                self._images.put(out[i], images[i])
-        return out  # type: ignore[return-value]
+                self._images.put(fresh[i], images[i])
+        return [hit if hit is not None else fresh[i] for i, hit in enumerate(cached)]
 
     def pair(self, first: EncodedImage, second: EncodedImage, descriptors: bool = False) -> PairOutput:
         """Decoders and heads on (first, second), once per pair; ``first`` is the frame of both pointmaps.
@@ -140,8 +141,9 @@ class PairEngine:
         want_desc = descriptors and self.has_descriptors
         with self._lock:
             hits = [self._pairs.get(first, s) for s in seconds]
-        out: list[PairOutput | None] = [None if want_desc else h for h in hits]
-        todo = [i for i, o in enumerate(out) if o is None]
+        cached: list[PairOutput | None] = [None if want_desc else h for h in hits]
+        todo = [i for i, o in enumerate(cached) if o is None]
+        fresh: dict[int, PairOutput] = {}
         for group in _groups(todo, lambda i: seconds[i].encoded.hw):
             b, e1 = len(group), first.encoded
             e1 = Encoded(e1.tokens.expand(b, -1, -1), e1.positions.expand(b, -1, -1), e1.hw)
@@ -171,7 +173,7 @@ class PairEngine:
                     t = desc[key]
                     return None if t is None else t[j] if on_device else t[j].float().cpu().numpy()
 
-                out[i] = PairOutput(
+                fresh[i] = PairOutput(
                     host["pts1"][j],
                     host["conf1"][j],
                     host["pts2"][j],
@@ -184,8 +186,8 @@ class PairEngine:
         with self._lock:
             self.forwards += len(todo)
             for i in todo:
-                self._pairs.put(out[i].without_descriptors(), first, seconds[i])  # type: ignore[union-attr]
-        return out  # type: ignore[return-value]
+                self._pairs.put(fresh[i].without_descriptors(), first, seconds[i])
+        return [o if o is not None else fresh[i] for i, o in enumerate(cached)]
 
 
 def _prepare_all(images: Sequence[np.ndarray], long_side: int) -> list[Prepared]:

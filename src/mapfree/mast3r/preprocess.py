@@ -55,8 +55,7 @@ def crop_box(width: int, height: int, square_ok: bool = False) -> tuple[int, int
     halfw, halfh = ((2 * cx) // PATCH) * PATCH / 2, ((2 * cy) // PATCH) * PATCH / 2
     if not square_ok and width == height:
         halfh = 3 * halfw / 4
-    box = (cx - halfw, cy - halfh, cx + halfw, cy + halfh)
-    return tuple(int(round(v)) for v in box)  # type: ignore[return-value]
+    return int(round(cx - halfw)), int(round(cy - halfh)), int(round(cx + halfw)), int(round(cy + halfh))
 
 
 def prepare_image(img: PIL.Image.Image, long_side: int = 512) -> Prepared:
@@ -64,7 +63,7 @@ def prepare_image(img: PIL.Image.Image, long_side: int = 512) -> Prepared:
     img = img.convert("RGB")
     w0, h0 = img.size
     size = resized_size(w0, h0, long_side)
-    interp = PIL.Image.LANCZOS if max(w0, h0) > long_side else PIL.Image.BICUBIC
+    interp = PIL.Image.Resampling.LANCZOS if max(w0, h0) > long_side else PIL.Image.Resampling.BICUBIC
     resized = img.resize(size, interp)
     box = crop_box(*size)
     arr = np.array(resized.crop(box))  # a writable copy for torch

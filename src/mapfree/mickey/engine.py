@@ -88,7 +88,10 @@ class MickeyEngine:
         for i in range(0, len(others), step):
             chunk = others[i : i + step]
             k1 = Keypoints(
-                *(torch.cat([getattr(o.keypoints, f) for o in chunk]) for f in ("xy", "depth", "score", "desc")),
+                torch.cat([o.keypoints.xy for o in chunk]),
+                torch.cat([o.keypoints.depth for o in chunk]),
+                torch.cat([o.keypoints.score for o in chunk]),
+                torch.cat([o.keypoints.desc for o in chunk]),
                 chunk[0].keypoints.grid,
             )
             with torch.inference_mode():

@@ -10,12 +10,16 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
 from ..matching.sift import squared_distances
 from ..matching.utils import check_image, resize_for_matching
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["DenseVLADOptions", "DenseVLAD", "dense_rootsift"]
 
@@ -38,7 +42,7 @@ class DenseVLADOptions:
             raise ValueError("words must be >= 1 and max_train_descriptors >= words")
 
 
-_SIFT_CACHE: dict[tuple[int, int], object] = {}
+_SIFT_CACHE: dict[tuple[int, int], torch.nn.Module] = {}
 
 
 def dense_rootsift(image: np.ndarray, options: DenseVLADOptions | None = None) -> np.ndarray:
@@ -71,8 +75,8 @@ class DenseVLAD:
 
     name = "densevlad"
 
-    def __init__(self, options: DenseVLADOptions | None = None, **overrides: object) -> None:
-        self.options = options or DenseVLADOptions(**overrides)  # type: ignore[arg-type]
+    def __init__(self, options: DenseVLADOptions | None = None, **overrides: Any) -> None:
+        self.options = options or DenseVLADOptions(**overrides)
         self.centers: np.ndarray | None = None  # (words, 128)
 
     @property

@@ -95,7 +95,7 @@ class RPRMethod:
         return self._estimate(res, 0, time.perf_counter() - t0)
 
     def _estimate(self, res: dict[str, np.ndarray], i: int, seconds: float) -> Estimate:
-        extras = {"method": self.name}
+        extras: dict[str, str | float] = {"method": self.name}
         if "log_sigma" in res:
             extras["sigma_rot_deg"] = float(np.degrees(np.exp(res["log_sigma"][i, 0])))
             extras["sigma_trans_m"] = float(np.exp(res["log_sigma"][i, 1]))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -33,7 +35,8 @@ TRANSLATION_LOSSES = ("l1", "l2", "angle", "scale_dir", "ce")
 
 def _bins_ce(logits: list[torch.Tensor], index: torch.Tensor) -> torch.Tensor:
     """Mean over bin groups of the cross-entropy against each group's target bin: (B,)."""
-    return sum(F.cross_entropy(g.float(), index[..., i], reduction="none") for i, g in enumerate(logits)) / len(logits)
+    total = sum(F.cross_entropy(g.float(), index[..., i], reduction="none") for i, g in enumerate(logits))
+    return cast(torch.Tensor, total) / len(logits)  # a tensor: there is at least one group
 
 
 def rotation_loss(kind: str, out: PoseOutput, R_gt: torch.Tensor, q_gt: torch.Tensor | None = None) -> torch.Tensor:
@@ -144,6 +147,8 @@ def pose_errors(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torc
 
 def uncertainty_nll(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torch.Tensor:
     """Laplace NLL ``e / b + log b`` of each error e with predicted b = exp(log_sigma); minimised at b = e."""
+    if out.log_sigma is None:
+        raise ValueError("uncertainty_nll needs the uncertainty head's output (log_sigma)")
     err = pose_errors(out, R_gt, t_gt)
     s = out.log_sigma.float().clamp(-12.0, 12.0)
     return (err * torch.exp(-s) + s).sum(-1).mean()

@@ -14,7 +14,7 @@ from .params import Parameterisation, PoseOutput, build_parameterisation
 __all__ = ["RPRNet", "PoseHead"]
 
 
-def _mlp(dims: list[int]) -> nn.Module:
+def _mlp(dims: list[int]) -> nn.Linear | nn.Sequential:
     """Linear layers with ReLU between them; a single ``Linear`` when there is no hidden layer (public layout)."""
     if len(dims) == 2:
         return nn.Linear(dims[0], dims[1])
@@ -55,6 +55,7 @@ class PoseHead(nn.Module):
             self.feature_dim = chans[-1] * h * w
         self.mlp = _mlp([self.feature_dim, *mlp, param.dim])
         last = self.mlp if isinstance(self.mlp, nn.Linear) else self.mlp[-1]
+        assert isinstance(last, nn.Linear)  # _mlp ends with one
         with torch.no_grad():  # start at the prior pose (identity rotation, forward direction) when trained anew
             last.bias.copy_(torch.tensor(param.prior()))
 

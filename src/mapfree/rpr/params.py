@@ -12,6 +12,7 @@ The pose is of image 1 (query) relative to image 0 (reference): ``X_1 = R X_0 + 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -38,7 +39,7 @@ class PoseOutput:
 
     R: torch.Tensor
     t: torch.Tensor
-    raw: dict[str, torch.Tensor] = field(default_factory=dict)
+    raw: dict[str, Any] = field(default_factory=dict)  # tensors, and lists of per-group bin logits
     log_sigma: torch.Tensor | None = None  # (B,2): log-scale of rotation (rad) and translation (m) error
 
 
@@ -48,6 +49,10 @@ class _Part:
     def prior(self) -> list[float]:
         """Bias of the last layer: the output that decodes to a sensible prior (identity, forward)."""
         return [0.0] * self.dim
+
+    def decode(self, x: torch.Tensor, raw: dict) -> torch.Tensor:
+        """This part's slice of the network output -> a rotation matrix or a translation; extras go into ``raw``."""
+        raise NotImplementedError
 
 
 class _Quat(_Part):
@@ -137,7 +142,8 @@ class Parameterisation:
             if not (n_points == 3 or (n_points >= 6 and n_points % 2 == 0)):
                 raise ValueError(f"3d3d needs n_points 3, 6 or an even number above 6, got {n_points}")
             self.dim = 3 * n_points
-            self._rot = self._trans = None
+            self._rot: _Part | None = None
+            self._trans: _Part | None = None
         else:
             self._rot = {"quat": _Quat, "6d": _SixD, "euler_bins": _EulerBins}[rotation]()
             self._trans = (
@@ -154,7 +160,7 @@ class Parameterisation:
         return f"{r}+{t}"
 
     def prior(self) -> list[float]:
-        if self._rot is None:
+        if self._rot is None or self._trans is None:  # [3D-3D]: neither part
             return [0.0] * self.dim
         rot = self._rot.prior()
         if self.R_mean is not None and self.rotation == "6d":  # start at the mean training rotation
@@ -165,7 +171,7 @@ class Parameterisation:
 
     def decode(self, x: torch.Tensor) -> PoseOutput:
         raw: dict = {}
-        if self._rot is None:
+        if self._rot is None or self._trans is None:  # [3D-3D]: neither part
             n = self.n_points
             pts = x.reshape(x.shape[0], n, 3)
             eye = torch.eye(3, dtype=x.dtype, device=x.device).expand(x.shape[0], 3, 3)

@@ -81,4 +81,7 @@ def read_correspondences(path: os.PathLike | str) -> dict[tuple[int, int, int, i
     """``{(seqA, frameA, seqB, frameB): (kpts0, kpts1)}`` from ``correspondences.npz``."""
     with np.load(path) as z:
         pairs, off, k0, k1 = z["pairs"], z["offsets"], z["kpts0"], z["kpts1"]
-    return {tuple(int(x) for x in p): (k0[off[i] : off[i + 1]], k1[off[i] : off[i + 1]]) for i, p in enumerate(pairs)}
+    return {
+        (int(p[0]), int(p[1]), int(p[2]), int(p[3])): (k0[off[i] : off[i + 1]], k1[off[i] : off[i + 1]])
+        for i, p in enumerate(pairs)
+    }

@@ -123,7 +123,7 @@ def interpolate_track(
     t_ok = at[ok]  # all frames at once: one slerp call and one interpolation per axis
     R = Slerp(times_u, Rotation.from_matrix(rots[keep]))(t_ok).as_matrix()
     C = np.stack([np.interp(t_ok, times_u, centres[keep][:, k]) for k in range(3)], axis=1)
-    for i, Ri, ci in zip(np.flatnonzero(ok), R, C):
+    for i, Ri, ci in zip(np.flatnonzero(ok).tolist(), R, C):
         out[i] = Pose(Ri, ci)
     return out
 
@@ -154,7 +154,8 @@ def _sample_video(video: Path, fps: float, cache: Path) -> list[ScanFrame]:
         raise FormatError(video, None, "cannot open video")
     rate = cap.get(cv2.CAP_PROP_FPS) or 30.0
     cache.mkdir(parents=True, exist_ok=True)
-    frames, k, next_t = [], 0, 0.0
+    frames: list[ScanFrame] = []
+    k, next_t = 0, 0.0
     while True:
         ok, img = cap.read()
         if not ok:

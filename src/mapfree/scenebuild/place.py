@@ -278,9 +278,10 @@ def _write_device(
     split: str,
 ) -> None:
     """``poses_device.txt``: val/test re-based per multi-frame burst; train per scan (first frame = I)."""
-    dev = {rename[n]: device[n] for n in keep if device.get(n) is not None}
+    dev = {rename[n]: p for n in keep if (p := device.get(n)) is not None}
     if not dev:
         return
+    rebased: dict[str, Pose]
     if split == "train":
         rebased = {}
         for k in sorted({seq_of[n] for n in keep}):
@@ -315,13 +316,14 @@ def _write_correspondences(
             cache[n] = read_depth(depth_path_for(out / n, suffix))
         return cache[n]
 
-    pairs, matches = [], []
+    pairs: list[tuple[int, int, int, int]] = []
+    matches: list[tuple[np.ndarray, np.ndarray]] = []
     for i in sorted(rows):
         a, b = by_key[tuple(ov.idxs[i, :2])], by_key[tuple(ov.idxs[i, 2:])]
         k0, k1 = depth_correspondences(
             depth(a), intr[a], pose_of[a], depth(b), intr[b], pose_of[b], co, sparse=suffix == SFM_DEPTH_SUFFIX
         )
-        pairs.append(tuple(int(x) for x in ov.idxs[i]))
+        pairs.append((int(ov.idxs[i, 0]), int(ov.idxs[i, 1]), int(ov.idxs[i, 2]), int(ov.idxs[i, 3])))
         matches.append((k0, k1))
     write_correspondences(out / "correspondences.npz", pairs, matches)
     counts = [len(m[0]) for m in matches]
@@ -338,8 +340,8 @@ def build_place(
     """Build ``place_dir`` into ``scene_dir``; never raises for a bad place (the result says why it failed)."""
     place_dir, scene_dir = Path(place_dir), Path(scene_dir)
     if not force and (scene_dir / REPORT_FILE).is_file():
-        report = json.loads((scene_dir / REPORT_FILE).read_text())
-        return PlaceResult(place_dir.name, scene_dir.name, "skipped", "already built", 0.0, report)
+        done = json.loads((scene_dir / REPORT_FILE).read_text())
+        return PlaceResult(place_dir.name, scene_dir.name, "skipped", "already built", 0.0, done)
     work = scene_dir.parent / ".build" / scene_dir.name
     shutil.rmtree(work, ignore_errors=True)
     staged, images = work / "scene", work / "images"
@@ -360,6 +362,7 @@ def build_place(
         model = reconstruct(images, sorted(src), intr, work / "colmap", options.sfm)
         report["sfm_seconds"] = round(time.perf_counter() - t_sfm, 2)
         report["scans"] = _check_registration(place, model, seq_of, options.min_registered)
+        assert model is not None  # _check_registration raised BuildError otherwise
         report["registered"] = len(model.poses)
         report["images"] = len(src)
         report["points3D"] = len(model.points)
