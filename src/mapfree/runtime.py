@@ -27,7 +27,14 @@ R = TypeVar("R")
 
 
 def resolve_device(device: str | torch.device | None = None) -> torch.device:
-    """``None``/"auto" -> cuda when available, else cpu."""
+    """The torch device a ``device`` option names.
+
+    Args:
+        device: A device name or object; None and ``auto`` mean cuda when available, else cpu.
+
+    Returns:
+        The device.
+    """
     import torch
 
     if device is None or str(device) == "auto":
@@ -51,7 +58,12 @@ def __getattr__(name: str) -> Any:
 
 @contextlib.contextmanager
 def steady_kernels() -> Iterator[None]:
-    """Attention restricted to ``STEADY_BACKENDS`` and no cuDNN autotuning (``cudnn.benchmark``) inside."""
+    """Run learned networks without per-shape kernel set-up: attention limited to ``STEADY_BACKENDS``, cuDNN
+    autotuning (``cudnn.benchmark``) off, both restored on exit.
+
+    Yields:
+        Nothing; the settings hold inside the ``with`` block.
+    """
     import torch
     from torch.nn.attention import sdpa_kernel
 
@@ -65,7 +77,14 @@ def steady_kernels() -> Iterator[None]:
 
 
 def with_steady_kernels(fn: Callable[P, R]) -> Callable[P, R]:
-    """Decorator form of ``steady_kernels`` for a network's forward entry points."""
+    """Decorator form of ``steady_kernels`` for a network's forward entry points.
+
+    Args:
+        fn: The function to run inside ``steady_kernels``.
+
+    Returns:
+        The wrapped function, same signature.
+    """
 
     @functools.wraps(fn)
     def wrapped(*args: P.args, **kwargs: P.kwargs) -> R:

@@ -55,17 +55,34 @@ class ScanFrame:
 
 @dataclass
 class Scan:
+    """One scan of a place: its frames in time order.
+
+    Attributes:
+        name: Scan folder name.
+        folder: The scan folder.
+        frames: Images (or sampled video frames) with their times, intrinsics and device poses.
+    """
+
     name: str
     folder: Path
     frames: list[ScanFrame] = field(default_factory=list)
 
     @property
     def has_device(self) -> bool:
+        """Whether any frame has a device pose."""
         return any(f.device is not None for f in self.frames)
 
 
 @dataclass
 class Place:
+    """A place: two or more scans of it, the first being the reference scan.
+
+    Attributes:
+        name: Place folder name.
+        folder: The place folder.
+        scans: The scans, sorted by folder name.
+    """
+
     name: str
     folder: Path
     scans: list[Scan]
@@ -221,7 +238,21 @@ def read_scan(folder: Path, fps: float = 2.0, cache: Path | None = None, device_
 
 
 def read_place(folder: Path, fps: float = 2.0, cache: Path | None = None, device_axes: str = "opencv") -> Place:
-    """A place folder -> Place with its scans (sub-folders, sorted by name)."""
+    """Read a place: its scan folders with images or a video, intrinsics, timestamps and device poses.
+
+    Args:
+        folder: The place folder (scan sub-folders; hidden folders are skipped).
+        fps: Frames per second sampled from a video, Hz.
+        cache: Folder of the frames sampled from videos; a ``.frames`` folder inside each scan when None.
+        device_axes: Camera axes of the device poses: ``opencv``, or ``opengl`` (ARKit/ARCore).
+
+    Returns:
+        The place, scans sorted by name.
+
+    Raises:
+        ValueError: ``device_axes`` is unknown.
+        FormatError: Fewer than two scans, a scan without images or video, or a malformed file.
+    """
     folder = Path(folder)
     if device_axes not in DEVICE_AXES:
         raise ValueError(f"device_axes must be one of {sorted(DEVICE_AXES)}, got {device_axes!r}")

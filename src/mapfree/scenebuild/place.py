@@ -43,6 +43,24 @@ class BuildError(RuntimeError):
 
 @dataclass(frozen=True)
 class BuildOptions:
+    """How ``build_place`` turns scans into a scene (``mapfree build`` options).
+
+    Attributes:
+        split: Split the scene is written for: ``train`` (every scan a sequence) or ``val``/``test``.
+        fps: Frames per second sampled from a video, Hz.
+        device_axes: Camera axes of the device poses: ``opencv``, or ``opengl`` for ARKit/ARCore exports.
+        min_registered: Fraction of each scan's images SfM must register.
+        allow_unscaled: Without device poses or depth, keep SfM units instead of failing.
+        sfm_depth: Write sparse SfM depth maps ``frame_NNNNN.sfm.png``.
+        correspondences: Write ``correspondences.npz`` (training correspondences from depth).
+        corr: Settings of the correspondences.
+        sfm: Settings of the reconstruction.
+        keep_work: Keep the COLMAP database and model.
+        overlap_points: Points the overlaps are computed from: ``depth`` (every frame has metric depth),
+            ``sfm`` (SfM tracks), or ``auto`` (depth when it can).
+        report_plot: Draw ``build_report.png``.
+    """
+
     split: str = "train"
     fps: float = 2.0  # video sampling rate
     device_axes: str = "opencv"  # camera axes of the device poses ("opengl" for ARKit/ARCore exports)
@@ -59,6 +77,17 @@ class BuildOptions:
 
 @dataclass
 class PlaceResult:
+    """What became of one place.
+
+    Attributes:
+        place: Place folder name.
+        scene: Scene folder name.
+        status: ``ok``, ``failed`` or ``skipped`` (already built).
+        reason: Why it failed or was skipped.
+        seconds: Wall time of the build.
+        report: The build report (``build_report.json``): registration, scale, overlaps, timings.
+    """
+
     place: str
     scene: str
     status: str  # "ok" | "failed" | "skipped" (already built)
@@ -337,7 +366,18 @@ def build_place(
     private_gt: Path | None = None,
     force: bool = False,
 ) -> PlaceResult:
-    """Build ``place_dir`` into ``scene_dir``; never raises for a bad place (the result says why it failed)."""
+    """Build one place of scans into a Map-free scene; never raises for a bad place (the result says why).
+
+    Args:
+        place_dir: Folder of two or more scan folders.
+        scene_dir: The scene folder written (replaced atomically when the build succeeds).
+        options: How to build.
+        private_gt: Folder that receives the private ground truth of val/test scenes.
+        force: Rebuild a scene that already has a report.
+
+    Returns:
+        The status, the reason of a failure, the time taken and the build report.
+    """
     place_dir, scene_dir = Path(place_dir), Path(scene_dir)
     if not force and (scene_dir / REPORT_FILE).is_file():
         done = json.loads((scene_dir / REPORT_FILE).read_text())
