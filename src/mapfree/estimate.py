@@ -71,7 +71,7 @@ class Estimate:
 
         Returns:
             ``ok``, ``confidence``, ``inliers``, ``reason``, ``timings``, and with a pose ``q_wxyz``, ``t``,
-            ``R`` and ``center`` as lists.
+                ``R`` and ``center`` as lists.
         """
         d: dict = {
             "ok": self.ok,

@@ -224,7 +224,7 @@ class Pose:
 
         Returns:
             The transform from ``first``'s camera frame to this camera's (``q12 = q2 q1^-1``,
-            ``t12 = t2 - R12 t1``).
+                ``t12 = t2 - R12 t1``).
         """
         return self @ first.inverse()
 

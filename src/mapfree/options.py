@@ -97,7 +97,7 @@ def device_problem(value: Any) -> str | None:
 
     Returns:
         None when the device is usable; else why not (a name torch does not know, CUDA or MPS on a machine
-        without it, a CUDA index beyond the devices).
+            without it, a CUDA index beyond the devices).
     """
     if value is None:
         return None

@@ -273,7 +273,7 @@ def file_problem(path: os.PathLike | str) -> str | None:
 
     Returns:
         None when nothing is wrong; else why: empty, a truncated safetensors file (its header gives the
-        length), a zip-format torch checkpoint whose directory is missing (cut short), unreadable.
+            length), a zip-format torch checkpoint whose directory is missing (cut short), unreadable.
     """
     path = Path(path)
     try:

@@ -243,7 +243,7 @@ def precision_ratio_curve(confidence: np.ndarray, accepted: np.ndarray, failures
 
     Returns:
         (T,) float32 ratios of frames kept, increasing and truncated at full ratio, and the precision at
-        each: (T,), or (k, T) for (k, N) ``accepted``.
+            each: (T,), or (k, T) for (k, N) ``accepted``.
     """
     conf = np.asarray(confidence, dtype=np.float64)
     acc = np.asarray(accepted, dtype=bool)

@@ -170,7 +170,7 @@ class DevicePoses:
 
         Returns:
             The transform from ``frame``'s camera to ``query``'s (``X_query = T · X_frame``), or None when
-            either has no device pose.
+                either has no device pose.
         """
         a, b = self.poses.get(frame), self.poses.get(query)
         return None if a is None or b is None else b @ a.inverse()

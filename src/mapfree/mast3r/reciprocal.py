@@ -73,7 +73,15 @@ def _rows(points: np.ndarray | torch.Tensor, idx: np.ndarray) -> np.ndarray | to
 
 
 def merge_pairs(idx1: np.ndarray, idx2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unique (idx1, idx2) pairs sorted by idx1 then idx2."""
+    """Unique index pairs, sorted by ``idx1`` then ``idx2``.
+
+    Args:
+        idx1: (N,) non-negative indices below 2**32.
+        idx2: (N,) non-negative indices below 2**32.
+
+    Returns:
+        (M,) int64 ``idx1`` and (M,) int64 ``idx2`` of the distinct pairs.
+    """
     key = np.unique((idx1.astype(np.int64) << 32) | idx2.astype(np.int64))
     return (key >> 32).astype(np.int64), (key & 0xFFFFFFFF).astype(np.int64)
 
@@ -87,9 +95,24 @@ def reciprocal_matches(
     max_iter: int = 10,
     brute_force: bool | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Reciprocal matches between (H1, W1, D) and (H2, W2, D) maps: (N, 2) integer (x, y) in each image,
-    sorted by the pixel index in image 1. On the CPU with ``dist`` "l2": KD-trees (the public CPU path), unless
-    ``brute_force``; elsewhere blocks of brute force on ``device``."""
+    """Reciprocal nearest-neighbour matches between two dense descriptor maps (MASt3R's fast matcher).
+
+    Args:
+        desc1: (H1, W1, D) descriptors of image 1.
+        desc2: (H2, W2, D) descriptors of image 2.
+        subsample: Grid step of the starting pixels in image 1.
+        device: Where brute force runs.
+        dist: ``l2``, or ``dot`` for unit descriptors (brute force only).
+        max_iter: Rounds of 1 -> 2 -> 1 before giving up on the pixels still moving.
+        brute_force: Blocks of brute force even on the CPU; None: KD-trees on the CPU with ``l2`` (the public
+            CPU path), brute force elsewhere.
+
+    Returns:
+        (N, 2) integer (x, y) pixels in image 1 and (N, 2) in image 2, sorted by the pixel index in image 1.
+
+    Raises:
+        ValueError: The descriptor widths differ.
+    """
     h1, w1, dim = desc1.shape
     h2, w2, dim2 = desc2.shape
     if dim != dim2:

@@ -337,8 +337,14 @@ class EpochSampler(Sampler):
 
 
 class RPRDataModule(pl.LightningDataModule):
-    """Lightning data module: one training dataset that resamples its pairs each epoch (``TrainPairs``), loader
-    workers that persist across epochs, pinned batches when a GPU is present."""
+    """Lightning data module of RPR training: pairs resampled each epoch, persistent loader workers.
+
+    One training dataset resamples its pairs each epoch (``TrainPairs``); loader workers persist across
+    epochs; batches are pinned when a GPU is present.
+
+    Args:
+        cfg: The data section of the configuration.
+    """
 
     def __init__(self, cfg: DataConfig):
         super().__init__()

@@ -20,7 +20,11 @@ __all__ = ["RPRModule", "warmup_cosine"]
 
 
 class RPRModule(pl.LightningModule):
-    """Trains ``RPRNet``; the full ``RPRConfig`` is saved in the checkpoint's hyper-parameters."""
+    """Lightning module that trains ``RPRNet``; the full ``RPRConfig`` is saved in the checkpoint's hyper-parameters.
+
+    Args:
+        config: The configuration, or its nested dicts (validated here); the defaults when None.
+    """
 
     def __init__(self, config: dict[str, Any] | RPRConfig | None = None):
         super().__init__()
