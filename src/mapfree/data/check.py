@@ -167,7 +167,7 @@ def check_scene(path: os.PathLike | str, split: str, deep: bool = False) -> Scen
 
     Args:
         path: The scene folder.
-        split: Its split (val and test scenes need the reference frame ``seq0/frame_00000.jpg``).
+        split: Its split: val and test scenes need the reference frame, train scenes ``overlaps.npz``.
         deep: Decode every image and depth map instead of reading headers.
 
     Returns:

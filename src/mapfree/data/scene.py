@@ -65,7 +65,7 @@ class Frame:
         name: Frame name relative to the scene, e.g. ``seq1/frame_00012.jpg``.
         image_path: The image file.
         intrinsics: The frame's intrinsics.
-        pose: World-to-camera pose (the reference camera is the world), or None when unknown.
+        pose: World-to-camera pose in the scene's frame (val/test: the reference camera's), or None when unknown.
     """
 
     name: str

@@ -46,7 +46,8 @@ class BuildOptions:
     """How ``build_place`` turns scans into a scene (``mapfree build`` options).
 
     Attributes:
-        split: Split the scene is written for: ``train`` (every scan a sequence) or ``val``/``test``.
+        split: Split the scene is written for: ``train`` (every scan a sequence), or ``val``/``test`` (the
+            reference and the queries of scan 1; ``test`` hides the poses).
         fps: Frames per second sampled from a video, Hz.
         device_axes: Camera axes of the device poses: ``opencv``, or ``opengl`` for ARKit/ARCore exports.
         min_registered: Fraction of each scan's images SfM must register.
@@ -370,9 +371,9 @@ def build_place(
 
     Args:
         place_dir: Folder of two or more scan folders.
-        scene_dir: The scene folder written (replaced atomically when the build succeeds).
+        scene_dir: The scene folder written (replaced only when the build succeeds).
         options: How to build.
-        private_gt: Folder that receives the private ground truth of val/test scenes.
+        private_gt: Folder that receives the poses a test scene hides (``private_gt/SCENE/poses.txt``).
         force: Rebuild a scene that already has a report.
 
     Returns:
