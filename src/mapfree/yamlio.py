@@ -21,7 +21,17 @@ BASE_KEY = "base"
 
 
 def read_yaml(path: os.PathLike | str) -> Any:
-    """The parsed document (``{}`` for an empty file); invalid YAML raises ``ValueError`` naming ``path:line``."""
+    """Read a YAML file (safe loader) with errors that name the file and line.
+
+    Args:
+        path: The file.
+
+    Returns:
+        The parsed document; ``{}`` for an empty file.
+
+    Raises:
+        ValueError: Invalid YAML (``path:line: invalid YAML (...)``).
+    """
     path = Path(path)
     try:
         return yaml.safe_load(path.read_text()) or {}
@@ -32,7 +42,15 @@ def read_yaml(path: os.PathLike | str) -> Any:
 
 
 def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
-    """``over`` on top of ``base``: mappings merge key by key (recursively); lists and scalars replace."""
+    """Merge one config over another: mappings merge key by key (recursively); lists and scalars replace.
+
+    Args:
+        base: The config extended.
+        over: The config whose keys win.
+
+    Returns:
+        A new mapping; neither input is modified.
+    """
     out = dict(base)
     for k, v in over.items():
         out[k] = deep_merge(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else v
@@ -40,9 +58,21 @@ def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, An
 
 
 def read_yaml_with_base(path: os.PathLike | str, search: Sequence[os.PathLike | str] = ()) -> dict[str, Any]:
-    """The mapping of a YAML config resolved through its ``base:`` chain: ``base`` is a path relative to the
-    file, else a file name (``.yaml`` optional) in one of the ``search`` folders. A missing base or a cycle raises
-    ``ValueError`` naming the files (and the line of the ``base`` key)."""
+    """Read a YAML config resolved through its ``base:`` chain, each file's keys merged over its base's.
+
+    Args:
+        path: The config.
+        search: Folders where a ``base`` that is not a path relative to the file is looked up by name
+            (``.yaml`` optional).
+
+    Returns:
+        The merged mapping, without the ``base`` key.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: Invalid YAML, not a mapping, a missing base or a cycle (naming the files and the line of
+            the ``base`` key).
+    """
     return _resolve(Path(path), tuple(Path(s) for s in search), ())
 
 

@@ -7,6 +7,12 @@
 ``benchmark`` depends only on ``geometry`` and ``data``.
 """
 
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
 from .metrics import Thresholds, auc, precision_ratio_curve, rotation_error_deg, translation_error, vcre, virtual_points
 from .report import METRIC_KEYS, Report, format_table
 from .score import EvaluationError, aggregate, evaluate, score
@@ -41,8 +47,17 @@ __all__ = [
 ]
 
 
-def save_plots(report, outdir, formats=("png", "pdf")):
-    """Write the paper-style figures of a report (see ``mapfree.benchmark.plots``); imports matplotlib lazily."""
+def save_plots(report: Report, outdir: os.PathLike | str, formats: Sequence[str] = ("png", "pdf")) -> list[Path]:
+    """Write the paper-style figures of a report; imports matplotlib only when called.
+
+    Args:
+        report: The scores.
+        outdir: Folder of the figures, created when missing.
+        formats: File formats matplotlib writes, e.g. ``png``, ``pdf``.
+
+    Returns:
+        The files written, ``outdir/{precision_ratio,vcre_cdf,scenes}.FORMAT``.
+    """
     from .plots import save_plots as _save
 
     return _save(report, outdir, formats)

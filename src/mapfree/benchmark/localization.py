@@ -45,14 +45,14 @@ def localization_report(
 
     ``K`` (N,4) fx fy cx cy; frames must be grouped by ``scene`` (contiguous) for the per-scene medians.
     """
-    scene = np.asarray(scene, dtype=str)
-    n = len(scene)
+    scenes = np.asarray(scene, dtype=str)
+    n = len(scenes)
     q_gt, t_gt = np.asarray(q_gt, float).reshape(n, 4), np.asarray(t_gt, float).reshape(n, 3)
     q_est, t_est = np.asarray(q_est, float).reshape(n, 4), np.asarray(t_est, float).reshape(n, 3)
     conf = np.asarray(confidence, float).reshape(n)
     W, H = np.asarray(width, float).reshape(n), np.asarray(height, float).reshape(n)
-    starts = np.flatnonzero(np.r_[True, scene[1:] != scene[:-1]]) if n else np.zeros(0, np.int64)
-    names = scene[starts]
+    starts = np.flatnonzero(np.r_[True, scenes[1:] != scenes[:-1]]) if n else np.zeros(0, np.int64)
+    names = scenes[starts]
     if len(set(names.tolist())) != len(names):
         raise ValueError("the frames of each scene must be contiguous")
     bounds = np.append(starts, n).astype(np.int64)
@@ -76,7 +76,7 @@ def localization_report(
     return Report(
         metrics=metrics,
         per_scene=per_scene,
-        scene=scene,
+        scene=scenes,
         frame=np.asarray(frame, dtype=str),
         trans_err=te,
         rot_err=re,
@@ -137,9 +137,10 @@ def comparison_figures(reports: Mapping[str, Report]) -> dict:
         ylabel="fraction of query frames",
         title="Cumulative distribution of VCRE",
     )
-    for ax, loc in ((ax_p, "lower left"), (ax_c, "lower right")):
-        ax.grid(alpha=0.3)
-        ax.legend(loc=loc, fontsize=8)
+    ax_p.grid(alpha=0.3)
+    ax_p.legend(loc="lower left", fontsize=8)
+    ax_c.grid(alpha=0.3)
+    ax_c.legend(loc="lower right", fontsize=8)
     return figs
 
 

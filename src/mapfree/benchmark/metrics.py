@@ -25,22 +25,48 @@ __all__ = [
 
 @dataclass(frozen=True)
 class Thresholds:
-    """Acceptance thresholds; the first of each tuple is the benchmark's headline."""
+    """Acceptance thresholds of the precision and AUC metrics; the first of each tuple is the headline.
+
+    Attributes:
+        pose: ``(metres, degrees)`` pairs: a frame is accepted when both errors are below them.
+        vcre: Pixel thresholds of the VCRE (90 and 45: 10 % and 5 % of a 540x720 image's diagonal).
+    """
 
     pose: tuple[tuple[float, float], ...] = ((0.25, 5), (0.5, 10))  # (metres, degrees)
     vcre: tuple[float, ...] = (90, 45)  # pixels: 10 % and 5 % of a 540x720 image's diagonal
 
     @staticmethod
     def pose_name(t_m: float, r_deg: float) -> str:
+        """Metric-name suffix of a pose threshold, as the public evaluator spells it.
+
+        Args:
+            t_m: Translation threshold, metres.
+            r_deg: Rotation threshold, degrees.
+
+        Returns:
+            E.g. ``Pose Error < (25.0cm, 5deg)``.
+        """
         return f"Pose Error < ({t_m * 100}cm, {r_deg:g}deg)"
 
     @staticmethod
     def vcre_name(px: float) -> str:
+        """Metric-name suffix of a VCRE threshold, as the public evaluator spells it.
+
+        Args:
+            px: Threshold, pixels.
+
+        Returns:
+            E.g. ``VCRE < 90px``.
+        """
         return f"VCRE < {px:g}px"
 
 
 def virtual_points() -> np.ndarray:
-    """The 196 virtual points (7 x 4 x 7 grid) in the ground-truth query camera frame, (196,3) metres."""
+    """The virtual points the VCRE moves: a 7 x 4 x 7 grid in front of the true query camera.
+
+    Returns:
+        (196, 3) points in the query camera frame, metres (0.3 m apart, 1.8 m to 3.6 m deep).
+    """
     x = (np.arange(7) - 3) * 0.3
     y = (np.arange(4) - 1.5) * 0.3
     z = np.arange(7) * 0.3 + 1.8
@@ -75,12 +101,30 @@ def _rotmat(q: np.ndarray) -> np.ndarray:
 
 
 def camera_centers(q: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Camera centres ``-R^T t`` (N,3) of world-to-camera poses (quaternions normalised first)."""
+    """Camera centres ``-R^T t`` of world-to-camera poses.
+
+    Args:
+        q: (N, 4) quaternions ``w x y z``, any non-zero norm.
+        t: (N, 3) translations, metres.
+
+    Returns:
+        (N, 3) centres in world coordinates, metres.
+    """
     return -np.einsum("nji,nj->ni", _rotmat(_unit(q)), t)
 
 
-def translation_error(q_gt, t_gt, q_est, t_est) -> np.ndarray:
-    """Distance between the estimated and true camera centres (metres), (N,)."""
+def translation_error(q_gt: np.ndarray, t_gt: np.ndarray, q_est: np.ndarray, t_est: np.ndarray) -> np.ndarray:
+    """Translation error of the benchmark: distance between estimated and true camera centres.
+
+    Args:
+        q_gt: (N, 4) true world-to-camera quaternions ``w x y z``.
+        t_gt: (N, 3) true translations, metres.
+        q_est: (N, 4) estimated quaternions.
+        t_est: (N, 3) estimated translations, metres.
+
+    Returns:
+        (N,) errors in metres.
+    """
     return np.linalg.norm(camera_centers(q_est, t_est) - camera_centers(q_gt, t_gt), axis=1)
 
 
@@ -89,6 +133,13 @@ def rotation_error_deg(q_gt: np.ndarray, q_est: np.ndarray) -> np.ndarray:
 
     Computed as ``2 asin |vec(conj(q_gt) q_est)|`` like the public evaluator: accurate near 0°, where
     the trace formula loses about 1e-6 degree.
+
+    Args:
+        q_gt: (N, 4) true quaternions ``w x y z``, any non-zero norm.
+        q_est: (N, 4) estimated quaternions.
+
+    Returns:
+        (N,) errors in degrees.
     """
     a, b = _unit(q_gt), _unit(q_est)
     aw, av = a[:, :1], -a[:, 1:]  # conjugate of q_gt
@@ -112,9 +163,21 @@ def vcre(
 
     The 196 virtual points live in the true query camera; they are projected with K, and again after
     moving them by ``inv(T_est_cam2world) T_gt_cam2world``; both projections are clipped to
-    ``[0, W] x [0, H]``; the error is the mean pixel distance. ``K`` is (N,4) fx fy cx cy (float32 in the
-    public evaluator), ``W``/``H`` (N,). A point landing exactly on the estimated camera centre (0/0)
-    counts as projecting to the image corner (0, 0).
+    ``[0, W] x [0, H]``; the error is the mean pixel distance. A point landing exactly on the estimated
+    camera centre (0/0) counts as projecting to the image corner (0, 0).
+
+    Args:
+        q_gt: (N, 4) true world-to-camera quaternions ``w x y z``.
+        t_gt: (N, 3) true translations, metres.
+        q_est: (N, 4) estimated quaternions.
+        t_est: (N, 3) estimated translations, metres.
+        K: (N, 4) ``fx fy cx cy`` of each query, pixels (float32 in the public evaluator).
+        W: (N,) image widths, pixels.
+        H: (N,) image heights, pixels.
+        chunk: Frames per vectorised pass (memory, not results).
+
+    Returns:
+        (N,) errors in pixels.
     """
     n = len(q_gt)
     out = np.empty(n)
@@ -170,10 +233,17 @@ def vcre(
 def precision_ratio_curve(confidence: np.ndarray, accepted: np.ndarray, failures: int) -> tuple[np.ndarray, np.ndarray]:
     """Precision against the ratio of frames kept, as the confidence threshold is lowered.
 
-    Returns (ratio, precision) at each distinct confidence (only the last of tied values is a
-    threshold), truncated at full ratio, in increasing ratio. Ranks are float32 as in the public
-    evaluator, so the ratios round the same way. ``accepted`` may be (k, N) for k criteria at once
-    (precision is then (k, T)).
+    Only the last of tied confidences is a threshold. Ranks are float32 as in the public evaluator, so the
+    ratios round the same way.
+
+    Args:
+        confidence: (N,) confidences of the estimated frames.
+        accepted: (N,) whether each frame meets the criterion, or (k, N) for k criteria at once.
+        failures: Frames without an estimate (they count in the ratio's denominator).
+
+    Returns:
+        (T,) float32 ratios of frames kept, increasing and truncated at full ratio, and the precision at
+            each: (T,), or (k, T) for (k, N) ``accepted``.
     """
     conf = np.asarray(confidence, dtype=np.float64)
     acc = np.asarray(accepted, dtype=bool)
@@ -191,10 +261,16 @@ def precision_ratio_curve(confidence: np.ndarray, accepted: np.ndarray, failures
     return ratio[:keep], precision[..., :keep]
 
 
-def auc(confidence: np.ndarray, accepted: np.ndarray, failures: int):
-    """Area under the precision-ratio curve: ``sum (r_k - r_{k-1}) p_k`` with ``r_0 = 0``.
+def auc(confidence: np.ndarray, accepted: np.ndarray, failures: int) -> float | np.ndarray:
+    """Area under the precision-ratio curve, ``sum (r_k - r_{k-1}) p_k`` with ``r_0 = 0`` (the AUC metrics).
 
-    A float for (N,) ``accepted``; an array of k areas for (k, N).
+    Args:
+        confidence: (N,) confidences of the estimated frames.
+        accepted: (N,) whether each frame meets the criterion, or (k, N) for k criteria at once.
+        failures: Frames without an estimate.
+
+    Returns:
+        The area, a float for (N,) ``accepted``; (k,) areas for (k, N).
     """
     ratio, precision = precision_ratio_curve(confidence, accepted, failures)
     step = np.diff(np.concatenate([np.zeros(1, np.float32), ratio]))  # float32 steps, like the public evaluator

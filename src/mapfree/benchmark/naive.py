@@ -144,17 +144,20 @@ def evaluate_naive(
     gt_root: os.PathLike | str | None = None,
     thresholds=((0.25, 5), (0.5, 10)),
     vcre_thresholds=(90, 45),
-) -> tuple[dict[str, float], dict[tuple[str, str], tuple[float, float, float]]]:
+) -> tuple[dict[str, float | None], dict[tuple[str, str], tuple[float, float, float]]]:
     """(metrics, {(scene, frame): (trans_err, rot_err, vcre)}) computed one frame at a time."""
-    root = Path(gt_root if gt_root is not None else dataset_root) / split
-    results = {}
+    base = gt_root if gt_root is not None else dataset_root
+    if base is None:
+        raise ValueError("need a dataset root or a ground-truth root")
+    root = Path(base) / split
+    results: dict[str, list[tuple[float, float, float, float]]] = {}
     failures = 0
-    per_frame = {}
+    per_frame: dict[tuple[str, str], tuple[float, float, float]] = {}
     with zipfile.ZipFile(submission_zip) as zf:
         members = set(zf.namelist())
         for scene in sorted(p.name for p in root.iterdir() if p.is_dir()):
             intr = root / scene / "intrinsics.txt"
-            if not intr.is_file():
+            if not intr.is_file() and dataset_root is not None:
                 intr = Path(dataset_root) / split / scene / "intrinsics.txt"
             K, W, H = _load_K(intr)
             gt = _load_poses((root / scene / "poses.txt").read_text().splitlines(), False, False)
@@ -181,7 +184,7 @@ def evaluate_naive(
                 results[scene] = rows
     all_rows = [r for rows in results.values() for r in rows]
     total = len(all_rows) + failures
-    metrics = {}
+    metrics: dict[str, float | None] = {}
     for j, key in enumerate(("Translation", "Rotation", "Reprojection")):
         medians = [float(np.median([r[j] for r in rows])) for rows in results.values()]
         metrics[f"Average Median {key} Error"] = float(np.mean(medians)) if medians else None

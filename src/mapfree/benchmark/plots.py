@@ -11,6 +11,7 @@ No pyplot: figures draw on their own Agg canvas, so nothing global changes.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -185,8 +186,8 @@ FIGURES = (
 )
 
 
-def save_plots(report: Report, outdir: os.PathLike | str, formats=("png", "pdf")) -> list[Path]:
-    """Write the three figures as ``outdir/{precision_ratio,vcre_cdf,scenes}.{png,pdf}``."""
+def save_plots(report: Report, outdir: os.PathLike | str, formats: Sequence[str] = ("png", "pdf")) -> list[Path]:
+    """``mapfree.benchmark.save_plots``: each of ``FIGURES`` as ``outdir/NAME.FORMAT``, the files returned."""
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     paths = []

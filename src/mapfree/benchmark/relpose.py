@@ -128,14 +128,15 @@ def format_relpose(report: RelPoseReport, title: str = "Relative pose") -> str:
     from rich.console import Console
     from rich.table import Table
 
-    console = Console(file=io.StringIO(), width=100, color_system=None)
+    buf = io.StringIO()
+    console = Console(file=buf, width=100, color_system=None)
     t = Table(title=title)
     t.add_column("metric")
     t.add_column("value", justify="right")
     for k, v in report.metrics.items():
         t.add_row(k, "—" if v is None or not math.isfinite(v) else (f"{v:.0f}" if k == "Pairs" else f"{v:.4f}"))
     console.print(t)
-    return console.file.getvalue()
+    return buf.getvalue()
 
 
 def cumulative_error_figure(report: RelPoseReport):

@@ -37,7 +37,26 @@ def _clean(v):
 
 @dataclass
 class Report:
-    """Scores of one submission. Per-frame arrays cover every evaluated frame (NaN where no estimate)."""
+    """Scores of one submission; per-frame arrays cover every evaluated frame (NaN where no estimate).
+
+    Attributes:
+        metrics: The headline metrics by the public evaluator's names (``METRIC_KEYS``); None when undefined.
+        per_scene: The same metrics for each scene.
+        scene: (M,) scene of each evaluated frame.
+        frame: (M,) frame name.
+        trans_err: (M,) translation error, metres.
+        rot_err: (M,) rotation error, degrees.
+        vcre: (M,) virtual correspondence reprojection error, pixels.
+        confidence: (M,) submitted confidence.
+        estimated: (M,) bool, whether the frame has a usable estimate.
+        diagonal: (M,) image diagonal, pixels.
+        problems: What was wrong with the submission, each naming its file and line.
+        split: The split scored.
+        compat: ``default``, or ``official`` (the public evaluator's behaviour, quirks included).
+        track: ``single`` or ``multi``: the leaderboard whose frames were scored.
+        thresholds: The thresholds of the precision and AUC metrics.
+        extra_failures: Failures beyond the evaluated frames (``compat="official"``: missing scenes).
+    """
 
     metrics: dict[str, float | None]
     per_scene: dict[str, dict[str, float | None]]
@@ -58,9 +77,18 @@ class Report:
 
     @property
     def fatal(self) -> bool:
+        """Whether a problem made the submission unscorable (the public evaluator would abort)."""
         return any(p.fatal for p in self.problems)
 
     def to_dict(self, frames: bool = False) -> dict:
+        """JSON-ready form: split, compat, track, metrics, per-scene metrics, problems (NaN becomes None).
+
+        Args:
+            frames: Add one entry per evaluated frame with its errors.
+
+        Returns:
+            The report as plain dicts and lists.
+        """
         out = {
             "split": self.split,
             "compat": self.compat,
@@ -89,6 +117,15 @@ class Report:
         return out
 
     def to_json(self, indent: int | None = 2, frames: bool = False) -> str:
+        """The report as JSON text (``mapfree evaluate --json``).
+
+        Args:
+            indent: JSON indentation; None for one line.
+            frames: Add one entry per evaluated frame with its errors.
+
+        Returns:
+            Strict JSON (no NaN).
+        """
         return json.dumps(self.to_dict(frames), indent=indent, allow_nan=False)
 
 
@@ -107,12 +144,22 @@ def _fmt(key: str, v) -> str:
 
 
 def format_table(report: Report, per_scene: bool = False, width: int = 100, max_problems: int = 50) -> str:
-    """A readable text rendering (rich tables) of the metrics, optionally per scene, and the problems
-    (the first ``max_problems``; ``Report.problems`` / ``to_json`` hold them all)."""
+    """A readable text rendering (rich tables) of the metrics, for a terminal or a log.
+
+    Args:
+        report: The scores.
+        per_scene: Add a table of the metrics of each scene.
+        width: Characters per line.
+        max_problems: Problems listed (``Report.problems`` and ``to_json`` hold them all).
+
+    Returns:
+        Plain text, no colour codes.
+    """
     from rich.console import Console
     from rich.table import Table
 
-    console = Console(file=io.StringIO(), width=width, force_terminal=False, color_system=None)
+    buf = io.StringIO()
+    console = Console(file=buf, width=width, force_terminal=False, color_system=None)
     n = len(report.estimated)
     title = (
         f"Map-free benchmark — {report.split}, {len(report.per_scene)} scenes, "
@@ -151,4 +198,4 @@ def format_table(report: Report, per_scene: bool = False, width: int = 100, max_
             console.print(f"  {'FATAL ' if p.fatal else ''}{p}", markup=False, highlight=False)
         if len(report.problems) > max_problems:
             console.print(f"  … {len(report.problems) - max_problems} more (see --json)")
-    return console.file.getvalue()
+    return buf.getvalue()

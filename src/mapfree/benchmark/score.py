@@ -48,11 +48,26 @@ def evaluate(
     thresholds: Thresholds = Thresholds(),
     track: str = "single",
 ) -> Report:
-    """Score a submission (ZIP path/bytes/file, or ``{scene: [(frame_name, Pose, confidence), ...]}``).
+    """Score a submission against a split's ground truth (``mapfree evaluate``).
 
-    Ground truth comes from ``gt_root/SPLIT`` when given (private test poses), else ``dataset_root/SPLIT``;
-    pass ``truth`` (from ``load_truth``) to score many submissions against one loaded split.
-    ``track="multi"`` scores the frames of the multi-frame leaderboard (queries 9, 19, 29, …) instead.
+    Args:
+        submission: A ZIP (path, bytes or binary file), or ``{scene: [(frame_name, Pose, confidence), ...]}``.
+        dataset_root: The dataset folder; ground truth is read from ``dataset_root/SPLIT``.
+        split: The split scored.
+        compat: ``default`` (the public evaluator's quirks fixed) or ``official`` (reproduced).
+        gt_root: Folder of private ground truth (``gt_root/SPLIT``), read instead of ``dataset_root``'s.
+        truth: Ground truth already loaded by ``load_truth``, to score many submissions against one split.
+        limits: Size limits of the ZIP.
+        thresholds: Thresholds of the precision and AUC metrics.
+        track: ``single``, or ``multi`` for the multi-frame leaderboard's frames (queries 9, 19, 29, …).
+
+    Returns:
+        The metrics, per-scene metrics, per-frame errors and every problem of the submission.
+
+    Raises:
+        ValueError: ``compat`` is unknown, or there is neither a dataset nor a ground-truth root.
+        EvaluationError: ``compat="official"`` and the public evaluator would abort.
+        FormatError: The ground truth is malformed.
     """
     if compat not in COMPAT_MODES:
         raise ValueError(f"compat must be one of {COMPAT_MODES}, got {compat!r}")
@@ -87,9 +102,33 @@ def score(
     split: str = "val",
     track: str = "single",
 ) -> Report:
-    """Per-frame errors for every evaluated frame of every scene, then the aggregates (``track``: which
-    leaderboard's frames ``truth`` holds, recorded in the report)."""
-    scenes, frames, gt_q, gt_t, K, W, H, est_rows, est_of = [], [], [], [], [], [], [], [], []
+    """Score parsed estimates: per-frame errors for every evaluated frame of every scene, then the aggregates.
+
+    Args:
+        truth: Ground truth by scene (``load_truth``).
+        estimates: Estimates by scene (``read_submission``, ``from_estimates``).
+        problems: Problems found while reading, carried into the report.
+        compat: ``default`` or ``official`` (frames matched by number; missing scenes cost all their lines).
+        thresholds: Thresholds of the precision and AUC metrics.
+        split: The split, recorded in the report.
+        track: The leaderboard whose frames ``truth`` holds, recorded in the report.
+
+    Returns:
+        The report.
+
+    Raises:
+        EvaluationError: ``compat="official"`` and a scored frame has a negative confidence, or no frame
+            has an estimate.
+    """
+    scenes: list[np.ndarray] = []
+    frames: list[str] = []
+    q_parts: list[np.ndarray] = []
+    t_parts: list[np.ndarray] = []
+    K_parts: list[np.ndarray] = []
+    W_parts: list[np.ndarray] = []
+    H_parts: list[np.ndarray] = []
+    est_rows: list[np.ndarray] = []
+    est_of: list[str] = []
     extra: dict[str, int] = {}
     problems = list(problems or [])
     for scene in sorted(truth):
@@ -108,14 +147,17 @@ def score(
             rows = _match(t, sel, e, compat)
         scenes.append(np.full(m, scene, dtype=object))
         frames.extend(t.names[i] for i in np.flatnonzero(sel).tolist())
-        gt_q.append(t.q[sel]), gt_t.append(t.t[sel]), K.append(t.K[sel])
-        W.append(np.full(m, t.width)), H.append(np.full(m, t.height))
+        q_parts.append(t.q[sel])
+        t_parts.append(t.t[sel])
+        K_parts.append(t.K[sel])
+        W_parts.append(np.full(m, t.width))
+        H_parts.append(np.full(m, t.height))
         est_rows.append(rows)
         est_of.append(scene)
     cat = lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape)  # noqa: E731
     scene_arr = cat(scenes, (0,)).astype(object)
-    gt_q, gt_t, K = cat(gt_q, (0, 4)), cat(gt_t, (0, 3)), cat(K, (0, 4)).astype(np.float32)
-    W, H = cat(W, (0,)), cat(H, (0,))
+    gt_q, gt_t, K = cat(q_parts, (0, 4)), cat(t_parts, (0, 3)), cat(K_parts, (0, 4)).astype(np.float32)
+    W, H = cat(W_parts, (0,)), cat(H_parts, (0,))
     n = len(scene_arr)
     q_est, t_est, conf = np.full((n, 4), np.nan), np.full((n, 3), np.nan), np.full(n, np.nan)
     lines = np.zeros(n, dtype=np.int64)
@@ -198,8 +240,16 @@ def _unscored_track_problem(estimates: Mapping[str, SceneEstimates], matched: in
 
 
 def scene_medians(values: np.ndarray, bounds: np.ndarray, estimated: np.ndarray) -> np.ndarray:
-    """Median of ``values`` over the estimated frames of each scene (NaN for a scene without any), all
-    scenes in one sort; same numbers as ``np.median`` per scene (the mean of the two middle values)."""
+    """Median over the estimated frames of each scene, all scenes in one sort (same numbers as ``np.median``).
+
+    Args:
+        values: (M,) per-frame values, frames grouped by scene.
+        bounds: (S + 1,) scene i is ``bounds[i]:bounds[i+1]``.
+        estimated: (M,) bool, frames that count.
+
+    Returns:
+        (S,) medians; NaN for a scene without an estimated frame.
+    """
     n = len(bounds) - 1
     seg = np.repeat(np.arange(n), np.diff(bounds))[estimated]
     v = values[estimated]
@@ -247,11 +297,24 @@ def aggregate(
     thresholds: Thresholds = Thresholds(),
     medians: np.ndarray | None = None,
 ) -> dict[str, float | None]:
-    """The benchmark's numbers over evaluated frames grouped by scene (``bounds``: scene i is
-    ``bounds[i]:bounds[i+1]``).
+    """The benchmark's metrics over evaluated frames grouped by scene.
 
     "Average Median" = median per scene over its estimated frames, mean over scenes with an estimate;
     precision and AUC count every evaluated frame (plus ``extra_failures``) in the denominator.
+
+    Args:
+        bounds: (S + 1,) scene i is ``bounds[i]:bounds[i+1]``.
+        trans_err: (M,) translation errors, metres.
+        rot_err: (M,) rotation errors, degrees.
+        vcre_err: (M,) VCRE, pixels.
+        confidence: (M,) confidences.
+        estimated: (M,) bool, frames with an estimate.
+        extra_failures: Failures beyond the M frames.
+        thresholds: Thresholds of the precision and AUC metrics.
+        medians: (S, 3) per-scene medians of the three errors, when already computed.
+
+    Returns:
+        The metrics by the public evaluator's names (None where undefined).
     """
     est = np.flatnonzero(estimated)
     failures = int(len(estimated) - len(est) + extra_failures)
@@ -278,7 +341,14 @@ def aggregate_scenes(
     thresholds: Thresholds,
     medians: np.ndarray,
 ) -> list[dict[str, float | None]]:
-    """``aggregate`` of every scene at once (same keys), vectorised over scenes."""
+    """``aggregate`` of every scene at once (same keys), vectorised over scenes.
+
+    The arguments are ``aggregate``'s, except ``extra_failures``: (S,) failures of each scene beyond its
+    frames, and ``medians``, required.
+
+    Returns:
+        One metrics dict per scene.
+    """
     S = len(bounds) - 1
     est = np.flatnonzero(estimated)
     seg = np.repeat(np.arange(S), np.diff(bounds))[est]

@@ -40,13 +40,21 @@ COMPAT_MODES = ("default", "official")
 _ENTRY_RE = re.compile(r"^pose_(s\d{5})\.txt$")
 _BOM = b"\xef\xbb\xbf"
 _FIELDS = ("name", "qw", "qx", "qy", "qz", "tx", "ty", "tz", "confidence")
+_UNSET_KEYS = np.zeros(0, np.int64)  # SceneEstimates.keys' default, replaced by the names' frame numbers
 _EMPTY = (np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64))
 ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # entries' timestamp in a written submission (the ZIP epoch): reproducible bytes
 
 
 @dataclass(frozen=True)
 class Problem:
-    """One thing wrong with a submission: scene (None: the whole archive), 1-based line (None: the file)."""
+    """One thing wrong with a submission, named by scene and line.
+
+    Attributes:
+        scene: The scene (``sNNNNN``), or None for the whole archive.
+        line: 1-based line in ``pose_SCENE.txt``, or None for the file as a whole.
+        reason: What is wrong, in one line.
+        fatal: The submission cannot be scored (the public evaluator would abort).
+    """
 
     scene: str | None
     line: int | None
@@ -62,7 +70,15 @@ class Problem:
 
 @dataclass(frozen=True)
 class SubmissionLimits:
-    """Bounds that keep a hostile ZIP harmless (sizes in bytes, uncompressed where it matters)."""
+    """Bounds that keep a hostile ZIP harmless (sizes in bytes, uncompressed where it matters).
+
+    Attributes:
+        max_zip_bytes: Size of the archive.
+        max_entries: Entries in the archive.
+        max_file_bytes: Uncompressed size of one pose file.
+        max_total_bytes: Uncompressed size of all pose files together.
+        max_problems: Problems worded; further ones are only counted.
+    """
 
     max_zip_bytes: int = 1 << 30
     max_entries: int = 10_000
@@ -73,23 +89,40 @@ class SubmissionLimits:
 
 @dataclass
 class SceneEstimates:
-    """The estimates of one scene as arrays; ``lines`` are 1-based line numbers (0 when not from a file)."""
+    """The estimates of one scene as arrays.
+
+    Attributes:
+        names: (n) frame names.
+        q: (n, 4) world-to-camera quaternions ``w x y z``, as written.
+        t: (n, 3) translations, metres.
+        confidence: (n,) confidences.
+        lines: (n,) 1-based line numbers in the pose file (0 when not from a file).
+        keys: (n,) frame numbers, ``int(name[-9:-4])``; read from the names when not given.
+    """
 
     names: list[str]
     q: np.ndarray  # (n,4) world-to-camera wxyz, as written
     t: np.ndarray  # (n,3)
     confidence: np.ndarray  # (n,)
     lines: np.ndarray  # (n,)
-    keys: np.ndarray = field(default=None)  # (n,) frame numbers, int(name[-9:-4])
+    keys: np.ndarray = field(default_factory=lambda: _UNSET_KEYS)  # (n,) frame numbers, int(name[-9:-4])
 
     def __post_init__(self) -> None:
-        if self.keys is None:
+        if self.keys is _UNSET_KEYS:  # not given: read from the names
             self.keys = np.array([_frame_key(n) for n in self.names], dtype=np.int64)
 
     def __len__(self) -> int:
         return len(self.names)
 
     def take(self, idx: np.ndarray) -> SceneEstimates:
+        """A subset of the rows.
+
+        Args:
+            idx: (k,) row indices.
+
+        Returns:
+            The k estimates, in ``idx`` order.
+        """
         idx = np.asarray(idx, dtype=np.int64)
         return SceneEstimates(
             [self.names[i] for i in idx.tolist()],
@@ -102,6 +135,14 @@ class SceneEstimates:
 
     @classmethod
     def concat(cls, parts: list[SceneEstimates]) -> SceneEstimates:
+        """Join the estimates of one scene read piece by piece.
+
+        Args:
+            parts: The pieces, in order (at least one).
+
+        Returns:
+            One table with every row.
+        """
         if len(parts) == 1:
             return parts[0]
         return cls(
@@ -110,6 +151,7 @@ class SceneEstimates:
         )
 
     def to_list(self) -> list[tuple[str, Pose, float]]:
+        """The estimates as ``(frame_name, world-to-camera Pose, confidence)`` tuples."""
         return [(n, Pose.from_qt(q, t), float(c)) for n, q, t, c in zip(self.names, self.q, self.t, self.confidence)]
 
 
@@ -164,7 +206,9 @@ def _parse_file_slow(scene: str, data: bytes, compat: str, problems: _Problems, 
     """Line-by-line parse of a file (or a piece of one after ``line0`` lines) that is not clean:
     (names, keys, vals, bad, lines, number of lines)."""
     text = data.decode("utf-8", errors="surrogateescape")
-    names, tokens, lines = [], [], []
+    names: list[str] = []
+    tokens: list[bytes] = []
+    lines: list[int] = []
     all_lines = _split_lines(text)
     for lineno, line in enumerate(all_lines, line0 + 1):
         try:
@@ -231,7 +275,7 @@ def _validate_rows(
             keep[mask] = False
 
     if bad is not None and bad.any():
-        report(bad.any(axis=1), lambda i: f"unparseable number in field {_FIELDS[1 + int(np.argmax(bad[i]))]}")
+        report(np.any(bad, axis=1), lambda i: f"unparseable number in field {_FIELDS[1 + int(np.argmax(bad[i]))]}")
     vals = np.concatenate([est.q, est.t, est.confidence[:, None]], axis=1)
     report(~np.all(np.isfinite(vals), axis=1), "non-finite number (NaN or inf)")
     report(~(np.linalg.norm(np.nan_to_num(est.q), axis=1) > 1e-8), "zero quaternion")  # np.isclose(norm, 0)
@@ -311,11 +355,20 @@ def read_submission(
     compat: str = "default",
     limits: SubmissionLimits | None = None,
 ) -> tuple[dict[str, SceneEstimates], list[Problem]]:
-    """Read and validate a submission ZIP -> ({scene: SceneEstimates}, problems).
+    """Read and validate a submission ZIP; never raises for bad content (each defect is a ``Problem``).
 
-    ``expected`` (scene -> frame names of that scene) enables the unknown-frame and outside-the-split
-    checks. ``compat="official"`` keeps what the public evaluator keeps (frames keyed by number, the last
-    duplicate wins, negative confidences kept for the scorer to reject).
+    Args:
+        source: The ZIP: a path, its bytes, or a binary file.
+        expected: Frame names by scene; enables the unknown-frame and outside-the-split checks.
+        compat: ``default``, or ``official`` to keep what the public evaluator keeps (frames keyed by number,
+            the last duplicate wins, negative confidences kept for the scorer to reject).
+        limits: Size limits that keep a hostile ZIP harmless.
+
+    Returns:
+        The valid estimates by scene, and every problem found (line by line).
+
+    Raises:
+        ValueError: ``compat`` is unknown.
     """
     if compat not in COMPAT_MODES:
         raise ValueError(f"compat must be one of {COMPAT_MODES}, got {compat!r}")
@@ -326,10 +379,10 @@ def read_submission(
         f: BinaryIO
         if isinstance(source, (bytes, bytearray)):
             f = io.BytesIO(source)
-        elif hasattr(source, "read"):
-            f = source  # type: ignore[assignment]
-        else:
+        elif isinstance(source, (str, os.PathLike)):
             f = open(source, "rb")
+        else:
+            f = source
     except OSError as e:
         problems.add(None, None, f"cannot open submission: {e.strerror or e}", fatal=True)
         return out, problems.finish()
@@ -476,9 +529,16 @@ def from_estimates(
     expected: Mapping[str, Collection[str]] | None = None,
     compat: str = "default",
 ) -> tuple[dict[str, SceneEstimates], list[Problem]]:
-    """In-memory estimates ``{scene: [(frame_name, Pose | None, confidence), ...]}`` -> validated arrays.
+    """Validate in-memory estimates as ``read_submission`` validates a file.
 
-    A ``None`` pose means "no estimate" and is dropped silently; everything else is checked like a file.
+    Args:
+        estimates: ``{scene: [(frame_name, Pose | None, confidence), ...]}`` or ``{scene: SceneEstimates}``;
+            a None pose means "no estimate" and is dropped silently.
+        expected: Frame names by scene; enables the unknown-frame and outside-the-split checks.
+        compat: ``default`` or ``official`` (see ``read_submission``).
+
+    Returns:
+        The valid estimates by scene, and every problem found.
     """
     problems = _Problems(SubmissionLimits().max_problems)
     out: dict[str, SceneEstimates] = {}
@@ -511,10 +571,20 @@ def from_estimates(
 def write_submission(
     path: os.PathLike | str, estimates: Mapping[str, Iterable[tuple[str, Pose | None, float]]]
 ) -> list[Problem]:
-    """Write ``{scene: [(frame_name, Pose | None, confidence), ...]}`` as a submission ZIP (atomically).
+    """Write a submission ZIP (``pose_sNNNNN.txt`` per scene), atomically and with reproducible bytes.
 
     Frames without a pose are left out (they count as failures); non-finite poses or confidences and
     negative confidences are never written: they are skipped and returned as problems.
+
+    Args:
+        path: The ZIP, replaced when it exists.
+        estimates: ``{scene: [(frame_name, world-to-camera Pose | None, confidence), ...]}``.
+
+    Returns:
+        The estimates skipped, one problem each.
+
+    Raises:
+        ValueError: A scene name is not ``sNNNNN``.
     """
     path = Path(path)
     skipped: list[Problem] = []

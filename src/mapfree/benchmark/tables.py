@@ -106,7 +106,7 @@ def scan_table(data: bytes, nvalues: int) -> RawTable | None:
     if not data.endswith(b"\n"):
         data += b"\n"
     b = np.frombuffer(data, dtype=np.uint8)
-    sep = np.flatnonzero(b <= 32)  # every space, newline and other control character, in one pass
+    sep: np.ndarray = np.flatnonzero(b <= 32)  # every space, newline and other control character, in one pass
     n = len(sep) // fields
     if len(sep) != n * fields:
         return None  # wrong field count somewhere

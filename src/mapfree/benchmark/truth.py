@@ -61,7 +61,20 @@ class FrameNames:
 
 @dataclass
 class SceneTruth:
-    """The evaluated frames of one scene, in the public evaluator's order."""
+    """The evaluated frames of one scene, in the public evaluator's order.
+
+    Attributes:
+        scene: Scene name.
+        names: (m) name of each evaluated frame (the last line with its number).
+        keys: (m,) frame numbers.
+        q: (m, 4) true world-to-camera quaternions ``w x y z``.
+        t: (m, 3) true translations, metres.
+        K: (m, 4) float32 ``fx fy cx cy``, pixels.
+        width: Image width from the last line of ``intrinsics.txt``, pixels.
+        height: Image height, pixels.
+        n_keys: Distinct frame numbers with a valid pose (the public evaluator's missing-scene penalty).
+        frame_names: Every frame named in ``poses.txt`` (set-like, decoded lazily).
+    """
 
     scene: str
     names: list[str]  # name of each evaluated frame (the last line with its number)
@@ -182,7 +195,22 @@ def load_scene_truth(
     every: int = EVERY,
     track: str = "single",
 ) -> SceneTruth:
-    """Read one scene's ground truth (``poses.txt`` + ``intrinsics.txt``) for the single- or multi-frame track."""
+    """Read one scene's ground truth (``poses.txt`` + ``intrinsics.txt``) for the single- or multi-frame track.
+
+    Args:
+        poses_path: The scene's ``poses.txt``.
+        intrinsics_path: The scene's ``intrinsics.txt``.
+        scene: Scene name; the parent folder's name when None.
+        every: Stride of the scored queries of the single-frame track.
+        track: ``single`` or ``multi``.
+
+    Returns:
+        The evaluated frames with their poses and intrinsics.
+
+    Raises:
+        ValueError: ``track`` is unknown.
+        FormatError: A file is malformed, or the image size is not positive.
+    """
     if track not in TRACKS:
         raise ValueError(f"track must be one of {TRACKS}, got {track!r}")
     poses_path, intrinsics_path = Path(poses_path), Path(intrinsics_path)
@@ -202,13 +230,28 @@ def load_truth(
 ) -> dict[str, SceneTruth]:
     """Ground truth of every scene of a split, by scene name.
 
-    ``gt_root`` (optional) holds ``SPLIT/sNNNNN/poses.txt`` (+ ``intrinsics.txt``) with private poses;
-    its scenes define the split, and intrinsics missing there are read from ``dataset_root``.
-    ``track``: "single" (every 5th query) or "multi" (the multi-frame leaderboard's queries 9, 19, …).
+    Args:
+        dataset_root: The dataset folder.
+        split: The split.
+        gt_root: Folder of ``SPLIT/sNNNNN/poses.txt`` (+ ``intrinsics.txt``) with private poses; its scenes
+            define the split, and intrinsics missing there are read from ``dataset_root``.
+        track: ``single`` (every 5th query) or ``multi`` (the multi-frame leaderboard's queries 9, 19, …).
+
+    Returns:
+        Ground truth by scene name.
+
+    Raises:
+        ValueError: Neither root is given.
+        FileNotFoundError: A root or the split's scenes do not exist.
+        FormatError: A file is malformed, or every pose is hidden (the public test split without
+            ``gt_root``).
     """
-    if gt_root is None and dataset_root is None:
+    if gt_root is not None:
+        root = Path(gt_root)
+    elif dataset_root is not None:
+        root = Path(dataset_root)
+    else:
         raise ValueError("need a dataset root or a ground-truth root")
-    root = Path(gt_root) if gt_root is not None else Path(dataset_root)
     if gt_root is not None and not root.is_dir():
         raise FileNotFoundError(f"ground-truth root {root} (--gt-root) does not exist")
     if dataset_root is not None and not Path(dataset_root).is_dir():

@@ -82,7 +82,15 @@ class SplitReport:
 
 @dataclass
 class CheckReport:
-    """The result of ``check_dataset``: ``ok`` when no split has a problem."""
+    """The result of ``check_dataset``: ``ok`` when no split has a problem.
+
+    Attributes:
+        root: The folder checked.
+        deep: Whether every image and depth map was decoded.
+        subset: Whether any subset of the release's scenes was accepted.
+        splits: One report per split checked.
+        problems: Problems of the root itself (no split folder, not a dataset).
+    """
 
     root: str
     deep: bool
@@ -92,13 +100,16 @@ class CheckReport:
 
     @property
     def all_problems(self) -> list[Problem]:
+        """Problems of the root, then of each split."""
         return self.problems + [p for s in self.splits for p in s.problems]
 
     @property
     def ok(self) -> bool:
+        """True when nothing is wrong."""
         return not self.all_problems
 
     def to_dict(self) -> dict:
+        """JSON-ready form (``mapfree check --json``): the fields, ``ok``, and each problem as one line."""
         d = asdict(self)
         d["ok"] = self.ok
         d["problems"] = [str(p) for p in self.problems]
@@ -152,7 +163,16 @@ def _is_identity(q: np.ndarray, t: np.ndarray) -> bool:
 
 
 def check_scene(path: os.PathLike | str, split: str, deep: bool = False) -> SceneStats:
-    """Check one scene folder ``ROOT/SPLIT/sNNNNN`` (see the module docstring); never raises for bad data."""
+    """Check one scene folder ``ROOT/SPLIT/sNNNNN``: text files, images, depth maps; never raises for bad data.
+
+    Args:
+        path: The scene folder.
+        split: Its split: val and test scenes need the reference frame, train scenes ``overlaps.npz``.
+        deep: Decode every image and depth map instead of reading headers.
+
+    Returns:
+        What the scene holds and every problem found, each naming its file (and line).
+    """
     path = Path(path)
     st = SceneStats()
     try:
@@ -282,12 +302,22 @@ def check_dataset(
     workers: int = 1,
     progress: Callable[[Iterable[SceneStats], int], Iterable[SceneStats]] | None = None,
 ) -> CheckReport:
-    """Check ``root`` (see the module docstring).
+    """Check that a dataset folder (a download, a copy, a build) is complete and readable (``mapfree check``).
 
-    ``splits``: the splits to check (default: all three for the release, the ones present with ``subset``).
-    ``subset``: accept any subset of ``sNNNNN`` scenes (a partial copy, synthetic or built data) instead of
-    expecting the release's scenes. ``workers``: scenes checked in parallel processes. ``progress`` wraps the
-    stream of finished scenes (e.g. a progress bar), given the number of scenes.
+    Args:
+        root: The dataset folder.
+        splits: The splits to check; default all three for the release, the ones present with ``subset``.
+        subset: Accept any subset of ``sNNNNN`` scenes (a partial copy, synthetic or built data) instead of
+            expecting the release's scenes.
+        deep: Decode every image and depth map instead of reading headers.
+        workers: Scenes checked in parallel processes.
+        progress: Wraps the stream of finished scenes (e.g. a progress bar), given the number of scenes.
+
+    Returns:
+        Per split, the scenes, frames, images and depth maps found and every problem.
+
+    Raises:
+        ValueError: ``splits`` names an unknown split.
     """
     root = Path(root)
     report = CheckReport(str(root), deep, subset)

@@ -49,13 +49,28 @@ def multiframe_bursts(names: Sequence[str], size: int = BURST, every: int = EVER
     Like the public multi-frame loader: the distinct ``seq1`` names sorted by frame number form the query
     list; positions ``size, size + every, …`` are scored, each with the ``size`` frames ending there (so
     position 0 and the positions between bursts are never used). Frame numbers may skip.
+
+    Args:
+        names: Frame names of a scene (other sequences are ignored).
+        size: Frames per burst, the query included.
+        every: Stride between scored queries.
+
+    Returns:
+        One ``(query, burst)`` per scored query.
     """
     queries = sorted({n for n in names if n.startswith("seq1/")}, key=lambda n: (frame_number(n), n))
     return [(queries[i], queries[i - size + 1 : i + 1]) for i in range(size, len(queries), every)]
 
 
 def scene_bursts(scene: Scene) -> list[tuple[str, list[str]]]:
-    """The multi-frame bursts of a scene, from its ``poses.txt`` names (``intrinsics.txt`` when it has none)."""
+    """The multi-frame bursts of a scene (see ``multiframe_bursts``).
+
+    Args:
+        scene: The scene; its ``poses.txt`` names, else its ``intrinsics.txt`` names.
+
+    Returns:
+        One ``(query, burst)`` per scored query.
+    """
     names = scene.poses.names if scene.poses is not None else list(scene.intrinsics)
     return multiframe_bursts(names)
 
@@ -66,6 +81,14 @@ class DriftModel:
 
     Gravity is observed, so orientation drifts only in heading (about "up"): a per-scan bias in degrees per
     metre travelled plus a random walk. Tracked distances carry a per-scan scale error and a random walk.
+
+    Attributes:
+        scale_sigma: Std of the per-scan scale error of tracked distances (0.02: 2 cm per metre).
+        noise_per_m: Std of the position random walk, metres per metre travelled.
+        heading_rate_deg: Std of the per-scan heading bias, degrees per metre travelled.
+        heading_walk_deg: Heading random walk, degrees per square-root metre.
+        jitter_deg: Independent orientation noise of each frame, degrees.
+        min_step: Metres of "travel" charged per frame even when standing still.
     """
 
     scale_sigma: float = 0.02  # std of the per-scan scale error of tracked distances (2 cm per metre)
@@ -126,14 +149,29 @@ def write_device_poses(path: Path | str, rebased: Mapping[str, Pose]) -> None:
 
 @dataclass
 class DevicePoses:
-    """A scene's device poses (re-based per burst) and whether they were simulated from ground truth."""
+    """A scene's device poses (re-based per burst) and whether they were simulated from ground truth.
+
+    Attributes:
+        poses: Device pose by frame name, each burst re-based so that its query is the identity.
+        derived: True when simulated from ground truth (``DriftModel``), not read from a file.
+        source: The file read, or how the poses were derived.
+    """
 
     poses: dict[str, Pose]
     derived: bool
     source: str  # the file read, or how they were derived
 
     def relative(self, frame: str, query: str) -> Pose | None:
-        """Frame camera -> query camera as the device tracked it (``X_query = T · X_frame``), or None."""
+        """Motion between two frames of a burst as the device tracked it.
+
+        Args:
+            frame: Name of a frame of the burst.
+            query: Name of the burst's query.
+
+        Returns:
+            The transform from ``frame``'s camera to ``query``'s (``X_query = T · X_frame``), or None when
+                either has no device pose.
+        """
         a, b = self.poses.get(frame), self.poses.get(query)
         return None if a is None or b is None else b @ a.inverse()
 
@@ -143,12 +181,13 @@ def _derive(scene: Scene, model: DriftModel, seed: int) -> DevicePoses:
     path = scene.path / DEVICE_FILE
     truth = {n: f.pose for n, f in scene.frames.items()}
     order = sorted((n for n in truth if n.startswith("seq1/")), key=lambda n: (frame_number(n), n))
-    if not order or any(truth[n] is None for n in order):
+    track = [p for n in order if (p := truth[n]) is not None]
+    if not order or len(track) != len(order):
         raise FormatError(path, None, "missing, and the scene has no ground-truth query poses to derive it from")
     ref = truth.get(REFERENCE_NAME) or Pose.identity()
     up = ref.R.T @ np.array([0.0, -1.0, 0.0])  # the reference camera is held roughly upright
     rng = np.random.default_rng([seed, zlib.crc32(scene.name.encode())])
-    device = dict(zip(order, simulate_device_trajectory([truth[n] for n in order], up, rng, model)))
+    device = dict(zip(order, simulate_device_trajectory(track, up, rng, model)))
     return DevicePoses(
         rebase_bursts(device, multiframe_bursts(order)),
         True,
@@ -159,9 +198,19 @@ def _derive(scene: Scene, model: DriftModel, seed: int) -> DevicePoses:
 def load_device_poses(
     scene: Scene, derive: bool = True, model: DriftModel = DriftModel(), seed: int = 0
 ) -> DevicePoses:
-    """The scene's ``poses_device.txt``; without one, poses derived from its ground truth when ``derive``.
+    """The device poses of a scene for the multi-frame track.
 
-    Raises ``FormatError`` naming the file when it is malformed, or missing and cannot be derived.
+    Args:
+        scene: The scene.
+        derive: Without ``poses_device.txt``, simulate the poses from the ground truth instead of failing.
+        model: Drift of the simulation.
+        seed: Seed of the simulation (with the scene name: the same poses on every run).
+
+    Returns:
+        The poses read from ``poses_device.txt``, or derived from ground truth (``derived`` True).
+
+    Raises:
+        FormatError: The file is malformed, or missing and cannot (or may not) be derived.
     """
     path = scene.path / DEVICE_FILE
     if path.is_file():

@@ -37,7 +37,13 @@ __all__ = [
 
 
 class FormatError(ValueError):
-    """A malformed dataset file; the message names the file and (1-based) line."""
+    """A malformed dataset file; the message names the file and (1-based) line.
+
+    Args:
+        path: The file.
+        line: 1-based line number, or None for the file as a whole.
+        reason: What is wrong, in a few words.
+    """
 
     def __init__(self, path: os.PathLike | str, line: int | None, reason: str):
         self.path, self.line, self.reason = str(path), line, reason
@@ -70,7 +76,17 @@ def iter_records(path: os.PathLike | str, nvalues: int) -> Iterator[tuple[int, s
 
 
 def read_intrinsics(path: os.PathLike | str) -> dict[str, Intrinsics]:
-    """``intrinsics.txt`` -> {frame name: Intrinsics}, in file order."""
+    """Read a scene's ``intrinsics.txt`` (``name fx fy cx cy width height`` per frame).
+
+    Args:
+        path: The file.
+
+    Returns:
+        Intrinsics by frame name, in file order.
+
+    Raises:
+        FormatError: The file is missing or a line is malformed (non-positive focal length or size).
+    """
     out: dict[str, Intrinsics] = {}
     for lineno, name, v in iter_records(path, 6):
         fx, fy, cx, cy, w, h = v
@@ -81,13 +97,25 @@ def read_intrinsics(path: os.PathLike | str) -> dict[str, Intrinsics]:
 
 
 def write_intrinsics(path: os.PathLike | str, intrinsics: Mapping[str, Intrinsics]) -> None:
+    """Write an ``intrinsics.txt`` that ``read_intrinsics`` reads back.
+
+    Args:
+        path: The file, overwritten.
+        intrinsics: Intrinsics by frame name, written in this order.
+    """
     lines = [f"{n} {k.fx:.6f} {k.fy:.6f} {k.cx:.6f} {k.cy:.6f} {k.width} {k.height}\n" for n, k in intrinsics.items()]
     Path(path).write_text("".join(lines))
 
 
 @dataclass
 class PoseTable:
-    """Poses of a file as arrays; zero quaternions (test split: private ground truth) are kept as is."""
+    """Poses of a file as arrays; zero quaternions (test split: private ground truth) are kept as is.
+
+    Attributes:
+        names: Frame names, in file order.
+        q: (N, 4) world-to-camera quaternions ``w x y z``, as written.
+        t: (N, 3) world-to-camera translations, metres.
+    """
 
     names: list[str]
     q: np.ndarray  # (N,4) wxyz, as written
@@ -97,20 +125,39 @@ class PoseTable:
         return len(self.names)
 
     def index(self) -> dict[str, int]:
+        """Row of each frame name."""
         return {n: i for i, n in enumerate(self.names)}
 
     def pose(self, i: int) -> Pose | None:
-        """Pose of row i, or None when it has no valid rotation (all-zero test lines)."""
+        """Pose of one row.
+
+        Args:
+            i: Row index.
+
+        Returns:
+            The world-to-camera pose, or None when the row has no valid rotation (all-zero test lines).
+        """
         if not np.linalg.norm(self.q[i]) > 0:
             return None
         return Pose.from_qt(self.q[i], self.t[i])
 
     def as_dict(self) -> dict[str, Pose | None]:
+        """Pose (or None, see ``pose``) by frame name."""
         return {n: self.pose(i) for i, n in enumerate(self.names)}
 
 
 def read_poses(path: os.PathLike | str) -> PoseTable:
-    """``poses.txt`` / ``poses_device.txt`` -> PoseTable (file order)."""
+    """Read a pose file (``poses.txt``, ``poses_device.txt``: ``name qw qx qy qz tx ty tz`` per frame).
+
+    Args:
+        path: The file.
+
+    Returns:
+        The poses in file order.
+
+    Raises:
+        FormatError: The file is missing or a line is malformed.
+    """
     names, rows = [], []
     for _, name, v in iter_records(path, 7):
         names.append(name)
@@ -120,7 +167,13 @@ def read_poses(path: os.PathLike | str) -> PoseTable:
 
 
 def write_poses(path: os.PathLike | str, names: Sequence[str], poses: Sequence[Pose | None]) -> None:
-    """Write poses (None -> an all-zero line, as in the test split)."""
+    """Write a pose file that ``read_poses`` reads back.
+
+    Args:
+        path: The file, overwritten.
+        names: Frame names.
+        poses: World-to-camera poses, one per name; None writes an all-zero line (as in the test split).
+    """
     lines = []
     for n, p in zip(names, poses):
         if p is None:
@@ -132,7 +185,15 @@ def write_poses(path: os.PathLike | str, names: Sequence[str], poses: Sequence[P
 
 
 def depth_path_for(image_path: os.PathLike | str, suffix: str) -> Path:
-    """``seq1/frame_00012.jpg`` + ``dptkitti`` -> ``seq1/frame_00012.dptkitti.png``."""
+    """Where the depth map of an image is stored.
+
+    Args:
+        image_path: The image, e.g. ``seq1/frame_00012.jpg``.
+        suffix: Depth source name, e.g. ``dptkitti``.
+
+    Returns:
+        The PNG beside the image, e.g. ``seq1/frame_00012.dptkitti.png``.
+    """
     p = Path(image_path)
     return p.with_name(f"{p.stem}.{suffix}.png")
 
@@ -170,7 +231,17 @@ def _decode(data: np.ndarray, flags: int) -> np.ndarray | None:
 
 
 def read_depth(path: os.PathLike | str) -> np.ndarray:
-    """uint16 millimetre PNG -> float32 metres, 0 = invalid."""
+    """Read a depth map stored as a 16-bit PNG of millimetres.
+
+    Args:
+        path: The PNG.
+
+    Returns:
+        (H, W) float32 depth in metres; 0 marks invalid pixels.
+
+    Raises:
+        FormatError: The file is missing, corrupt, not single-channel or not 16-bit.
+    """
     import cv2  # here, not at the top: reading poses and intrinsics needs no OpenCV
 
     # Decoded from bytes: cv2.imread prints its own "[ WARN ] can't open/read file" line before our error.
@@ -188,8 +259,20 @@ def read_depth(path: os.PathLike | str) -> np.ndarray:
 
 
 def check_depth_size(path: os.PathLike | str, shape: tuple[int, ...], width: int, height: int) -> None:
-    """A depth map may be stored at another resolution than its image (it is resized), never at another aspect
-    ratio: that is another frame's map, rotated or cropped, and would put depth on the wrong pixels."""
+    """Refuse a depth map whose aspect ratio differs from its image's (2 % tolerance).
+
+    A map may have another resolution than its image (it is resized), never another aspect ratio: that is
+    another frame's map, rotated or cropped, and would put depth on the wrong pixels.
+
+    Args:
+        path: The depth map, named in the error.
+        shape: Shape of the depth array, (H, W, ...).
+        width: Image width, pixels.
+        height: Image height, pixels.
+
+    Raises:
+        FormatError: The aspect ratios differ.
+    """
     if not same_aspect(shape, width, height):
         h, w = shape[:2]
         raise FormatError(
@@ -207,7 +290,15 @@ def same_aspect(shape: tuple[int, ...], width: int, height: int) -> bool:
 
 
 def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:
-    """float metres -> uint16 millimetre PNG (invalid, negative or > 65.535 m -> 0)."""
+    """Write a depth map as a 16-bit PNG of millimetres that ``read_depth`` reads back.
+
+    Args:
+        path: The PNG, overwritten.
+        depth_m: (H, W) depth in metres; NaN, inf, negative or beyond 65.535 m are written as 0 (invalid).
+
+    Raises:
+        OSError: OpenCV could not write the file.
+    """
     import cv2
 
     d = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
@@ -218,8 +309,17 @@ def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:
 
 
 def read_image(path: os.PathLike | str) -> np.ndarray:
-    """Image file -> (H,W,3) uint8 RGB, turned upright by its EXIF orientation; a missing or corrupt file raises
-    FormatError naming it."""
+    """Read an image as displayed: decoded, then turned upright by its EXIF orientation.
+
+    Args:
+        path: The image file (any format OpenCV decodes).
+
+    Returns:
+        (H, W, 3) uint8 RGB.
+
+    Raises:
+        FormatError: The file is missing, empty, corrupt, or mirrored by its EXIF orientation.
+    """
     import cv2
 
     data = np.fromfile(str(path), dtype=np.uint8) if Path(path).is_file() else None

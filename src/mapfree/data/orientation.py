@@ -42,7 +42,18 @@ class OrientationError(ValueError):
 
 
 def check_orientation(orientation: int, what: str = "image") -> int:
-    """``orientation`` if we handle it; a clear ``OrientationError`` naming ``what`` otherwise."""
+    """Accept an EXIF orientation we handle (1, 3, 6, 8), refuse the others in one line.
+
+    Args:
+        orientation: The EXIF orientation tag.
+        what: The photo, named in the error.
+
+    Returns:
+        ``orientation``.
+
+    Raises:
+        OrientationError: A mirrored orientation (2, 4, 5, 7) or one outside 1-8.
+    """
     if orientation in ROTATIONS:
         return orientation
     if orientation in _MIRRORED:
@@ -54,7 +65,14 @@ def check_orientation(orientation: int, what: str = "image") -> int:
 
 
 def exif_orientation(source: bytes | os.PathLike | str) -> int:
-    """The EXIF orientation tag of an image file or its bytes (1 when there is none or it cannot be read)."""
+    """The EXIF orientation tag of an image.
+
+    Args:
+        source: The image file, or its bytes.
+
+    Returns:
+        The tag; 1 (upright) when there is none or it cannot be read.
+    """
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -69,19 +87,54 @@ def exif_orientation(source: bytes | os.PathLike | str) -> int:
 
 
 def orient_pixels(arr: np.ndarray, orientation: int) -> np.ndarray:
-    """The stored (H,W[,C]) grid turned upright (an image or a depth map); a view when nothing changes."""
+    """Turn a stored pixel grid (an image or a depth map) upright.
+
+    Args:
+        arr: (H, W) or (H, W, C) grid as stored.
+        orientation: The file's EXIF orientation.
+
+    Returns:
+        The upright grid; ``arr`` itself when nothing changes.
+
+    Raises:
+        OrientationError: A mirrored or invalid orientation.
+    """
     k = ROTATIONS[check_orientation(orientation)]
     return np.ascontiguousarray(np.rot90(arr, -k)) if k else arr  # rot90 turns counter-clockwise
 
 
 def displayed_size(width: int, height: int, orientation: int) -> tuple[int, int]:
-    """(width, height) of a stored ``width x height`` grid once turned upright."""
+    """Size of a stored grid once turned upright.
+
+    Args:
+        width: Stored width, pixels.
+        height: Stored height, pixels.
+        orientation: The file's EXIF orientation.
+
+    Returns:
+        (width, height) of the upright photo.
+
+    Raises:
+        OrientationError: A mirrored or invalid orientation.
+    """
     return (height, width) if ROTATIONS[check_orientation(orientation)] % 2 else (width, height)
 
 
 def orient_intrinsics(K: Intrinsics, orientation: int) -> Intrinsics:
-    """Intrinsics of the stored grid -> those of the upright photo (a quarter turn swaps the axes: the new x is the
-    old y, read from the far edge for a clockwise turn)."""
+    """Turn intrinsics of the stored grid into those of the upright photo.
+
+    A quarter turn swaps the axes: the new x is the old y, read from the far edge for a clockwise turn.
+
+    Args:
+        K: Intrinsics of the stored grid.
+        orientation: The file's EXIF orientation.
+
+    Returns:
+        Intrinsics of the upright photo.
+
+    Raises:
+        OrientationError: A mirrored or invalid orientation.
+    """
     k = ROTATIONS[check_orientation(orientation)]
     W, H = K.width, K.height
     if k == 0:
@@ -94,18 +147,44 @@ def orient_intrinsics(K: Intrinsics, orientation: int) -> Intrinsics:
 
 
 def camera_rotation(orientation: int) -> np.ndarray:
-    """R with ``X_upright = R X_stored`` (camera coordinates): the upright camera is the stored one turned about
-    its optical axis, so a world-to-camera pose of the stored camera becomes ``R @ pose``."""
+    """Rotation from the stored camera to the upright one, about the optical axis.
+
+    A world-to-camera pose of the stored camera becomes ``R @ pose`` for the upright camera.
+
+    Args:
+        orientation: The file's EXIF orientation.
+
+    Returns:
+        (3, 3) R with ``X_upright = R X_stored`` in camera coordinates.
+
+    Raises:
+        OrientationError: A mirrored or invalid orientation.
+    """
     k = ROTATIONS[check_orientation(orientation)]
     c, s = [(1, 0), (0, 1), (-1, 0), (0, -1)][k]  # cos, sin of k quarter turns
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=np.float64)
 
 
 def fit_intrinsics(K: Intrinsics, width: int, height: int, orientation: int, what: str = "image") -> Intrinsics:
-    """Intrinsics for an upright ``width x height`` photo whose file has ``orientation``: ``K`` as given when it is
-    sized like the upright photo only, turned when it is sized like the stored grid (where both sizes agree, a half
-    turn or a square photo, the stored grid's is assumed, as phone calibrations give it). Any other size is an
-    error naming ``what``."""
+    """Intrinsics for an upright photo, whether they were given for the stored grid or for the upright photo.
+
+    ``K`` is turned when it is sized like the stored grid, kept when sized like the upright photo only (where
+    both sizes agree, a half turn or a square photo, the stored grid's is assumed, as phone calibrations give it).
+
+    Args:
+        K: The given intrinsics.
+        width: Width of the upright photo, pixels.
+        height: Height of the upright photo, pixels.
+        orientation: The file's EXIF orientation.
+        what: The photo, named in errors.
+
+    Returns:
+        Intrinsics of the upright photo.
+
+    Raises:
+        OrientationError: A mirrored or invalid orientation.
+        ValueError: ``K`` has neither size.
+    """
     k = ROTATIONS[check_orientation(orientation, what)]
     stored = (height, width) if k % 2 else (width, height)
     if (K.width, K.height) == stored:

@@ -14,7 +14,12 @@ __all__ = ["Overlaps", "read_overlaps", "write_overlaps"]
 
 @dataclass
 class Overlaps:
-    """Pairs ``idxs (M,4) = seqA frameA seqB frameB`` with their overlap in [0,1]."""
+    """Frame pairs of a train scene with their visual overlap (``overlaps.npz``).
+
+    Attributes:
+        idxs: (M, 4) int ``seqA frameA seqB frameB`` per pair.
+        overlaps: (M,) overlap of each pair, in [0, 1].
+    """
 
     idxs: np.ndarray
     overlaps: np.ndarray
@@ -23,13 +28,31 @@ class Overlaps:
         return len(self.overlaps)
 
     def within(self, min_overlap: float = 0.4, max_overlap: float = 0.8) -> np.ndarray:
-        """Indices of pairs with ``min < overlap < max`` (strict, as in the reference training code)."""
+        """Pairs whose overlap lies strictly inside the bounds (as the reference training code selects).
+
+        Args:
+            min_overlap: Lower bound, exclusive.
+            max_overlap: Upper bound, exclusive.
+
+        Returns:
+            (K,) row indices into ``idxs``.
+        """
         return np.flatnonzero((self.overlaps > min_overlap) & (self.overlaps < max_overlap))
 
     def sample(
         self, n: int, rng: np.random.Generator, min_overlap: float = 0.4, max_overlap: float = 0.8
     ) -> np.ndarray:
-        """``n`` pair rows (M,4) drawn uniformly with replacement among pairs inside the bounds."""
+        """Draw training pairs uniformly, with replacement, among the pairs inside the bounds.
+
+        Args:
+            n: Number of pairs to draw.
+            rng: Random generator.
+            min_overlap: Lower bound, exclusive.
+            max_overlap: Upper bound, exclusive.
+
+        Returns:
+            (n, 4) rows of ``idxs``; (0, 4) when no pair is inside the bounds.
+        """
         ok = self.within(min_overlap, max_overlap)
         if len(ok) == 0:
             return np.zeros((0, 4), dtype=self.idxs.dtype)
@@ -37,6 +60,17 @@ class Overlaps:
 
 
 def read_overlaps(path: os.PathLike | str) -> Overlaps:
+    """Read a scene's ``overlaps.npz`` (arrays ``idxs`` and ``overlaps``).
+
+    Args:
+        path: The file.
+
+    Returns:
+        The pairs; overlaps keep their stored float dtype (float32 in the release).
+
+    Raises:
+        FormatError: The file is missing, not an npz, lacks an array, or the shapes disagree.
+    """
     try:
         with np.load(path) as z:
             idxs, ov = np.asarray(z["idxs"]), np.asarray(z["overlaps"])
@@ -53,4 +87,10 @@ def read_overlaps(path: os.PathLike | str) -> Overlaps:
 
 
 def write_overlaps(path: os.PathLike | str, overlaps: Overlaps) -> None:
+    """Write an ``overlaps.npz`` (int32 indices, float32 overlaps, as the release stores them).
+
+    Args:
+        path: The file, overwritten.
+        overlaps: The pairs.
+    """
     np.savez(path, idxs=overlaps.idxs.astype(np.int32), overlaps=overlaps.overlaps.astype(np.float32))

@@ -35,7 +35,17 @@ _INVALID_MM = 65535
 
 
 def read_matrix_pose(path: os.PathLike | str) -> Pose:
-    """A ``.pose.txt`` 4x4 camera-to-world matrix -> world-to-camera ``Pose`` (re-orthonormalised)."""
+    """Read a 7-Scenes pose file into mapfree's convention.
+
+    Args:
+        path: A ``.pose.txt``: a 4x4 camera-to-world matrix, metres.
+
+    Returns:
+        The world-to-camera pose, its rotation re-orthonormalised.
+
+    Raises:
+        FormatError: The file is missing or not a rigid 4x4 transform.
+    """
     path = Path(path)
     try:
         rows = [line.split() for line in path.read_text().splitlines() if line.strip()]
@@ -69,9 +79,11 @@ class SevenScenesFrame(Frame):
     """A 7-Scenes frame: depth beside the colour image as ``frame-NNNNNN.SUFFIX.png`` (native: ``depth``)."""
 
     def depth_path(self, suffix: str) -> Path:
+        """``frame-NNNNNN.SUFFIX.png`` beside the colour image, whether or not it exists."""
         return self.image_path.with_name(self.image_path.name.replace(".color.png", f".{suffix}.png"))
 
     def depth(self, suffix: str) -> np.ndarray:
+        """(H, W) float32 depth in metres; 0 where invalid, the Kinect's 65535 "no measurement" included."""
         d = read_depth(self.depth_path(suffix))
         d[d >= _INVALID_MM / 1000.0] = 0.0  # the Kinect's "no measurement"
         return d
@@ -89,13 +101,26 @@ class SevenScenesScene:
 
     @property
     def name(self) -> str:
+        """Scene name, e.g. ``chess``."""
         return self.path.name
 
     def all_sequences(self) -> list[str]:
+        """Every ``seq-XX`` folder of the scene, sorted."""
         return sorted(p.name for p in self.path.iterdir() if p.is_dir() and _SEQ_RE.match(p.name))
 
     def sequences(self, split: str) -> list[str]:
-        """``seq-XX`` folders of ``TrainSplit.txt`` / ``TestSplit.txt`` (``split`` = train | test)."""
+        """The sequences of a split, as the scene's ``TrainSplit.txt`` or ``TestSplit.txt`` lists them.
+
+        Args:
+            split: ``train`` (mapping) or ``test`` (queries).
+
+        Returns:
+            ``seq-XX`` folder names.
+
+        Raises:
+            ValueError: ``split`` is neither.
+            FormatError: The split file is missing, malformed, or names a missing folder.
+        """
         if split not in ("train", "test"):
             raise ValueError(f"split must be 'train' or 'test', got {split!r}")
         f = self.path / f"{split.capitalize()}Split.txt"
@@ -116,7 +141,19 @@ class SevenScenesScene:
         return out
 
     def frames(self, split: str, stride: int = 1) -> list[SevenScenesFrame]:
-        """Every ``stride``-th frame of the split's sequences, in order, with its pose (read now)."""
+        """The frames of a split's sequences, in order, with their poses (read now).
+
+        Args:
+            split: ``train`` or ``test``.
+            stride: Keep every ``stride``-th frame of each sequence.
+
+        Returns:
+            The frames; intrinsics from ``camera`` and the size of the first image.
+
+        Raises:
+            ValueError: ``split`` is unknown or ``stride < 1``.
+            FormatError: A sequence without images, or a malformed pose or split file.
+        """
         if stride < 1:
             raise ValueError(f"stride must be >= 1, got {stride}")
         out = []
@@ -141,7 +178,8 @@ class SevenScenes:
             raise FileNotFoundError(f"7-Scenes root {self.root} does not exist")
         if len(camera) != 4 or not all(np.isfinite(camera)) or camera[0] <= 0 or camera[1] <= 0:
             raise ValueError(f"camera must be fx fy cx cy with positive focal lengths, got {camera}")
-        self.camera = tuple(float(c) for c in camera)
+        fx, fy, cx, cy = (float(c) for c in camera)
+        self.camera = (fx, fy, cx, cy)
 
     def scene_names(self) -> list[str]:
         return sorted(

@@ -39,7 +39,14 @@ __all__ = [
 
 @dataclass(frozen=True)
 class Published:
-    """A published checkpoint: the file stem we look for, its hub id, its direct download, its architecture."""
+    """A published checkpoint and its architecture.
+
+    Attributes:
+        stem: File stem looked for (``STEM.pth`` or the hub folder ``STEM/``).
+        hub_id: Hugging Face hub id.
+        url: Direct download of the ``.pth``.
+        expr: The constructor call stored in the ``.pth`` (the architecture).
+    """
 
     stem: str
     hub_id: str
@@ -70,10 +77,19 @@ def _is_hub_folder(p: Path) -> bool:
 
 
 def find_checkpoint(kind: str, explicit: str | os.PathLike | None = None) -> Path:
-    """The checkpoint of ``kind`` (``mast3r`` | ``dust3r``) by the weights rule (``mapfree.weights``):
-    ``explicit`` (a ``.pth`` or a hub folder), else ``<stem>.pth`` or the hub folder ``<stem>/`` in
-    ``$MAPFREE_WEIGHTS_DIR`` or the default folder; else a ``MissingWeightsError`` saying which file to put where
-    and where it is published."""
+    """Find the published checkpoint of a network by the weights rule (``mapfree.weights``).
+
+    Args:
+        kind: ``mast3r`` or ``dust3r``.
+        explicit: A ``.pth`` file or hub folder the user gave: then only there. Else ``STEM.pth`` or the hub
+            folder ``STEM/`` is looked for in ``$MAPFREE_WEIGHTS_DIR`` and the default folder.
+
+    Returns:
+        The file or folder.
+
+    Raises:
+        MissingWeightsError: Not found (saying which file to put where, and where it is published).
+    """
     w = MAST3R_WEIGHTS[kind]
     hit = w.locate(explicit)
     if hit is None or (hit.path.is_dir() and not _is_hub_folder(hit.path)):
@@ -82,7 +98,14 @@ def find_checkpoint(kind: str, explicit: str | os.PathLike | None = None) -> Pat
 
 
 def checkpoint_available(kind: str) -> bool:
-    """Whether the published checkpoint of ``kind`` is in a weights folder."""
+    """Whether the published checkpoint of a network is in a weights folder.
+
+    Args:
+        kind: ``mast3r`` or ``dust3r``.
+
+    Returns:
+        True when ``find_checkpoint`` finds it.
+    """
     try:
         find_checkpoint(kind)
     except MissingWeightsError:
@@ -91,7 +114,14 @@ def checkpoint_available(kind: str) -> bool:
 
 
 def load_error_gist(e: Exception) -> str:
-    """The gist of a ``torch.load`` failure (its weights-only errors bury it in advice that does not apply)."""
+    """The gist of a ``torch.load`` failure, for a one-line error (its weights-only errors bury it in advice).
+
+    Args:
+        e: The exception ``torch.load`` raised.
+
+    Returns:
+        ``TYPE: gist``, at most about 200 characters.
+    """
     m = re.search(r"WeightsUnpickler error:\s*(.+?)(?:\n\s*\n|$)", str(e), re.S)
     gist = m.group(1) if m else (str(e).strip().splitlines() or [""])[0]
     return f"{type(e).__name__}: {' '.join(gist.split())[:200]}"
@@ -138,7 +168,19 @@ def _hub_class(kwargs: Mapping[str, Any]) -> str:
 
 
 def read_checkpoint(path: str | os.PathLike) -> tuple[ModelConfig, Mapping[str, torch.Tensor]]:
-    """(configuration, state dict) of a ``.pth`` file or hub folder; unsupported arguments raise, named."""
+    """Read a checkpoint's architecture and weights without building the network.
+
+    Args:
+        path: The authors' ``.pth`` file or a hub folder (``config.json`` + ``model.safetensors``).
+
+    Returns:
+        The configuration and the state dict.
+
+    Raises:
+        UnsupportedCheckpointError: An architecture argument this port does not implement (named).
+        BrokenWeightsError: A file is cut short.
+        ValueError: Not a MASt3R/DUSt3R checkpoint.
+    """
     p = Path(path)
     try:
         if p.is_dir():
@@ -153,7 +195,19 @@ def read_checkpoint(path: str | os.PathLike) -> tuple[ModelConfig, Mapping[str, 
 def model_from_state_dict(
     cfg: ModelConfig, sd: Mapping[str, torch.Tensor], source: str = "checkpoint"
 ) -> AsymmetricModel:
-    """Build the network and load ``sd`` strictly (``dec_blocks2`` copied from ``dec_blocks`` when absent)."""
+    """Build the network and load a state dict strictly (``dec_blocks2`` copied from ``dec_blocks`` when absent).
+
+    Args:
+        cfg: The architecture.
+        sd: The weights.
+        source: The file they came from, named in errors.
+
+    Returns:
+        The network in eval mode, float32, on the CPU.
+
+    Raises:
+        ValueError: The state dict does not fit the architecture (missing or unexpected keys, shapes).
+    """
     sd = dict(sd)
     if not any(k.startswith("dec_blocks2.") for k in sd):
         first = [(k, v) for k, v in sd.items() if k.startswith("dec_blocks.")]
@@ -177,6 +231,14 @@ def model_from_state_dict(
 
 
 def load_model(path: str | os.PathLike, device: str | torch.device = "cpu") -> AsymmetricModel:
-    """A checkpoint file or hub folder -> the network in eval mode on ``device``."""
+    """Load a checkpoint into the network (``read_checkpoint`` then ``model_from_state_dict``).
+
+    Args:
+        path: The authors' ``.pth`` file or a hub folder.
+        device: Where the network is put.
+
+    Returns:
+        The network in eval mode on ``device``.
+    """
     cfg, sd = read_checkpoint(path)
     return model_from_state_dict(cfg, sd, str(path)).to(device)

@@ -28,7 +28,31 @@ class UnsupportedCheckpointError(ValueError):
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """The architecture: CroCo defaults, DUSt3R's head options, MASt3R's descriptor options."""
+    """The architecture of a checkpoint: CroCo defaults, DUSt3R's head options, MASt3R's descriptor options.
+
+    Field names are the public constructor's keyword arguments.
+
+    Attributes:
+        has_descriptors: MASt3R's descriptor head (``AsymmetricMASt3R``).
+        img_size: Image size the network was built for, pixels.
+        patch_size: ViT patch side, pixels.
+        enc_embed_dim: Encoder width.
+        enc_depth: Encoder blocks.
+        enc_num_heads: Encoder attention heads.
+        dec_embed_dim: Decoder width.
+        dec_depth: Decoder blocks per view.
+        dec_num_heads: Decoder attention heads.
+        mlp_ratio: MLP hidden width over the block width.
+        norm_im2_in_dec: Normalise the other view's tokens in cross-attention.
+        pos_embed: ``RoPE<base>`` (only RoPE is implemented).
+        head_type: ``dpt`` (DUSt3R) or ``catmlp+dpt`` (MASt3R).
+        output_mode: ``pts3d``, or ``pts3d+descD`` with D-dimensional descriptors.
+        depth_mode: (mode, min, max) of the depth activation.
+        conf_mode: (mode, min, max) of the confidence activation.
+        desc_mode: Descriptor activation (``norm``: unit length).
+        two_confs: A separate descriptor confidence.
+        desc_conf_mode: (mode, min, max) of the descriptor confidence, or None.
+    """
 
     has_descriptors: bool = False
     img_size: tuple[int, int] = (224, 224)
@@ -52,14 +76,17 @@ class ModelConfig:
 
     @property
     def rope_base(self) -> float:
+        """Frequency base of the rotary position embedding."""
         return float(self.pos_embed[len("RoPE") :])
 
     @property
     def desc_dim(self) -> int:
+        """Descriptor width; 0 without the descriptor head."""
         return int(self.output_mode[len("pts3d+desc") :]) if self.has_descriptors else 0
 
     @property
     def class_name(self) -> str:
+        """The public class name of the architecture."""
         return "AsymmetricMASt3R" if self.has_descriptors else "AsymmetricCroCo3DStereo"
 
 
@@ -86,7 +113,17 @@ def _literal(node: ast.AST, where: str) -> Any:
 
 
 def parse_constructor(expr: str) -> tuple[str, dict[str, Any]]:
-    """``"AsymmetricMASt3R(a=1, …)"`` -> (class name, keyword arguments), without evaluating anything."""
+    """Parse the constructor call a ``.pth`` stores, with ``ast`` and without evaluating anything.
+
+    Args:
+        expr: E.g. ``"AsymmetricMASt3R(pos_embed='RoPE100', …)"``; literal arguments only.
+
+    Returns:
+        The class name and the keyword arguments.
+
+    Raises:
+        UnsupportedCheckpointError: Not a call of a class name, positional or ``**`` arguments, a non-literal.
+    """
     try:
         tree = ast.parse(expr.strip(), mode="eval")
     except SyntaxError as e:
@@ -113,7 +150,18 @@ def _mode(name: str, v: Any) -> Mode | None:
 
 
 def config_from_kwargs(class_name: str, kwargs: Mapping[str, Any]) -> ModelConfig:
-    """Validate constructor arguments into a ``ModelConfig``; unknown or unsupported ones raise, naming them."""
+    """Validate constructor arguments into a ``ModelConfig``.
+
+    Args:
+        class_name: ``AsymmetricMASt3R`` or ``AsymmetricCroCo3DStereo``.
+        kwargs: The constructor's keyword arguments (a ``.pth``'s call or a hub ``config.json``).
+
+    Returns:
+        The configuration.
+
+    Raises:
+        UnsupportedCheckpointError: An unknown class, or an argument this port does not implement (named).
+    """
     if class_name not in CLASSES:
         raise UnsupportedCheckpointError(f"unsupported model class {class_name!r} (supported: {', '.join(CLASSES)})")
     has_desc = CLASSES[class_name]

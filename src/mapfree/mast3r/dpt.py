@@ -61,8 +61,10 @@ class _Scratch(nn.Module):
         for i, d in enumerate(dims, 1):
             setattr(self, f"layer{i}_rn", nn.Conv2d(d, feature_dim, 3, padding=1, bias=False))
         self.layer_rn = nn.ModuleList([getattr(self, f"layer{i}_rn") for i in range(1, len(dims) + 1)])
-        for i in range(1, 5):
-            setattr(self, f"refinenet{i}", _Fusion(feature_dim))
+        self.refinenet1 = _Fusion(feature_dim)
+        self.refinenet2 = _Fusion(feature_dim)
+        self.refinenet3 = _Fusion(feature_dim)
+        self.refinenet4 = _Fusion(feature_dim)
 
 
 def _reassemble(dim_in: int, dim: int, level: int) -> nn.Sequential:

@@ -30,7 +30,13 @@ __all__ = ["EncodedImage", "PairOutput", "PairEngine", "shared_engine"]
 
 @dataclass
 class EncodedImage:
-    """An image after preprocessing and the encoder."""
+    """An image after preprocessing and the encoder, ready to be paired with any other.
+
+    Attributes:
+        prepared: The network input and how it maps back to the original pixels.
+        encoded: The encoder's tokens.
+        engine_id: ``id()`` of the engine that made it (its network and input size).
+    """
 
     prepared: Prepared
     encoded: Encoded
@@ -39,7 +45,22 @@ class EncodedImage:
 
 @dataclass
 class PairOutput:
-    """What one forward pass of (view 1, view 2) leaves for the matcher and the depth source, on the CPU."""
+    """What one forward pass of (view 1, view 2) leaves for the matcher and the depth source, on the CPU.
+
+    Maps are at the network input size; points are in metres for MASt3R's metric checkpoint, up to scale for
+    DUSt3R.
+
+    Attributes:
+        pts1: (H1, W1, 3) view 1's points in its own camera frame.
+        conf1: (H1, W1) their confidence.
+        pts2: (H2, W2, 3) view 2's points in view 1's camera frame.
+        conf2: (H2, W2) their confidence.
+        desc1: (H1, W1, D) unit descriptors of view 1 (MASt3R); on the device when asked for.
+        desc2: (H2, W2, D) unit descriptors of view 2.
+        desc_conf1: (H1, W1) descriptor confidence of view 1.
+        desc_conf2: (H2, W2) descriptor confidence of view 2.
+        extras: Anything else a consumer attaches.
+    """
 
     pts1: np.ndarray  # (H1, W1, 3) view 1's points in its own frame
     conf1: np.ndarray  # (H1, W1)
@@ -79,8 +100,18 @@ class _IdentityCache:
 
 
 class PairEngine:
-    """A loaded network with its caches. Thread-safe (the batched pipeline solves in a thread pool, the
-    relocalizer reads the next query ahead): the lock guards the caches, not the network's passes."""
+    """A loaded MASt3R/DUSt3R network with its caches: one encoder pass per image, one decoder pass per pair.
+
+    Thread-safe (the batched pipeline solves in a thread pool, the relocalizer reads the next query ahead):
+    the lock guards the caches, not the network's passes. Get one with ``shared_engine``.
+
+    Args:
+        model: The network, on ``device``.
+        device: Where it runs.
+        name: ``mast3r`` or ``dust3r``.
+        long_side: Long side of the network input, pixels (512 for the published models).
+        cache_pairs: Images and pairs kept in each cache.
+    """
 
     def __init__(
         self,
@@ -99,49 +130,86 @@ class PairEngine:
 
     @property
     def has_descriptors(self) -> bool:
+        """Whether the network has MASt3R's descriptor head."""
         return self.model.cfg.has_descriptors
 
     def encode(self, image: np.ndarray) -> EncodedImage:
-        """(H, W, 3) uint8 RGB -> preprocessed and encoded (cached on the array's identity)."""
+        """Preprocess and encode one image, cached on the array's identity.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            The encoded image.
+        """
         return self.encode_many([image])[0]
 
     def encode_many(self, images: Sequence[np.ndarray]) -> list[EncodedImage]:
-        """``encode`` for several images: those of one network input size go through the encoder together."""
+        """``encode`` for several images: those of one network input size go through the encoder together.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+
+        Returns:
+            The encoded images, in order.
+        """
         with self._lock:
-            out: list[EncodedImage | None] = [self._images.get(im) for im in images]
-        todo = [i for i, hit in enumerate(out) if hit is None]
+            cached: list[EncodedImage | None] = [self._images.get(im) for im in images]
+        todo = [i for i, hit in enumerate(cached) if hit is None]
+        fresh: dict[int, EncodedImage] = {}
         preps = dict(zip(todo, _prepare_all([images[i] for i in todo], self.long_side)))
         for group in _groups(todo, lambda i: preps[i].true_shape):
             with torch.inference_mode(), steady_kernels():  # outside the lock: others may use the cache meanwhile
                 enc = self.model.encode(torch.cat([preps[i].tensor for i in group]).to(self.device))
             for j, i in enumerate(group):
-                out[i] = EncodedImage(
+                fresh[i] = EncodedImage(
                     preps[i], Encoded(enc.tokens[j : j + 1], enc.positions[j : j + 1], enc.hw), id(self)
                 )
         with self._lock:
             self.encodes += len(todo)
             for i in todo:
-                self._images.put(out[i], images[i])
-        return out  # type: ignore[return-value]
+                self._images.put(fresh[i], images[i])
+        return [hit if hit is not None else fresh[i] for i, hit in enumerate(cached)]
 
     def pair(self, first: EncodedImage, second: EncodedImage, descriptors: bool = False) -> PairOutput:
         """Decoders and heads on (first, second), once per pair; ``first`` is the frame of both pointmaps.
 
         The cache keeps points and confidences: the matcher asks first (``descriptors`` True: a fresh pass) and
-        the depth source later finds the same pass's points here."""
+        the depth source later finds the same pass's points here.
+
+        Args:
+            first: View 1, the frame of both point maps.
+            second: View 2.
+            descriptors: Return the descriptors too (never cached: a fresh pass unless the network has none).
+
+        Returns:
+            The pass's output on the CPU.
+        """
         return self.pair_many(first, [second], descriptors)[0]
 
     def pair_many(
         self, first: EncodedImage, seconds: Sequence[EncodedImage], descriptors: bool = False, on_device: bool = False
     ) -> list[PairOutput]:
-        """``pair`` of ``first`` with each of ``seconds``: the pairs whose second images share a size go through
-        the decoders and heads as one batch (``first``'s tokens repeated), each pair's output as it is alone.
-        ``on_device``: descriptors stay on the network's device (the matcher searches them there)."""
+        """``pair`` of ``first`` with each of ``seconds``, batched: each pair's output as it is alone.
+
+        The pairs whose second images share a size go through the decoders and heads as one batch (``first``'s
+        tokens repeated).
+
+        Args:
+            first: View 1 of every pair.
+            seconds: View 2 of each pair.
+            descriptors: Return the descriptors too.
+            on_device: Leave the descriptors on the network's device (the matcher searches them there).
+
+        Returns:
+            One output per pair, in order.
+        """
         want_desc = descriptors and self.has_descriptors
         with self._lock:
             hits = [self._pairs.get(first, s) for s in seconds]
-        out: list[PairOutput | None] = [None if want_desc else h for h in hits]
-        todo = [i for i, o in enumerate(out) if o is None]
+        cached: list[PairOutput | None] = [None if want_desc else h for h in hits]
+        todo = [i for i, o in enumerate(cached) if o is None]
+        fresh: dict[int, PairOutput] = {}
         for group in _groups(todo, lambda i: seconds[i].encoded.hw):
             b, e1 = len(group), first.encoded
             e1 = Encoded(e1.tokens.expand(b, -1, -1), e1.positions.expand(b, -1, -1), e1.hw)
@@ -171,7 +239,7 @@ class PairEngine:
                     t = desc[key]
                     return None if t is None else t[j] if on_device else t[j].float().cpu().numpy()
 
-                out[i] = PairOutput(
+                fresh[i] = PairOutput(
                     host["pts1"][j],
                     host["conf1"][j],
                     host["pts2"][j],
@@ -184,8 +252,8 @@ class PairEngine:
         with self._lock:
             self.forwards += len(todo)
             for i in todo:
-                self._pairs.put(out[i].without_descriptors(), first, seconds[i])  # type: ignore[union-attr]
-        return out  # type: ignore[return-value]
+                self._pairs.put(fresh[i].without_descriptors(), first, seconds[i])
+        return [o if o is not None else fresh[i] for i, o in enumerate(cached)]
 
 
 def _prepare_all(images: Sequence[np.ndarray], long_side: int) -> list[Prepared]:
@@ -218,8 +286,22 @@ def shared_engine(
 ) -> PairEngine:
     """The one engine per (kind, checkpoint, device, input size): a method's matcher and depth source share it.
 
-    The checkpoint is found first, so a missing file fails before any image is read. ``long_side`` 512 is the
-    published models' input; smaller sizes are for quick checks only."""
+    The checkpoint is found first, so a missing file fails before any image is read.
+
+    Args:
+        kind: ``mast3r`` or ``dust3r``.
+        weights: The checkpoint (a ``.pth`` file or a hub folder); found by the weights rule when None.
+        device: Where to run; None and ``auto`` mean cuda when available.
+        long_side: Long side of the network input, pixels: 512 is the published models'; smaller sizes are
+            for quick checks only.
+
+    Returns:
+        The engine, loaded on first use.
+
+    Raises:
+        MissingWeightsError: No checkpoint found.
+        ValueError: ``mast3r`` asked of a checkpoint without the descriptor head.
+    """
     path = find_checkpoint(kind, weights)
     dev = resolve_device(device)  # as the matcher and depth source resolve theirs: None/"auto" -> cuda if any
     key = (kind, str(path.resolve()), str(dev), int(long_side))

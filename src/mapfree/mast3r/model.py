@@ -24,7 +24,13 @@ __all__ = ["AsymmetricModel", "Encoded"]
 
 @dataclass
 class Encoded:
-    """One image after the encoder: tokens (1, N, enc_dim), patch positions (1, N, 2), image size (H, W)."""
+    """Images after the encoder (one per batch row), kept to pair each with any other image.
+
+    Attributes:
+        tokens: (B, N, enc_dim) encoder tokens, one per 16 x 16 patch.
+        positions: (B, N, 2) (row, col) grid position of each patch.
+        hw: (H, W) of the network input, pixels.
+    """
 
     tokens: torch.Tensor
     positions: torch.Tensor
@@ -50,7 +56,13 @@ class _PatchEmbed(nn.Module):
 
 
 class AsymmetricModel(nn.Module):
-    """Parameter names follow the published checkpoints, so their state dicts load strictly."""
+    """The asymmetric two-view network of DUSt3R and MASt3R (a ViT encoder, two cross-attending decoders, heads).
+
+    Parameter names follow the published checkpoints, so their state dicts load strictly.
+
+    Args:
+        cfg: The architecture, read from a checkpoint.
+    """
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
@@ -81,14 +93,29 @@ class AsymmetricModel(nn.Module):
     # ------------------------------------------------------------------ stages
 
     def encode(self, img: torch.Tensor) -> Encoded:
-        """(1, 3, H, W) in [-1, 1] -> encoder tokens."""
+        """Run the encoder on images (once per image, whatever it is paired with).
+
+        Args:
+            img: (B, 3, H, W) RGB in [-1, 1], H and W multiples of 16.
+
+        Returns:
+            The encoder tokens.
+        """
         x, pos = self.patch_embed(img)
         for blk in self.enc_blocks:
             x = blk(x, pos)
         return Encoded(self.enc_norm(x), pos, (int(img.shape[2]), int(img.shape[3])))
 
     def decode(self, e1: Encoded, e2: Encoded) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """Both views' token lists: [encoder output, decoder block 1, …, last block (normalised)]."""
+        """Run the two decoders, each view attending to the other.
+
+        Args:
+            e1: View 1 (B images).
+            e2: View 2 (B images).
+
+        Returns:
+            Each view's token list: encoder output, decoder block 1, …, last block (normalised).
+        """
         f1, f2 = self.decoder_embed(e1.tokens), self.decoder_embed(e2.tokens)
         out1, out2 = [e1.tokens], [e2.tokens]
         for blk1, blk2 in zip(self.dec_blocks, self.dec_blocks2):
@@ -99,7 +126,16 @@ class AsymmetricModel(nn.Module):
         return out1, out2
 
     def predict(self, e1: Encoded, e2: Encoded) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-        """The two views' outputs (batch-first, H x W x C); view 2's points are in view 1's frame."""
+        """Decoders and heads on a pair of encoded views.
+
+        Args:
+            e1: View 1 (B images), the frame of both point maps.
+            e2: View 2 (B images).
+
+        Returns:
+            Each view's outputs, (B, H, W, C) maps: view 1's ``pts3d`` and ``conf``; view 2's
+                ``pts3d_in_other_view`` (in view 1's frame) and ``conf``; MASt3R adds ``desc`` and ``desc_conf``.
+        """
         t1, t2 = self.decode(e1, e2)
         res1 = self.downstream_head1([t.float() for t in t1], e1.hw)
         res2 = self.downstream_head2([t.float() for t in t2], e2.hw)
@@ -109,4 +145,5 @@ class AsymmetricModel(nn.Module):
     def forward(
         self, img1: torch.Tensor, img2: torch.Tensor
     ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """``predict`` of two batches of images (see ``encode`` for their form)."""
         return self.predict(self.encode(img1), self.encode(img2))

@@ -14,8 +14,18 @@ __all__ = ["Mast3rWeights", "MAST3R_WEIGHTS"]
 
 @dataclass(frozen=True)
 class Mast3rWeights:
-    """A MASt3R/DUSt3R checkpoint: the authors' ``STEM.pth``, or the hub's folder ``STEM/`` (config.json +
-    model.safetensors) in the weights folders. Never downloaded for the user (CC BY-NC-SA 4.0)."""
+    """A MASt3R/DUSt3R checkpoint as a ``mapfree.weights`` model; never downloaded for the user (CC BY-NC-SA 4.0).
+
+    It is the authors' ``STEM.pth``, or the hub's folder ``STEM/`` (config.json + model.safetensors), in the
+    weights folders.
+
+    Attributes:
+        stem: The file stem.
+        hub_id: Hugging Face hub id.
+        url: Direct download of the ``.pth``.
+        what: What it is for (``mast3r``, ``dust3r``), the start of every message about it.
+        licence: The weights' licence, named in messages.
+    """
 
     stem: str
     hub_id: str
@@ -25,12 +35,15 @@ class Mast3rWeights:
 
     @property
     def name(self) -> str:
+        """``STEM.pth``."""
         return f"{self.stem}.pth"
 
     def item(self) -> str:
+        """The file or the hub folder, in words."""
         return f"weights file '{self.stem}.pth' (or the hub folder {self.stem}/ with config.json and model.safetensors)"
 
     def locate(self, explicit: str | os.PathLike | None = None) -> Found | None:
+        """Find ``STEM.pth`` or the hub folder in the weights folders (see ``Model.locate``)."""
         if explicit is not None:
             p = Path(explicit).expanduser()
             return Found(p, "the path given") if p.exists() else None
@@ -38,15 +51,18 @@ class Mast3rWeights:
         return Found(*hit) if hit is not None else None
 
     def how(self) -> str:
+        """Download the ``.pth`` or the hub folder into the weights folder (the licence named)."""
         return (
             f"Download {self.url} (licence {self.licence}) into {target_dir()}, or the hub folder {self.hub_id} "
             f"as {target_dir() / self.stem}/"
         )
 
     def fetch_command(self) -> str:
+        """``curl`` of the ``.pth`` into the weights folder."""
         return f"curl -L --create-dirs -o {target_dir() / self.name} {self.url}"
 
     def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError:
+        """The error for a checkpoint not found (see ``Model.missing``)."""
         if explicit is not None:
             return MissingWeightsError(
                 f"{self.what}: checkpoint {explicit} not found (expected a .pth file or a "

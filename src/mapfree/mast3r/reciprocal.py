@@ -28,7 +28,8 @@ class _TorchNN:
         self.db, self.dist, self.block = db, dist, block or ((4096, 32768) if cuda else (2048, 4096))
 
     def _best(self, qb: torch.Tensor, buf: torch.Tensor) -> torch.Tensor:
-        best_val = best_idx = None
+        best_val: torch.Tensor | None = None
+        best_idx: torch.Tensor | None = None
         bd = self.block[1]
         for j in range(0, len(self.db), bd):
             d = self.db[j : j + bd]
@@ -40,7 +41,7 @@ class _TorchNN:
             else:
                 val, idx = torch.cdist(qb, d).min(dim=1)
             idx = idx + j
-            if best_val is None:
+            if best_val is None or best_idx is None:
                 best_val, best_idx = val, idx
             else:
                 better = val < best_val  # ties keep the first (lowest) index, as a single argmin would
@@ -63,8 +64,8 @@ class _TreeNN:
         self.db = db
         self.tree = KDTree(db)
 
-    def query(self, q: np.ndarray) -> np.ndarray:
-        return self.tree.query(q)[1]
+    def query(self, q: np.ndarray | torch.Tensor) -> np.ndarray:
+        return self.tree.query(np.asarray(q))[1]
 
 
 def _rows(points: np.ndarray | torch.Tensor, idx: np.ndarray) -> np.ndarray | torch.Tensor:
@@ -72,7 +73,15 @@ def _rows(points: np.ndarray | torch.Tensor, idx: np.ndarray) -> np.ndarray | to
 
 
 def merge_pairs(idx1: np.ndarray, idx2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unique (idx1, idx2) pairs sorted by idx1 then idx2."""
+    """Unique index pairs, sorted by ``idx1`` then ``idx2``.
+
+    Args:
+        idx1: (N,) non-negative indices below 2**32.
+        idx2: (N,) non-negative indices below 2**32.
+
+    Returns:
+        (M,) int64 ``idx1`` and (M,) int64 ``idx2`` of the distinct pairs.
+    """
     key = np.unique((idx1.astype(np.int64) << 32) | idx2.astype(np.int64))
     return (key >> 32).astype(np.int64), (key & 0xFFFFFFFF).astype(np.int64)
 
@@ -86,20 +95,39 @@ def reciprocal_matches(
     max_iter: int = 10,
     brute_force: bool | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Reciprocal matches between (H1, W1, D) and (H2, W2, D) maps: (N, 2) integer (x, y) in each image,
-    sorted by the pixel index in image 1. On the CPU with ``dist`` "l2": KD-trees (the public CPU path), unless
-    ``brute_force``; elsewhere blocks of brute force on ``device``."""
+    """Reciprocal nearest-neighbour matches between two dense descriptor maps (MASt3R's fast matcher).
+
+    Args:
+        desc1: (H1, W1, D) descriptors of image 1.
+        desc2: (H2, W2, D) descriptors of image 2.
+        subsample: Grid step of the starting pixels in image 1.
+        device: Where brute force runs.
+        dist: ``l2``, or ``dot`` for unit descriptors (brute force only).
+        max_iter: Rounds of 1 -> 2 -> 1 before giving up on the pixels still moving.
+        brute_force: Blocks of brute force even on the CPU; None: KD-trees on the CPU with ``l2`` (the public
+            CPU path), brute force elsewhere.
+
+    Returns:
+        (N, 2) integer (x, y) pixels in image 1 and (N, 2) in image 2, sorted by the pixel index in image 1.
+
+    Raises:
+        ValueError: The descriptor widths differ.
+    """
     h1, w1, dim = desc1.shape
     h2, w2, dim2 = desc2.shape
     if dim != dim2:
         raise ValueError(f"descriptor widths differ: {dim} vs {dim2}")
     s = int(subsample)
     ys, xs = np.mgrid[s // 2 : h1 : s, s // 2 : w1 : s].reshape(2, -1)
-    xy1 = np.int32(np.unique(xs + w1 * ys))
+    xy1 = np.unique(xs + w1 * ys).astype(np.int32)
     xy2 = np.full_like(xy1, -1)
     old1, old2 = xy1.copy(), xy2.copy()
     if brute_force is None:
         brute_force = torch.device(device).type != "cpu" or dist != "l2"
+    p1: np.ndarray | torch.Tensor
+    p2: np.ndarray | torch.Tensor
+    nn1: _TreeNN | _TorchNN
+    nn2: _TreeNN | _TorchNN
     if not brute_force:
         p1 = np.asarray(torch.as_tensor(desc1).detach().cpu()).reshape(-1, dim)
         p2 = np.asarray(torch.as_tensor(desc2).detach().cpu()).reshape(-1, dim)
@@ -108,7 +136,7 @@ def reciprocal_matches(
         p1 = torch.as_tensor(desc1).to(device).reshape(-1, dim)
         p2 = torch.as_tensor(desc2).to(device).reshape(-1, dim)
         nn1, nn2 = _TorchNN(p1, dist), _TorchNN(p2, dist)
-    moving = np.ones(len(xy1), dtype=bool)
+    moving = np.ones(len(xy1), dtype=np.bool_)
     for _ in range(max_iter):
         if not moving.any():
             break

@@ -65,6 +65,14 @@ _CKPT_DINOV2 = EXTRACTOR_PREFIX + "dinov2_vitl14."  # absent from the published 
 
 @dataclass(frozen=True)
 class MickeyFiles:
+    """The files of one MicKey network, found by ``find_files``.
+
+    Attributes:
+        checkpoint: The authors' checkpoint (``mickey.ckpt`` or ``mickey_sc.ckpt``).
+        dinov2: The DINOv2 ViT-L/14 weight file.
+        config: The config YAML, or None for the published defaults.
+    """
+
     checkpoint: Path
     dinov2: Path
     config: Path | None
@@ -86,10 +94,23 @@ def find_files(
     config: str | os.PathLike | None = None,
     download: bool = True,
 ) -> MickeyFiles:
-    """The checkpoint (``checkpoint`` = ``mickey`` | ``mickey_sc``, or the file ``weights``), the DINOv2 file and
-    the config YAML (the one beside the checkpoint when there is one; else the published defaults are used), by
-    the weights rule. A missing file is a ``MissingWeightsError`` naming it, where it was looked for and where it is
-    published; a file cut short (an interrupted download) a ``BrokenWeightsError`` naming it."""
+    """Find a MicKey network's files by the weights rule.
+
+    Args:
+        checkpoint: ``mickey`` or ``mickey_sc``.
+        weights: A checkpoint file (or a folder holding it) the user gave: then only there.
+        dinov2: A DINOv2 file (or a folder holding it) the user gave.
+        config: A config YAML the user gave; default the one beside the checkpoint, if any.
+        download: Download DINOv2 into torch's hub cache when it is missing and the machine is online.
+
+    Returns:
+        The files.
+
+    Raises:
+        ValueError: ``checkpoint`` is unknown.
+        MissingWeightsError: A file is missing (naming it, where it was looked for and where it is published).
+        BrokenWeightsError: A file is cut short (an interrupted download).
+    """
     if checkpoint not in MICKEY_CHECKPOINTS:
         raise ValueError(f"MicKey: unknown checkpoint {checkpoint!r}; choose {' or '.join(CHECKPOINTS)}")
     ckpt = resolve_weights(MICKEY_CHECKPOINTS[checkpoint], weights)  # never downloaded: the zip is the user's
@@ -102,7 +123,14 @@ def find_files(
 
 
 def files_available(checkpoint: str = "mickey") -> bool:
-    """Whether the checkpoint and DINOv2 are on this machine, whole (no download)."""
+    """Whether a MicKey network's checkpoint and DINOv2 are on this machine, whole (nothing downloaded).
+
+    Args:
+        checkpoint: ``mickey`` or ``mickey_sc``.
+
+    Returns:
+        True when ``find_files`` finds both.
+    """
     try:
         find_files(checkpoint, download=False)
     except (MissingWeightsError, BrokenWeightsError):
@@ -153,7 +181,18 @@ def _load_tensors(path: Path, what: str, expected: str) -> Any:
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, torch.Tensor]:
-    """The heads' state dict of a MicKey checkpoint (published key names; any DINOv2 keys dropped)."""
+    """Read the heads' weights from a MicKey checkpoint (tensors only, never code).
+
+    Args:
+        path: The Lightning checkpoint.
+
+    Returns:
+        The state dict with the published key names; any DINOv2 keys dropped.
+
+    Raises:
+        MissingWeightsError: The file does not exist.
+        BrokenWeightsError: It is cut short or not a MicKey checkpoint.
+    """
     path = Path(path)
     expected = f"mickey.ckpt or mickey_sc.ckpt from {WEIGHTS_ZIP_URL}"
     ckpt = _load_tensors(path, "MicKey checkpoint", expected)
@@ -166,7 +205,18 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, torch.Tensor]:
 
 
 def read_dinov2(path: str | os.PathLike) -> dict[str, torch.Tensor]:
-    """The DINOv2 file's state dict."""
+    """Read the DINOv2 backbone's weights.
+
+    Args:
+        path: Meta's ``dinov2_vitl14_pretrain.pth``.
+
+    Returns:
+        The state dict.
+
+    Raises:
+        MissingWeightsError: The file does not exist.
+        BrokenWeightsError: It is cut short or not a DINOv2 file.
+    """
     path = Path(path)
     sd = _load_tensors(path, "DINOv2 weight file", f"{DINOV2_FILE} from {DINOV2_URL}")
     if not isinstance(sd, Mapping) or "pos_embed" not in sd:
@@ -177,7 +227,14 @@ def read_dinov2(path: str | os.PathLike) -> dict[str, torch.Tensor]:
 
 
 def published_key(key: str) -> str:
-    """Our network's parameter name -> the published file's (the backbone's: the DINOv2 file's own key)."""
+    """The published files' name of one of our network's parameters.
+
+    Args:
+        key: Parameter name in ``MickeyNet``.
+
+    Returns:
+        The key in the checkpoint, or for the backbone the DINOv2 file's own key.
+    """
     if key.startswith("backbone."):
         return key[len("backbone.") :]
     return DUSTBIN_KEY if key == "dustbin_score" else EXTRACTOR_PREFIX + key
@@ -190,7 +247,21 @@ def network_from_state_dicts(
     source: str = "checkpoint",
     dinov2_source: str = "DINOv2 weights",
 ) -> MickeyNet:
-    """Build the network (DINOv2's size from its state dict) and load both state dicts strictly."""
+    """Build the network (DINOv2's size read from its state dict) and load both state dicts strictly.
+
+    Args:
+        cfg: The MicKey configuration.
+        heads: The checkpoint's state dict (``read_checkpoint``).
+        dinov2: The DINOv2 state dict (``read_dinov2``).
+        source: The checkpoint file, named in errors.
+        dinov2_source: The DINOv2 file, named in errors.
+
+    Returns:
+        The network in eval mode, float32, on the CPU.
+
+    Raises:
+        ValueError: A state dict does not fit (missing or unexpected keys, a width the config contradicts).
+    """
     vit = ViTShape.from_state_dict(dinov2, dinov2_source)
     if cfg.channel_dim is not None and cfg.channel_dim != vit.dim:
         raise ValueError(
@@ -223,8 +294,17 @@ def network_from_state_dicts(
 
 
 def load_network(files: MickeyFiles, device: str | torch.device = "cpu", fp16: bool | None = False) -> MickeyNet:
-    """The files -> the network in eval mode on ``device``; DINOv2 in float16 when ``fp16``, or (None) where
-    the config says so and ``device`` is a GPU (CPU half kernels are slow)."""
+    """Load a MicKey network from its files.
+
+    Args:
+        files: The files (``find_files``).
+        device: Where the network is put.
+        fp16: DINOv2 in float16; None: where the config says so and ``device`` is a GPU (CPU half kernels are
+            slow).
+
+    Returns:
+        The network in eval mode on ``device``.
+    """
     cfg = config_from_yaml(files.config) if files.config is not None else MickeyConfig()
     net = network_from_state_dicts(
         cfg, read_checkpoint(files.checkpoint), read_dinov2(files.dinov2), str(files.checkpoint), str(files.dinov2)

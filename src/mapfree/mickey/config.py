@@ -24,7 +24,26 @@ ATTENTION_DIM = 128
 
 @dataclass(frozen=True)
 class MickeyConfig:
-    """Inference settings of the published ``curriculum_learning`` configuration (our defaults)."""
+    """Inference settings of MicKey; the defaults are the published ``curriculum_learning`` configuration's.
+
+    Attributes:
+        float16: DINOv2 in half precision (the published config; on a GPU).
+        kp_blocks: Channels of the res-blocks of every head (the descriptor's last is ``dsc_dim``).
+        batch_norm: Batch normalisation in the heads.
+        score_softmax: Score map by a softmax over the map (else a sigmoid).
+        depth_sigmoid: Depth as ``max_depth * sigmoid(.)`` (else the raw output).
+        max_depth: Depth bound of the sigmoid, metres.
+        kp_pos_encoding: Position encoding in the keypoint heads.
+        dsc_dim: Descriptor width.
+        dsc_normalize: Unit-length descriptors.
+        dsc_pos_encoding: Position encoding in the descriptor head.
+        temperature: Temperature of the dual softmax.
+        dustbin: A learned dustbin row and column in the matching matrix.
+        width: Network input width before the crop to multiples of the patch, pixels.
+        height: Network input height, pixels.
+        channel_dim: DINOv2 width as the YAML states it (checked against the weight file), or None.
+        down_factor: Patch side of the backbone, pixels.
+    """
 
     float16: bool = True  # DINOv2 in half precision (the published config; on a GPU)
     kp_blocks: tuple[int, ...] = (512, 256, 128, 64)  # the res-blocks of every head (the descriptor's last: dsc_dim)
@@ -54,7 +73,18 @@ def _get(tree: Mapping[str, Any], path: str, default: Any) -> Any:
 
 
 def config_from_mapping(tree: Mapping[str, Any], where: str = "config") -> MickeyConfig:
-    """A config from the parsed YAML tree; unsupported values raise ``ValueError`` naming the key."""
+    """A configuration from a parsed config tree (the authors' yacs keys).
+
+    Args:
+        tree: The parsed YAML.
+        where: The file it came from, named in errors.
+
+    Returns:
+        The configuration; absent keys keep the defaults.
+
+    Raises:
+        ValueError: A value mapfree's MicKey does not support (naming the key).
+    """
     d = MickeyConfig()
 
     def need(ok: bool, key: str, value: Any, what: str) -> None:
@@ -107,7 +137,17 @@ def config_from_mapping(tree: Mapping[str, Any], where: str = "config") -> Micke
 
 
 def config_from_yaml(path: str | os.PathLike) -> MickeyConfig:
-    """The shipped config file (yacs YAML) -> ``MickeyConfig``; ``ValueError`` naming the file otherwise."""
+    """Read the authors' config file (yacs YAML).
+
+    Args:
+        path: The ``config.yaml``.
+
+    Returns:
+        The configuration.
+
+    Raises:
+        ValueError: Unreadable, invalid, or a value not supported (naming the file).
+    """
     path = Path(path)
     try:
         tree = read_yaml(path)

@@ -26,7 +26,16 @@ __all__ = ["MickeyImage", "MickeyEngine", "MickeyNetworkOptions", "shared_engine
 
 @dataclass
 class MickeyNetworkOptions(Options):
-    """Which network to run and how: the options the ``mickey`` matcher and depth source share."""
+    """Which MicKey network to run and how: the options the ``mickey`` matcher and depth source share.
+
+    Attributes:
+        checkpoint: The published file, found by the weights rule.
+        weights: A checkpoint file elsewhere (or a folder holding ``CHECKPOINT.ckpt``).
+        dinov2: The DINOv2 ViT-L/14 file elsewhere (or a folder holding it).
+        config: The config YAML elsewhere (default: the one beside the checkpoint, if any).
+        fp16: DINOv2 in float16; None: as the config says (published: yes) on a GPU, no on the CPU.
+        device: Where to run; None: cuda when available.
+    """
 
     checkpoint: str = option("mickey", choices=CHECKPOINTS)  # the published file, found by the weights rule
     weights: str | None = None  # a checkpoint file elsewhere (or a folder holding <checkpoint>.ckpt)
@@ -38,7 +47,14 @@ class MickeyNetworkOptions(Options):
 
 @dataclass
 class MickeyImage:
-    """One image after the network: its keypoints (a batch of one, on the engine's device) and its geometry."""
+    """One image after the network: all that matching it against any other image needs.
+
+    Attributes:
+        keypoints: Its keypoints, a batch of one on the engine's device.
+        original_size: (width, height) of the original image, pixels.
+        scale: (sx, sy) network input size / original size.
+        engine_id: ``id()`` of the engine that made it.
+    """
 
     keypoints: Keypoints
     original_size: tuple[int, int]  # (width, height)
@@ -52,8 +68,16 @@ class MickeyImage:
 
 
 class MickeyEngine:
-    """A network on a device. ``extract`` runs the network on images (in batches), ``scores`` matches one image's
-    output against others'. Thread-safe for inference (the relocalizer prepares the next query in a thread)."""
+    """A loaded MicKey network on a device: ``extract`` runs it on images, ``scores`` matches their outputs.
+
+    Thread-safe for inference (the relocalizer prepares the next query in a thread). Get one with
+    ``shared_engine`` or ``engine_for``.
+
+    Args:
+        net: The network, on ``device``.
+        device: Where it runs.
+        files: The files it was loaded from.
+    """
 
     name = "mickey"
 
@@ -65,10 +89,19 @@ class MickeyEngine:
 
     @property
     def input_size(self) -> tuple[int, int]:
+        """(width, height) of the network input, pixels."""
         return self.net.cfg.width, self.net.cfg.height
 
     def extract(self, images: Sequence[np.ndarray], batch_size: int = 8) -> list[MickeyImage]:
-        """(H, W, 3) uint8 RGB images -> their outputs, ``batch_size`` images per network pass."""
+        """Run the network on images, in batches.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+            batch_size: Images per network pass.
+
+        Returns:
+            One output per image, in order.
+        """
         out: list[MickeyImage] = []
         step = max(1, int(batch_size))
         for i in range(0, len(images), step):
@@ -82,13 +115,25 @@ class MickeyEngine:
         return out
 
     def scores(self, ref: MickeyImage, others: Sequence[MickeyImage], batch_size: int = 8) -> list[torch.Tensor]:
-        """Final scores (N_ref, N_other) of ``ref`` against each of ``others``, ``batch_size`` pairs per pass."""
+        """Match one image's keypoints against each of others' (the reference against queries).
+
+        Args:
+            ref: The output of one image.
+            others: The outputs of the other images (one network input size).
+            batch_size: Pairs per pass.
+
+        Returns:
+            Per other image, (N_ref, N_other) final scores: matching matrix times both keypoint scores.
+        """
         out: list[torch.Tensor] = []
         step = max(1, int(batch_size))
         for i in range(0, len(others), step):
             chunk = others[i : i + step]
             k1 = Keypoints(
-                *(torch.cat([getattr(o.keypoints, f) for o in chunk]) for f in ("xy", "depth", "score", "desc")),
+                torch.cat([o.keypoints.xy for o in chunk]),
+                torch.cat([o.keypoints.depth for o in chunk]),
+                torch.cat([o.keypoints.score for o in chunk]),
+                torch.cat([o.keypoints.desc for o in chunk]),
                 chunk[0].keypoints.grid,
             )
             with torch.inference_mode():
@@ -111,9 +156,25 @@ def shared_engine(
     device: str | torch.device | None = None,
     fp16: bool | None = None,
 ) -> MickeyEngine:
-    """The one engine per (files, device, precision). Files are found first, so a missing one fails before any
-    image is read. ``fp16`` None: DINOv2 in float16 where the config says so and the device is a GPU (CPU half
-    kernels are slow), float32 elsewhere."""
+    """The one engine per (files, device, precision): a method's matcher and depth source share it.
+
+    Files are found first, so a missing one fails before any image is read.
+
+    Args:
+        checkpoint: The published checkpoint's name.
+        weights: A checkpoint file elsewhere (or a folder holding it).
+        dinov2: The DINOv2 ViT-L/14 file elsewhere (or a folder holding it).
+        config: The config YAML elsewhere.
+        device: Where to run; None and ``auto`` mean cuda when available.
+        fp16: DINOv2 in float16; None: where the config says so and the device is a GPU (CPU half kernels are
+            slow), float32 elsewhere.
+
+    Returns:
+        The engine, loaded on first use.
+
+    Raises:
+        MissingWeightsError: A file is not found.
+    """
     files = find_files(checkpoint, weights, dinov2, config)
     dev = resolve_device(device)
     key = (str(files.checkpoint.resolve()), str(files.dinov2.resolve()), str(files.config), str(dev), fp16)
@@ -124,6 +185,13 @@ def shared_engine(
 
 
 def engine_for(options: MickeyNetworkOptions) -> MickeyEngine:
-    """The shared engine for a matcher's or depth source's options."""
+    """The shared engine for a matcher's or depth source's options (see ``shared_engine``).
+
+    Args:
+        options: The network options.
+
+    Returns:
+        The engine.
+    """
     o = options
     return shared_engine(o.checkpoint, o.weights, o.dinov2, o.config, o.device, o.fp16)

@@ -23,7 +23,15 @@ __all__ = ["MickeyNet", "Keypoints"]
 
 @dataclass
 class Keypoints:
-    """A batch of images through the network: one keypoint per cell of a rows x cols grid, row-major."""
+    """A batch of images through the network: one keypoint per cell of a rows x cols grid, row-major.
+
+    Attributes:
+        xy: (B, N, 2) keypoint x, y in network-input pixels.
+        depth: (B, N) depth along the optical axis, metres.
+        score: (B, N) keypoint scores.
+        desc: (B, N, D) descriptors.
+        grid: (rows, cols) of the cells, N = rows * cols.
+    """
 
     xy: torch.Tensor  # (B, N, 2) x, y in network-input pixels
     depth: torch.Tensor  # (B, N) metres along the optical axis
@@ -35,15 +43,29 @@ class Keypoints:
         return int(self.xy.shape[0])
 
     def item(self, i: int) -> Keypoints:
-        """The ``i``-th image of the batch, as a batch of one."""
+        """One image of the batch, as a batch of one.
+
+        Args:
+            i: Index in the batch.
+
+        Returns:
+            Its keypoints.
+        """
         return Keypoints(
             self.xy[i : i + 1], self.depth[i : i + 1], self.score[i : i + 1], self.desc[i : i + 1], self.grid
         )
 
 
 class MickeyNet(nn.Module):
-    """Module names: ``backbone`` (the DINOv2 file's keys), the four heads and ``dustbin_score`` (the published
-    checkpoint's, without its ``compute_matches.extractor.`` / ``compute_matches.matcher.matching_mat.`` prefixes)."""
+    """The MicKey network: metric keypoints from a frozen DINOv2, matched by a dual softmax.
+
+    Module names: ``backbone`` (the DINOv2 file's keys), the four heads and ``dustbin_score`` (the published
+    checkpoint's, without its ``compute_matches.extractor.`` / ``compute_matches.matcher.matching_mat.`` prefixes).
+
+    Args:
+        cfg: The configuration.
+        vit: The DINOv2 backbone's shape (read from its weight file).
+    """
 
     def __init__(self, cfg: MickeyConfig, vit: ViTShape) -> None:
         super().__init__()
@@ -58,13 +80,27 @@ class MickeyNet(nn.Module):
         self.backbone_dtype = torch.float32
 
     def half_backbone(self, on: bool) -> MickeyNet:
-        """DINOv2 in float16 (as the published config runs it on a GPU) or float32; the heads stay float32."""
+        """Run DINOv2 in float16 (as the published config does on a GPU) or float32; the heads stay float32.
+
+        Args:
+            on: float16 when True.
+
+        Returns:
+            This network.
+        """
         self.backbone_dtype = torch.float16 if on else torch.float32
         self.backbone.to(self.backbone_dtype)
         return self
 
     def extract(self, images: torch.Tensor) -> Keypoints:
-        """(B, 3, H, W) RGB in [0, 1] -> keypoints; the image is cropped to multiples of the patch first."""
+        """Keypoints of images, each image on its own (a reference's output serves every query).
+
+        Args:
+            images: (B, 3, H, W) RGB in [0, 1]; cropped at the bottom and right to multiples of the patch (14).
+
+        Returns:
+            One keypoint per 14 x 14 cell of each image.
+        """
         p = self.vit.patch
         b, _, h, w = images.shape
         rows, cols = h // p, w // p
@@ -80,8 +116,15 @@ class MickeyNet(nn.Module):
         return Keypoints(xy, depths.flatten(1), scores.flatten(1), descs.flatten(2).transpose(1, 2), (rows, cols))
 
     def matching_matrix(self, desc0: torch.Tensor, desc1: torch.Tensor) -> torch.Tensor:
-        """Dual softmax of the descriptor similarities / temperature, with the learned dustbin row and column
-        (dropped from the result): (B, N0, D), (B, N1, D) -> (B, N0, N1)."""
+        """Dual softmax of the descriptor similarities over the temperature, with the learned dustbin.
+
+        Args:
+            desc0: (B, N0, D) descriptors of image 0.
+            desc1: (B, N1, D) descriptors of image 1.
+
+        Returns:
+            (B, N0, N1) matching probabilities (the dustbin row and column dropped).
+        """
         s = desc0 @ desc1.transpose(1, 2) / self.cfg.temperature
         if not self.cfg.dustbin:
             return F.softmax(s, 1) * F.softmax(s, 2)
@@ -93,8 +136,17 @@ class MickeyNet(nn.Module):
         return (F.softmax(full, 1) * F.softmax(full, 2))[:, :-1, :-1]
 
     def scores(self, k0: Keypoints, k1: Keypoints) -> tuple[torch.Tensor, torch.Tensor]:
-        """(matching matrix, final scores = matching matrix x score0 score1^T), both (B, N0, N1). ``k0`` may be
-        one image against a batch ``k1`` (the reference against many queries)."""
+        """Match two images' keypoints: the matching matrix and the final scores MicKey's solver samples from.
+
+        Args:
+            k0: Keypoints of image 0; a batch of one is matched against every image of ``k1`` (the reference
+                against many queries).
+            k1: Keypoints of image 1.
+
+        Returns:
+            The (B, N0, N1) matching matrix and the (B, N0, N1) final scores (matching matrix times
+                ``score0 score1^T``).
+        """
         d0, s0 = k0.desc, k0.score
         if len(k0) == 1 and len(k1) > 1:
             d0, s0 = d0.expand(len(k1), -1, -1), s0.expand(len(k1), -1)

@@ -23,26 +23,47 @@ INPUT_SIZE = (540, 720)
 
 @dataclass(frozen=True)
 class Prepared:
-    """One network input (3, H, W) float in [0, 1] and the size of the image it comes from."""
+    """One network input and the size of the image it comes from.
+
+    Attributes:
+        tensor: (3, H, W) float32 RGB in [0, 1].
+        original_size: (width, height) of the original image, pixels.
+    """
 
     tensor: torch.Tensor
     original_size: tuple[int, int]  # (width, height)
 
     @property
     def input_size(self) -> tuple[int, int]:
+        """(width, height) of the network input, pixels."""
         return int(self.tensor.shape[2]), int(self.tensor.shape[1])
 
     def scale(self) -> tuple[float, float]:
-        """(sx, sy) = network input / original."""
+        """(sx, sy) = network input size / original size."""
         return self.input_size[0] / self.original_size[0], self.input_size[1] / self.original_size[1]
 
     def to_original(self, xy: np.ndarray) -> np.ndarray:
-        """Network-input pixels -> original-image pixels (pixel centres at integers in both)."""
+        """Map network-input pixels back to the original image (pixel centres at integers in both).
+
+        Args:
+            xy: (N, 2) pixel coordinates in the network input.
+
+        Returns:
+            (N, 2) pixel coordinates in the original image.
+        """
         return to_original(xy, self.scale())
 
 
 def prepare_array(image: np.ndarray, size: tuple[int, int] = INPUT_SIZE) -> Prepared:
-    """An (H, W, 3) uint8 RGB image -> the network input at ``size`` (W, H)."""
+    """Resize an image to the network input (bilinear, aspect not kept, as the public code does).
+
+    Args:
+        image: (H, W, 3) uint8 RGB.
+        size: (width, height) of the network input, pixels.
+
+    Returns:
+        The network input and the original size.
+    """
     h, w = image.shape[:2]
     resized = image if (w, h) == tuple(size) else cv2.resize(image, tuple(size), interpolation=cv2.INTER_LINEAR)
     t = torch.from_numpy(np.ascontiguousarray(resized)).permute(2, 0, 1).float().div(255)
@@ -50,6 +71,15 @@ def prepare_array(image: np.ndarray, size: tuple[int, int] = INPUT_SIZE) -> Prep
 
 
 def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """K for pixel coordinates x' = sx (x + 0.5) - 0.5, y' = sy (y + 0.5) - 0.5 (what a resize by (sx, sy) does)."""
+    """Intrinsics after a resize by (sx, sy), half-pixel rule: ``x' = sx (x + 0.5) - 0.5``.
+
+    Args:
+        K: (3, 3) calibration matrix of the original image.
+        sx: Horizontal scale factor.
+        sy: Vertical scale factor.
+
+    Returns:
+        (3, 3) calibration matrix of the resized image.
+    """
     T = np.array([[sx, 0, sx / 2 - 0.5], [0, sy, sy / 2 - 0.5], [0, 0, 1]], dtype=np.float64)
     return T @ np.asarray(K, dtype=np.float64)

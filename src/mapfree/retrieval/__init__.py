@@ -21,11 +21,23 @@ _REGISTRY: dict[str, Callable[..., DenseVLAD]] = {"densevlad": DenseVLAD}
 
 
 def names() -> list[str]:
+    """Names of the global descriptors ``create`` knows."""
     return list(_REGISTRY)
 
 
 def create(name: str = "densevlad", **options: object) -> DenseVLAD:
-    """An (unfitted) global descriptor by name, options overriding its defaults."""
+    """A global descriptor by name, not yet fitted.
+
+    Args:
+        name: Descriptor name (case-insensitive), one of ``names()``.
+        **options: Its options' fields, overriding the defaults.
+
+    Returns:
+        The descriptor; call ``fit`` on the mapping images before ``describe``.
+
+    Raises:
+        KeyError: The name is unknown.
+    """
     key = name.strip().lower()
     if key not in _REGISTRY:
         raise KeyError(f"unknown global descriptor {name!r}; available: {', '.join(_REGISTRY)}")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -17,12 +18,27 @@ import numpy as np
 from ..matching.sift import squared_distances
 from ..matching.utils import check_image, resize_for_matching
 
+if TYPE_CHECKING:
+    import torch
+
 __all__ = ["DenseVLADOptions", "DenseVLAD", "dense_rootsift"]
 
 
 @dataclass
 class DenseVLADOptions:
-    """Grid, vocabulary and normalisation settings (a coarser grid than the original 2 px stride: CPU)."""
+    """Grid and vocabulary settings of DenseVLAD (a coarser grid than the original 2 px stride: CPU).
+
+    Attributes:
+        max_size: Long side of the image the grid is laid on, pixels.
+        stride: Grid spacing, pixels at ``max_size``.
+        bin_sizes: SIFT spatial bin widths (2, 3, 4: patches of 8, 12 and 16 pixels).
+        words: Vocabulary size; the descriptor has ``words * 128`` dimensions.
+        max_train_descriptors: Dense descriptors sampled to learn the vocabulary.
+        seed: Seed of the sampling and of K-means.
+
+    Raises:
+        ValueError: A setting is out of range.
+    """
 
     max_size: int = 320  # long side of the image the grid is laid on
     stride: int = 4  # grid spacing, pixels (at max_size)
@@ -38,12 +54,22 @@ class DenseVLADOptions:
             raise ValueError("words must be >= 1 and max_train_descriptors >= words")
 
 
-_SIFT_CACHE: dict[tuple[int, int], object] = {}
+_SIFT_CACHE: dict[tuple[int, int], torch.nn.Module] = {}
 
 
 def dense_rootsift(image: np.ndarray, options: DenseVLADOptions | None = None) -> np.ndarray:
-    """(N,128) float32 RootSIFT descriptors on a regular grid at every patch size (kornia's dense SIFT);
-    descriptors of flat patches (no gradient at all) are dropped."""
+    """Dense RootSIFT on a regular grid at every patch size (kornia's dense SIFT): DenseVLAD's local features.
+
+    Args:
+        image: (H, W, 3) uint8 RGB.
+        options: Grid settings; the defaults when None.
+
+    Returns:
+        (N, 128) float32 unit descriptors; flat patches (no gradient at all) are dropped.
+
+    Raises:
+        ValueError: The image is too small for the smallest patch.
+    """
     import torch
     from kornia.feature import DenseSIFTDescriptor
 
@@ -67,25 +93,51 @@ def dense_rootsift(image: np.ndarray, options: DenseVLADOptions | None = None) -
 
 
 class DenseVLAD:
-    """``fit(mapping images)`` learns the vocabulary; ``describe(image)`` -> (words*128,) unit vector."""
+    """DenseVLAD global image descriptor, with a vocabulary learned on the place's own mapping images.
+
+    ``fit`` learns the vocabulary; ``describe`` gives each image a unit vector whose dot products are cosine
+    similarities.
+
+    Args:
+        options: Settings; built from ``overrides`` when None.
+        **overrides: ``DenseVLADOptions`` fields, used when ``options`` is None.
+    """
 
     name = "densevlad"
 
-    def __init__(self, options: DenseVLADOptions | None = None, **overrides: object) -> None:
-        self.options = options or DenseVLADOptions(**overrides)  # type: ignore[arg-type]
+    def __init__(self, options: DenseVLADOptions | None = None, **overrides: Any) -> None:
+        self.options = options or DenseVLADOptions(**overrides)
         self.centers: np.ndarray | None = None  # (words, 128)
 
     @property
     def dim(self) -> int:
+        """Length of a descriptor, ``words * 128``."""
         return self.options.words * 128
 
     def fit(self, images: Iterable[np.ndarray]) -> DenseVLAD:
-        """Learn the vocabulary by K-means on dense RootSIFT of ``images`` (the mapping images)."""
+        """Learn the vocabulary by K-means on dense RootSIFT of a place's mapping images.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images, at least one.
+
+        Returns:
+            This descriptor, fitted.
+
+        Raises:
+            ValueError: No image, or no descriptor to learn from.
+        """
         self._fit_dense([dense_rootsift(im, self.options) for im in images])
         return self
 
     def fit_describe(self, images: Sequence[np.ndarray]) -> np.ndarray:
-        """``fit(images)`` then ``describe_many(images)``, computing each image's dense descriptors once."""
+        """``fit(images)`` then ``describe_many(images)``, computing each image's dense descriptors once.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images, at least one.
+
+        Returns:
+            (N, dim) float32 descriptors, one row per image.
+        """
         dense = [dense_rootsift(im, self.options) for im in images]
         self._fit_dense(dense)
         return np.stack([self._aggregate(d) for d in dense])
@@ -108,7 +160,17 @@ class DenseVLAD:
         self.centers = centers
 
     def describe(self, image: np.ndarray) -> np.ndarray:
-        """The VLAD vector of one image (float32, unit L2 norm; all zeros for a blank image)."""
+        """The descriptor of one image.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            (dim,) float32 with unit L2 norm; all zeros for a blank image.
+
+        Raises:
+            RuntimeError: The vocabulary was not learned (call ``fit`` first).
+        """
         return self._aggregate(dense_rootsift(image, self.options))
 
     def _aggregate(self, desc: np.ndarray) -> np.ndarray:
@@ -130,4 +192,12 @@ class DenseVLAD:
         return (v / n if n > 0 else v).astype(np.float32)
 
     def describe_many(self, images: Sequence[np.ndarray]) -> np.ndarray:
+        """``describe`` of each image, stacked.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+
+        Returns:
+            (N, dim) float32; (0, dim) for no image.
+        """
         return np.stack([self.describe(im) for im in images]) if len(images) else np.zeros((0, self.dim), np.float32)

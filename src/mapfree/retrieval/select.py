@@ -16,8 +16,21 @@ def _unit_rows(x: np.ndarray) -> np.ndarray:
 
 
 def select_references(descriptors: np.ndarray, k: int, seed: int = 0) -> np.ndarray:
-    """Indices (sorted) of the ``k`` most representative rows: K-means on the unit descriptors, then for each
-    cluster the member closest to its centre (paper §5.1). Every row when ``k >= N``."""
+    """Choose the ``k`` most representative images of a place as references, as the paper does.
+
+    K-means on the unit descriptors, then for each cluster the member closest to its centre.
+
+    Args:
+        descriptors: (N, D) global descriptors of the mapping images.
+        k: Number of references.
+        seed: Seed of K-means.
+
+    Returns:
+        (min(k, N),) sorted row indices.
+
+    Raises:
+        ValueError: ``k < 1``, no row, or the descriptors are not a finite (N, D) array.
+    """
     if k < 1:
         raise ValueError(f"the number of references must be >= 1, got {k}")
     x = _unit_rows(descriptors)
@@ -44,9 +57,18 @@ def select_references(descriptors: np.ndarray, k: int, seed: int = 0) -> np.ndar
 
 
 def retrieve(query: np.ndarray, database: np.ndarray, top: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """The ``top`` most similar database rows for each query (cosine similarity, best first).
+    """The most similar database rows of each query by cosine similarity, best first.
 
-    ``query`` (D,) or (M,D), ``database`` (N,D) -> indices and similarities, (top,) or (M,top).
+    Args:
+        query: (D,) or (M, D) query descriptors.
+        database: (N, D) descriptors to search.
+        top: Rows returned per query (at most N).
+
+    Returns:
+        Row indices and similarities, each (top,) for one query or (M, top).
+
+    Raises:
+        ValueError: The database is empty, the widths differ, or a descriptor is not finite.
     """
     single = np.ndim(query) == 1
     q = _unit_rows(np.atleast_2d(query))

@@ -196,7 +196,7 @@ def build_aggregator(
     max_score: bool = True,
     temperature: float = 0.0,
     own_position: bool = False,
-) -> nn.Module:
+) -> CorrelationAggregator | ConcatAggregator:
     if kind == "concat":
         return ConcatAggregator(dim)
     if kind in ("warp", "qkv"):

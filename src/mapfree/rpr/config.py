@@ -130,6 +130,16 @@ class TrainConfig:
 
 @dataclass
 class RPRConfig:
+    """Everything that defines a relative pose regression run: network, loss, data and training (a YAML file).
+
+    Attributes:
+        name: A label for tables and logs, e.g. ``R(6D)+t``.
+        model: The network: encoder, aggregator, head and pose parameterisation.
+        loss: The losses and their weighting.
+        data: The dataset, pair sampling and input size.
+        train: Optimiser, schedule, precision, freezing.
+    """
+
     name: str = "R(6D)+t"
     model: ModelConfig = field(default_factory=ModelConfig)
     loss: LossConfig = field(default_factory=LossConfig)
@@ -137,13 +147,34 @@ class RPRConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
 
     def to_dict(self) -> dict[str, Any]:
+        """The configuration as nested dicts (what a checkpoint and a YAML file store)."""
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "<dict>") -> RPRConfig:
+        """A configuration from nested dicts; values are coerced to the fields' types.
+
+        Args:
+            d: The sections and their keys; absent ones keep the defaults.
+            source: Where they came from, named in errors.
+
+        Returns:
+            The configuration, not yet validated.
+
+        Raises:
+            ValueError: An unknown key, or a value of the wrong type (naming ``source`` and the key).
+        """
         return _build(cls, d or {}, source)
 
     def validate(self) -> RPRConfig:
+        """Check that the settings fit together (a parameterisation and its loss, freezing and caching, …).
+
+        Returns:
+            This configuration.
+
+        Raises:
+            ValueError: The first inconsistency, naming the keys.
+        """
         m, loss = self.model, self.loss
         if m.rotation not in ROTATIONS:
             raise ValueError(f"model.rotation must be one of {ROTATIONS}, got {m.rotation!r}")
@@ -226,10 +257,21 @@ def _coerce(value: Any, default: Any, where: str) -> Any:
 
 
 def load_config(path: os.PathLike | str) -> RPRConfig:
-    """An ``RPRConfig`` from a YAML file; unknown keys and bad values raise naming the file.
+    """Read a training or model configuration from a YAML file, validated.
 
     A top-level ``base: OTHER.yaml`` makes the file extend OTHER (relative to the file, else a name in
-    ``configs/rpr``): OTHER's keys, then this file's deep-merged over them (``yamlio.read_yaml_with_base``)."""
+    ``configs/rpr``): OTHER's keys, then this file's deep-merged over them (``yamlio.read_yaml_with_base``).
+
+    Args:
+        path: The YAML file.
+
+    Returns:
+        The configuration.
+
+    Raises:
+        FileNotFoundError: The file does not exist.
+        ValueError: Invalid YAML, an unknown key, a bad value or an inconsistency (naming the file).
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"config {path} not found")

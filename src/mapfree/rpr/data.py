@@ -125,7 +125,7 @@ def resized_image(
 ) -> np.ndarray:
     """(H,W,3) uint8 RGB resized to ``size`` = (W,H): from memory (``cache``), from ``cache_dir`` (raw ``.npy``
     written on first use, refreshed when the image is newer), or decoded and resized now."""
-    key = (str(frame.image_path), tuple(size))
+    key = (str(frame.image_path), (size[0], size[1]))
     if cache and key in _IMAGE_CACHE:
         return _IMAGE_CACHE[key]
     stored = _cache_path(frame, size, cache_dir) if cache_dir else None
@@ -231,10 +231,10 @@ class PairDataset(TorchDataset):
             self._scenes[path] = Scene(Path(path))
         return self._scenes[path]
 
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor | str]:
         return self.item(self.pairs[i], i, self.seed)
 
-    def item(self, p: Pair, i: int, seed: int) -> dict[str, torch.Tensor]:
+    def item(self, p: Pair, i: int, seed: int) -> dict[str, torch.Tensor | str]:
         """The tensors of pair ``p``; ``i`` and ``seed`` draw its augmentation."""
         scene = self.scene(p.scene)
         f0, f1 = scene.frame(p.name0), scene.frame(p.name1)
@@ -315,7 +315,7 @@ class TrainPairs(PairDataset):
             self.epoch, self.pairs = epoch, self.sampling(epoch, self._scenes)
         return self.pairs
 
-    def __getitem__(self, index: int | tuple[int, int]) -> dict[str, torch.Tensor]:
+    def __getitem__(self, index: int | tuple[int, int]) -> dict[str, torch.Tensor | str]:
         epoch, i = index if isinstance(index, tuple) else (self.epoch, index)
         return self.item(self.pairs_of(epoch)[i], i, self.seed * 100003 + epoch)
 
@@ -337,8 +337,14 @@ class EpochSampler(Sampler):
 
 
 class RPRDataModule(pl.LightningDataModule):
-    """Lightning data module: one training dataset that resamples its pairs each epoch (``TrainPairs``), loader
-    workers that persist across epochs, pinned batches when a GPU is present."""
+    """Lightning data module of RPR training: pairs resampled each epoch, persistent loader workers.
+
+    One training dataset resamples its pairs each epoch (``TrainPairs``); loader workers persist across
+    epochs; batches are pinned when a GPU is present.
+
+    Args:
+        cfg: The data section of the configuration.
+    """
 
     def __init__(self, cfg: DataConfig):
         super().__init__()
@@ -365,6 +371,12 @@ class RPRDataModule(pl.LightningDataModule):
             raise ValueError(f"{self.cfg.root}: no train or {self.cfg.val_split} scenes with frames")
         self.size = resolve_size((first.intrinsics.width, first.intrinsics.height), self.cfg)
         self._scene_cache.update({str(s.path): s for s in self.train_scenes})
+
+    def _input_size(self) -> tuple[int, int]:
+        """(W, H) of the network input, read from the dataset by ``setup``."""
+        if self.size is None:
+            raise RuntimeError("call setup() first: the input size is read from the dataset")
+        return self.size
 
     def _epoch(self) -> int:
         trainer = getattr(self, "trainer", None)
@@ -394,7 +406,7 @@ class RPRDataModule(pl.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         ds = TrainPairs(
             self.sampling(),
-            self.size,
+            self._input_size(),
             self.cfg.augment,
             seed=self.cfg.seed,
             cache=self.cfg.cache_images,
@@ -424,7 +436,7 @@ class RPRDataModule(pl.LightningDataModule):
             return []
         ds = PairDataset(
             pairs,
-            self.size,
+            self._input_size(),
             augment=False,
             cache=self.cfg.cache_images,
             scenes=self._scene_cache,

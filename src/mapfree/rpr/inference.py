@@ -52,8 +52,15 @@ def _default_device() -> torch.device:
 
 
 class RPRMethod:
-    """``relocalize(ref, query) -> Estimate``; ``set_reference`` + ``localize`` reuse the reference;
-    ``predict(batch)`` runs a batch of tensors on the model's device."""
+    """A trained RPR network as a relocalization method (the Localizer of ``mapfree.relocalize``).
+
+    ``relocalize(ref, query)`` for one pair; ``set_reference`` then ``localize`` or ``localize_many`` reuse the
+    reference; ``predict(batch)`` runs a batch of tensors on the model's device.
+
+    Args:
+        module: The trained network.
+        device: Where to run; None picks cuda, then mps, then cpu.
+    """
 
     def __init__(self, module: RPRModule, device: str | torch.device | None = None):
         self.device = torch.device(device) if device is not None else _default_device()
@@ -70,11 +77,27 @@ class RPRMethod:
         return torch.from_numpy(to_input(img, size).transpose(2, 0, 1).copy()).unsqueeze(0).to(self.device)
 
     def input_size(self, img: np.ndarray) -> tuple[int, int]:
+        """(width, height) of the network input for an image of this shape (the config's, by orientation).
+
+        Args:
+            img: (H, W, 3) image.
+
+        Returns:
+            The input size, pixels.
+        """
         return resolve_size((img.shape[1], img.shape[0]), self.cfg.data)
 
     @torch.inference_mode()
     def predict(self, batch: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
-        """``img0``, ``img1`` (B,3,H,W) in [0,1] (or uint8) -> R (B,3,3), t (B,3), confidence (B,), log_sigma (B,2)|absent."""
+        """Run the network on a batch of image pairs.
+
+        Args:
+            batch: ``img0`` (reference) and ``img1`` (query), (B, 3, H, W) float in [0, 1] or uint8.
+
+        Returns:
+            ``R`` (B, 3, 3) and ``t`` (B, 3, metres) of each query relative to its reference, ``confidence``
+                (B,), and ``log_sigma`` (B, 2) when the network has the uncertainty head.
+        """
         out = self.module.net(
             as_float_input(batch["img0"].to(self.device)), as_float_input(batch["img1"].to(self.device))
         )
@@ -87,7 +110,15 @@ class RPRMethod:
         return res
 
     def relocalize_images(self, img_ref: np.ndarray, img_query: np.ndarray) -> Estimate:
-        """Two RGB images -> metric pose of the query camera relative to the reference camera."""
+        """Metric pose of the query camera relative to the reference camera, from the two images alone.
+
+        Args:
+            img_ref: The reference: (H, W, 3) uint8 RGB, a path, or a frame.
+            img_query: The query, likewise.
+
+        Returns:
+            The estimate (``extras`` holds the predicted error scales when the network has the uncertainty head).
+        """
         t0 = time.perf_counter()
         img_ref, img_query = image_of(img_ref), image_of(img_query)
         size = self.input_size(img_ref)
@@ -95,7 +126,7 @@ class RPRMethod:
         return self._estimate(res, 0, time.perf_counter() - t0)
 
     def _estimate(self, res: dict[str, np.ndarray], i: int, seconds: float) -> Estimate:
-        extras = {"method": self.name}
+        extras: dict[str, str | float] = {"method": self.name}
         if "log_sigma" in res:
             extras["sigma_rot_deg"] = float(np.degrees(np.exp(res["log_sigma"][i, 0])))
             extras["sigma_trans_m"] = float(np.exp(res["log_sigma"][i, 1]))
@@ -105,11 +136,30 @@ class RPRMethod:
 
     # The Localizer protocol of mapfree.relocalize: set_reference / localize / relocalize.
     def set_reference(self, reference: Any) -> Any:
+        """Keep a reference's network input for ``localize`` and ``localize_many``.
+
+        Args:
+            reference: (H, W, 3) uint8 RGB, a path, or a frame.
+
+        Returns:
+            The kept image and input tensor.
+        """
         img = image_of(reference)
         self._ref = (img, self._tensor(img, self.input_size(img)))
         return self._ref
 
     def localize(self, query: Any) -> Estimate:
+        """``relocalize`` against the reference of ``set_reference``.
+
+        Args:
+            query: (H, W, 3) uint8 RGB, a path, or a frame.
+
+        Returns:
+            The estimate.
+
+        Raises:
+            RuntimeError: No reference was set.
+        """
         if self._ref is None:
             raise RuntimeError("call set_reference(reference) before localize(query)")
         t0 = time.perf_counter()
@@ -119,10 +169,22 @@ class RPRMethod:
         return self._estimate(res, 0, time.perf_counter() - t0)
 
     def relocalize(self, reference: Any, query: Any) -> Estimate:
+        """Same as ``relocalize_images``."""
         return self.relocalize_images(reference, query)
 
     def localize_many(self, queries: list[Any], batch_size: int = 16) -> list[Estimate]:
-        """Batched ``localize`` over many queries of the current reference (GPU-friendly)."""
+        """``localize`` of many queries against the current reference, in batches (GPU-friendly).
+
+        Args:
+            queries: (H, W, 3) uint8 RGB images, paths or frames.
+            batch_size: Queries per network pass.
+
+        Returns:
+            One estimate per query, in order.
+
+        Raises:
+            RuntimeError: No reference was set.
+        """
         if self._ref is None:
             raise RuntimeError("call set_reference(reference) before localize_many(queries)")
         _, ref_t = self._ref
@@ -140,10 +202,18 @@ class RPRMethod:
 def load_method(
     checkpoint: os.PathLike | str, device: str | torch.device | None = None, config: str | None = None
 ) -> RPRMethod:
-    """A checkpoint -> an ``RPRMethod`` (CPU/GPU picked automatically).
+    """Load a trained checkpoint as a relocalization method.
 
     Ours (written by ``mapfree train``) carry their config; a public Map-free checkpoint is built from
-    ``configs/rpr/<config>.yaml`` (``config``, else the file's stem such as ``3d3d``) and loaded by key.
+    ``configs/rpr/<config>.yaml`` and loaded by key.
+
+    Args:
+        checkpoint: The ``.ckpt`` file.
+        device: Where to run; None picks cuda, then mps, then cpu.
+        config: The published configuration of a public checkpoint (e.g. ``3d3d``); default the file's stem.
+
+    Returns:
+        The method.
     """
     ckpt = read_checkpoint(checkpoint)
     if is_public(ckpt):

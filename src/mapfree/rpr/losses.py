@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from .config import LossConfig
 from .metrics import virtual_points
 from .params import PoseOutput
 from .rotations import (
@@ -33,7 +36,8 @@ TRANSLATION_LOSSES = ("l1", "l2", "angle", "scale_dir", "ce")
 
 def _bins_ce(logits: list[torch.Tensor], index: torch.Tensor) -> torch.Tensor:
     """Mean over bin groups of the cross-entropy against each group's target bin: (B,)."""
-    return sum(F.cross_entropy(g.float(), index[..., i], reduction="none") for i, g in enumerate(logits)) / len(logits)
+    total = sum(F.cross_entropy(g.float(), index[..., i], reduction="none") for i, g in enumerate(logits))
+    return cast(torch.Tensor, total) / len(logits)  # a tensor: there is at least one group
 
 
 def rotation_loss(kind: str, out: PoseOutput, R_gt: torch.Tensor, q_gt: torch.Tensor | None = None) -> torch.Tensor:
@@ -95,13 +99,16 @@ def virtual_point_loss(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) 
 
 
 class PoseLoss(nn.Module):
-    """``L_R + λ L_t`` or ``L_R e^{-s_R} + L_t e^{-s_t} + s_R + s_t`` (learned s), plus the uncertainty NLL.
+    """The training loss: ``L_R + λ L_t`` or ``L_R e^{-s_R} + L_t e^{-s_t} + s_R + s_t`` (learned s), plus the NLL.
 
     The NLL is a Laplace likelihood of the (detached) rotation angle and translation error given the
     predicted log-scales, so it teaches the confidence without pulling on the pose itself.
+
+    Args:
+        cfg: The loss section of the configuration.
     """
 
-    def __init__(self, cfg):
+    def __init__(self, cfg: LossConfig):
         super().__init__()
         self.cfg = cfg
         if cfg.weighting == "learned":
@@ -112,6 +119,18 @@ class PoseLoss(nn.Module):
     def forward(
         self, out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor, q_gt: torch.Tensor | None = None
     ) -> dict[str, torch.Tensor]:
+        """The loss of a batch and its terms.
+
+        Args:
+            out: The network's output.
+            R_gt: (B, 3, 3) true rotations.
+            t_gt: (B, 3) true translations, metres.
+            q_gt: (B, 4) true quaternions, for the ``quat_l1`` loss.
+
+        Returns:
+            ``loss`` (to minimise), ``loss_pose``, and the detached ``loss_rot``, ``loss_trans``, ``loss_vp``,
+                ``loss_nll`` where they apply.
+        """
         l_rot = rotation_loss(self.cfg.rotation, out, R_gt, q_gt).mean()
         l_trans = translation_loss(self.cfg.translation, out, t_gt).mean()
         if self.cfg.weighting == "learned":
@@ -144,6 +163,8 @@ def pose_errors(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torc
 
 def uncertainty_nll(out: PoseOutput, R_gt: torch.Tensor, t_gt: torch.Tensor) -> torch.Tensor:
     """Laplace NLL ``e / b + log b`` of each error e with predicted b = exp(log_sigma); minimised at b = e."""
+    if out.log_sigma is None:
+        raise ValueError("uncertainty_nll needs the uncertainty head's output (log_sigma)")
     err = pose_errors(out, R_gt, t_gt)
     s = out.log_sigma.float().clamp(-12.0, 12.0)
     return (err * torch.exp(-s) + s).sum(-1).mean()

@@ -14,7 +14,7 @@ from .params import Parameterisation, PoseOutput, build_parameterisation
 __all__ = ["RPRNet", "PoseHead"]
 
 
-def _mlp(dims: list[int]) -> nn.Module:
+def _mlp(dims: list[int]) -> nn.Linear | nn.Sequential:
     """Linear layers with ReLU between them; a single ``Linear`` when there is no hidden layer (public layout)."""
     if len(dims) == 2:
         return nn.Linear(dims[0], dims[1])
@@ -55,6 +55,7 @@ class PoseHead(nn.Module):
             self.feature_dim = chans[-1] * h * w
         self.mlp = _mlp([self.feature_dim, *mlp, param.dim])
         last = self.mlp if isinstance(self.mlp, nn.Linear) else self.mlp[-1]
+        assert isinstance(last, nn.Linear)  # _mlp ends with one
         with torch.no_grad():  # start at the prior pose (identity rotation, forward direction) when trained anew
             last.bias.copy_(torch.tensor(param.prior()))
 
@@ -75,11 +76,15 @@ class PoseHead(nn.Module):
 
 
 class RPRNet(nn.Module):
-    """Two RGB images (B,3,H,W) in [0,1] -> metric pose of image 1 relative to image 0 (and error scales).
+    """The regression network: two RGB images -> metric pose of image 1 relative to image 0 (and error scales).
 
-    ``input_size`` (W, H) is needed only by heads without average pooling (their MLP sees the flattened map).
     Parameter names match the public checkpoints (``encoder.*``, ``aggregator.*``, ``head.*``); the uncertainty
     head (``uncertainty.*``, beyond the paper) reads the head's pooled features.
+
+    Args:
+        cfg: The model section of the configuration; the defaults when None.
+        input_size: (W, H) of the input, pixels; needed only by heads without average pooling (their MLP sees
+            the flattened map).
     """
 
     def __init__(self, cfg: ModelConfig | None = None, input_size: tuple[int, int] | None = None):
@@ -108,11 +113,28 @@ class RPRNet(nn.Module):
         return not any(p.requires_grad for p in self.encoder.parameters())
 
     def forward(self, img0: torch.Tensor, img1: torch.Tensor) -> PoseOutput:
+        """Pose of image 1 relative to image 0 (``X_1 = R X_0 + t``).
+
+        Args:
+            img0: (B, 3, H, W) RGB in [0, 1], the reference.
+            img1: (B, 3, H, W) RGB in [0, 1], the query.
+
+        Returns:
+            R (B, 3, 3), t (B, 3) in metres, and ``log_sigma`` with the uncertainty head.
+        """
         # Shared weights, one call per image set (as the public code: BatchNorm batch statistics per image set).
         return self.from_features(self.encoder(img0), self.encoder(img1))
 
     def from_features(self, f0: torch.Tensor, f1: torch.Tensor) -> PoseOutput:
-        """The pose from the two encoder feature maps (everything after the Siamese encoder)."""
+        """The pose from the two encoder feature maps (everything after the Siamese encoder).
+
+        Args:
+            f0: (B, C, h, w) encoder features of the reference.
+            f1: (B, C, h, w) encoder features of the query.
+
+        Returns:
+            The decoded pose (see ``forward``).
+        """
         feats = self.head.features(self.aggregator(f0, f1))
         out = self.head.decode(feats)
         if self.cfg.uncertainty:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytorch_lightning as pl
@@ -20,7 +20,11 @@ __all__ = ["RPRModule", "warmup_cosine"]
 
 
 class RPRModule(pl.LightningModule):
-    """Trains ``RPRNet``; the full ``RPRConfig`` is saved in the checkpoint's hyper-parameters."""
+    """Lightning module that trains ``RPRNet``; the full ``RPRConfig`` is saved in the checkpoint's hyper-parameters.
+
+    Args:
+        config: The configuration, or its nested dicts (validated here); the defaults when None.
+    """
 
     def __init__(self, config: dict[str, Any] | RPRConfig | None = None):
         super().__init__()
@@ -58,9 +62,10 @@ class RPRModule(pl.LightningModule):
     def on_fit_start(self) -> None:
         self.train(self.training)  # Lightning sets modes per submodule: put the frozen parts back in eval
         if self.cfg.train.channels_last:
-            self.net.to(memory_format=torch.channels_last)
+            # Module.to(memory_format=...) is documented and works; torch's overloads leave the keyword out
+            self.net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
 
-    def _step(self, batch: dict[str, torch.Tensor]) -> tuple[PoseOutput, dict[str, torch.Tensor]]:
+    def _step(self, batch: dict[str, Any]) -> tuple[PoseOutput, dict[str, torch.Tensor]]:
         img0, img1 = as_float_input(batch["img0"]), as_float_input(batch["img1"])
         if self.cfg.train.channels_last:
             img0 = img0.contiguous(memory_format=torch.channels_last)
@@ -84,7 +89,7 @@ class RPRModule(pl.LightningModule):
                 self._features[k] = f.to(torch.float16)
         return torch.stack([self._features[k] for k in keys]).float()
 
-    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> torch.Tensor:
         _, terms = self._step(batch)
         bs = batch["img0"].shape[0]
         self.log("train/loss", terms["loss"], prog_bar=True, batch_size=bs, sync_dist=False)
@@ -96,7 +101,7 @@ class RPRModule(pl.LightningModule):
             self.log("train/s_trans", self.criterion.s_trans.detach()[0], batch_size=bs)
         return terms["loss"]
 
-    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
         out, terms = self._step(batch)
         bs = batch["img0"].shape[0]
         self.log("val/loss", terms["loss"], prog_bar=True, batch_size=bs, sync_dist=True)
@@ -118,7 +123,8 @@ class RPRModule(pl.LightningModule):
         cols = {k: np.concatenate([v[k] for v in self._val]) for k in self._val[0]}
         distributed = self.trainer is not None and self.trainer.world_size > 1
         if distributed:  # every rank holds a shard of the pairs: score them all, identically on every rank
-            gathered = self.all_gather({k: torch.as_tensor(v, device=self.device) for k, v in cols.items()})
+            local = {k: torch.as_tensor(v, device=self.device) for k, v in cols.items()}
+            gathered = cast(dict[str, torch.Tensor], self.all_gather(local))  # a dict in, a dict out
             cols = {k: v.reshape(-1).cpu().numpy() for k, v in gathered.items()}
         for k, v in summarize(cols["trans_err"], cols["rot_err"], cols["vcre"], cols["confidence"]).items():
             self.log(f"val/{k}", float(v), prog_bar=k in ("vcre_prec", "vcre_auc"), sync_dist=distributed)

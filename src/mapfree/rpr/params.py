@@ -11,7 +11,9 @@ The pose is of image 1 (query) relative to image 0 (reference): ``X_1 = R X_0 + 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -34,11 +36,20 @@ __all__ = ["PoseOutput", "Parameterisation", "build_parameterisation"]
 
 @dataclass
 class PoseOutput:
-    """Decoded pose (B,3,3), (B,3) with the intermediate tensors the losses read (logits, scale, points)."""
+    """A decoded pose with the intermediate tensors the losses read (logits, scale, points).
+
+    Attributes:
+        R: (B, 3, 3) rotation of the query relative to the reference.
+        t: (B, 3) translation, metres.
+        raw: What the decoding went through (``quat``, ``euler_logits``, ``scale``, ``direction``,
+            ``points0``/``points1``, …), by name.
+        log_sigma: (B, 2) log-scale of the rotation (radians) and translation (metres) error, from the
+            uncertainty head; None without it.
+    """
 
     R: torch.Tensor
     t: torch.Tensor
-    raw: dict[str, torch.Tensor] = field(default_factory=dict)
+    raw: dict[str, Any] = field(default_factory=dict)  # tensors, and lists of per-group bin logits
     log_sigma: torch.Tensor | None = None  # (B,2): log-scale of rotation (rad) and translation (m) error
 
 
@@ -48,6 +59,10 @@ class _Part:
     def prior(self) -> list[float]:
         """Bias of the last layer: the output that decodes to a sensible prior (identity, forward)."""
         return [0.0] * self.dim
+
+    def decode(self, x: torch.Tensor, raw: dict) -> torch.Tensor:
+        """This part's slice of the network output -> a rotation matrix or a translation; extras go into ``raw``."""
+        raise NotImplementedError
 
 
 class _Quat(_Part):
@@ -118,7 +133,20 @@ class _ScaleBins(_Part):
 
 
 class Parameterisation:
-    """Splits the MLP output into a rotation and a translation part, or [3D-3D] points."""
+    """How the network's output encodes a pose: a rotation part and a translation part, or [3D-3D] points.
+
+    Args:
+        rotation: ``quat``, ``6d``, ``euler_bins`` or ``3d3d`` (point sets aligned by Procrustes).
+        translation: ``t``, ``s_tdir`` (scale and direction) or ``s_tbins`` (scale and direction bins).
+        n_points: Points per image of ``3d3d``: 3, 6 or an even number above 6.
+        basis: ``3d3d`` adds a fixed basis to the points (keeps the Procrustes gradient defined).
+        t_mean: Mean of the training translations, metres (``t`` outputs are normalised by it).
+        t_std: Their standard deviation, metres.
+        R_mean: Mean training rotation (3 x 3, row-major), where the rotation output starts.
+
+    Raises:
+        ValueError: ``n_points`` does not suit ``3d3d``.
+    """
 
     def __init__(
         self,
@@ -126,9 +154,9 @@ class Parameterisation:
         translation: str = "t",
         n_points: int = 6,
         basis: bool = True,
-        t_mean=(0.0, 0.0, 0.0),
-        t_std=(1.0, 1.0, 1.0),
-        R_mean=None,
+        t_mean: Sequence[float] = (0.0, 0.0, 0.0),
+        t_std: Sequence[float] = (1.0, 1.0, 1.0),
+        R_mean: np.ndarray | Sequence[float] | None = None,
     ):
         self.rotation, self.translation = rotation, translation
         self.n_points, self.basis = n_points, basis
@@ -137,7 +165,8 @@ class Parameterisation:
             if not (n_points == 3 or (n_points >= 6 and n_points % 2 == 0)):
                 raise ValueError(f"3d3d needs n_points 3, 6 or an even number above 6, got {n_points}")
             self.dim = 3 * n_points
-            self._rot = self._trans = None
+            self._rot: _Part | None = None
+            self._trans: _Part | None = None
         else:
             self._rot = {"quat": _Quat, "6d": _SixD, "euler_bins": _EulerBins}[rotation]()
             self._trans = (
@@ -154,7 +183,8 @@ class Parameterisation:
         return f"{r}+{t}"
 
     def prior(self) -> list[float]:
-        if self._rot is None:
+        """Bias of the last layer, so that a new network starts at a sensible pose (the mean rotation, forward)."""
+        if self._rot is None or self._trans is None:  # [3D-3D]: neither part
             return [0.0] * self.dim
         rot = self._rot.prior()
         if self.R_mean is not None and self.rotation == "6d":  # start at the mean training rotation
@@ -164,8 +194,16 @@ class Parameterisation:
         return [float(v) for v in rot] + self._trans.prior()
 
     def decode(self, x: torch.Tensor) -> PoseOutput:
+        """Decode the network's output into a pose.
+
+        Args:
+            x: (B, dim) output of the pose head's MLP.
+
+        Returns:
+            The pose and the intermediate tensors.
+        """
         raw: dict = {}
-        if self._rot is None:
+        if self._rot is None or self._trans is None:  # [3D-3D]: neither part
             n = self.n_points
             pts = x.reshape(x.shape[0], n, 3)
             eye = torch.eye(3, dtype=x.dtype, device=x.device).expand(x.shape[0], 3, 3)

@@ -10,10 +10,18 @@ __all__ = ["procrustes"]
 def procrustes(
     X: torch.Tensor, Y: torch.Tensor, weights: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(B,N,3) source and target points (N >= 3, not collinear) -> R (B,3,3) with det +1, t (B,3).
+    """Differentiable weighted Procrustes: the rigid motion that best maps source points onto target points.
 
     Gradients flow through ``torch.linalg.svd``; they are well defined while the cross-covariance has
     distinct singular values (generic point sets), which the 3D–3D head keeps by adding a fixed basis.
+
+    Args:
+        X: (B, N, 3) source points, N >= 3 and not collinear.
+        Y: (B, N, 3) target points.
+        weights: (B, N) non-negative weights; uniform when None.
+
+    Returns:
+        R (B, 3, 3) with det +1 and t (B, 3) such that ``Y ≈ R X + t``.
     """
     w = torch.ones(X.shape[:-1], dtype=X.dtype, device=X.device) if weights is None else weights
     w = (w / w.sum(-1, keepdim=True)).unsqueeze(-1)

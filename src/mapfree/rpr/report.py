@@ -29,7 +29,10 @@ def mean_training_pose(
             scenes, cfg.pairs_per_scene, np.random.default_rng([cfg.seed, e]), cfg.min_overlap, cfg.max_overlap
         ):
             s = PairDataset([p], (1, 1)).scene(p.scene)
-            rel = s.frame(p.name1).pose.relative_to(s.frame(p.name0).pose)
+            pose0, pose1 = s.frame(p.name0).pose, s.frame(p.name1).pose
+            if pose0 is None or pose1 is None:
+                raise ValueError(f"{s.path}/poses.txt: no pose for {p.name0 if pose0 is None else p.name1}")
+            rel = pose1.relative_to(pose0)
             Rs.append(rel.R)
             ts.append(rel.t)
     U, _, Vt = np.linalg.svd(np.mean(Rs, 0))
@@ -61,6 +64,8 @@ def evaluate_pairs(
             R = np.broadcast_to(constant[0], Rg.shape)
             t = np.broadcast_to(constant[1], tg.shape)
             conf = np.zeros(len(tg))
+        elif predict is None:
+            raise ValueError("evaluate_pairs needs a predict function or a constant pose")
         else:
             with torch.inference_mode():
                 res = predict(batch)
@@ -70,7 +75,8 @@ def evaluate_pairs(
         cols["r"].append(re)
         cols["v"].append(vcre_px(R, t, Rg, tg, batch["K1_orig"].numpy(), batch["size1_orig"].numpy()))
         cols["c"].append(conf)
-    out = summarize(*(np.concatenate(cols[k]) for k in "trvc"))
+    t_err, r_err, v_err, conf = (np.concatenate(cols[k]) for k in "trvc")
+    out = summarize(t_err, r_err, v_err, conf)
     out["pairs"] = float(len(pairs))
     return out
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..data.io import read_poses
 from ..data.overlaps import read_overlaps
-from ..geometry import rotation_angle_deg
+from ..geometry import Pose, rotation_angle_deg
 from ..solvers.common import kabsch
 from .place import REPORT_FILE
 
@@ -29,22 +29,23 @@ def compare_to_truth(scene: Path, truth_place: Path) -> dict:
     scene, truth_place = Path(scene), Path(truth_place)
     report = json.loads((scene / REPORT_FILE).read_text())
     built = read_poses(scene / "poses.txt").as_dict()
-    tables: dict[str, dict] = {}  # one read per scan, not per frame
-    truth = {}
+    tables: dict[str, dict[str, Pose | None]] = {}  # one read per scan, not per frame
+    truth: dict[str, Pose | None] = {}
     for name, src in report["frames"].items():
         src = Path(src)
         scan = src.parent.name
         if scan not in tables:
             tables[scan] = read_poses(truth_place / scan / "poses.txt").as_dict()
         truth[name] = tables[scan][src.name]
-    names = [n for n in built if built[n] is not None and truth.get(n) is not None]
+    both = [(n, b, t) for n, b in built.items() if b is not None and (t := truth.get(n)) is not None]
+    names = [n for n, _, _ in both]
     if len(names) < 3:
         raise ValueError(f"{scene}: fewer than 3 frames with both built and true poses")
-    Cb = np.stack([built[n].center for n in names])
-    Ct = np.stack([truth[n].center for n in names])
+    Cb = np.stack([b.center for _, b, _ in both])
+    Ct = np.stack([t.center for _, _, t in both])
     A, b = kabsch(Cb, Ct)  # Ct ~ A Cb + b
     centre_err = np.linalg.norm(Cb @ A.T + b - Ct, axis=1)
-    rot_err = np.array([rotation_angle_deg(built[n].R @ A.T, truth[n].R) for n in names])
+    rot_err = np.array([rotation_angle_deg(b.R @ A.T, t.R) for _, b, t in both])
     seq = np.array([n.split("/")[0] for n in names])
     extent = {s: float(np.linalg.norm(np.ptp(Ct[seq == s], axis=0))) for s in set(seq)}
     rel = centre_err / np.array([extent[s] for s in seq])

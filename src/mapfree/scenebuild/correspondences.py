@@ -21,6 +21,18 @@ __all__ = ["CorrespondenceOptions", "depth_correspondences", "write_corresponden
 
 @dataclass(frozen=True)
 class CorrespondenceOptions:
+    """Settings of the training correspondences computed from depth (``correspondences.npz``).
+
+    Attributes:
+        min_overlap: Pairs with overlap above this (exclusive; covers the paper's 0.4-0.8 and low-overlap 0.2).
+        max_overlap: Pairs with overlap below this (exclusive).
+        step: Pixel grid of frame A: every ``step``-th pixel.
+        rel_tol: Depth agreement in B, relative: ``|z - d_B| <= abs_tol + rel_tol * d_B``.
+        abs_tol: Depth agreement in B, metres.
+        sparse_radius: Sparse (SfM) depth in B is dilated by this many pixels before the check.
+        max_pairs: Pairs per scene, the highest-overlap pairs first.
+    """
+
     min_overlap: float = 0.2  # pairs with min < overlap < max (covers the paper's 0.4-0.8 and low-overlap 0.2)
     max_overlap: float = 0.8
     step: int = 8  # pixel grid of frame A (every step-th pixel)
@@ -78,7 +90,17 @@ def write_correspondences(
 
 
 def read_correspondences(path: os.PathLike | str) -> dict[tuple[int, int, int, int], tuple[np.ndarray, np.ndarray]]:
-    """``{(seqA, frameA, seqB, frameB): (kpts0, kpts1)}`` from ``correspondences.npz``."""
+    """Read the training correspondences of a built scene.
+
+    Args:
+        path: The scene's ``correspondences.npz``.
+
+    Returns:
+        ``{(seqA, frameA, seqB, frameB): (kpts0, kpts1)}``, each (n, 2) pixel coordinates in frame A and B.
+    """
     with np.load(path) as z:
         pairs, off, k0, k1 = z["pairs"], z["offsets"], z["kpts0"], z["kpts1"]
-    return {tuple(int(x) for x in p): (k0[off[i] : off[i + 1]], k1[off[i] : off[i + 1]]) for i, p in enumerate(pairs)}
+    return {
+        (int(p[0]), int(p[1]), int(p[2]), int(p[3])): (k0[off[i] : off[i + 1]], k1[off[i] : off[i + 1]])
+        for i, p in enumerate(pairs)
+    }

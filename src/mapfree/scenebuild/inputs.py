@@ -55,17 +55,34 @@ class ScanFrame:
 
 @dataclass
 class Scan:
+    """One scan of a place: its frames in time order.
+
+    Attributes:
+        name: Scan folder name.
+        folder: The scan folder.
+        frames: Images (or sampled video frames) with their times, intrinsics and device poses.
+    """
+
     name: str
     folder: Path
     frames: list[ScanFrame] = field(default_factory=list)
 
     @property
     def has_device(self) -> bool:
+        """Whether any frame has a device pose."""
         return any(f.device is not None for f in self.frames)
 
 
 @dataclass
 class Place:
+    """A place: two or more scans of it, the first being the reference scan.
+
+    Attributes:
+        name: Place folder name.
+        folder: The place folder.
+        scans: The scans, sorted by folder name.
+    """
+
     name: str
     folder: Path
     scans: list[Scan]
@@ -123,7 +140,7 @@ def interpolate_track(
     t_ok = at[ok]  # all frames at once: one slerp call and one interpolation per axis
     R = Slerp(times_u, Rotation.from_matrix(rots[keep]))(t_ok).as_matrix()
     C = np.stack([np.interp(t_ok, times_u, centres[keep][:, k]) for k in range(3)], axis=1)
-    for i, Ri, ci in zip(np.flatnonzero(ok), R, C):
+    for i, Ri, ci in zip(np.flatnonzero(ok).tolist(), R, C):
         out[i] = Pose(Ri, ci)
     return out
 
@@ -154,7 +171,8 @@ def _sample_video(video: Path, fps: float, cache: Path) -> list[ScanFrame]:
         raise FormatError(video, None, "cannot open video")
     rate = cap.get(cv2.CAP_PROP_FPS) or 30.0
     cache.mkdir(parents=True, exist_ok=True)
-    frames, k, next_t = [], 0, 0.0
+    frames: list[ScanFrame] = []
+    k, next_t = 0, 0.0
     while True:
         ok, img = cap.read()
         if not ok:
@@ -220,7 +238,21 @@ def read_scan(folder: Path, fps: float = 2.0, cache: Path | None = None, device_
 
 
 def read_place(folder: Path, fps: float = 2.0, cache: Path | None = None, device_axes: str = "opencv") -> Place:
-    """A place folder -> Place with its scans (sub-folders, sorted by name)."""
+    """Read a place: its scan folders with images or a video, intrinsics, timestamps and device poses.
+
+    Args:
+        folder: The place folder (scan sub-folders; hidden folders are skipped).
+        fps: Frames per second sampled from a video, Hz.
+        cache: Folder of the frames sampled from videos; a ``.frames`` folder inside each scan when None.
+        device_axes: Camera axes of the device poses: ``opencv``, or ``opengl`` (ARKit/ARCore).
+
+    Returns:
+        The place, scans sorted by name.
+
+    Raises:
+        ValueError: ``device_axes`` is unknown.
+        FormatError: Fewer than two scans, a scan without images or video, or a malformed file.
+    """
     folder = Path(folder)
     if device_axes not in DEVICE_AXES:
         raise ValueError(f"device_axes must be one of {sorted(DEVICE_AXES)}, got {device_axes!r}")

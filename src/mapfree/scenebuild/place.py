@@ -43,6 +43,25 @@ class BuildError(RuntimeError):
 
 @dataclass(frozen=True)
 class BuildOptions:
+    """How ``build_place`` turns scans into a scene (``mapfree build`` options).
+
+    Attributes:
+        split: Split the scene is written for: ``train`` (every scan a sequence), or ``val``/``test`` (the
+            reference and the queries of scan 1; ``test`` hides the poses).
+        fps: Frames per second sampled from a video, Hz.
+        device_axes: Camera axes of the device poses: ``opencv``, or ``opengl`` for ARKit/ARCore exports.
+        min_registered: Fraction of each scan's images SfM must register.
+        allow_unscaled: Without device poses or depth, keep SfM units instead of failing.
+        sfm_depth: Write sparse SfM depth maps ``frame_NNNNN.sfm.png``.
+        correspondences: Write ``correspondences.npz`` (training correspondences from depth).
+        corr: Settings of the correspondences.
+        sfm: Settings of the reconstruction.
+        keep_work: Keep the COLMAP database and model.
+        overlap_points: Points the overlaps are computed from: ``depth`` (every frame has metric depth),
+            ``sfm`` (SfM tracks), or ``auto`` (depth when it can).
+        report_plot: Draw ``build_report.png``.
+    """
+
     split: str = "train"
     fps: float = 2.0  # video sampling rate
     device_axes: str = "opencv"  # camera axes of the device poses ("opengl" for ARKit/ARCore exports)
@@ -59,6 +78,17 @@ class BuildOptions:
 
 @dataclass
 class PlaceResult:
+    """What became of one place.
+
+    Attributes:
+        place: Place folder name.
+        scene: Scene folder name.
+        status: ``ok``, ``failed`` or ``skipped`` (already built).
+        reason: Why it failed or was skipped.
+        seconds: Wall time of the build.
+        report: The build report (``build_report.json``): registration, scale, overlaps, timings.
+    """
+
     place: str
     scene: str
     status: str  # "ok" | "failed" | "skipped" (already built)
@@ -278,9 +308,10 @@ def _write_device(
     split: str,
 ) -> None:
     """``poses_device.txt``: val/test re-based per multi-frame burst; train per scan (first frame = I)."""
-    dev = {rename[n]: device[n] for n in keep if device.get(n) is not None}
+    dev = {rename[n]: p for n in keep if (p := device.get(n)) is not None}
     if not dev:
         return
+    rebased: dict[str, Pose]
     if split == "train":
         rebased = {}
         for k in sorted({seq_of[n] for n in keep}):
@@ -315,13 +346,14 @@ def _write_correspondences(
             cache[n] = read_depth(depth_path_for(out / n, suffix))
         return cache[n]
 
-    pairs, matches = [], []
+    pairs: list[tuple[int, int, int, int]] = []
+    matches: list[tuple[np.ndarray, np.ndarray]] = []
     for i in sorted(rows):
         a, b = by_key[tuple(ov.idxs[i, :2])], by_key[tuple(ov.idxs[i, 2:])]
         k0, k1 = depth_correspondences(
             depth(a), intr[a], pose_of[a], depth(b), intr[b], pose_of[b], co, sparse=suffix == SFM_DEPTH_SUFFIX
         )
-        pairs.append(tuple(int(x) for x in ov.idxs[i]))
+        pairs.append((int(ov.idxs[i, 0]), int(ov.idxs[i, 1]), int(ov.idxs[i, 2]), int(ov.idxs[i, 3])))
         matches.append((k0, k1))
     write_correspondences(out / "correspondences.npz", pairs, matches)
     counts = [len(m[0]) for m in matches]
@@ -335,11 +367,22 @@ def build_place(
     private_gt: Path | None = None,
     force: bool = False,
 ) -> PlaceResult:
-    """Build ``place_dir`` into ``scene_dir``; never raises for a bad place (the result says why it failed)."""
+    """Build one place of scans into a Map-free scene; never raises for a bad place (the result says why).
+
+    Args:
+        place_dir: Folder of two or more scan folders.
+        scene_dir: The scene folder written (replaced only when the build succeeds).
+        options: How to build.
+        private_gt: Folder that receives the poses a test scene hides (``private_gt/SCENE/poses.txt``).
+        force: Rebuild a scene that already has a report.
+
+    Returns:
+        The status, the reason of a failure, the time taken and the build report.
+    """
     place_dir, scene_dir = Path(place_dir), Path(scene_dir)
     if not force and (scene_dir / REPORT_FILE).is_file():
-        report = json.loads((scene_dir / REPORT_FILE).read_text())
-        return PlaceResult(place_dir.name, scene_dir.name, "skipped", "already built", 0.0, report)
+        done = json.loads((scene_dir / REPORT_FILE).read_text())
+        return PlaceResult(place_dir.name, scene_dir.name, "skipped", "already built", 0.0, done)
     work = scene_dir.parent / ".build" / scene_dir.name
     shutil.rmtree(work, ignore_errors=True)
     staged, images = work / "scene", work / "images"
@@ -360,6 +403,7 @@ def build_place(
         model = reconstruct(images, sorted(src), intr, work / "colmap", options.sfm)
         report["sfm_seconds"] = round(time.perf_counter() - t_sfm, 2)
         report["scans"] = _check_registration(place, model, seq_of, options.min_registered)
+        assert model is not None  # _check_registration raised BuildError otherwise
         report["registered"] = len(model.poses)
         report["images"] = len(src)
         report["points3D"] = len(model.points)

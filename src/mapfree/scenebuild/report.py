@@ -21,7 +21,7 @@ def plot_report(scene: Path, report: dict, out: Path) -> None:
     fig, (ax0, ax1, ax2) = plt.subplots(1, 3, figsize=(13, 4))
     table = read_poses(scene / "poses.txt")
     if np.linalg.norm(table.q, axis=1).all():  # test scenes hide their poses
-        centres = np.stack([table.pose(i).center for i in range(len(table))])
+        centres = np.stack([p.center for i in range(len(table)) if (p := table.pose(i)) is not None])
         seqs = np.array([n.split("/")[0] for n in table.names])
         for s in sorted(set(seqs)):
             c = centres[seqs == s]

@@ -41,7 +41,8 @@ def _robust_sim3(src: np.ndarray, dst: np.ndarray, rel_threshold: float):
     opts.max_error = rel_threshold * extent
     opts.random_seed = 0
     sim = pycolmap.estimate_sim3d_robust(src, dst, opts)
-    return None if sim is None else (sim["tgt_from_src"], extent)
+    # the stub says Sim3d | None; pycolmap 4.x returns a dict (tgt_from_src, num_inliers, inlier_mask) or None
+    return None if sim is None else (sim["tgt_from_src"], extent)  # type: ignore[index]
 
 
 def scale_from_device(

@@ -28,6 +28,19 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class SfmOptions:
+    """Settings of the pycolmap reconstruction of a place.
+
+    Attributes:
+        max_features: SIFT features per image.
+        max_image_size: Longer side for feature extraction, pixels.
+        max_ratio: SIFT ratio test (stricter than COLMAP's 0.8, against repeated textures).
+        min_inliers: Verified matches for an image pair to count.
+        threads: Threads per place (places run in parallel).
+        seed: RANSAC and mapper seed: the same inputs give the same model.
+        matcher: ``colmap`` (pycolmap SIFT) or a ``mapfree.matching`` name whose matches are written into the
+            database.
+    """
+
     max_features: int = 4096  # SIFT features per image
     max_image_size: int = 1600  # longer side for feature extraction (pixels)
     max_ratio: float = 0.7  # SIFT ratio test; stricter than COLMAP's 0.8 against repeated textures

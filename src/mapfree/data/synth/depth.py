@@ -35,9 +35,9 @@ def simulate_mono_depth(
     knots = rng.normal(0.0, model.warp_sigma, (model.warp_cells[1], model.warp_cells[0])).astype(np.float32)
     field = cv2.resize(knots, (W, H), interpolation=cv2.INTER_CUBIC)
     h2, w2 = (H + 1) // 2, (W + 1) // 2  # noise in 2x2 blocks, like a network's output stride
-    noise = rng.normal(0.0, model.noise_sigma, (h2, w2)).astype(np.float32)
-    noise = cv2.resize(noise, (w2 * 2, h2 * 2), interpolation=cv2.INTER_NEAREST)[:H, :W]
-    filled = np.where(depth > 0, depth, np.float32(model.sky_depth)).astype(np.float32)
+    blocks = rng.normal(0.0, model.noise_sigma, (h2, w2)).astype(np.float32)
+    noise = cv2.resize(blocks, (w2 * 2, h2 * 2), interpolation=cv2.INTER_NEAREST)[:H, :W]
+    filled: np.ndarray = np.where(depth > 0, depth, np.float32(model.sky_depth)).astype(np.float32)
     if model.blur_px > 0:
         filled = cv2.GaussianBlur(filled, (0, 0), model.blur_px)
     est = filled * np.exp(field + noise) * np.float32(scale)

@@ -134,7 +134,7 @@ def rasterize(world: World, pose: Pose, K: Intrinsics) -> tuple[np.ndarray, np.n
     return qid, zbuf
 
 
-def _mirror(x: np.ndarray, size: np.ndarray) -> np.ndarray:
+def _mirror(x: np.ndarray, size: np.floating | np.ndarray) -> np.ndarray:
     """Mirrored repeat of texel coordinates into [0, size] (seamless tiling of any photo)."""
     period = 2 * size
     m = x - np.floor(x / period) * period
@@ -274,8 +274,8 @@ class ShadowMap:
                 pts = np.round((ab * cells - 0.5) * 16).astype(np.int32)
                 cv2.fillConvexPoly(grid, pts, 255, cv2.LINE_8, 4)
         soft = cv2.GaussianBlur(grid.astype(np.float32) / 255, (0, 0), 1.5)
-        span = tuple(float(x) for x in world.repeats[g] * atlas.size)
-        return cls(1.0 - np.clip(soft, 0, 1), span, light.shadow)
+        span_u, span_v = (float(x) for x in world.repeats[g] * atlas.size)
+        return cls(1.0 - np.clip(soft, 0, 1), (span_u, span_v), light.shadow)
 
     def factor(self, tu: np.ndarray, tv: np.ndarray, ground: np.ndarray) -> np.ndarray:
         """(H,W) light multiplier: ``1 - strength`` in full shadow on the ground, 1 elsewhere."""
