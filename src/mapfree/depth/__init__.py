@@ -5,10 +5,21 @@ matches (``mast3r``, ``dust3r``: pointmaps; ``mickey``: its keypoints' depths). 
 
 from __future__ import annotations
 
-from .base import DepthSource
+from .base import DepthSource, FileDepthSource, NetworkDepthSource, PairDepthSource
 from .files import FileDepth, NoDepth
 
-__all__ = ["DepthSource", "FileDepth", "NoDepth", "create", "names", "HUB_MODELS", "PAIR_MODELS"]
+__all__ = [
+    "DepthSource",
+    "FileDepthSource",
+    "NetworkDepthSource",
+    "PairDepthSource",
+    "FileDepth",
+    "NoDepth",
+    "create",
+    "names",
+    "HUB_MODELS",
+    "PAIR_MODELS",
+]
 
 from .hub import HUB_MODELS  # noqa: E402  (torch and transformers load only with a network source)
 

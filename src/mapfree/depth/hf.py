@@ -16,6 +16,7 @@ from ..data import Frame
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
 from ..weights import BrokenWeightsError, HubModel, MissingWeightsError, check_folder, offline_why, reachable
+from .base import NetworkDepthSource
 from .cache import DepthCache
 from .hub import HUB_MODELS
 
@@ -51,10 +52,8 @@ class HFDepthOptions(Options):
 _HUB_URL = "https://huggingface.co"
 
 
-class HFDepth:
+class HFDepth(NetworkDepthSource):
     """A transformers depth-estimation model as a ``DepthSource``; loaded on the first cache miss."""
-
-    metric = True
 
     def __init__(self, model: str, options: HFDepthOptions | None = None, **overrides: object) -> None:
         self.options = o = HFDepthOptions.build(overrides, owner=f"depth network {model!r}", base=options)

@@ -16,7 +16,9 @@ import cv2
 import numpy as np
 
 from ..mast3r.engine import EncodedImage, PairEngine, shared_engine
+from ..matching.base import Features
 from ..mast3r.preprocess import Prepared
+from .base import PairDepthSource
 
 __all__ = ["Mast3rDepth", "depth_at_original"]
 
@@ -33,11 +35,8 @@ def depth_at_original(z: np.ndarray, conf: np.ndarray, prep: Prepared, min_conf:
     return cv2.remap(z, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
 
 
-class Mast3rDepth:
+class Mast3rDepth(PairDepthSource):
     """Depth of both images of a pair from MASt3R's (or DUSt3R's) own metric pointmaps."""
-
-    metric = True
-    pairwise = True
 
     def __init__(
         self,
@@ -53,14 +52,10 @@ class Mast3rDepth:
         self.min_conf = min_conf
         self.engine = engine if engine is not None else shared_engine(kind, weights, device, long_side)
 
-    def depth(self, frame: object) -> None:
-        """No depth from one frame alone: see ``pair_depth``."""
-        return None
-
     def _encoded(self, image: np.ndarray, features: Any) -> EncodedImage:
         """The matcher's encoding when its features carry this engine's (a cached reference is never encoded
         again), else the engine's own (cached on the image)."""
-        enc = getattr(features, "data", {}).get("encoded") if features is not None else None
+        enc = features.data.get("encoded") if isinstance(features, Features) else None
         mine = isinstance(enc, EncodedImage) and enc.engine_id == id(self.engine)
         return enc if mine else self.engine.encode(image)
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..matching.base import Features
 from ..mickey.engine import MickeyEngine, MickeyImage, MickeyNetworkOptions, engine_for
+from .base import PairDepthSource
 
 __all__ = ["MickeyDepth", "MickeyDepthOptions", "sparse_depth_map"]
 
@@ -38,12 +39,10 @@ def sparse_depth_map(out: MickeyImage) -> np.ndarray:
     return d
 
 
-class MickeyDepth:
+class MickeyDepth(PairDepthSource):
     """Depth of MicKey's keypoints of both images of a pair."""
 
     name = "mickey"
-    metric = True
-    pairwise = True
 
     def __init__(
         self, engine: MickeyEngine | None = None, options: MickeyDepthOptions | None = None, **overrides: object
@@ -52,10 +51,6 @@ class MickeyDepth:
         choose the files, ``device`` and ``fp16``: ``MickeyDepthOptions``), checked as every component's are."""
         self.options = MickeyDepthOptions.build(overrides, owner="depth network 'mickey'", base=options)
         self.engine = engine if engine is not None else engine_for(self.options)
-
-    def depth(self, frame: object) -> None:
-        """No depth before matching: see ``pair_depth``."""
-        return None
 
     def _map(self, image: np.ndarray, features: Any) -> np.ndarray:
         if isinstance(features, Features):

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_classes
 from .published import EFFICIENTLOFTR_MODEL
 from .utils import autocast, checked_or_blank, inside
@@ -114,7 +114,7 @@ def refine(
     return kp0, kp1 + shift * step
 
 
-class EfficientLoFTRMatcher:
+class EfficientLoFTRMatcher(Matcher):
     """``efficientloftr``."""
 
     name = "efficientloftr"

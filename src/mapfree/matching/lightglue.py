@@ -16,7 +16,7 @@ from kornia.feature import ALIKED, DISK, LightGlue
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .glue import glue_input, run_glue
 from .published import SHIPPED, SUPERPOINT_LIGHTGLUE_WEIGHTS, SUPERPOINT_WEIGHTS
 from .superpoint import SuperPoint
@@ -85,7 +85,7 @@ def _weight_path(explicit_file: str | None, folder: str | None, wf: WeightFile) 
     return resolve_weights(wf)
 
 
-class LightGlueMatcher:
+class LightGlueMatcher(Matcher):
     """``{features}-lightglue``: extract once per image (reference features are reused), LightGlue per pair."""
 
     def __init__(self, features: str = "aliked", options: LightGlueOptions | None = None, **overrides: object) -> None:

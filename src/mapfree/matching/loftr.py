@@ -15,7 +15,7 @@ from kornia.feature.loftr import loftr as _kloftr
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .published import LOFTR_WEIGHTS
 from .utils import (
     autocast,
@@ -45,7 +45,7 @@ def loftr_weights_available(kind: str = "outdoor", weights: str | None = None) -
     return find_local(LOFTR_WEIGHTS[kind], weights) is not None
 
 
-class LoFTRMatcher:
+class LoFTRMatcher(Matcher):
     """``loftr-outdoor`` / ``loftr-indoor`` (``loftr`` = outdoor)."""
 
     def __init__(self, options: LoFTROptions | None = None, **overrides: object) -> None:

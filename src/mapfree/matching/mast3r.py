@@ -16,7 +16,7 @@ import numpy as np
 from ..mast3r.engine import EncodedImage, PairEngine, PairOutput, shared_engine
 from ..mast3r.reciprocal import reciprocal_matches
 from ..options import Options, option
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .utils import checked_or_blank
 
 __all__ = ["Mast3rOptions", "Mast3rMatcher"]
@@ -33,7 +33,7 @@ class Mast3rOptions(Options):
     device: str | None = option(None, device=True)
 
 
-class Mast3rMatcher:
+class Mast3rMatcher(Matcher):
     """Dense matcher on MASt3R descriptors or DUSt3R pointmaps; keypoints in original-image pixels."""
 
     def __init__(self, options: Mast3rOptions | None = None, **overrides: object) -> None:

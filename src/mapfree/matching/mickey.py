@@ -17,7 +17,7 @@ import torch
 
 from ..mickey.engine import MickeyEngine, MickeyImage, MickeyNetworkOptions, engine_for
 from ..options import option
-from .base import CandidateMatches, Features, MatchCandidates, Matches
+from .base import CandidateMatches, Features, MatchCandidates, Matcher, Matches
 from .utils import checked_or_blank
 
 __all__ = ["MickeyOptions", "MickeyMatcher", "mutual_best"]
@@ -43,7 +43,7 @@ def mutual_best(scores: torch.Tensor, min_score: float = 0.0) -> tuple[torch.Ten
     return i[order], j[order], s[order]
 
 
-class MickeyMatcher:
+class MickeyMatcher(Matcher):
     """MicKey keypoints and matches; keypoints in original pixels."""
 
     name = "mickey"
@@ -70,17 +70,17 @@ class MickeyMatcher:
     def match(self, f0: Features, f1: Features) -> Matches:
         return self.match_many(f0, [f1])[0]
 
-    def match_many(self, f0: Features, others: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """``f0`` (the reference) against each of ``others``: the pairs' score matrices in batches."""
+    def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
+        """``f0`` (the reference) against each of ``f1s``: the pairs' score matrices in batches."""
         ref = f0.data.get("mickey")
-        todo = [i for i, f in enumerate(others) if f.data.get("mickey") is not None]
-        out: list[Matches] = [Matches.empty() for _ in others]
+        todo = [i for i, f in enumerate(f1s) if f.data.get("mickey") is not None]
+        out: list[Matches] = [Matches.empty() for _ in f1s]
         if ref is None or not todo:
             return out
         step = batch_size or self.options.batch_size
-        finals = self.engine.scores(ref, [others[i].data["mickey"] for i in todo], step)
+        finals = self.engine.scores(ref, [f1s[i].data["mickey"] for i in todo], step)
         for i, final in zip(todo, finals):
-            out[i] = self._matches(ref, others[i].data["mickey"], final)
+            out[i] = self._matches(ref, f1s[i].data["mickey"], final)
         return out
 
     def _matches(self, ref: MickeyImage, query: MickeyImage, final: torch.Tensor) -> CandidateMatches:

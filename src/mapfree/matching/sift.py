@@ -9,7 +9,7 @@ import numpy as np
 
 from ..geometry import to_original
 from ..options import Options, option
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .utils import check_image, resize_for_matching
 
 __all__ = ["SIFTOptions", "SIFTMatcher", "root_sift", "squared_distances", "two_nearest"]
@@ -85,7 +85,7 @@ def _sq_norms(f: Features) -> np.ndarray:
     return norms
 
 
-class SIFTMatcher:
+class SIFTMatcher(Matcher):
     """``sift``: CPU only (OpenCV); ``extract`` is separable so reference features are computed once."""
 
     name = "sift"

@@ -16,7 +16,7 @@ import torch
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_classes
 from .published import SUPERGLUE_MODELS
 from .utils import autocast, checked_or_blank
@@ -52,7 +52,7 @@ def _normalised_into(kpts: torch.Tensor, size: tuple[int, int], target: tuple[in
     return (kpts - c) * (st / s) + ct
 
 
-class SuperGlueMatcher:
+class SuperGlueMatcher(Matcher):
     """``superglue`` (outdoor weights) / ``superglue-indoor``."""
 
     def __init__(self, options: SuperGlueOptions | None = None, **overrides: object) -> None:

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .glue import glue_input, run_glue
 from .published import XFEAT_WEIGHTS
 from .utils import (
@@ -87,7 +87,7 @@ def _lighterglue(device: torch.device) -> torch.nn.Module:
         return _MODELS[key]
 
 
-class XFeatMatcher:
+class XFeatMatcher(Matcher):
     """``xfeat`` / ``xfeat-star`` / ``xfeat-lighterglue``; ``mode`` picks one of ``MODES``."""
 
     def __init__(self, mode: str = "sparse", options: XFeatOptions | None = None, **overrides: object) -> None:

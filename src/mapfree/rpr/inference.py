@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,7 @@ import torch
 from ..data import read_image
 from ..estimate import Estimate
 from ..geometry import Pose
+from ..localizer import Localizer
 from .config import RPRConfig, load_config, resolve_config
 from .data import as_float_input, resolve_size, to_input
 from .metrics import confidence_from_log_sigma
@@ -51,9 +53,10 @@ def _default_device() -> torch.device:
     return torch.device("cpu")
 
 
-class RPRMethod:
+class RPRMethod(Localizer[Any]):
     """``relocalize(ref, query) -> Estimate``; ``set_reference`` + ``localize`` reuse the reference;
-    ``predict(batch)`` runs a batch of tensors on the model's device."""
+    ``predict(batch)`` runs a batch of tensors on the model's device. A ``Localizer`` without a reusable anchor:
+    ``prepare`` keeps the reference itself, which ``localize(query, anchor)`` sets again."""
 
     def __init__(self, module: RPRModule, device: str | torch.device | None = None):
         self.device = torch.device(device) if device is not None else _default_device()
@@ -103,13 +106,15 @@ class RPRMethod:
             Pose(res["R"][i], res["t"][i]), float(res["confidence"][i]), 0, "", {"regression": seconds}, extras
         )
 
-    # The Localizer protocol of mapfree.relocalize: set_reference / localize / relocalize.
+    # The Localizer interface (mapfree.localizer): set_reference / localize / relocalize / localize_many.
     def set_reference(self, reference: Any) -> Any:
         img = image_of(reference)
         self._ref = (img, self._tensor(img, self.input_size(img)))
         return self._ref
 
-    def localize(self, query: Any) -> Estimate:
+    def localize(self, query: Any, anchor: Any = None) -> Estimate:
+        if anchor is not None:
+            self.set_reference(anchor)
         if self._ref is None:
             raise RuntimeError("call set_reference(reference) before localize(query)")
         t0 = time.perf_counter()
@@ -121,8 +126,14 @@ class RPRMethod:
     def relocalize(self, reference: Any, query: Any) -> Estimate:
         return self.relocalize_images(reference, query)
 
-    def localize_many(self, queries: list[Any], batch_size: int = 16) -> list[Estimate]:
-        """Batched ``localize`` over many queries of the current reference (GPU-friendly)."""
+    def localize_many(
+        self, queries: Iterable[Any], anchor: Any = None, *, prefetch: int = 1, batch_size: int = 16
+    ) -> list[Estimate]:
+        """Batched ``localize`` over many queries of the current reference (or ``anchor``), ``batch_size`` per pass
+        (GPU-friendly); ``prefetch`` is not used."""
+        queries = list(queries)
+        if anchor is not None:
+            self.set_reference(anchor)
         if self._ref is None:
             raise RuntimeError("call set_reference(reference) before localize_many(queries)")
         _, ref_t = self._ref

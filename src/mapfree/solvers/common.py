@@ -5,12 +5,15 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any, Generic, TypeVar
 
 import cv2
 import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, backproject
+from ..matching.base import Matches
+from .base import Solver, SolverOptions
 
 __all__ = [
     "DEPTH_SAMPLING",
@@ -24,7 +27,10 @@ __all__ = [
     "backproject_keypoints",
     "kabsch",
     "rotation_is_valid",
+    "GuardedSolver",
 ]
+
+OptionsT = TypeVar("OptionsT", bound=SolverOptions)
 
 DEPTH_SAMPLING = ("nearest", "floor", "bilinear")
 MAX_DEPTH = 1e4  # metres; larger values are "at infinity" and treated as invalid (no sensor or network gives them)
@@ -154,27 +160,37 @@ def rotation_is_valid(R: np.ndarray, tol: float = 1e-6) -> bool:
     return bool(np.allclose(R.T @ R, np.eye(3), atol=tol * 100) and abs(np.linalg.det(R) - 1) < tol * 100)
 
 
-class GuardedSolver:
+class GuardedSolver(Solver, Generic[OptionsT]):
     """Shared shell of the solvers: options dataclass + overrides, and a ``solve`` that never raises.
 
     Subclasses set ``Options`` and implement ``_solve(matches, K_ref, K_query, depth_ref, depth_query, timer)``,
     raising ``SolverError`` for expected failures; library errors become "no estimate" with their message too.
+
+    Args:
+        options: The solver's options dataclass (default: the paper's values).
+        **overrides: Option values over ``options`` (``ransac_threshold_px=2.0``), checked (``OptionError``).
     """
 
-    Options: type
+    Options: type[OptionsT]
     _errors: tuple[type[BaseException], ...] = (cv2.error, np.linalg.LinAlgError, ValueError, RuntimeError, MemoryError)
 
-    def __init__(self, options=None, **overrides) -> None:
-        self.options = self.Options.build(overrides, owner=f"solver {self.name!r}", base=options)
+    def __init__(self, options: OptionsT | None = None, **overrides: Any) -> None:
+        self.options: OptionsT = self.Options.build(overrides, owner=f"solver {self.name!r}", base=options)
+
+    @property
+    def confidence_mode(self) -> str:
+        """Which confidence its estimates report: the ``confidence`` option."""
+        return self.options.confidence
 
     def solve(
         self,
-        matches,
+        matches: Matches,
         K_ref: Intrinsics,
         K_query: Intrinsics,
         depth_ref: np.ndarray | None,
         depth_query: np.ndarray | None = None,
     ) -> Estimate:
+        """See ``Solver.solve``; the ``timings`` hold ``solve`` and the solver's own stages (seconds)."""
         timer = Timer()
         try:
             with timer("solve"):
@@ -186,11 +202,19 @@ class GuardedSolver:
         est.timings = {**est.timings, **timer.timings}
         return est
 
-    def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
+    def _solve(
+        self,
+        matches: Matches,
+        K_ref: Intrinsics,
+        K_query: Intrinsics,
+        depth_ref: np.ndarray | None,
+        depth_query: np.ndarray | None,
+        timer: Timer,
+    ) -> Estimate:
         raise NotImplementedError
 
     @staticmethod
-    def _finite_matches(matches, minimum: int) -> tuple[np.ndarray, np.ndarray]:
+    def _finite_matches(matches: Matches, minimum: int) -> tuple[np.ndarray, np.ndarray]:
         """The matches with finite coordinates; ``SolverError`` when fewer than ``minimum`` remain."""
         ok = finite_matches(matches.kpts0, matches.kpts1)
         if ok.sum() < minimum:

@@ -14,7 +14,8 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose
-from ..options import Options, option
+from ..options import option
+from .base import SolverOptions
 from .common import (
     DEPTH_SAMPLING,
     GuardedSolver,
@@ -41,7 +42,7 @@ BACKENDS = ("opencv", "poselib")
 
 
 @dataclass
-class EssentialOptions(Options):
+class EssentialOptions(SolverOptions):
     """Defaults are the paper's; use ``ransac_threshold_px=2`` for learned matchers."""
 
     ransac_threshold_px: float = option(3.0, min=0, min_open=True)
@@ -168,7 +169,7 @@ def relative_pose_poselib(kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, 
     return R, t, ransac_mask, pose_mask
 
 
-class EssentialSolver(GuardedSolver):
+class EssentialSolver(GuardedSolver[EssentialOptions]):
     """Ess.Mat + D.Scale. ``solve`` never raises on bad input: it returns ``Estimate.failure(reason)``."""
 
     name = "essential"

@@ -23,7 +23,8 @@ import numpy as np
 from ..estimate import Estimate
 from ..geometry import Pose
 from ..matching.base import CandidateMatches
-from ..options import OptionError, Options, option
+from ..options import OptionError, option
+from .base import SolverOptions
 from .common import GuardedSolver, SolverError, Timer, rotation_is_valid
 from .confidence import CONFIDENCE_MODES, choose
 
@@ -41,7 +42,7 @@ __all__ = [
 
 
 @dataclass
-class MickeySolverOptions(Options):
+class MickeySolverOptions(SolverOptions):
     """The published values (MicKey's config, section ``PROCRUSTES``)."""
 
     draws: int = option(20, min=1)  # IT_MATCHES
@@ -186,12 +187,13 @@ def probabilistic_procrustes(
     return ProcrustesResult(Rb, tb, _soft_count(dist, o.inlier_threshold), (dist <= o.inlier_threshold).sum(-1), k)
 
 
-class MickeySolver(GuardedSolver):
+class MickeySolver(GuardedSolver[MickeySolverOptions]):
     """MicKey's own solver on the ``mickey`` matcher's candidates (every keypoint pair, scored, with each
     keypoint's metric depth); depth maps are not used. Never raises on bad input."""
 
     name = "mickey"
     Options = MickeySolverOptions
+    depth_needs = ()
 
     def _solve(self, matches: Any, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
         import torch

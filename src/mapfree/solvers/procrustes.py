@@ -12,7 +12,8 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose, backproject_depth
-from ..options import Options, option
+from ..options import option
+from .base import SolverOptions
 from .common import (
     DEPTH_SAMPLING,
     MAX_DEPTH,
@@ -32,7 +33,7 @@ __all__ = ["ProcrustesOptions", "ProcrustesSolver", "ransac_rigid"]
 
 
 @dataclass
-class ProcrustesOptions(Options):
+class ProcrustesOptions(SolverOptions):
     """Defaults follow the public code (Open3D's RANSAC on correspondences: 3-point samples, 0.05 m,
     at most 100000 iterations, confidence 0.999); ICP off."""
 
@@ -119,7 +120,7 @@ def _cloud(depth: np.ndarray, K: Intrinsics, max_points: int) -> np.ndarray:
     return X[::step, ::step][ok[::step, ::step]]
 
 
-class ProcrustesSolver(GuardedSolver):
+class ProcrustesSolver(GuardedSolver[ProcrustesOptions]):
     """3D–3D rigid alignment of the matched, back-projected keypoints. Never raises on bad input."""
 
     name = "procrustes"
