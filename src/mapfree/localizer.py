@@ -131,12 +131,7 @@ class Localizer(QueryLocalizer, Generic[AnchorT]):
     ``set_reference(ref)`` then ``localize(query)`` for many queries against one reference; ``prepare(ref)`` makes a
     reusable anchor without making it the current reference (a service keeps many), ``localize(query, anchor)``
     uses it; ``relocalize(ref, query)`` for one pair. ``AnchorT`` is what ``prepare`` returns.
-
-    Attributes:
-        name: The method's name.
     """
-
-    name: str = ""
 
     @abstractmethod
     def set_reference(self, reference: Any) -> AnchorT:

@@ -5,6 +5,8 @@ matches (``mast3r``, ``dust3r``: pointmaps; ``mickey``: its keypoints' depths). 
 
 from __future__ import annotations
 
+from typing import Any
+
 from .base import DepthSource, FileDepthSource, NetworkDepthSource, PairDepthSource
 from .files import FileDepth, NoDepth
 
@@ -33,7 +35,7 @@ def names() -> list[str]:
     return ["none", "files:SUFFIX", "hf:HUB_ID_OR_DIR", *HUB_MODELS, *PAIR_MODELS]
 
 
-def create(spec: str, **options: object) -> DepthSource:
+def create(spec: str, **options: Any) -> DepthSource:
     """Build a depth source from its spec; ``options`` go to network sources (``cache_dir=``, ``device=``,
     ``batch_size=``)."""
     s = spec.strip()
@@ -48,11 +50,11 @@ def create(spec: str, **options: object) -> DepthSource:
     if s == "mickey":
         from .mickey import MickeyDepth
 
-        return MickeyDepth(**options)  # type: ignore[arg-type]
+        return MickeyDepth(**options)
     if s in PAIR_MODELS:
         from .mast3r import Mast3rDepth
 
-        return Mast3rDepth(s, **options)  # type: ignore[arg-type]
+        return Mast3rDepth(s, **options)
     if s in HUB_MODELS:
         from .hf import HFDepth
 

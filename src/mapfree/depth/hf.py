@@ -8,6 +8,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -63,8 +64,8 @@ class HFDepth(NetworkDepthSource):
         self.hub = None if Path(self.model_id).is_dir() else HubModel(self.model_id, f"depth network {model}")
         self.device = resolve_device(o.device)  # None/"auto": cuda when available
         self.cache = DepthCache(o.cache_dir, self.model_id, o.cache_dtype) if o.cache_dir else None
-        self._model = None
-        self._processor = None
+        self._model: Any = None  # a transformers depth model and its processor, once loaded
+        self._processor: Any = None
         self.predictions = 0  # images run through the network (cache misses)
 
     # ------------------------------------------------------------------ loading
@@ -140,7 +141,7 @@ class HFDepth(NetworkDepthSource):
         params = inspect.signature(post).parameters
         if net.config.model_type == "depth_pro" and self.options.use_intrinsics and focals and all(focals):
             # Depth Pro turns its canonical inverse depth into metres with the focal length: give it the true one.
-            fov = [2 * math.degrees(math.atan(0.5 * w / f)) for f in focals]  # type: ignore[operator]
+            fov = [2 * math.degrees(math.atan(0.5 * w / f)) for f in focals if f]
             out.field_of_view = torch.tensor(fov, device=out.predicted_depth.device)
         if "source_sizes" in params:  # ZoeDepth removes its padding given the input size
             res = post(out, source_sizes=sizes, target_sizes=sizes)

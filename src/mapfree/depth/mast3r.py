@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 
 from ..mast3r.engine import EncodedImage, PairEngine, shared_engine
-from ..matching.base import Features
 from ..mast3r.preprocess import Prepared
+from ..matching.base import Features
 from .base import PairDepthSource
 
 __all__ = ["Mast3rDepth", "depth_at_original"]
@@ -56,8 +56,9 @@ class Mast3rDepth(PairDepthSource):
         """The matcher's encoding when its features carry this engine's (a cached reference is never encoded
         again), else the engine's own (cached on the image)."""
         enc = features.data.get("encoded") if isinstance(features, Features) else None
-        mine = isinstance(enc, EncodedImage) and enc.engine_id == id(self.engine)
-        return enc if mine else self.engine.encode(image)
+        if isinstance(enc, EncodedImage) and enc.engine_id == id(self.engine):
+            return enc
+        return self.engine.encode(image)
 
     def pair_depth(
         self,

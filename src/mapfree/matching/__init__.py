@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, fields
+from typing import Any
 
 from .base import Features, Matcher, Matches
 from .weights import WEIGHTS_ENV, MissingWeightsError
@@ -30,14 +31,14 @@ __all__ = [
 ]
 
 
-def _sift(**o: object) -> Matcher:
+def _sift(**o: Any) -> Matcher:
     from .sift import SIFTMatcher
 
     return SIFTMatcher(**o)
 
 
 def _xfeat(mode: str) -> Callable[..., Matcher]:
-    def make(**o: object) -> Matcher:
+    def make(**o: Any) -> Matcher:
         from .xfeat import XFeatMatcher
 
         return XFeatMatcher(mode, **o)
@@ -46,7 +47,7 @@ def _xfeat(mode: str) -> Callable[..., Matcher]:
 
 
 def _lightglue(features: str) -> Callable[..., Matcher]:
-    def make(**o: object) -> Matcher:
+    def make(**o: Any) -> Matcher:
         from .lightglue import LightGlueMatcher
 
         return LightGlueMatcher(features, **o)
@@ -55,7 +56,7 @@ def _lightglue(features: str) -> Callable[..., Matcher]:
 
 
 def _loftr(kind: str) -> Callable[..., Matcher]:
-    def make(**o: object) -> Matcher:
+    def make(**o: Any) -> Matcher:
         from .loftr import LoFTRMatcher
 
         o.setdefault("weights_kind", kind)
@@ -65,7 +66,7 @@ def _loftr(kind: str) -> Callable[..., Matcher]:
 
 
 def _superglue(kind: str) -> Callable[..., Matcher]:
-    def make(**o: object) -> Matcher:
+    def make(**o: Any) -> Matcher:
         from .superglue import SuperGlueMatcher
 
         o.setdefault("weights_kind", kind)
@@ -74,14 +75,14 @@ def _superglue(kind: str) -> Callable[..., Matcher]:
     return make
 
 
-def _efficientloftr(**o: object) -> Matcher:
+def _efficientloftr(**o: Any) -> Matcher:
     from .efficientloftr import EfficientLoFTRMatcher
 
     return EfficientLoFTRMatcher(**o)
 
 
 def _mast3r(kind: str) -> Callable[..., Matcher]:
-    def make(**o: object) -> Matcher:
+    def make(**o: Any) -> Matcher:
         from .mast3r import Mast3rMatcher
 
         return Mast3rMatcher(kind=kind, **o)
@@ -89,7 +90,7 @@ def _mast3r(kind: str) -> Callable[..., Matcher]:
     return make
 
 
-def _mickey(**o: object) -> Matcher:
+def _mickey(**o: Any) -> Matcher:
     from .mickey import MickeyMatcher
 
     return MickeyMatcher(**o)
@@ -185,7 +186,7 @@ def names() -> list[str]:
     return list(_REGISTRY)
 
 
-def create(name: str, **options: object) -> Matcher:
+def create(name: str, **options: Any) -> Matcher:
     """Build the matcher ``name`` with option overrides (e.g. ``device="cpu"``, ``max_keypoints=1024``).
 
     Raises ``KeyError`` for an unknown name and ``MissingWeightsError`` (with the file to place where)

@@ -125,7 +125,7 @@ class EfficientLoFTRMatcher(Matcher):
         )
 
         self.options = o = EfficientLoFTROptions.build(overrides, owner="matcher 'efficientloftr'", base=options)
-        self.device = resolve_device(o.device)
+        self.device: torch.device = resolve_device(o.device)
 
         def configure(cfg: Any) -> None:
             if o.match_threshold is not None:

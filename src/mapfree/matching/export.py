@@ -7,6 +7,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -82,7 +83,7 @@ def save_npz(path: os.PathLike | str, r: PairMatches) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     m = r.matches
-    arrays = {
+    arrays: dict[str, Any] = {
         "kpts0": m.kpts0.astype(np.float32),
         "kpts1": m.kpts1.astype(np.float32),
         "scores": m.scores.astype(np.float32),

@@ -11,11 +11,12 @@ that layer. One host synchronisation per layer decides both; a batch's matches c
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from kornia.feature.lightglue import LightGlue, filter_matches, normalize_keypoints
+from kornia.feature.lightglue import filter_matches, normalize_keypoints
 
 from ..runtime import steady_kernels
 from .base import Features
@@ -24,6 +25,8 @@ __all__ = ["GlueInput", "glue_input", "run_glue", "bucket_length", "BUCKET"]
 
 #: Sequence lengths are padded up to a multiple of this (fewer distinct shapes, batches of mixed counts).
 BUCKET = 256
+#: A kornia ``LightGlue`` network: its layers are nn.Module attributes, which type checkers see as untyped.
+GlueNet = Any
 
 
 @dataclass
@@ -89,7 +92,7 @@ class _Side:
         return self.mask[:, None, :, None]  # (B,1,L,1): broadcasts over heads in kornia's masked layer
 
 
-def _assign(net: LightGlue, layer: int, s0: _Side, s1: _Side, threshold: float):
+def _assign(net: GlueNet, layer: int, s0: _Side, s1: _Side, threshold: float):
     """Dual-softmax assignment of ``layer`` restricted to valid tokens; returns (m0, scores0) per row of side 0,
     with m0 in original indices of side 1 (-1: unmatched)."""
     la = net.log_assignment[layer]
@@ -107,7 +110,7 @@ def _assign(net: LightGlue, layer: int, s0: _Side, s1: _Side, threshold: float):
 
 
 def run_glue(
-    net: LightGlue, ref: GlueInput, queries: list[GlueInput], *, mixed_precision: bool = False, bucket: int = BUCKET
+    net: GlueNet, ref: GlueInput, queries: list[GlueInput], *, mixed_precision: bool = False, bucket: int = BUCKET
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Match ``ref`` against every query with the LightGlue ``net``: per pair (indices (K,2) into ref and
     query keypoints, scores (K,)). Uses the net's ``depth_confidence``, ``width_confidence`` and

@@ -94,7 +94,7 @@ class LightGlueMatcher(Matcher):
         self.features = features
         self.name = f"{features}-lightglue"
         self.options = o = LightGlueOptions.build(overrides, owner=f"matcher '{self.name}'", base=options)
-        self.device = resolve_device(o.device)
+        self.device: torch.device = resolve_device(o.device)
         self.extractor = self._build_extractor().to(self.device)
         self.glue = self._build_glue().to(self.device)
 
@@ -105,7 +105,9 @@ class LightGlueMatcher(Matcher):
             # Top-k (threshold 0) rather than the release's 0.2: on realmini-dev it keeps 3x more matches that
             # fit the true pose, and a fixed count lets queries batch in ``match_many``.
             th = 0.0 if o.detection_threshold is None else o.detection_threshold
-            net = ALIKED("aliked-n16", max_num_keypoints=o.max_keypoints, detection_threshold=th, nms_radius=2)
+            net: torch.nn.Module = ALIKED(
+                "aliked-n16", max_num_keypoints=o.max_keypoints, detection_threshold=th, nms_radius=2
+            )
             path = Path(o.extractor_weights) if o.extractor_weights else shipped_file(SHIPPED["aliked"][0])
             _load_strict(net, load_checkpoint(path), "ALIKED-n16", path)
         elif self.features == "disk":
@@ -128,7 +130,7 @@ class LightGlueMatcher(Matcher):
             width_confidence=o.width_confidence,
             mp=o.mixed_precision and self.device.type == "cuda",
         )
-        glue = LightGlue(None, **conf)  # None: build only; the weights come from our files below
+        glue = LightGlue(None, **conf)  # type: ignore[arg-type]  # None: build only; the weights come from our files
         if self.features == "superpoint":
             path = _weight_path(o.glue_weights, o.weights, SUPERPOINT_LIGHTGLUE_WEIGHTS)
         else:

@@ -6,6 +6,7 @@ Dense: ``extract`` runs the CNN backbone once per image (so a reference is encod
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -53,7 +54,7 @@ class LoFTRMatcher(Matcher):
         if o.weights_kind not in LOFTR_WEIGHTS:
             raise ValueError(f"unknown LoFTR weights {o.weights_kind!r}; choose from {sorted(LOFTR_WEIGHTS)}")
         self.name = f"loftr-{o.weights_kind.replace('_', '-')}"
-        self.device = resolve_device(o.device)
+        self.device: torch.device = resolve_device(o.device)
         path = resolve_weights(LOFTR_WEIGHTS[o.weights_kind], o.weights)
         net = LoFTR(pretrained=None, config=self._config(o.weights_kind))
         sd = load_checkpoint(path, "state_dict")
@@ -64,10 +65,10 @@ class LoFTRMatcher(Matcher):
         self.net = net.eval().to(self.device)
 
     @staticmethod
-    def _config(kind: str) -> dict:
+    def _config(kind: str) -> dict[str, Any]:
         import copy
 
-        cfg = copy.deepcopy(_kloftr.default_cfg)
+        cfg: dict[str, Any] = copy.deepcopy(_kloftr.default_cfg)
         if kind == "indoor_new":
             cfg["coarse"]["temp_bug_fix"] = True
         return cfg

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +19,9 @@ from ..mast3r.reciprocal import reciprocal_matches
 from ..options import Options, option
 from .base import Features, Matcher, Matches
 from .utils import checked_or_blank
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["Mast3rOptions", "Mast3rMatcher"]
 
@@ -44,7 +48,7 @@ class Mast3rMatcher(Matcher):
             raise ValueError(f"unknown kind {o.kind!r}; choose mast3r or dust3r")
         self.name = o.kind
         self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, o.long_side)
-        self.device = self.engine.device
+        self.device: torch.device = self.engine.device
 
     def extract(self, image: np.ndarray) -> Features:
         return self.extract_many([image])[0]
@@ -71,19 +75,22 @@ class Mast3rMatcher(Matcher):
         """Match one (reference) image against many: ``batch_size`` pairs per pass through the decoders and heads
         (default 8 on a GPU, 1 elsewhere); each pair gets the matches it gets alone."""
         e0 = f0.data.get("encoded")
-        encs = [f.data.get("encoded") for f in f1s]
         out: list[Matches] = [Matches.empty() for _ in f1s]
-        todo = [i for i, e in enumerate(encs) if e is not None] if e0 is not None else []
+        if not isinstance(e0, EncodedImage):
+            return out
+        todo = [(i, e) for i, f in enumerate(f1s) if isinstance(e := f.data.get("encoded"), EncodedImage)]
         step = max(1, batch_size or (8 if self.device.type == "cuda" else 1))
         for start in range(0, len(todo), step):
             chunk = todo[start : start + step]
-            pairs = self.engine.pair_many(e0, [encs[i] for i in chunk], descriptors=True, on_device=True)
-            for i, pair in zip(chunk, pairs):
-                out[i] = self._matches(e0, encs[i], pair)
+            pairs = self.engine.pair_many(e0, [e for _, e in chunk], descriptors=True, on_device=True)
+            for (i, e), pair in zip(chunk, pairs):
+                out[i] = self._matches(e0, e, pair)
         return out
 
     def _matches(self, e0: EncodedImage, e1: EncodedImage, out: PairOutput) -> Matches:
         if self.options.kind == "mast3r":
+            if out.desc1 is None or out.desc2 is None or out.desc_conf1 is None or out.desc_conf2 is None:
+                raise ValueError("the MASt3R pass gave no descriptors (a DUSt3R checkpoint?)")
             # Unit descriptors: nearest by L2 = largest dot product, found by blocks of matrix products (the
             # public GPU path); a KD-tree in 24-D is ~20x slower on a 512x384 map and finds the same pixels.
             xy0, xy1 = reciprocal_matches(out.desc1, out.desc2, self.options.subsample, self.engine.device, "dot")

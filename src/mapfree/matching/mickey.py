@@ -51,7 +51,7 @@ class MickeyMatcher(Matcher):
     def __init__(self, options: MickeyOptions | None = None, **overrides: object) -> None:
         self.options = o = MickeyOptions.build(overrides, owner="matcher 'mickey'", base=options)
         self.engine: MickeyEngine = engine_for(o)
-        self.device = self.engine.device
+        self.device: torch.device = self.engine.device
 
     @staticmethod
     def _features(out: MickeyImage) -> Features:

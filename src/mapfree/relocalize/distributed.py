@@ -488,7 +488,7 @@ class _Driver:
         self.bar.set_postfix_str(text + (f", {starting} starting" if starting else ""), refresh=False)
 
     def _dispatch(self) -> None:
-        busy = {s.scene for s in self.slots if s.stream is not None}
+        busy = {s.scene for s in self.slots if s.stream is not None and s.scene is not None}
         for slot in self._live():
             if slot.stream is not None:
                 continue
@@ -506,7 +506,7 @@ class _Driver:
 
     def _drop(self, slot: _Slot) -> None:
         """A lost worker: its unfinished frames go back to the queue."""
-        if slot.stream is not None and slot.frames:
+        if slot.stream is not None and slot.frames and slot.scene is not None:
             self.queue.give_back(slot.scene, slot.frames)
             self.info.requeued += len(slot.frames)
             self.bar.write(
@@ -529,7 +529,7 @@ class _Driver:
         for result in results:
             self._journal(slot, result)
         if not results or not self.streaming:  # the chunk is over
-            if slot.frames:  # short of its frames: hand them out again
+            if slot.frames and slot.scene is not None:  # short of its frames: hand them out again
                 self.queue.give_back(slot.scene, slot.frames)
                 slot.frames = []
             slot.stream = None

@@ -526,7 +526,7 @@ def run_split(
     if todo and ray_address is None:  # on a cluster, every worker checks the method on its own node
         check_available(m, keep=workers <= 1 or len(todo) <= 1)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
-    if fresh:
+    if fresh or header is None:
         jpath.write_text(
             json.dumps(
                 {

@@ -156,7 +156,7 @@ def fit_depth(depth: np.ndarray | None, K: Intrinsics, owned: bool = False) -> n
     """
     if depth is None:
         return None
-    d = np.asarray(depth, dtype=np.float32)
+    d: np.ndarray = np.asarray(depth, dtype=np.float32)
     if d.ndim != 2:
         raise ValueError(f"depth map must be 2-D, got shape {d.shape}")
     if d.shape != (K.height, K.width):

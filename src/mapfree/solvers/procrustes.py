@@ -88,7 +88,7 @@ def ransac_rigid(
             w = best / n
             p_fail = 1.0 - w**3
             needed = 0 if p_fail <= 0 else int(np.ceil(np.log(1 - confidence) / np.log(p_fail)))
-    if best_R is None or best < 3:
+    if best_R is None or best_t is None or best < 3:
         raise SolverError("rigid RANSAC found no consistent triplet")
     mask = _count(P, Q, best_R, best_t, threshold)
     for _ in range(refine_steps):

@@ -25,7 +25,8 @@ class ScaleVote(tuple):
         return super().__new__(cls, (index, votes, counts))
 
     @property
-    def index(self) -> int:
+    def index(self) -> int:  # type: ignore[override]  # the winner's index, not tuple.index: it unpacks as a triple
+        """The winner's input index (-1 when there is none)."""
         return self[0]
 
     @property
