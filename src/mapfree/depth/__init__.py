@@ -31,13 +31,29 @@ PAIR_MODELS = ("mast3r", "dust3r", "mickey")
 
 
 def names() -> list[str]:
-    """Spec forms and short model names a user can type."""
+    """Spec forms and short model names a user can type.
+
+    Returns:
+        ``none``, ``files:SUFFIX``, ``hf:HUB_ID_OR_DIR``, the hub networks' and the pair networks' names.
+    """
     return ["none", "files:SUFFIX", "hf:HUB_ID_OR_DIR", *HUB_MODELS, *PAIR_MODELS]
 
 
 def create(spec: str, **options: Any) -> DepthSource:
-    """Build a depth source from its spec; ``options`` go to network sources (``cache_dir=``, ``device=``,
-    ``batch_size=``)."""
+    """Build a depth source from its spec.
+
+    Args:
+        spec: ``none``, ``files:SUFFIX``, ``hf:HUB_ID_OR_DIR``, a hub network's short name (``dav2-indoor``) or a
+            pair network's (``mast3r``, ``dust3r``, ``mickey``).
+        **options: Options of a network source (``cache_dir=``, ``device=``, ``batch_size=``; ``engine=`` to share a
+            matcher's network).
+
+    Returns:
+        The source: a ``FileDepthSource``, a ``NetworkDepthSource``, a ``PairDepthSource`` or ``NoDepth``.
+
+    Raises:
+        KeyError: An unknown spec.
+    """
     s = spec.strip()
     if s.lower() == "none":
         return NoDepth()

@@ -87,7 +87,14 @@ class PairDepthSource(DepthSource):
     relocalizer asks for it after matching, with the matcher's features. ``depth`` of a frame alone is None."""
 
     def depth(self, frame: Frame) -> None:
-        """No depth from one frame alone: see ``pair_depth``."""
+        """No depth from one frame alone: see ``pair_depth``.
+
+        Args:
+            frame: Any frame.
+
+        Returns:
+            None.
+        """
         return None
 
     @abstractmethod

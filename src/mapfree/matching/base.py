@@ -51,9 +51,22 @@ class Matches:
 
     @classmethod
     def empty(cls) -> Matches:
+        """No matches.
+
+        Returns:
+            Matches of length 0.
+        """
         return cls(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
 
     def subset(self, mask: np.ndarray) -> Matches:
+        """The matches a mask (or an index array) selects.
+
+        Args:
+            mask: (N,) bool mask or indices.
+
+        Returns:
+            The selected matches.
+        """
         return Matches(self.kpts0[mask], self.kpts1[mask], self.scores[mask])
 
 

@@ -86,7 +86,13 @@ def _weight_path(explicit_file: str | None, folder: str | None, wf: WeightFile) 
 
 
 class LightGlueMatcher(Matcher):
-    """``{features}-lightglue``: extract once per image (reference features are reused), LightGlue per pair."""
+    """``{features}-lightglue``: ALIKED, DISK or SuperPoint features, extracted once per image, and LightGlue per pair.
+
+    Args:
+        features: ``aliked``, ``disk`` or ``superpoint``.
+        options: ``LightGlueOptions``.
+        **overrides: Single options over ``options``.
+    """
 
     def __init__(self, features: str = "aliked", options: LightGlueOptions | None = None, **overrides: object) -> None:
         if features not in FEATURES:
@@ -169,11 +175,26 @@ class LightGlueMatcher(Matcher):
 
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         return self.extract_many([image])[0]
 
     @torch.inference_mode()
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Extract several images; same-size images go through the network as one batch."""
+        """Features of several images, in order: one extractor pass per batch of same-size images.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+
+        Returns:
+            One ``Features`` per image (a textureless image: none).
+        """
         images = [check_image(im) for im in images]
         prepared = [self._prepare(im) for im in images]
         out: list[Features | None] = [None] * len(images)
@@ -200,12 +221,28 @@ class LightGlueMatcher(Matcher):
 
     # ------------------------------------------------------------------ matching
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         return self.match_many(f0, [f1])[0]
 
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """Match the reference ``f0`` against many queries, ``batch_size`` pairs per network pass (padded with
-        masks, adaptive depth and width per pair: a pair's matches do not depend on its batch). Default: 16 on
-        a GPU, 1 on the CPU (where padding costs more than batching saves)."""
+        """``match(f0, f1)`` for each of ``f1s``: padded to length buckets, ``batch_size`` pairs per LightGlue pass (``glue.run_glue``); each pair gets the matches it gets alone.
+
+        Args:
+            f0: Features of the reference image.
+            f1s: Features of the query images.
+            batch_size: Pairs per network pass (None: the matcher's default).
+
+        Returns:
+            One ``Matches`` per query.
+        """
         batch_size = batch_size or (16 if self.device.type == "cuda" else 1)
         out: list[Matches] = []
         ref = glue_input(f0)

@@ -43,11 +43,26 @@ class LoFTROptions(Options):
 
 
 def loftr_weights_available(kind: str = "outdoor", weights: str | None = None) -> bool:
+    """Whether LoFTR can be built here without a download.
+
+    Args:
+        kind: ``outdoor``, ``indoor`` or ``indoor_new``.
+        weights: A model folder given in place of the default one, or None.
+
+    Returns:
+        True when the weights are found locally (a weights folder, the Hugging Face cache).
+    """
     return find_local(LOFTR_WEIGHTS[kind], weights) is not None
 
 
 class LoFTRMatcher(Matcher):
-    """``loftr-outdoor`` / ``loftr-indoor`` (``loftr`` = outdoor)."""
+    """``loftr-outdoor`` / ``loftr-indoor`` (``loftr`` = outdoor): kornia's LoFTR, a dense matcher (``extract``
+    prepares the image, ``match`` runs the network on the pair).
+
+    Args:
+        options: ``LoFTROptions``.
+        **overrides: Single options over ``options``.
+    """
 
     def __init__(self, options: LoFTROptions | None = None, **overrides: object) -> None:
         self.options = o = LoFTROptions.build(overrides, owner="matcher 'loftr'", base=options)
@@ -75,6 +90,14 @@ class LoFTRMatcher(Matcher):
 
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         image, blank = checked_or_blank(image)
         if blank is not None:
             return blank
@@ -91,6 +114,15 @@ class LoFTRMatcher(Matcher):
 
     @torch.inference_mode()
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         if len(f0) == 0 or len(f1) == 0:
             return Matches.empty()
         with autocast(self.device, self.options.mixed_precision), steady_kernels():

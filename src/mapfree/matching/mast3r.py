@@ -28,6 +28,18 @@ __all__ = ["Mast3rOptions", "Mast3rMatcher"]
 
 @dataclass
 class Mast3rOptions(Options):
+    """Options of ``mast3r`` / ``dust3r``.
+
+    Attributes:
+        kind: ``mast3r`` (descriptors) or ``dust3r`` (pointmaps).
+        weights: A ``.pth`` or hub folder; default: the published file in the weights folders.
+        subsample: Grid step (network pixels) of the starting points, as the public visloc code.
+        border_px: Matches this close to the network image's border are dropped.
+        min_score: Keep matches whose confidence (>= 1 with the published models) is at least this.
+        long_side: Network input size (the published models': 512).
+        device: ``cpu``, ``cuda``; None: CUDA when available.
+    """
+
     kind: str = option("mast3r", choices=("mast3r", "dust3r"))  # mast3r (descriptors) | dust3r (pointmaps)
     weights: str | None = None  # a .pth or hub folder; default: the published file in the weights folders
     subsample: int = option(8, min=1)  # grid step (network pixels) of the starting points, as the public visloc
@@ -38,7 +50,13 @@ class Mast3rOptions(Options):
 
 
 class Mast3rMatcher(Matcher):
-    """Dense matcher on MASt3R descriptors or DUSt3R pointmaps; keypoints in original-image pixels."""
+    """Dense matcher on MASt3R descriptors or DUSt3R pointmaps; keypoints in original-image pixels. Its network
+    (``engine``) also serves the ``mast3r`` / ``dust3r`` depth source: one forward pass per pair.
+
+    Args:
+        options: ``Mast3rOptions``.
+        **overrides: Single options over ``options``.
+    """
 
     def __init__(self, options: Mast3rOptions | None = None, **overrides: object) -> None:
         self.options = o = Mast3rOptions.build(
@@ -51,10 +69,25 @@ class Mast3rMatcher(Matcher):
         self.device: torch.device = self.engine.device
 
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         return self.extract_many([image])[0]
 
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Encode several images (one encoder pass per input size); a blank image gets empty features."""
+        """Features of several images, in order: one encoder pass per input size.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+
+        Returns:
+            One ``Features`` per image (a textureless image: none).
+        """
         checked = [checked_or_blank(im) for im in images]
         good = [i for i, (_, blank) in enumerate(checked) if blank is None]
         # the caller's arrays, not the checked copies: the depth source finds an encoding by the array's identity
@@ -69,11 +102,28 @@ class Mast3rMatcher(Matcher):
         return out
 
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         return self.match_many(f0, [f1], batch_size=1)[0]
 
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """Match one (reference) image against many: ``batch_size`` pairs per pass through the decoders and heads
-        (default 8 on a GPU, 1 elsewhere); each pair gets the matches it gets alone."""
+        """``match(f0, f1)`` for each of ``f1s``: ``batch_size`` pairs per pass through the decoders and heads (default 8 on a GPU, 1 elsewhere); each pair gets the matches it gets alone.
+
+        Args:
+            f0: Features of the reference image.
+            f1s: Features of the query images.
+            batch_size: Pairs per network pass (None: the matcher's default).
+
+        Returns:
+            One ``Matches`` per query.
+        """
         e0 = f0.data.get("encoded")
         out: list[Matches] = [Matches.empty() for _ in f1s]
         if not isinstance(e0, EncodedImage):

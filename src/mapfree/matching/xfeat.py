@@ -88,7 +88,13 @@ def _lighterglue(device: torch.device) -> GlueNet:
 
 
 class XFeatMatcher(Matcher):
-    """``xfeat`` / ``xfeat-star`` / ``xfeat-lighterglue``; ``mode`` picks one of ``MODES``."""
+    """``xfeat`` (sparse, mutual nearest neighbours), ``xfeat-star`` (semi-dense, refined) or ``xfeat-lighterglue``.
+
+    Args:
+        mode: ``sparse``, ``star`` or ``lighterglue`` (``MODES``).
+        options: ``XFeatOptions``.
+        **overrides: Single options over ``options``.
+    """
 
     def __init__(self, mode: str = "sparse", options: XFeatOptions | None = None, **overrides: object) -> None:
         if mode not in MODES:
@@ -106,12 +112,26 @@ class XFeatMatcher(Matcher):
         return Features(np.zeros((0, 2)), (image.shape[1], image.shape[0]), {"empty": True})
 
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         return self.extract_many([image])[0]
 
     @torch.inference_mode()
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Extract several images; same-size images go through the network as one batch, and their keypoints
-        come to the host in one copy."""
+        """Features of several images, in order: one network pass per batch of same-size images.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+
+        Returns:
+            One ``Features`` per image (a textureless image: none).
+        """
         images = [check_image(im) for im in images]
         out: list[Features | None] = [None] * len(images)
         groups: dict[tuple[int, ...], list[tuple[int, np.ndarray, tuple[float, float]]]] = {}
@@ -156,6 +176,15 @@ class XFeatMatcher(Matcher):
 
     @torch.inference_mode()
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         if len(f0) == 0 or len(f1) == 0:
             return Matches.empty()
         d0, d1 = f0.data, f1.data
@@ -167,8 +196,16 @@ class XFeatMatcher(Matcher):
         return self._match_glue(f0, f1)
 
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """Match one (reference) feature set against many; LighterGlue runs ``batch_size`` pairs per pass
-        (default 16 on a GPU, 1 on the CPU), the other modes pair by pair."""
+        """``match(f0, f1)`` for each of ``f1s``: LighterGlue runs ``batch_size`` pairs per pass (default 16 on a GPU, 1 on the CPU), the other modes pair by pair; each pair gets the matches it gets alone.
+
+        Args:
+            f0: Features of the reference image.
+            f1s: Features of the query images.
+            batch_size: Pairs per network pass (None: the matcher's default).
+
+        Returns:
+            One ``Matches`` per query.
+        """
         glue = self.glue
         if glue is None:  # not LighterGlue
             return [self.match(f0, f1) for f1 in f1s]

@@ -64,7 +64,23 @@ def ransac_rigid(
     refine_steps: int = 3,
     seed: int = 0,
 ):
-    """Robust rigid (R, t) with ``Q ≈ R P + t`` from (N,3) correspondences; returns (R, t, inlier mask)."""
+    """Robust rigid alignment ``Q ≈ R P + t`` (3-point RANSAC, then refits on the inliers).
+
+    Args:
+        P: (N, 3) points, metres.
+        Q: (N, 3) corresponding points, metres.
+        threshold: Inlier distance, metres.
+        max_iterations: At most this many hypotheses.
+        confidence: Stop when a better hypothesis is this unlikely.
+        refine_steps: Refits on the inliers while they grow.
+        seed: The random stream's seed.
+
+    Returns:
+        R (3, 3), t (3,) and the (N,) inlier mask.
+
+    Raises:
+        SolverError: No consistent triplet.
+    """
     n = len(P)
     rng = np.random.default_rng(seed)
     batch = int(np.clip(2_000_000 // max(n, 1), 16, 512))
