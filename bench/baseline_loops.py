@@ -215,7 +215,7 @@ def mast3r_public_loop(pairs: list, preset: str = "mast3r_pnp_mast3r") -> dict:
     from mapfree.mast3r.preprocess import prepare_path
     from mapfree.matching import Matches
     from mapfree.matching.mast3r import Mast3rMatcher, Mast3rOptions, _away_from_border
-    from mapfree.relocalize.pipeline import _fit_depth
+    from mapfree.relocalize.views import fit_depth
 
     dev = _device()
     opt = Mast3rOptions()
@@ -240,7 +240,7 @@ def mast3r_public_loop(pairs: list, preset: str = "mast3r_pnp_mast3r") -> dict:
         )
         found[f"{s.name}/{q.name}"] = m
         depth = depth_at_original(out1["pts3d"][..., 2].numpy(), out1["conf"].numpy(), v1)
-        return solver.solve(m, r.intrinsics, q.intrinsics, _fit_depth(depth, r.intrinsics, owned=True), None)
+        return solver.solve(m, r.intrinsics, q.intrinsics, fit_depth(depth, r.intrinsics, owned=True), None)
 
     sdpa = blocks._attend
     blocks._attend = materialised_attention

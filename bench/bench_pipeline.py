@@ -309,8 +309,7 @@ def _warm_up(loc, root, split: str, n: int = 4) -> None:
 
     loc.set_reference(mirrored(scene.reference))
     queries = [mirrored(q) for q in scene.queries[-n:]]
-    run = loc.localize_batched if hasattr(loc, "localize_batched") else loc.localize_many
-    list(run(queries))
+    list(loc.localize_batched(queries))  # every localizer has one (a method without a batched path loops)
 
 
 def _poses(journal: Path) -> dict[str, list]:
@@ -338,7 +337,7 @@ def run_one(
 
     name, _, opt = spec.partition(":")
     batch = 0 if opt == "b0" else batch
-    loc = run_mod._localizer(get(name).to_dict())  # the instance run_split reuses in this process
+    loc = run_mod._localizer(get(name))  # the instance run_split reuses in this process
     t0 = time.perf_counter()
     _warm_up(loc, root, split, warmup)
     warm = time.perf_counter() - t0

@@ -102,7 +102,7 @@ def _task_overhead_ms(address: str, method: str, scene: Path, n: int = 100) -> f
 
     ray.init(address=address, log_to_driver=False, configure_logging=False)
     try:
-        worker = ray.remote(FrameWorker).options(num_cpus=1).remote(get(method).to_dict(), 1)
+        worker = ray.remote(FrameWorker).options(num_cpus=1).remote(get(method), 1)
         ray.get(worker.setup.remote(str(scene.parents[1]), scene.parent.name, [str(scene)]))
         list(worker.run.options(num_returns="streaming").remote(str(scene), [], None, False))  # the scene opened
         t0 = time.perf_counter()

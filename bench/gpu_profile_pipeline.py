@@ -37,7 +37,7 @@ def profile_preset(
     gpu = torch.cuda.is_available()
     sync = torch.cuda.synchronize if gpu else (lambda: None)
 
-    loc = run_mod._localizer(get(name).to_dict())
+    loc = run_mod._localizer(get(name))
     _warm_up(loc, root, split, 4)
     scenes = _scenes_with_depth(root, split)
     out = [f"## {name}", ""]

@@ -34,6 +34,7 @@ def run_matcher(matcher: str, solvers: list[str], depth: str, scenes: list, all_
     from mapfree import matching
     from mapfree.methods import get, preset_name
     from mapfree.relocalize import Relocalizer, as_view
+    from mapfree.relocalize.views import view_depth
 
     m = matching.create(matcher)
     locs = {}
@@ -56,7 +57,7 @@ def run_matcher(matcher: str, solvers: list[str], depth: str, scenes: list, all_
             matches = m.match(anchor.features, m.extract(view.image))
             times["match"] += time.perf_counter() - t0
             times["pairs"] += 1
-            depth_q = first._depth(view)
+            depth_q = view_depth(first.depth_source, view)
             for name, loc in locs.items():
                 est = loc._solve(anchor, view, matches, depth_q)
                 out[name][scene.name].append((q.name, est))

@@ -177,7 +177,7 @@ def test_localize_many_equals_localize(scene, sift_sensor):
 def test_clean_depth_maps_are_not_copied_and_dirty_ones_are_cleaned(scene):
     """``_fit_depth`` skips its copy for a clean map the caller handed over (one read from a PNG) and still
     replaces NaN/inf/negative depths; the user's own arrays are never returned (so never aliased)."""
-    from mapfree.relocalize.pipeline import _fit_depth
+    from mapfree.relocalize.views import fit_depth as _fit_depth
 
     K, d = scene.reference.intrinsics, scene.reference.depth("sensor")
     assert _fit_depth(d, K, owned=True) is d

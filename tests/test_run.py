@@ -308,11 +308,11 @@ def test_a_stop_asked_during_a_frame_keeps_that_frame(tiny, tmp_path, monkeypatc
     monkeypatch.setattr(run_mod, "_estimates", interrupted)
     journal = tmp_path / "j.jsonl"
     journal.write_text("")
-    md, frames = get(METHOD).to_dict(), [f.name for f in Dataset(tiny).scene("val", "s00003").scored_queries()]
+    method, frames = get(METHOD), [f.name for f in Dataset(tiny).scene("val", "s00003").scored_queries()]
     assert len(frames) >= 2
-    run_mod._run_scene(md, str(tiny / "val" / "s00003"), frames, str(journal))
+    run_mod._run_scene(method, str(tiny / "val" / "s00003"), frames, str(journal))
     assert [r["frame"] for r in read_journal(journal)[1]] == frames[:1]
-    assert run_mod._run_scene(md, str(tiny / "val" / "s00000"), frames, str(journal)) == 0
+    assert run_mod._run_scene(method, str(tiny / "val" / "s00000"), frames, str(journal)) == 0
     assert len(read_journal(journal)[1]) == 1
 
 

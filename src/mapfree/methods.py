@@ -1,9 +1,11 @@
 """The method registry: a method is a string a user can type.
 
 A method is either a *matching* pipeline (matcher + options, depth spec, solver + options) or another kind
-(``regression``) whose factory lives in its own module and is imported only when first needed.
-Names of the form ``{matcher}_{solver}_{depth}`` (``sift_emat_dptkitti``, ``aliked-lightglue_pnp_sensor``)
-are parsed on the fly; anything else is a YAML file under ``configs/methods/`` or a path to one.
+(``regression``). ``KINDS`` names each kind's factory as ``"module:function"``, imported only when a method of that
+kind is first built. Names of the form ``{matcher}_{solver}_{depth}`` (``sift_emat_dptkitti``,
+``aliked-lightglue_pnp_sensor``) are parsed on the fly; anything else is a registered method (the best offline
+presets, the two-view and MicKey presets, the published RPR models), a YAML file under ``configs/methods/`` or a
+path to one.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import os
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from .depth import HUB_MODELS, PAIR_MODELS
 from .matching import needs as matcher_needs
@@ -39,6 +41,7 @@ __all__ = [
     "register",
     "register_kind",
     "factory",
+    "KINDS",
     "parse_name",
     "preset_name",
     "load_yaml",
@@ -53,7 +56,7 @@ __all__ = [
 ]
 
 #: Matchers whose presets exist; ``OFFLINE_MATCHERS`` run without downloading weights.
-MATCHERS = (
+MATCHERS: tuple[str, ...] = (
     "sift",
     "xfeat",
     "xfeat-star",
@@ -79,16 +82,32 @@ PAPER_THRESHOLD_PX = {"sift": 3.0}
 _LEARNED_THRESHOLD_PX = 2.0
 
 
-#: Lazily imported modules that register method kinds / presets on import.
-_KIND_MODULES = {"regression": "mapfree.rpr"}
-_FACTORIES: dict[str, Callable[[Method], Any]] = {}
+#: Method kind -> ``"module:function"`` building its localizer from a ``Method``, imported at the first build.
+KINDS: dict[str, str] = {
+    "matching": "mapfree.relocalize.pipeline:build_matching",
+    "regression": "mapfree.rpr:build_from_method",
+}
+_FACTORIES: dict[str, Callable[[Method], Any]] = {}  # resolved (or ``register_kind``-ed) factories
 _REGISTRY: dict[str, Method] = {}
 
 
-@dataclass
+@dataclass(frozen=True)
 class Method:
-    """What to run for one reference–query pair. ``kind="matching"`` uses matcher/depth/solver;
-    other kinds are built by the factory registered for them with ``options``."""
+    """What to run for one reference–query pair: a frozen, picklable record (it travels to worker processes and
+    Ray workers as it is). ``kind="matching"`` uses matcher/depth/solver; other kinds are built by their factory
+    (``KINDS``) from ``options``.
+
+    Attributes:
+        name: What the user typed (a preset, a YAML config's name, ``NAME@DEPTH``).
+        kind: ``matching`` or ``regression`` (or a kind added with ``register_kind``).
+        matcher: A matcher name (``mapfree.matching.names()``).
+        matcher_opts: The matcher's option overrides.
+        depth: A depth spec (``files:SUFFIX``, ``none``, a network name, ``hf:ID``).
+        solver: A solver name (``essential``, ``pnp``, ``procrustes``, ``mickey``).
+        solver_opts: The solver's option overrides.
+        options: Options of other kinds (``checkpoint``, ``config``) and of the run (``references``).
+        description: One line for listings.
+    """
 
     name: str
     kind: str = "matching"
@@ -101,15 +120,28 @@ class Method:
     description: str = ""
 
     def to_dict(self) -> dict[str, Any]:
+        """The fields as a plain dict (what a run's journal header records).
+
+        Returns:
+            ``{"name": …, "kind": …, …}`` in field order, the option dicts copied.
+        """
         return asdict(self)
 
     def with_depth(self, depth: str) -> Method:
-        """The same method with another depth spec (``files:SUFFIX``, ``none``, ``hf:…``) or bare suffix."""
+        """The same method with another depth.
+
+        Args:
+            depth: A depth spec (``files:SUFFIX``, ``none``, ``hf:…``), a network name or a bare file suffix.
+
+        Returns:
+            The method named ``NAME@DEPTH``.
+        """
         spec = _depth_spec(depth)
         return replace(self, depth=spec, name=f"{self.name}@{depth}")
 
     @property
     def metric(self) -> bool:
+        """Whether its poses are metric (anything but a matching method without depth)."""
         return self.kind != "matching" or self.depth != "none"
 
     @property
@@ -120,10 +152,18 @@ class Method:
         return self.kind != "matching" or self.matcher.strip().lower() != "sift" or not classical_depth
 
     def build(self) -> Any:
-        """An object with ``set_reference(view)``, ``localize(view)`` and ``relocalize(ref, query)``.
+        """The method's localizer (a ``mapfree.localizer.Localizer``: ``set_reference``, ``localize``,
+        ``localize_many``, ``relocalize``), built by its kind's factory.
 
         Ess.Mat without depth (``*_emat_none``) returns its up-to-scale pose, flagged ``scale_free``, instead of
-        failing on the missing depth: the direction is all such a method can give (unless ``solver_opts`` say)."""
+        failing on the missing depth: the direction is all such a method can give (unless ``solver_opts`` say).
+
+        Returns:
+            The localizer.
+
+        Raises:
+            KeyError: An unknown kind.
+        """
         m = self
         if self.kind == "matching" and self.depth == "none" and self.solver == "essential":
             m = replace(self, solver_opts={"allow_unscaled": True, **self.solver_opts})
@@ -134,23 +174,48 @@ class Method:
 
 
 def register_kind(kind: str, build: Callable[[Method], Any]) -> None:
-    """Register how methods of ``kind`` are built (``mapfree.rpr`` registers ``"regression"``)."""
+    """Add a method kind of your own (the built-in ones are the ``KINDS`` table).
+
+    Args:
+        kind: The kind's name (``Method.kind``).
+        build: Builds a method of that kind's localizer.
+    """
     _FACTORIES[kind] = build
 
 
 def factory(kind: str) -> Callable[[Method], Any]:
+    """How methods of ``kind`` are built: its ``KINDS`` entry, imported on first use, or a ``register_kind``-ed one.
+
+    Args:
+        kind: ``matching``, ``regression`` or a registered kind.
+
+    Returns:
+        The factory (``Method`` -> localizer).
+
+    Raises:
+        KeyError: An unknown kind.
+    """
     if kind not in _FACTORIES:
-        module = "mapfree.relocalize" if kind == "matching" else _KIND_MODULES.get(kind)
-        if module is None:
-            raise KeyError(f"unknown method kind {kind!r} (known: matching, {', '.join(_KIND_MODULES)})")
-        importlib.import_module(module)
-        if kind not in _FACTORIES:
-            raise KeyError(f"module {module} did not register method kind {kind!r}")
+        if kind not in KINDS:
+            raise KeyError(f"unknown method kind {kind!r} (known: {', '.join(sorted({*KINDS, *_FACTORIES}))})")
+        module, function = KINDS[kind].split(":")
+        _FACTORIES[kind] = cast(Callable[[Method], Any], getattr(importlib.import_module(module), function))
     return _FACTORIES[kind]
 
 
 def register(method: Method, overwrite: bool = False) -> Method:
-    """Register a named method (e.g. a trained regression model) so ``get(name)`` finds it."""
+    """Register a named method (e.g. a trained regression model) so ``get(name)`` finds it.
+
+    Args:
+        method: The method, under its ``name``.
+        overwrite: Replace a method of that name.
+
+    Returns:
+        The method.
+
+    Raises:
+        ValueError: The name is taken (without ``overwrite``).
+    """
     if method.name in _REGISTRY and not overwrite:
         raise ValueError(f"method {method.name!r} is already registered")
     _REGISTRY[method.name] = method
@@ -286,13 +351,37 @@ def _yaml_named(name: str) -> Path | None:
     return None
 
 
+_rpr_registered = False
+
+
 def _load_plugins() -> None:
-    for module in _KIND_MODULES.values():
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as e:
-            if e.name is None or not module.startswith(e.name):
-                raise
+    """Register the published RPR models' methods, once, at the first look-up that needs them: ``rpr`` (any
+    checkpoint) and ``rpr-<config>`` for each published configuration (``mapfree.rpr.official``: no torch)."""
+    global _rpr_registered
+    if _rpr_registered:
+        return
+    _rpr_registered = True
+    try:
+        from .rpr.official import OFFICIAL_CONFIGS
+    except ImportError:  # pragma: no cover - an install without the regression package's dependencies
+        return
+    regression = Method(name="rpr", kind="regression", matcher="", solver="", depth="none")
+    presets = [
+        replace(regression, description="relative pose regression network (mapfree train); needs --checkpoint CKPT"),
+        *(
+            replace(
+                regression,
+                name=f"rpr-{config}",
+                options={"config": config},
+                description=f"published Map-free RPR model {config} (configs/rpr/{config}.yaml); "
+                f"--checkpoint CKPT or {config}.ckpt in a weights folder (`mapfree weights`)",
+            )
+            for config in OFFICIAL_CONFIGS
+        ),
+    ]
+    for method in presets:
+        if method.name not in _REGISTRY:
+            register(method)
 
 
 def get(name_or_path: str | os.PathLike) -> Method:

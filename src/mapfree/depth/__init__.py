@@ -5,10 +5,23 @@ matches (``mast3r``, ``dust3r``: pointmaps; ``mickey``: its keypoints' depths). 
 
 from __future__ import annotations
 
-from .base import DepthSource
+from typing import Any
+
+from .base import DepthSource, FileDepthSource, NetworkDepthSource, PairDepthSource
 from .files import FileDepth, NoDepth
 
-__all__ = ["DepthSource", "FileDepth", "NoDepth", "create", "names", "HUB_MODELS", "PAIR_MODELS"]
+__all__ = [
+    "DepthSource",
+    "FileDepthSource",
+    "NetworkDepthSource",
+    "PairDepthSource",
+    "FileDepth",
+    "NoDepth",
+    "create",
+    "names",
+    "HUB_MODELS",
+    "PAIR_MODELS",
+]
 
 from .hub import HUB_MODELS  # noqa: E402  (torch and transformers load only with a network source)
 
@@ -18,13 +31,29 @@ PAIR_MODELS = ("mast3r", "dust3r", "mickey")
 
 
 def names() -> list[str]:
-    """Spec forms and short model names a user can type."""
+    """Spec forms and short model names a user can type.
+
+    Returns:
+        ``none``, ``files:SUFFIX``, ``hf:HUB_ID_OR_DIR``, the hub networks' and the pair networks' names.
+    """
     return ["none", "files:SUFFIX", "hf:HUB_ID_OR_DIR", *HUB_MODELS, *PAIR_MODELS]
 
 
-def create(spec: str, **options: object) -> DepthSource:
-    """Build a depth source from its spec; ``options`` go to network sources (``cache_dir=``, ``device=``,
-    ``batch_size=``)."""
+def create(spec: str, **options: Any) -> DepthSource:
+    """Build a depth source from its spec.
+
+    Args:
+        spec: ``none``, ``files:SUFFIX``, ``hf:HUB_ID_OR_DIR``, a hub network's short name (``dav2-indoor``) or a
+            pair network's (``mast3r``, ``dust3r``, ``mickey``).
+        **options: Options of a network source (``cache_dir=``, ``device=``, ``batch_size=``; ``engine=`` to share a
+            matcher's network).
+
+    Returns:
+        The source: a ``FileDepthSource``, a ``NetworkDepthSource``, a ``PairDepthSource`` or ``NoDepth``.
+
+    Raises:
+        KeyError: An unknown spec.
+    """
     s = spec.strip()
     if s.lower() == "none":
         return NoDepth()
@@ -37,11 +66,11 @@ def create(spec: str, **options: object) -> DepthSource:
     if s == "mickey":
         from .mickey import MickeyDepth
 
-        return MickeyDepth(**options)  # type: ignore[arg-type]
+        return MickeyDepth(**options)
     if s in PAIR_MODELS:
         from .mast3r import Mast3rDepth
 
-        return Mast3rDepth(s, **options)  # type: ignore[arg-type]
+        return Mast3rDepth(s, **options)
     if s in HUB_MODELS:
         from .hf import HFDepth
 

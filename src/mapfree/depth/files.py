@@ -6,15 +6,17 @@ import cv2
 import numpy as np
 
 from ..data import Frame, check_depth_size
+from .base import DepthSource, FileDepthSource
 
 __all__ = ["FileDepth", "NoDepth"]
 
 
-class FileDepth:
-    """``files:SUFFIX``: reads ``frame.SUFFIX.png``; None when the frame has no such file."""
+class FileDepth(FileDepthSource):
+    """``files:SUFFIX``: reads ``frame.SUFFIX.png`` (uint16 millimetres); None when the frame has no such file.
 
-    metric = True
-    reads_files = True  # its maps are stored like the photo's pixel grid (turned with a tagged photo)
+    Args:
+        suffix: The maps' suffix (``sensor``, ``dptkitti``): ``frame_00000.jpg`` -> ``frame_00000.sensor.png``.
+    """
 
     def __init__(self, suffix: str) -> None:
         if not suffix or "/" in suffix:
@@ -23,6 +25,17 @@ class FileDepth:
         self.name = f"files:{suffix}"
 
     def depth(self, frame: Frame) -> np.ndarray | None:
+        """The frame's stored map at its image size (nearest-neighbour resize of a map stored at another size).
+
+        Args:
+            frame: A dataset frame.
+
+        Returns:
+            (H, W) float32 metres (0 = invalid), or None when the frame has no ``SUFFIX`` map.
+
+        Raises:
+            FormatError: The file is not a readable depth PNG, or of another aspect ratio (the message names it).
+        """
         if not frame.has_depth(self.suffix):
             return None
         d = frame.depth(self.suffix)  # FormatError naming the file when it is corrupt
@@ -32,18 +45,20 @@ class FileDepth:
             d = cv2.resize(d, (int(w), int(h)), interpolation=cv2.INTER_NEAREST)
         return d
 
-    def depth_many(self, frames: list[Frame]) -> list[np.ndarray | None]:
-        return [self.depth(f) for f in frames]
 
-
-class NoDepth:
+class NoDepth(DepthSource):
     """``none``: no depth at all; solvers then return poses up to scale (``metric`` is False)."""
 
     name = "none"
     metric = False
 
     def depth(self, frame: Frame) -> np.ndarray | None:
-        return None
+        """None: this source has no depth.
 
-    def depth_many(self, frames: list[Frame]) -> list[np.ndarray | None]:
-        return [None] * len(frames)
+        Args:
+            frame: Any frame.
+
+        Returns:
+            None.
+        """
+        return None

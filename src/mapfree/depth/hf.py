@@ -8,6 +8,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -16,6 +17,7 @@ from ..data import Frame
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
 from ..weights import BrokenWeightsError, HubModel, MissingWeightsError, check_folder, offline_why, reachable
+from .base import NetworkDepthSource
 from .cache import DepthCache
 from .hub import HUB_MODELS
 
@@ -27,7 +29,17 @@ class MissingModelError(MissingWeightsError):
 
 
 def resolve_model(model: str) -> str:
-    """Short name -> hub id; a local folder -> its absolute path; anything else is taken as a hub id."""
+    """The model to load for a name a user typed.
+
+    Args:
+        model: A short name (``dav2-indoor``), a local folder or a hub id.
+
+    Returns:
+        The hub id, or the folder's absolute path.
+
+    Raises:
+        MissingModelError: A path (``./``, ``/``, ``~``) that is no folder.
+    """
     if model in HUB_MODELS:
         return HUB_MODELS[model]
     p = Path(model).expanduser()
@@ -40,6 +52,17 @@ def resolve_model(model: str) -> str:
 
 @dataclass
 class HFDepthOptions(Options):
+    """Options of a transformers depth network.
+
+    Attributes:
+        batch_size: Images per network pass.
+        device: ``cpu``, ``cuda``, ``cuda:1``; None: CUDA when available.
+        half: float16 weights on CUDA.
+        cache_dir: Where predicted maps are cached on disk (None: no cache).
+        cache_dtype: ``float16`` or ``float32`` cached maps.
+        use_intrinsics: Depth Pro: take the focal length from the frame instead of estimating it.
+    """
+
     batch_size: int = option(4, min=1)
     device: str | None = option(None, device=True)  # None: cuda when available
     half: bool = True  # float16 weights on CUDA
@@ -51,10 +74,14 @@ class HFDepthOptions(Options):
 _HUB_URL = "https://huggingface.co"
 
 
-class HFDepth:
-    """A transformers depth-estimation model as a ``DepthSource``; loaded on the first cache miss."""
+class HFDepth(NetworkDepthSource):
+    """A transformers depth-estimation model as a ``NetworkDepthSource``; loaded on the first cache miss.
 
-    metric = True
+    Args:
+        model: A short name (``dav2-indoor``, ``depth-pro``), a hub id or a local model folder.
+        options: ``HFDepthOptions``.
+        **overrides: Single options over ``options`` (``device="cpu"``, ``cache_dir=…``).
+    """
 
     def __init__(self, model: str, options: HFDepthOptions | None = None, **overrides: object) -> None:
         self.options = o = HFDepthOptions.build(overrides, owner=f"depth network {model!r}", base=options)
@@ -64,8 +91,8 @@ class HFDepth:
         self.hub = None if Path(self.model_id).is_dir() else HubModel(self.model_id, f"depth network {model}")
         self.device = resolve_device(o.device)  # None/"auto": cuda when available
         self.cache = DepthCache(o.cache_dir, self.model_id, o.cache_dtype) if o.cache_dir else None
-        self._model = None
-        self._processor = None
+        self._model: Any = None  # a transformers depth model and its processor, once loaded
+        self._processor: Any = None
         self.predictions = 0  # images run through the network (cache misses)
 
     # ------------------------------------------------------------------ loading
@@ -126,7 +153,18 @@ class HFDepth:
     # ------------------------------------------------------------------ prediction
     @torch.inference_mode()
     def predict(self, images: Sequence[np.ndarray], focals: Sequence[float | None] | None = None) -> list[np.ndarray]:
-        """Metric depth (H,W) float32 for same-size RGB uint8 images; ``focals`` (fx, pixels) feed Depth Pro."""
+        """Metric depth of same-size images, in batches on the network's device.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images, all of one size.
+            focals: Each image's fx in pixels (Depth Pro turns its inverse depth into metres with it), or None.
+
+        Returns:
+            One (H, W) float32 map in metres per image (NaN, inf and negatives as 0).
+
+        Raises:
+            MissingModelError: The model is neither on this machine nor downloadable.
+        """
         self.load()
         if not images:
             return []
@@ -141,7 +179,7 @@ class HFDepth:
         params = inspect.signature(post).parameters
         if net.config.model_type == "depth_pro" and self.options.use_intrinsics and focals and all(focals):
             # Depth Pro turns its canonical inverse depth into metres with the focal length: give it the true one.
-            fov = [2 * math.degrees(math.atan(0.5 * w / f)) for f in focals]  # type: ignore[operator]
+            fov = [2 * math.degrees(math.atan(0.5 * w / f)) for f in focals if f]
             out.field_of_view = torch.tensor(fov, device=out.predicted_depth.device)
         if "source_sizes" in params:  # ZoeDepth removes its padding given the input size
             res = post(out, source_sizes=sizes, target_sizes=sizes)
@@ -158,10 +196,26 @@ class HFDepth:
         return f"fx={frame.intrinsics.fx:.4f}" if self.options.use_intrinsics else ""
 
     def depth(self, frame: Frame) -> np.ndarray | None:
+        """The depth of one frame (``depth_many`` of one).
+
+        Args:
+            frame: A dataset frame.
+
+        Returns:
+            (H, W) float32 metres.
+        """
         return self.depth_many([frame])[0]
 
     def depth_many(self, frames: Sequence[Frame]) -> list[np.ndarray | None]:
-        """Depth for many frames: cached ones from disk, the rest in batches of same-size images."""
+        """Depth for many frames: cached ones from disk, the rest predicted in batches of same-size images.
+
+        Args:
+            frames: Dataset frames.
+
+        Returns:
+            One (H, W) float32 map in metres per frame (a newly predicted one is cached, and returned as the cache
+            will give it back).
+        """
         out: list[np.ndarray | None] = [None] * len(frames)
         todo: list[int] = []
         for i, f in enumerate(frames):

@@ -17,13 +17,25 @@ import numpy as np
 
 from ..mast3r.engine import EncodedImage, PairEngine, shared_engine
 from ..mast3r.preprocess import Prepared
+from ..matching.base import Features
+from .base import PairDepthSource
 
 __all__ = ["Mast3rDepth", "depth_at_original"]
 
 
 def depth_at_original(z: np.ndarray, conf: np.ndarray, prep: Prepared, min_conf: float = 0.0) -> np.ndarray:
-    """A network-resolution depth map -> the original image's size (nearest pixel; 0 outside the crop, where
-    z <= 0 or the confidence is below ``min_conf``)."""
+    """A network-resolution depth map at the original image's size.
+
+    Args:
+        z: (h, w) depths at the network's resolution, metres.
+        conf: (h, w) confidences.
+        prep: How the image was resized and cropped for the network.
+        min_conf: Depths with a lower confidence are dropped.
+
+    Returns:
+        (H, W) float32 metres at the original size (nearest pixel; 0 outside the crop, where z <= 0, or below
+        ``min_conf``).
+    """
     z = np.where((z > 0) & np.isfinite(z) & (conf >= min_conf), z, 0).astype(np.float32)
     w0, h0 = prep.original_size
     sx, sy = prep.scale()
@@ -33,11 +45,17 @@ def depth_at_original(z: np.ndarray, conf: np.ndarray, prep: Prepared, min_conf:
     return cv2.remap(z, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
 
 
-class Mast3rDepth:
-    """Depth of both images of a pair from MASt3R's (or DUSt3R's) own metric pointmaps."""
+class Mast3rDepth(PairDepthSource):
+    """Depth of both images of a pair from MASt3R's (or DUSt3R's) own metric pointmaps.
 
-    metric = True
-    pairwise = True
+    Args:
+        kind: ``mast3r`` or ``dust3r``.
+        weights: A checkpoint file or folder (default: the published file in the weights folders).
+        device: The network's device (None: CUDA when available).
+        min_conf: Depths of a lower confidence are 0.
+        long_side: The network's input size.
+        engine: The matcher's network (same checkpoint and input size), else the shared one.
+    """
 
     def __init__(
         self,
@@ -48,21 +66,17 @@ class Mast3rDepth:
         long_side: int = 512,
         engine: PairEngine | None = None,
     ) -> None:
-        """``engine``: the matcher's (same network, same checkpoint and input size), else the shared one."""
         self.name = kind
         self.min_conf = min_conf
         self.engine = engine if engine is not None else shared_engine(kind, weights, device, long_side)
 
-    def depth(self, frame: object) -> None:
-        """No depth from one frame alone: see ``pair_depth``."""
-        return None
-
     def _encoded(self, image: np.ndarray, features: Any) -> EncodedImage:
         """The matcher's encoding when its features carry this engine's (a cached reference is never encoded
         again), else the engine's own (cached on the image)."""
-        enc = getattr(features, "data", {}).get("encoded") if features is not None else None
-        mine = isinstance(enc, EncodedImage) and enc.engine_id == id(self.engine)
-        return enc if mine else self.engine.encode(image)
+        enc = features.data.get("encoded") if isinstance(features, Features) else None
+        if isinstance(enc, EncodedImage) and enc.engine_id == id(self.engine):
+            return enc
+        return self.engine.encode(image)
 
     def pair_depth(
         self,
@@ -71,8 +85,20 @@ class Mast3rDepth:
         need_query: bool = True,
         features: tuple[Any, Any] = (None, None),
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """(reference depth, query depth or None) in metres at each image's original size. ``features``: the
-        matcher's features of both images, whose encodings are reused when they come from this engine."""
+        """Depth of both images of a pair.
+
+        The reference's is the z of view 1's points in its own frame (the pass the matcher ran); the query's comes
+        from the symmetric pass (decoders and heads only: both images are encoded already).
+
+        Args:
+            reference: (H0, W0, 3) uint8 RGB.
+            query: (H1, W1, 3) uint8 RGB.
+            need_query: Whether the query's map is needed (PnP needs the reference's only: one pass per pair).
+            features: The matcher's features of both images, whose encodings are reused when they are this engine's.
+
+        Returns:
+            (reference map (H0, W0), query map (H1, W1) or None), float32 metres.
+        """
         ref, q = self._encoded(reference, features[0]), self._encoded(query, features[1])
         fwd = self.engine.pair(ref, q)
         d_ref = depth_at_original(fwd.pts1[..., 2], fwd.conf1, ref.prepared, self.min_conf)

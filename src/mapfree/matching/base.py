@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-__all__ = ["Features", "Matches", "Matcher", "MatchCandidates", "CandidateMatches"]
+if TYPE_CHECKING:
+    import torch
+
+__all__ = ["Features", "Matches", "Matcher", "MatchCandidates", "CandidateMatches", "SharedNetwork"]
 
 
 @dataclass
@@ -46,9 +51,22 @@ class Matches:
 
     @classmethod
     def empty(cls) -> Matches:
+        """No matches.
+
+        Returns:
+            Matches of length 0.
+        """
         return cls(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0))
 
     def subset(self, mask: np.ndarray) -> Matches:
+        """The matches a mask (or an index array) selects.
+
+        Args:
+            mask: (N,) bool mask or indices.
+
+        Returns:
+            The selected matches.
+        """
         return Matches(self.kpts0[mask], self.kpts1[mask], self.scores[mask])
 
 
@@ -72,12 +90,78 @@ class CandidateMatches(Matches):
     candidates: MatchCandidates | None = None
 
 
-@runtime_checkable
-class Matcher(Protocol):
-    """A named matcher. ``extract`` takes an (H,W,3) uint8 RGB image."""
+class SharedNetwork(Protocol):
+    """A network a matcher runs that can serve another part too: MASt3R's pair engine gives the pair's depth,
+    MicKey's its keypoints' depths. ``name`` is the depth source it serves (``mast3r``, ``dust3r``, ``mickey``)."""
 
     name: str
 
-    def extract(self, image: np.ndarray) -> Features: ...
 
-    def match(self, f0: Features, f1: Features) -> Matches: ...
+class Matcher(ABC):
+    """A named matcher: features per image, matches per pair, keypoints in original-image pixels.
+
+    Subclasses implement ``extract`` and ``match``. ``extract_many`` and ``match_many`` loop over them; the
+    matchers that batch on their device (LightGlue, XFeat, MASt3R, MicKey) override them, each pair getting the
+    result it gets alone. Callers (the batched pipeline) always call the batched forms.
+
+    Attributes:
+        name: The registry name (``"aliked-lightglue"``).
+        device: The torch device its network runs on; None for a matcher without one (SIFT).
+        engine: The network it runs when that network serves a depth source too (``SharedNetwork``), else None.
+    """
+
+    name: str = ""
+    device: torch.device | None = None
+    engine: SharedNetwork | None = None
+
+    @abstractmethod
+    def extract(self, image: np.ndarray) -> Features:
+        """Features of one image (computed once for a reference and reused for every query).
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and whatever ``match`` needs.
+        """
+
+    @abstractmethod
+    def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences between two images' features.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` in image 0 matching ``kpts1[i]`` in image 1, original pixels.
+        """
+
+    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
+        """``extract`` of several images, in order (one network pass for the matchers that batch).
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+
+        Returns:
+            One ``Features`` per image.
+        """
+        return [self.extract(image) for image in images]
+
+    def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
+        """``match(f0, f1)`` for each of ``f1s``, in order.
+
+        Args:
+            f0: Features of the reference image.
+            f1s: Features of the query images.
+            batch_size: Pairs per network pass for the matchers that batch (None: their own default).
+
+        Returns:
+            One ``Matches`` per query, each equal to what ``match`` gives that pair alone.
+        """
+        return [self.match(f0, f1) for f1 in f1s]
+
+    @property
+    def on_gpu(self) -> bool:
+        """Whether the matcher's network runs on a CUDA device."""
+        return self.device is not None and self.device.type == "cuda"

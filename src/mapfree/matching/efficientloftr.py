@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_classes
 from .published import EFFICIENTLOFTR_MODEL
 from .utils import autocast, checked_or_blank, inside
@@ -40,6 +40,16 @@ MULTIPLE = 32
 
 @dataclass
 class EfficientLoFTROptions(Options):
+    """Options of ``efficientloftr``.
+
+    Attributes:
+        weights: A model folder (config.json + model.safetensors) instead of the hub's.
+        max_size: Long side the images are matched at, a multiple of 32.
+        match_threshold: Coarse matching threshold; None: the model's (0.2 published).
+        mixed_precision: CUDA autocast.
+        device: ``cpu``, ``cuda``; None: CUDA when available.
+    """
+
     weights: str | None = None  # a model folder (config.json + model.safetensors) instead of the hub's
     max_size: int | None = option(720, min=32)  # long side, as the other matchers match the dataset's 540x720 images
     match_threshold: float | None = option(None, min=0, max=1)  # coarse threshold; None: the model's (0.2 published)
@@ -48,14 +58,32 @@ class EfficientLoFTROptions(Options):
 
 
 def efficientloftr_available(weights: str | None = None) -> bool:
+    """Whether EfficientLoFTR can be built here without a download.
+
+    Args:
+        weights: A model folder given in place of the default one, or None.
+
+    Returns:
+        True when the weights are found locally (a weights folder, the Hugging Face cache).
+    """
     return find_hub_model(EFFICIENTLOFTR_MODEL, weights) is not None
 
 
 def mutual_pairs(
     conf: torch.Tensor, shape0: tuple[int, int], shape1: tuple[int, int], threshold: float, border: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Mutual best cells of a coarse confidence matrix (N0, N1) above ``threshold``, cells within ``border`` of
-    either grid's (rows, cols) edge excluded: (cells of image 0, their partners in image 1, confidences)."""
+    """Mutual best cells of a coarse confidence matrix.
+
+    Args:
+        conf: (N0, N1) confidences between the cells of image 0 and image 1.
+        shape0: (rows, cols) of image 0's coarse grid.
+        shape1: (rows, cols) of image 1's.
+        threshold: Pairs of a lower confidence are dropped.
+        border: Cells this close to either grid's edge are excluded.
+
+    Returns:
+        (M,) cells of image 0, (M,) their partners in image 1 and (M,) their confidences (ties: the first column).
+    """
     keep = conf > threshold
     if border > 0:
 
@@ -85,10 +113,22 @@ def refine(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """EfficientLoFTR's two fine stages for M coarse matches.
 
-    ``fine0`` (M, W*W, C): image 0's window around each match; ``fine1`` (M, (W+2)^2, C): image 1's, one pixel
-    wider. Stage 1 moves both points to the best pixel pair of the windows (dual softmax on all but the last
-    ``slice_dim`` channels); stage 2 moves image 1's point by the expectation over the 3x3 neighbourhood
-    scored with the last ``slice_dim`` channels. ``step``: fine pixels per input pixel (1 at full resolution)."""
+    Stage 1 moves both points to the best pixel pair of their windows (dual softmax on all but the last
+    ``slice_dim`` channels); stage 2 moves image 1's point by the expectation over the 3x3 neighbourhood scored
+    with the last ``slice_dim`` channels.
+
+    Args:
+        fine0: (M, W*W, C) image 0's window around each match.
+        fine1: (M, (W+2)^2, C) image 1's, one pixel wider.
+        kp0: (M, 2) coarse points in image 0, pixels.
+        kp1: (M, 2) coarse points in image 1, pixels.
+        slice_dim: Channels of the second stage.
+        temperature: Softmax temperature of the second stage.
+        step: Fine pixels per input pixel (1 at full resolution).
+
+    Returns:
+        The refined (M, 2) points of image 0 and of image 1, pixels.
+    """
     m, ww, c = fine0.shape
     w = int(round(ww**0.5))
     a0, b0 = fine0[..., :-slice_dim], fine0[..., -slice_dim:]
@@ -114,8 +154,14 @@ def refine(
     return kp0, kp1 + shift * step
 
 
-class EfficientLoFTRMatcher:
-    """``efficientloftr``."""
+class EfficientLoFTRMatcher(Matcher):
+    """``efficientloftr``: EfficientLoFTR through transformers, a dense matcher (``extract`` prepares the image,
+    ``match`` runs the network on the pair).
+
+    Args:
+        options: ``EfficientLoFTROptions``.
+        **overrides: Single options over ``options``.
+    """
 
     name = "efficientloftr"
 
@@ -125,7 +171,7 @@ class EfficientLoFTRMatcher:
         )
 
         self.options = o = EfficientLoFTROptions.build(overrides, owner="matcher 'efficientloftr'", base=options)
-        self.device = resolve_device(o.device)
+        self.device: torch.device = resolve_device(o.device)
 
         def configure(cfg: Any) -> None:
             if o.match_threshold is not None:
@@ -136,6 +182,14 @@ class EfficientLoFTRMatcher:
         ).to(self.device)
 
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         image, blank = checked_or_blank(image)
         if blank is not None:
             return blank
@@ -148,6 +202,15 @@ class EfficientLoFTRMatcher:
 
     @torch.inference_mode()
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         if len(f0) == 0 or len(f1) == 0:
             return Matches.empty()
         x0, x1 = f0.data["pixels"], f1.data["pixels"]

@@ -7,6 +7,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -45,15 +46,39 @@ class PairMatches:
 
 
 def resolve_name(name: str) -> str:
-    """The registry key of ``name`` (case and ``_``/``-`` as ``create`` accepts); ``KeyError`` with the nearest
-    names for an unknown one."""
+    """The registry key of a matcher name (case and ``_``/``-`` as ``create`` accepts).
+
+    Args:
+        name: A matcher name.
+
+    Returns:
+        Its registry key.
+
+    Raises:
+        KeyError: An unknown name, with the nearest ones.
+    """
     options_class(name)  # the registry's refusal of an unknown name, with the nearest ones
     return registry_key(name)
 
 
 def match_files(image0: os.PathLike | str, image1: os.PathLike | str, matcher: str, **options: object) -> PairMatches:
-    """Read both images (``FormatError`` naming an unreadable one), build ``matcher`` (``KeyError``,
-    ``MissingWeightsError``, or ``OptionError`` for an option it does not have or a bad value) and match them."""
+    """Match two image files with a registered matcher.
+
+    Args:
+        image0: The first image.
+        image1: The second image.
+        matcher: A matcher name.
+        **options: The matcher's options.
+
+    Returns:
+        The matches (original pixels) with the images, their sizes and the seconds it took.
+
+    Raises:
+        FormatError: An unreadable image (named).
+        KeyError: An unknown matcher.
+        MissingWeightsError: Its weights are neither local nor downloadable.
+        OptionError: An option it does not have, or a bad value.
+    """
     from ..data import read_image
 
     name = resolve_name(matcher)
@@ -78,11 +103,19 @@ def match_files(image0: os.PathLike | str, image1: os.PathLike | str, matcher: s
 
 
 def save_npz(path: os.PathLike | str, r: PairMatches) -> Path:
-    """Write ``r`` with the keys of ``NPZ_KEYS`` (no pickled objects: ``np.load`` needs no ``allow_pickle``)."""
+    """Write matches with the keys of ``NPZ_KEYS`` (no pickled objects: ``np.load`` needs no ``allow_pickle``).
+
+    Args:
+        path: The file (``.npz`` is not appended).
+        r: What ``match_files`` found.
+
+    Returns:
+        The path written.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     m = r.matches
-    arrays = {
+    arrays: dict[str, Any] = {
         "kpts0": m.kpts0.astype(np.float32),
         "kpts1": m.kpts1.astype(np.float32),
         "scores": m.scores.astype(np.float32),
@@ -100,6 +133,13 @@ def save_npz(path: os.PathLike | str, r: PairMatches) -> Path:
 
 
 def load_npz(path: os.PathLike | str) -> dict[str, np.ndarray]:
-    """A matches file as a dict of arrays (strings as 0-d str arrays: ``str(d["matcher"])``)."""
+    """A matches file as a dict of arrays.
+
+    Args:
+        path: A file written by ``save_npz``.
+
+    Returns:
+        ``NPZ_KEYS`` -> arrays (strings as 0-d str arrays: ``str(d["matcher"])``).
+    """
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in z.files}

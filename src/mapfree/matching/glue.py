@@ -11,11 +11,12 @@ that layer. One host synchronisation per layer decides both; a batch's matches c
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from kornia.feature.lightglue import LightGlue, filter_matches, normalize_keypoints
+from kornia.feature.lightglue import filter_matches, normalize_keypoints
 
 from ..runtime import steady_kernels
 from .base import Features
@@ -24,6 +25,8 @@ __all__ = ["GlueInput", "glue_input", "run_glue", "bucket_length", "BUCKET"]
 
 #: Sequence lengths are padded up to a multiple of this (fewer distinct shapes, batches of mixed counts).
 BUCKET = 256
+#: A kornia ``LightGlue`` network: its layers are nn.Module attributes, which type checkers see as untyped.
+GlueNet = Any
 
 
 @dataclass
@@ -37,14 +40,29 @@ class GlueInput:
 
 
 def glue_input(f: Features) -> GlueInput:
-    """The LightGlue side of a matcher's feature set (``data`` holds keypoints, descriptors, resized size)."""
+    """The LightGlue side of a matcher's feature set.
+
+    Args:
+        f: Features whose ``data`` holds keypoints, descriptors and the resized image's size.
+
+    Returns:
+        The side (no keypoints for an image without features).
+    """
     if "keypoints" not in f.data:  # an image without features
         return GlueInput(torch.zeros((0, 2)), torch.zeros((0, 1)), f.image_size)
     return GlueInput(f.data["keypoints"], f.data["descriptors"], f.data["resized"])
 
 
 def bucket_length(n: int, bucket: int = BUCKET) -> int:
-    """``n`` rounded up to a multiple of ``bucket`` (at least one bucket)."""
+    """A sequence length rounded up to a multiple of ``bucket`` (at least one bucket).
+
+    Args:
+        n: Keypoints.
+        bucket: The multiple.
+
+    Returns:
+        The padded length.
+    """
     return max(bucket, -(-n // bucket) * bucket)
 
 
@@ -89,7 +107,7 @@ class _Side:
         return self.mask[:, None, :, None]  # (B,1,L,1): broadcasts over heads in kornia's masked layer
 
 
-def _assign(net: LightGlue, layer: int, s0: _Side, s1: _Side, threshold: float):
+def _assign(net: GlueNet, layer: int, s0: _Side, s1: _Side, threshold: float):
     """Dual-softmax assignment of ``layer`` restricted to valid tokens; returns (m0, scores0) per row of side 0,
     with m0 in original indices of side 1 (-1: unmatched)."""
     la = net.log_assignment[layer]
@@ -107,11 +125,23 @@ def _assign(net: LightGlue, layer: int, s0: _Side, s1: _Side, threshold: float):
 
 
 def run_glue(
-    net: LightGlue, ref: GlueInput, queries: list[GlueInput], *, mixed_precision: bool = False, bucket: int = BUCKET
+    net: GlueNet, ref: GlueInput, queries: list[GlueInput], *, mixed_precision: bool = False, bucket: int = BUCKET
 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Match ``ref`` against every query with the LightGlue ``net``: per pair (indices (K,2) into ref and
-    query keypoints, scores (K,)). Uses the net's ``depth_confidence``, ``width_confidence`` and
-    ``filter_threshold`` like kornia; early stopping and pruning are decided per pair."""
+    """Match one reference against many queries with a LightGlue network, the pairs in one padded batch.
+
+    Uses the net's ``depth_confidence``, ``width_confidence`` and ``filter_threshold`` like kornia; early stopping
+    and pruning are decided per pair, so each pair gets the matches it gets alone.
+
+    Args:
+        net: A kornia ``LightGlue``.
+        ref: The reference's side.
+        queries: The queries' sides.
+        mixed_precision: float16 autocast on CUDA.
+        bucket: Sequence lengths are padded to multiples of it.
+
+    Returns:
+        Per query: (K, 2) int64 indices into the reference's and the query's keypoints, and (K,) scores.
+    """
     out: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros((0, 2), np.int64), np.zeros(0))] * len(queries)
     live = [i for i, q in enumerate(queries) if len(q.keypoints) and len(ref.keypoints)]
     if not live:

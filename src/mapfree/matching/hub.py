@@ -27,8 +27,16 @@ GREY_WEIGHTS = (0.2989, 0.5870, 0.1140)
 
 
 def find_hub_model(hm: HubModel, explicit: str | os.PathLike | None = None) -> str | None:
-    """A local source for ``hm`` by the rule: a folder path (possibly incomplete: loading says what is wrong), or
-    the hub id when the Hugging Face cache holds it; else None."""
+    """A local source for a hub model, by the weights rule.
+
+    Args:
+        hm: The model.
+        explicit: A folder given in place of the default one.
+
+    Returns:
+        The folder (possibly incomplete: loading says what is wrong), the hub id when the Hugging Face cache holds
+        it, else None.
+    """
     hit = hm.locate(explicit)
     if hit is None:
         return None
@@ -36,7 +44,17 @@ def find_hub_model(hm: HubModel, explicit: str | os.PathLike | None = None) -> s
 
 
 def transformers_classes(*names: str) -> tuple[Any, ...]:
-    """Classes of the installed transformers; an older release without them is an ImportError saying so."""
+    """Classes of the installed transformers.
+
+    Args:
+        *names: Class names (``SuperGlueForKeypointMatching``).
+
+    Returns:
+        The classes, in order.
+
+    Raises:
+        ImportError: An older transformers without them, saying so.
+    """
     import transformers
 
     missing = [n for n in names if not hasattr(transformers, n)]
@@ -58,9 +76,22 @@ def load_hub_model(
     explicit: str | os.PathLike | None = None,
     configure: Callable[[Any], None] | None = None,
 ) -> Any:
-    """``model_cls.from_pretrained`` of ``hm`` from its local source (or a download when online), its config
-    first edited by ``configure`` (the paper's settings). Raises ``MissingWeightsError`` before any work, and
-    ``BrokenWeightsError`` for a folder that is there but incomplete or cut short (an interrupted download)."""
+    """A transformers model from its local source (or a download when online).
+
+    Args:
+        model_cls: The model class.
+        config_cls: Its config class.
+        hm: The model's hub entry.
+        explicit: A folder given in place of the default one.
+        configure: Edits the config first (the paper's settings).
+
+    Returns:
+        The model, in eval mode.
+
+    Raises:
+        MissingWeightsError: Neither local nor downloadable (before any work).
+        BrokenWeightsError: A folder that is there but incomplete or cut short (an interrupted download).
+    """
     hit = hm.locate(explicit)
     if hit is None:
         if explicit is not None:
@@ -107,8 +138,19 @@ def load_hub_model(
 def grey_pixels(
     image: np.ndarray, max_size: int | None, multiple: int, device: torch.device
 ) -> tuple[torch.Tensor, tuple[float, float]]:
-    """(1,1,H,W) float32 grey input and the resize scale ``(sx, sy)``, made the way the models' transformers image
-    processors make it: PIL bilinear resize of the uint8 RGB image, rescale to [0,1], NTSC grey."""
+    """The grey network input, made the way the models' transformers image processors make it.
+
+    PIL bilinear resize of the uint8 RGB image, rescale to [0, 1], NTSC grey.
+
+    Args:
+        image: (H, W, 3) uint8 RGB.
+        max_size: Long-side cap (None: none).
+        multiple: Both sides become multiples of it.
+        device: Where the tensor goes.
+
+    Returns:
+        (1, 1, h, w) float32 in [0, 1] and the resize scale ``(sx, sy)`` = new size / old size.
+    """
     h, w = image.shape[:2]
     nw, nh = matching_size(w, h, max_size, multiple)
     if (nw, nh) != (w, h):

@@ -16,7 +16,7 @@ from kornia.feature import ALIKED, DISK, LightGlue
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .glue import glue_input, run_glue
 from .published import SHIPPED, SUPERPOINT_LIGHTGLUE_WEIGHTS, SUPERPOINT_WEIGHTS
 from .superpoint import SuperPoint
@@ -85,8 +85,14 @@ def _weight_path(explicit_file: str | None, folder: str | None, wf: WeightFile) 
     return resolve_weights(wf)
 
 
-class LightGlueMatcher:
-    """``{features}-lightglue``: extract once per image (reference features are reused), LightGlue per pair."""
+class LightGlueMatcher(Matcher):
+    """``{features}-lightglue``: ALIKED, DISK or SuperPoint features, extracted once per image, and LightGlue per pair.
+
+    Args:
+        features: ``aliked``, ``disk`` or ``superpoint``.
+        options: ``LightGlueOptions``.
+        **overrides: Single options over ``options``.
+    """
 
     def __init__(self, features: str = "aliked", options: LightGlueOptions | None = None, **overrides: object) -> None:
         if features not in FEATURES:
@@ -94,7 +100,7 @@ class LightGlueMatcher:
         self.features = features
         self.name = f"{features}-lightglue"
         self.options = o = LightGlueOptions.build(overrides, owner=f"matcher '{self.name}'", base=options)
-        self.device = resolve_device(o.device)
+        self.device: torch.device = resolve_device(o.device)
         self.extractor = self._build_extractor().to(self.device)
         self.glue = self._build_glue().to(self.device)
 
@@ -105,7 +111,9 @@ class LightGlueMatcher:
             # Top-k (threshold 0) rather than the release's 0.2: on realmini-dev it keeps 3x more matches that
             # fit the true pose, and a fixed count lets queries batch in ``match_many``.
             th = 0.0 if o.detection_threshold is None else o.detection_threshold
-            net = ALIKED("aliked-n16", max_num_keypoints=o.max_keypoints, detection_threshold=th, nms_radius=2)
+            net: torch.nn.Module = ALIKED(
+                "aliked-n16", max_num_keypoints=o.max_keypoints, detection_threshold=th, nms_radius=2
+            )
             path = Path(o.extractor_weights) if o.extractor_weights else shipped_file(SHIPPED["aliked"][0])
             _load_strict(net, load_checkpoint(path), "ALIKED-n16", path)
         elif self.features == "disk":
@@ -128,7 +136,7 @@ class LightGlueMatcher:
             width_confidence=o.width_confidence,
             mp=o.mixed_precision and self.device.type == "cuda",
         )
-        glue = LightGlue(None, **conf)  # None: build only; the weights come from our files below
+        glue = LightGlue(None, **conf)  # type: ignore[arg-type]  # None: build only; the weights come from our files
         if self.features == "superpoint":
             path = _weight_path(o.glue_weights, o.weights, SUPERPOINT_LIGHTGLUE_WEIGHTS)
         else:
@@ -167,11 +175,26 @@ class LightGlueMatcher:
 
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         return self.extract_many([image])[0]
 
     @torch.inference_mode()
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Extract several images; same-size images go through the network as one batch."""
+        """Features of several images, in order: one extractor pass per batch of same-size images.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+
+        Returns:
+            One ``Features`` per image (a textureless image: none).
+        """
         images = [check_image(im) for im in images]
         prepared = [self._prepare(im) for im in images]
         out: list[Features | None] = [None] * len(images)
@@ -198,12 +221,28 @@ class LightGlueMatcher:
 
     # ------------------------------------------------------------------ matching
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         return self.match_many(f0, [f1])[0]
 
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """Match the reference ``f0`` against many queries, ``batch_size`` pairs per network pass (padded with
-        masks, adaptive depth and width per pair: a pair's matches do not depend on its batch). Default: 16 on
-        a GPU, 1 on the CPU (where padding costs more than batching saves)."""
+        """``match(f0, f1)`` for each of ``f1s``: padded to length buckets, ``batch_size`` pairs per LightGlue pass (``glue.run_glue``); each pair gets the matches it gets alone.
+
+        Args:
+            f0: Features of the reference image.
+            f1s: Features of the query images.
+            batch_size: Pairs per network pass (None: the matcher's default).
+
+        Returns:
+            One ``Matches`` per query.
+        """
         batch_size = batch_size or (16 if self.device.type == "cuda" else 1)
         out: list[Matches] = []
         ref = glue_input(f0)

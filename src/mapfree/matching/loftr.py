@@ -6,6 +6,7 @@ Dense: ``extract`` runs the CNN backbone once per image (so a reference is encod
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -15,7 +16,7 @@ from kornia.feature.loftr import loftr as _kloftr
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .published import LOFTR_WEIGHTS
 from .utils import (
     autocast,
@@ -42,18 +43,33 @@ class LoFTROptions(Options):
 
 
 def loftr_weights_available(kind: str = "outdoor", weights: str | None = None) -> bool:
+    """Whether LoFTR can be built here without a download.
+
+    Args:
+        kind: ``outdoor``, ``indoor`` or ``indoor_new``.
+        weights: A model folder given in place of the default one, or None.
+
+    Returns:
+        True when the weights are found locally (a weights folder, the Hugging Face cache).
+    """
     return find_local(LOFTR_WEIGHTS[kind], weights) is not None
 
 
-class LoFTRMatcher:
-    """``loftr-outdoor`` / ``loftr-indoor`` (``loftr`` = outdoor)."""
+class LoFTRMatcher(Matcher):
+    """``loftr-outdoor`` / ``loftr-indoor`` (``loftr`` = outdoor): kornia's LoFTR, a dense matcher (``extract``
+    prepares the image, ``match`` runs the network on the pair).
+
+    Args:
+        options: ``LoFTROptions``.
+        **overrides: Single options over ``options``.
+    """
 
     def __init__(self, options: LoFTROptions | None = None, **overrides: object) -> None:
         self.options = o = LoFTROptions.build(overrides, owner="matcher 'loftr'", base=options)
         if o.weights_kind not in LOFTR_WEIGHTS:
             raise ValueError(f"unknown LoFTR weights {o.weights_kind!r}; choose from {sorted(LOFTR_WEIGHTS)}")
         self.name = f"loftr-{o.weights_kind.replace('_', '-')}"
-        self.device = resolve_device(o.device)
+        self.device: torch.device = resolve_device(o.device)
         path = resolve_weights(LOFTR_WEIGHTS[o.weights_kind], o.weights)
         net = LoFTR(pretrained=None, config=self._config(o.weights_kind))
         sd = load_checkpoint(path, "state_dict")
@@ -64,16 +80,24 @@ class LoFTRMatcher:
         self.net = net.eval().to(self.device)
 
     @staticmethod
-    def _config(kind: str) -> dict:
+    def _config(kind: str) -> dict[str, Any]:
         import copy
 
-        cfg = copy.deepcopy(_kloftr.default_cfg)
+        cfg: dict[str, Any] = copy.deepcopy(_kloftr.default_cfg)
         if kind == "indoor_new":
             cfg["coarse"]["temp_bug_fix"] = True
         return cfg
 
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         image, blank = checked_or_blank(image)
         if blank is not None:
             return blank
@@ -90,6 +114,15 @@ class LoFTRMatcher:
 
     @torch.inference_mode()
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         if len(f0) == 0 or len(f1) == 0:
             return Matches.empty()
         with autocast(self.device, self.options.mixed_precision), steady_kernels():

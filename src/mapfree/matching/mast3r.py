@@ -10,20 +10,36 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..mast3r.engine import EncodedImage, PairEngine, PairOutput, shared_engine
 from ..mast3r.reciprocal import reciprocal_matches
 from ..options import Options, option
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .utils import checked_or_blank
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["Mast3rOptions", "Mast3rMatcher"]
 
 
 @dataclass
 class Mast3rOptions(Options):
+    """Options of ``mast3r`` / ``dust3r``.
+
+    Attributes:
+        kind: ``mast3r`` (descriptors) or ``dust3r`` (pointmaps).
+        weights: A ``.pth`` or hub folder; default: the published file in the weights folders.
+        subsample: Grid step (network pixels) of the starting points, as the public visloc code.
+        border_px: Matches this close to the network image's border are dropped.
+        min_score: Keep matches whose confidence (>= 1 with the published models) is at least this.
+        long_side: Network input size (the published models': 512).
+        device: ``cpu``, ``cuda``; None: CUDA when available.
+    """
+
     kind: str = option("mast3r", choices=("mast3r", "dust3r"))  # mast3r (descriptors) | dust3r (pointmaps)
     weights: str | None = None  # a .pth or hub folder; default: the published file in the weights folders
     subsample: int = option(8, min=1)  # grid step (network pixels) of the starting points, as the public visloc
@@ -33,8 +49,14 @@ class Mast3rOptions(Options):
     device: str | None = option(None, device=True)
 
 
-class Mast3rMatcher:
-    """Dense matcher on MASt3R descriptors or DUSt3R pointmaps; keypoints in original-image pixels."""
+class Mast3rMatcher(Matcher):
+    """Dense matcher on MASt3R descriptors or DUSt3R pointmaps; keypoints in original-image pixels. Its network
+    (``engine``) also serves the ``mast3r`` / ``dust3r`` depth source: one forward pass per pair.
+
+    Args:
+        options: ``Mast3rOptions``.
+        **overrides: Single options over ``options``.
+    """
 
     def __init__(self, options: Mast3rOptions | None = None, **overrides: object) -> None:
         self.options = o = Mast3rOptions.build(
@@ -44,13 +66,28 @@ class Mast3rMatcher:
             raise ValueError(f"unknown kind {o.kind!r}; choose mast3r or dust3r")
         self.name = o.kind
         self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, o.long_side)
-        self.device = self.engine.device
+        self.device: torch.device = self.engine.device
 
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         return self.extract_many([image])[0]
 
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Encode several images (one encoder pass per input size); a blank image gets empty features."""
+        """Features of several images, in order: one encoder pass per input size.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+
+        Returns:
+            One ``Features`` per image (a textureless image: none).
+        """
         checked = [checked_or_blank(im) for im in images]
         good = [i for i, (_, blank) in enumerate(checked) if blank is None]
         # the caller's arrays, not the checked copies: the depth source finds an encoding by the array's identity
@@ -65,25 +102,45 @@ class Mast3rMatcher:
         return out
 
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         return self.match_many(f0, [f1], batch_size=1)[0]
 
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """Match one (reference) image against many: ``batch_size`` pairs per pass through the decoders and heads
-        (default 8 on a GPU, 1 elsewhere); each pair gets the matches it gets alone."""
+        """``match(f0, f1)`` for each of ``f1s``: ``batch_size`` pairs per pass through the decoders and heads (default 8 on a GPU, 1 elsewhere); each pair gets the matches it gets alone.
+
+        Args:
+            f0: Features of the reference image.
+            f1s: Features of the query images.
+            batch_size: Pairs per network pass (None: the matcher's default).
+
+        Returns:
+            One ``Matches`` per query.
+        """
         e0 = f0.data.get("encoded")
-        encs = [f.data.get("encoded") for f in f1s]
         out: list[Matches] = [Matches.empty() for _ in f1s]
-        todo = [i for i, e in enumerate(encs) if e is not None] if e0 is not None else []
+        if not isinstance(e0, EncodedImage):
+            return out
+        todo = [(i, e) for i, f in enumerate(f1s) if isinstance(e := f.data.get("encoded"), EncodedImage)]
         step = max(1, batch_size or (8 if self.device.type == "cuda" else 1))
         for start in range(0, len(todo), step):
             chunk = todo[start : start + step]
-            pairs = self.engine.pair_many(e0, [encs[i] for i in chunk], descriptors=True, on_device=True)
-            for i, pair in zip(chunk, pairs):
-                out[i] = self._matches(e0, encs[i], pair)
+            pairs = self.engine.pair_many(e0, [e for _, e in chunk], descriptors=True, on_device=True)
+            for (i, e), pair in zip(chunk, pairs):
+                out[i] = self._matches(e0, e, pair)
         return out
 
     def _matches(self, e0: EncodedImage, e1: EncodedImage, out: PairOutput) -> Matches:
         if self.options.kind == "mast3r":
+            if out.desc1 is None or out.desc2 is None or out.desc_conf1 is None or out.desc_conf2 is None:
+                raise ValueError("the MASt3R pass gave no descriptors (a DUSt3R checkpoint?)")
             # Unit descriptors: nearest by L2 = largest dot product, found by blocks of matrix products (the
             # public GPU path); a KD-tree in 24-D is ~20x slower on a 512x384 map and finds the same pixels.
             xy0, xy1 = reciprocal_matches(out.desc1, out.desc2, self.options.subsample, self.engine.device, "dot")

@@ -17,7 +17,7 @@ import torch
 
 from ..mickey.engine import MickeyEngine, MickeyImage, MickeyNetworkOptions, engine_for
 from ..options import option
-from .base import CandidateMatches, Features, MatchCandidates, Matches
+from .base import CandidateMatches, Features, MatchCandidates, Matcher, Matches
 from .utils import checked_or_blank
 
 __all__ = ["MickeyOptions", "MickeyMatcher", "mutual_best"]
@@ -32,8 +32,15 @@ class MickeyOptions(MickeyNetworkOptions):
 
 
 def mutual_best(scores: torch.Tensor, min_score: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(i, j, score) of the pairs that are each other's best in an (N0, N1) score matrix with a score above
-    ``min_score``, sorted by score, best first."""
+    """The pairs that are each other's best in a score matrix.
+
+    Args:
+        scores: (N0, N1) scores.
+        min_score: Pairs of a score not above it are dropped.
+
+    Returns:
+        (M,) rows, (M,) columns and (M,) scores, best first.
+    """
     best0, j = scores.max(dim=1)
     i_of_j = scores.max(dim=0).indices
     i = torch.arange(scores.shape[0], device=scores.device)
@@ -43,44 +50,83 @@ def mutual_best(scores: torch.Tensor, min_score: float = 0.0) -> tuple[torch.Ten
     return i[order], j[order], s[order]
 
 
-class MickeyMatcher:
-    """MicKey keypoints and matches; keypoints in original pixels."""
+class MickeyMatcher(Matcher):
+    """MicKey keypoints and matches; keypoints in original pixels. Its network also serves the ``mickey`` depth
+    source and the matches carry the scored candidates the ``mickey`` solver draws from.
+
+    Args:
+        options: ``MickeyOptions``.
+        **overrides: Single options over ``options``.
+    """
 
     name = "mickey"
 
     def __init__(self, options: MickeyOptions | None = None, **overrides: object) -> None:
         self.options = o = MickeyOptions.build(overrides, owner="matcher 'mickey'", base=options)
         self.engine: MickeyEngine = engine_for(o)
-        self.device = self.engine.device
+        self.device: torch.device = self.engine.device
 
     @staticmethod
     def _features(out: MickeyImage) -> Features:
         return Features(out.xy_original().cpu().numpy(), out.original_size, {"mickey": out})
 
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         return self.extract_many([image])[0]
 
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Features of several images, ``batch_size`` per network pass (textureless ones: no keypoints)."""
+        """Features of several images, in order: ``batch_size`` per network pass.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+
+        Returns:
+            One ``Features`` per image (a textureless image: none).
+        """
         checked = [checked_or_blank(im) for im in images]
         todo = [img for img, blank in checked if blank is None]
         outs = iter(self.engine.extract(todo, self.options.batch_size)) if todo else iter(())
         return [blank if blank is not None else self._features(next(outs)) for _, blank in checked]
 
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         return self.match_many(f0, [f1])[0]
 
-    def match_many(self, f0: Features, others: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """``f0`` (the reference) against each of ``others``: the pairs' score matrices in batches."""
+    def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
+        """``match(f0, f1)`` for each of ``f1s``: the pairs' score matrices in batches of ``batch_size``; each pair gets the matches it gets alone.
+
+        Args:
+            f0: Features of the reference image.
+            f1s: Features of the query images.
+            batch_size: Pairs per network pass (None: the matcher's default).
+
+        Returns:
+            One ``Matches`` per query.
+        """
         ref = f0.data.get("mickey")
-        todo = [i for i, f in enumerate(others) if f.data.get("mickey") is not None]
-        out: list[Matches] = [Matches.empty() for _ in others]
+        todo = [i for i, f in enumerate(f1s) if f.data.get("mickey") is not None]
+        out: list[Matches] = [Matches.empty() for _ in f1s]
         if ref is None or not todo:
             return out
         step = batch_size or self.options.batch_size
-        finals = self.engine.scores(ref, [others[i].data["mickey"] for i in todo], step)
+        finals = self.engine.scores(ref, [f1s[i].data["mickey"] for i in todo], step)
         for i, final in zip(todo, finals):
-            out[i] = self._matches(ref, others[i].data["mickey"], final)
+            out[i] = self._matches(ref, f1s[i].data["mickey"], final)
         return out
 
     def _matches(self, ref: MickeyImage, query: MickeyImage, final: torch.Tensor) -> CandidateMatches:

@@ -100,7 +100,15 @@ OPTION_WEIGHTS: dict[tuple[str, str, str], WeightFile] = {
 
 
 def matcher_weights(key: str, options: Mapping[str, Any] | None = None) -> tuple:
-    """What matcher ``key`` (a registry key) needs with ``options`` (its ``matcher_opts``)."""
+    """What a matcher needs with its options.
+
+    Args:
+        key: A registry key.
+        options: Its ``matcher_opts`` (MicKey's ``checkpoint`` picks another file).
+
+    Returns:
+        The weights (``mapfree.weights`` models); empty for a matcher that needs none.
+    """
     models = MATCHER_WEIGHTS.get(key, ())
     for (matcher, name, value), model in OPTION_WEIGHTS.items():
         if matcher == key and (options or {}).get(name) == value:

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..geometry import to_original
 from ..options import Options, option
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .utils import check_image, resize_for_matching
 
 __all__ = ["SIFTOptions", "SIFTMatcher", "root_sift", "squared_distances", "two_nearest"]
@@ -28,7 +28,15 @@ class SIFTOptions(Options):
 
 
 def root_sift(desc: np.ndarray, eps: float = 1e-7) -> np.ndarray:
-    """RootSIFT (Arandjelović & Zisserman 2012): L1-normalise, then square-root, so L2 = Hellinger."""
+    """RootSIFT (Arandjelović & Zisserman 2012): L1-normalise, then square-root, so that L2 is the Hellinger distance.
+
+    Args:
+        desc: (N, 128) SIFT descriptors.
+        eps: Added to the L1 norms.
+
+    Returns:
+        (N, 128) float32.
+    """
     desc = desc.astype(np.float32)
     desc /= desc.sum(axis=1, keepdims=True) + eps
     return np.sqrt(desc)
@@ -41,10 +49,18 @@ def squared_distances(
     norms1: np.ndarray | None = None,
     clip: bool = True,
 ) -> np.ndarray:
-    """All pairwise squared L2 distances by one matrix product, ``(|a|^2 + |b|^2) - 2 a.b``, clipped at 0.
+    """All pairwise squared L2 distances by one matrix product, ``(|a|^2 + |b|^2) - 2 a.b``.
 
-    ``norms0``/``norms1`` are the rows' squared norms when the caller has them (a reference's, once per scene).
-    ``clip=False`` leaves the few slightly negative values rounding can give (``two_nearest`` clips them itself).
+    Args:
+        d0: (N0, D) descriptors.
+        d1: (N1, D) descriptors.
+        norms0: (N0,) the rows' squared norms when the caller has them (a reference's, once per scene).
+        norms1: (N1,) likewise.
+        clip: Clip at 0; False leaves the few slightly negative values rounding can give (``two_nearest`` clips
+            them itself).
+
+    Returns:
+        (N0, N1) squared distances.
     """
     n0 = (d0 * d0).sum(1) if norms0 is None else norms0
     n1 = (d1 * d1).sum(1) if norms1 is None else norms1
@@ -56,12 +72,16 @@ def squared_distances(
 
 
 def two_nearest(sq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index of the nearest column of each row and the L2 distances (N,2) to the nearest and second nearest.
+    """Nearest and second-nearest column of each row, exactly (like OpenCV's brute-force ``knnMatch(k=2)``).
 
-    Exact, like OpenCV's brute-force ``knnMatch(k=2)``, but several times faster on CPU (BLAS product, then two
-    row scans instead of a per-row selection). ``sq`` may be unclipped (``squared_distances(clip=False)``):
-    negative entries count as 0 (the first column wins ties), and the rows holding them are clipped in place, so
-    ``sq`` ends as the clipped matrix; it is otherwise left unchanged.
+    Several times faster on a CPU (one BLAS product, then two row scans). Negative entries of an unclipped ``sq``
+    count as 0 (the first column wins ties) and their rows are clipped in place; ``sq`` is otherwise unchanged.
+
+    Args:
+        sq: (N0, N1) squared distances (``squared_distances``, possibly unclipped).
+
+    Returns:
+        (N0,) index of each row's nearest column, and (N0, 2) L2 distances to the nearest and second nearest.
     """
     rows = np.arange(len(sq))
     nearest = sq.argmin(axis=1)
@@ -85,16 +105,30 @@ def _sq_norms(f: Features) -> np.ndarray:
     return norms
 
 
-class SIFTMatcher:
-    """``sift``: CPU only (OpenCV); ``extract`` is separable so reference features are computed once."""
+class SIFTMatcher(Matcher):
+    """``sift``: OpenCV SIFT with RootSIFT and Lowe's ratio test, on the CPU; ``extract`` is separable, so a
+    reference's features are computed once.
+
+    Args:
+        options: ``SIFTOptions`` (the paper's: 2048 features, RootSIFT, ratio 0.8).
+        **overrides: Single options over ``options``.
+    """
 
     name = "sift"
 
     def __init__(self, options: SIFTOptions | None = None, **overrides: object) -> None:
         self.options = SIFTOptions.build(overrides, owner="matcher 'sift'", base=options)
-        self._sift = cv2.SIFT_create(nfeatures=self.options.max_features)
+        self._sift = cv2.SIFT.create(nfeatures=self.options.max_features)
 
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         image = check_image(image)
         small, scale = resize_for_matching(image, self.options.max_size)
         gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
@@ -102,7 +136,7 @@ class SIFTMatcher:
         if desc is None or len(kps) == 0:
             desc, xy = np.zeros((0, 128), np.float32), np.zeros((0, 2))
         else:
-            xy = cv2.KeyPoint_convert(kps).astype(np.float64)  # float32 positions, as KeyPoint.pt gives them
+            xy = np.asarray(cv2.KeyPoint.convert(kps), np.float64)  # float32 positions, as KeyPoint.pt gives them
             # OpenCV may return more than nfeatures when responses tie at the cut.
             desc, xy = desc[: self.options.max_features], xy[: self.options.max_features]
         if self.options.root_sift:
@@ -112,6 +146,15 @@ class SIFTMatcher:
         return Features(to_original(xy, scale), size, {"descriptors": desc, "sq_norms": (desc * desc).sum(1)})
 
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         d0, d1 = f0.data["descriptors"], f1.data["descriptors"]
         if len(d0) < 2 or len(d1) < 2:
             return Matches.empty()

@@ -16,7 +16,7 @@ import torch
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matches
+from .base import Features, Matcher, Matches
 from .hub import find_hub_model, grey_pixels, load_hub_model, transformers_classes
 from .published import SUPERGLUE_MODELS
 from .utils import autocast, checked_or_blank
@@ -26,6 +26,21 @@ __all__ = ["SuperGlueOptions", "SuperGlueMatcher", "SUPERGLUE_MODELS", "superglu
 
 @dataclass
 class SuperGlueOptions(Options):
+    """Options of ``superglue`` / ``superglue-indoor`` (the published models' values).
+
+    Attributes:
+        weights_kind: ``outdoor`` or ``indoor``.
+        weights: A model folder (config.json + model.safetensors) instead of the hub's.
+        max_keypoints: SuperPoint keypoints per image.
+        keypoint_threshold: SuperPoint's detection threshold.
+        nms_radius: SuperPoint's non-maximum suppression radius, pixels.
+        sinkhorn_iterations: Optimal-transport iterations.
+        match_threshold: Matches of a lower score are dropped.
+        max_size: Long side the images are matched at (None: as they are).
+        mixed_precision: CUDA autocast.
+        device: ``cpu``, ``cuda``; None: CUDA when available.
+    """
+
     weights_kind: str = option("outdoor", choices=("outdoor", "indoor"))
     weights: str | None = None  # a model folder (config.json + model.safetensors) instead of the hub's
     max_keypoints: int = option(1024, min=1)
@@ -39,6 +54,15 @@ class SuperGlueOptions(Options):
 
 
 def superglue_available(kind: str = "outdoor", weights: str | None = None) -> bool:
+    """Whether SuperPoint + SuperGlue can be built here without a download.
+
+    Args:
+        kind: ``outdoor`` or ``indoor``.
+        weights: A model folder given in place of the default one, or None.
+
+    Returns:
+        True when the weights are found locally (a weights folder, the Hugging Face cache).
+    """
     return find_hub_model(SUPERGLUE_MODELS[kind], weights) is not None
 
 
@@ -52,8 +76,13 @@ def _normalised_into(kpts: torch.Tensor, size: tuple[int, int], target: tuple[in
     return (kpts - c) * (st / s) + ct
 
 
-class SuperGlueMatcher:
-    """``superglue`` (outdoor weights) / ``superglue-indoor``."""
+class SuperGlueMatcher(Matcher):
+    """``superglue`` (outdoor weights) / ``superglue-indoor``: SuperPoint + SuperGlue through transformers.
+
+    Args:
+        options: ``SuperGlueOptions``.
+        **overrides: Single options over ``options``.
+    """
 
     def __init__(self, options: SuperGlueOptions | None = None, **overrides: object) -> None:
         SuperGlueConfig, SuperGlueForKeypointMatching = transformers_classes(
@@ -64,7 +93,7 @@ class SuperGlueMatcher:
         if o.weights_kind not in SUPERGLUE_MODELS:
             raise ValueError(f"unknown SuperGlue weights {o.weights_kind!r}; choose from {sorted(SUPERGLUE_MODELS)}")
         self.name = "superglue" if o.weights_kind == "outdoor" else f"superglue-{o.weights_kind}"
-        self.device = resolve_device(o.device)
+        self.device: torch.device = resolve_device(o.device)
 
         def configure(cfg: Any) -> None:
             # the configs are strict dataclasses: an int where a float belongs (e.g. from YAML "0") is refused
@@ -81,6 +110,14 @@ class SuperGlueMatcher:
 
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         image, blank = checked_or_blank(image)
         if blank is not None:
             return blank
@@ -101,6 +138,15 @@ class SuperGlueMatcher:
 
     @torch.inference_mode()
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         if len(f0) == 0 or len(f1) == 0:
             return Matches.empty()
         d0, d1 = f0.data, f1.data

@@ -15,7 +15,16 @@ def _conv(cin: int, cout: int, k: int = 3) -> nn.Conv2d:
 
 
 class SuperPoint(nn.Module):
-    """Grey image (B,1,H,W) in [0,1], H and W multiples of 8 -> per image keypoints (x,y), scores, descriptors."""
+    """SuperPoint: grey image (B, 1, H, W) in [0, 1], H and W multiples of 8 -> per image keypoints (x, y), scores and
+    descriptors.
+
+    Args:
+        max_keypoints: Keypoints per image (the best scores; <= 0: all).
+        detection_threshold: Keypoints of a lower score are dropped.
+        nms_radius: Non-maximum suppression radius, pixels.
+        remove_borders: Pixels at each border without keypoints.
+        descriptor_dim: Descriptor size.
+    """
 
     def __init__(
         self,
@@ -38,6 +47,14 @@ class SuperPoint(nn.Module):
         self.convDa, self.convDb = _conv(128, 256), _conv(256, descriptor_dim, 1)
 
     def encode(self, image: torch.Tensor) -> torch.Tensor:
+        """The shared encoder.
+
+        Args:
+            image: (B, 1, H, W) grey in [0, 1].
+
+        Returns:
+            (B, 128, H/8, W/8) features.
+        """
         x = image
         blocks = [(self.conv1a, self.conv1b), (self.conv2a, self.conv2b), (self.conv3a, self.conv3b)]
         for i, (a, b) in enumerate([*blocks, (self.conv4a, self.conv4b)]):
@@ -47,7 +64,14 @@ class SuperPoint(nn.Module):
         return x
 
     def score_map(self, x: torch.Tensor) -> torch.Tensor:
-        """(B,H,W) keypoint probability at full resolution."""
+        """Keypoint probability at full resolution.
+
+        Args:
+            x: (B, 128, H/8, W/8) encoder features.
+
+        Returns:
+            (B, H, W) probabilities.
+        """
         logits = self.convPb(F.relu(self.convPa(x)))
         prob = logits.softmax(1)[:, :-1]
         return F.pixel_shuffle(prob, 8)[:, 0]
@@ -58,6 +82,14 @@ class SuperPoint(nn.Module):
         return torch.where(scores == peak, scores, torch.zeros_like(scores))
 
     def forward(self, image: torch.Tensor) -> list[dict[str, torch.Tensor]]:
+        """Keypoints, scores and descriptors of a batch.
+
+        Args:
+            image: (B, 1, H, W) grey or (B, 3, H, W) RGB in [0, 1].
+
+        Returns:
+            Per image: ``keypoints`` (N, 2) x, y pixels, ``scores`` (N,), ``descriptors`` (N, D) unit vectors.
+        """
         if image.shape[1] == 3:
             image = (image * image.new_tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)).sum(1, keepdim=True)
         x = self.encode(image)

@@ -17,8 +17,19 @@ __all__ = ["time_matcher", "main"]
 
 
 def time_matcher(name: str, im0: np.ndarray, im1: np.ndarray, repeats: int = 3, **options: object) -> dict:
-    """Median extract (per image) and match (per pair) milliseconds after one warm-up, wall clock and
-    process CPU time (the latter is what a busy shared machine cannot inflate), plus counts."""
+    """Median extract (per image) and match (per pair) milliseconds after one warm-up.
+
+    Args:
+        name: A matcher name.
+        im0: (H, W, 3) uint8 RGB.
+        im1: (H, W, 3) uint8 RGB.
+        repeats: Timed runs.
+        **options: The matcher's options.
+
+    Returns:
+        ``extract_ms``, ``match_ms`` (wall clock), ``extract_cpu_ms``, ``match_cpu_ms`` (process CPU time, which a
+        busy shared machine cannot inflate), mean keypoints and the number of matches.
+    """
     m = create(name, **options)
     m.match(m.extract(im0), m.extract(im1))  # warm-up: lazy init, allocator
     ext, mat, ext_cpu, mat_cpu = [], [], [], []
@@ -45,6 +56,14 @@ def time_matcher(name: str, im0: np.ndarray, im1: np.ndarray, repeats: int = 3, 
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m mapfree.matching.timing``: time every offline matcher on one pair of a Map-free scene.
+
+    Args:
+        argv: Command-line arguments (default: ``sys.argv``).
+
+    Returns:
+        The exit status.
+    """
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--data", default="/work/shared/data/realmini-dev", help="a Map-free root with val/s00000")
     ap.add_argument("--size", default="", help="resize both images to WxH first, e.g. 540x720 (the Map-free size)")

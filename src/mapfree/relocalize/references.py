@@ -14,14 +14,20 @@ import logging
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..data import Frame, Scene
 from ..estimate import Estimate
 from ..geometry import Pose
-from .pipeline import View, ViewLike, ahead, as_view
+from ..localizer import Localizer, QueryLocalizer
+from ..solvers.essential import EssentialSolver
+from .pipeline import Relocalizer
+from .views import View, ViewLike, ahead, as_view
+
+if TYPE_CHECKING:
+    from ..methods import Method
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +39,8 @@ __all__ = [
     "mapping_frames",
     "scene_references",
     "check_scene_references",
+    "ReferenceSpec",
+    "reference_spec",
 ]
 
 MODES = ("retrieval", "triangulation")
@@ -62,13 +70,15 @@ class ReferenceOptions:
 
 
 def _pose_of(item: ViewLike, pose: Pose | None) -> Pose:
-    p = pose if pose is not None else getattr(item, "pose", None)
-    if p is None:
-        frame = getattr(item, "frame", None)
-        p = getattr(frame, "pose", None)
-    if p is None:
-        raise ValueError(f"mapping image {getattr(item, 'name', item)!r} has no pose: every reference needs one")
-    return p
+    """The given pose, else the item's own (a ``Frame``'s, a ``View``'s or its frame's)."""
+    if pose is None and isinstance(item, Frame):
+        pose = item.pose
+    elif pose is None and isinstance(item, View):
+        pose = item.pose if item.pose is not None else item.frame.pose if item.frame is not None else None
+    if pose is None:
+        name = item.name if isinstance(item, (Frame, View)) else item
+        raise ValueError(f"mapping image {name!r} has no pose: every reference needs one")
+    return pose
 
 
 class ReferenceSet:
@@ -140,20 +150,18 @@ class ReferenceSet:
 
         return retrieve(self.describer.describe(view.image), self.descriptors, top=len(self))
 
-    def _anchor(self, loc: Any, i: int) -> Any:
+    def _anchor(self, loc: Localizer[Any], i: int) -> Any:
+        """The localizer's anchor of reference ``i``, prepared once (a method without one keeps the view)."""
         key = (id(loc), i)
         if key not in self._anchors:
             self._anchors[key] = loc.prepare(self.views[i])
         return self._anchors[key]
 
-    def _relative(self, loc: Any, view: View, i: int) -> Estimate:
+    def _relative(self, loc: Localizer[Any], view: View, i: int) -> Estimate:
         """Pose of the query relative to reference ``i`` with the localizer's own method."""
-        if hasattr(loc, "prepare"):
-            return loc.localize(view, self._anchor(loc, i))
-        loc.set_reference(self.views[i])  # other method kinds: no reusable anchor
-        return loc.localize(view)
+        return loc.localize(view, self._anchor(loc, i))
 
-    def localize(self, loc: Any, query: ViewLike) -> Estimate:
+    def localize(self, loc: Localizer[Any], query: ViewLike) -> Estimate:
         """World-to-camera pose of ``query`` in the frame of the references' poses (never raises on bad input)."""
         t0 = time.perf_counter()
         try:
@@ -171,7 +179,7 @@ class ReferenceSet:
         est.timings["total"] = est.timings.get("total", 0.0) + t_retrieve
         return est
 
-    def _retrieve(self, loc: Any, view: View, order: np.ndarray, sims: np.ndarray) -> Estimate:
+    def _retrieve(self, loc: Localizer[Any], view: View, order: np.ndarray, sims: np.ndarray) -> Estimate:
         best: Estimate | None = None
         for rank, i in enumerate(order):
             est = self._relative(loc, view, int(i))
@@ -183,15 +191,13 @@ class ReferenceSet:
         assert best is not None
         return best
 
-    def _triangulate(self, loc: Any, view: View, order: np.ndarray, sims: np.ndarray) -> Estimate:
-        from ..solvers import EssentialSolver
+    def _triangulate(self, loc: Localizer[Any], view: View, order: np.ndarray, sims: np.ndarray) -> Estimate:
         from ..solvers.triangulation import triangulate_pose
 
-        matcher = getattr(loc, "matcher", None)
-        if matcher is None:
+        if not isinstance(loc, Relocalizer):
             return Estimate.failure("pose triangulation needs a matching method (matcher + essential matrix)")
-        base = getattr(getattr(loc, "solver", None), "options", None)
-        px = getattr(base, "ransac_threshold_px", 3.0)
+        matcher = loc.matcher
+        px = loc.solver.options.ransac_threshold_px if isinstance(loc.solver, EssentialSolver) else 3.0
         solver = EssentialSolver(ransac_threshold_px=px, allow_unscaled=True)
         t0 = time.perf_counter()
         qf = matcher.extract(view.image)
@@ -223,20 +229,20 @@ def _view_or_query(query: ViewLike) -> ViewLike:
         return query
 
 
-class ReferencedLocalizer:
+class ReferencedLocalizer(QueryLocalizer):
     """Any method's localizer bound to a ``ReferenceSet``: ``localize(query)`` retrieves, then relocalizes, and
     returns the query pose in the frame of the references' poses. K references are always a ``ReferenceSet``
     apart from the localizer (which stays a one-reference localizer): ``mapfree run --references K`` binds each
     scene's set here; the service keeps one set per anchor and calls ``set.localize(loc, query)`` with whichever
     pooled localizer is free."""
 
-    def __init__(self, localizer: Any, references: ReferenceSet) -> None:
+    def __init__(self, localizer: Localizer[Any], references: ReferenceSet) -> None:
         self.localizer, self.references = localizer, references
 
     @classmethod
     def build(
         cls,
-        localizer: Any,
+        localizer: Localizer[Any] | str | Method,
         mapping: Sequence[ViewLike],
         k: int = 1,
         poses: Sequence[Pose | None] | None = None,
@@ -245,14 +251,16 @@ class ReferencedLocalizer:
         """``localizer`` (a built localizer, or a method name, path or ``Method``) bound to ``k`` references
         chosen among ``mapping`` (Frames with poses, or views with ``poses``); ``options``: ``ReferenceOptions``
         fields, e.g. ``mode="triangulation"`` (the depth-free baseline) or ``top``."""
-        if not hasattr(localizer, "localize"):
-            from .pipeline import Relocalizer
-
-            localizer = Relocalizer.from_method(localizer)
-        return cls(localizer, ReferenceSet.build(mapping, poses, k=k, **options))
+        loc = localizer if isinstance(localizer, Localizer) else Relocalizer.from_method(localizer)
+        return cls(loc, ReferenceSet.build(mapping, poses, k=k, **options))
 
     def localize(self, query: ViewLike) -> Estimate:
+        """World-to-camera pose of ``query`` in the frame of the references' poses (never raises on bad input)."""
         return self.references.localize(self.localizer, query)
+
+    def check_available(self) -> None:
+        """The bound localizer's check (a depth network that can be neither found nor downloaded)."""
+        self.localizer.check_available()
 
     def localize_many(self, queries: Iterable[ViewLike], prefetch: int = 1) -> Iterator[Estimate]:
         """``localize`` over many queries, in order, the next ``prefetch`` decoded in a background thread."""
@@ -279,10 +287,53 @@ def scene_references(scene: Scene, k: int, mode: str = "retrieval", **options: A
 REFERENCES_OPTION = "references"
 
 
-def with_references(method: Any, k: int, mode: str = "retrieval", top: int = 1) -> Any:
-    """The method (name, path or ``Method``) run against K references per scene; K = 1 leaves it unchanged.
+@dataclass(frozen=True)
+class ReferenceSpec:
+    """What ``mapfree run --references K`` asks of a method (``Method.options["references"]``).
 
-    Stored in ``options`` so that a run's journal header records it and ``--resume`` checks it."""
+    Attributes:
+        k: References per scene.
+        mode: ``retrieval`` or ``triangulation``.
+        top: References tried per query (the most confident wins).
+    """
+
+    k: int = 1
+    mode: str = "retrieval"
+    top: int = 1
+
+
+def reference_spec(method: Method) -> ReferenceSpec | None:
+    """The K-references request a method carries (``with_references``), or None for one reference per scene.
+
+    Args:
+        method: The method.
+
+    Returns:
+        Its ``ReferenceSpec``, or None.
+    """
+    spec = method.options.get(REFERENCES_OPTION)
+    if not spec:
+        return None
+    return ReferenceSpec(int(spec.get("k", 1)), spec.get("mode", "retrieval"), int(spec.get("top", 1)))
+
+
+def with_references(method: str | Method, k: int, mode: str = "retrieval", top: int = 1) -> Method:
+    """The method run against K references per scene; K = 1 leaves it unchanged.
+
+    Stored in ``options`` so that a run's journal header records it and ``--resume`` checks it.
+
+    Args:
+        method: A name, a YAML path or a ``Method``.
+        k: References per scene.
+        mode: ``retrieval`` or ``triangulation``.
+        top: References tried per query.
+
+    Returns:
+        The method, renamed ``NAME+K{k}`` (``-triangulation``).
+
+    Raises:
+        ValueError: Values ``ReferenceOptions`` refuses.
+    """
     from ..methods import Method, get
 
     m = method if isinstance(method, Method) else get(method)
@@ -294,13 +345,21 @@ def with_references(method: Any, k: int, mode: str = "retrieval", top: int = 1) 
     return replace(m, name=m.name + suffix, options={**m.options, REFERENCES_OPTION: spec})
 
 
-def check_scene_references(scenes: Sequence[Scene], method_dict: dict) -> None:
+def check_scene_references(scenes: Sequence[Scene], method: Method) -> None:
     """Refuse up front a K no scene can honour: K references need K posed ``seq0`` frames in every scene (else
-    the run would quietly use fewer), triangulation needs two; names the scenes short of them."""
-    spec = (method_dict.get("options") or {}).get(REFERENCES_OPTION)
-    if not spec:
+    the run would quietly use fewer), triangulation needs two.
+
+    Args:
+        scenes: The run's scenes.
+        method: The method (``with_references``).
+
+    Raises:
+        ValueError: Naming the scenes short of frames.
+    """
+    spec = reference_spec(method)
+    if spec is None:
         return
-    k, mode = int(spec.get("k", 1)), spec.get("mode", "retrieval")
+    k, mode = spec.k, spec.mode
     need = max(k, 2) if mode == "triangulation" else k
     short = [(s.name, len(mapping_frames(s))) for s in scenes]
     short = [(n, c) for n, c in short if c < need]
@@ -315,25 +374,37 @@ def check_scene_references(scenes: Sequence[Scene], method_dict: dict) -> None:
         )
 
 
-def bind_scene_references(loc: Any, scene: Scene, method_dict: dict, ref_pose: Pose) -> tuple[Any, Pose]:
-    """``(localizer, pose estimates are relative to)`` for a scene: unchanged without ``options.references``,
-    else the localizer bound to the scene's K references, whose estimates are already in the world frame."""
-    spec = (method_dict.get("options") or {}).get(REFERENCES_OPTION)
-    if not spec:
+def bind_scene_references(
+    loc: Localizer[Any], scene: Scene, method: Method, ref_pose: Pose
+) -> tuple[QueryLocalizer, Pose]:
+    """The localizer a scene's queries go to, and the pose its estimates are relative to.
+
+    Args:
+        loc: The method's localizer, its reference set to the scene's.
+        scene: The scene.
+        method: The method (``with_references``).
+        ref_pose: The scene reference's world-to-camera pose.
+
+    Returns:
+        ``(loc, ref_pose)`` for one reference; else the localizer bound to the scene's K references, whose
+        estimates are already in the world frame, and the identity.
+    """
+    spec = reference_spec(method)
+    if spec is None:
         return loc, ref_pose
-    refs = scene_references(scene, int(spec.get("k", 1)), spec.get("mode", "retrieval"), top=int(spec.get("top", 1)))
+    refs = scene_references(scene, spec.k, spec.mode, top=spec.top)
     return ReferencedLocalizer(loc, refs), Pose.identity()
 
 
 def localize_with_references(
-    method: Any,
+    method: str | Method,
     mapping: Sequence[ViewLike],
     queries: Sequence[ViewLike],
     k: int,
     mode: str = "retrieval",
     top: int = 1,
     progress: bool = False,
-    localizer: Any = None,
+    localizer: Localizer[Any] | None = None,
 ) -> tuple[ReferenceSet, list[Estimate]]:
     """Choose ``k`` references among ``mapping`` and localize every query with ``method`` (a name, path,
     ``Method`` or, through ``localizer``, an already built one); estimates are world-to-camera poses in the
@@ -347,13 +418,13 @@ def localize_with_references(
     return bound.references, [bound.localize(q) for q in it]
 
 
-def relocalize_pairs(method: Any, pairs: Sequence[tuple[ViewLike, ViewLike]], progress: bool = False) -> list[Estimate]:
+def relocalize_pairs(
+    method: str | Method, pairs: Sequence[tuple[ViewLike, ViewLike]], progress: bool = False
+) -> list[Estimate]:
     """Pose of the second image of each pair relative to the first (``X1 = R X0 + t``), one method for all.
 
     An Ess.Mat method without depth (``*_emat_none``) returns its up-to-scale pose (``Method.build``): the
     angular scores of a pair benchmark do not need the scale."""
-    from .pipeline import Relocalizer
-
     loc = Relocalizer.from_method(method)
     it: Iterable = pairs
     if progress:

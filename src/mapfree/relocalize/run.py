@@ -21,7 +21,7 @@ from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -30,8 +30,13 @@ from ..data import REFERENCE_NAME, Dataset, Scene
 from ..data.io import depth_suffixes
 from ..estimate import Estimate
 from ..geometry import Pose
+from ..localizer import Localizer, QueryLocalizer
+from .batched import BatchOptions
 from .preflight import check_confidence, check_output, check_same_selection, selection_of
-from .references import bind_scene_references, check_scene_references
+from .references import bind_scene_references, check_scene_references, reference_spec
+
+if TYPE_CHECKING:
+    from ..methods import Method
 
 log = logging.getLogger(__name__)
 
@@ -196,17 +201,19 @@ def frames_to_run(scene: Scene, all_frames: bool) -> list[str]:
     return [f.name for f in frames]
 
 
-_LOCALIZERS: dict[str, Any] = {}
+_LOCALIZERS: dict[str, Localizer[Any]] = {}
 
 
-def _localizer(method_dict: dict) -> Any:
+def _method_key(method: Method) -> str:
+    return json.dumps(method.to_dict(), sort_keys=True)
+
+
+def _localizer(method: Method) -> Localizer[Any]:
     """One built method per worker process (matchers load weights once); ``open_scene`` binds it to one scene's
     reference at a time."""
-    key = json.dumps(method_dict, sort_keys=True)
+    key = _method_key(method)
     if key not in _LOCALIZERS:
-        from ..methods import Method
-
-        _LOCALIZERS[key] = Method(**method_dict).build()
+        _LOCALIZERS[key] = method.build()
     return _LOCALIZERS[key]
 
 
@@ -224,7 +231,7 @@ class SceneReference:
     there; ``error`` says why the reference failed (then every frame fails with that reason)."""
 
     scene: Scene
-    localizer: Any
+    localizer: QueryLocalizer | None
     ref_pose: Pose
     error: str = ""
     _image: np.ndarray | None = field(default=None, repr=False)
@@ -236,23 +243,23 @@ class SceneReference:
         return self._image
 
 
-def open_scene(method_dict: dict, scene_path: str) -> SceneReference:
+def open_scene(method: Method, scene_path: str) -> SceneReference:
     """The built method (one per process) bound to the reference of the scene at ``scene_path``."""
     scene = Scene(Path(scene_path))
     ref_pose = Pose.identity()
     try:
-        loc = _localizer(method_dict)
+        loc = _localizer(method)
         ref = scene.reference
         ref_pose = ref.pose if ref.pose is not None else Pose.identity()
         loc.set_reference(ref)
-        loc, ref_pose = bind_scene_references(loc, scene, method_dict, ref_pose)  # --references K (references.py)
+        bound, ref_pose = bind_scene_references(loc, scene, method, ref_pose)  # --references K (references.py)
     except Exception as e:  # the whole scene fails cleanly; each frame says why
         return SceneReference(scene, None, ref_pose, f"reference failed: {type(e).__name__}: {e}")
-    return SceneReference(scene, loc, ref_pose)
+    return SceneReference(scene, bound, ref_pose)
 
 
 def scene_results(
-    ref: SceneReference, method_dict: dict, frames: Sequence[str], batch_size: int | None = None, figures: bool = False
+    ref: SceneReference, method: Method, frames: Sequence[str], batch_size: int | None = None, figures: bool = False
 ) -> Iterator[FrameResult]:
     """Relocalize ``frames`` of a scene against its reference, one ``FrameResult`` per frame in order (the same
     wherever it runs: a pool worker, a Ray worker, this process). ``figures``: draw each one (``--viz``)."""
@@ -268,7 +275,7 @@ def scene_results(
         if figures:
             from ..viz import FIGURE_MAX_SIDE, FIGURE_QUALITY, jpeg_bytes
 
-            fig = frame_figure(scene, name, est, world, method_dict, ref.ref_image)
+            fig = frame_figure(scene, name, est, world, method, ref.ref_image)
             picture = None if fig is None else jpeg_bytes(fig, FIGURE_MAX_SIDE, FIGURE_QUALITY)
         yield FrameResult(_record(scene.name, name, est, world), picture)
 
@@ -286,7 +293,7 @@ def save_figure(viz_dir: os.PathLike | str | None, result: FrameResult) -> None:
 
 
 def _run_scene(
-    method_dict: dict,
+    method: Method,
     scene_path: str,
     frames: list[str],
     journal: str,
@@ -298,8 +305,8 @@ def _run_scene(
     if _stopping():  # a scene already handed to this worker when the parent asked to stop: not started
         return 0
     journal_p = Path(journal)
-    ref = open_scene(method_dict, scene_path)
-    for res in scene_results(ref, method_dict, frames, batch_size, figures=viz_dir is not None):
+    ref = open_scene(method, scene_path)
+    for res in scene_results(ref, method, frames, batch_size, figures=viz_dir is not None):
         _append(journal_p, [res.record])
         save_figure(viz_dir, res)
         on_frame and on_frame(res.record)
@@ -313,7 +320,7 @@ def frame_figure(
     frame: str,
     est: Estimate,
     world: Pose | None,
-    method_dict: dict,
+    method: Method,
     ref_image: Callable[[], np.ndarray] | None = None,
 ) -> np.ndarray | None:
     """One frame's figure for ``run --viz`` (matches + AR check against the scene's reference image, ground truth
@@ -327,9 +334,9 @@ def frame_figure(
         ref_pose = ref.pose if ref.pose is not None else Pose.identity()
         rel = world @ ref_pose.inverse() if world is not None else None
         gt = query.pose @ ref_pose.inverse() if query.pose is not None and ref.pose is not None else None
-        extras = {} if (method_dict.get("options") or {}).get("references") else est.extras
+        extras = {} if reference_spec(method) is not None else est.extras
         shown = Estimate(rel, est.confidence, est.inliers, est.reason, extras=extras)
-        thr = float((method_dict.get("solver_opts") or {}).get("ransac_threshold_px", 3.0))
+        thr = float(method.solver_opts.get("ransac_threshold_px", 3.0))  # the inlier colours of the figure
         return estimate_figure(
             (ref_image or ref.image)(),
             query.image(),
@@ -338,7 +345,7 @@ def frame_figure(
             shown,
             gt,
             threshold_px=thr,
-            title=f"{scene.name} {frame}  {method_dict.get('name', '')}",
+            title=f"{scene.name} {frame}  {method.name}",
         )
     except Exception as e:  # a figure is a by-product: the frame's result is journaled already
         log.warning("no figure for %s %s: %s", scene.name, frame, e)
@@ -351,14 +358,14 @@ def write_frame_figure(
     frame: str,
     est: Estimate,
     world: Pose | None,
-    method_dict: dict,
+    method: Method,
     ref_image: Callable[[], np.ndarray] | None = None,
 ) -> Path | None:
     """Draw one frame's figure (``frame_figure``) into ``frame_figure_path(viz_dir, …)``; None when it could not
     be drawn or written (logged, never raised)."""
     from ..viz import save_figure as save_jpeg
 
-    fig = frame_figure(scene, frame, est, world, method_dict, ref_image)
+    fig = frame_figure(scene, frame, est, world, method, ref_image)
     if fig is None:
         return None
     try:
@@ -373,24 +380,17 @@ def _stopping() -> bool:
     return _STOP is not None and _STOP.is_set()
 
 
-def _estimates(loc: Any, scene: Scene, frames: list[str], batch_size: int | None = None) -> Iterator[Estimate]:
-    """Estimates in frame order: through the batched pipeline when ``batch_size`` > 0 (``None``: 16 on a GPU,
-    off on the CPU) and the method has one, else with the next query prefetched where supported."""
-    if hasattr(loc, "localize_batched"):
-        from .batched import BatchOptions, default_batch_size
-
-        size = default_batch_size(getattr(loc, "matcher", None)) if batch_size is None else batch_size
-        if size > 0:
-            yield from loc.localize_batched([scene.frame(n) for n in frames], options=BatchOptions(batch_size=size))
-            return
-    if hasattr(loc, "localize_many"):
-        yield from loc.localize_many([scene.frame(n) for n in frames])
-        return
-    for name in frames:
-        try:
-            yield loc.localize(scene.frame(name))
-        except Exception as e:  # other method kinds: a bad frame is a failure, not the end of the run
-            yield Estimate.failure(f"error: {type(e).__name__}: {e}")
+def _estimates(
+    loc: QueryLocalizer, scene: Scene, frames: Sequence[str], batch_size: int | None = None
+) -> Iterator[Estimate]:
+    """Estimates in frame order: through the batched path when ``batch_size`` > 0 (``None``: the localizer's
+    default, 16 for a matcher on a GPU), else one query at a time with the next one prefetched where supported."""
+    size = loc.default_batch_size() if batch_size is None else batch_size
+    queries = [scene.frame(n) for n in frames]
+    if size > 0:
+        yield from loc.localize_batched(queries, options=BatchOptions(batch_size=size))
+    else:
+        yield from loc.localize_many(queries)
 
 
 def _init_worker(threads: int, stop: Any = None) -> None:
@@ -522,11 +522,11 @@ def run_split(
     if problem:  # a split's frames come without depth maps of their own: nothing could succeed
         raise ValueError(problem)
     _check_depth_files(m, scene_list, split)
-    check_scene_references(scene_list, m.to_dict())
+    check_scene_references(scene_list, m)
     if todo and ray_address is None:  # on a cluster, every worker checks the method on its own node
         check_available(m, keep=workers <= 1 or len(todo) <= 1)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
-    if fresh:
+    if fresh or header is None:
         jpath.write_text(
             json.dumps(
                 {
@@ -546,7 +546,6 @@ def run_split(
         _rewrite_journal(jpath, {**header, "data": {**header.get("data", {}), **fingerprints}}, recs)
     total = sum(len(f) for _, f in todo)
     bar = _progress(total, len(done), progress, m.name)
-    md = m.to_dict()
     viz = str(viz_dir) if viz_dir is not None else None
     cluster: dict[str, Any] = {}
     try:
@@ -569,7 +568,7 @@ def run_split(
         elif workers <= 1 or len(todo) <= 1:
             for s, names in todo:
                 _run_scene(
-                    md,
+                    m,
                     str(s.path),
                     names,
                     str(jpath),
@@ -578,7 +577,7 @@ def run_split(
                     viz_dir=viz,
                 )
         else:
-            _run_parallel(md, todo, jpath, workers, bar, batch_size, viz)
+            _run_parallel(m, todo, jpath, workers, bar, batch_size, viz)
     finally:
         bar.close()
     _, recs = read_journal(jpath)
@@ -635,27 +634,28 @@ def _sigint_ignored() -> Iterator[None]:
         signal.signal(signal.SIGINT, old)
 
 
-def check_available(m: Any, keep: bool = True) -> None:
+def check_available(m: Method, keep: bool = True) -> None:
     """Build ``m`` here and check its depth network can be loaded: weights or a model that are neither on this
     machine nor downloadable are one clear error before any work, not a run in which every frame fails.
-    ``keep``: this process relocalizes the frames itself, so the built method is kept for them (else dropped,
-    leaving the memory to the worker processes)."""
-    md = m.to_dict()
-    loc = _localizer(md)
+
+    Args:
+        m: The method.
+        keep: This process relocalizes the frames itself, so the built method is kept for them (else dropped,
+            leaving the memory to the worker processes).
+    """
+    loc = _localizer(m)
     if not keep:
-        _LOCALIZERS.pop(json.dumps(md, sort_keys=True), None)
+        _LOCALIZERS.pop(_method_key(m), None)
     check_depth_source(loc)
 
 
-def check_depth_source(loc: Any) -> None:
+def check_depth_source(loc: QueryLocalizer) -> None:
     """Raise the clear error of a localizer's depth network that can be neither found nor downloaded (nothing
-    for a method without one)."""
-    check = getattr(getattr(loc, "depth_source", None), "check_available", None)
-    if check is not None:
-        check()
+    for a method without one): ``loc.check_available()``."""
+    loc.check_available()
 
 
-def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
+def _check_depth_files(m: Method, scene_list: list[Scene], split: str) -> None:
     """A ``files:SUFFIX`` method whose depth maps exist at no scene's reference is a typo in the suffix (or the
     wrong split), not a run of failures: refuse it before any work, naming the suffixes that do exist."""
     if m.kind != "matching" or not m.depth.startswith("files:") or not scene_list:
@@ -673,7 +673,13 @@ def _check_depth_files(m: Any, scene_list: list[Scene], split: str) -> None:
 
 
 def _run_parallel(
-    md: dict, todo: list, jpath: Path, workers: int, bar: Any, batch_size: int | None = None, viz_dir: str | None = None
+    m: Method,
+    todo: list[tuple[Scene, list[str]]],
+    jpath: Path,
+    workers: int,
+    bar: Any,
+    batch_size: int | None = None,
+    viz_dir: str | None = None,
 ) -> None:
     threads = max(1, (os.cpu_count() or 1) // workers)
     offset = jpath.stat().st_size
@@ -687,7 +693,7 @@ def _run_parallel(
         # (seconds, before ``_init_worker``) no longer prints a KeyboardInterrupt traceback from it.
         with _sigint_ignored():
             futures = [
-                pool.submit(_run_scene, md, str(s.path), names, str(jpath), None, batch_size, viz_dir)
+                pool.submit(_run_scene, m, str(s.path), names, str(jpath), None, batch_size, viz_dir)
                 for s, names in sorted(todo, key=lambda x: -len(x[1]))
             ]
         pending = set(futures)

@@ -1,16 +1,20 @@
 """Relative pose regression (RPR): the paper's networks, parameterisations, losses, training and inference.
 
-Importing this package is cheap (torch and Lightning load on first use) and registers the method kind
-``regression``, the method ``rpr`` (any checkpoint: ``--checkpoint CKPT`` or ``$MAPFREE_RPR_CHECKPOINT``) and
-``rpr-<config>`` for the 12 published configurations (``rpr-3d3d`` …: ``--checkpoint``, else ``<config>.ckpt``
-found by the weights rule of ``mapfree.weights``).
+Importing this package is cheap (torch and Lightning load on first use). ``build_from_method`` builds the methods
+of kind ``regression`` (``mapfree.methods`` names them: ``rpr``, any checkpoint with ``--checkpoint CKPT`` or
+``$MAPFREE_RPR_CHECKPOINT``, and ``rpr-<config>`` for the 12 published configurations, ``<config>.ckpt`` found
+by the weights rule of ``mapfree.weights``).
 """
 
 from __future__ import annotations
 
 import importlib
 import os
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:
+    from .inference import RPRMethod
 
 __all__ = [
     "load_method",
@@ -48,9 +52,26 @@ def __getattr__(name: str) -> Any:
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def build_from_method(method: Any) -> Any:
-    """``Method(kind="regression", options={"checkpoint": …, "config": …, "device": …})`` -> a loaded ``RPRMethod``."""
-    opts = dict(getattr(method, "options", {}) or {})
+class RegressionSpec(Protocol):
+    """What ``build_from_method`` reads of a ``mapfree.methods.Method`` of kind ``regression``."""
+
+    name: str
+    options: Mapping[str, Any]
+
+
+def build_from_method(method: RegressionSpec) -> RPRMethod:
+    """A regression method's network, loaded.
+
+    Args:
+        method: ``Method(kind="regression", options={"checkpoint": …, "config": …, "device": …})``.
+
+    Returns:
+        The loaded ``RPRMethod``.
+
+    Raises:
+        ValueError: No checkpoint given, found or set in ``$MAPFREE_RPR_CHECKPOINT``.
+    """
+    opts = dict(method.options or {})
     config = opts.get("config")
     ckpt = opts.get("checkpoint")
     if not ckpt and config:
@@ -60,48 +81,9 @@ def build_from_method(method: Any) -> Any:
     ckpt = ckpt or os.environ.get("MAPFREE_RPR_CHECKPOINT")
     if not ckpt:
         raise ValueError(
-            f"method {getattr(method, 'name', 'rpr')!r} needs a checkpoint: pass --checkpoint CKPT "
+            f"method {method.name!r} needs a checkpoint: pass --checkpoint CKPT "
             "(options.checkpoint in a method YAML, or $MAPFREE_RPR_CHECKPOINT)"
         )
     from .inference import load_method
 
     return load_method(ckpt, opts.get("device"), config=config)
-
-
-def _register() -> None:
-    from .. import methods
-    from .official import OFFICIAL_CONFIGS
-
-    methods.register_kind("regression", build_from_method)
-    registry = getattr(methods, "_REGISTRY", {})
-    if "rpr" not in registry:
-        methods.register(
-            methods.Method(
-                name="rpr",
-                kind="regression",
-                matcher="",
-                solver="",
-                depth="none",
-                description="relative pose regression network (mapfree train); needs --checkpoint CKPT",
-            )
-        )
-    for config in OFFICIAL_CONFIGS:
-        if f"rpr-{config}" not in registry:
-            methods.register(
-                methods.Method(
-                    name=f"rpr-{config}",
-                    kind="regression",
-                    matcher="",
-                    solver="",
-                    depth="none",
-                    options={"config": config},
-                    description=f"published Map-free RPR model {config} (configs/rpr/{config}.yaml); "
-                    f"--checkpoint CKPT or {config}.ckpt in a weights folder (`mapfree weights`)",
-                )
-            )
-
-
-try:
-    _register()
-except ImportError:  # the registry is optional for training-only installs
-    pass

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,7 @@ import torch
 from ..data import read_image
 from ..estimate import Estimate
 from ..geometry import Pose
+from ..localizer import Localizer
 from .config import RPRConfig, load_config, resolve_config
 from .data import as_float_input, resolve_size, to_input
 from .metrics import confidence_from_log_sigma
@@ -51,11 +53,12 @@ def _default_device() -> torch.device:
     return torch.device("cpu")
 
 
-class RPRMethod:
-    """A trained RPR network as a relocalization method (the Localizer of ``mapfree.relocalize``).
+class RPRMethod(Localizer[Any]):
+    """A trained RPR network as a relocalization method: a ``Localizer`` without a reusable anchor.
 
     ``relocalize(ref, query)`` for one pair; ``set_reference`` then ``localize`` or ``localize_many`` reuse the
-    reference; ``predict(batch)`` runs a batch of tensors on the model's device.
+    reference (``prepare`` keeps the reference itself, which ``localize(query, anchor)`` sets again);
+    ``predict(batch)`` runs a batch of tensors on the model's device.
 
     Args:
         module: The trained network.
@@ -134,7 +137,7 @@ class RPRMethod:
             Pose(res["R"][i], res["t"][i]), float(res["confidence"][i]), 0, "", {"regression": seconds}, extras
         )
 
-    # The Localizer protocol of mapfree.relocalize: set_reference / localize / relocalize.
+    # The Localizer interface (mapfree.localizer): set_reference / localize / relocalize / localize_many.
     def set_reference(self, reference: Any) -> Any:
         """Keep a reference's network input for ``localize`` and ``localize_many``.
 
@@ -148,11 +151,12 @@ class RPRMethod:
         self._ref = (img, self._tensor(img, self.input_size(img)))
         return self._ref
 
-    def localize(self, query: Any) -> Estimate:
-        """``relocalize`` against the reference of ``set_reference``.
+    def localize(self, query: Any, anchor: Any = None) -> Estimate:
+        """``relocalize`` against the reference of ``set_reference`` (or ``anchor``, which becomes the reference).
 
         Args:
             query: (H, W, 3) uint8 RGB, a path, or a frame.
+            anchor: A reference to set first, or None for the current one.
 
         Returns:
             The estimate.
@@ -160,6 +164,8 @@ class RPRMethod:
         Raises:
             RuntimeError: No reference was set.
         """
+        if anchor is not None:
+            self.set_reference(anchor)
         if self._ref is None:
             raise RuntimeError("call set_reference(reference) before localize(query)")
         t0 = time.perf_counter()
@@ -172,11 +178,15 @@ class RPRMethod:
         """Same as ``relocalize_images``."""
         return self.relocalize_images(reference, query)
 
-    def localize_many(self, queries: list[Any], batch_size: int = 16) -> list[Estimate]:
-        """``localize`` of many queries against the current reference, in batches (GPU-friendly).
+    def localize_many(
+        self, queries: Iterable[Any], anchor: Any = None, *, prefetch: int = 1, batch_size: int = 16
+    ) -> list[Estimate]:
+        """``localize`` of many queries against the current reference (or ``anchor``), in batches (GPU-friendly).
 
         Args:
             queries: (H, W, 3) uint8 RGB images, paths or frames.
+            anchor: A reference to set first, or None for the current one.
+            prefetch: Not used (the interface's read-ahead).
             batch_size: Queries per network pass.
 
         Returns:
@@ -185,6 +195,9 @@ class RPRMethod:
         Raises:
             RuntimeError: No reference was set.
         """
+        queries = list(queries)
+        if anchor is not None:
+            self.set_reference(anchor)
         if self._ref is None:
             raise RuntimeError("call set_reference(reference) before localize_many(queries)")
         _, ref_t = self._ref

@@ -5,12 +5,15 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any, Generic, TypeVar
 
 import cv2
 import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, backproject
+from ..matching.base import Matches
+from .base import Solver, SolverOptions
 
 __all__ = [
     "DEPTH_SAMPLING",
@@ -24,7 +27,10 @@ __all__ = [
     "backproject_keypoints",
     "kabsch",
     "rotation_is_valid",
+    "GuardedSolver",
 ]
+
+OptionsT = TypeVar("OptionsT", bound=SolverOptions)
 
 DEPTH_SAMPLING = ("nearest", "floor", "bilinear")
 MAX_DEPTH = 1e4  # metres; larger values are "at infinity" and treated as invalid (no sensor or network gives them)
@@ -50,17 +56,40 @@ class Timer:
 
 
 def finite_matches(kpts0: np.ndarray, kpts1: np.ndarray) -> np.ndarray:
-    """Mask of matches whose four coordinates are finite (NaN/inf keypoints are dropped, not fatal)."""
+    """Which matches have finite coordinates (NaN/inf keypoints are dropped, not fatal).
+
+    Args:
+        kpts0: (N, 2) pixels in image 0.
+        kpts1: (N, 2) pixels in image 1.
+
+    Returns:
+        (N,) bool mask of the matches whose four coordinates are finite.
+    """
     return np.all(np.isfinite(kpts0), axis=1) & np.all(np.isfinite(kpts1), axis=1)
 
 
 def normalize_points(uv: np.ndarray, K: Intrinsics) -> np.ndarray:
-    """Pixels -> normalised image coordinates with this frame's own intrinsics."""
+    """Pixels to normalised image coordinates with this frame's own intrinsics.
+
+    Args:
+        uv: (N, 2) pixels.
+        K: The frame's intrinsics.
+
+    Returns:
+        (N, 2) ``((u - cx) / fx, (v - cy) / fy)``.
+    """
     return np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy], axis=1)
 
 
 def valid_depth_map(depth: np.ndarray | None) -> bool:
-    """A usable depth map: a 2-D array with at least one finite positive value."""
+    """Whether a depth map is usable: 2-D with at least one finite value in (0, ``MAX_DEPTH``).
+
+    Args:
+        depth: (H, W) metres, or None.
+
+    Returns:
+        True for a usable map.
+    """
     if depth is None:
         return False
     d = np.asarray(depth)
@@ -82,10 +111,22 @@ def _to_depth_pixels(uv: np.ndarray, K: Intrinsics, shape: tuple[int, int]) -> n
 
 
 def sample_depth_at(depth: np.ndarray, uv: np.ndarray, K: Intrinsics, mode: str = "nearest") -> np.ndarray:
-    """Depth (metres) at (N,2) image pixels; 0 where invalid (outside, non-finite, <= 0, >= ``MAX_DEPTH``).
+    """Depth at image pixels; 0 where invalid (outside, non-finite, <= 0, >= ``MAX_DEPTH``).
 
-    ``nearest`` rounds to the closest pixel centre, ``floor`` truncates like the public Map-free code,
-    ``bilinear`` interpolates only where all four neighbours are valid (no blending across holes).
+    A map at another size than the image is read through the half-pixel rule.
+
+    Args:
+        depth: (H, W) metres.
+        uv: (N, 2) pixels of the image ``K`` describes.
+        K: The image's intrinsics.
+        mode: ``nearest`` rounds to the closest pixel centre, ``floor`` truncates like the public Map-free code,
+            ``bilinear`` interpolates only where all four neighbours are valid (no blending across holes).
+
+    Returns:
+        (N,) float64 metres, 0 where invalid.
+
+    Raises:
+        ValueError: An unknown ``mode``.
     """
     if mode not in DEPTH_SAMPLING:
         raise ValueError(f"depth sampling must be one of {DEPTH_SAMPLING}, got {mode!r}")
@@ -119,14 +160,33 @@ def sample_depth_at(depth: np.ndarray, uv: np.ndarray, K: Intrinsics, mode: str 
 
 
 def backproject_keypoints(uv: np.ndarray, depth: np.ndarray, K: Intrinsics, mode: str) -> np.ndarray:
-    """Camera-frame 3D points of keypoints; ``floor`` back-projects the truncated pixel (public code)."""
+    """Camera-frame 3D points of keypoints with their depths.
+
+    Args:
+        uv: (N, 2) pixels.
+        depth: (N,) metres along the optical axis.
+        K: The image's intrinsics.
+        mode: The depth sampling mode; ``floor`` back-projects the truncated pixel, as the public code does.
+
+    Returns:
+        (N, 3) points in metres, camera frame.
+    """
     if mode == "floor":
         uv = np.floor(uv)
     return backproject(uv, depth, K.K)
 
 
 def kabsch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid (R, t) minimising sum w |R P + t - Q|^2, batched over leading axes: P, Q (...,N,3)."""
+    """Rigid (R, t) minimising ``sum w |R P + t - Q|^2``, batched over leading axes.
+
+    Args:
+        P: (..., N, 3) points.
+        Q: (..., N, 3) corresponding points.
+        w: (..., N) non-negative weights (default: all 1).
+
+    Returns:
+        R (..., 3, 3), a proper rotation, and t (..., 3).
+    """
     if w is None:
         w = np.ones(P.shape[:-1])
     w = w / np.sum(w, axis=-1, keepdims=True)
@@ -147,34 +207,63 @@ def kabsch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None) -> tuple[n
 
 
 def rotation_is_valid(R: np.ndarray, tol: float = 1e-6) -> bool:
-    """Finite, orthonormal, det +1."""
+    """Whether ``R`` is a finite, orthonormal 3x3 matrix with determinant +1.
+
+    Args:
+        R: The matrix.
+        tol: Tolerance (scaled by 100 for the checks).
+
+    Returns:
+        True for a rotation.
+    """
     R = np.asarray(R, dtype=np.float64)
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         return False
     return bool(np.allclose(R.T @ R, np.eye(3), atol=tol * 100) and abs(np.linalg.det(R) - 1) < tol * 100)
 
 
-class GuardedSolver:
+class GuardedSolver(Solver, Generic[OptionsT]):
     """Shared shell of the solvers: options dataclass + overrides, and a ``solve`` that never raises.
 
     Subclasses set ``Options`` and implement ``_solve(matches, K_ref, K_query, depth_ref, depth_query, timer)``,
     raising ``SolverError`` for expected failures; library errors become "no estimate" with their message too.
+
+    Args:
+        options: The solver's options dataclass (default: the paper's values).
+        **overrides: Option values over ``options`` (``ransac_threshold_px=2.0``), checked (``OptionError``).
     """
 
-    Options: type
+    Options: type[OptionsT]
     _errors: tuple[type[BaseException], ...] = (cv2.error, np.linalg.LinAlgError, ValueError, RuntimeError, MemoryError)
 
-    def __init__(self, options=None, **overrides) -> None:
-        self.options = self.Options.build(overrides, owner=f"solver {self.name!r}", base=options)
+    def __init__(self, options: OptionsT | None = None, **overrides: Any) -> None:
+        self.options: OptionsT = self.Options.build(overrides, owner=f"solver {self.name!r}", base=options)
+
+    @property
+    def confidence_mode(self) -> str:
+        """Which confidence its estimates report: the ``confidence`` option."""
+        return self.options.confidence
 
     def solve(
         self,
-        matches,
+        matches: Matches,
         K_ref: Intrinsics,
         K_query: Intrinsics,
         depth_ref: np.ndarray | None,
         depth_query: np.ndarray | None = None,
     ) -> Estimate:
+        """See ``Solver.solve``: never raises on bad input.
+
+        Args:
+            matches: ``kpts0`` reference pixels, ``kpts1`` query pixels, (N, 2) each.
+            K_ref: Intrinsics of the reference image.
+            K_query: Intrinsics of the query image.
+            depth_ref: (H, W) metres at the reference's size (0 = invalid), or None.
+            depth_query: (H, W) metres at the query's size, or None.
+
+        Returns:
+            The estimate; ``timings`` hold ``solve`` and the solver's own stages, in seconds.
+        """
         timer = Timer()
         try:
             with timer("solve"):
@@ -186,11 +275,19 @@ class GuardedSolver:
         est.timings = {**est.timings, **timer.timings}
         return est
 
-    def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
+    def _solve(
+        self,
+        matches: Matches,
+        K_ref: Intrinsics,
+        K_query: Intrinsics,
+        depth_ref: np.ndarray | None,
+        depth_query: np.ndarray | None,
+        timer: Timer,
+    ) -> Estimate:
         raise NotImplementedError
 
     @staticmethod
-    def _finite_matches(matches, minimum: int) -> tuple[np.ndarray, np.ndarray]:
+    def _finite_matches(matches: Matches, minimum: int) -> tuple[np.ndarray, np.ndarray]:
         """The matches with finite coordinates; ``SolverError`` when fewer than ``minimum`` remain."""
         ok = finite_matches(matches.kpts0, matches.kpts1)
         if ok.sum() < minimum:

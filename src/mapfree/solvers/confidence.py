@@ -25,7 +25,15 @@ CONFIDENCE_MODES = ("inliers", "score")
 
 
 def combined_score(inliers: int, *ratios: float) -> float:
-    """``inliers * prod(ratios)`` with each ratio clipped to [0, 1]; 0 for non-finite input."""
+    """Our ranking confidence: the inlier count times the agreement ratios of the robust steps.
+
+    Args:
+        inliers: Inlier count.
+        *ratios: Agreement ratios, each clipped to [0, 1].
+
+    Returns:
+        ``inliers * prod(ratios)``; 0 for a non-finite ratio.
+    """
     score = float(max(int(inliers), 0))
     for r in ratios:
         r = float(r)
@@ -36,12 +44,31 @@ def combined_score(inliers: int, *ratios: float) -> float:
 
 
 def confidences(inliers: int, *ratios: float) -> dict[str, float]:
-    """Both confidences, keyed as they are stored in ``Estimate.extras``."""
+    """Both confidences of an estimate, keyed as they are stored in ``Estimate.extras``.
+
+    Args:
+        inliers: Inlier count.
+        *ratios: Agreement ratios in [0, 1].
+
+    Returns:
+        ``{"confidence_inliers": …, "confidence_score": …}``.
+    """
     return {"confidence_inliers": float(max(int(inliers), 0)), "confidence_score": combined_score(inliers, *ratios)}
 
 
 def choose(mode: str, values: dict[str, float]) -> float:
-    """The confidence named by ``mode`` ("inliers" = paper, "score" = ours)."""
+    """The confidence named by ``mode``.
+
+    Args:
+        mode: ``inliers`` (the paper's) or ``score`` (ours).
+        values: What ``confidences`` returns.
+
+    Returns:
+        That confidence.
+
+    Raises:
+        ValueError: An unknown mode.
+    """
     if mode not in CONFIDENCE_MODES:
         raise ValueError(f"confidence must be one of {CONFIDENCE_MODES}, got {mode!r}")
     return values[f"confidence_{mode}"]

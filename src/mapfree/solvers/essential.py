@@ -14,7 +14,8 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose
-from ..options import Options, option
+from ..options import option
+from .base import SolverOptions
 from .common import (
     DEPTH_SAMPLING,
     GuardedSolver,
@@ -41,7 +42,7 @@ BACKENDS = ("opencv", "poselib")
 
 
 @dataclass
-class EssentialOptions(Options):
+class EssentialOptions(SolverOptions):
     """Defaults are the paper's; use ``ransac_threshold_px=2`` for learned matchers."""
 
     ransac_threshold_px: float = option(3.0, min=0, min_open=True)
@@ -58,7 +59,17 @@ class EssentialOptions(Options):
 
 
 def triangulated_depths(x0: np.ndarray, x1: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Depths of the DLT-triangulated normalised correspondences in both cameras (``X1 = R X0 + t``)."""
+    """Depths of the DLT-triangulated correspondences in both cameras (``X1 = R X0 + t``).
+
+    Args:
+        x0: (N, 2) normalised coordinates in camera 0.
+        x1: (N, 2) normalised coordinates in camera 1.
+        R: (3, 3) rotation.
+        t: (3,) translation (its scale sets the depths').
+
+    Returns:
+        (N,) depths in camera 0 and (N,) in camera 1 (NaN/inf for points at infinity).
+    """
     P0 = np.hstack([np.eye(3), np.zeros((3, 1))])
     P1 = np.hstack([R, t.reshape(3, 1)])
     A = np.stack(
@@ -78,7 +89,20 @@ def triangulated_depths(x0: np.ndarray, x1: np.ndarray, R: np.ndarray, t: np.nda
 
 
 def relative_pose_opencv(x0: np.ndarray, x1: np.ndarray, opt: EssentialOptions, threshold: float):
-    """(R, t̂, ransac mask, pose mask) with cv2 MAGSAC++ and recoverPose's cheirality + distance check."""
+    """Relative pose with OpenCV's MAGSAC++ and ``recoverPose``'s cheirality and distance check.
+
+    Args:
+        x0: (N, 2) normalised coordinates in the reference camera.
+        x1: (N, 2) normalised coordinates in the query camera.
+        opt: The solver's options (confidence, iterations, distance threshold).
+        threshold: RANSAC threshold in normalised units (pixels / mean focal length).
+
+    Returns:
+        R (3, 3), unit t̂ (3,), the (N,) RANSAC inlier mask and the (N,) mask of inliers in front of both cameras.
+
+    Raises:
+        SolverError: No essential matrix, or no correspondence in front of both cameras.
+    """
     E, mask = cv2.findEssentialMat(
         x0,
         x1,
@@ -133,7 +157,21 @@ def _camera(K: Intrinsics) -> dict:
 
 
 def relative_pose_poselib(kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, K1: Intrinsics, opt: EssentialOptions):
-    """Same outputs as ``relative_pose_opencv`` from poselib's LO-RANSAC with bundle refinement."""
+    """The outputs of ``relative_pose_opencv`` from poselib's LO-RANSAC with bundle refinement.
+
+    Args:
+        kpts0: (N, 2) reference pixels.
+        kpts1: (N, 2) query pixels.
+        K0: Reference intrinsics.
+        K1: Query intrinsics.
+        opt: The solver's options (threshold in pixels, confidence, iterations, distance threshold).
+
+    Returns:
+        R (3, 3), unit t̂ (3,), the RANSAC inlier mask and the cheirality-checked pose mask, (N,) each.
+
+    Raises:
+        SolverError: No essential matrix, or no correspondence in front of both cameras.
+    """
     import poselib
 
     pose, info = poselib.estimate_relative_pose(
@@ -168,7 +206,7 @@ def relative_pose_poselib(kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, 
     return R, t, ransac_mask, pose_mask
 
 
-class EssentialSolver(GuardedSolver):
+class EssentialSolver(GuardedSolver[EssentialOptions]):
     """Ess.Mat + D.Scale. ``solve`` never raises on bad input: it returns ``Estimate.failure(reason)``."""
 
     name = "essential"

@@ -22,7 +22,16 @@ ICP_METHODS = ("point_to_point", "point_to_plane")
 
 
 def estimate_normals(X: np.ndarray, tree: cKDTree, k: int = 10) -> np.ndarray:
-    """Unit normals of (N,3) points: smallest principal axis of each point's k nearest neighbours."""
+    """Unit normals of points: the smallest principal axis of each point's k nearest neighbours.
+
+    Args:
+        X: (N, 3) points.
+        tree: A KD-tree of ``X``.
+        k: Neighbours per point.
+
+    Returns:
+        (N, 3) unit normals (sign arbitrary).
+    """
     _, nn = tree.query(X, k=min(k, len(X)))
     nb = X[nn] - X[nn].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nb, nb)
@@ -58,10 +67,28 @@ def icp(
     relative_rmse: float = 1e-4,
     method: str = "point_to_point",
 ):
-    """Refine ``dst ≈ R src + t`` from an initial guess. Returns (R, t, fitness, inlier rmse).
+    """Refine ``dst ≈ R src + t`` from an initial guess (point-to-point or point-to-plane ICP).
 
-    Fitness is the fraction of ``src`` with a neighbour within ``max_distance``. Stops when fitness and
-    rmse change by less than the given amounts, or when fewer than 6 pairs remain (keeping the last pose).
+    Stops when fitness and rmse change by less than the given amounts, or when fewer than 6 pairs remain (keeping
+    the last pose).
+
+    Args:
+        src: (N, 3) points, metres.
+        dst: (M, 3) points, metres.
+        R: (3, 3) initial rotation.
+        t: (3,) initial translation.
+        max_distance: Pairs farther apart are not used, metres.
+        max_iterations: At most this many updates.
+        relative_fitness: Stop when the fitness changes by less.
+        relative_rmse: Stop when the rmse changes by less (metres).
+        method: ``point_to_point`` or ``point_to_plane``.
+
+    Returns:
+        (R, t, fitness, rmse): fitness is the fraction of ``src`` with a neighbour within ``max_distance``, rmse
+        theirs (metres).
+
+    Raises:
+        ValueError: An unknown method.
     """
     if method not in ICP_METHODS:
         raise ValueError(f"ICP method must be one of {ICP_METHODS}, got {method!r}")

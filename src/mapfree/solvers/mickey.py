@@ -23,7 +23,8 @@ import numpy as np
 from ..estimate import Estimate
 from ..geometry import Pose
 from ..matching.base import CandidateMatches
-from ..options import OptionError, Options, option
+from ..options import OptionError, option
+from .base import SolverOptions
 from .common import GuardedSolver, SolverError, Timer, rotation_is_valid
 from .confidence import CONFIDENCE_MODES, choose
 
@@ -41,7 +42,7 @@ __all__ = [
 
 
 @dataclass
-class MickeySolverOptions(Options):
+class MickeySolverOptions(SolverOptions):
     """The published values (MicKey's config, section ``PROCRUSTES``)."""
 
     draws: int = option(20, min=1)  # IT_MATCHES
@@ -74,7 +75,16 @@ class ProcrustesResult:
 
 
 def lift(kpts: torch.Tensor, depth: torch.Tensor, K: np.ndarray) -> torch.Tensor:
-    """(N, 2) pixels and (N,) depths -> (N, 3) camera points ``depth * K^-1 (u, v, 1)``, float32."""
+    """Keypoints to camera points: ``depth * K^-1 (u, v, 1)``.
+
+    Args:
+        kpts: (N, 2) pixels.
+        depth: (N,) metres.
+        K: (3, 3) camera matrix.
+
+    Returns:
+        (N, 3) float32 points in metres.
+    """
     import torch
 
     Kinv = torch.as_tensor(np.linalg.inv(np.asarray(K, dtype=np.float64)), device=kpts.device)
@@ -83,8 +93,17 @@ def lift(kpts: torch.Tensor, depth: torch.Tensor, K: np.ndarray) -> torch.Tensor
 
 
 def kabsch_torch(A: torch.Tensor, B: torch.Tensor, w: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rigid (R, t) with ``B ~ R A + t``, batched: A, B (..., N, 3). With ``w`` (..., N) the means are weighted by
-    ``w / sum w`` and the cross-covariance by ``w`` (MicKey's refinement on an inlier mask)."""
+    """Rigid (R, t) with ``B ~ R A + t``, batched over leading axes.
+
+    Args:
+        A: (..., N, 3) points.
+        B: (..., N, 3) corresponding points.
+        w: (..., N) weights: the means are weighted by ``w / sum w`` and the cross-covariance by ``w`` (MicKey's
+            refinement on an inlier mask); None for plain means.
+
+    Returns:
+        R (..., 3, 3) and t (..., 3).
+    """
     import torch
 
     if w is None:
@@ -131,9 +150,25 @@ def probabilistic_procrustes(
     options: MickeySolverOptions | None = None,
     generator: torch.Generator | None = None,
 ) -> ProcrustesResult:
-    """Poses of a batch of pairs: ``scores`` (B, N0, N1) >= 0 (at least ``sample_size`` positive per pair),
-    ``X0`` (B, N0, 3) and ``X1`` (B, N1, 3) the keypoints in each camera's frame. Each draw takes ``draw_size``
-    candidates, or as many as the pair with the fewest positive scores has."""
+    """MicKey's probabilistic Procrustes RANSAC for a batch of pairs.
+
+    Each draw takes ``draw_size`` candidates by score (or as many as the pair with the fewest positive scores
+    has), each hypothesis ``sample_size`` of them; the best hypothesis by soft inlier count is refined on its
+    inliers while their number grows.
+
+    Args:
+        scores: (B, N0, N1) candidate scores >= 0, at least ``sample_size`` positive per pair.
+        X0: (B, N0, 3) keypoints in camera 0's frame, metres.
+        X1: (B, N1, 3) keypoints in camera 1's frame, metres.
+        options: The solver's options (MicKey's published values by default).
+        generator: The random stream (seeded per pair by the solver).
+
+    Returns:
+        Per pair: the pose (``X1 = R X0 + t``) and its soft and hard inlier counts.
+
+    Raises:
+        SolverError: Fewer positive scores than ``sample_size``.
+    """
     import torch
 
     o = options or MickeySolverOptions()
@@ -186,12 +221,13 @@ def probabilistic_procrustes(
     return ProcrustesResult(Rb, tb, _soft_count(dist, o.inlier_threshold), (dist <= o.inlier_threshold).sum(-1), k)
 
 
-class MickeySolver(GuardedSolver):
+class MickeySolver(GuardedSolver[MickeySolverOptions]):
     """MicKey's own solver on the ``mickey`` matcher's candidates (every keypoint pair, scored, with each
     keypoint's metric depth); depth maps are not used. Never raises on bad input."""
 
     name = "mickey"
     Options = MickeySolverOptions
+    depth_needs = ()
 
     def _solve(self, matches: Any, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
         import torch

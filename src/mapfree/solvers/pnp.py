@@ -9,7 +9,8 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose, project
-from ..options import Options, option
+from ..options import option
+from .base import SolverOptions
 from .common import (
     DEPTH_SAMPLING,
     GuardedSolver,
@@ -28,7 +29,7 @@ BACKENDS = ("opencv", "poselib")
 
 
 @dataclass
-class PnPOptions(Options):
+class PnPOptions(SolverOptions):
     """Defaults are the paper's."""
 
     ransac_iterations: int = option(1000, min=1)
@@ -97,11 +98,12 @@ def _pnp_poselib(X: np.ndarray, uv: np.ndarray, K: Intrinsics, opt: PnPOptions):
     return np.asarray(pose.R, dtype=np.float64), np.asarray(pose.t, dtype=np.float64).reshape(3), mask
 
 
-class PnPSolver(GuardedSolver):
+class PnPSolver(GuardedSolver[PnPOptions]):
     """2D–3D PnP; uses only the reference depth. Never raises on bad input."""
 
     name = "pnp"
     Options = PnPOptions
+    depth_needs = ("ref",)
 
     def _solve(self, matches, K_ref, K_query, depth_ref, depth_query, timer: Timer) -> Estimate:
         opt = self.options

@@ -12,7 +12,8 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..geometry import Intrinsics, Pose, backproject_depth
-from ..options import Options, option
+from ..options import option
+from .base import SolverOptions
 from .common import (
     DEPTH_SAMPLING,
     MAX_DEPTH,
@@ -32,7 +33,7 @@ __all__ = ["ProcrustesOptions", "ProcrustesSolver", "ransac_rigid"]
 
 
 @dataclass
-class ProcrustesOptions(Options):
+class ProcrustesOptions(SolverOptions):
     """Defaults follow the public code (Open3D's RANSAC on correspondences: 3-point samples, 0.05 m,
     at most 100000 iterations, confidence 0.999); ICP off."""
 
@@ -63,7 +64,23 @@ def ransac_rigid(
     refine_steps: int = 3,
     seed: int = 0,
 ):
-    """Robust rigid (R, t) with ``Q ≈ R P + t`` from (N,3) correspondences; returns (R, t, inlier mask)."""
+    """Robust rigid alignment ``Q ≈ R P + t`` (3-point RANSAC, then refits on the inliers).
+
+    Args:
+        P: (N, 3) points, metres.
+        Q: (N, 3) corresponding points, metres.
+        threshold: Inlier distance, metres.
+        max_iterations: At most this many hypotheses.
+        confidence: Stop when a better hypothesis is this unlikely.
+        refine_steps: Refits on the inliers while they grow.
+        seed: The random stream's seed.
+
+    Returns:
+        R (3, 3), t (3,) and the (N,) inlier mask.
+
+    Raises:
+        SolverError: No consistent triplet.
+    """
     n = len(P)
     rng = np.random.default_rng(seed)
     batch = int(np.clip(2_000_000 // max(n, 1), 16, 512))
@@ -87,7 +104,7 @@ def ransac_rigid(
             w = best / n
             p_fail = 1.0 - w**3
             needed = 0 if p_fail <= 0 else int(np.ceil(np.log(1 - confidence) / np.log(p_fail)))
-    if best_R is None or best < 3:
+    if best_R is None or best_t is None or best < 3:
         raise SolverError("rigid RANSAC found no consistent triplet")
     mask = _count(P, Q, best_R, best_t, threshold)
     for _ in range(refine_steps):
@@ -119,7 +136,7 @@ def _cloud(depth: np.ndarray, K: Intrinsics, max_points: int) -> np.ndarray:
     return X[::step, ::step][ok[::step, ::step]]
 
 
-class ProcrustesSolver(GuardedSolver):
+class ProcrustesSolver(GuardedSolver[ProcrustesOptions]):
     """3D–3D rigid alignment of the matched, back-projected keypoints. Never raises on bad input."""
 
     name = "procrustes"

@@ -25,20 +25,31 @@ class ScaleVote(tuple):
         return super().__new__(cls, (index, votes, counts))
 
     @property
-    def index(self) -> int:
+    def index(self) -> int:  # type: ignore[override]  # the winner's index, not tuple.index: it unpacks as a triple
+        """The winner's input index (-1 when there is none)."""
         return self[0]
 
     @property
     def votes(self) -> int:
+        """The winner's number of votes."""
         return self[1]
 
     @property
     def counts(self) -> np.ndarray:
+        """(N,) every hypothesis's number of votes."""
         return self[2]
 
 
 def vote_counts(s: np.ndarray, threshold: float) -> np.ndarray:
-    """``count_i = #{j : |s_j - s_i| < threshold}`` for every i; 0 for non-finite hypotheses."""
+    """Votes of every hypothesis: ``count_i = #{j : |s_j - s_i| < threshold}`` (itself included).
+
+    Args:
+        s: (N,) scale hypotheses, metres.
+        threshold: Vote radius, metres.
+
+    Returns:
+        (N,) int64 counts, 0 for non-finite hypotheses (all 0 for a threshold that is not > 0).
+    """
     s = np.asarray(s, dtype=np.float64).reshape(-1)
     counts = np.zeros(len(s), dtype=np.int64)
     finite = np.isfinite(s)
@@ -76,7 +87,15 @@ def vote_counts(s: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def scale_vote(s: np.ndarray, threshold: float) -> ScaleVote:
-    """Max-consensus winner of the hypotheses ``s`` (see module doc); index -1 when no finite hypothesis."""
+    """Max-consensus winner of the hypotheses (see the module docstring), in O(n log n).
+
+    Args:
+        s: (N,) scale hypotheses, metres.
+        threshold: Vote radius, metres.
+
+    Returns:
+        ``ScaleVote(index, votes, counts)``: index -1 when there is no finite hypothesis; ties go to the first.
+    """
     counts = vote_counts(s, threshold)
     if len(counts) == 0 or counts.max() == 0:
         return ScaleVote(-1, 0, counts)
@@ -85,7 +104,15 @@ def scale_vote(s: np.ndarray, threshold: float) -> ScaleVote:
 
 
 def scale_vote_bruteforce(s: np.ndarray, threshold: float) -> ScaleVote:
-    """The paper's O(n²) loop, kept as the reference the fast vote is tested against."""
+    """The paper's O(n²) loop, kept as the reference the fast vote is tested against.
+
+    Args:
+        s: (N,) scale hypotheses, metres.
+        threshold: Vote radius, metres.
+
+    Returns:
+        The same ``ScaleVote`` as ``scale_vote``.
+    """
     s = np.asarray(s, dtype=np.float64).reshape(-1)
     best, best_i = 0, -1
     counts = np.zeros(len(s), dtype=np.int64)

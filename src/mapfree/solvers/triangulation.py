@@ -30,7 +30,15 @@ class TriangulationOptions(Options):
 
 
 def query_rays(ref_poses: Sequence[Pose], relative: Sequence[Pose]) -> tuple[np.ndarray, np.ndarray]:
-    """Origins (reference centres) and unit world directions (n,3) towards the query centre."""
+    """Rays from each reference's centre towards the query's.
+
+    Args:
+        ref_poses: The references' world-to-camera poses.
+        relative: Each reference-to-query relative pose (its translation's direction is used).
+
+    Returns:
+        Origins (n, 3) (the reference centres, world frame) and unit world directions (n, 3).
+    """
     origins = np.stack([p.center for p in ref_poses])
     dirs = []
     for ref, rel in zip(ref_poses, relative):
@@ -53,10 +61,22 @@ def triangulate_pose(
     weights: Sequence[float] | None = None,
     options: TriangulationOptions | None = None,
 ) -> Estimate:
-    """World-to-camera query pose from n >= 2 references' poses and the query's up-to-scale relative poses.
+    """World-to-camera query pose from n >= 2 references and the query's up-to-scale relative poses.
 
-    ``relative[i]`` maps reference ``i``'s camera to the query camera (``X_q = R_i X_i + s t̂_i``); only the
-    direction of its translation is used. Confidence: the smallest weight (every ray must be trustworthy).
+    The centre is the weighted least-squares intersection of the rays (``query_rays``); the rotation the weighted
+    chordal mean of ``R_i R_ref_i``.
+
+    Args:
+        ref_poses: The references' world-to-camera poses.
+        relative: ``relative[i]`` maps reference ``i``'s camera to the query camera (``X_q = R_i X_i + s t̂_i``);
+            only the direction of its translation is used.
+        weights: Per reference (e.g. inlier counts); default all 1.
+        options: Ray-angle and baseline limits.
+
+    Returns:
+        The estimate (metric: the scale comes from the distance between the references); its confidence is the
+        smallest weight (every ray must be trustworthy). A failure for fewer than 2 references, nearly parallel
+        rays, too short a baseline or rays that meet behind a reference.
     """
     o = options or TriangulationOptions()
     n = len(ref_poses)

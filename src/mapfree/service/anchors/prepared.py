@@ -96,7 +96,7 @@ def prepare_anchor(loc: Any, photos: Sequence[Any]) -> PreparedAnchor:
     ``loc``; with several photos learn the retrieval vocabulary on them (as ``ReferenceSet`` does) and describe
     each."""
     from ... import retrieval
-    from ...relocalize import View
+    from ...relocalize import Anchor, View
 
     views = [replace(p, name=f"photo {i}") for i, p in enumerate(photos)]
     describer = descriptors = None
@@ -105,11 +105,9 @@ def prepare_anchor(loc: Any, photos: Sequence[Any]) -> PreparedAnchor:
         descriptors = describer.fit_describe([v.image for v in views])
     out = []
     for v, p in zip(views, photos):
-        if hasattr(loc, "prepare"):
-            ref = loc.prepare(v)
+        ref = loc.prepare(v)  # a method without a reusable anchor (regression) keeps the photo itself
+        if isinstance(ref, Anchor):
             ref = replace(ref, view=View(NO_PIXELS, v.intrinsics, None, name=v.name))
-        else:
-            ref = v
         out.append(PreparedPhoto(ref, p.pose, v.name))
     prepared = PreparedAnchor(out, describer, descriptors)
     prepared.nbytes = deep_nbytes(prepared)

@@ -1,0 +1,264 @@
+"""What one photo is on its way through a method, and the per-query state the one-pair and the batched paths share.
+
+``View`` is one image ready for relocalization (a dataset frame or an upload alike); ``as_view`` makes one from a
+``Frame`` or ``(image | path, intrinsics[, depth])``. ``Anchor`` is a prepared reference, ``PreparedQuery`` a query
+after its reference-independent stage. ``fit_depth`` and ``view_depth`` bring a depth map to a view's pixels.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from itertools import islice
+from pathlib import Path
+from typing import Any, TypeVar
+
+import cv2
+import numpy as np
+
+from ..data import Frame, read_image
+from ..data.io import same_aspect
+from ..data.orientation import exif_orientation, fit_intrinsics, orient_pixels
+from ..depth.base import DepthSource, FileDepthSource, NetworkDepthSource, PairDepthSource
+from ..geometry import Intrinsics, Pose
+from ..localizer import error_reason
+from ..matching.base import Features
+
+__all__ = [
+    "View",
+    "ViewLike",
+    "as_view",
+    "Anchor",
+    "PreparedQuery",
+    "fit_depth",
+    "view_depth",
+    "error_reason",
+    "ahead",
+]
+
+
+@dataclass
+class View:
+    """One image ready for relocalization.
+
+    Attributes:
+        image: (H, W, 3) uint8 RGB, upright.
+        intrinsics: Of the upright pixels.
+        depth: (H, W) metric depth (metres, 0 = invalid) handed over with the image, or None.
+        frame: The dataset frame it was read from (its depth files are found through it), or None.
+        name: For messages and journals.
+        orientation: The EXIF orientation by which the frame's stored files (its intrinsics, depth maps) were
+            turned upright (1: none).
+        pose: World-to-camera pose when known (a mapping image that serves as a reference among K), else None.
+    """
+
+    image: np.ndarray
+    intrinsics: Intrinsics
+    depth: np.ndarray | None = None
+    frame: Frame | None = None
+    name: str = ""
+    orientation: int = 1
+    pose: Pose | None = None
+
+
+#: What ``as_view`` accepts: a ``View``, a ``Frame`` or ``(image | path, Intrinsics | K | (fx, fy, cx, cy)[, depth])``.
+ViewLike = View | Frame | tuple
+
+
+def _read_image_any(image: Any) -> tuple[np.ndarray, Path | None]:
+    if isinstance(image, (str, os.PathLike)):
+        return read_image(image), Path(image)
+    arr = np.asarray(image)
+    if arr.ndim == 2:
+        arr = np.repeat(arr[..., None], 3, axis=2)
+    return arr, None
+
+
+def _as_intrinsics(K: Any, image: np.ndarray) -> Intrinsics:
+    if isinstance(K, Intrinsics):
+        return K
+    K = np.asarray(K, dtype=np.float64)
+    h, w = image.shape[:2]
+    if K.shape == (3, 3):
+        return Intrinsics.from_K(K, w, h)
+    if K.shape == (4,):
+        fx, fy, cx, cy = map(float, K)
+        return Intrinsics(fx, fy, cx, cy, w, h)
+    raise ValueError(f"intrinsics must be an Intrinsics, a 3x3 K or (fx, fy, cx, cy), got shape {K.shape}")
+
+
+def as_view(x: ViewLike) -> View:
+    """A ``View`` of a frame or an image with its intrinsics.
+
+    Args:
+        x: A ``View`` (returned as is), a ``Frame``, or ``(image, intrinsics[, depth])`` with the image an
+            (H, W, 3) uint8 RGB array or a path, the intrinsics an ``Intrinsics``, a 3x3 K or ``(fx, fy, cx, cy)``
+            in pixels, and the depth an (H, W) map in metres. A path's EXIF orientation turns the pixels upright,
+            and the intrinsics and depth given for its stored grid with them.
+
+    Returns:
+        The view.
+
+    Raises:
+        TypeError: ``x`` is none of these.
+        ValueError: Intrinsics of another shape.
+    """
+    if isinstance(x, View):
+        return x
+    if isinstance(x, Frame):
+        image = x.image()
+        K, _, turned = _upright(image, x.intrinsics, x.image_path, None)
+        return View(image, K, None, x, x.name, turned)
+    if isinstance(x, tuple) and len(x) in (2, 3):
+        image, path = _read_image_any(x[0])
+        depth = None if len(x) == 2 or x[2] is None else np.asarray(x[2], dtype=np.float32)
+        K0 = _as_intrinsics(x[1], image)
+        K, depth, turned = _upright(image, K0, path, depth)
+        frame = Frame(path.name, path, K0) if path is not None else None  # its files keep the stored grid's K
+        return View(image, K, depth, frame, path.name if path is not None else "", turned)
+    raise TypeError(f"expected a Frame, a View or (image, intrinsics[, depth]); got {type(x).__name__}")
+
+
+def _upright(
+    image: np.ndarray, K: Intrinsics, path: Path | None, depth: np.ndarray | None
+) -> tuple[Intrinsics, np.ndarray | None, int]:
+    """Intrinsics and depth for the upright pixels of an image file: given for its stored grid (a tagged phone
+    photo), they are turned with it. Returns them and the orientation applied to them (1: none)."""
+    o = exif_orientation(path) if path is not None else 1
+    if o == 1:
+        return K, depth, 1
+    h, w = image.shape[:2]
+    K2 = fit_intrinsics(K, w, h, o, str(path))
+    if K2 is K:
+        return K, depth, 1
+    return K2, (orient_pixels(depth, o) if depth is not None else None), o
+
+
+def fit_depth(depth: np.ndarray | None, K: Intrinsics, owned: bool = False) -> np.ndarray | None:
+    """A depth map at the image's size, invalid values as 0.
+
+    A map at another resolution of the same aspect ratio is resized (nearest neighbour: holes stay holes).
+
+    Args:
+        depth: (h, w) metres, or None.
+        K: The image's intrinsics (its ``width`` and ``height``).
+        owned: The caller's fresh array (read from a file or predicted just now): when it is already clean, as
+            every map read from a depth PNG is, it is returned as is instead of copied.
+
+    Returns:
+        (K.height, K.width) float32 metres, NaN/inf/negative replaced by 0; None for None.
+
+    Raises:
+        ValueError: Not 2-D, or another aspect ratio than the image's.
+    """
+    if depth is None:
+        return None
+    d: np.ndarray = np.asarray(depth, dtype=np.float32)
+    if d.ndim != 2:
+        raise ValueError(f"depth map must be 2-D, got shape {d.shape}")
+    if d.shape != (K.height, K.width):
+        if not same_aspect(d.shape, K.width, K.height):
+            raise ValueError(
+                f"depth map is {d.shape[1]}x{d.shape[0]} but the image is {K.width}x{K.height}: another "
+                f"aspect ratio, so not this image's map (a map at another resolution is resized)"
+            )
+        d = cv2.resize(d, (K.width, K.height), interpolation=cv2.INTER_NEAREST)
+    # min >= 0 and max < inf: no NaN (it would be the min), no negative, no infinity: nothing to replace.
+    if (owned or d is not depth) and d.size and d.min() >= 0 and d.max() < np.inf:
+        return d
+    return np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+
+
+def view_depth(source: DepthSource, view: View) -> np.ndarray | None:
+    """The depth map of one view, before any matching.
+
+    The view's own map when it came with one; else, for a metric source that does not need the pair, the source's
+    map of the view's frame (a stored map of an EXIF-turned photo turned with it), or a network's prediction from
+    the pixels of a view without a frame.
+
+    Args:
+        source: The method's depth source.
+        view: The image.
+
+    Returns:
+        (H, W) float32 metres at the view's size (0 = invalid), or None (no depth, or depth from the pair).
+    """
+    if view.depth is not None:
+        return fit_depth(view.depth, view.intrinsics)
+    if not source.metric or isinstance(source, PairDepthSource):
+        return None
+    if view.frame is not None:
+        d = source.depth(view.frame)
+        if view.orientation != 1 and d is not None and isinstance(source, FileDepthSource):
+            d = orient_pixels(d, view.orientation)  # a stored map of a tagged photo: turned like its pixels
+        return fit_depth(d, view.intrinsics, owned=True)
+    if isinstance(source, NetworkDepthSource):  # a network: predict from the pixels themselves
+        return fit_depth(source.predict([view.image], [view.intrinsics.fx])[0], view.intrinsics, owned=True)
+    return None
+
+
+@dataclass
+class Anchor:
+    """A prepared reference: what every query against it reuses.
+
+    Attributes:
+        view: The reference image.
+        features: Its matcher features.
+        depth: (H, W) metres, or None (no depth, or depth that comes with each pair).
+        timings: Seconds spent preparing it (``extract_ref``, ``depth_ref``).
+    """
+
+    view: View
+    features: Features
+    depth: np.ndarray | None
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class PreparedQuery:
+    """A query after the reference-independent stage (reading, features, depth), or the error that stopped it.
+
+    Attributes:
+        view: The decoded query (None when reading failed).
+        features: Its matcher features (None until extracted, or when extraction failed).
+        depth: (H, W) metres, or None.
+        timings: Seconds per stage so far (``read``, ``extract``, ``depth``).
+        error: Why the query failed (``error: Type: message``), or None.
+    """
+
+    view: View | None
+    features: Features | None
+    depth: np.ndarray | None
+    timings: dict[str, float]
+    error: str | None = None
+
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def ahead(fn: Callable[[T], R], items: Iterable[T], n: int) -> Iterator[R]:
+    """``fn(item)`` for every item, in order, with up to ``n`` of the next items computed in a background thread
+    meanwhile.
+
+    Args:
+        fn: What to compute per item (reading and decoding a query).
+        items: The items.
+        n: How many to compute ahead; 0 or less: everything in the calling thread.
+
+    Returns:
+        ``fn``'s results, in the items' order.
+    """
+    if n <= 0:
+        yield from map(fn, items)
+        return
+    it = iter(items)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapfree-prefetch") as pool:
+        pending: deque[Future[R]] = deque(pool.submit(fn, x) for x in islice(it, n))
+        while pending:
+            done = pending.popleft().result()
+            pending.extend(pool.submit(fn, x) for x in islice(it, 1))
+            yield done
