@@ -5,7 +5,7 @@ PIP := $(PY) -m pip install -q --disable-pip-version-check
 # torch is pinned to the CPU wheel on this platform's disk; an open range could pull a multi-GB CUDA build.
 TORCH ?= torch==2.13.0
 
-.PHONY: setup setup-learned demo test test-fast docs wheel-check bench clean
+.PHONY: setup setup-learned demo test test-fast lint docs wheel-check bench clean
 
 $(VENV)/.learned: pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -33,6 +33,14 @@ test: setup
 # browser). They still run in `make test`.
 test-fast: setup
 	$(PY) -m pytest -m "not slow" --ignore=tests/service -p no:cacheprovider
+
+# Style, types and floors (CI runs it): ruff's format and lint, mypy on the library, and import-linter's contracts
+# (no module imports from a floor above its own, no import circle; see ARCHITECTURE.md).
+lint: setup
+	$(VENV)/bin/ruff format --check src tests bench
+	$(VENV)/bin/ruff check src tests bench
+	$(VENV)/bin/mypy
+	$(VENV)/bin/lint-imports
 
 # The documentation site; --strict turns every warning (broken link, docstring that does not render) into an error.
 docs: setup

@@ -332,12 +332,11 @@ def run_one(
     import torch
 
     from mapfree.methods import get
-    from mapfree.relocalize import frames_to_run, run_split
-    from mapfree.relocalize import run as run_mod
+    from mapfree.relocalize import frames_to_run, run_split, scenes
 
     name, _, opt = spec.partition(":")
     batch = 0 if opt == "b0" else batch
-    loc = run_mod._localizer(get(name))  # the instance run_split reuses in this process
+    loc = scenes.built_localizer(get(name))  # the instance run_split reuses in this process
     t0 = time.perf_counter()
     _warm_up(loc, root, split, warmup)
     warm = time.perf_counter() - t0

@@ -31,13 +31,12 @@ def profile_preset(
 
     from bench_pipeline import _scenes_with_depth, _warm_up
     from mapfree.methods import get
-    from mapfree.relocalize import frames_to_run, run_split
-    from mapfree.relocalize import run as run_mod
+    from mapfree.relocalize import frames_to_run, run_split, scenes
 
     gpu = torch.cuda.is_available()
     sync = torch.cuda.synchronize if gpu else (lambda: None)
 
-    loc = run_mod._localizer(get(name))
+    loc = scenes.built_localizer(get(name))
     _warm_up(loc, root, split, 4)
     scenes = _scenes_with_depth(root, split)
     out = [f"## {name}", ""]

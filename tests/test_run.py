@@ -296,8 +296,9 @@ def test_a_stop_asked_during_a_frame_keeps_that_frame(tiny, tmp_path, monkeypatc
 
     from mapfree.methods import get
     from mapfree.relocalize import run as run_mod
+    from mapfree.relocalize import scenes
 
-    stop, estimates = threading.Event(), run_mod._estimates
+    stop, estimates = threading.Event(), scenes.estimates
 
     def interrupted(*args, **kwargs):
         for est in estimates(*args, **kwargs):
@@ -305,7 +306,7 @@ def test_a_stop_asked_during_a_frame_keeps_that_frame(tiny, tmp_path, monkeypatc
             yield est
 
     monkeypatch.setattr(run_mod, "_STOP", stop)
-    monkeypatch.setattr(run_mod, "_estimates", interrupted)
+    monkeypatch.setattr(scenes, "estimates", interrupted)
     journal = tmp_path / "j.jsonl"
     journal.write_text("")
     method, frames = get(METHOD), [f.name for f in Dataset(tiny).scene("val", "s00003").scored_queries()]

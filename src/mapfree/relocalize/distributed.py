@@ -32,17 +32,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .run import (
+from .scenes import (
     FrameResult,
     SceneReference,
-    _append,
-    _localizer,
-    _sigint_ignored,
+    append_records,
+    built_localizer,
     check_depth_source,
     open_scene,
     save_figure,
     scene_results,
     set_threads,
+    sigint_ignored,
 )
 
 if TYPE_CHECKING:
@@ -248,7 +248,7 @@ class FrameWorker:
         if problem:
             return {"node": node, "unreadable": problem}
         try:
-            check_depth_source(_localizer(self.method))
+            check_depth_source(built_localizer(self.method))
         except Exception as e:  # weights or a model missing on this node: one line naming it
             return {"node": node, "error": f"{type(e).__name__}: {e}"}
         return {"node": node, "node_id": ray.get_runtime_context().get_node_id(), "version": __version__}
@@ -422,7 +422,7 @@ class _Driver:
             self._wait_for_setups()
             self._loop()
         finally:
-            with _sigint_ignored():  # Ctrl-C or an error included: nothing keeps running for this run
+            with sigint_ignored():  # Ctrl-C or an error included: nothing keeps running for this run
                 for s in self.slots:
                     ray.kill(s.actor, no_restart=True)
         return self.info
@@ -542,7 +542,7 @@ class _Driver:
             slot.frames.remove(rec["frame"])
         if key in self.journaled:
             return
-        _append(self.journal, [rec])
+        append_records(self.journal, [rec])
         self.journaled.add(key)
         save_figure(self.viz_dir, result)
         self.bar.update(1)
