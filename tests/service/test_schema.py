@@ -66,3 +66,77 @@ def test_every_route_answers_as_declared(route, app_and_token):
             case.call_and_validate(headers=headers, checks=CHECKS)
 
     fuzz()
+
+
+def test_calls_chained_by_the_declared_links_answer_as_declared(split_data, realmini_dir, tmp_path):
+    """Stateful: sequences of calls that follow the links ``openapi.json`` declares (an anchor created, then
+    fetched, localized against, given a photo, that photo deleted, the anchor deleted; a submission uploaded,
+    then read, renamed, downloaded, withdrawn; a token minted then revoked). The calls that create something get
+    real inputs (photos of a real scene, a valid submission ZIP) so that the chains reach the resources; every
+    other input is generated. No 5xx, every answer as declared."""
+    from hypothesis import settings as hsettings
+    from hypothesis.stateful import run_state_machine_as_test
+
+    from mapfree.data import Dataset
+    from mapfree.service import Settings, create_app
+
+    from .conftest import make_submission
+
+    url = f"sqlite:///{tmp_path / 'stateful.db'}"
+    token = create_users(url, {"chain": None})["chain"]
+    app = create_app(Settings(db_url=url, data_root=split_data.root, gt_root=split_data.gt, auth_failures_per_minute=0))
+    scene = Dataset(realmini_dir).scene("val", "s00000")
+    ref, query = scene.reference, scene.frame("seq1/frame_00009.jpg")
+
+    def photo(frame, depth: bool) -> dict:
+        K = frame.intrinsics
+        out = {"image": frame.image_path.read_bytes(), "fx": repr(K.fx), "fy": repr(K.fy), "cx": repr(K.cx)}
+        out["cy"] = repr(K.cy)
+        if depth:
+            out["depth"] = frame.depth_path("sensor").read_bytes()
+        return out
+
+    real = {
+        ("POST", "/anchors"): {**photo(ref, True), "method": "sift_pnp_sensor"},
+        ("POST", "/anchors/{aid}/photos"): {**photo(query, True), "pose": "1 0 0 0 0 0 0.1"},
+        ("POST", "/anchors/{aid}/localize"): photo(query, False),
+        ("POST", "/api/submissions"): {
+            "file": make_submission(split_data.root / "val"),
+            "split": "val",
+            "name": "chain",
+        },
+    }
+    seen: dict[str, int] = {}
+
+    class Chains(schemathesis.openapi.from_asgi("/openapi.json", app).as_state_machine()):  # type: ignore[misc]
+        def before_call(self, case):
+            body = real.get((case.method.upper(), case.operation.path))
+            if body is not None:
+                case.body = dict(body)
+
+        def get_call_kwargs(self, case):
+            return {"headers": {"Authorization": f"Bearer {token}"}}
+
+        def validate_response(self, response, case, **kwargs):
+            key = f"{case.method.upper()} {case.operation.path} {response.status_code}"
+            seen[key] = seen.get(key, 0) + 1
+            case.validate_response(response, checks=CHECKS)
+
+    run_state_machine_as_test(
+        Chains,
+        settings=hsettings(
+            max_examples=30,
+            stateful_step_count=8,
+            deadline=None,
+            derandomize=True,
+            database=None,
+            suppress_health_check=list(HealthCheck),
+        ),
+    )
+    app.state.engine.dispose()
+    # The chains reached the resources: created, then used through their links.
+    assert seen.get("POST /anchors 201") and seen.get("POST /api/submissions 202"), seen
+    for followed in ("GET /anchors/{aid}", "POST /anchors/{aid}/localize", "POST /anchors/{aid}/photos"):
+        assert any(k.startswith(followed + " 2") for k in seen), (followed, seen)
+    for followed in ("GET /api/submissions/{sid}", "GET /api/submissions/{sid}/zip", "DELETE /api/tokens/{tid}"):
+        assert any(k.startswith(followed + " 2") for k in seen), (followed, seen)

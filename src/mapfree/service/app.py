@@ -32,7 +32,7 @@ from .leaderboard.storage import drop_interrupted_uploads
 from .operations.health import HealthMonitor
 from .operations.metrics import Metrics
 from .process import die_with_parent, parent_from_env
-from .schemas import ERRORS
+from .schemas import ERRORS, for_clients
 
 log = logging.getLogger("mapfree.http")
 CSP = "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; frame-ancestors 'none'"
@@ -161,6 +161,8 @@ def create_app(settings: Settings) -> FastAPI:
         app.include_router(r.router)
     app.mount("/static", StaticFiles(directory=str(Path(__file__).parent / "static")), name="static")
     app.add_middleware(HeadAsGet)
+    schema = app.openapi
+    app.openapi = lambda: for_clients(schema())  # type: ignore[method-assign]
     return app
 
 

@@ -4,7 +4,7 @@ FastAPI checks each answer against its model. Routes whose answers leave out key
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -233,3 +233,75 @@ class LocalizeOut(_Out):
 
 #: The error answers every JSON route may give, for ``openapi.json``.
 ERRORS = {code: {"model": ErrorOut} for code in (400, 401, 403, 404, 408, 409, 410, 413, 422, 429, 500, 503)}
+
+
+#: OpenAPI links: which later calls take an id from a response, by (path, method, status) of the response, as
+#: {link name: ((path, method) of the call, {its parameter: where the value is in the response})}. Clients that read
+#: links (and the stateful fuzz test) chain the calls from them.
+LINKS: dict[tuple[str, str, str], dict[str, tuple[tuple[str, str], dict[str, Any]]]] = {
+    ("/api/tokens", "post", "201"): {
+        "RevokeToken": (("/api/tokens/{tid}", "delete"), {"tid": "$response.body#/id"}),
+    },
+    ("/api/sessions", "get", "200"): {
+        "EndSession": (("/api/sessions/{session_id}", "delete"), {"session_id": "$response.body#/0/id"}),
+    },
+    ("/api/submissions", "post", "202"): {
+        "GetSubmission": (("/api/submissions/{sid}", "get"), {"sid": "$response.body#/id"}),
+        "SetVisibility": (("/api/submissions/{sid}", "patch"), {"sid": "$response.body#/id"}),
+        "DescribeMethod": (("/api/submissions/{sid}/method", "put"), {"sid": "$response.body#/id"}),
+        "DownloadZip": (("/api/submissions/{sid}/zip", "get"), {"sid": "$response.body#/id"}),
+        "Withdraw": (("/api/submissions/{sid}", "delete"), {"sid": "$response.body#/id"}),
+    },
+    ("/anchors", "post", "201"): {
+        "GetAnchor": (("/anchors/{aid}", "get"), {"aid": "$response.body#/id"}),
+        "Localize": (("/anchors/{aid}/localize", "post"), {"aid": "$response.body#/id"}),
+        "AddPhoto": (("/anchors/{aid}/photos", "post"), {"aid": "$response.body#/id"}),
+        "GetFirstPhoto": (("/anchors/{aid}/photos/{k}", "get"), {"aid": "$response.body#/id", "k": 0}),
+        "DeleteAnchor": (("/anchors/{aid}", "delete"), {"aid": "$response.body#/id"}),
+    },
+    ("/anchors/{aid}/photos", "post", "201"): {
+        "GetAnchorAgain": (("/anchors/{aid}", "get"), {"aid": "$response.body#/id"}),
+        "LocalizeAgain": (("/anchors/{aid}/localize", "post"), {"aid": "$response.body#/id"}),
+        "DeleteSecondPhoto": (("/anchors/{aid}/photos/{k}", "delete"), {"aid": "$response.body#/id", "k": 1}),
+    },
+}
+
+
+def _optional_file(prop: Any) -> dict[str, Any] | None:
+    """The file schema of an optional upload (``anyOf: [file, null]``, FastAPI's ``UploadFile | None``), else None."""
+    options = prop.get("anyOf") if isinstance(prop, dict) else None
+    if not isinstance(options, list) or len(options) != 2 or {"type": "null"} not in options:
+        return None
+    (file,) = [o for o in options if o != {"type": "null"}]
+    return file if file.get("contentMediaType") == "application/octet-stream" else None
+
+
+def for_clients(spec: dict[str, Any]) -> dict[str, Any]:
+    """The OpenAPI document as clients read it best (in place; again is a no-op): ``LINKS`` written in by the
+    operation ids the document has, and an optional upload declared as a file part that may be left out (not as
+    "a file or null", which client generators and schemathesis send as a text field).
+
+    Args:
+        spec: The app's ``openapi()`` document.
+
+    Returns:
+        The same document.
+    """
+    for schema in spec.get("components", {}).get("schemas", {}).values():
+        for name, prop in schema.get("properties", {}).items():
+            file = _optional_file(prop)
+            if file is not None:
+                extra = {k: v for k, v in prop.items() if k != "anyOf"}
+                schema["properties"][name] = {**file, **extra}
+    paths = spec.get("paths", {})
+    for (path, method, status), links in LINKS.items():
+        response = paths.get(path, {}).get(method, {}).get("responses", {}).get(status)
+        if response is None:
+            continue
+        out = {}
+        for name, ((to_path, to_method), parameters) in links.items():
+            target = paths.get(to_path, {}).get(to_method)
+            if target is not None:
+                out[name] = {"operationId": target["operationId"], "parameters": parameters}
+        response["links"] = out
+    return spec
