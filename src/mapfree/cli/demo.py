@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
 
     print("[3/4] scoring")
     report = evaluate(sub, data, "val")
-    (out / "scores.json").write_text(report.to_json() if hasattr(report, "to_json") else json.dumps(report.to_dict()))
+    (out / "scores.json").write_text(report.to_json())
     print(format_table(report))
     for line in expectation(args, report.metrics):
         print(line)

@@ -25,15 +25,18 @@ class _PreActResidual(nn.Module):
     bn1: nn.Module
 
     def _shortcut(self, cin: int, cout: int, stride: int) -> None:
-        if stride != 1 or cin != cout:
-            self.shortcut = nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False))
+        """A 1x1 projection where the shape changes; None (the identity) where it does not."""
+        changes = stride != 1 or cin != cout
+        self.shortcut: nn.Module | None = (
+            nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False)) if changes else None
+        )
 
     def residual(self, y: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = F.relu(self.bn1(x))
-        skip = self.shortcut(y) if hasattr(self, "shortcut") else x
+        skip = self.shortcut(y) if self.shortcut is not None else x
         return self.residual(y) + skip
 
 

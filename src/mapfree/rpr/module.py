@@ -52,7 +52,7 @@ class RPRModule(pl.LightningModule):
 
     def train(self, mode: bool = True) -> RPRModule:
         super().train(mode)
-        for m in getattr(self, "_frozen", []):
+        for m in self._frozen:
             m.eval()
         return self
 
