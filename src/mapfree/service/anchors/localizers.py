@@ -15,6 +15,7 @@ import numpy as np
 
 from ...estimate import Estimate
 from ...geometry import Intrinsics
+from ...matching.base import Matches
 from ..inputs import UploadError
 from .methodpool import MethodPool
 from .photos import Photo
@@ -33,7 +34,7 @@ def default_method(configured: str = "") -> str:
     """The configured method, else the registry's best offline preset, else SIFT + PnP on the anchor's depth."""
     from ... import methods
 
-    for name in (configured, getattr(methods, "BEST_OFFLINE", ""), FALLBACK_METHOD):
+    for name in (configured, methods.BEST_OFFLINE, FALLBACK_METHOD):
         if not name:
             continue
         try:
@@ -320,8 +321,9 @@ def figure_png(
     from ... import viz
 
     m = est.extras.get("matches")
-    k0 = np.asarray(getattr(m, "kpts0", np.zeros((0, 2))), float).reshape(-1, 2)
-    k1 = np.asarray(getattr(m, "kpts1", np.zeros((0, 2))), float).reshape(-1, 2)
+    if not isinstance(m, Matches):  # a method without correspondences (RPR) or a failure before matching
+        m = Matches.empty()
+    k0, k1 = m.kpts0, m.kpts1
     fig = viz.relocalization_figure(
         ref_image, query_image, ref_K, query_K, k0, k1, est.pose, title=title, reason=est.reason
     )

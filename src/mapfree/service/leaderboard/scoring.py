@@ -17,6 +17,8 @@ from .disclosure import public_test_metrics
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
 
+    from ...benchmark import Report
+
 #: The benchmark's aggregate keys; for ``test`` nothing else leaves the server.
 METRIC_KEYS = (
     "AUC @ VCRE < 90px",
@@ -61,8 +63,8 @@ def _finite(x: Any) -> Any:
     return x
 
 
-def _problems(report: Any) -> list[str]:
-    return [str(p)[:500] for p in list(getattr(report, "problems", []) or [])[:MAX_PROBLEMS]]
+def _problems(report: Report) -> list[str]:
+    return [str(p)[:500] for p in list(report.problems)[:MAX_PROBLEMS]]
 
 
 def redact(report_dict: dict, problems: list[str], split: str) -> dict:
@@ -111,7 +113,7 @@ def score(settings: Settings, split: str, zip_path: Path) -> tuple[dict, bytes |
         report = benchmark.evaluate(zip_path, settings.data_root, split, truth=_truth(settings, split), limits=limits)
     except (ValueError, OSError, KeyError, benchmark.EvaluationError) as e:
         raise SubmissionRejected(str(e).replace(str(zip_path), "submission.zip")) from None
-    fatal = [p for p in report.problems if getattr(p, "fatal", False)]
+    fatal = [p for p in report.problems if p.fatal]
     if fatal:
         raise SubmissionRejected(str(fatal[0]))
     if report.problems and not np.any(report.estimated):
