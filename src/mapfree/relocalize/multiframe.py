@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..benchmark import write_submission
 from ..data import Dataset, DevicePoses, Scene, load_device_poses, scene_bursts
 from ..estimate import Estimate
 from ..geometry import Pose
@@ -245,7 +246,6 @@ def run_multi(
                 by_scene[name].append((query, fused.pose, fused.confidence))
             else:
                 failures.append({"scene": name, "frame": query, "reason": fused.reason})
-    from ..benchmark import write_submission
 
     write_submission(output, by_scene)
     failures_path(output).write_text("".join(json.dumps(f) + "\n" for f in failures))

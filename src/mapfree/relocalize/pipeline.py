@@ -8,23 +8,23 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable, Iterator
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from .. import depth as depth_mod
+from .. import matching, methods, solvers
 from ..depth.base import DepthSource, PairDepthSource
 from ..estimate import Estimate
 from ..geometry import Pose
 from ..localizer import Localizer
 from ..matching.base import Features, Matcher, Matches
+from ..methods import Method
 from ..solvers.base import DepthNeed, Solver
 from ..solvers.confidence import choose, confidences
 from .allocator import keep_heap_warm
 from .batched import BatchOptions, default_batch_size, localize_batched
 from .views import Anchor, PreparedQuery, View, ViewLike, ahead, as_view, error_reason, fit_depth, view_depth
-
-if TYPE_CHECKING:
-    from ..methods import Method
 
 __all__ = ["View", "Anchor", "Localizer", "Relocalizer", "as_view", "ViewLike", "MIN_PARALLAX_PX", "build_matching"]
 
@@ -61,18 +61,12 @@ class Relocalizer(Localizer[Anchor]):
         name: str = "",
     ) -> None:
         if isinstance(matcher, str):
-            from .. import matching
-
             matcher = matching.create(matcher, **(matcher_opts or {}))
         if isinstance(depth, str):
-            from .. import depth as depth_mod
-
             engine = matcher.engine  # a two-view network: its depth comes from the same passes
             same = depth in depth_mod.PAIR_MODELS and engine is not None and engine.name == depth
             depth = depth_mod.create(depth, **({"engine": engine} if same else {}))
         if isinstance(solver, str):
-            from .. import solvers
-
             solver = solvers.create(solver, **(solver_opts or {}))
         keep_heap_warm()  # per-pair buffers stay in the heap instead of faulting in again (allocator.py)
         self.matcher: Matcher = matcher
@@ -91,8 +85,6 @@ class Relocalizer(Localizer[Anchor]):
         Returns:
             The method's localizer.
         """
-        from .. import methods
-
         keep_heap_warm()  # also for the methods that build their own kind of localizer
         m = method if isinstance(method, methods.Method) else methods.get(method)
         localizer: Localizer[Any] = m.build()

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ..data import Scene
+from ..solvers.confidence import CONFIDENCE_MODES
 
 __all__ = ["check_output", "check_confidence", "selection_of", "check_same_selection"]
 
@@ -36,7 +37,6 @@ def check_confidence(confidence: str | None, m: Any) -> None:
     ones: an unknown name once fell back to the method's own confidence without a word."""
     if confidence is None:
         return
-    from ..solvers.confidence import CONFIDENCE_MODES
 
     known = [f"confidence_{c}" for c in CONFIDENCE_MODES]
     if m.kind != "matching":

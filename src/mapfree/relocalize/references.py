@@ -14,20 +14,21 @@ import logging
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from .. import retrieval
 from ..data import Frame, Scene
 from ..estimate import Estimate
 from ..geometry import Pose
 from ..localizer import Localizer, QueryLocalizer
+from ..methods import Method, get
+from ..retrieval import retrieve
 from ..solvers.essential import EssentialSolver
+from ..solvers.triangulation import triangulate_pose
 from .pipeline import Relocalizer
 from .views import View, ViewLike, ahead, as_view
-
-if TYPE_CHECKING:
-    from ..methods import Method
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +117,6 @@ class ReferenceSet:
     ) -> ReferenceSet:
         """Choose ``k`` references among ``mapping`` (Frames with poses, Views, or (image, K[, depth]) with
         ``poses``). Every image is read once to describe it; only the chosen ones are kept in memory."""
-        from .. import retrieval
 
         o = replace(options or ReferenceOptions(), **overrides) if overrides else (options or ReferenceOptions())
         mapping = list(mapping)
@@ -146,7 +146,6 @@ class ReferenceSet:
         """Reference indices, most similar first, with their similarities (all 1 when nothing to retrieve)."""
         if self.descriptors is None:
             return np.arange(len(self)), np.ones(len(self))
-        from ..retrieval import retrieve
 
         return retrieve(self.describer.describe(view.image), self.descriptors, top=len(self))
 
@@ -192,8 +191,6 @@ class ReferenceSet:
         return best
 
     def _triangulate(self, loc: Localizer[Any], view: View, order: np.ndarray, sims: np.ndarray) -> Estimate:
-        from ..solvers.triangulation import triangulate_pose
-
         if not isinstance(loc, Relocalizer):
             return Estimate.failure("pose triangulation needs a matching method (matcher + essential matrix)")
         matcher = loc.matcher
@@ -334,8 +331,6 @@ def with_references(method: str | Method, k: int, mode: str = "retrieval", top: 
     Raises:
         ValueError: Values ``ReferenceOptions`` refuses.
     """
-    from ..methods import Method, get
-
     m = method if isinstance(method, Method) else get(method)
     ReferenceOptions(k=k, mode=mode, top=top)  # validate early, with a clear message
     if k == 1 and mode == "retrieval":

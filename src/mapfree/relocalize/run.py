@@ -19,13 +19,15 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from ..benchmark import write_submission
 from ..data import REFERENCE_NAME, Dataset, Scene
 from ..data.io import depth_suffixes
 from ..geometry import Pose
+from ..methods import Method, depth_free_problem, get
 from .preflight import check_confidence, check_output, check_same_selection, selection_of
 from .references import check_scene_references
 from .scenes import (
@@ -40,9 +42,6 @@ from .scenes import (
     sigint_ignored,
     write_frame_figure,
 )
-
-if TYPE_CHECKING:
-    from ..methods import Method
 
 log = logging.getLogger(__name__)
 
@@ -208,8 +207,6 @@ def _init_worker(threads: int, stop: Any = None) -> None:
 
 
 def _write_outputs(output: Path, scenes: list[str], recs: list[dict], confidence: str | None) -> tuple[int, int]:
-    from ..benchmark import write_submission
-
     by_scene: dict[str, list] = {s: [] for s in scenes}
     failures = []
     # Frame order, not journal order (which is the order workers finished in): the same ZIP wherever they ran.
@@ -261,8 +258,6 @@ def run_split(
     the resources per worker of ``ray_options`` (a ``distributed.RayOptions``); this process keeps the journal,
     and the results are the same as a local run's (``mapfree.relocalize.distributed``).
     """
-    from ..methods import Method, get
-
     t_start = time.perf_counter()
     m = method if isinstance(method, Method) else get(method)
     output = Path(output)
@@ -304,7 +299,6 @@ def run_split(
         names = [f for f in wanted_frames if (s.name, f) not in done]
         if names:
             todo.append((s, names))
-    from ..methods import depth_free_problem
 
     problem = depth_free_problem(m)
     if problem:  # a split's frames come without depth maps of their own: nothing could succeed

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -25,11 +25,11 @@ from ..data import Scene
 from ..estimate import Estimate
 from ..geometry import Pose
 from ..localizer import Localizer, QueryLocalizer
+from ..methods import Method
+from ..viz import FIGURE_MAX_SIDE, FIGURE_QUALITY, estimate_figure, jpeg_bytes
+from ..viz import save_figure as save_jpeg
 from .batched import BatchOptions
 from .references import bind_scene_references, reference_spec
-
-if TYPE_CHECKING:
-    from ..methods import Method
 
 log = logging.getLogger(__name__)
 
@@ -151,8 +151,6 @@ def scene_results(
         world = est.pose @ ref.ref_pose if est.pose is not None else None
         picture = None
         if figures:
-            from ..viz import FIGURE_MAX_SIDE, FIGURE_QUALITY, jpeg_bytes
-
             fig = frame_figure(scene, name, est, world, method, ref.ref_image)
             picture = None if fig is None else jpeg_bytes(fig, FIGURE_MAX_SIDE, FIGURE_QUALITY)
         yield FrameResult(frame_record(scene.name, name, est, world), picture)
@@ -182,7 +180,6 @@ def frame_figure(
     when the split has it). Methods that relocalize against other references than the scene's
     (``--references K``) get the AR check alone: their matches are with another image. A figure that cannot be
     drawn is logged, never raised. ``ref_image``: the reference image's reader, when the caller caches it."""
-    from ..viz import estimate_figure
 
     try:
         ref, query = scene.reference, scene.frame(frame)
@@ -218,7 +215,6 @@ def write_frame_figure(
 ) -> Path | None:
     """Draw one frame's figure (``frame_figure``) into ``frame_figure_path(viz_dir, …)``; None when it could not
     be drawn or written (logged, never raised)."""
-    from ..viz import save_figure as save_jpeg
 
     fig = frame_figure(scene, frame, est, world, method, ref_image)
     if fig is None:
