@@ -260,6 +260,39 @@ def test_resume_after_the_driver_is_killed_computes_only_the_missing_frames(spli
     _same_outputs(local, out)
 
 
+def test_ctrl_c_stops_the_cluster_run_and_resume_finishes_it(split, local, cluster, tmp_path):
+    """Ctrl-C in the driver: one line saying how many frames are kept (exit 130, no traceback) within seconds,
+    the workers stop, and --resume computes only the rest: the same ZIP as the local run, no frame twice."""
+    out = tmp_path / "sub.zip"
+    journal = out.with_name("sub.journal.jsonl")
+    proc = mapfree_run(split, out, "--all-frames", "--ray", cluster.address, popen=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None and len(_keys(journal)) < 10:
+            time.sleep(0.05)
+        assert proc.poll() is None, f"the run ended before Ctrl-C: {proc.stderr.read()}"
+        os.killpg(proc.pid, signal.SIGINT)  # what a terminal sends to the foreground process group
+        t0 = time.monotonic()
+        proc.wait(60)
+        stopped_s = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    err = proc.stderr.read()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err and "--resume" in err, err
+    assert stopped_s < 30
+    before = read_journal(journal)[1]
+    assert 10 <= len(before) < TOTAL and not out.exists()
+
+    res = summary(mapfree_run(split, out, "--all-frames", "--resume", "--ray", cluster.address))
+    keys = _keys(journal)
+    assert len(keys) == len(set(keys)) == TOTAL
+    assert res["computed"] == TOTAL - len(before)
+    _same_outputs(local, out)
+
+
 def test_weights_missing_on_the_nodes_stop_the_run_before_any_work(split, cluster, tmp_path):
     """SuperGlue's weights are on no node (nor downloadable here): each worker builds the method on its node, and
     the first to fail ends the run in one line naming its node and where the weights go; nothing is journaled."""
