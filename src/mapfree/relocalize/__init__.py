@@ -1,6 +1,6 @@
 """Relocalization: one pair (``Relocalizer``) or a whole split (``run_split``) into a submission.
 
-Every method kind builds a ``Localizer`` (``mapfree.relocalize.base``); a ``View`` is one image on its way through
+Every method kind builds a ``Localizer`` (``mapfree.localizer``); a ``View`` is one image on its way through
 it (``mapfree.relocalize.views``).
 """
 
