@@ -7,6 +7,7 @@ one PostgreSQL database and nothing else. Timestamps are UNIX seconds (floats) t
 from __future__ import annotations
 
 import os
+import sqlite3
 import time
 import uuid
 from typing import Any, cast
@@ -246,6 +247,22 @@ def _private_file(path: str | None) -> None:
 READ_ONLY = "mapfree_read_only"
 
 
+def _wal(cur: Any, wait_s: float = 30.0) -> None:
+    """Put a SQLite database in WAL mode (once: the mode is stored in the file). The switch takes the exclusive
+    lock and SQLite answers "database is locked" at once, without its busy wait, while another connection holds
+    the file (processes starting together on an old database): retried until ``wait_s`` has passed."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            if str(cur.execute("PRAGMA journal_mode").fetchone()[0]).lower() != "wal":
+                cur.execute("PRAGMA journal_mode=WAL")
+            return
+        except sqlite3.OperationalError as e:
+            if "locked" not in str(e) or time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
+
+
 def make_engine(url: str) -> Engine:
     """An engine; on SQLite every transaction is ``BEGIN IMMEDIATE`` (one writer at a time, waits up to 30 s),
     in WAL mode so that readers in other processes are not blocked."""
@@ -258,9 +275,9 @@ def make_engine(url: str) -> Engine:
         def _connect(dbapi_conn: Any, _record: Any) -> None:  # pragma: no cover - driver hook
             dbapi_conn.isolation_level = None  # let us issue BEGIN ourselves
             cur = dbapi_conn.cursor()
-            cur.execute("PRAGMA journal_mode=WAL")
-            cur.execute("PRAGMA foreign_keys=ON")
             cur.execute("PRAGMA busy_timeout=30000")
+            _wal(cur)
+            cur.execute("PRAGMA foreign_keys=ON")
             cur.close()
 
         @event.listens_for(engine, "begin")
