@@ -5,13 +5,13 @@ pixels, depth maps at the image size, one forward pass per pair, the reference e
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
+from cli_support import mapfree_process
 from mapfree import methods
 from mapfree.data import Dataset
 from mapfree.depth.mast3r import Mast3rDepth
@@ -132,45 +132,22 @@ def test_cli_relocalize_with_tiny_checkpoint(weights, scene, tmp_path, realmini)
     cfg.write_text(f"extends: mast3r_pnp_mast3r\nmatcher_opts:\n  long_side: {SMALL}\n")
     ref = realmini / "val" / "s00000" / "seq0" / "frame_00000.jpg"
     query = realmini / "val" / "s00000" / QUERIES[0]
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "mapfree",
-            "relocalize",
-            str(ref),
-            str(query),
-            "--method",
-            str(cfg),
-            "--intrinsics",
-            str(realmini / "val" / "s00000" / "intrinsics.txt"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    intrinsics = realmini / "val" / "s00000" / "intrinsics.txt"
+    r = mapfree_process("relocalize", ref, query, "--method", str(cfg), "--intrinsics", intrinsics)
     assert "Traceback" not in r.stderr, r.stderr
     out = json.loads(r.stdout)
     assert r.returncode == (0 if out["ok"] else 3)  # 3: ran, no estimate
     assert out["method"] == "mast3r-small" and out["scores"]["num_matches"] > 0
     assert out["ok"] or out["reason"]  # junk weights: a pose or a clean no-estimate, never a crash
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "mapfree",
-            "relocalize",
-            str(ref),
-            str(query),
-            "--method",
-            "dust3r_emat_dust3r",
-            "--intrinsics",
-            str(realmini / "val" / "s00000" / "intrinsics.txt"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env={**os.environ, "MAPFREE_WEIGHTS_DIR": str(tmp_path)},
+    r = mapfree_process(
+        "relocalize",
+        ref,
+        query,
+        "--method",
+        "dust3r_emat_dust3r",
+        "--intrinsics",
+        intrinsics,
+        env={"MAPFREE_WEIGHTS_DIR": str(tmp_path)},
     )
     assert r.returncode == 1 and "Traceback" not in r.stderr
     assert "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth" in r.stderr

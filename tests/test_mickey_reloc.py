@@ -5,13 +5,11 @@ read back by our solvers, the reference run through the network once, batches, c
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+from cli_support import mapfree_process
 from mapfree import methods
 from mapfree.data import Dataset
 from mapfree.depth.mickey import MickeyDepth
@@ -227,56 +225,26 @@ def test_available_only_with_the_weights(weights, tmp_path, monkeypatch):
 def test_cli_relocalize_and_match(weights, tmp_path, realmini):
     ref = realmini / "val" / "s00000" / "seq0" / "frame_00000.jpg"
     query = realmini / "val" / "s00000" / QUERIES[0]
-    env = {**os.environ, "MAPFREE_WEIGHTS_DIR": str(weights), "MAPFREE_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "mapfree",
-            "relocalize",
-            str(ref),
-            str(query),
-            "--method",
-            "mickey",
-            "--intrinsics",
-            str(realmini / "val" / "s00000" / "intrinsics.txt"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=env,
-    )
+    intrinsics = realmini / "val" / "s00000" / "intrinsics.txt"
+    env = {"MAPFREE_WEIGHTS_DIR": str(weights), "MAPFREE_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
+    r = mapfree_process("relocalize", ref, query, "--method", "mickey", "--intrinsics", intrinsics, env=env)
     assert "Traceback" not in r.stderr, r.stderr
     out = json.loads(r.stdout)
     assert r.returncode == 0 and out["ok"] and out["method"] == "mickey" and out["scores"]["num_matches"] > 100
     npz = tmp_path / "m.npz"
-    r = subprocess.run(
-        [sys.executable, "-m", "mapfree", "match", str(ref), str(query), "--matcher", "mickey", "-o", str(npz)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=env,
-    )
+    r = mapfree_process("match", ref, query, "--matcher", "mickey", "-o", npz, env=env)
     assert r.returncode == 0, r.stderr
     assert "(1938 / 1938 points)" in r.stdout
     with np.load(npz) as z:
         assert z["kpts0"].shape[0] > 100 and z["kpts0"][:, 1].max() <= 359.5
-    r = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "mapfree",
-            "relocalize",
-            str(ref),
-            str(query),
-            "--method",
-            "mickey",
-            "--intrinsics",
-            str(realmini / "val" / "s00000" / "intrinsics.txt"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
+    r = mapfree_process(
+        "relocalize",
+        ref,
+        query,
+        "--method",
+        "mickey",
+        "--intrinsics",
+        intrinsics,
         env={**env, "MAPFREE_WEIGHTS_DIR": str(tmp_path)},
     )
     assert r.returncode == 1 and "Traceback" not in r.stderr
