@@ -99,8 +99,8 @@ def cluster():
         keeper.stop()
 
 
-def mapfree_run(split: Path, out: Path, *args: str, popen: bool = False):
-    """``mapfree run SPLIT --method METHOD -o OUT --no-progress --json ARGS`` as its own process."""
+def mapfree_run(split: Path, out: Path, *args: str, popen: bool = False, as_json: bool = True):
+    """``mapfree run SPLIT --method METHOD -o OUT --no-progress [--json] ARGS`` as its own process."""
     cmd = [
         sys.executable,
         "-m",
@@ -112,7 +112,7 @@ def mapfree_run(split: Path, out: Path, *args: str, popen: bool = False):
         "-o",
         str(out),
         "--no-progress",
-        "--json",
+        *(["--json"] if as_json else []),
         *args,
     ]
     env = {**os.environ, **ENV}
@@ -183,27 +183,8 @@ def test_multi_frame_track_and_figures_equal_the_local_ones(split, cluster, tmp_
     assert figures == sorted(p.relative_to(tmp_path / "ray/viz") for p in (tmp_path / "ray/viz").rglob("*.jpg"))
     for f in figures:
         assert (tmp_path / "local/viz" / f).read_bytes() == (tmp_path / "ray/viz" / f).read_bytes(), f
-    text = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "mapfree",
-            "run",
-            str(split),
-            "--method",
-            METHOD,
-            "-o",
-            str(tmp_path / "ray/m.zip"),
-            "--track",
-            "multi",
-            "--scenes",
-            "s00001",
-            "--resume",
-            "--no-progress",
-        ],
-        capture_output=True,
-        text=True,
-        env={**os.environ, **ENV},
+    text = mapfree_run(
+        split, tmp_path / "ray/m.zip", "--track", "multi", "--scenes", "s00001", "--resume", as_json=False
     )
     assert text.returncode == 0 and "(0 computed, 27 from the journal" in text.stdout, text.stdout + text.stderr
 
