@@ -33,11 +33,12 @@ def realmini() -> Path:
 
 @pytest.fixture
 def one_torch_thread():
-    """One intra-op thread: the CI machine's cores are shared, and spinning thread pools slow tiny nets 50x."""
+    """One intra-op thread: the CI machine's cores are shared, and spinning thread pools slow tiny nets 50x.
+    ``MAPFREE_TEST_TORCH_THREADS`` sets another count (bench/kernel_spread.py measures the fixtures' spread with 2)."""
     import torch
 
     n = torch.get_num_threads()
-    torch.set_num_threads(1)
+    torch.set_num_threads(int(os.environ.get("MAPFREE_TEST_TORCH_THREADS", "1")))
     yield
     torch.set_num_threads(n)
 
