@@ -278,7 +278,7 @@ def test_photos_without_intrinsics_take_the_pointmap_focal(weights, scene, tmp_p
     ref, query = tmp_path / "a.jpg", tmp_path / "b.jpg"
     for src, dst in ((scene.reference, ref), (scene.frame(QUERIES[0]), query)):
         cv2.imwrite(str(dst), cv2.imread(str(src.image_path)))  # no EXIF, no intrinsics.txt beside it
-    v = photo_view(ref, estimator=matcher)
+    v = photo_view(ref, matcher=matcher)
     base = 540 / (2 * np.tan(np.deg2rad(30)))
     assert v.intrinsics_source == "estimated" and 0.99 * 0.5 * base <= v.intrinsics.fx <= 1.01 * 3.5 * base
     assert v.intrinsics.fx == v.intrinsics.fy and (v.intrinsics.cx, v.intrinsics.cy) == (269.5, 179.5)

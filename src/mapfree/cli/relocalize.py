@@ -191,7 +191,6 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ..data import FormatError, check_depth_size, read_depth
-    from ..matching.base import FocalEstimator
     from ..methods import get
     from ..relocalize import Relocalizer, default_warning, photo_views
     from . import EXIT_NOTHING, fail, output_file_problem
@@ -241,13 +240,12 @@ def run(args: argparse.Namespace) -> int:
             from ..relocalize.run import check_depth_source
 
             check_depth_source(loc)  # a depth network that cannot be loaded: one clear error, not a "no estimate"
-        estimator = loc.matcher if isinstance(loc, Relocalizer) and isinstance(loc.matcher, FocalEstimator) else None
         views = photo_views(
             args.reference,
             args.query,
             (given[0], given[1]),
             (depths[0], depths[1]),
-            estimator,
+            loc.matcher if isinstance(loc, Relocalizer) else None,  # its focal estimate, when it has one
             ("--K-ref", "--K-query"),
         )
         for v, dpath, depth in zip(views, (args.depth_ref, args.depth_query), depths):

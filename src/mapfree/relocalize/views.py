@@ -33,7 +33,7 @@ from ..data.orientation import displayed_size, exif_orientation, fit_intrinsics,
 from ..depth.base import DepthSource, FileDepthSource, NetworkDepthSource, PairDepthSource
 from ..geometry import Intrinsics, Pose
 from ..localizer import error_reason
-from ..matching.base import Features, FocalEstimator
+from ..matching.base import Features, FocalEstimator, Matcher
 
 __all__ = [
     "View",
@@ -157,7 +157,7 @@ def _centred(f: float, width: int, height: int) -> Intrinsics:
 
 
 def _resolve(
-    image: np.ndarray, path: Path, given: Any, estimator: FocalEstimator | None, other: np.ndarray | None, what: str
+    image: np.ndarray, path: Path, given: Any, matcher: Matcher | None, other: np.ndarray | None, what: str
 ) -> tuple[Intrinsics, str, str]:
     """``(K of the stored grid or of the upright photo, source, detail)`` of one photo, in the documented order."""
     h, w = image.shape[:2]
@@ -169,8 +169,8 @@ def _resolve(
     found = exif_focal(path)
     if found is not None:
         return _centred(found[0], sw, sh), "exif", found[4]
-    if estimator is not None:
-        f = estimator.estimate_focal(image, other)
+    if isinstance(matcher, FocalEstimator):  # the capability is declared by the matcher's class
+        f = matcher.estimate_focal(image, other)
         if f is not None:  # of the upright photo, centred: the same focal for the stored grid
             return (
                 _centred(f, sw, sh),
@@ -185,7 +185,7 @@ def photo_view(
     path: str | os.PathLike,
     intrinsics: Any = None,
     depth: np.ndarray | None = None,
-    estimator: FocalEstimator | None = None,
+    matcher: Matcher | None = None,
     other: np.ndarray | None = None,
     what: str | None = None,
 ) -> View:
@@ -193,7 +193,8 @@ def photo_view(
 
     The intrinsics are, in this order: ``intrinsics`` when given (for the stored pixel grid or the upright photo,
     as ``as_view`` takes them); the photo's EXIF focal length (``mapfree.data.intrinsics``: 35 mm-equivalent, or
-    focal length with the sensor's pixel density); the ``estimator``'s focal from its pointmap; the default
+    focal length with the sensor's pixel density); the focal of the ``matcher``'s pointmap when it declares
+    that it estimates one (``FocalEstimator``: MASt3R, DUSt3R); the default
     camera (64° across the long side). The principal point of the last three is the image centre, and the
     EXIF orientation turns them with the pixels. ``View.intrinsics_source`` says which it was.
 
@@ -201,7 +202,7 @@ def photo_view(
         path: The photo (JPEG or PNG).
         intrinsics: An ``Intrinsics``, a 3x3 K or ``(fx, fy, cx, cy)`` in pixels, or None.
         depth: (H, W) metres for the stored grid, or None.
-        estimator: A matcher that estimates focal lengths (``FocalEstimator``), or None.
+        matcher: The method's matcher (its focal estimate is used when it is a ``FocalEstimator``), or None.
         other: The other photo of the pair, for the estimate (upright (H, W, 3) uint8 RGB); None: the photo alone.
         what: The option or field the given intrinsics came from, named in errors (default: the path).
 
@@ -213,7 +214,7 @@ def photo_view(
         ValueError: Given intrinsics of another size, or a principal point far outside the image.
     """
     path = Path(path)
-    return _photo_view(read_image(path), path, intrinsics, depth, estimator, other, what or str(path))
+    return _photo_view(read_image(path), path, intrinsics, depth, matcher, other, what or str(path))
 
 
 def _photo_view(
@@ -221,11 +222,11 @@ def _photo_view(
     path: Path,
     intrinsics: Any,
     depth: np.ndarray | None,
-    estimator: FocalEstimator | None,
+    matcher: Matcher | None,
     other: np.ndarray | None,
     what: str,
 ) -> View:
-    K0, source, detail = _resolve(image, path, intrinsics, estimator, other, what)
+    K0, source, detail = _resolve(image, path, intrinsics, matcher, other, what)
     d = None if depth is None else np.asarray(depth, dtype=np.float32)
     return _view(image, path, K0, d, source, detail)
 
@@ -235,17 +236,17 @@ def photo_views(
     query: str | os.PathLike,
     intrinsics: tuple[Any, Any] = (None, None),
     depths: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
-    estimator: FocalEstimator | None = None,
+    matcher: Matcher | None = None,
     what: tuple[str | None, str | None] = (None, None),
 ) -> tuple[View, View]:
-    """``photo_view`` of a pair: the estimator (when one is needed) sees each photo with the other.
+    """``photo_view`` of a pair: the matcher's focal estimate (when one is needed) sees each photo with the other.
 
     Args:
         reference: The reference photo.
         query: The query photo.
         intrinsics: Given intrinsics of each, or None.
         depths: (H, W) metres of each (for the stored grid), or None.
-        estimator: A matcher that estimates focal lengths, or None.
+        matcher: The method's matcher (its focal estimate is used when it is a ``FocalEstimator``), or None.
         what: The options the given intrinsics came from, named in errors.
 
     Returns:
@@ -254,8 +255,8 @@ def photo_views(
     paths = (Path(reference), Path(query))
     images = [read_image(p) for p in paths]
     return (
-        _photo_view(images[0], paths[0], intrinsics[0], depths[0], estimator, images[1], what[0] or str(paths[0])),
-        _photo_view(images[1], paths[1], intrinsics[1], depths[1], estimator, images[0], what[1] or str(paths[1])),
+        _photo_view(images[0], paths[0], intrinsics[0], depths[0], matcher, images[1], what[0] or str(paths[0])),
+        _photo_view(images[1], paths[1], intrinsics[1], depths[1], matcher, images[0], what[1] or str(paths[1])),
     )
 
 
