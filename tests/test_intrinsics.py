@@ -14,6 +14,15 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from cli_support import (
+    FOCAL_35MM,
+    FOCAL_LENGTH,
+    FOCAL_PLANE_UNIT,
+    FOCAL_PLANE_X_RES,
+    PIXEL_X_DIM,
+    phone_jpeg,
+    stored_grid,
+)
 from mapfree.cli import main
 from mapfree.data import read_image, read_intrinsics
 from mapfree.data.intrinsics import (
@@ -22,31 +31,10 @@ from mapfree.data.intrinsics import (
     exif_intrinsics,
     focal_from_35mm,
 )
-from mapfree.data.orientation import ROTATIONS
 from mapfree.geometry import Intrinsics, backproject_depth, focal_from_pointmap, rotation_angle_deg
 from mapfree.relocalize import photo_view
 
-# EXIF tags
-ORIENTATION, EXIF_IFD = 0x0112, 0x8769
-FOCAL_LENGTH, FOCAL_35MM, FOCAL_PLANE_X_RES, FOCAL_PLANE_UNIT, PIXEL_X_DIM = 0x920A, 0xA405, 0xA20E, 0xA210, 0xA002
 F35 = 33  # the realmini-dev camera: fx = 495.57 px on a 540 px long side = a 33.04 mm-equivalent lens
-
-
-def stored_grid(upright: np.ndarray, orientation: int) -> np.ndarray:
-    """The pixels a sensor stores for an upright photo that ``orientation`` turns upright."""
-    return np.ascontiguousarray(np.rot90(upright, ROTATIONS[orientation]))  # the inverse of orient_pixels
-
-
-def phone_jpeg(path, upright: np.ndarray, orientation: int, tags: dict[int, object], scale: float = 1.0) -> None:
-    """Write ``upright`` as a phone would: stored grid, EXIF orientation and focal tags (Pillow's Exif API)."""
-    img = Image.fromarray(stored_grid(upright, orientation))
-    if scale != 1.0:
-        img = img.resize((round(img.width * scale), round(img.height * scale)), Image.LANCZOS)
-    exif = Image.Exif()
-    exif[ORIENTATION] = orientation
-    sub = exif.get_ifd(EXIF_IFD)
-    sub.update(tags)
-    img.save(path, exif=exif, quality=95)
 
 
 @pytest.fixture(scope="module")
