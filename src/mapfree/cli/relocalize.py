@@ -107,8 +107,8 @@ def _lookup(table: dict, image: Path, source: Path):
     raise InputError(f"{source}: no unique entry for {name}")
 
 
-def _k_flag(text: str | None, what: str) -> list[float] | None:
-    """``fx,fy,cx,cy`` of a --K-* flag, checked before anything else is looked at."""
+def k_flag(text: str | None, what: str) -> list[float] | None:
+    """``fx,fy,cx,cy`` of a --K-* flag (None when not given), checked before anything else is looked at."""
     if not text:
         return None
     vals = _floats(text, 4, what)
@@ -196,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
     from . import EXIT_NOTHING, fail, output_file_problem
 
     try:  # a malformed --K-* flag first: before any file or data problem
-        k_flags = (_k_flag(args.K_ref, "--K-ref"), _k_flag(args.K_query, "--K-query"))
+        k_flags = (k_flag(args.K_ref, "--K-ref"), k_flag(args.K_query, "--K-query"))
     except InputError as e:
         return fail("relocalize", e)
     problem = output_file_problem("--viz", args.viz, (".png", ".jpg", ".jpeg")) if args.viz else None
