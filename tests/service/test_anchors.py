@@ -174,12 +174,20 @@ def test_phone_photos_without_intrinsics_take_their_exif_focal_or_the_default(ma
     ok, png = cv2.imencode(".png", stored_grid(cv2.imread(str(ref.depth_path("sensor")), cv2.IMREAD_UNCHANGED), 6))
     assert ok
     app = make_app()
-    files = {"image": ("ref.jpg", phone(ref, {FOCAL_35MM: 33}), "image/jpeg"), "depth": ("d.png", png.tobytes())}
-    r = app.client.post("/anchors", headers=app.auth("ann"), files=files, data={"method": METHOD})
+    second = scene.frame("seq1/frame_00001.jpg")  # a further photo, without tags or fields: the default camera
+    files = [
+        ("image", ("ref.jpg", phone(ref, {FOCAL_35MM: 33}), "image/jpeg")),
+        ("depth", ("d.png", png.tobytes())),
+        ("photo_image", ("p1.jpg", phone(second, {}, 1))),
+        ("photo_depth", ("p1.png", second.depth_path("sensor").read_bytes())),
+    ]
+    data = {"method": METHOD, "photo_pose": " ".join(map(str, np.concatenate(second.pose.qt())))}
+    r = app.client.post("/anchors", headers=app.auth("ann"), files=files, data=data)
     assert r.status_code == 201, r.text
     anchor = r.json()
     photo = anchor["photos"][0]
-    assert photo["intrinsics_source"] == "exif"
+    assert [p["intrinsics_source"] for p in anchor["photos"]] == ["exif", "default"]
+    assert anchor["photos"][1]["intrinsics"]["fx"] == 0.8 * 540
     assert (photo["intrinsics"]["width"], photo["intrinsics"]["height"]) == (540, 360)
     assert (
         photo["intrinsics"]["fx"] == np.float64(33 / 36 * 540)
