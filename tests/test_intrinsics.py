@@ -92,6 +92,12 @@ def test_no_tags_give_the_default_camera_and_given_intrinsics_win(tmp_path, know
     v = photo_view(path)
     assert v.intrinsics_source == "default" and "64° across the long side" in v.intrinsics_detail
     assert v.intrinsics.fx == pytest.approx(0.8 * 540) and (v.intrinsics.width, v.intrinsics.height) == (540, 360)
+    phone_jpeg(path, upright, 1, {FOCAL_35MM: 1})  # a junk tag (a 1 mm-equivalent lens): skipped
+    assert photo_view(path).intrinsics_source == "default"
+    phone_jpeg(
+        path, upright, 1, {FOCAL_35MM: 1, FOCAL_LENGTH: 4.25, FOCAL_PLANE_X_RES: K.fx / 4.25, FOCAL_PLANE_UNIT: 4}
+    )
+    assert photo_view(path).intrinsics.fx == pytest.approx(K.fx)  # the next tags then
     tagged = tmp_path / "tagged.jpg"
     phone_jpeg(tagged, upright, 1, {FOCAL_35MM: 20})
     given = photo_view(tagged, K)

@@ -30,6 +30,7 @@ from .orientation import ROTATIONS, orient_intrinsics
 __all__ = [
     "FULL_FRAME_LONG_SIDE_MM",
     "DEFAULT_FOCAL_35MM",
+    "EXIF_FOCAL_RANGE",
     "SOURCES",
     "ResolvedIntrinsics",
     "focal_from_35mm",
@@ -46,6 +47,8 @@ FULL_FRAME_LONG_SIDE_MM = 36.0
 DEFAULT_FOCAL_35MM = 28.8
 #: Where a photo's intrinsics came from, in the order they are looked for.
 SOURCES = ("given", "exif", "estimated", "default")
+#: EXIF focal lengths outside this range (times the long side: 3.6-3600 mm-equivalent) are junk tags, skipped.
+EXIF_FOCAL_RANGE = (0.1, 100.0)
 #: The principal point may lie this far outside the image (in image sizes) before it is refused as a typo.
 PRINCIPAL_POINT_MARGIN = 0.5
 
@@ -125,7 +128,7 @@ def exif_focal(source: bytes | os.PathLike | str) -> tuple[float, int, int, int,
 
     Returns:
         ``(f_px, stored width, stored height, orientation, detail)``, or None when the file has no usable focal tag
-        (or cannot be read).
+        (none, or one giving a focal outside ``EXIF_FOCAL_RANGE``) or cannot be read.
     """
     from PIL import Image, UnidentifiedImageError
 
@@ -137,17 +140,23 @@ def exif_focal(source: bytes | os.PathLike | str) -> tuple[float, int, int, int,
             orientation = int(exif.get(_ORIENTATION, 1))
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError, TypeError):
         return None
+    lo, hi = EXIF_FOCAL_RANGE[0] * max(width, height), EXIF_FOCAL_RANGE[1] * max(width, height)
     f35 = _rational(sub.get(_FOCAL_35MM))
-    if f35 is not None:
-        return focal_from_35mm(f35, width, height), width, height, orientation, f"FocalLengthIn35mmFilm {f35:g} mm"
+    if f35 is not None and lo <= (f := focal_from_35mm(f35, width, height)) < hi:
+        return f, width, height, orientation, f"FocalLengthIn35mmFilm {f35:g} mm"
     f_mm, density = _rational(sub.get(_FOCAL_LENGTH)), _rational(sub.get(_FOCAL_PLANE_X_RES))
-    unit = _UNIT_MM.get(int(sub.get(_FOCAL_PLANE_UNIT, 2) or 2))
+    try:
+        unit = _UNIT_MM.get(int(sub.get(_FOCAL_PLANE_UNIT, 2) or 2))
+    except (TypeError, ValueError):
+        unit = None
     if f_mm is None or density is None or unit is None:
         return None
     f = f_mm * density / unit  # FocalPlaneXResolution: pixels per unit along the width the camera wrote
     captured = _rational(sub.get(_PIXEL_X_DIMENSION))
     if captured is not None and captured not in (width, height):  # resized since capture: the density was
         f *= width / captured  # for the width the camera wrote
+    if not lo <= f < hi:
+        return None
     return f, width, height, orientation, f"FocalLength {f_mm:g} mm, FocalPlaneXResolution {density:g} per unit"
 
 
