@@ -32,3 +32,33 @@ def mapfree_process(
         timeout=timeout,
         env={**os.environ, **(env or {})},
     )
+
+
+#: EXIF tags a phone writes: Orientation (main IFD); FocalLength, FocalLengthIn35mmFilm, FocalPlaneXResolution,
+#: FocalPlaneResolutionUnit, PixelXDimension (Exif sub-IFD, 0x8769).
+ORIENTATION, EXIF_IFD = 0x0112, 0x8769
+FOCAL_LENGTH, FOCAL_35MM, FOCAL_PLANE_X_RES, FOCAL_PLANE_UNIT, PIXEL_X_DIM = 0x920A, 0xA405, 0xA20E, 0xA210, 0xA002
+
+
+def stored_grid(upright, orientation: int):
+    """The pixels a sensor stores for an upright photo (or depth map) that ``orientation`` turns upright."""
+    import numpy as np
+
+    from mapfree.data.orientation import ROTATIONS
+
+    return np.ascontiguousarray(np.rot90(upright, ROTATIONS[orientation]))  # the inverse of orient_pixels
+
+
+def phone_jpeg(dst, upright, orientation: int, tags: dict, scale: float = 1.0) -> None:
+    """Write ``upright`` (H, W, 3 RGB) as a phone would, to a path or a binary file: its stored grid, the EXIF
+    orientation that turns it upright and the focal ``tags`` of the Exif sub-IFD (Pillow's Exif API), optionally
+    resized afterwards by ``scale``."""
+    from PIL import Image
+
+    img = Image.fromarray(stored_grid(upright, orientation))
+    if scale != 1.0:
+        img = img.resize((round(img.width * scale), round(img.height * scale)), Image.Resampling.LANCZOS)
+    exif = Image.Exif()
+    exif[ORIENTATION] = orientation
+    exif.get_ifd(EXIF_IFD).update(tags)
+    img.save(dst, format="JPEG", exif=exif, quality=95)

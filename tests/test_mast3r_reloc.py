@@ -261,3 +261,33 @@ def test_batched_pairs_equal_pairs_alone(weights, scene):
         assert len(one) > 0
         np.testing.assert_array_equal(many.kpts0, one.kpts0)
         np.testing.assert_array_equal(many.kpts1, one.kpts1)
+
+
+def test_photos_without_intrinsics_take_the_pointmap_focal(weights, scene, tmp_path, capsys):
+    """MASt3R declares the focal estimate (``FocalEstimator``): a photo with neither given intrinsics nor EXIF
+    focal tags takes the focal of its own pointmap (within DUSt3R's 0.5-3.5 x a 60° camera, in the photo's own
+    pixels), named ``estimated`` in relocalize's JSON, without the default camera's warning."""
+    import cv2
+
+    from mapfree.cli import main
+    from mapfree.matching.base import FocalEstimator
+    from mapfree.relocalize import photo_view
+
+    matcher = Mast3rMatcher(long_side=SMALL)
+    assert isinstance(matcher, FocalEstimator)
+    ref, query = tmp_path / "a.jpg", tmp_path / "b.jpg"
+    for src, dst in ((scene.reference, ref), (scene.frame(QUERIES[0]), query)):
+        cv2.imwrite(str(dst), cv2.imread(str(src.image_path)))  # no EXIF, no intrinsics.txt beside it
+    v = photo_view(ref, matcher=matcher)
+    base = 540 / (2 * np.tan(np.deg2rad(30)))
+    assert v.intrinsics_source == "estimated" and 0.99 * 0.5 * base <= v.intrinsics.fx <= 1.01 * 3.5 * base
+    assert v.intrinsics.fx == v.intrinsics.fy and (v.intrinsics.cx, v.intrinsics.cy) == (269.5, 179.5)
+    assert matcher.estimate_focal(np.full((96, 128, 3), 127, np.uint8)) is None  # a blank photo: none
+    cfg = tmp_path / "mast3r-small.yaml"
+    cfg.write_text(f"extends: mast3r_pnp_mast3r\nmatcher_opts:\n  long_side: {SMALL}\n")
+    rc = main(["relocalize", str(ref), str(query), "--method", str(cfg)])
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
+    assert rc in (0, 3) and "warning" not in captured.err
+    assert [out["intrinsics"][k]["source"] for k in ("reference", "query")] == ["estimated", "estimated"]
+    assert out["intrinsics"]["reference"]["fx"] == pytest.approx(v.intrinsics.fx, rel=0.2)  # paired with the query

@@ -136,3 +136,38 @@ def test_the_command_module_imports_nothing_heavy():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_viz_checks_the_matches_with_each_photos_intrinsics(images, realmini, tmp_path, capsys):
+    """--viz colours the matches by an essential-matrix check, which needs intrinsics: given with --K-ref/--K-query,
+    else the photo's EXIF focal length (phone-style copies stored sideways: drawn upright, about the same matches
+    pass), else the default camera; a principal point far outside the image is refused before any matching."""
+    import re
+
+    from cli_support import FOCAL_35MM, phone_jpeg
+    from mapfree.data import read_image, read_intrinsics
+
+    K = read_intrinsics(realmini / "val" / "s00000" / "intrinsics.txt")["seq0/frame_00000.jpg"]
+    flag = f"{K.fx},{K.fy},{K.cx},{K.cy}"
+    viz = tmp_path / "m.png"
+    rc, out, err = run_match(capsys, *images, "--viz", viz, "--K-ref", flag, "--K-query", flag)
+    assert rc == 0, err
+    given = int(re.search(r"\((\d+) pass the check, intrinsics given/given\)$", out.strip())[1])
+    n = int(re.match(r"sift: (\d+) matches", out)[1])
+    assert 0.5 * n < given <= n
+    drawing = cv2.cvtColor(cv2.imread(str(viz)), cv2.COLOR_BGR2RGB).reshape(-1, 3).astype(int)
+    green = (drawing[:, 1] > 150) & (drawing[:, 0] < 100) & (drawing[:, 2] < 100)
+    assert drawing.shape[0] == 360 * 1080 and green.sum() > 1000
+    phones = [tmp_path / "a.jpg", tmp_path / "b.jpg"]
+    for src, dst, o in zip(images, phones, (6, 8)):
+        phone_jpeg(dst, read_image(src), o, {FOCAL_35MM: 33})
+    rc, out, err = run_match(capsys, *phones, "--viz", viz)
+    exif = int(re.search(r"\((\d+) pass the check, intrinsics exif/exif\)$", out.strip())[1])
+    assert rc == 0 and abs(exif - given) <= 0.1 * given, (out, given)
+    assert cv2.imread(str(viz)).shape == (360, 1080, 3)  # upright, as every reader of ours returns it
+    rc, out, err = run_match(capsys, *images, "--viz", viz, "--K-query", "500,500,270,-1000")
+    assert rc == 1 and not out
+    assert err.strip() == (
+        "mapfree match: error: --K-query: principal point cy = -1000 is far outside the 540x360 image "
+        "(allowed -180 to 540; the image centre is 179.5)"
+    )

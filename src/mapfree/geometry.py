@@ -24,6 +24,7 @@ __all__ = [
     "backproject_depth",
     "sample_depth",
     "to_original",
+    "focal_from_pointmap",
 ]
 
 
@@ -485,3 +486,35 @@ def to_original(kpts: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
         return kpts
     s = np.asarray(scale, dtype=np.float64)
     return (kpts + 0.5) / s - 0.5
+
+
+def focal_from_pointmap(pts: np.ndarray, iterations: int = 10) -> float:
+    """The focal length that best explains a pointmap, its principal point at the image centre.
+
+    DUSt3R's ``estimate_focal_knowing_depth`` (its ``weiszfeld`` mode): ``f = argmin sum |p - f (x, y) / z|`` over
+    the pixels ``p`` (relative to the centre), a least-squares start then re-weighted least squares. Pixel centres
+    sit at integer coordinates, so the centre is ``((W - 1) / 2, (H - 1) / 2)``.
+
+    Args:
+        pts: (H, W, 3) points in the camera's own frame (any unit); points with z <= 0 or not finite are left out.
+        iterations: Re-weighting steps.
+
+    Returns:
+        The focal length in pixels of the (H, W) grid; NaN when fewer than 2 points are usable.
+    """
+    pts = np.asarray(pts, dtype=np.float64)
+    H, W = pts.shape[:2]
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    px = np.stack([u - (W - 1) / 2, v - (H - 1) / 2], axis=-1).reshape(-1, 2)
+    p = pts.reshape(-1, 3)
+    ok = np.isfinite(p).all(axis=1) & (p[:, 2] > 0)
+    if ok.sum() < 2:
+        return float("nan")
+    px, xy = px[ok], p[ok, :2] / p[ok, 2:3]
+    dot_xy_px = (xy * px).sum(axis=1)
+    dot_xy_xy = (xy * xy).sum(axis=1)
+    focal = dot_xy_px.mean() / max(dot_xy_xy.mean(), 1e-300)
+    for _ in range(iterations):
+        w = 1.0 / np.maximum(np.linalg.norm(px - focal * xy, axis=1), 1e-8)
+        focal = (w * dot_xy_px).sum() / max((w * dot_xy_xy).sum(), 1e-300)
+    return float(focal)

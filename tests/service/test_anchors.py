@@ -149,3 +149,63 @@ def test_scale_free_pnp_anchor_needs_depth_and_the_try_page_runs_it_without(serv
         assert r.status_code == 422 and "needs the reference depth" in r.text  # refused before anything runs
         r = c.post("/relocalize", files=pair, data={**form, "method": "sift_pnp_none"})
         assert r.status_code == 200 and 'id="no-estimate"' in r.text  # one-off pair: runs, shows why no pose
+
+
+def test_phone_photos_without_intrinsics_take_their_exif_focal_or_the_default(make_app, realmini_dir):
+    """Intrinsics fields are optional: an anchor photo and a query stored sideways by a phone (EXIF orientation 6
+    and 35 mm-equivalent focal) get the calibrated focal of the upright photo from EXIF, the pose is the
+    calibrated one's, and each response says where the intrinsics came from; a query without tags takes the
+    default camera; three of the four fields is still a 422."""
+    import io
+
+    import cv2
+
+    from cli_support import FOCAL_35MM, phone_jpeg, stored_grid
+    from mapfree.data import read_image
+
+    scene = Dataset(realmini_dir).scene("val", "s00000")
+    ref, query = scene.reference, scene.frame("seq1/frame_00009.jpg")
+
+    def phone(frame, tags, orientation=6) -> bytes:
+        buf = io.BytesIO()
+        phone_jpeg(buf, read_image(frame.image_path), orientation, tags)
+        return buf.getvalue()
+
+    ok, png = cv2.imencode(".png", stored_grid(cv2.imread(str(ref.depth_path("sensor")), cv2.IMREAD_UNCHANGED), 6))
+    assert ok
+    app = make_app()
+    second = scene.frame("seq1/frame_00001.jpg")  # a further photo, without tags or fields: the default camera
+    files = [
+        ("image", ("ref.jpg", phone(ref, {FOCAL_35MM: 33}), "image/jpeg")),
+        ("depth", ("d.png", png.tobytes())),
+        ("photo_image", ("p1.jpg", phone(second, {}, 1))),
+        ("photo_depth", ("p1.png", second.depth_path("sensor").read_bytes())),
+    ]
+    data = {"method": METHOD, "photo_pose": " ".join(map(str, np.concatenate(second.pose.qt())))}
+    r = app.client.post("/anchors", headers=app.auth("ann"), files=files, data=data)
+    assert r.status_code == 201, r.text
+    anchor = r.json()
+    photo = anchor["photos"][0]
+    assert [p["intrinsics_source"] for p in anchor["photos"]] == ["exif", "default"]
+    assert anchor["photos"][1]["intrinsics"]["fx"] == 0.8 * 540
+    assert (photo["intrinsics"]["width"], photo["intrinsics"]["height"]) == (540, 360)
+    assert (
+        photo["intrinsics"]["fx"] == np.float64(33 / 36 * 540)
+        and abs(photo["intrinsics"]["fx"] / ref.intrinsics.fx - 1) < 2e-3
+    )
+    url = f"/anchors/{anchor['id']}/localize"
+    r = app.client.post(url, headers=app.auth("ann"), files={"image": ("q.jpg", phone(query, {FOCAL_35MM: 33}, 8))})
+    est = r.json()
+    assert r.status_code == 200 and est["ok"] and est["intrinsics_source"] == "exif", est
+    pose = Pose(np.array(est["R"]), np.array(est["t"]))
+    assert np.linalg.norm(pose.center - query.pose.center) < 0.25
+    r = app.client.post(url, headers=app.auth("ann"), files={"image": ("q.jpg", phone(query, {}, 1))})
+    assert r.status_code == 200 and r.json()["intrinsics_source"] == "default", r.text
+    r = app.client.post(
+        url, headers=app.auth("ann"), files={"image": ("q.jpg", phone(query, {}))}, data={"fx": 1, "fy": 1, "cx": 1}
+    )
+    assert r.status_code == 422 and "cy must be a number" in r.json()["detail"], r.text
+    r = app.client.post(
+        url, headers=app.auth("ann"), files={"image": ("q.jpg", phone(query, {}))}, data=_form(query.intrinsics)
+    )
+    assert r.json()["intrinsics_source"] == "given"

@@ -13,7 +13,10 @@ the time it took. Keypoints are in the images' original pixels whatever size the
 
 -o writes the matches as .npz with the same keys for every matcher: kpts0, kpts1 ((N,2) float32 x,y pixels),
 scores ((N,) float32), image0, image1 (paths), size0, size1 (width,height), matcher, seconds.
---viz draws them side by side. Matchers whose weights are not installed say where to get them.
+--viz draws them side by side, green where they pass an essential-matrix check (MAGSAC++, 3 px) and red where
+not; the check needs each image's intrinsics: --K-ref/--K-query fx,fy,cx,cy (pixels), else the photo's EXIF focal
+length, else a default camera of 64 degrees across the long side. Matchers whose weights are not installed say
+where to get them.
 """
 
 EPILOG = """\
@@ -37,6 +40,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--matcher", default="sift", help="matcher name (default: sift); see `mapfree run --list-methods`")
     p.add_argument("-o", "--output", type=Path, help="write the matches to this .npz file")
     p.add_argument("--viz", type=Path, help="draw the matches into this .png (or .jpg) file")
+    p.add_argument("--K-ref", help="intrinsics of image0 for --viz's check: fx,fy,cx,cy (pixels); default: EXIF")
+    p.add_argument("--K-query", help="intrinsics of image1 for --viz's check: fx,fy,cx,cy (pixels); default: EXIF")
     p.add_argument("--device", help="cpu, cuda, cuda:1 … (default: cuda when available); not for sift")
     p.add_argument(
         "--option",
@@ -65,13 +70,47 @@ def _options(args: argparse.Namespace) -> dict:
     return opts
 
 
+def _checked_figure(views: tuple, m) -> tuple:
+    """The --viz figure: matches green where they pass the essential-matrix check with the images' intrinsics
+    (given, EXIF or default), red elsewhere; and the words the printed line adds."""
+    import cv2
+    import numpy as np
+
+    from ..solvers.common import SolverError
+    from ..solvers.essential import EssentialOptions, relative_pose_opencv
+    from ..viz import draw_matches
+
+    v0, v1 = views
+    passed = np.zeros(len(m), bool)
+    if len(m) >= 5:
+        x0, x1 = (
+            cv2.undistortPoints(k.reshape(-1, 1, 2).astype(np.float64), v.intrinsics.K, None).reshape(-1, 2)
+            for k, v in ((m.kpts0, v0), (m.kpts1, v1))
+        )
+        thr = 3.0 / np.mean([v0.intrinsics.mean_focal, v1.intrinsics.mean_focal])
+        try:
+            passed = relative_pose_opencv(x0, x1, EssentialOptions(), thr)[3]
+        except SolverError:
+            pass
+    sources = f"intrinsics {v0.intrinsics_source}/{v1.intrinsics_source}"
+    label = f"{len(m)} matches, {int(passed.sum())} pass the essential-matrix check ({sources})"
+    return draw_matches(
+        v0.image, v1.image, m.kpts0, m.kpts1, passed, label=label
+    ), f"{int(passed.sum())} pass the check, {sources}"
+
+
 def run(args: argparse.Namespace) -> int:
     from ..data import FormatError
     from ..matching import MissingWeightsError, check_options
     from ..matching.export import match_files, save_npz
     from ..options import check_device
     from . import fail, output_file_problem
+    from .relocalize import InputError, k_flag
 
+    try:  # a malformed --K-* flag first: before any file or data problem
+        flags = (k_flag(args.K_ref, "--K-ref"), k_flag(args.K_query, "--K-query"))
+    except InputError as e:
+        return fail("match", e)
     problem = (output_file_problem("-o", args.output) if args.output else None) or (
         output_file_problem("--viz", args.viz, (".png", ".jpg", ".jpeg")) if args.viz else None
     )
@@ -81,20 +120,22 @@ def run(args: argparse.Namespace) -> int:
         check_device(args.device)
         opts = _options(args)
         check_options(args.matcher, opts)  # before any image is read or weights loaded
+        views = None
+        if args.viz:  # the images with their intrinsics (given ones checked) before any matching
+            from ..relocalize import photo_views
+
+            views = photo_views(args.image0, args.image1, flags, what=("--K-ref", "--K-query"))
         r = match_files(args.image0, args.image1, args.matcher, **opts)
     except (FormatError, MissingWeightsError, KeyError, ValueError, ImportError) as e:
         return fail("match", e)
     where = []
     if args.output:
         where.append(str(save_npz(args.output, r)))
-    if args.viz:
-        from ..data import read_image
-        from ..viz import draw_matches, save_png
+    if views is not None:  # --viz
+        from ..viz import save_png
 
-        m = r.matches
-        where.append(
-            str(save_png(args.viz, draw_matches(read_image(args.image0), read_image(args.image1), m.kpts0, m.kpts1)))
-        )
+        fig, words = _checked_figure(views, r.matches)
+        where.append(f"{save_png(args.viz, fig)} ({words})")
     print(
         f"{r.matcher}: {len(r.matches)} matches ({r.keypoints[0]} / {r.keypoints[1]} points) in {r.seconds:.2f} s "
         f"(+{r.load_seconds:.2f} s loading)" + (f" -> {', '.join(where)}" if where else "")

@@ -18,8 +18,11 @@ Estimate the metric 6-DoF pose of QUERY relative to REF (X_query = R X_ref + t) 
 (pose, confidence, inliers, per-stage timings, or the reason there is no estimate).
 Exit status: 0 pose estimated, 1 error, 3 no estimate (the JSON says why).
 
-Intrinsics come from --K-ref/--K-query, from --intrinsics (a Map-free intrinsics.txt), or, for images
-inside a Map-free scene folder, from that scene's intrinsics.txt. Depth comes from --depth-ref/--depth-query
+Intrinsics, per image, in this order (the JSON's "intrinsics" says which): given with --K-ref/--K-query,
+--intrinsics (a Map-free intrinsics.txt) or, for images inside a Map-free scene folder, that scene's
+intrinsics.txt; else the photo's EXIF focal length (35 mm-equivalent: f = f35 / 36 mm x the long side; or
+FocalLength with the sensor's pixel density); else the method's own estimate (MASt3R/DUSt3R pointmaps); else a
+default camera of 64 degrees across the long side, with a warning. Depth comes from --depth-ref/--depth-query
 (uint16 PNG, millimetres) or from the method's depth source (e.g. files:sensor reads FRAME.sensor.png).
 """
 
@@ -104,25 +107,35 @@ def _lookup(table: dict, image: Path, source: Path):
     raise InputError(f"{source}: no unique entry for {name}")
 
 
-def _intrinsics(args, image: Path, flag: str | None, optional: bool = False, what: str = "intrinsics"):
+def k_flag(text: str | None, what: str) -> list[float] | None:
+    """``fx,fy,cx,cy`` of a --K-* flag (None when not given), checked before anything else is looked at."""
+    if not text:
+        return None
+    vals = _floats(text, 4, what)
+    if vals[0] <= 0 or vals[1] <= 0:
+        raise InputError(f"{what}: focal lengths must be positive")
+    return vals
+
+
+def _given_intrinsics(args, image: Path, flag: list[float] | None, what: str):
+    """The intrinsics given for ``image`` (its --K-* flag, --intrinsics, or its Map-free scene's
+    intrinsics.txt), principal point checked; None when none are given (EXIF, the method or the default then)."""
     from ..data import read_image, read_intrinsics
+    from ..data.intrinsics import check_principal_point
     from ..geometry import Intrinsics
 
-    if optional and not flag and not args.intrinsics and not (_scene_dir(image) / "intrinsics.txt").is_file():
-        h, w = read_image(image).shape[:2]  # regression ignores intrinsics: a nominal camera for the error report
-        return Intrinsics(float(max(w, h)), float(max(w, h)), (w - 1) / 2, (h - 1) / 2, w, h)
     if flag:
         h, w = read_image(image).shape[:2]
-        fx, fy, cx, cy = _floats(flag, 4, what)
-        if fx <= 0 or fy <= 0:
-            raise InputError(f"{what}: focal lengths must be positive")
-        return Intrinsics(fx, fy, cx, cy, w, h)
+        check_principal_point(flag[2], flag[3], w, h, what)
+        return Intrinsics(flag[0], flag[1], flag[2], flag[3], w, h)
     if args.intrinsics is not None and not args.intrinsics.is_file():
         raise InputError(f"intrinsics file {args.intrinsics} not found")
     source = args.intrinsics or _scene_dir(image) / "intrinsics.txt"
     if not source.is_file():
-        raise InputError(f"no intrinsics for {image}: pass --K-ref/--K-query or --intrinsics FILE")
-    return _lookup(read_intrinsics(source), image, source)
+        return None
+    K = _lookup(read_intrinsics(source), image, source)
+    check_principal_point(K.cx, K.cy, K.width, K.height, f"{source}: {image.name}")
+    return K
 
 
 def _gt_pose(args: argparse.Namespace) -> Pose | None:
@@ -179,9 +192,13 @@ def run(args: argparse.Namespace) -> int:
 
     from ..data import FormatError, check_depth_size, read_depth
     from ..methods import get
-    from ..relocalize import Relocalizer, as_view
+    from ..relocalize import Relocalizer, default_warning, photo_views
     from . import EXIT_NOTHING, fail, output_file_problem
 
+    try:  # a malformed --K-* flag first: before any file or data problem
+        k_flags = (k_flag(args.K_ref, "--K-ref"), k_flag(args.K_query, "--K-query"))
+    except InputError as e:
+        return fail("relocalize", e)
     problem = output_file_problem("--viz", args.viz, (".png", ".jpg", ".jpeg")) if args.viz else None
     if problem:
         return fail("relocalize", problem)
@@ -212,34 +229,39 @@ def run(args: argparse.Namespace) -> int:
         for p in (args.reference, args.query):
             if not p.is_file():
                 raise InputError(f"{p}: image not found")
-        views = []
-        for image, kflag, dpath, what in (
-            (args.reference, args.K_ref, args.depth_ref, "--K-ref"),
-            (args.query, args.K_query, args.depth_query, "--K-query"),
-        ):
-            K = _intrinsics(args, image, kflag, optional=method.kind == "regression", what=what)
-            depth = read_depth(dpath) if dpath else None
-            if depth is not None and K is not None:
-                check_depth_size(dpath, depth.shape, K.width, K.height)
-            v = as_view((image, K, depth))
-            if v.image.shape[:2] != (v.intrinsics.height, v.intrinsics.width):
-                raise InputError(
-                    f"{image}: image is {v.image.shape[1]}x{v.image.shape[0]} but its intrinsics "
-                    f"say {K.width}x{K.height}"
-                )
-            views.append(v)
+        given = [
+            _given_intrinsics(args, image, flag, what)
+            for image, flag, what in ((args.reference, k_flags[0], "--K-ref"), (args.query, k_flags[1], "--K-query"))
+        ]
+        depths = [read_depth(p) if p else None for p in (args.depth_ref, args.depth_query)]
         gt = _gt_pose(args)
         loc = Relocalizer.from_method(method)
         if args.depth_ref is None or args.depth_query is None:
             from ..relocalize.run import check_depth_source
 
             check_depth_source(loc)  # a depth network that cannot be loaded: one clear error, not a "no estimate"
+        views = photo_views(
+            args.reference,
+            args.query,
+            (given[0], given[1]),
+            (depths[0], depths[1]),
+            loc.matcher if isinstance(loc, Relocalizer) else None,  # its focal estimate, when it has one
+            ("--K-ref", "--K-query"),
+        )
+        for v, dpath, depth in zip(views, (args.depth_ref, args.depth_query), depths):
+            if depth is not None and v.frame is not None:
+                check_depth_size(dpath, depth.shape, v.frame.intrinsics.width, v.frame.intrinsics.height)
     except (InputError, FormatError, FileNotFoundError, KeyError, ValueError) as e:
         return fail("relocalize", e)
 
     ref, query = views
+    if method.kind == "matching":  # a regression network does not use the intrinsics for its pose
+        for v in views:
+            if (warning := default_warning(v)) is not None:
+                print(f"mapfree relocalize: warning: {warning}", file=sys.stderr)
     est = loc.relocalize(ref, query)
     out = {"method": method.name, "reference": str(args.reference), "query": str(args.query), **est.to_dict()}
+    out["intrinsics"] = {"reference": ref.resolved.to_dict(), "query": query.resolved.to_dict()}
     from ..relocalize.run import estimate_scores
 
     out["scores"] = estimate_scores(est)

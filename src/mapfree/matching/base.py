@@ -12,7 +12,7 @@ import numpy as np
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["Features", "Matches", "Matcher", "MatchCandidates", "CandidateMatches", "SharedNetwork"]
+__all__ = ["Features", "Matches", "Matcher", "FocalEstimator", "MatchCandidates", "CandidateMatches", "SharedNetwork"]
 
 
 @dataclass
@@ -165,3 +165,26 @@ class Matcher(ABC):
     def on_gpu(self) -> bool:
         """Whether the matcher's network runs on a CUDA device."""
         return self.device is not None and self.device.type == "cuda"
+
+
+class FocalEstimator(ABC):
+    """A matcher whose network tells each photo's focal length by itself (MASt3R and DUSt3R: the focal that
+    best explains a photo's own pointmap, principal point at the centre, as their authors estimate it).
+
+    A matcher derives from both ``Matcher`` and this to declare the capability; photos with neither given
+    intrinsics nor EXIF focal tags then take the estimate instead of the default field of view.
+    """
+
+    @abstractmethod
+    def estimate_focal(self, image: np.ndarray, other: np.ndarray | None = None) -> float | None:
+        """The focal length of ``image`` from the network's pass over (``image``, ``other``).
+
+        Args:
+            image: (H, W, 3) uint8 RGB, upright.
+            other: The pair's other photo (its overlap steadies the pointmap); None: ``image`` paired with
+                itself, as DUSt3R does for a single photo.
+
+        Returns:
+            The focal length in pixels of ``image`` at its own size (fx = fy, principal point at the centre), or
+            None when the network gives no usable pointmap (a blank photo).
+        """

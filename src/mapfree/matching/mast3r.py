@@ -14,16 +14,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..geometry import focal_from_pointmap
 from ..mast3r.engine import EncodedImage, PairEngine, PairOutput, shared_engine
+from ..mast3r.preprocess import Prepared
 from ..mast3r.reciprocal import reciprocal_matches
 from ..options import Options, option
-from .base import Features, Matcher, Matches
+from .base import Features, FocalEstimator, Matcher, Matches
 from .utils import checked_or_blank
 
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["Mast3rOptions", "Mast3rMatcher"]
+__all__ = ["Mast3rOptions", "Mast3rMatcher", "focal_at_original"]
 
 
 @dataclass
@@ -49,7 +51,29 @@ class Mast3rOptions(Options):
     device: str | None = option(None, device=True)
 
 
-class Mast3rMatcher(Matcher):
+def focal_at_original(pts: np.ndarray, prepared: Prepared) -> float | None:
+    """The focal length of an original image from its pointmap at the network's input.
+
+    The focal that best explains the pointmap (``geometry.focal_from_pointmap``), kept within 0.5-3.5 times that
+    of a 60° field of view as DUSt3R's global alignment keeps it, then brought from the network's pixels to the
+    original's (the input is the original resized, then centre-cropped: the centre stays the centre).
+
+    Args:
+        pts: (h, w, 3) points of the image in its own camera frame, at the network's input size.
+        prepared: How the image was resized and cropped for the network.
+
+    Returns:
+        Pixels of the original image; None without a usable pointmap.
+    """
+    f = focal_from_pointmap(pts)
+    if not np.isfinite(f) or f <= 0:
+        return None
+    base = max(pts.shape[:2]) / (2 * np.tan(np.deg2rad(60) / 2))
+    f = float(np.clip(f, 0.5 * base, 3.5 * base))
+    return f / float(np.mean(prepared.scale()))
+
+
+class Mast3rMatcher(Matcher, FocalEstimator):
     """Dense matcher on MASt3R descriptors or DUSt3R pointmaps; keypoints in original-image pixels. Its network
     (``engine``) also serves the ``mast3r`` / ``dust3r`` depth source: one forward pass per pair.
 
@@ -100,6 +124,23 @@ class Mast3rMatcher(Matcher):
             h, w = img.shape[:2]
             out.append(Features(np.zeros((0, 2)), (w, h), {"encoded": encoded[i]}))
         return out
+
+    def estimate_focal(self, image: np.ndarray, other: np.ndarray | None = None) -> float | None:
+        """The focal length of ``image`` from its own pointmap in the pass (``image``, ``other``); see
+        ``FocalEstimator.estimate_focal``.
+
+        Args:
+            image: (H, W, 3) uint8 RGB, upright.
+            other: The pair's other photo; None: ``image`` with itself.
+
+        Returns:
+            Pixels of ``image`` at its size, or None for a blank photo.
+        """
+        pair = [image, image if other is None else other]
+        if any(checked_or_blank(im)[1] is not None for im in pair):
+            return None
+        e0, e1 = self.engine.encode_many(pair)
+        return focal_at_original(self.engine.pair(e0, e1).pts1, e0.prepared)
 
     def match(self, f0: Features, f1: Features) -> Matches:
         """Correspondences of a pair; see ``Matcher.match``.

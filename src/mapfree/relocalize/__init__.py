@@ -7,7 +7,7 @@ it (``mapfree.relocalize.views``).
 from ..localizer import Localizer, QueryLocalizer
 from .pipeline import MIN_PARALLAX_PX, Relocalizer, build_matching
 from .run import RunResult, failures_path, frames_to_run, journal_path, read_journal, run_split
-from .views import Anchor, View, ViewLike, as_view
+from .views import Anchor, View, ViewLike, as_view, default_warning, photo_view, photo_views
 
 __all__ = [
     "Relocalizer",
@@ -17,6 +17,9 @@ __all__ = [
     "View",
     "ViewLike",
     "as_view",
+    "photo_view",
+    "photo_views",
+    "default_warning",
     "MIN_PARALLAX_PX",
     "build_matching",
     "run_split",

@@ -1,7 +1,8 @@
 """What one photo is on its way through a method, and the per-query state the one-pair and the batched paths share.
 
 ``View`` is one image ready for relocalization (a dataset frame or an upload alike); ``as_view`` makes one from a
-``Frame`` or ``(image | path, intrinsics[, depth])``. ``Anchor`` is a prepared reference, ``PreparedQuery`` a query
+``Frame`` or ``(image | path, intrinsics[, depth])``, ``photo_view`` / ``photo_views`` from a photo file whose
+intrinsics may be unknown (given, else EXIF, else the method's estimate, else the default camera). ``Anchor`` is a prepared reference, ``PreparedQuery`` a query
 after its reference-independent stage. ``fit_depth`` and ``view_depth`` bring a depth map to a view's pixels.
 """
 
@@ -20,17 +21,27 @@ import cv2
 import numpy as np
 
 from ..data import Frame, read_image
+from ..data.intrinsics import (
+    ResolvedIntrinsics,
+    check_principal_point,
+    default_fov_deg,
+    default_intrinsics,
+    exif_focal,
+)
 from ..data.io import same_aspect
-from ..data.orientation import exif_orientation, fit_intrinsics, orient_pixels
+from ..data.orientation import displayed_size, exif_orientation, fit_intrinsics, orient_pixels
 from ..depth.base import DepthSource, FileDepthSource, NetworkDepthSource, PairDepthSource
 from ..geometry import Intrinsics, Pose
 from ..localizer import error_reason
-from ..matching.base import Features
+from ..matching.base import Features, FocalEstimator, Matcher
 
 __all__ = [
     "View",
     "ViewLike",
     "as_view",
+    "photo_view",
+    "photo_views",
+    "default_warning",
     "Anchor",
     "PreparedQuery",
     "fit_depth",
@@ -53,6 +64,8 @@ class View:
         orientation: The EXIF orientation by which the frame's stored files (its intrinsics, depth maps) were
             turned upright (1: none).
         pose: World-to-camera pose when known (a mapping image that serves as a reference among K), else None.
+        intrinsics_source: Where the intrinsics came from: ``given``, ``exif``, ``estimated`` or ``default``.
+        intrinsics_detail: What they were found from, for people (``FocalLengthIn35mmFilm 26 mm``).
     """
 
     image: np.ndarray
@@ -62,6 +75,13 @@ class View:
     name: str = ""
     orientation: int = 1
     pose: Pose | None = None
+    intrinsics_source: str = "given"
+    intrinsics_detail: str = ""
+
+    @property
+    def resolved(self) -> ResolvedIntrinsics:
+        """The intrinsics with where they came from (``to_dict()`` is what the CLI and the service report)."""
+        return ResolvedIntrinsics(self.intrinsics, self.intrinsics_source, self.intrinsics_detail)
 
 
 #: What ``as_view`` accepts: a ``View``, a ``Frame`` or ``(image | path, Intrinsics | K | (fx, fy, cx, cy)[, depth])``.
@@ -115,11 +135,139 @@ def as_view(x: ViewLike) -> View:
     if isinstance(x, tuple) and len(x) in (2, 3):
         image, path = _read_image_any(x[0])
         depth = None if len(x) == 2 or x[2] is None else np.asarray(x[2], dtype=np.float32)
-        K0 = _as_intrinsics(x[1], image)
-        K, depth, turned = _upright(image, K0, path, depth)
-        frame = Frame(path.name, path, K0) if path is not None else None  # its files keep the stored grid's K
-        return View(image, K, depth, frame, path.name if path is not None else "", turned)
+        return _view(image, path, _as_intrinsics(x[1], image), depth)
     raise TypeError(f"expected a Frame, a View or (image, intrinsics[, depth]); got {type(x).__name__}")
+
+
+def _view(
+    image: np.ndarray,
+    path: Path | None,
+    K0: Intrinsics,
+    depth: np.ndarray | None,
+    source: str = "given",
+    detail: str = "",
+) -> View:
+    K, depth, turned = _upright(image, K0, path, depth)
+    frame = Frame(path.name, path, K0) if path is not None else None  # its files keep the stored grid's K
+    return View(image, K, depth, frame, path.name if path is not None else "", turned, None, source, detail)
+
+
+def _centred(f: float, width: int, height: int) -> Intrinsics:
+    return Intrinsics(f, f, (width - 1) / 2, (height - 1) / 2, width, height)
+
+
+def _resolve(
+    image: np.ndarray, path: Path, given: Any, matcher: Matcher | None, other: np.ndarray | None, what: str
+) -> tuple[Intrinsics, str, str]:
+    """``(K of the stored grid or of the upright photo, source, detail)`` of one photo, in the documented order."""
+    h, w = image.shape[:2]
+    if given is not None:
+        K = _as_intrinsics(given, image)
+        check_principal_point(K.cx, K.cy, K.width, K.height, what)
+        return K, "given", ""
+    sw, sh = displayed_size(w, h, exif_orientation(path))  # the stored grid: a quarter turn is its own inverse
+    found = exif_focal(path)
+    if found is not None:
+        return _centred(found[0], sw, sh), "exif", found[4]
+    if isinstance(matcher, FocalEstimator):  # the capability is declared by the matcher's class
+        f = matcher.estimate_focal(image, other)
+        if f is not None:  # of the upright photo, centred: the same focal for the stored grid
+            return (
+                _centred(f, sw, sh),
+                "estimated",
+                f"the method's pointmap: {2 * np.degrees(np.arctan(max(w, h) / 2 / f)):.1f}° across the long side",
+            )
+    K = default_intrinsics(sw, sh)
+    return K, "default", f"{default_fov_deg():.0f}° across the long side, f = {K.fx:g} px"
+
+
+def photo_view(
+    path: str | os.PathLike,
+    intrinsics: Any = None,
+    depth: np.ndarray | None = None,
+    matcher: Matcher | None = None,
+    other: np.ndarray | None = None,
+    what: str | None = None,
+) -> View:
+    """A ``View`` of a photo file, its intrinsics given or found.
+
+    The intrinsics are, in this order: ``intrinsics`` when given (for the stored pixel grid or the upright photo,
+    as ``as_view`` takes them); the photo's EXIF focal length (``mapfree.data.intrinsics``: 35 mm-equivalent, or
+    focal length with the sensor's pixel density); the focal of the ``matcher``'s pointmap when it declares
+    that it estimates one (``FocalEstimator``: MASt3R, DUSt3R); the default
+    camera (64° across the long side). The principal point of the last three is the image centre, and the
+    EXIF orientation turns them with the pixels. ``View.intrinsics_source`` says which it was.
+
+    Args:
+        path: The photo (JPEG or PNG).
+        intrinsics: An ``Intrinsics``, a 3x3 K or ``(fx, fy, cx, cy)`` in pixels, or None.
+        depth: (H, W) metres for the stored grid, or None.
+        matcher: The method's matcher (its focal estimate is used when it is a ``FocalEstimator``), or None.
+        other: The other photo of the pair, for the estimate (upright (H, W, 3) uint8 RGB); None: the photo alone.
+        what: The option or field the given intrinsics came from, named in errors (default: the path).
+
+    Returns:
+        The view, upright, with ``intrinsics_source`` and ``intrinsics_detail`` set.
+
+    Raises:
+        FormatError: The file is missing or not a readable photo.
+        ValueError: Given intrinsics of another size, or a principal point far outside the image.
+    """
+    path = Path(path)
+    return _photo_view(read_image(path), path, intrinsics, depth, matcher, other, what or str(path))
+
+
+def _photo_view(
+    image: np.ndarray,
+    path: Path,
+    intrinsics: Any,
+    depth: np.ndarray | None,
+    matcher: Matcher | None,
+    other: np.ndarray | None,
+    what: str,
+) -> View:
+    K0, source, detail = _resolve(image, path, intrinsics, matcher, other, what)
+    d = None if depth is None else np.asarray(depth, dtype=np.float32)
+    return _view(image, path, K0, d, source, detail)
+
+
+def photo_views(
+    reference: str | os.PathLike,
+    query: str | os.PathLike,
+    intrinsics: tuple[Any, Any] = (None, None),
+    depths: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
+    matcher: Matcher | None = None,
+    what: tuple[str | None, str | None] = (None, None),
+) -> tuple[View, View]:
+    """``photo_view`` of a pair: the matcher's focal estimate (when one is needed) sees each photo with the other.
+
+    Args:
+        reference: The reference photo.
+        query: The query photo.
+        intrinsics: Given intrinsics of each, or None.
+        depths: (H, W) metres of each (for the stored grid), or None.
+        matcher: The method's matcher (its focal estimate is used when it is a ``FocalEstimator``), or None.
+        what: The options the given intrinsics came from, named in errors.
+
+    Returns:
+        The two views.
+    """
+    paths = (Path(reference), Path(query))
+    images = [read_image(p) for p in paths]
+    return (
+        _photo_view(images[0], paths[0], intrinsics[0], depths[0], matcher, images[1], what[0] or str(paths[0])),
+        _photo_view(images[1], paths[1], intrinsics[1], depths[1], matcher, images[0], what[1] or str(paths[1])),
+    )
+
+
+def default_warning(view: View) -> str | None:
+    """The warning line for a view on the default camera (None for any other source)."""
+    if view.intrinsics_source != "default":
+        return None
+    return (
+        f"{view.name}: no intrinsics given, no focal length in its EXIF and none estimated by the method: the default "
+        f"camera, {view.intrinsics_detail}; the metric scale of the pose rests on it"
+    )
 
 
 def _upright(

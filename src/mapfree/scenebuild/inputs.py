@@ -4,7 +4,8 @@ A place is a folder of scan folders (sorted by name: the first is scan 0, the re
 
 - images (``*.jpg|*.jpeg|*.png``, depth PNGs ``name.SUFFIX.png`` excluded) or one video (``*.mp4|*.mov|...``)
   sampled at ``fps`` frames per second;
-- optional ``intrinsics.txt`` (our format, names relative to the scan), else the EXIF focal length, else none;
+- optional ``intrinsics.txt`` (our format, names relative to the scan), else the EXIF focal length
+  (``mapfree.data.intrinsics``: the project's one convention), else none;
 - optional ``rgb.txt`` (TUM: ``timestamp filename``); without it image i is at time i (video: its time in s);
 - optional ``device_poses.txt`` (TUM: ``t tx ty tz qx qy qz qw``, camera-to-world, metres), interpolated at
   each image's time.
@@ -20,8 +21,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from ..data.intrinsics import exif_intrinsics
 from ..data.io import FormatError, iter_records, read_intrinsics
-from ..data.orientation import ROTATIONS, orient_intrinsics
 from ..geometry import Intrinsics, Pose
 
 __all__ = [
@@ -143,25 +144,6 @@ def interpolate_track(
     for i, Ri, ci in zip(np.flatnonzero(ok).tolist(), R, C):
         out[i] = Pose(Ri, ci)
     return out
-
-
-def exif_intrinsics(path: Path) -> Intrinsics | None:
-    """Pinhole intrinsics from the EXIF 35 mm-equivalent focal length (principal point at the centre), for the
-    photo as displayed (its EXIF orientation applied, as every reader of ours does)."""
-    from PIL import Image  # pillow comes with matplotlib
-
-    try:
-        with Image.open(path) as im:
-            width, height = im.size
-            exif = im.getexif()
-            f35 = exif.get_ifd(0x8769).get(0xA405)  # Exif sub-IFD: FocalLengthIn35mmFilm
-            orientation = int(exif.get(0x0112, 1))
-    except Exception:
-        return None
-    if not f35 or orientation not in ROTATIONS:
-        return None
-    f = float(f35) / 36.0 * max(width, height)  # 36 mm = the long side of a full frame
-    return orient_intrinsics(Intrinsics(f, f, (width - 1) / 2, (height - 1) / 2, width, height), orientation)
 
 
 def _sample_video(video: Path, fps: float, cache: Path) -> list[ScanFrame]:

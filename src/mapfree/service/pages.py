@@ -463,14 +463,14 @@ def _form_fields(form: dict, prefix: str) -> dict:
 
 
 def _query_photo(query: UploadFile, lim, form: dict) -> Photo:
-    """The page's query photo with its ``q_*`` intrinsics (guessed when left empty), at the working size."""
+    """The page's query photo with its ``q_*`` intrinsics (EXIF or the default camera when left empty), at the
+    working size."""
     return read_photo_upload(
         query.file.read(lim.max_image_bytes + 1),
         lim,
         _form_fields(form, "q_"),
         what="query photo",
         intr_what="query intrinsics",
-        guess=True,
     ).photo
 
 
@@ -523,7 +523,6 @@ def relocalize_try(
             what="reference photo",
             intr_what="reference intrinsics",
             depth_what="reference depth",
-            guess=True,
         ).photo  # at the size the matches are in
         q = _query_photo(query, lim, form)
         if ref_depth is None and needs_reference_depth(m, scale_free_too=False):

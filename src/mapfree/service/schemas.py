@@ -196,6 +196,9 @@ class CompareOut(_Out):
 class AnchorPhotoOut(_Out):
     index: int
     intrinsics: Intrinsics
+    intrinsics_source: str = Field(
+        "given", description="given, exif (the photo's EXIF focal length) or default (a 64° camera)"
+    )
     has_depth: bool
     pose: list[float] = Field(description="world-to-camera from the anchor's frame: qw qx qy qz tx ty tz")
 
@@ -229,6 +232,9 @@ class LocalizeOut(_Out):
     photo: int | None = Field(None, description="the index of the anchor's photo that answered")
     retrieval_similarity: float | None = None
     anchor: str
+    intrinsics_source: str | None = Field(
+        None, description="the query's intrinsics: given, exif (its EXIF focal length) or default (a 64° camera)"
+    )
 
 
 #: The error answers every JSON route may give, for ``openapi.json``.

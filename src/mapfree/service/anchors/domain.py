@@ -49,6 +49,19 @@ def photo_indices(rows: list[AnchorPhoto]) -> list[int]:
     return [0, *(r.seq for r in rows)]
 
 
+def _photo_json(index: int, intrinsics: dict, has_depth: bool, pose: list[float]) -> dict:
+    """One photo of an anchor as the API shows it; its intrinsics' ``source`` (given, exif or default) stored
+    with them is shown beside them (rows stored before sources were: given)."""
+    intr = {k: v for k, v in intrinsics.items() if k != "source"}
+    return {
+        "index": index,
+        "intrinsics": intr,
+        "intrinsics_source": intrinsics.get("source", "given"),
+        "has_depth": has_depth,
+        "pose": pose,
+    }
+
+
 def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
     """An anchor and its photos as the API shows them (``AnchorOut``).
 
@@ -62,17 +75,17 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
 
     Returns:
         ``id``, ``name``, ``method``, ``intrinsics``, ``private``, ``has_depth``, ``num_photos``, ``photos``
-        (``index``, ``intrinsics``, ``has_depth``, ``pose`` each), ``created_at`` (UNIX seconds) and ``url``.
+        (``index``, ``intrinsics``, ``intrinsics_source``, ``has_depth``, ``pose`` each), ``created_at`` (UNIX seconds) and ``url``.
     """
-    photos = [{"index": 0, "intrinsics": a.intrinsics, "has_depth": a.depth is not None, "pose": IDENTITY}]
-    photos += [
-        {"index": r.seq, "intrinsics": r.intrinsics, "has_depth": r.depth is not None, "pose": r.pose} for r in rows
+    photos = [
+        _photo_json(0, a.intrinsics, a.depth is not None, IDENTITY),
+        *(_photo_json(r.seq, r.intrinsics, r.depth is not None, r.pose) for r in rows),
     ]
     return {
         "id": a.id,
         "name": a.name,
         "method": a.method,
-        "intrinsics": a.intrinsics,
+        "intrinsics": photos[0]["intrinsics"],
         "private": bool(a.private),
         "has_depth": a.depth is not None,
         "num_photos": len(photos),
@@ -86,10 +99,10 @@ def photo_upload(
     lim: Limits,
     what: str,
     image: UploadFile | None,
-    fx: str | float,
-    fy: str | float,
-    cx: str | float,
-    cy: str | float,
+    fx: str | float | None,
+    fy: str | float | None,
+    cx: str | float | None,
+    cy: str | float | None,
     depth: UploadFile | None,
     pose: str | None,
 ) -> Upload:
@@ -211,7 +224,7 @@ def extra_photos(
         ("photo_cy", cy),
         ("photo_pose", poses),
     ):
-        if len(vals) != n:
+        if len(vals) != n and not (vals == [] and field_name != "photo_pose"):  # intrinsics: all, or none
             raise UploadError(
                 422,
                 f"{field_name}: {len(vals)} value(s) for {n} photo_image file(s); give one per "
@@ -225,6 +238,7 @@ def extra_photos(
             "/anchors/{id}/photos)",
         )
     names = [photo_name(first + i, f) for i, f in enumerate(images)]
+    fx, fy, cx, cy = (v or [""] * n for v in (fx, fy, cx, cy))  # none given: each photo's EXIF, else the default
     ups = [
         photo_upload(lim, names[i], f, fx[i], fy[i], cx[i], cy[i], depths[i] if depths else None, poses[i])
         for i, f in enumerate(images)
@@ -405,10 +419,10 @@ def add_photo(
     user: User,
     aid: str,
     image: UploadFile | None,
-    fx: str | float,
-    fy: str | float,
-    cx: str | float,
-    cy: str | float,
+    fx: str | float | None,
+    fy: str | float | None,
+    cx: str | float | None,
+    cy: str | float | None,
     depth: UploadFile | None,
     pose: str,
 ) -> tuple[Anchor, list[AnchorPhoto]]:

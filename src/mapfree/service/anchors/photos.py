@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...data.intrinsics import default_intrinsics, exif_focal
 from ...data.orientation import displayed_size, orient_intrinsics, orient_pixels
 from ...geometry import Intrinsics, Pose
 from ...relocalize import View
@@ -49,6 +50,18 @@ def upright_intrinsics(intr: dict, orientation: int) -> dict:
     return {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "width": k.width, "height": k.height}
 
 
+def found_intrinsics(data: bytes, width: int, height: int) -> tuple[dict, str]:
+    """``fx fy cx cy`` of the stored grid of a photo sent without intrinsics: from its EXIF focal length
+    (``mapfree.data.intrinsics``, the project's one convention), else the default camera; and which it was
+    (``exif`` or ``default``)."""
+    found = exif_focal(data)
+    if found is not None:
+        f = found[0]
+        return {"fx": f, "fy": f, "cx": (width - 1) / 2, "cy": (height - 1) / 2}, "exif"
+    k = default_intrinsics(width, height)
+    return {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy}, "default"
+
+
 @dataclass
 class Upload:
     """One checked uploaded photo: the ``Photo`` a method gets (at the working size), and what is stored of it
@@ -78,24 +91,24 @@ def read_upload(
     what: str = "image",
     intr_what: str = "intrinsics",
     depth_what: str = "depth",
-    guess: bool = False,
 ) -> Upload:
     """Uploaded bytes, the client's ``fx fy cx cy`` and optional uint16 depth PNG, both for the file's stored
     grid -> the checked ``Upload`` (each problem an ``UploadError`` naming ``what``, ``intr_what`` or
-    ``depth_what``). ``store``: also what is kept of it (an anchor's photo; a query keeps nothing). ``guess``: all
-    four intrinsics left empty mean focal 0.8 x the long side, centred (the web form)."""
+    ``depth_what``). ``store``: also what is kept of it (an anchor's photo; a query keeps nothing). All four
+    intrinsics left out (or empty) are found from the photo's EXIF focal length, else the default camera
+    (``found_intrinsics``); the stored intrinsics and the ``Photo`` say which (``source``)."""
     image, orientation = decode_photo(data, lim, what)
     h, w = stored_shape(image, orientation)
-    if guess and all(str(fields.get(k, "")).strip() == "" for k in _FIELDS):
-        f = 0.8 * max(w, h)
-        fields = {"fx": f, "fy": f, "cx": (w - 1) / 2, "cy": (h - 1) / 2}
-    intr = upright_intrinsics(parse_intrinsics(fields, w, h, intr_what), orientation)
+    source = "given"
+    if all(fields.get(k) is None or str(fields[k]).strip() == "" for k in _FIELDS):
+        fields, source = found_intrinsics(data, w, h)
+    intr = {**upright_intrinsics(parse_intrinsics(fields, w, h, intr_what), orientation), "source": source}
     d = orient_pixels(decode_depth(depth, lim, (h, w), depth_what), orientation) if depth is not None else None
     stored, stored_depth = b"", None
     if store:
         stored = clean_photo(data, image, orientation)  # no metadata, upright: what is kept and served
         stored_depth = depth_png(d) if d is not None and orientation != 1 else depth  # upright, like its photo
-    photo = fit_photo(Photo(image, intrinsics_of(intr), d), lim.work_max_side)  # the full-size pixels go now
+    photo = fit_photo(Photo(image, intrinsics_of(intr), d, intrinsics_source=source), lim.work_max_side)
     return Upload(photo, intr, stored, stored_depth, bool(d is not None and d.any()))
 
 
@@ -107,5 +120,12 @@ def decode_stored(
     img, _ = decode_photo(image, lim, what)
     d = decode_depth(depth, lim, img.shape[:2], f"{what} depth") if depth is not None else None
     return fit_photo(
-        Photo(img, intrinsics_of(intrinsics), d, pose=Pose.from_qt(pose[:4], pose[4:])), lim.work_max_side
+        Photo(
+            img,
+            intrinsics_of(intrinsics),
+            d,
+            pose=Pose.from_qt(pose[:4], pose[4:]),
+            intrinsics_source=intrinsics.get("source", "given"),  # rows stored before sources were: given
+        ),
+        lim.work_max_side,
     )  # one full-size photo in memory at a time

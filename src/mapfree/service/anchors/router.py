@@ -33,22 +33,28 @@ from .photos import read_upload as read_photo_upload
 
 router = APIRouter(tags=["relocalization"])
 
+#: How the optional intrinsics fields are read.
+_INTRINSICS = (
+    "pixels of the uploaded image, with fy, cx, cy: all four, or none to take the photo's EXIF focal length "
+    "(else a default 64° camera); the response's intrinsics_source says which"
+)
+
 
 @router.post("/anchors", status_code=201, response_model=AnchorOut)
 @heavy
 def create_anchor(
     request: Request,
     image: UploadFile = File(..., description="reference photo (JPEG/PNG)"),
-    fx: float = Form(...),
-    fy: float = Form(...),
-    cx: float = Form(...),
-    cy: float = Form(...),
+    fx: float | None = Form(None, description=_INTRINSICS),
+    fy: float | None = Form(None),
+    cx: float | None = Form(None),
+    cy: float | None = Form(None),
     depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
     method: str = Form(""),
     name: str = Form(""),
     csrf_token: str | None = Form(None),
     photo_image: list[UploadFile] = File([], description="further photos of the place (repeat)"),
-    photo_fx: list[str] = Form([], description="one per photo_image"),
+    photo_fx: list[str] = Form([], description="one per photo_image, or none at all (EXIF or the default)"),
     photo_fy: list[str] = Form([]),
     photo_cx: list[str] = Form([]),
     photo_cy: list[str] = Form([]),
@@ -92,10 +98,10 @@ def add_anchor_photo(
     aid: str,
     request: Request,
     image: UploadFile = File(..., description="photo (JPEG/PNG)"),
-    fx: float = Form(...),
-    fy: float = Form(...),
-    cx: float = Form(...),
-    cy: float = Form(...),
+    fx: float | None = Form(None, description=_INTRINSICS),
+    fy: float | None = Form(None),
+    cx: float | None = Form(None),
+    cy: float | None = Form(None),
     pose: str = Form(..., description="'qw qx qy qz tx ty tz': world-to-camera from the anchor's first photo, metres"),
     depth: UploadFile | None = File(None, description="optional uint16 PNG depth, millimetres"),
     csrf_token: str | None = Form(None),
@@ -158,10 +164,10 @@ def localize(
     aid: str,
     request: Request,
     image: UploadFile = File(..., description="query photo (JPEG/PNG)"),
-    fx: float = Form(...),
-    fy: float = Form(...),
-    cx: float = Form(...),
-    cy: float = Form(...),
+    fx: float | None = Form(None, description=_INTRINSICS),
+    fy: float | None = Form(None),
+    cx: float | None = Form(None),
+    cy: float | None = Form(None),
     depth: UploadFile | None = File(None),
     csrf_token: str | None = Form(None),
     db: Session = Depends(db_session),
@@ -183,4 +189,5 @@ def localize(
     ).photo
     out = estimate_json(localize_anchor(request, a, rows, q, caller.user.id), a.method)
     out["anchor"] = a.id
+    out["intrinsics_source"] = q.intrinsics_source
     return out
