@@ -16,7 +16,7 @@ from ..accounts.quota import check_quota, daily_test_limit, lock_user, recent_co
 from ..config import UNLIMITED, Settings
 from ..database.models import Plot, Result, Submission, User, now
 from ..inputs import UploadError, check_name
-from .disclosure import without_medians
+from .disclosure import without_withheld
 from .scoring import PLOT_NAMES, known_scenes, render_plots, unpack_report
 from .storage import UPLOAD_LEASE_SECONDS, copy_in
 from .zipcheck import check_submission_zip
@@ -114,9 +114,9 @@ def shown_metrics(split: str, metrics: None) -> None: ...
 @overload
 def shown_metrics(split: str, metrics: dict | None) -> dict | None: ...
 def shown_metrics(split: str, metrics: dict | None) -> dict | None:
-    """Stored metrics as shown: for ``test`` without medians and rounded, also where a result was stored before
-    either (``disclosure.py``)."""
-    return without_medians(metrics) if split == "test" and metrics else metrics
+    """Stored metrics as shown: for ``test`` without medians and AUCs, rounded, also where a result was stored
+    before these rules (``disclosure.py``)."""
+    return without_withheld(metrics) if split == "test" and metrics else metrics
 
 
 def visible(sub: Submission | None, user: User | None, withdrawn: bool = False) -> bool:
