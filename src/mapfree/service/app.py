@@ -19,7 +19,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from .. import __version__
 from .anchors.localizers import Localizers, register_methods_dir
 from .config import Settings, parse_daily_limit
-from .database.models import init_db, make_engine, session_factory
+from .database.models import RETRY_AFTER_S, init_db, make_engine, session_factory, unavailable
 from .http.errors import error_response, wants_html
 from .http.gc_freeze import freeze_long_lived
 from .http.guard import AuthThrottle, CredentialGate, client_address, request_id
@@ -100,8 +100,19 @@ def create_app(settings: Settings) -> FastAPI:
     async def _validation(request: Request, exc: RequestValidationError):
         return error_response(request, 422, _validation_message(exc))
 
+    def _database_down(request: Request, exc: Exception):
+        log.warning("database unavailable", extra={"path": request.url.path, "error": str(exc).splitlines()[0][:300]})
+        return error_response(
+            request,
+            503,
+            f"the database is unavailable or busy; try again in {RETRY_AFTER_S} s",
+            {"Retry-After": str(RETRY_AFTER_S)},
+        )
+
     @app.exception_handler(Exception)
     async def _crash(request: Request, exc: Exception):  # only reached when the middleware below did not answer
+        if unavailable(exc):
+            return _database_down(request, exc)
         log.error("unhandled error", exc_info=exc, extra={"path": request.url.path})
         return error_response(request, 500, "internal server error")
 
@@ -117,12 +128,15 @@ def create_app(settings: Settings) -> FastAPI:
         try:
             response = await call_next(request)
         except Exception as exc:
-            log.error(
-                "unhandled error",
-                exc_info=exc,
-                extra={"request_id": rid, "method": request.method, "path": request.url.path},
-            )
-            response = error_response(request, 500, f"internal server error (request id {rid})")
+            if unavailable(exc):
+                response = _database_down(request, exc)
+            else:
+                log.error(
+                    "unhandled error",
+                    exc_info=exc,
+                    extra={"request_id": rid, "method": request.method, "path": request.url.path},
+                )
+                response = error_response(request, 500, f"internal server error (request id {rid})")
         client = client_address(request)
         if response.status_code == 401 and throttle.credentialed(request):
             throttle.failed(client)

@@ -294,6 +294,21 @@ class DatabaseUnavailable(RuntimeError):
     or opened; the message says which in one line, without the password."""
 
 
+#: Seconds a client is told to wait (``Retry-After``) when the database is down or busy.
+RETRY_AFTER_S = 5
+
+
+def unavailable(exc: BaseException) -> bool:
+    """Whether ``exc`` says the database is down or busy, not that a request is wrong: it could not be reached
+    (PostgreSQL stopped, a connection cut), it is locked past the wait (SQLite), or every pooled connection
+    stayed in use past the pool's timeout. Such a request is answered 503 with ``Retry-After``, not 500."""
+    from sqlalchemy import exc as sa
+
+    return isinstance(exc, (sa.OperationalError, sa.TimeoutError)) or (
+        isinstance(exc, sa.DBAPIError) and exc.connection_invalidated
+    )
+
+
 def shown_url(url: str) -> str:
     """A database URL as it may be printed: without its password."""
     try:
