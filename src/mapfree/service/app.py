@@ -65,6 +65,7 @@ def create_app(settings: Settings) -> FastAPI:
         description="Map-free benchmark evaluation server and metric relocalization API.",
     )
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
+    app.state.read_sessions = session_factory(engine, read_only=True)  # GET and HEAD requests, credential checks
     app.state.health = HealthMonitor(engine)
     app.state.metrics = Metrics(engine)
     app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue)

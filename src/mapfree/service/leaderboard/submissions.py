@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 
 from ..accounts.quota import check_quota, daily_test_limit, lock_user, recent_count
 from ..config import UNLIMITED, Settings
-from ..database.models import Plot, Result, Submission, User, now
+from ..database.models import READ_ONLY, Plot, Result, Submission, User, now
 from ..inputs import UploadError, check_name
 from .disclosure import without_withheld
 from .scoring import PLOT_NAMES, known_scenes, render_plots, unpack_report
@@ -234,10 +234,11 @@ def plot_png(db: Session, sub: Submission, name: str) -> bytes | None:
         if data is None:
             return None
         pngs = render_plots(unpack_report(data))
-        try:
-            for n, p in pngs.items():
-                db.add(Plot(submission_id=sub.id, name=n, png=p))
-            db.commit()
-        except IntegrityError:  # another API process stored them first
-            db.rollback()
+        # stored by a write session of its own: ``db`` may be a GET's read-only one
+        with Session(db.get_bind().execution_options(**{READ_ONLY: False})) as w:
+            try:
+                w.add_all(Plot(submission_id=sub.id, name=n, png=p) for n, p in pngs.items())
+                w.commit()
+            except IntegrityError:  # another API process stored them first
+                w.rollback()
         return pngs.get(name)
