@@ -155,3 +155,30 @@ def test_an_anonymous_sign_in_body_is_refused_from_its_headers_unless_a_small_fo
     with server.client() as c:  # the form itself still signs in (its CSRF check answers, not the gate)
         r = c.post("/login", data={"token": "wrong", "csrf_token": "x"})
         assert r.status_code == 403
+
+
+def test_a_405_lists_every_method_of_the_path(make_app):
+    """Starlette's 405 named only the first route's method (``Allow: GET`` where DELETE is allowed too)."""
+    app = make_app()
+    for path, want in (
+        ("/anchors/abc", {"GET", "HEAD", "DELETE"}),
+        ("/api/submissions/x", {"GET", "HEAD", "PATCH", "DELETE"}),
+        ("/api/tokens/1", {"DELETE"}),
+    ):
+        r = app.client.request("PUT", path, headers=app.auth("ann"))
+        assert r.status_code == 405, (path, r.text)
+        assert set(r.headers["allow"].split(", ")) == want, (path, r.headers["allow"])
+
+
+def test_request_heads_past_the_documented_size_are_refused(server):
+    """``--h11-max-incomplete-event-size`` (16 KiB) held only for a head arriving in pieces: 100 KB of headers
+    sent at once were served. Now a head over the limit is answered 431, one under it as before."""
+    import socket
+    from urllib.parse import urlparse
+
+    u = urlparse(server.url)
+    for size, want in ((100_000, "431"), (8_000, "200")):
+        with socket.create_connection((u.hostname, u.port), timeout=30) as s:
+            s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nX-Pad: " + b"a" * size + b"\r\n\r\n")
+            head = s.recv(4096).decode(errors="replace")
+        assert head.startswith(f"HTTP/1.1 {want}"), (size, head[:200])

@@ -245,7 +245,9 @@ def uvicorn_options(a: argparse.Namespace) -> dict:
     from ..service.http.timeouts import head_timeout_protocol
 
     return {
-        "http": head_timeout_protocol(a.header_timeout, a.max_connections_per_address, a.forwarded_allow_ips),
+        "http": head_timeout_protocol(
+            a.header_timeout, a.max_connections_per_address, a.forwarded_allow_ips, a.h11_max_incomplete_event_size
+        ),
         "timeout_keep_alive": a.timeout_keep_alive,
         "limit_concurrency": a.limit_concurrency or None,
         "timeout_graceful_shutdown": 10,

@@ -25,7 +25,7 @@ from .http.gc_freeze import freeze_long_lived
 from .http.guard import AuthThrottle, CredentialGate, client_address, request_id
 from .http.head_as_get import HeadAsGet
 from .http.heavy import HeavyPool, default_threads
-from .http.timeouts import BodyTimeout
+from .http.timeouts import BodyTimeout, HeadSizeLimit
 from .inputs import UploadError
 from .leaderboard.own import Withdrawn
 from .leaderboard.storage import drop_interrupted_uploads
@@ -44,6 +44,20 @@ def _validation_message(exc: RequestValidationError) -> str:
         loc = ".".join(str(x) for x in e.get("loc", ()) if x not in ("body", "query", "path"))
         parts.append(f"{loc or 'request'}: {e.get('msg', 'invalid')}")
     return "; ".join(parts) or "invalid request"
+
+
+def allowed_methods(routes: list, scope: dict) -> list[str]:
+    """The methods of every route of ``routes`` whose path matches ``scope``'s (Starlette's 405 names only the
+    first route's: ``GET`` where ``DELETE`` is allowed too)."""
+    from starlette.routing import Match, Route
+
+    methods: set[str] = set()
+    for route in routes:
+        if isinstance(route, Route) and route.methods and route.matches(scope)[0] != Match.NONE:
+            methods |= route.methods
+    if "GET" in methods:  # HEAD is answered as GET (``HeadAsGet``)
+        methods.add("HEAD")
+    return sorted(methods)
 
 
 def create_app(settings: Settings) -> FastAPI:
@@ -93,9 +107,14 @@ def create_app(settings: Settings) -> FastAPI:
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException):
         msg = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        headers = getattr(exc, "headers", None)
         if exc.status_code == 413 and "too large" in msg.lower():
             msg = f"request body larger than {settings.limits.max_request_bytes} bytes"
-        return error_response(request, exc.status_code, msg, getattr(exc, "headers", None))
+        if exc.status_code == 405:  # every method of the path, not only the first route's
+            allowed = allowed_methods(every_route, request.scope)
+            headers = {**(headers or {}), "Allow": ", ".join(allowed)}
+            msg = f"method {request.method} not allowed here; allowed: {', '.join(allowed)}"
+        return error_response(request, exc.status_code, msg, headers)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
@@ -172,10 +191,13 @@ def create_app(settings: Settings) -> FastAPI:
     from .leaderboard import router as leaderboard
     from .operations import router as operations
 
+    every_route = list(app.router.routes)  # the app's own and every router's, for a 405's Allow
     for r in (operations, accounts, leaderboard, anchors, pages):
         app.include_router(r.router)
+        every_route += r.router.routes
     app.mount("/static", StaticFiles(directory=str(Path(__file__).parent / "static")), name="static")
     app.add_middleware(HeadAsGet)
+    app.add_middleware(HeadSizeLimit)
     schema = app.openapi
     app.openapi = lambda: for_clients(schema())  # type: ignore[method-assign]
     return app
