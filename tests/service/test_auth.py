@@ -98,14 +98,24 @@ def test_tokens_and_sessions_never_outlive_the_token_they_were_made_with(server)
 
 
 def test_look_alike_names_and_endless_tokens_are_refused(make_app, tmp_path):
-    """'аlice' (Cyrillic а) beside 'alice' were two accounts the boards showed alike, and one account minted
-    2,000 tokens in 20 s. Now names are ASCII and unique ignoring case, and an account holds at most
+    """'аlice' (Cyrillic а) beside 'alice' were two accounts the boards showed alike, so were the ASCII 'aIice',
+    'b0b' and 'alice.' beside 'alice' and 'bob'; and one account minted 2,000 tokens in 20 s. Now names are ASCII
+    and unique ignoring case and look-alike spellings (``skeleton``), and an account holds at most
     ``MAX_TOKENS`` active tokens (a revoked one frees its place)."""
     from mapfree.service.accounts import tokens as auth
 
     db = ["--db", f"sqlite:///{tmp_path / 'names.db'}"]
     mapfree("admin", *db, "create-user", "alice")
-    for name, why in (("\u0430lice", "ASCII"), ("Alice", "only in case"), (".x", "ASCII")):
+    mapfree("admin", *db, "create-user", "bob")
+    for name, why in (
+        ("\u0430lice", "ASCII"),
+        ("Alice", "only in case"),
+        (".x", "ASCII"),
+        ("aIice", "looks like the existing 'alice'"),
+        ("b0b", "looks like the existing 'bob'"),
+        ("alice.", "looks like the existing 'alice'"),
+        ("a-l1ce", "looks like the existing 'alice'"),
+    ):
         out = subprocess.run(
             [sys.executable, "-m", "mapfree.cli.admin", *db, "create-user", name],
             capture_output=True,

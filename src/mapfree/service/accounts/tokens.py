@@ -41,6 +41,20 @@ def new_token() -> str:
     return TOKEN_PREFIX + secrets.token_urlsafe(32)
 
 
+#: Look-alike ASCII spellings, folded to one (after lower-casing): ``aIice`` and ``alice``, ``b0b`` and ``bob``.
+_CONFUSABLE = (("rn", "m"), ("vv", "w"), ("cl", "d"), ("0", "o"), ("1", "l"), ("i", "l"), ("|", "l"))
+
+
+def skeleton(name: str) -> str:
+    """A name's look-alike fold: lower case, without separators (``.``, ``-``, ``_``), and with the ASCII
+    letters and digits that pass for one another in a sans-serif font made one (``_CONFUSABLE``). Two names with
+    the same skeleton cannot both be accounts: ``alice.``, ``aIice`` and ``a-lice`` all fold to ``allce``."""
+    folded = re.sub(r"[._-]", "", name.lower())
+    for seen, one in _CONFUSABLE:
+        folded = folded.replace(seen, one)
+    return folded
+
+
 def create_user(db: Session, name: str, admin: bool = False, expires_in: float | None = None) -> tuple[User, str]:
     """A new account and its first token (the only time the plain token is seen; ``expires_in`` as for
     ``issue_token``)."""
@@ -56,6 +70,13 @@ def create_user(db: Session, name: str, admin: bool = False, expires_in: float |
             f"user {name!r} already exists"
             if same == name
             else f"user name {name!r} differs from the existing {same!r} only in case"
+        )
+    key = skeleton(name)
+    alike = next((n for n in db.scalars(select(User.name)) if skeleton(n) == key), None)
+    if alike is not None:
+        raise ValueError(
+            f"user name {name!r} looks like the existing {alike!r} (names equal once case, separators and "
+            "look-alike letters (0/o, 1/l/I, rn/m, vv/w) are set aside are one name); choose another"
         )
     user = User(name=name, is_admin=admin)
     db.add(user)
