@@ -206,6 +206,20 @@ def to_json(db: Session, sub: Submission, owner_name: str | None = None) -> dict
 _PLOT_LOCK = threading.Lock()
 
 
+def stored_plot(db: Session, sub: Submission, name: str) -> bytes | None:
+    """A figure of a submission as stored (None: not drawn yet, or none for ``test``); the read is committed."""
+    if sub.split == "test":
+        return None
+    png = db.scalar(select(Plot.png).where(Plot.submission_id == sub.id, Plot.name == name))
+    db.commit()  # never wait on a lock inside a transaction (SQLite: it would hold the write lock)
+    return png
+
+
+def needs_drawing(sub: Submission, name: str) -> bool:
+    """Whether a figure not stored yet can be drawn (a val figure of the benchmark's)."""
+    return sub.split != "test" and name in PLOT_NAMES
+
+
 def plot_png(db: Session, sub: Submission, name: str) -> bytes | None:
     """A figure of a scored val submission: the stored PNG, or rendered from the packed report on its first view
     (and then stored).
@@ -218,11 +232,8 @@ def plot_png(db: Session, sub: Submission, name: str) -> bytes | None:
     Returns:
         The PNG bytes; None for ``test``, an unknown name, or a submission without a report.
     """
-    if sub.split == "test":
-        return None
-    png = db.scalar(select(Plot.png).where(Plot.submission_id == sub.id, Plot.name == name))
-    db.commit()  # never wait on the lock inside a transaction (SQLite: it would hold the write lock)
-    if png is not None or name not in PLOT_NAMES:
+    png = stored_plot(db, sub, name)
+    if png is not None or sub.split == "test" or name not in PLOT_NAMES:
         return png
     with _PLOT_LOCK:  # one rendering per process at a time; others then find the stored PNGs
         png = db.scalar(select(Plot.png).where(Plot.submission_id == sub.id, Plot.name == name))
