@@ -15,6 +15,7 @@ from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import Scope
 
 from .. import __version__
 from .anchors.localizers import Localizers, register_methods_dir
@@ -46,7 +47,7 @@ def _validation_message(exc: RequestValidationError) -> str:
     return "; ".join(parts) or "invalid request"
 
 
-def allowed_methods(routes: list, scope: dict) -> list[str]:
+def allowed_methods(routes: list, scope: Scope) -> list[str]:
     """The methods of every route of ``routes`` whose path matches ``scope``'s (Starlette's 405 names only the
     first route's: ``GET`` where ``DELETE`` is allowed too)."""
     from starlette.routing import Match, Route
