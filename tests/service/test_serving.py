@@ -407,3 +407,32 @@ def test_workers_end_with_a_serve_stopped_while_it_starts(tmp_path):
             except ProcessLookupError:
                 pass
     assert not left, f"processes left after serve stopped while starting (signal, seconds, pids): {left}"
+
+
+def test_half_open_requests_from_many_addresses_do_not_starve_health(split_data, tmp_path):
+    """The per-address cap bounds one address; several (18 loopback addresses × 64 half-open requests) still
+    filled ``--limit-concurrency``, which counted connections, and ``/health`` got 503. Now the limit counts
+    requests being answered. Here: a limit of 20, four addresses holding 8 half-open requests each (32)."""
+    srv = start_server(
+        db_url_for("sqlite", tmp_path),
+        "sqlite",
+        split_data,
+        tmp_path,
+        workers=0,
+        extra=("--limit-concurrency", "20", "--max-connections-per-address", "8", "--header-timeout", "60"),
+    )
+    port = int(srv.url.rsplit(":", 1)[1])
+    socks = []
+    try:
+        for a in range(2, 6):
+            for _ in range(8):
+                s = socket.create_connection(("127.0.0.1", port), timeout=10, source_address=(f"127.0.0.{a}", 0))
+                s.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
+                socks.append(s)
+        time.sleep(0.5)
+        codes = [httpx.get(srv.url + "/health", timeout=10).status_code for _ in range(3)]
+        assert codes == [200] * 3, codes
+    finally:
+        for s in socks:
+            s.close()
+        stop_server(srv.proc)

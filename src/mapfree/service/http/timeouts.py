@@ -77,6 +77,17 @@ class HeadTimeoutProtocol(H11Protocol):
         self._arm()
 
     def handle_events(self) -> None:
+        # ``--limit-concurrency`` counts requests being answered, not connections: uvicorn counted every open
+        # connection, so half-open ones (a header byte a second, 64 per address from 18 loopback addresses)
+        # filled it and /health got 503. Below the limit its check is skipped; at it, it answers 503 as before.
+        limit = self.config.limit_concurrency
+        if limit is not None:
+            answering = sum(
+                1
+                for c in self.connections
+                if isinstance(c, H11Protocol) and c.cycle is not None and not c.cycle.response_complete
+            )
+            self.limit_concurrency = None if answering < limit else limit
         before = self.cycle
         super().handle_events()
         if self.cycle is not before:  # a request's head arrived
