@@ -98,14 +98,24 @@ def test_tokens_and_sessions_never_outlive_the_token_they_were_made_with(server)
 
 
 def test_look_alike_names_and_endless_tokens_are_refused(make_app, tmp_path):
-    """'аlice' (Cyrillic а) beside 'alice' were two accounts the boards showed alike, and one account minted
-    2,000 tokens in 20 s. Now names are ASCII and unique ignoring case, and an account holds at most
+    """'аlice' (Cyrillic а) beside 'alice' were two accounts the boards showed alike, so were the ASCII 'aIice',
+    'b0b' and 'alice.' beside 'alice' and 'bob'; and one account minted 2,000 tokens in 20 s. Now names are ASCII
+    and unique ignoring case and look-alike spellings (``skeleton``), and an account holds at most
     ``MAX_TOKENS`` active tokens (a revoked one frees its place)."""
     from mapfree.service.accounts import tokens as auth
 
     db = ["--db", f"sqlite:///{tmp_path / 'names.db'}"]
     mapfree("admin", *db, "create-user", "alice")
-    for name, why in (("\u0430lice", "ASCII"), ("Alice", "only in case"), (".x", "ASCII")):
+    mapfree("admin", *db, "create-user", "bob")
+    for name, why in (
+        ("\u0430lice", "ASCII"),
+        ("Alice", "only in case"),
+        (".x", "ASCII"),
+        ("aIice", "looks like the existing 'alice'"),
+        ("b0b", "looks like the existing 'bob'"),
+        ("alice.", "looks like the existing 'alice'"),
+        ("a-l1ce", "looks like the existing 'alice'"),
+    ):
         out = subprocess.run(
             [sys.executable, "-m", "mapfree.cli.admin", *db, "create-user", name],
             capture_output=True,
@@ -122,3 +132,56 @@ def test_look_alike_names_and_endless_tokens_are_refused(make_app, tmp_path):
         assert r.status_code == 409 and "revoke some" in r.json()["detail"], r.text
         assert c.delete(f"/api/tokens/{made[0].json()['id']}", headers=h).status_code == 200
         assert c.post("/api/tokens", data={"expires_in_days": "1"}, headers=h).status_code == 201
+
+
+def _sign_in(c, token: str) -> str:
+    """Sign in on the form (as a new browser) -> the session cookie's value."""
+    c.cookies.clear()
+    login = c.get("/login")
+    csrf = login.text.split('name="csrf_token" value="')[1].split('"')[0]
+    r = c.post("/login", data={"token": token, "csrf_token": csrf}, follow_redirects=False)
+    assert r.status_code == 303, r.text
+    return r.cookies["mapfree_session"]
+
+
+def test_browser_sessions_per_account_are_capped_and_old_ones_end(make_app):
+    """400 sign-ins used to keep 416 sessions: now an account keeps ``MAX_SESSIONS``, the oldest end first."""
+    from sqlalchemy import func, select
+
+    from mapfree.service.accounts.tokens import MAX_SESSIONS
+    from mapfree.service.database.models import User, WebSession, make_engine, session_factory
+
+    app = make_app()
+    c = app.client
+    sids = [_sign_in(c, app.tokens["ann"]) for _ in range(MAX_SESSIONS + 5)]
+    c.cookies.clear()
+    engine = make_engine(app.settings.db_url)
+    with session_factory(engine)() as db:
+        ann = db.scalar(select(User.id).where(User.name == "ann"))
+        assert db.scalar(select(func.count()).select_from(WebSession).where(WebSession.user_id == ann)) == MAX_SESSIONS
+    engine.dispose()
+    c.cookies.set("mapfree_session", sids[0])
+    assert c.get("/api/me").status_code == 401  # the oldest ended
+    c.cookies.set("mapfree_session", sids[-1])
+    assert c.get("/api/me").status_code == 200
+
+
+def test_sessions_from_before_token_lineage_end_with_the_upgrade(make_app):
+    """A session stored before sessions recorded their token (schema 0004, ``token_id`` empty) could not be
+    reached by token revocation and could mint a year-long token; now it is no session at all."""
+    from sqlalchemy import select
+
+    from mapfree.service.accounts.tokens import hash_secret
+    from mapfree.service.database.models import User, WebSession, make_engine, now, session_factory
+
+    app = make_app()
+    engine = make_engine(app.settings.db_url)
+    with session_factory(engine).begin() as db:
+        ann = db.scalar(select(User.id).where(User.name == "ann"))
+        db.add(WebSession(sid_hash=hash_secret("old-session"), user_id=ann, csrf="old-csrf", expires_at=now() + 3600))
+    engine.dispose()
+    c = app.client
+    c.cookies.set("mapfree_session", "old-session")
+    assert c.get("/api/me").status_code == 401
+    r = c.post("/api/tokens", data={"expires_in_days": "365", "csrf_token": "old-csrf"})
+    assert r.status_code == 401, r.text

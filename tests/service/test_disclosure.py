@@ -89,8 +89,8 @@ def test_three_probe_submissions_recover_nothing_better_than_a_metre(tmp_path):
     assert found is None or np.linalg.norm(found - truth) > 1.0
 
     # a result stored before medians were withheld is shown without them too
-    old = {"Average Median Translation Error": 98.122, "AUC @ VCRE < 90px": 0.41234}
-    assert shown_metrics("test", old) == {"Average Median Translation Error": None, "AUC @ VCRE < 90px": 0.412}
+    old = {"Average Median Translation Error": 98.122, "Precision @ VCRE < 90px": 0.41234}
+    assert shown_metrics("test", old) == {"Average Median Translation Error": None, "Precision @ VCRE < 90px": 0.412}
 
     # control: the same three submissions against the same poses as val (public truth) do place the frame
     (root / "val").mkdir()
@@ -124,7 +124,65 @@ def test_no_test_result_carries_a_median(tmp_path, frames_sent):
     z.write_bytes(zip_of({"pose_s00900.txt": ("\n".join(lines) + "\n").encode()}))
     m = score(Settings(data_root=root, gt_root=gt), "test", z)[0]["metrics"]
     assert all(m[k] is None for k in MEDIAN_KEYS), m
-    assert m["AUC @ VCRE < 90px"] is not None
+    assert m["Precision @ VCRE < 90px"] is not None and m["AUC @ VCRE < 90px"] is None
     for k, v in m.items():
         if isinstance(v, float):
             assert round(v, DECIMALS.get(k, DEFAULT_DECIMALS)) == v, (k, v)
+
+
+def _ranked_zip(names: list[str], poses, passed: int) -> bytes:
+    """Seven frames with confidences 7..1: frame i at its true pose when bit i of ``passed`` is set (it passes
+    every threshold), else 1e5 m away (it fails every one); the rest of the split left out."""
+    lines = []
+    for i, (n, p) in enumerate(zip(names[:7], poses[:7])):
+        t = p.t if passed >> i & 1 else np.full(3, -1e5)
+        q = p.qt()[0]
+        lines.append(f"{n} {' '.join(f'{x:.9f}' for x in q)} {' '.join(f'{x:.6f}' for x in t)} {7 - i}")
+    return zip_of({"pose_s00900.txt": ("\n".join(lines) + "\n").encode()})
+
+
+def test_seven_ranked_frames_reveal_only_how_many_passed(tmp_path):
+    """The ranking attack: 7 chosen frames with confidences 7..1, every one of the 2^7 pass/fail patterns against
+    the private ground truth. What a test evaluation publishes (stored, and shown) must be the same for every
+    pattern with the same number of passing frames: the attacker learns that count (3 bits per threshold,
+    ``log2(7 + 1)``, the stated bound), never which frames passed. A control on val (public truth, AUCs kept)
+    tells the 128 patterns apart."""
+    from mapfree.service import Settings
+    from mapfree.service.leaderboard.scoring import score
+    from mapfree.service.leaderboard.submissions import shown_metrics
+
+    root, gt = tmp_path / "data", tmp_path / "gt"
+    names, poses = _one_scene_split(root, gt)
+    settings = Settings(data_root=root, gt_root=gt)
+    z = tmp_path / "ranked.zip"
+
+    def published(split: str, passed: int) -> tuple:
+        z.write_bytes(_ranked_zip(names, poses, passed))
+        result, plots = score(settings, split, z)
+        shown = shown_metrics(split, result["metrics"])
+        if split == "test":
+            assert plots is None and shown == result["metrics"]
+            assert any("AUCs are not published" in p for p in result["problems"])
+        return tuple(sorted(shown.items()))
+
+    by_count: dict[int, set] = {}
+    for passed in range(2**7):
+        by_count.setdefault(bin(passed).count("1"), set()).add(published("test", passed))
+    assert all(len(seen) == 1 for seen in by_count.values()), {k: len(v) for k, v in by_count.items()}
+    assert len(set().union(*by_count.values())) == 8  # the count itself is published (the precisions)
+    shown = dict(next(iter(by_count[3])))
+    assert shown["Precision @ VCRE < 90px"] == round(3 / 12, 3) and shown["AUC @ VCRE < 90px"] is None
+
+    # a result stored before AUCs were withheld is shown without them too
+    old = {"AUC @ VCRE < 90px": 0.41234, "AUC @ Pose Error < (50.0cm, 10deg)": 0.2, "Precision @ VCRE < 90px": 0.25}
+    assert shown_metrics("test", old) == {
+        "AUC @ VCRE < 90px": None,
+        "AUC @ Pose Error < (50.0cm, 10deg)": None,
+        "Precision @ VCRE < 90px": 0.25,
+    }
+
+    # control: the same submissions against the same poses as val (public truth) tell every pattern apart
+    (root / "val").mkdir()
+    (root / "test" / "s00900").rename(root / "val" / "s00900")
+    (gt / "test" / "s00900" / "poses.txt").replace(root / "val" / "s00900" / "poses.txt")
+    assert len({published("val", passed) for passed in range(2**7)}) == 2**7

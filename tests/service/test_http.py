@@ -124,3 +124,61 @@ def test_health_answers_from_a_live_snapshot_and_fails_when_the_database_does(ma
     time.sleep(1.0)  # nobody asked for 0.4 s: the refresher stopped, the next caller reads afresh
     assert m.current() is None
     m.engine.dispose()
+
+
+def test_an_anonymous_sign_in_body_is_refused_from_its_headers_unless_a_small_form(server):
+    """``POST /login``, the one anonymous write, used to parse any body before its handler ran: a
+    ``multipart/form-data`` body with the token sent as a file part was spooled to disk while the client held
+    its last byte. Now anything but a small urlencoded form is answered from the headers, before the body."""
+    import socket
+    from urllib.parse import urlparse
+
+    u = urlparse(server.url)
+    part = b'--b\r\nContent-Disposition: form-data; name="token"; filename="t"\r\n\r\n' + b"x" * 1024
+    for kind, length, want in (
+        (b"multipart/form-data; boundary=b", 60_000_000, "415"),
+        (b"application/x-www-form-urlencoded", 60_000_000, "413"),
+        (b"application/json", 100, "415"),
+    ):
+        with socket.create_connection((u.hostname, u.port), timeout=10) as s:
+            s.sendall(
+                b"POST /login HTTP/1.1\r\nHost: x\r\nContent-Type: "
+                + kind
+                + b"\r\nContent-Length: "
+                + str(length).encode()
+                + b"\r\n\r\n"
+                + part[: min(length, len(part))]
+            )
+            head = s.recv(4096).decode(errors="replace")  # the body is never finished: a reply comes from headers
+        assert head.startswith(f"HTTP/1.1 {want}"), (kind, head[:200])
+        assert "connection: close" in head.lower()
+    with server.client() as c:  # the form itself still signs in (its CSRF check answers, not the gate)
+        r = c.post("/login", data={"token": "wrong", "csrf_token": "x"})
+        assert r.status_code == 403
+
+
+def test_a_405_lists_every_method_of_the_path(make_app):
+    """Starlette's 405 named only the first route's method (``Allow: GET`` where DELETE is allowed too)."""
+    app = make_app()
+    for path, want in (
+        ("/anchors/abc", {"GET", "HEAD", "DELETE"}),
+        ("/api/submissions/x", {"GET", "HEAD", "PATCH", "DELETE"}),
+        ("/api/tokens/1", {"DELETE"}),
+    ):
+        r = app.client.request("PUT", path, headers=app.auth("ann"))
+        assert r.status_code == 405, (path, r.text)
+        assert set(r.headers["allow"].split(", ")) == want, (path, r.headers["allow"])
+
+
+def test_request_heads_past_the_documented_size_are_refused(server):
+    """``--h11-max-incomplete-event-size`` (16 KiB) held only for a head arriving in pieces: 100 KB of headers
+    sent at once were served. Now a head over the limit is answered 431, one under it as before."""
+    import socket
+    from urllib.parse import urlparse
+
+    u = urlparse(server.url)
+    for size, want in ((100_000, "431"), (8_000, "200")):
+        with socket.create_connection((u.hostname, u.port), timeout=30) as s:
+            s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nX-Pad: " + b"a" * size + b"\r\n\r\n")
+            head = s.recv(4096).decode(errors="replace")
+        assert head.startswith(f"HTTP/1.1 {want}"), (size, head[:200])

@@ -89,7 +89,6 @@ def test_heavy_threads_are_shared_fairly_between_accounts():
     from mapfree.service.http.heavy import HeavyPool
 
     pool = HeavyPool(threads=1, queue=8)
-    assert pool.per_account == 4
     finished: list[str] = []
 
     def work(name: str) -> None:
@@ -112,3 +111,93 @@ def test_heavy_threads_are_shared_fairly_between_accounts():
     assert finished == ["a0", "b", "a1", "a2", "a3"]
     assert pool.admitted == 0 and pool.running == 0
     pool.shutdown()
+
+
+@pytest.mark.parametrize("accounts", [2, 3, 4])
+def test_heavy_share_holds_against_several_accounts_flooding(accounts):
+    """``accounts`` accounts each keep retrying to hold 10 requests in (4 threads, 8 waiting: 12 in all). Two
+    used to hold all 12 (a share was half the room whatever their number), and a newcomer got 429 after 429.
+    Now, once the flood runs, each holds at most 12 // (k + 1) and a newcomer's five requests in a row are
+    all admitted and answered."""
+    import asyncio
+    import time
+
+    from fastapi import HTTPException
+
+    from mapfree.service.http.heavy import HeavyPool
+
+    pool = HeavyPool(threads=4, queue=8)
+    held: dict[str, int] = {}
+    most: dict[str, int] = {}
+
+    def work(name: str) -> str:
+        time.sleep(0.02)
+        return name
+
+    async def one(name: str) -> None:
+        held[name] = held.get(name, 0) + 1
+        try:
+            await pool.run(work, name, account=name)
+        finally:
+            held[name] -= 1
+
+    async def flood(name: str, until: float) -> None:
+        tasks: set[asyncio.Task] = set()
+        while time.monotonic() < until:
+            tasks = {t for t in tasks if not t.done()}
+            if len(tasks) < 10:
+                task = asyncio.create_task(one(name))
+                await asyncio.sleep(0)
+                if task.done() and isinstance(task.exception(), HTTPException):
+                    await asyncio.sleep(0.002)
+                else:
+                    tasks.add(task)
+            else:
+                await asyncio.sleep(0.002)
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    async def scenario() -> list[int]:
+        until = time.monotonic() + 1.2
+        floods = [asyncio.create_task(flood(f"f{i}", until)) for i in range(accounts)]
+        await asyncio.sleep(0.4)  # the flood has settled: every request in now came in under the rule
+        answers = []
+        for i in range(5):
+            for name in held:
+                most[name] = max(most.get(name, 0), held[name])
+            try:
+                assert await pool.run(work, f"new{i}", account="newcomer") == f"new{i}"
+                answers.append(200)
+            except HTTPException as e:
+                answers.append(e.status_code)
+        await asyncio.gather(*floods)
+        return answers
+
+    assert asyncio.run(scenario()) == [200] * 5
+    assert max(most.values()) <= 12 // (accounts + 1), most
+    assert pool.admitted == 0 and pool.running == 0
+    pool.shutdown()
+
+
+@pytest.mark.parametrize("accounts", [2, 3, 4])
+def test_prepared_anchor_cache_keeps_a_newcomers_share_against_several_accounts(accounts):
+    """``accounts`` accounts put anchors round-robin into a cache of 256 MiB, far more than fits; a newcomer's anchor
+    of the stated share (``256 / (k + 1)`` MiB) is kept while they go on (the one holding the most loses, so the
+    newcomer, holding less than each of them could, is never the one), and one a step larger is not: the bound is
+    tight."""
+    from mapfree.service.anchors.prepared import ByteLRU
+
+    mib = 1 << 20
+
+    def flood(lru: ByteLRU, rounds: int, start: int = 0) -> None:
+        for i in range(start, start + rounds):
+            for a in range(accounts):
+                lru.put(("flood", a, i), object(), 8 * mib, owner=f"f{a}")
+
+    share = 256 * mib // (accounts + 1)
+    for size, kept in ((share, True), (share + 16 * mib, False)):
+        lru = ByteLRU(256 * mib)
+        flood(lru, 100)
+        lru.put("newcomer's anchor", "prepared", size, owner="newcomer")
+        flood(lru, 200, start=100)
+        assert (lru.get("newcomer's anchor") == "prepared") is kept, (size / mib, lru.owned("newcomer"))
+        assert lru.total <= lru.max_bytes

@@ -355,3 +355,84 @@ def test_operator_mistakes_get_one_line_each(split_data, tmp_path):
         lines = [x for x in out.stderr.splitlines() if x.strip()]
         assert out.returncode == code and words in out.stderr, (out.args, out.returncode, out.stderr[-2000:])
         assert len(lines) == 1 and "Traceback" not in out.stderr and "s3cret" not in out.stderr, out.stderr
+
+
+def _session_members(sid: int) -> list[int]:
+    """Live processes of session ``sid`` (field 6 of /proc/PID/stat), zombies left out."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(") ", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":
+            out.append(int(stat.parent.name))
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
+def test_workers_end_with_a_serve_stopped_while_it_starts(tmp_path):
+    """``serve`` stopped (SIGTERM or kill -9) in its first seconds used to leave both workers running without a
+    parent, every time: they asked for the parent-death signal only after their imports, by when ``serve`` was
+    gone. Now ``serve`` sets it in each worker before exec. Six stops at random points of the first 3 s, and
+    no process of the session is left after each."""
+    import random
+    import subprocess
+    import sys
+
+    rng = random.Random(36)
+    db = f"sqlite:///{tmp_path / 'start.db'}"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    subprocess.run([sys.executable, "-m", "mapfree", "admin", "--db", db, "create-user", "x"], env=env, check=True)
+    left: list[tuple] = []
+    for i in range(6):
+        sig = (signal.SIGTERM, signal.SIGKILL)[i % 2]
+        delay = rng.uniform(0.3, 3.0)
+        cmd = [sys.executable, "-m", "mapfree.cli.serve", "--db", db, "--workers", "2", "--port", "0"]
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, start_new_session=True
+        )
+        try:
+            time.sleep(delay)
+            proc.send_signal(sig)
+            proc.wait(20)
+            deadline = time.time() + 15
+            while time.time() < deadline and _session_members(proc.pid):
+                time.sleep(0.2)
+            if _session_members(proc.pid):
+                left.append((sig.name, round(delay, 2), _session_members(proc.pid)))
+        finally:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    assert not left, f"processes left after serve stopped while starting (signal, seconds, pids): {left}"
+
+
+def test_half_open_requests_from_many_addresses_do_not_starve_health(split_data, tmp_path):
+    """The per-address cap bounds one address; several (18 loopback addresses × 64 half-open requests) still
+    filled ``--limit-concurrency``, which counted connections, and ``/health`` got 503. Now the limit counts
+    requests being answered. Here: a limit of 20, four addresses holding 8 half-open requests each (32)."""
+    srv = start_server(
+        db_url_for("sqlite", tmp_path),
+        "sqlite",
+        split_data,
+        tmp_path,
+        workers=0,
+        extra=("--limit-concurrency", "20", "--max-connections-per-address", "8", "--header-timeout", "60"),
+    )
+    port = int(srv.url.rsplit(":", 1)[1])
+    socks = []
+    try:
+        for a in range(2, 6):
+            for _ in range(8):
+                s = socket.create_connection(("127.0.0.1", port), timeout=10, source_address=(f"127.0.0.{a}", 0))
+                s.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
+                socks.append(s)
+        time.sleep(0.5)
+        codes = [httpx.get(srv.url + "/health", timeout=10).status_code for _ in range(3)]
+        assert codes == [200] * 3, codes
+    finally:
+        for s in socks:
+            s.close()
+        stop_server(srv.proc)

@@ -245,7 +245,9 @@ def uvicorn_options(a: argparse.Namespace) -> dict:
     from ..service.http.timeouts import head_timeout_protocol
 
     return {
-        "http": head_timeout_protocol(a.header_timeout, a.max_connections_per_address, a.forwarded_allow_ips),
+        "http": head_timeout_protocol(
+            a.header_timeout, a.max_connections_per_address, a.forwarded_allow_ips, a.h11_max_incomplete_event_size
+        ),
         "timeout_keep_alive": a.timeout_keep_alive,
         "limit_concurrency": a.limit_concurrency or None,
         "timeout_graceful_shutdown": 10,
@@ -286,8 +288,11 @@ def worker_command(a: argparse.Namespace) -> list[str]:
 
 def worker_env(a: argparse.Namespace) -> dict[str, str]:
     """The workers' environment: the database URL goes there, never on their command line, where ``ps`` would
-    show its password to every user of the host (a process's environment is readable by its owner only)."""
-    return {**os.environ, "MAPFREE_DB": a.db}
+    show its password to every user of the host (a process's environment is readable by its owner only); and
+    this process's pid, which the workers watch (their ``getppid()`` is already another's if it died first)."""
+    from ..service.process import PARENT_PID_ENV
+
+    return {**os.environ, "MAPFREE_DB": a.db, PARENT_PID_ENV: str(os.getpid())}
 
 
 class Supervisor:
@@ -312,14 +317,20 @@ class Supervisor:
         self.failures: list[int] = []  # consecutive quick deaths per slot
         self.restart_at: list[float] = []
         self.spawned = 0
+        self._lock = threading.Lock()  # a restart and stop() one after the other, never interleaved
         self.thread = threading.Thread(target=self._watch, daemon=True)
 
     def _spawn(self) -> subprocess.Popen:
+        """A worker that gets SIGTERM when this process (or the spawning thread) ends, from its first
+        instruction on (``process.parent_death_signal``)."""
+        from ..service.process import parent_death_signal
+
         self.spawned += 1
-        return subprocess.Popen(self.cmd, env=self.env)
+        return subprocess.Popen(self.cmd, env=self.env, preexec_fn=parent_death_signal())
 
     def start(self) -> None:
-        self.procs = [self._spawn() for _ in range(self.n)]
+        with self._lock:
+            self.procs = [self._spawn() for _ in range(self.n)]
         self.started, self.failures, self.restart_at = [time.time()] * self.n, [0] * self.n, [0.0] * self.n
         log.info("workers started", extra={"pids": [p.pid for p in self.procs]})
         self.thread.start()
@@ -339,13 +350,17 @@ class Supervisor:
                         "worker exited; restarting", extra={"pid": p.pid, "code": p.returncode, "in_s": round(delay, 1)}
                     )
                 if t >= self.restart_at[i]:
-                    self.procs[i], self.started[i], self.restart_at[i] = self._spawn(), t, 0.0
+                    with self._lock:  # a stop() that came meanwhile finds no worker it did not signal
+                        if self.stopping.is_set():
+                            return
+                        self.procs[i], self.started[i], self.restart_at[i] = self._spawn(), t, 0.0
 
     def stop(self, timeout: float = 15.0) -> None:
-        self.stopping.set()
-        for p in self.procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
+        with self._lock:
+            self.stopping.set()
+            for p in self.procs:
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
         deadline = time.time() + timeout
         for p in self.procs:
             try:

@@ -15,17 +15,18 @@ from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import Scope
 
 from .. import __version__
 from .anchors.localizers import Localizers, register_methods_dir
 from .config import Settings, parse_daily_limit
-from .database.models import init_db, make_engine, session_factory
+from .database.models import RETRY_AFTER_S, init_db, make_engine, session_factory, unavailable
 from .http.errors import error_response, wants_html
 from .http.gc_freeze import freeze_long_lived
 from .http.guard import AuthThrottle, CredentialGate, client_address, request_id
 from .http.head_as_get import HeadAsGet
 from .http.heavy import HeavyPool, default_threads
-from .http.timeouts import BodyTimeout
+from .http.timeouts import BodyTimeout, HeadSizeLimit
 from .inputs import UploadError
 from .leaderboard.own import Withdrawn
 from .leaderboard.storage import drop_interrupted_uploads
@@ -44,6 +45,20 @@ def _validation_message(exc: RequestValidationError) -> str:
         loc = ".".join(str(x) for x in e.get("loc", ()) if x not in ("body", "query", "path"))
         parts.append(f"{loc or 'request'}: {e.get('msg', 'invalid')}")
     return "; ".join(parts) or "invalid request"
+
+
+def allowed_methods(routes: list, scope: Scope) -> list[str]:
+    """The methods of every route of ``routes`` whose path matches ``scope``'s (Starlette's 405 names only the
+    first route's: ``GET`` where ``DELETE`` is allowed too)."""
+    from starlette.routing import Match, Route
+
+    methods: set[str] = set()
+    for route in routes:
+        if isinstance(route, Route) and route.methods and route.matches(scope)[0] != Match.NONE:
+            methods |= route.methods
+    if "GET" in methods:  # HEAD is answered as GET (``HeadAsGet``)
+        methods.add("HEAD")
+    return sorted(methods)
 
 
 def create_app(settings: Settings) -> FastAPI:
@@ -65,6 +80,7 @@ def create_app(settings: Settings) -> FastAPI:
         description="Map-free benchmark evaluation server and metric relocalization API.",
     )
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
+    app.state.read_sessions = session_factory(engine, read_only=True)  # GET and HEAD requests, credential checks
     app.state.health = HealthMonitor(engine)
     app.state.metrics = Metrics(engine)
     app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue)
@@ -92,16 +108,32 @@ def create_app(settings: Settings) -> FastAPI:
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException):
         msg = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        headers = getattr(exc, "headers", None)
         if exc.status_code == 413 and "too large" in msg.lower():
             msg = f"request body larger than {settings.limits.max_request_bytes} bytes"
-        return error_response(request, exc.status_code, msg, getattr(exc, "headers", None))
+        if exc.status_code == 405:  # every method of the path, not only the first route's
+            allowed = allowed_methods(every_route, request.scope)
+            headers = {**(headers or {}), "Allow": ", ".join(allowed)}
+            msg = f"method {request.method} not allowed here; allowed: {', '.join(allowed)}"
+        return error_response(request, exc.status_code, msg, headers)
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
         return error_response(request, 422, _validation_message(exc))
 
+    def _database_down(request: Request, exc: Exception):
+        log.warning("database unavailable", extra={"path": request.url.path, "error": str(exc).splitlines()[0][:300]})
+        return error_response(
+            request,
+            503,
+            f"the database is unavailable or busy; try again in {RETRY_AFTER_S} s",
+            {"Retry-After": str(RETRY_AFTER_S)},
+        )
+
     @app.exception_handler(Exception)
     async def _crash(request: Request, exc: Exception):  # only reached when the middleware below did not answer
+        if unavailable(exc):
+            return _database_down(request, exc)
         log.error("unhandled error", exc_info=exc, extra={"path": request.url.path})
         return error_response(request, 500, "internal server error")
 
@@ -117,12 +149,15 @@ def create_app(settings: Settings) -> FastAPI:
         try:
             response = await call_next(request)
         except Exception as exc:
-            log.error(
-                "unhandled error",
-                exc_info=exc,
-                extra={"request_id": rid, "method": request.method, "path": request.url.path},
-            )
-            response = error_response(request, 500, f"internal server error (request id {rid})")
+            if unavailable(exc):
+                response = _database_down(request, exc)
+            else:
+                log.error(
+                    "unhandled error",
+                    exc_info=exc,
+                    extra={"request_id": rid, "method": request.method, "path": request.url.path},
+                )
+                response = error_response(request, 500, f"internal server error (request id {rid})")
         client = client_address(request)
         if response.status_code == 401 and throttle.credentialed(request):
             throttle.failed(client)
@@ -157,10 +192,13 @@ def create_app(settings: Settings) -> FastAPI:
     from .leaderboard import router as leaderboard
     from .operations import router as operations
 
+    every_route = list(app.router.routes)  # the app's own and every router's, for a 405's Allow
     for r in (operations, accounts, leaderboard, anchors, pages):
         app.include_router(r.router)
+        every_route += r.router.routes
     app.mount("/static", StaticFiles(directory=str(Path(__file__).parent / "static")), name="static")
     app.add_middleware(HeadAsGet)
+    app.add_middleware(HeadSizeLimit)
     schema = app.openapi
     app.openapi = lambda: for_clients(schema())  # type: ignore[method-assign]
     return app

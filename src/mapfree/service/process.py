@@ -10,6 +10,7 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Callable
 
 log = logging.getLogger("mapfree.service")
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
@@ -37,6 +38,31 @@ def die_with_parent(parent_pid: int | None, sig: int = signal.SIGTERM, poll_s: f
         os.kill(os.getpid(), sig)
 
     threading.Thread(target=watch, name="mapfree-lifeline", daemon=True).start()
+
+
+def parent_death_signal(sig: int = signal.SIGTERM) -> Callable[[], None] | None:
+    """A ``preexec_fn`` for ``subprocess.Popen``: the child asks for ``sig`` when its parent dies
+    (``prctl(PR_SET_PDEATHSIG)``, which survives ``exec``) *before* it execs, so before it runs any code of its
+    own; a parent gone already by then (the window between ``fork`` and the ``prctl``) makes it exit at once.
+    Workers that set this themselves after their imports were left running for ever when ``serve`` stopped in
+    its first seconds. ``None`` off Linux.
+
+    The signal comes when the *thread* that spawned the child ends, so spawn from a thread that lives as long
+    as the children should (the main thread, or a supervisor thread that stops them anyway)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up here: nothing is loaded in the forked child
+    except (OSError, AttributeError):
+        return None
+    parent = os.getpid()
+
+    def preexec() -> None:
+        prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0)
+        if os.getppid() != parent:
+            os._exit(0)
+
+    return preexec
 
 
 def stop_on_signals(stop: threading.Event, signals: tuple[int, ...] = (signal.SIGTERM, signal.SIGINT)) -> None:

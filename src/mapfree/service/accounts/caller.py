@@ -6,7 +6,7 @@ browser session cookie plus that session's CSRF token (form field ``csrf_token``
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -47,9 +47,16 @@ class SignedIn(Caller):
     user: User
 
 
-def db_session(request: Request) -> Iterator[Session]:
-    """The request's database session (a FastAPI dependency: closed when the response is sent)."""
-    with request.app.state.sessions() as db:
+#: Methods whose requests only read: their sessions take no write transaction (``session_factory``).
+READ_METHODS = ("GET", "HEAD")
+
+
+async def db_session(request: Request) -> AsyncIterator[Session]:
+    """The request's database session (a FastAPI dependency: closed when the response is sent); read-only for
+    GET and HEAD, so that on SQLite a write transaction is begun only where a write follows. Async, so that its
+    closing (the rollback that ends a transaction still open) needs no thread of the shared pool."""
+    factory = request.app.state.read_sessions if request.method in READ_METHODS else request.app.state.sessions
+    with factory() as db:
         yield db
 
 
@@ -72,8 +79,8 @@ def token_user(request: Request, db: Session, header: str) -> User:
 
 def check_credentials(request: Request) -> int:
     """The account id of a request's credentials, from its headers alone (``guard.CredentialGate``): a bearer
-    token, else the browser session cookie; 401 (or 429) when there are none or they are bad."""
-    with request.app.state.sessions() as db:
+    token, else the browser session cookie; 401 (or 429) when there are none or they are bad. Reads only."""
+    with request.app.state.read_sessions() as db:
         header = request.headers.get("authorization")
         if header is not None:
             return token_user(request, db, header).id

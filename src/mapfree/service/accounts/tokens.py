@@ -25,6 +25,8 @@ TOKEN_PREFIX = "mf_"
 USER_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 #: Active (not revoked, not expired) tokens one account may hold.
 MAX_TOKENS = 100
+#: Browser sessions one account keeps at once; a new sign-in past them ends the oldest.
+MAX_SESSIONS = 20
 
 
 class TokenLimit(ValueError):
@@ -37,6 +39,20 @@ def hash_secret(secret: str) -> str:
 
 def new_token() -> str:
     return TOKEN_PREFIX + secrets.token_urlsafe(32)
+
+
+#: Look-alike ASCII spellings, folded to one (after lower-casing): ``aIice`` and ``alice``, ``b0b`` and ``bob``.
+_CONFUSABLE = (("rn", "m"), ("vv", "w"), ("cl", "d"), ("0", "o"), ("1", "l"), ("i", "l"), ("|", "l"))
+
+
+def skeleton(name: str) -> str:
+    """A name's look-alike fold: lower case, without separators (``.``, ``-``, ``_``), and with the ASCII
+    letters and digits that pass for one another in a sans-serif font made one (``_CONFUSABLE``). Two names with
+    the same skeleton cannot both be accounts: ``alice.``, ``aIice`` and ``a-lice`` all fold to ``allce``."""
+    folded = re.sub(r"[._-]", "", name.lower())
+    for seen, one in _CONFUSABLE:
+        folded = folded.replace(seen, one)
+    return folded
 
 
 def create_user(db: Session, name: str, admin: bool = False, expires_in: float | None = None) -> tuple[User, str]:
@@ -54,6 +70,13 @@ def create_user(db: Session, name: str, admin: bool = False, expires_in: float |
             f"user {name!r} already exists"
             if same == name
             else f"user name {name!r} differs from the existing {same!r} only in case"
+        )
+    key = skeleton(name)
+    alike = next((n for n in db.scalars(select(User.name)) if skeleton(n) == key), None)
+    if alike is not None:
+        raise ValueError(
+            f"user name {name!r} looks like the existing {alike!r} (names equal once case, separators and "
+            "look-alike letters (0/o, 1/l/I, rn/m, vv/w) are set aside are one name); choose another"
         )
     user = User(name=name, is_admin=admin)
     db.add(user)
@@ -171,7 +194,8 @@ def revoke_tokens(db: Session, user: User) -> int:
 
 def open_session(db: Session, token: ApiToken, hours: float) -> tuple[str, str]:
     """A new browser session signed in with ``token`` -> (session id for the cookie, its CSRF token). It ends
-    after ``hours``, when the token expires, or when the token is revoked, whichever comes first."""
+    after ``hours``, when the token expires, or when the token is revoked, whichever comes first. The account
+    keeps at most ``MAX_SESSIONS``: past them the oldest end (400 sign-ins used to keep 416 sessions)."""
     sid, csrf = secrets.token_urlsafe(32), secrets.token_urlsafe(24)
     db.add(
         WebSession(
@@ -182,14 +206,23 @@ def open_session(db: Session, token: ApiToken, hours: float) -> tuple[str, str]:
             token_id=token.id,
         )
     )
+    db.flush()
+    kept = select(WebSession.id).where(WebSession.user_id == token.user_id).order_by(WebSession.id.desc())
+    db.execute(
+        delete(WebSession).where(
+            WebSession.user_id == token.user_id, WebSession.id.not_in(kept.limit(MAX_SESSIONS).scalar_subquery())
+        )
+    )
     return sid, csrf
 
 
 def session_for(db: Session, sid: str | None) -> WebSession | None:
+    """The live session of a cookie's id, or None: unknown, expired, or made before sessions recorded their
+    token (schema 0004), which token revocation could not reach, so they end with the upgrade."""
     if not sid or len(sid) > 200:
         return None
     row = db.scalar(select(WebSession).where(WebSession.sid_hash == hash_secret(sid)))
-    return row if row is not None and row.expires_at > now() else None
+    return row if row is not None and row.expires_at > now() and row.token_id is not None else None
 
 
 def close_session(db: Session, sid: str | None) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import sqlite3
+import threading
 import time
 import uuid
 from typing import Any, cast
@@ -28,6 +29,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.engine import Connection, CursorResult, Engine, make_url
 from sqlalchemy.engine import Result as Rows
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
 
@@ -263,13 +265,84 @@ def _wal(cur: Any, wait_s: float = 30.0) -> None:
             time.sleep(0.05)
 
 
+#: Seconds a SQLite write transaction waits for this process's earlier ones before the request gets a 503.
+WRITE_WAIT_S = 30.0
+#: Connections of a SQLite engine: one for every thread that may hold one at once (the shared pool's 40, the
+#: heavy threads, health and metrics), so that a burst queues for the write lock, never for a connection.
+SQLITE_POOL = 64
+#: Threads of one process that may wait for the write turn at once; past that a write is refused at once (503
+#: with Retry-After). A transaction still open when its endpoint returns ends on another thread of the shared
+#: pool (40; 8 stay free): were every one of them waiting for the turn it holds, nothing would move until their
+#: timeouts.
+WRITE_WAITERS = 32
+_WRITE_HELD = "mapfree_write_lock"
+
+
+def _sqlite_writes_in_turn(engine: Engine) -> None:
+    """Serialize this process's SQLite write transactions on a lock of its own, in Python, before ``BEGIN
+    IMMEDIATE``: waiting in SQLite's busy handler (a sleep-and-retry poll, no queue) let ~60 concurrent light
+    writes stall each other and every other connection for 30 s and fail with "database is locked". Other
+    processes on the same file still meet at SQLite's lock. Read-only transactions (``READ_ONLY``) take neither.
+    The lock is released when the transaction ends (commit, rollback, or the connection going back to the pool);
+    at most ``WRITE_WAITERS`` threads wait for it, a write past them is refused at once (``unavailable``: 503)."""
+    lock = threading.Lock()
+    waiting = threading.BoundedSemaphore(WRITE_WAITERS)
+
+    def release(info: dict) -> None:
+        if info.pop(_WRITE_HELD, False):
+            lock.release()
+
+    @event.listens_for(engine, "begin")
+    def _begin(conn: Connection) -> None:  # pragma: no cover - driver hook
+        # a connection marked read-only reads a WAL snapshot without queueing for the write lock
+        if conn.get_execution_options().get(READ_ONLY):
+            conn.exec_driver_sql("BEGIN")
+            return
+        if not waiting.acquire(blocking=False):  # the threads of the pool stay free to end transactions
+            raise OperationalError(
+                "BEGIN IMMEDIATE", None, sqlite3.OperationalError(f"database busy: {WRITE_WAITERS} writes waiting")
+            )
+        try:
+            turn = lock.acquire(timeout=WRITE_WAIT_S)
+        finally:
+            waiting.release()
+        if not turn:
+            raise OperationalError(
+                "BEGIN IMMEDIATE", None, sqlite3.OperationalError(f"database busy: no write turn in {WRITE_WAIT_S} s")
+            )
+        conn.info[_WRITE_HELD] = True
+        try:
+            conn.exec_driver_sql("BEGIN IMMEDIATE")
+        except BaseException:
+            release(conn.info)
+            raise
+
+    @event.listens_for(engine, "commit")
+    def _commit(conn: Connection) -> None:  # pragma: no cover - driver hook
+        release(conn.info)
+
+    @event.listens_for(engine, "rollback")
+    def _rollback(conn: Connection) -> None:  # pragma: no cover - driver hook
+        release(conn.info)
+
+    @event.listens_for(engine, "checkin")
+    def _checkin(dbapi_conn: Any, record: Any) -> None:  # pragma: no cover - pool hook
+        release(record.info)
+
+
 def make_engine(url: str) -> Engine:
-    """An engine; on SQLite every transaction is ``BEGIN IMMEDIATE`` (one writer at a time, waits up to 30 s),
-    in WAL mode so that readers in other processes are not blocked."""
+    """An engine; on SQLite every transaction is ``BEGIN IMMEDIATE`` (one writer at a time: this process's in
+    turn, others' waiting up to 30 s) but those of ``READ_ONLY`` connections, in WAL mode so that readers are not
+    blocked; one pooled connection per thread that may use one."""
     url = normalize_url(url)
     if make_url(url).get_backend_name() == "sqlite":
         _private_file(make_url(url).database)
-        engine = create_engine(url, connect_args={"timeout": 30, "check_same_thread": False})
+        engine = create_engine(
+            url,
+            connect_args={"timeout": 30, "check_same_thread": False},
+            pool_size=8,
+            max_overflow=SQLITE_POOL - 8,
+        )
 
         @event.listens_for(engine, "connect")
         def _connect(dbapi_conn: Any, _record: Any) -> None:  # pragma: no cover - driver hook
@@ -280,11 +353,7 @@ def make_engine(url: str) -> Engine:
             cur.execute("PRAGMA foreign_keys=ON")
             cur.close()
 
-        @event.listens_for(engine, "begin")
-        def _begin(conn: Connection) -> None:  # pragma: no cover - driver hook
-            # a connection marked read-only reads a WAL snapshot without queueing for the write lock
-            conn.exec_driver_sql("BEGIN" if conn.get_execution_options().get(READ_ONLY) else "BEGIN IMMEDIATE")
-
+        _sqlite_writes_in_turn(engine)
         return engine
     return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=10)
 
@@ -292,6 +361,21 @@ def make_engine(url: str) -> Engine:
 class DatabaseUnavailable(RuntimeError):
     """The database URL is malformed, names a driver that is not installed, or the database cannot be reached
     or opened; the message says which in one line, without the password."""
+
+
+#: Seconds a client is told to wait (``Retry-After``) when the database is down or busy.
+RETRY_AFTER_S = 5
+
+
+def unavailable(exc: BaseException) -> bool:
+    """Whether ``exc`` says the database is down or busy, not that a request is wrong: it could not be reached
+    (PostgreSQL stopped, a connection cut), it is locked past the wait (SQLite), or every pooled connection
+    stayed in use past the pool's timeout. Such a request is answered 503 with ``Retry-After``, not 500."""
+    from sqlalchemy import exc as sa
+
+    return isinstance(exc, (sa.OperationalError, sa.TimeoutError)) or (
+        isinstance(exc, sa.DBAPIError) and exc.connection_invalidated
+    )
 
 
 def shown_url(url: str) -> str:
@@ -338,5 +422,8 @@ def init_db(engine: Engine) -> None:
     upgrade(engine)
 
 
-def session_factory(engine: Engine) -> sessionmaker:
-    return sessionmaker(engine, expire_on_commit=False)
+def session_factory(engine: Engine, read_only: bool = False) -> sessionmaker:
+    """Sessions of ``engine``; ``read_only``: for requests that only read (on SQLite their transactions take no
+    write lock, so they are answered during a burst of writes; a write in one is refused by SQLite's snapshot
+    rules, so use them only where no write follows)."""
+    return sessionmaker(engine.execution_options(**{READ_ONLY: True}) if read_only else engine, expire_on_commit=False)

@@ -32,15 +32,22 @@ def default_threads() -> int:
 
 
 class HeavyPool:
-    """``threads`` worker threads and room for ``queue`` more requests waiting, shared fairly among accounts:
-    one account may have at most ``per_account`` requests in (half the room by default; past that its own
-    requests get 429 while others still get in), and a free thread goes to the accounts waiting in turn, so
-    one account's requests queue behind its own, not in front of everyone else's."""
+    """``threads`` worker threads and room for ``queue`` more requests waiting (``capacity`` in all), shared fairly
+    among accounts, with room reserved for an account not yet in:
+
+    * an account not in is admitted while there is room at all;
+    * an account with requests in gets one more only while it holds fewer than ``capacity // (k + 1)`` of them,
+      ``k`` the accounts in (itself included), and fewer than ``per_account`` when that is set. So ``k``
+      accounts flooding hold at most ``k * (capacity // (k + 1))`` once the requests they had in before the
+      last of them came have ended, and at least ``capacity / (k + 1)`` slots stay free for a newcomer
+      (one account alone: half the room; two: a third each);
+    * a free thread goes to the accounts waiting in turn, so one account's requests queue behind its own, not
+      in front of everyone else's."""
 
     def __init__(self, threads: int, queue: int, per_account: int = 0):
         self.threads = threads if threads > 0 else default_threads()
         self.capacity = self.threads + max(0, queue)
-        self.per_account = per_account if per_account > 0 else max(1, self.capacity // 2)
+        self.per_account = per_account if per_account > 0 else self.capacity
         self.executor = ThreadPoolExecutor(self.threads, thread_name_prefix="mapfree-heavy")
         self._lock = threading.Lock()
         self.admitted = 0
@@ -62,14 +69,22 @@ class HeavyPool:
         with self._lock:
             if self.admitted >= self.capacity:
                 raise self._busy(f"the server is busy with {self.admitted} relocalization requests (its limit)")
-            if self._in.get(account, 0) >= self.per_account:
+            held = self._in.get(account, 0)
+            share = self.share()
+            if held and held >= share:
                 raise self._busy(
-                    f"this account has {self.per_account} relocalization requests in already (its share of the server)"
+                    f"this account has {held} relocalization requests in already (its share of the server: "
+                    f"{share} while {len(self._in)} accounts have requests in)"
                 )
             self.admitted += 1
             if account not in self._in:  # one turn ahead of the accounts in (none starves a newcomer, nor it them)
                 self._turns[account] = max(0, min(self._turns.values(), default=0) - 1)
             self._in[account] = self._in.get(account, 0) + 1
+
+    def share(self) -> int:
+        """Requests one account with requests in may hold (call with the lock held): ``capacity // (k + 1)`` for
+        ``k`` accounts in, room kept for one more, capped by ``per_account``."""
+        return min(self.per_account, self.capacity // (len(self._in) + 1))
 
     def _done(self, account: Hashable, seconds: float) -> None:
         with self._lock:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import os
 
+from starlette.responses import PlainTextResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
@@ -20,6 +21,8 @@ DEFAULT_PER_ADDRESS = 64
 HEADER_TIMEOUT_ENV = "MAPFREE_HEADER_TIMEOUT"
 PER_ADDRESS_ENV = "MAPFREE_CONNECTIONS_PER_ADDRESS"
 EXEMPT_ENV = "MAPFREE_CONNECTION_CAP_EXEMPT"
+HEAD_BYTES_ENV = "MAPFREE_MAX_HEAD_BYTES"
+DEFAULT_HEAD_BYTES = 16 * 1024
 
 
 def _header_timeout() -> float:
@@ -74,6 +77,17 @@ class HeadTimeoutProtocol(H11Protocol):
         self._arm()
 
     def handle_events(self) -> None:
+        # ``--limit-concurrency`` counts requests being answered, not connections: uvicorn counted every open
+        # connection, so half-open ones (a header byte a second, 64 per address from 18 loopback addresses)
+        # filled it and /health got 503. Below the limit its check is skipped; at it, it answers 503 as before.
+        limit = self.config.limit_concurrency
+        if limit is not None:
+            answering = sum(
+                1
+                for c in self.connections
+                if isinstance(c, H11Protocol) and c.cycle is not None and not c.cycle.response_complete
+            )
+            self.limit_concurrency = None if answering < limit else limit
         before = self.cycle
         super().handle_events()
         if self.cycle is not before:  # a request's head arrived
@@ -93,10 +107,17 @@ class HeadTimeoutProtocol(H11Protocol):
         super().connection_lost(exc)
 
 
-def head_timeout_protocol(header_timeout: float, per_address: int = DEFAULT_PER_ADDRESS, exempt: str = "") -> str:
+def head_timeout_protocol(
+    header_timeout: float,
+    per_address: int = DEFAULT_PER_ADDRESS,
+    exempt: str = "",
+    max_head_bytes: int = DEFAULT_HEAD_BYTES,
+) -> str:
     """What to give uvicorn as ``http=`` for this head timeout (0: none) and cap of connections per client
-    address (0: none; ``exempt``: comma-separated addresses without a cap, the trusted proxies). The values
-    travel in the environment, so that the API processes of ``--api-processes N`` read them too."""
+    address (0: none; ``exempt``: comma-separated addresses without a cap, the trusted proxies); and the largest
+    request head ``HeadSizeLimit`` lets through. The values travel in the environment, so that the API
+    processes of ``--api-processes N`` read them too."""
+    os.environ[HEAD_BYTES_ENV] = str(max(0, int(max_head_bytes)))
     os.environ[HEADER_TIMEOUT_ENV] = repr(max(0.0, float(header_timeout)))
     os.environ[PER_ADDRESS_ENV] = str(max(0, int(per_address)))
     os.environ[EXEMPT_ENV] = exempt
@@ -169,3 +190,28 @@ class BodyTimeout:
             await send(message)
 
         return await self.app(scope, timed_receive, guarded_send)
+
+
+def head_bytes(scope: Scope) -> int:
+    """Bytes of a request's line and headers as sent (``METHOD path?query HTTP/1.1``, ``name: value`` lines)."""
+    line = len(scope["method"]) + len(scope.get("raw_path") or scope["path"].encode()) + 12
+    query = len(scope.get("query_string") or b"")
+    return line + query + sum(len(k) + len(v) + 4 for k, v in scope.get("headers", ()))
+
+
+class HeadSizeLimit:
+    """ASGI middleware: a request whose line and headers exceed ``MAPFREE_MAX_HEAD_BYTES`` (``mapfree serve
+    --h11-max-incomplete-event-size``, 16 KiB by default) is answered 431 and its connection closed. h11's own
+    limit holds only for a head that arrives in pieces: 100 KB of headers sent at once used to pass."""
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        limit = int(os.environ.get(HEAD_BYTES_ENV, DEFAULT_HEAD_BYTES))
+        if scope["type"] == "http" and limit > 0 and head_bytes(scope) > limit:
+            response = PlainTextResponse(
+                f"request line and headers larger than {limit} bytes", 431, headers={"Connection": "close"}
+            )
+            return await response(scope, receive, send)
+        return await self.app(scope, receive, send)

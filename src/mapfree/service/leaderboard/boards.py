@@ -21,6 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from ..accounts.caller import identify
 from ..database.models import MethodInfo, Result, Submission, User
 from ..inputs import UploadError
+from .disclosure import TEST_RANK_BY
 from .published import REFERENCE_ROWS
 from .scoring import LOWER_IS_BETTER, METRIC_KEYS, SHORT
 from .submissions import shown_metrics, to_json, visible_submission
@@ -188,7 +189,8 @@ def ranking(
     Args:
         db: The request's database session.
         split: The split.
-        sort: The metric to rank by (``check_sort``); lower is better for the medians.
+        sort: The metric to rank by (``check_sort``); lower is better for the medians. On ``test`` an AUC
+            ranks by the precision at the same threshold (AUCs are not published there).
         view: ``"all"``, or ``"best"``: each account's best entry only.
         scene: Rank by this scene's scores instead of the split's (not for ``test``: it has no per-scene
             results).
@@ -204,6 +206,8 @@ def ranking(
         raise UploadError(422, f"view must be one of {', '.join(VIEWS)}; got {view!r}")
     if scene is not None and split == "test":
         raise UploadError(422, "the test split has no per-scene results")
+    if split == "test":  # AUCs are withheld on test: rank by the precision at the same threshold
+        sort = TEST_RANK_BY.get(sort, sort)
     key = SHORT[sort]
     query = (
         select(

@@ -14,9 +14,9 @@ from sqlalchemy.orm import Session
 
 from ..accounts.quota import check_quota, daily_test_limit, lock_user, recent_count
 from ..config import UNLIMITED, Settings
-from ..database.models import Plot, Result, Submission, User, now
+from ..database.models import READ_ONLY, Plot, Result, Submission, User, now
 from ..inputs import UploadError, check_name
-from .disclosure import without_medians
+from .disclosure import without_withheld
 from .scoring import PLOT_NAMES, known_scenes, render_plots, unpack_report
 from .storage import UPLOAD_LEASE_SECONDS, copy_in
 from .zipcheck import check_submission_zip
@@ -114,9 +114,9 @@ def shown_metrics(split: str, metrics: None) -> None: ...
 @overload
 def shown_metrics(split: str, metrics: dict | None) -> dict | None: ...
 def shown_metrics(split: str, metrics: dict | None) -> dict | None:
-    """Stored metrics as shown: for ``test`` without medians and rounded, also where a result was stored before
-    either (``disclosure.py``)."""
-    return without_medians(metrics) if split == "test" and metrics else metrics
+    """Stored metrics as shown: for ``test`` without medians and AUCs, rounded, also where a result was stored
+    before these rules (``disclosure.py``)."""
+    return without_withheld(metrics) if split == "test" and metrics else metrics
 
 
 def visible(sub: Submission | None, user: User | None, withdrawn: bool = False) -> bool:
@@ -206,6 +206,20 @@ def to_json(db: Session, sub: Submission, owner_name: str | None = None) -> dict
 _PLOT_LOCK = threading.Lock()
 
 
+def stored_plot(db: Session, sub: Submission, name: str) -> bytes | None:
+    """A figure of a submission as stored (None: not drawn yet, or none for ``test``); the read is committed."""
+    if sub.split == "test":
+        return None
+    png = db.scalar(select(Plot.png).where(Plot.submission_id == sub.id, Plot.name == name))
+    db.commit()  # never wait on a lock inside a transaction (SQLite: it would hold the write lock)
+    return png
+
+
+def needs_drawing(sub: Submission, name: str) -> bool:
+    """Whether a figure not stored yet can be drawn (a val figure of the benchmark's)."""
+    return sub.split != "test" and name in PLOT_NAMES
+
+
 def plot_png(db: Session, sub: Submission, name: str) -> bytes | None:
     """A figure of a scored val submission: the stored PNG, or rendered from the packed report on its first view
     (and then stored).
@@ -218,11 +232,8 @@ def plot_png(db: Session, sub: Submission, name: str) -> bytes | None:
     Returns:
         The PNG bytes; None for ``test``, an unknown name, or a submission without a report.
     """
-    if sub.split == "test":
-        return None
-    png = db.scalar(select(Plot.png).where(Plot.submission_id == sub.id, Plot.name == name))
-    db.commit()  # never wait on the lock inside a transaction (SQLite: it would hold the write lock)
-    if png is not None or name not in PLOT_NAMES:
+    png = stored_plot(db, sub, name)
+    if png is not None or sub.split == "test" or name not in PLOT_NAMES:
         return png
     with _PLOT_LOCK:  # one rendering per process at a time; others then find the stored PNGs
         png = db.scalar(select(Plot.png).where(Plot.submission_id == sub.id, Plot.name == name))
@@ -234,10 +245,11 @@ def plot_png(db: Session, sub: Submission, name: str) -> bytes | None:
         if data is None:
             return None
         pngs = render_plots(unpack_report(data))
-        try:
-            for n, p in pngs.items():
-                db.add(Plot(submission_id=sub.id, name=n, png=p))
-            db.commit()
-        except IntegrityError:  # another API process stored them first
-            db.rollback()
+        # stored by a write session of its own: ``db`` may be a GET's read-only one
+        with Session(db.get_bind().execution_options(**{READ_ONLY: False})) as w:
+            try:
+                w.add_all(Plot(submission_id=sub.id, name=n, png=p) for n, p in pngs.items())
+                w.commit()
+            except IntegrityError:  # another API process stored them first
+                w.rollback()
         return pngs.get(name)

@@ -190,12 +190,12 @@ def main(argv: list[str] | None = None) -> int:
         check_ground_truth(settings)
     except ValueError as e:
         p.error(str(e))
-    from ..process import die_with_parent, stop_on_signals
+    from ..process import die_with_parent, parent_from_env, stop_on_signals
 
     stop = threading.Event()
     stop_on_signals(stop)  # SIGTERM / SIGINT: the job is finished first, then the worker stops
-    if a.exit_with_parent:  # SIGTERM when it dies, also mid-job
-        die_with_parent(os.getppid())
+    if a.exit_with_parent:  # SIGTERM when it dies, also mid-job (`serve` sets it before exec too)
+        die_with_parent(parent_from_env() or os.getppid())
     run(settings, stop=stop)
     return 0
 
