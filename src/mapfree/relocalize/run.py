@@ -91,6 +91,7 @@ class RunResult:
     scenes: int = 0
     timings: dict[str, float] = field(default_factory=dict)
     stale_scenes: list[str] = field(default_factory=list)  # resumed scenes whose data changed: recomputed
+    torn_lines: int = 0  # resumed journal's lines cut mid-write (a kill, a full disk): dropped, their frames redone
     cluster: dict[str, Any] = field(default_factory=dict)  # --ray: address, nodes, workers, frames handed out again
 
     def to_dict(self) -> dict[str, Any]:
@@ -101,21 +102,30 @@ class RunResult:
 
 
 def read_journal(path: os.PathLike | str) -> tuple[dict | None, list[dict]]:
-    """(header, frame records) of a journal; a torn last line (killed mid-write) is ignored."""
-    path = Path(path)
+    """(header, frame records) of a journal; a torn line (killed mid-write, a full disk) is left out
+    (a resumed run counts them in ``RunResult.torn_lines``)."""
+    header, recs, _ = _read_journal(Path(path))
+    return header, recs
+
+
+def _read_journal(path: Path) -> tuple[dict | None, list[dict], int]:
+    """(header, frame records, lines that are not a whole record) of a journal."""
     if not path.is_file():
-        return None, []
-    header, recs = None, []
-    for line in path.read_text().splitlines():
+        return None, [], 0
+    header, recs, torn = None, [], 0
+    for line in path.read_text(errors="replace").splitlines():
         try:
             r = json.loads(line)
         except json.JSONDecodeError:
+            torn += bool(line.strip())
             continue
-        if r.get("kind") == "header":
+        if not isinstance(r, dict):
+            torn += 1
+        elif r.get("kind") == "header":
             header = header or r
         elif r.get("kind") == "frame":
             recs.append(r)
-    return header, recs
+    return header, recs, torn
 
 
 def scene_fingerprint(scene_dir: os.PathLike | str) -> str:
@@ -264,7 +274,7 @@ def run_split(
     check_output(output)
     check_confidence(confidence, m)
     jpath = journal_path(output)
-    header, recs = read_journal(jpath)
+    header, recs, torn = _read_journal(jpath)
     if recs and not resume and not overwrite:
         raise FileExistsError(
             f"{jpath} already holds {len(recs)} results: run again with --resume to continue "
@@ -380,6 +390,7 @@ def run_split(
         scenes=len(scene_list),
         timings=timing_sums,
         stale_scenes=stale,
+        torn_lines=0 if fresh else torn,
         cluster=cluster,
     )
 
