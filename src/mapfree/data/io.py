@@ -10,6 +10,7 @@ import io
 import math
 import os
 from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +34,7 @@ __all__ = [
     "same_aspect",
     "write_depth",
     "write_image",
+    "naming",
     "read_image",
     "MAX_PIXELS",
     "MIN_SIDE",
@@ -310,6 +312,25 @@ def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:
     write_image(path, mm.astype(np.uint16))
 
 
+@contextmanager
+def naming(path: os.PathLike | str) -> Iterator[None]:
+    """Writes in the block that fail without a file name (``write`` on a full disk, ``ENOSPC``) raise the error
+    again naming ``path``, so the one line a command prints says which output could not be written.
+
+    Args:
+        path: The output the block writes.
+
+    Raises:
+        OSError: The block's, with ``filename`` set to ``path`` when it had none.
+    """
+    try:
+        yield
+    except OSError as e:
+        if e.filename is not None or e.errno is None:
+            raise
+        raise OSError(e.errno, e.strerror or os.strerror(e.errno), os.fsdecode(path)) from e
+
+
 def write_image(path: os.PathLike | str, pixels: np.ndarray, params: Sequence[int] = ()) -> None:
     """Write an image file: encoded in memory by OpenCV (the format from the name's suffix), written by Python.
 
@@ -333,7 +354,7 @@ def write_image(path: os.PathLike | str, pixels: np.ndarray, params: Sequence[in
         ok, buf = False, None
     if not ok or buf is None:
         raise OSError(f"{os.fsdecode(path)}: could not encode the image as {suffix.lstrip('.').upper()}")
-    with open(path, "wb") as f:
+    with naming(path), open(path, "wb") as f:
         f.write(buf.tobytes())
 
 

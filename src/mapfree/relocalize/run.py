@@ -25,7 +25,7 @@ import numpy as np
 
 from ..benchmark import write_submission
 from ..data import REFERENCE_NAME, Dataset, Scene
-from ..data.io import depth_suffixes
+from ..data.io import depth_suffixes, naming
 from ..geometry import Pose
 from ..methods import Method, depth_free_problem, get
 from .preflight import check_confidence, check_output, check_same_selection, selection_of
@@ -159,7 +159,8 @@ def _drop_stale(header: dict | None, recs: list[dict], fingerprints: dict[str, s
 def _rewrite_journal(jpath: Path, header: dict, recs: list[dict]) -> None:
     """Replace the journal by ``header`` + ``recs`` (atomically: a kill meanwhile leaves the old one)."""
     tmp = jpath.with_name(jpath.name + ".tmp")
-    tmp.write_text("".join(json.dumps(r, allow_nan=False) + "\n" for r in [header, *recs]))
+    with naming(jpath):
+        tmp.write_text("".join(json.dumps(r, allow_nan=False) + "\n" for r in [header, *recs]))
     os.replace(tmp, jpath)
 
 
@@ -231,7 +232,8 @@ def _write_outputs(output: Path, scenes: list[str], recs: list[dict], confidence
             failures.append({"scene": r["scene"], "frame": r["frame"], "reason": r["reason"]})
     write_submission(output, by_scene)
     fp = failures_path(output)
-    fp.write_text("".join(json.dumps(f) + "\n" for f in failures))
+    with naming(fp):
+        fp.write_text("".join(json.dumps(f) + "\n" for f in failures))
     return sum(len(v) for v in by_scene.values()), len(failures)
 
 
@@ -319,21 +321,22 @@ def run_split(
         check_available(m, keep=workers <= 1 or len(todo) <= 1)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
     if fresh or header is None:
-        jpath.write_text(
-            json.dumps(
-                {
-                    "kind": "header",
-                    "version": JOURNAL_VERSION,
-                    "method": m.to_dict(),
-                    "root": str(root),
-                    "split": split,
-                    "all_frames": all_frames,
-                    "frames": selection,
-                    "data": fingerprints,
-                }
+        with naming(jpath):
+            jpath.write_text(
+                json.dumps(
+                    {
+                        "kind": "header",
+                        "version": JOURNAL_VERSION,
+                        "method": m.to_dict(),
+                        "root": str(root),
+                        "split": split,
+                        "all_frames": all_frames,
+                        "frames": selection,
+                        "data": fingerprints,
+                    }
+                )
+                + "\n"
             )
-            + "\n"
-        )
     else:  # the records read back whole: a torn last line goes with the rewrite
         _rewrite_journal(jpath, {**header, "data": {**header.get("data", {}), **fingerprints}}, recs)
     total = sum(len(f) for _, f in todo)
