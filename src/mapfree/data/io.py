@@ -39,6 +39,7 @@ __all__ = [
     "MAX_PIXELS",
     "MIN_SIDE",
     "image_size_problem",
+    "pixel_problem",
     "depth_path_for",
 ]
 
@@ -396,6 +397,12 @@ def image_size_problem(data: bytes | np.ndarray) -> str | None:
         return f"more than {2 * (Image.MAX_IMAGE_PIXELS or 0) / 1e6:.0f} megapixels, over the {budget / 1e6:g}-megapixel budget"
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
         return None
+    return pixel_problem(w, h)
+
+
+def pixel_problem(w: int, h: int) -> str | None:
+    """Why a ``w`` x ``h`` image is refused (over ``max_pixels()``, a side under ``MIN_SIDE``), or None."""
+    budget = max_pixels()
     if w * h > budget:
         return (
             f"{w}x{h} is {w * h / 1e6:.1f} megapixels, over the {budget / 1e6:g}-megapixel budget: downscale it "
