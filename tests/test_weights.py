@@ -140,7 +140,7 @@ def test_each_file_is_read_far_enough_to_know_its_format(tmp_path):
     st_page.write_bytes(FORBIDDEN)
     head = b"[1, 2]"
     st_list.write_bytes(struct.pack("<Q", len(head)) + head)
-    assert file_problem(page).startswith("an HTML page, not weights")
+    assert file_problem(page) == "an HTML page, not weights: a server's error or login page saved in its place"
     assert file_problem(text) == "text, not weights ('not yet')"
     assert file_problem(other_zip).startswith("a zip archive but not a PyTorch checkpoint (no data.pkl")
     assert file_problem(st_page).startswith("an HTML page, not weights")

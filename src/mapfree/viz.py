@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .data.io import write_image
+from .data.io import naming, write_image
 from .estimate import Estimate
 from .geometry import Intrinsics, Pose, project
 
@@ -432,7 +432,8 @@ def save_figure(
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(jpeg_bytes(rgb, max_side, quality))
+    with naming(path):
+        path.write_bytes(jpeg_bytes(rgb, max_side, quality))
     return path
 
 

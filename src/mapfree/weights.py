@@ -261,7 +261,7 @@ def _not_binary(head: bytes) -> str | None:
     ``curl -L`` saves when a server refuses: "403 Forbidden", a login page), else None."""
     text = head.lstrip()
     if text[:1] == b"<":
-        return "an HTML page, not weights (a server's error or login page saved instead of the file?)"
+        return "an HTML page, not weights: a server's error or login page saved in its place"
     if head and all(32 <= b < 127 or b in (9, 10, 13) for b in head):
         shown = head[:40].decode("ascii").strip().replace("\n", " ")
         return f"text, not weights ({shown!r}{'…' if len(head) > 40 else ''})"

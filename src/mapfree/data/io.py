@@ -112,7 +112,8 @@ def write_intrinsics(path: os.PathLike | str, intrinsics: Mapping[str, Intrinsic
         intrinsics: Intrinsics by frame name, written in this order.
     """
     lines = [f"{n} {k.fx:.6f} {k.fy:.6f} {k.cx:.6f} {k.cy:.6f} {k.width} {k.height}\n" for n, k in intrinsics.items()]
-    Path(path).write_text("".join(lines))
+    with naming(path):
+        Path(path).write_text("".join(lines))
 
 
 @dataclass
@@ -189,7 +190,8 @@ def write_poses(path: os.PathLike | str, names: Sequence[str], poses: Sequence[P
         else:
             q, t = p.qt()
             lines.append(f"{n} " + " ".join(f"{x:.9f}" for x in (*q, *t)) + "\n")
-    Path(path).write_text("".join(lines))
+    with naming(path):
+        Path(path).write_text("".join(lines))
 
 
 def depth_path_for(image_path: os.PathLike | str, suffix: str) -> Path:
