@@ -1,7 +1,7 @@
 """A Ray cluster on this machine for tests, kept in a process of its own.
 
-``python tests/raycluster.py cluster`` starts a head and two worker nodes of one CPU each
-(``ray.cluster_utils.Cluster``), prints one JSON line ``{"address", "client", "workers"}`` and then obeys one
+``python tests/raycluster.py cluster [N]`` starts a head and N (2) worker nodes of one CPU each
+(``ray.cluster_utils.Cluster``; with ``$RAY_AUTH_TOKEN`` set, one that requires that token), prints one JSON line ``{"address", "client", "workers"}`` and then obeys one
 command per stdin line, answering ``ok``: ``kill I`` (worker node I dies at once, as a lost machine),
 ``add_gpu`` (a node of 2 CPUs declaring one GPU). End of input shuts it down.
 
@@ -35,7 +35,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def cluster() -> None:
+def cluster(workers: int = 2) -> None:
     from ray.cluster_utils import Cluster
 
     port = _free_port()
@@ -49,19 +49,17 @@ def cluster() -> None:
             "ray_client_server_port": port,
         },
     )
-    workers = [c.add_node(num_cpus=1, object_store_memory=80 * MB) for _ in range(2)]
+    nodes = [c.add_node(num_cpus=1, object_store_memory=80 * MB) for _ in range(workers)]
     c.wait_for_nodes()
     print(
-        json.dumps(
-            {"address": c.address, "client": f"ray://127.0.0.1:{port}", "workers": [n.node_id for n in workers]}
-        ),
+        json.dumps({"address": c.address, "client": f"ray://127.0.0.1:{port}", "workers": [n.node_id for n in nodes]}),
         flush=True,
     )
     try:
         for line in sys.stdin:
             cmd = line.split()
             if cmd[:1] == ["kill"]:
-                c.remove_node(workers[int(cmd[1])], allow_graceful=False)
+                c.remove_node(nodes[int(cmd[1])], allow_graceful=False)
             elif cmd == ["add_gpu"]:
                 c.add_node(num_cpus=2, num_gpus=1, object_store_memory=80 * MB)
                 c.wait_for_nodes()
@@ -99,7 +97,9 @@ def node(address: str) -> None:
 
 if __name__ == "__main__":
     os.environ.update(ENV)
+    if os.environ.get("RAY_AUTH_TOKEN"):  # a cluster that refuses drivers without this token
+        os.environ["RAY_AUTH_MODE"] = "token"
     if sys.argv[1] == "cluster":
-        cluster()
+        cluster(int(sys.argv[2]) if len(sys.argv) > 2 else 2)
     else:
         node(sys.argv[2])

@@ -94,7 +94,7 @@ def test_unavailable_depth_network_is_refused_before_any_work(synth, tmp_path, m
 
     monkeypatch.setattr(hc, "HF_HUB_CACHE", str(tmp_path / "empty-cache"))
     out = tmp_path / "sub.zip"
-    with pytest.raises(MissingModelError, match="huggingface-cli download"):
+    with pytest.raises(MissingModelError, match="hf download"):
         run_split(synth, "val", "sift_pnp_dav2-indoor", out, progress=False)
     assert not out.exists() and not (tmp_path / "sub.journal.jsonl").exists()
 

@@ -149,6 +149,6 @@ def test_missing_model_names_the_id(monkeypatch, tmp_path, scene):
         src.depth(scene.reference)
     msg = str(e.value)  # the one shape of every missing model: where it was looked for, how to get it
     assert "depth-anything/Depth-Anything-V2-Metric-Outdoor-Small-hf" in msg and "$MAPFREE_WEIGHTS_DIR" in msg
-    assert "huggingface-cli download depth-anything/Depth-Anything-V2-Metric-Outdoor-Small-hf --local-dir" in msg
+    assert "hf download depth-anything/Depth-Anything-V2-Metric-Outdoor-Small-hf --local-dir" in msg
     with pytest.raises(MissingModelError, match="does not exist"):
         D.create(f"hf:{tmp_path / 'nothing-here'}")

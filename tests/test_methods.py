@@ -159,3 +159,35 @@ def test_depth_free_pnp_and_procrustes_are_not_listed_and_refused_for_a_split(sy
         with pytest.raises(ValueError, match=r"no depth source.*needs a depth map.*_emat_none"):
             run_split(synth, "val", name, tmp_path / "x.zip", progress=False)
     assert not (tmp_path / "x.journal.jsonl").exists()
+
+
+def test_every_method_yaml_key_has_its_type_checked_in_one_place():
+    """A key without an entry would be a KeyError in the check; a new ``Method`` field needs its type here."""
+    from dataclasses import fields
+
+    from mapfree.methods import YAML_KEY_TYPES, Method
+
+    assert set(YAML_KEY_TYPES) == {f.name for f in fields(Method)} | {"extends"}
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("", "empty.yaml: an empty method config: give 'extends: NAME'"),
+        ("description: mine\n", "empty.yaml: it names no method (only description)"),
+        (
+            "extends: sift_pnp_sensor\n\nmatcher: 5\n",
+            "empty.yaml:3: matcher: expected a matcher name (e.g. sift), got 5",
+        ),
+        ("matcher: sift\nsolver: ' '\n", "empty.yaml:2: solver: expected a solver name"),
+        ("extends: sift_pnp_sensor\nmatcher_opts: 3\n", "empty.yaml:2: matcher_opts: expected a mapping"),
+    ],
+)
+def test_a_method_yaml_of_wrong_types_or_none_is_refused_with_file_line_and_key(tmp_path, text, message):
+    from mapfree.methods import load_yaml
+
+    path = tmp_path / "empty.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError) as e:
+        load_yaml(path)
+    assert str(e.value).startswith(f"{tmp_path}/{message}"), str(e.value)

@@ -78,7 +78,7 @@ def test_turning_back_and_forth_is_the_identity_and_mirrors_are_refused():
 
 
 def test_read_image_turns_tagged_photos_upright_and_refuses_mirrored_ones(tmp_path):
-    rgb = np.zeros((6, 10, 3), np.uint8)
+    rgb = np.zeros((8, 12, 3), np.uint8)  # at least 8 pixels a side (read_image refuses less)
     rgb[0, 0] = (255, 0, 0)  # a red top-left corner
     for o in (1, 3, 6, 8):
         _save(tmp_path / f"o{o}.png", orient_pixels(rgb, {1: 1, 3: 3, 6: 8, 8: 6}[o]), o)  # stored turned back

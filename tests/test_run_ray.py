@@ -39,15 +39,15 @@ KEEPER = Path(__file__).with_name("raycluster.py")
 class Keeper:
     """The cluster's process: its address, its Ray Client address, and commands (``kill I``, ``add_gpu``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, workers: int = 2, token: str | None = None) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, str(KEEPER), "cluster"],
+            [sys.executable, str(KEEPER), "cluster", str(workers)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
             text=True,
             start_new_session=True,
-            env={**os.environ, **ENV},
+            env={**os.environ, **ENV, **({"RAY_AUTH_TOKEN": token} if token else {})},
         )
         info = json.loads(self._line(lambda s: s.startswith("{")))
         self.address, self.client, self.workers = info["address"], info["client"], info["workers"]
@@ -99,7 +99,9 @@ def cluster():
         keeper.stop()
 
 
-def mapfree_run(split: Path, out: Path, *args: str, popen: bool = False, as_json: bool = True):
+def mapfree_run(
+    split: Path, out: Path, *args: str, popen: bool = False, as_json: bool = True, env: dict[str, str] | None = None
+):
     """``mapfree run SPLIT --method METHOD -o OUT --no-progress [--json] ARGS`` as its own process."""
     cmd = [
         sys.executable,
@@ -115,12 +117,33 @@ def mapfree_run(split: Path, out: Path, *args: str, popen: bool = False, as_json
         *(["--json"] if as_json else []),
         *args,
     ]
-    env = {**os.environ, **ENV}
+    env = {**os.environ, **ENV, **(env or {})}
     if popen:
         return subprocess.Popen(
             cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env
         )
     return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+
+
+def frame_workers(ancestor: int) -> list[int]:
+    """The ``ray::FrameWorker`` processes descending from process ``ancestor`` (Linux ``/proc``)."""
+    parents, titles = {}, {}
+    for d in Path("/proc").iterdir():
+        try:
+            stat = (d / "stat").read_text()
+            titles[int(d.name)] = (d / "cmdline").read_bytes().split(b"\0")[0].decode(errors="replace")
+        except (ValueError, OSError):
+            continue
+        parents[int(d.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+
+    def descends(pid: int) -> bool:
+        while pid > 1:
+            pid = parents.get(pid, 0)
+            if pid == ancestor:
+                return True
+        return False
+
+    return [p for p, t in titles.items() if t.startswith("ray::FrameWorker") and descends(p)]
 
 
 def summary(done: subprocess.CompletedProcess) -> dict:
@@ -148,6 +171,8 @@ def test_three_nodes_write_the_local_submission_byte_for_byte(split, local, clus
     res = summary(mapfree_run(split, out, "--all-frames", "--ray", cluster.address))
     assert res["computed"] == TOTAL and res["cluster"]["nodes"] == 3 and res["cluster"]["workers"] == 3
     assert res["cluster"]["requeued"] == 0
+    if Path("/proc/self/stat").exists():  # the run's workers ended with it (one outlived it by seconds)
+        assert frame_workers(cluster.proc.pid) == []
     _same_outputs(local, out)
     keys = _keys(out.with_name("sub.journal.jsonl"))
     assert len(keys) == len(set(keys)) == TOTAL
@@ -428,3 +453,28 @@ def test_bad_cluster_requests_are_clear_errors(split, tmp_path, capsys):
     assert get("mast3r_pnp_mast3r").networks
     nodes = [{"Resources": {"CPU": 4.0, "GPU": 1.0}}, {"Resources": {"CPU": 8.0}}]
     assert task_slots(nodes, 1, 0) == 12 and task_slots(nodes, 1, 0.25) == 4 and task_slots(nodes, 2, 1) == 1
+
+
+def test_a_cluster_that_wants_a_token_says_so_and_takes_it(split, tmp_path):
+    """Ray's token authentication (on by default for clusters started where a token exists): a driver without
+    the token heard "cannot reach the Ray cluster", as if the network were at fault."""
+    keeper = Keeper(workers=0, token="s3cret-of-the-cluster")
+    try:
+        home = {"HOME": str(tmp_path), "RAY_AUTH_TOKEN": ""}  # no ~/.ray/auth_token, no token in the environment
+        for extra, why in (
+            ({}, "RAY_AUTH_MODE is not 'token' here, so no token was sent"),
+            ({"RAY_AUTH_MODE": "token"}, "this machine has no token"),
+        ):
+            done = mapfree_run(
+                split, tmp_path / "a.zip", "--ray", keeper.address, "--scenes", "s00000", env={**home, **extra}
+            )
+            assert done.returncode == 1 and done.stderr.splitlines() == [
+                f"mapfree run: error: the Ray cluster at {keeper.address} refused this driver: it uses token "
+                f"authentication and {why}: run with RAY_AUTH_MODE=token and the cluster's token (`ray get-auth-token` "
+                "on the head prints it) in RAY_AUTH_TOKEN or ~/.ray/auth_token"
+            ], done.stderr
+        token = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": "s3cret-of-the-cluster"}
+        res = summary(mapfree_run(split, tmp_path / "b.zip", "--ray", keeper.address, "--scenes", "s00000", env=token))
+        assert res["computed"] == QUERIES // 5
+    finally:
+        keeper.stop()

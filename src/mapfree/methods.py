@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any, cast
 from .depth import HUB_MODELS, PAIR_MODELS
 from .matching import needs as matcher_needs
 from .method_names import BEST_OFFLINE, BEST_OFFLINE_REFERENCE_DEPTH
-from .yamlio import read_yaml
+from .yamlio import key_line, read_yaml
 
 if TYPE_CHECKING:
     from .weights import Model
@@ -280,6 +280,7 @@ def load_yaml(path: os.PathLike | str) -> Method:
     unknown = sorted(set(data) - known)
     if unknown:
         raise ValueError(f"{path}: unknown key(s) {', '.join(unknown)} (allowed: {', '.join(sorted(known))})")
+    check_yaml_types(path, data)
     base = get(data.pop("extends")) if "extends" in data else Method(name=path.stem)
     merged = base.to_dict()
     for key in ("matcher_opts", "solver_opts", "options"):
@@ -291,6 +292,48 @@ def load_yaml(path: os.PathLike | str) -> Method:
     method = Method(**merged)
     check_options(method, where=str(path))
     return method
+
+
+#: What each key of a method YAML holds: ``(type, what a value looks like)``; every key is checked here, in one
+#: place, before anything else reads the file's values.
+YAML_KEY_TYPES: dict[str, tuple[type, str]] = {
+    "extends": (str, "a method name or YAML file (e.g. sift_pnp_sensor)"),
+    "name": (str, "text"),
+    "description": (str, "text"),
+    "kind": (str, "a method kind (matching, regression)"),
+    "matcher": (str, "a matcher name (e.g. sift)"),
+    "solver": (str, "a solver name (essential, pnp, procrustes, mickey)"),
+    "depth": (str, "a depth spec (a file suffix such as sensor, none, or a network such as dav2-indoor)"),
+    "matcher_opts": (dict, "a mapping of option: value (e.g. {max_features: 2000})"),
+    "solver_opts": (dict, "a mapping of option: value (e.g. {confidence: score})"),
+    "options": (dict, "a mapping of option: value"),
+}
+#: Keys of which a method YAML must give one: without any, it would silently run the defaults (SIFT, Ess.Mat, no
+#: depth, poses up to scale).
+_NAMING_KEYS = ("extends", "kind", "matcher", "solver")
+
+
+def check_yaml_types(path: os.PathLike | str, data: dict[str, Any]) -> None:
+    """Refuse a method YAML that names no method, or whose values have the wrong type, naming file, line and key.
+
+    Args:
+        path: The YAML file (for the message, and to find the key's line).
+        data: Its parsed top-level mapping (keys already known to be ``Method`` fields or ``extends``).
+
+    Raises:
+        ValueError: ``FILE: empty method config …`` or ``FILE:LINE: KEY: expected …, got VALUE``.
+    """
+    if not any(k in data for k in _NAMING_KEYS):
+        what = "an empty method config" if not data else f"it names no method (only {', '.join(sorted(data))})"
+        raise ValueError(
+            f"{path}: {what}: give 'extends: NAME' (a preset such as sift_pnp_sensor, or another YAML) or "
+            f"'matcher:' and 'solver:'"
+        )
+    for key, value in data.items():
+        want, looks = YAML_KEY_TYPES[key]
+        empty_opts = want is dict and value is None  # `solver_opts:` with nothing under it
+        if not (isinstance(value, want) or empty_opts) or (want is str and not value.strip()):
+            raise ValueError(f"{path}{key_line(path, key)}: {key}: expected {looks}, got {value!r}")
 
 
 #: Solvers that need a depth map of the query too; without one a method falls back to PnP (``query_depth_fallback``).

@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .data.io import naming, write_image
 from .estimate import Estimate
 from .geometry import Intrinsics, Pose, project
 
@@ -407,12 +408,11 @@ def save_png(path: os.PathLike | str, rgb: np.ndarray) -> Path:
         ``path``.
 
     Raises:
-        OSError: OpenCV could not write it (naming the file).
+        OSError: It could not be written (naming the file).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"{path}: could not write {path.suffix.lstrip('.').upper() or 'the image'}")
+    write_image(path, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     return path
 
 
@@ -432,7 +432,8 @@ def save_figure(
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(jpeg_bytes(rgb, max_side, quality))
+    with naming(path):
+        path.write_bytes(jpeg_bytes(rgb, max_side, quality))
     return path
 
 

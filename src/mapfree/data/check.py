@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import FormatError, check_depth_size, read_depth, read_image, read_intrinsics, read_poses
+from .io import FormatError, check_depth_size, pixel_problem, read_depth, read_image, read_intrinsics, read_poses
 from .orientation import OrientationError, displayed_size, exif_orientation
 from .overlaps import read_overlaps
 from .scene import REFERENCE_NAME, SPLITS
@@ -121,14 +121,20 @@ class CheckReport:
 def _image_header(path: Path) -> tuple[int, int]:
     """(width, height) of the photo as displayed (its EXIF orientation applied, as ``read_image`` does) from the
     file's header, without decoding; ValueError when it is not a readable image (or a mirrored one)."""
+    import warnings
+
     from PIL import Image, UnidentifiedImageError
 
     try:
-        with Image.open(path) as im:
-            w, h = im.size
-            fmt = im.format
-    except (UnidentifiedImageError, OSError) as e:
+        with warnings.catch_warnings():  # Pillow's DecompressionBombWarning: the pixel budget below words it
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                w, h = im.size
+                fmt = im.format
+    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as e:
         raise ValueError(f"not a readable image ({e.__class__.__name__})") from None
+    if (problem := pixel_problem(w, h)) is not None:
+        raise ValueError(problem)
     if fmt == "JPEG":
         with open(path, "rb") as f:  # a truncated download loses the end-of-image marker
             f.seek(max(0, path.stat().st_size - 64))

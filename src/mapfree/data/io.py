@@ -6,9 +6,11 @@ Lines whose first field contains ``#`` are comments.
 
 from __future__ import annotations
 
+import io
 import math
 import os
 from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +33,13 @@ __all__ = [
     "check_depth_size",
     "same_aspect",
     "write_depth",
+    "write_image",
+    "naming",
     "read_image",
+    "MAX_PIXELS",
+    "MIN_SIDE",
+    "image_size_problem",
+    "pixel_problem",
     "depth_path_for",
 ]
 
@@ -104,7 +112,8 @@ def write_intrinsics(path: os.PathLike | str, intrinsics: Mapping[str, Intrinsic
         intrinsics: Intrinsics by frame name, written in this order.
     """
     lines = [f"{n} {k.fx:.6f} {k.fy:.6f} {k.cx:.6f} {k.cy:.6f} {k.width} {k.height}\n" for n, k in intrinsics.items()]
-    Path(path).write_text("".join(lines))
+    with naming(path):
+        Path(path).write_text("".join(lines))
 
 
 @dataclass
@@ -181,7 +190,8 @@ def write_poses(path: os.PathLike | str, names: Sequence[str], poses: Sequence[P
         else:
             q, t = p.qt()
             lines.append(f"{n} " + " ".join(f"{x:.9f}" for x in (*q, *t)) + "\n")
-    Path(path).write_text("".join(lines))
+    with naming(path):
+        Path(path).write_text("".join(lines))
 
 
 def depth_path_for(image_path: os.PathLike | str, suffix: str) -> Path:
@@ -297,28 +307,127 @@ def write_depth(path: os.PathLike | str, depth_m: np.ndarray) -> None:
         depth_m: (H, W) depth in metres; NaN, inf, negative or beyond 65.535 m are written as 0 (invalid).
 
     Raises:
-        OSError: OpenCV could not write the file.
+        OSError: The file could not be written.
     """
-    import cv2
-
     d = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     mm = np.rint(d * 1000.0)
     mm[(mm < 0) | (mm > 65535)] = 0
-    if not cv2.imwrite(str(path), mm.astype(np.uint16)):
-        raise OSError(f"{path}: could not write depth PNG")
+    write_image(path, mm.astype(np.uint16))
+
+
+@contextmanager
+def naming(path: os.PathLike | str) -> Iterator[None]:
+    """Writes in the block that fail without a file name (``write`` on a full disk, ``ENOSPC``) raise the error
+    again naming ``path``, so the one line a command prints says which output could not be written.
+
+    Args:
+        path: The output the block writes.
+
+    Raises:
+        OSError: The block's, with ``filename`` set to ``path`` when it had none.
+    """
+    try:
+        yield
+    except OSError as e:
+        if e.filename is not None or e.errno is None:
+            raise
+        raise OSError(e.errno, e.strerror or os.strerror(e.errno), os.fsdecode(path)) from e
+
+
+def write_image(path: os.PathLike | str, pixels: np.ndarray, params: Sequence[int] = ()) -> None:
+    """Write an image file: encoded in memory by OpenCV (the format from the name's suffix), written by Python.
+
+    OpenCV's own ``imwrite`` crashes the process on a file name that is not valid UTF-8; Python's ``open`` takes
+    any name the system does (``mapfree synth $'out_\\xff'``).
+
+    Args:
+        path: The file (``.png``, ``.jpg``, ``.jpeg`` …), overwritten; its folder must exist.
+        pixels: (H, W, 3) uint8 **BGR** (OpenCV's order), (H, W) uint8 or uint16 grey.
+        params: ``cv2.imencode`` parameters (e.g. ``[cv2.IMWRITE_JPEG_QUALITY, 95]``).
+
+    Raises:
+        OSError: The format cannot be encoded, or the file cannot be written (naming the file).
+    """
+    import cv2
+
+    suffix = Path(path).suffix.lower() or ".png"
+    try:
+        ok, buf = cv2.imencode(suffix, pixels, list(params))
+    except cv2.error:
+        ok, buf = False, None
+    if not ok or buf is None:
+        raise OSError(f"{os.fsdecode(path)}: could not encode the image as {suffix.lstrip('.').upper()}")
+    with naming(path), open(path, "wb") as f:
+        f.write(buf.tobytes())
+
+
+#: The pixel budget of an image (50 megapixels, e.g. 8660 x 5773): a larger one is refused before it is decoded.
+#: A 108 MP photo decoded and matched at its size takes tens of GB; ``$MAPFREE_MAX_PIXELS`` sets another budget.
+MAX_PIXELS = 50_000_000
+MAX_PIXELS_ENV = "MAPFREE_MAX_PIXELS"
+#: The smallest side of an image any matcher can use, pixels.
+MIN_SIDE = 8
+
+
+def max_pixels() -> int:
+    """The pixel budget: ``$MAPFREE_MAX_PIXELS`` when it is a positive integer, else ``MAX_PIXELS``."""
+    value = os.environ.get(MAX_PIXELS_ENV, "")
+    return int(value) if value.isdigit() and int(value) > 0 else MAX_PIXELS
+
+
+def image_size_problem(data: bytes | np.ndarray) -> str | None:
+    """Why an encoded image is refused before decoding it: more pixels than the budget (``max_pixels``), or a
+    side under ``MIN_SIDE``; read from its header alone (Pillow), so a huge image costs no memory here.
+
+    Args:
+        data: The file's bytes.
+
+    Returns:
+        None for a usable size or a header Pillow cannot read (the decoder words that); else the reason.
+    """
+    import warnings
+
+    from PIL import Image, UnidentifiedImageError
+
+    budget = max_pixels()
+    try:
+        with warnings.catch_warnings():  # Pillow's own DecompressionBombWarning: this function words it
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(io.BytesIO(data if isinstance(data, bytes) else data.tobytes())) as im:
+                w, h = im.size
+    except Image.DecompressionBombError:
+        return f"more than {2 * (Image.MAX_IMAGE_PIXELS or 0) / 1e6:.0f} megapixels, over the {budget / 1e6:g}-megapixel budget"
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError):
+        return None
+    return pixel_problem(w, h)
+
+
+def pixel_problem(w: int, h: int) -> str | None:
+    """Why a ``w`` x ``h`` image is refused (over ``max_pixels()``, a side under ``MIN_SIDE``), or None."""
+    budget = max_pixels()
+    if w * h > budget:
+        return (
+            f"{w}x{h} is {w * h / 1e6:.1f} megapixels, over the {budget / 1e6:g}-megapixel budget: downscale it "
+            f"(the intrinsics with it), or raise ${MAX_PIXELS_ENV}"
+        )
+    if min(w, h) < MIN_SIDE:
+        return f"{w}x{h} pixels: too small (both sides must be >= {MIN_SIDE})"
+    return None
 
 
 def read_image(path: os.PathLike | str) -> np.ndarray:
     """Read an image as displayed: decoded, then turned upright by its EXIF orientation.
 
     Args:
-        path: The image file (any format OpenCV decodes).
+        path: The image file (any format OpenCV decodes), at most ``max_pixels()`` pixels (50 MP) and at least
+            ``MIN_SIDE`` pixels a side.
 
     Returns:
         (H, W, 3) uint8 RGB.
 
     Raises:
-        FormatError: The file is missing, empty, corrupt, or mirrored by its EXIF orientation.
+        FormatError: The file is missing, empty, corrupt, too large or too small (before decoding it), or
+            mirrored by its EXIF orientation.
     """
     import cv2
 
@@ -327,6 +436,9 @@ def read_image(path: os.PathLike | str) -> np.ndarray:
         raise FormatError(path, None, "image file not found")
     if data.size == 0:
         raise FormatError(path, None, "image file is empty (0 bytes)")
+    problem = image_size_problem(data)
+    if problem:
+        raise FormatError(path, None, problem)
     img = _decode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise FormatError(path, None, "cannot decode image (corrupt or unsupported format)")

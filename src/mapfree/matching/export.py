@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from ..data.io import naming
 from . import create, options_class, registry_key
 from .base import Matches
 
@@ -127,7 +128,7 @@ def save_npz(path: os.PathLike | str, r: PairMatches) -> Path:
         "seconds": np.float64(r.seconds),
     }
     assert list(arrays) == list(NPZ_KEYS)
-    with open(path, "wb") as f:  # np.savez would append .npz to a name without it
+    with naming(path), open(path, "wb") as f:  # np.savez would append .npz to a name without it
         np.savez(f, **arrays)
     return path
 

@@ -158,8 +158,10 @@ def _load_tensors(path: Path, what: str, expected: str) -> Any:
     """``torch.load(weights_only=True)``, any other global it meets standing in as an inert placeholder. A file
     cut short or unreadable is a ``BrokenWeightsError`` naming it."""
     why = file_problem(path)
-    if why:  # cut short: said so, not torch's zip-reader internals
-        raise BrokenWeightsError(f"MicKey: {path} is refused: {why} (an interrupted download? fetch it again)")
+    if why:  # cut short, a web page, text: said so, not torch's zip-reader internals
+        raise BrokenWeightsError(
+            f"MicKey: {path} is refused: {why} (an interrupted download? fetch it again); expected {expected}"
+        )
     inert: list[str] = []
     for _ in range(64):
         try:

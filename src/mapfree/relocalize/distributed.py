@@ -27,7 +27,8 @@ import os
 import socket
 import time
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -109,15 +110,70 @@ def connect(address: str) -> bool:
     if address not in (LOCAL, "auto"):
         _check_reachable(address)
     quiet = {"log_to_driver": False, "configure_logging": False, "logging_level": logging.WARNING}
-    try:
-        if address == LOCAL:
+    if address == LOCAL:
+        try:
             ray.init(address="local", include_dashboard=False, object_store_memory=256 * 1024 * 1024, **quiet)
-        else:
+        except (ConnectionError, RuntimeError, ValueError) as e:
+            raise ClusterError(f"cannot start a local Ray instance: {_one_line(e)}") from None
+        return True
+    # Ray's core prints each refused attempt on stderr (for about 20 s) before giving up with "Failed to
+    # connect": what it printed tells a cluster that refused this driver's token from one that is not there.
+    with _stderr_kept() as said:
+        try:
             ray.init(address=address, **quiet)
-    except (ConnectionError, RuntimeError, ValueError) as e:
-        where = "start a local Ray instance" if address == LOCAL else f"reach the Ray cluster at {address}"
-        raise ClusterError(f"cannot {where}: {_one_line(e)}") from None
+        except ray.exceptions.AuthenticationError:  # RAY_AUTH_MODE=token here, but no token
+            raise ClusterError(token_refused(address, "this machine has no token")) from None
+        except (ConnectionError, RuntimeError, ValueError) as e:
+            if any(mark in said() for mark in _AUTH_REFUSED):
+                raise ClusterError(token_refused(address, _token_state())) from None
+            raise ClusterError(f"cannot reach the Ray cluster at {address}: {_one_line(e)}") from None
     return True
+
+
+#: What Ray's core prints when the cluster refuses a driver's token (or the lack of one).
+_AUTH_REFUSED = ("InvalidAuthToken", "Unauthenticated")
+
+
+def token_refused(address: str, why: str) -> str:
+    """The one line for a cluster that refused this driver for want of its token (``why``: what is here)."""
+    return (
+        f"the Ray cluster at {address} refused this driver: it uses token authentication and {why}: run with "
+        f"RAY_AUTH_MODE=token and the cluster's token (`ray get-auth-token` on the head prints it) in "
+        f"RAY_AUTH_TOKEN or ~/.ray/auth_token"
+    )
+
+
+def _token_state() -> str:
+    """What this driver sent, in words, for ``token_refused``."""
+    if os.environ.get("RAY_AUTH_MODE", "").lower() != "token":
+        return "RAY_AUTH_MODE is not 'token' here, so no token was sent"
+    return "the token here is not the cluster's"
+
+
+@contextmanager
+def _stderr_kept() -> Iterator[Callable[[], str]]:
+    """Route file descriptor 2 (where Ray's C++ core writes) to a temporary file within the block; yields what
+    it holds so far. After a block that raised, the text is dropped (the caller words the error); otherwise
+    it is written to stderr as it would have been."""
+    import sys
+    import tempfile
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+
+        def said() -> str:
+            tmp.seek(0)
+            return tmp.read().decode(errors="replace")
+
+        try:
+            yield said
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+        sys.stderr.write(said())
 
 
 def _one_line(e: BaseException, limit: int = 300) -> str:
@@ -215,6 +271,18 @@ def _check_nodes(ray: Any, nodes: Sequence[dict], root: str, split: str, scene_d
     for node, problem in answers:
         if problem:
             raise _unreadable(node, root, problem)
+
+
+def end_actors(ray: Any, actors: Sequence[Any], wait_s: float = 10.0) -> None:
+    """Kill the run's workers and wait (up to ``wait_s``) until the cluster reports each one gone, so that no
+    worker process outlives the run (``ray.kill`` only asks; a driver that left at once left busy workers
+    behind)."""
+    for actor in actors:
+        ray.kill(actor, no_restart=True)
+    # a call to a killed actor fails (ActorDiedError) once the cluster has its process dead
+    probes = [actor.__ray_ready__.remote() for actor in actors]
+    if probes:
+        ray.wait(probes, num_returns=len(probes), timeout=wait_s)
 
 
 def _unreadable(node: str, root: str, problem: str) -> FileNotFoundError:
@@ -423,8 +491,7 @@ class _Driver:
             self._loop()
         finally:
             with sigint_ignored():  # Ctrl-C or an error included: nothing keeps running for this run
-                for s in self.slots:
-                    ray.kill(s.actor, no_restart=True)
+                end_actors(ray, [s.actor for s in self.slots])
         return self.info
 
     def _setup_done(self, slot: _Slot) -> None:

@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 
 from ..benchmark import write_submission
 from ..data import Dataset, DevicePoses, Scene, load_device_poses, scene_bursts
+from ..data.io import naming
 from ..estimate import Estimate
 from ..geometry import Pose
 from .run import RunResult, _pick_scenes, failures_path, read_journal, run_split
@@ -248,8 +249,10 @@ def run_multi(
                 failures.append({"scene": name, "frame": query, "reason": fused.reason})
 
     write_submission(output, by_scene)
-    failures_path(output).write_text("".join(json.dumps(f) + "\n" for f in failures))
-    fusion_path(output).write_text("".join(json.dumps(e, allow_nan=False) + "\n" for e in log))
+    with naming(failures_path(output)):
+        failures_path(output).write_text("".join(json.dumps(f) + "\n" for f in failures))
+    with naming(fusion_path(output)):
+        fusion_path(output).write_text("".join(json.dumps(e, allow_nan=False) + "\n" for e in log))
     derived = sorted(n for n, (_, d) in plan.items() if d.derived)
     return MultiRunResult(
         output,

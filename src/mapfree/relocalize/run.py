@@ -25,7 +25,7 @@ import numpy as np
 
 from ..benchmark import write_submission
 from ..data import REFERENCE_NAME, Dataset, Scene
-from ..data.io import depth_suffixes
+from ..data.io import depth_suffixes, naming
 from ..geometry import Pose
 from ..methods import Method, depth_free_problem, get
 from .preflight import check_confidence, check_output, check_same_selection, selection_of
@@ -91,6 +91,7 @@ class RunResult:
     scenes: int = 0
     timings: dict[str, float] = field(default_factory=dict)
     stale_scenes: list[str] = field(default_factory=list)  # resumed scenes whose data changed: recomputed
+    torn_lines: int = 0  # resumed journal's lines cut mid-write (a kill, a full disk): dropped, their frames redone
     cluster: dict[str, Any] = field(default_factory=dict)  # --ray: address, nodes, workers, frames handed out again
 
     def to_dict(self) -> dict[str, Any]:
@@ -101,21 +102,30 @@ class RunResult:
 
 
 def read_journal(path: os.PathLike | str) -> tuple[dict | None, list[dict]]:
-    """(header, frame records) of a journal; a torn last line (killed mid-write) is ignored."""
-    path = Path(path)
+    """(header, frame records) of a journal; a torn line (killed mid-write, a full disk) is left out
+    (a resumed run counts them in ``RunResult.torn_lines``)."""
+    header, recs, _ = _read_journal(Path(path))
+    return header, recs
+
+
+def _read_journal(path: Path) -> tuple[dict | None, list[dict], int]:
+    """(header, frame records, lines that are not a whole record) of a journal."""
     if not path.is_file():
-        return None, []
-    header, recs = None, []
-    for line in path.read_text().splitlines():
+        return None, [], 0
+    header, recs, torn = None, [], 0
+    for line in path.read_text(errors="replace").splitlines():
         try:
             r = json.loads(line)
         except json.JSONDecodeError:
+            torn += bool(line.strip())
             continue
-        if r.get("kind") == "header":
+        if not isinstance(r, dict):
+            torn += 1
+        elif r.get("kind") == "header":
             header = header or r
         elif r.get("kind") == "frame":
             recs.append(r)
-    return header, recs
+    return header, recs, torn
 
 
 def scene_fingerprint(scene_dir: os.PathLike | str) -> str:
@@ -149,7 +159,8 @@ def _drop_stale(header: dict | None, recs: list[dict], fingerprints: dict[str, s
 def _rewrite_journal(jpath: Path, header: dict, recs: list[dict]) -> None:
     """Replace the journal by ``header`` + ``recs`` (atomically: a kill meanwhile leaves the old one)."""
     tmp = jpath.with_name(jpath.name + ".tmp")
-    tmp.write_text("".join(json.dumps(r, allow_nan=False) + "\n" for r in [header, *recs]))
+    with naming(jpath):
+        tmp.write_text("".join(json.dumps(r, allow_nan=False) + "\n" for r in [header, *recs]))
     os.replace(tmp, jpath)
 
 
@@ -221,7 +232,8 @@ def _write_outputs(output: Path, scenes: list[str], recs: list[dict], confidence
             failures.append({"scene": r["scene"], "frame": r["frame"], "reason": r["reason"]})
     write_submission(output, by_scene)
     fp = failures_path(output)
-    fp.write_text("".join(json.dumps(f) + "\n" for f in failures))
+    with naming(fp):
+        fp.write_text("".join(json.dumps(f) + "\n" for f in failures))
     return sum(len(v) for v in by_scene.values()), len(failures)
 
 
@@ -264,7 +276,7 @@ def run_split(
     check_output(output)
     check_confidence(confidence, m)
     jpath = journal_path(output)
-    header, recs = read_journal(jpath)
+    header, recs, torn = _read_journal(jpath)
     if recs and not resume and not overwrite:
         raise FileExistsError(
             f"{jpath} already holds {len(recs)} results: run again with --resume to continue "
@@ -309,21 +321,22 @@ def run_split(
         check_available(m, keep=workers <= 1 or len(todo) <= 1)
     # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
     if fresh or header is None:
-        jpath.write_text(
-            json.dumps(
-                {
-                    "kind": "header",
-                    "version": JOURNAL_VERSION,
-                    "method": m.to_dict(),
-                    "root": str(root),
-                    "split": split,
-                    "all_frames": all_frames,
-                    "frames": selection,
-                    "data": fingerprints,
-                }
+        with naming(jpath):
+            jpath.write_text(
+                json.dumps(
+                    {
+                        "kind": "header",
+                        "version": JOURNAL_VERSION,
+                        "method": m.to_dict(),
+                        "root": str(root),
+                        "split": split,
+                        "all_frames": all_frames,
+                        "frames": selection,
+                        "data": fingerprints,
+                    }
+                )
+                + "\n"
             )
-            + "\n"
-        )
     else:  # the records read back whole: a torn last line goes with the rewrite
         _rewrite_journal(jpath, {**header, "data": {**header.get("data", {}), **fingerprints}}, recs)
     total = sum(len(f) for _, f in todo)
@@ -380,6 +393,7 @@ def run_split(
         scenes=len(scene_list),
         timings=timing_sums,
         stale_scenes=stale,
+        torn_lines=0 if fresh else torn,
         cluster=cluster,
     )
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..benchmark.html import frame_figure_path
 from ..data import Scene
+from ..data.io import naming
 from ..estimate import Estimate
 from ..geometry import Pose
 from ..localizer import Localizer, QueryLocalizer
@@ -71,7 +72,8 @@ def append_records(path: Path, records: Sequence[dict]) -> None:
     data = "".join(json.dumps(r, allow_nan=False) + "\n" for r in records).encode()
     fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     try:
-        os.write(fd, data)
+        with naming(path):
+            os.write(fd, data)
     finally:
         os.close(fd)
 

@@ -12,7 +12,7 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..weights import MissingWeightsError, WeightFile, find_in_dirs, missing_message
+from ..weights import MissingWeightsError, WeightFile, file_problem, find_in_dirs, missing_message
 
 if TYPE_CHECKING:
     import torch
@@ -81,6 +81,8 @@ def read_checkpoint(path: os.PathLike | str) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"RPR checkpoint {path} not found")
+    if (why := file_problem(path)) is not None:  # a web page or text is named so, not unpickled
+        raise ValueError(f"{path} is refused: {why} (an interrupted download? fetch it again)")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=False)  # Lightning checkpoints pickle extras
     except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error

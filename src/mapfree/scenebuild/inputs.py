@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..data.intrinsics import exif_intrinsics
-from ..data.io import FormatError, iter_records, read_intrinsics
+from ..data.io import FormatError, iter_records, read_intrinsics, write_image
 from ..geometry import Intrinsics, Pose
 
 __all__ = [
@@ -166,7 +166,7 @@ def _sample_video(video: Path, fps: float, cache: Path) -> list[ScanFrame]:
         next_t += 1.0 / fps
         path = cache / f"frame_{len(frames):05d}.jpg"
         if not path.exists():
-            cv2.imwrite(str(path), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+            write_image(path, img, [cv2.IMWRITE_JPEG_QUALITY, 95])
         frames.append(ScanFrame(path, t))
     cap.release()
     if not frames:

@@ -19,7 +19,16 @@ import cv2
 import numpy as np
 
 from ..data.device import DEVICE_FILE, multiframe_bursts, rebase_bursts, write_device_poses
-from ..data.io import FormatError, depth_path_for, read_depth, read_image, write_depth, write_intrinsics, write_poses
+from ..data.io import (
+    FormatError,
+    depth_path_for,
+    read_depth,
+    read_image,
+    write_depth,
+    write_image,
+    write_intrinsics,
+    write_poses,
+)
 from ..data.overlaps import Overlaps, write_overlaps
 from ..data.scene import REFERENCE_NAME, frame_number
 from ..geometry import Intrinsics, Pose
@@ -111,7 +120,7 @@ def _stage(
                 os.symlink(f.path.resolve(), dst)
             else:
                 img = cv2.cvtColor(read_image(f.path), cv2.COLOR_RGB2BGR)  # upright, like every reader of ours
-                cv2.imwrite(str(dst), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+                write_image(dst, img, [cv2.IMWRITE_JPEG_QUALITY, 95])
             src[name], intr[name], dev[name], seq_of[name] = f.path, f.intrinsics, f.device, k
     return src, intr, dev, seq_of
 

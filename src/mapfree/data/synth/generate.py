@@ -25,7 +25,7 @@ from ..device import (
     simulate_device_trajectory,
     write_device_poses,
 )
-from ..io import depth_path_for, write_depth, write_intrinsics, write_poses
+from ..io import depth_path_for, write_depth, write_image, write_intrinsics, write_poses
 from ..overlaps import Overlaps, write_overlaps
 from ..scene import SPLITS
 from .cameras import jitter_intrinsics, look_along, look_at, orbit_point, walk
@@ -115,8 +115,7 @@ class _FrameWriter:
         exposure = float(np.exp(self.noise_rng.normal(0, 0.04)))
         img = shade(self.world, self.atlas, pose, K, qid, depth, light, noise, exposure, self._shadow(light))
         path.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(path), img[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, opts.jpeg_quality]):
-            raise OSError(f"{path}: could not write image")
+        write_image(path, np.ascontiguousarray(img[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, opts.jpeg_quality])
         gt = np.where(depth <= opts.max_depth, depth, 0.0)
         write_depth(depth_path_for(path, GT_DEPTH_SUFFIX), gt)
         if opts.write_mono:
