@@ -329,7 +329,7 @@ def test_cascade_localizer_in_python(calibrated, synth40):
     scene = Dataset(synth40).scene("val", "s00000")
     cals = [Calibration.load(calibrated[n]) for n in ("sift_pnp_sensor", "sift_emat_sensor")]
     stages = [get(n).build() for n in ("sift_pnp_sensor", "sift_emat_sensor")]
-    never = Cascade(["sift_pnp_sensor", "sift_emat_sensor"], stages, cals, accept=1.0)  # always both stages
+    never = Cascade(["sift_pnp_sensor", "sift_emat_sensor"], stages, cals, accept=1.01)  # above any p: always both
     first = Cascade(["sift_pnp_sensor", "sift_emat_sensor"], stages, cals, accept=1e-9)  # the first that answers
     anchor = never.prepare(scene.reference)
     for q in scene.queries[:4]:
@@ -340,3 +340,17 @@ def test_cascade_localizer_in_python(calibrated, synth40):
             assert both.p_correct == pytest.approx(max(e.p_correct or 0 for e in alone if e.ok))
         if one.ok and one.stage == "sift_pnp_sensor":
             assert list(k for k in one.timings if k.startswith("stage:")) == ["stage:sift_pnp_sensor"]
+
+
+def test_service_publishes_calibration_figures_for_val_only(calibrated, synth40, tmp_path):
+    from mapfree.service.leaderboard.scoring import redact
+
+    out = tmp_path / "p.zip"
+    cal = str(calibrated["sift_pnp_sensor"])
+    args = ["run", str(synth40), "--method", "sift_pnp_sensor", "-o", str(out), "--no-progress"]
+    assert main([*args, "--calibration", cal, "--confidence", "calibrated"]) == 0
+    report = evaluate(out, synth40, "val").to_dict()
+    val = redact(report, [], "val")
+    assert val["calibration"]["probabilities"] and "ece" in val["calibration"] and val["calibration"]["bins"]
+    test = redact(report, [], "test")
+    assert "calibration" not in test and "ece" not in json.dumps(test).lower()

@@ -38,6 +38,7 @@ class JournalFrames:
         rot_err: (N,) degrees.
         stage: (N) the cascade stage that answered (empty for other methods).
         failed: Frames with ground truth but no estimate.
+        p_correct: (N,) each frame's journaled ``p_correct`` (NaN where none).
     """
 
     method: str
@@ -48,6 +49,7 @@ class JournalFrames:
     rot_err: np.ndarray
     stage: list[str]
     failed: int
+    p_correct: np.ndarray
 
 
 def journal_frames(journal: os.PathLike | str, root: os.PathLike | str, split: str) -> JournalFrames:
@@ -68,7 +70,7 @@ def journal_frames(journal: os.PathLike | str, root: os.PathLike | str, split: s
     if header is None:
         raise CalibrationError(f"{journal} is no run journal (no header line)")
     scenes = {s.name: s for s in Dataset(root).scenes(split)}
-    rows: list[tuple[Signals, float, list, list, list, list, list[float], str]] = []
+    rows: list[tuple[Signals, float, list, list, list, list, list[float], str, float]] = []
     failed = 0
     for r in recs:
         scene = scenes.get(r["scene"])
@@ -93,6 +95,7 @@ def journal_frames(journal: os.PathLike | str, root: os.PathLike | str, split: s
                 r["t"],
                 [K.fx, K.fy, K.cx, K.cy, K.width, K.height],
                 r.get("stage", ""),
+                r.get("p_correct", np.nan),
             )
         )
     if not rows and not failed:
@@ -112,6 +115,7 @@ def journal_frames(journal: os.PathLike | str, root: os.PathLike | str, split: s
         rot_err=rotation_error_deg(q_gt, q_est),
         stage=[r[7] for r in rows],
         failed=failed,
+        p_correct=np.array([r[8] for r in rows], dtype=np.float64),
     )
 
 
@@ -132,6 +136,7 @@ def _concat(parts: Sequence[JournalFrames]) -> JournalFrames:
         rot_err=np.concatenate([p.rot_err for p in parts]),
         stage=[s for p in parts for s in p.stage],
         failed=sum(p.failed for p in parts),
+        p_correct=np.concatenate([p.p_correct for p in parts]),
     )
 
 
