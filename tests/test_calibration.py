@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_solvers import K_QRY, K_REF, synthetic_pair
 
 from mapfree.benchmark import evaluate
 from mapfree.benchmark.reliability import reliability
@@ -29,6 +28,7 @@ from mapfree.methods import get
 from mapfree.relocalize import Relocalizer, read_journal
 from mapfree.relocalize.cascade import Cascade
 from mapfree.solvers import EssentialSolver, PnPSolver, ProcrustesSolver
+from test_solvers import K_QRY, K_REF, synthetic_pair
 
 # --------------------------------------------------------------------------- signals
 

@@ -230,16 +230,15 @@ def cascade_method(
         ValueError: Stages or accept that cannot run (``check_cascade_options``).
     """
     check_cascade_options({"stages": list(stages), "accept": accept}, where or name or CASCADE_PREFIX)
-    options = {"stages": [s.strip() for s in stages], "accept": float(accept)}
-    name = name or CASCADE_PREFIX + ",".join(options["stages"])
+    names = [s.strip() for s in stages]
     return Method(
-        name=name,
+        name=name or CASCADE_PREFIX + ",".join(names),
         kind=CASCADE,
         matcher="",
         solver="",
         depth="none",
-        options=options,
-        description=f"cascade of {', '.join(options['stages'])}: the next stage only where p_correct < {accept:g}",
+        options={"stages": names, "accept": float(accept)},
+        description=f"cascade of {', '.join(names)}: the next stage only where p_correct < {accept:g}",
     )
 
 

@@ -70,7 +70,7 @@ def journal_frames(journal: os.PathLike | str, root: os.PathLike | str, split: s
     if header is None:
         raise CalibrationError(f"{journal} is no run journal (no header line)")
     scenes = {s.name: s for s in Dataset(root).scenes(split)}
-    rows: list[tuple[Signals, float, list, list, list, list, list[float], str, float]] = []
+    rows: list[tuple[Any, ...]] = []
     failed = 0
     for r in recs:
         scene = scenes.get(r["scene"])
@@ -219,7 +219,7 @@ def calibrate(
     m = method if isinstance(method, Method) else get(method)
     frames = calibration_frames(roots, split, m, journals=journals, run_outputs=run_outputs, **run_options)
     where = " + ".join(f"{Path(r).name}/{split}" for r in roots)
-    return fit(m.name, frames.signals, frames.confidence, frames.vcre, frames.trans_err, frames.rot_err, where)
+    return fit(m.name, frames.signals, frames.confidence.tolist(), frames.vcre, frames.trans_err, frames.rot_err, where)
 
 
 def with_calibration(method: str | Method, paths: Sequence[os.PathLike | str]) -> Method:
