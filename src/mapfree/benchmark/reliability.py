@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ACCEPT_LEVELS", "Reliability", "reliability", "is_probability"]
+__all__ = ["ACCEPT_LEVELS", "Reliability", "reliability", "reliability_from_dict", "is_probability"]
 
 #: Thresholds at which the precision of the accepted frames is reported.
 ACCEPT_LEVELS = (0.5, 0.8, 0.9)
@@ -74,6 +74,30 @@ class Reliability:
                 "right": clean(self.bin_right),
             },
         }
+
+
+def reliability_from_dict(d: dict) -> Reliability:
+    """A ``Reliability`` from its ``to_dict()`` (a calibration file's held-out figures).
+
+    Args:
+        d: The dict.
+
+    Returns:
+        The figures.
+    """
+    nan = lambda a: np.array([np.nan if v is None else v for v in a], dtype=np.float64)  # noqa: E731
+    b = d["bins"]
+    return Reliability(
+        int(d["frames"]),
+        float(d["ece"]),
+        float(d["brier"]),
+        nan(b["edges"]),
+        np.asarray(b["count"], dtype=np.int64),
+        nan(b["p"]),
+        nan(b["right"]),
+        {float(k): v for k, v in d["precision"].items()},
+        {float(k): int(v) for k, v in d["accepted"].items()},
+    )
 
 
 def reliability(p: np.ndarray, right: np.ndarray, bins: int = 10) -> Reliability:
