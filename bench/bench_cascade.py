@@ -6,7 +6,7 @@ Usage (each run is journaled under OUT and resumed, so a second call only recomp
         [--accept 0.8] [--calibration FILE ...]
 
 Every query of every ROOT's val split with ground truth is relocalized (not only the scored fifth: realmini-dev
-has 20 scored frames), by each stage alone and by ``cascade:STAGES``. Per method the table gives: frames, the
+has 20 scored frames), by each stage alone and by the cascade ``A+B``. Per method the table gives: frames, the
 fraction with an estimate, AUC @ VCRE < 90 px (the benchmark's ranking metric, failures counted), precision @ VCRE
 < 90 px, and the mean of the journal's per-frame ``total`` seconds (the method's own compute: reading, matching,
 depth, solving; not the process start). The cascade ranks by its ``p_correct``, each stage by its own confidence
@@ -68,7 +68,7 @@ def main() -> None:
     ap.add_argument("--calibration", type=Path, action="append", default=[], help="one per stage (else shipped)")
     args = ap.parse_args()
     stages = [s for s in args.stages.split(",") if s]
-    cascade = with_calibration(get("cascade:" + ",".join(stages)), args.calibration)
+    cascade = with_calibration(get("+".join(stages)), args.calibration)
     from dataclasses import replace
 
     cascade = replace(cascade, options={**cascade.options, "accept": args.accept})

@@ -281,7 +281,7 @@ def test_api_gives_p_correct(calibrated, synth40):
 
 
 def test_cascade_names_and_yaml(tmp_path):
-    m = get("cascade:sift_emat_sensor,best-offline@mono")
+    m = get("sift_emat_sensor+best-offline@mono")
     assert m.kind == "cascade" and m.options == {"stages": ["sift_emat_sensor", "best-offline@mono"], "accept": 0.8}
     y = tmp_path / "c.yaml"
     y.write_text("kind: cascade\nstages: [sift_pnp_sensor, sift_emat_sensor]\naccept: 0.9\n")
@@ -300,7 +300,7 @@ def test_cascade_names_and_yaml(tmp_path):
 def test_cascade_runs_later_stages_only_where_needed(calibrated, synth40, tmp_path):
     files = [str(calibrated[n]) for n in ("sift_pnp_sensor", "sift_emat_sensor")]
     out = tmp_path / "cascade.zip"
-    method = "cascade:sift_pnp_sensor,sift_emat_sensor"
+    method = "sift_pnp_sensor+sift_emat_sensor"
     base = ["run", str(synth40), "--method", method, "--all-frames", "--no-progress"]
     assert main([*base, "-o", str(out), "--calibration", files[0], "--calibration", files[1]]) == 0
     _, recs = read_journal(out.with_name("cascade.journal.jsonl"))
@@ -354,3 +354,14 @@ def test_service_publishes_calibration_figures_for_val_only(calibrated, synth40,
     assert val["calibration"]["probabilities"] and "ece" in val["calibration"] and val["calibration"]["bins"]
     test = redact(report, [], "test")
     assert "calibration" not in test and "ece" not in json.dumps(test).lower()
+
+
+def test_the_cascade_string_form_passes_the_relocalization_service_name_check():
+    from mapfree.service.anchors.localizers import check_method
+    from mapfree.service.inputs import UploadError
+
+    assert check_method("best-offline+sift_procrustes_sensor") == "best-offline+sift_procrustes_sensor"
+    with pytest.raises(UploadError, match="unknown method"):
+        check_method("best-offline+nope")
+    with pytest.raises(ValueError, match="stage 'nope'"):
+        get("best-offline+nope")

@@ -54,7 +54,7 @@ __all__ = [
     "weight_models",
     "all_weight_models",
     "CASCADE",
-    "CASCADE_PREFIX",
+    "CASCADE_SEPARATOR",
     "cascade_method",
     "parse_cascade",
     "check_cascade_options",
@@ -181,8 +181,8 @@ class Method:
 
 #: The kind of a cascade of methods (``mapfree.relocalize.cascade``).
 CASCADE = "cascade"
-#: The string form: ``cascade:A,B,C``.
-CASCADE_PREFIX = "cascade:"
+#: The string form joins the stages with it: ``A+B+C`` (unquoted in a shell; the characters of a plain name).
+CASCADE_SEPARATOR = "+"
 DEFAULT_ACCEPT = 0.8
 
 
@@ -215,12 +215,12 @@ def check_cascade_options(options: dict[str, Any], where: str) -> None:
 def cascade_method(
     stages: Sequence[str], accept: float = DEFAULT_ACCEPT, name: str | None = None, where: str = ""
 ) -> Method:
-    """A cascade as a ``Method`` (what ``get("cascade:A,B")`` and a ``kind: cascade`` YAML give).
+    """A cascade as a ``Method`` (what ``get("A+B")`` and a ``kind: cascade`` YAML give).
 
     Args:
         stages: The stages' method names, in the order they are tried.
         accept: Stop at the first stage whose ``p_correct`` is at least this.
-        name: The method's name (default ``cascade:A,B``).
+        name: The method's name (default ``A+B``).
         where: Where the cascade was written, for error messages.
 
     Returns:
@@ -229,10 +229,12 @@ def cascade_method(
     Raises:
         ValueError: Stages or accept that cannot run (``check_cascade_options``).
     """
-    check_cascade_options({"stages": list(stages), "accept": accept}, where or name or CASCADE_PREFIX)
+    check_cascade_options(
+        {"stages": list(stages), "accept": accept}, where or name or CASCADE_SEPARATOR.join(map(str, stages))
+    )
     names = [s.strip() for s in stages]
     return Method(
-        name=name or CASCADE_PREFIX + ",".join(names),
+        name=name or CASCADE_SEPARATOR.join(names),
         kind=CASCADE,
         matcher="",
         solver="",
@@ -243,17 +245,21 @@ def cascade_method(
 
 
 def parse_cascade(name: str) -> Method | None:
-    """``cascade:A,B,C`` -> the cascade of those methods (accept 0.8), or None for a name of another form.
+    """``A+B+C`` -> the cascade of those methods (accept 0.8), or None for a name of another form (a path, a YAML
+    file, a name without ``+``).
 
     Args:
         name: What the user typed.
 
     Returns:
         The method, or None.
+
+    Raises:
+        ValueError: A stage that is no method, or an empty one (``A++B``).
     """
-    if not name.startswith(CASCADE_PREFIX):
+    if CASCADE_SEPARATOR not in name or name.endswith((".yaml", ".yml")) or os.sep in name:
         return None
-    return cascade_method([s for s in name[len(CASCADE_PREFIX) :].split(",") if s.strip()], where=name)
+    return cascade_method(name.split(CASCADE_SEPARATOR), where=f"cascade {name!r}")
 
 
 # --------------------------------------------------------------------------- kinds
@@ -481,7 +487,7 @@ def _load_plugins() -> None:
 def get(name_or_path: str | os.PathLike) -> Method:
     """A method by preset name, YAML config name, registered name, or path to a YAML file.
 
-    ``NAME@DEPTH`` swaps the depth of any method (``best-offline@mono``); ``cascade:A,B,C`` is a cascade of
+    ``NAME@DEPTH`` swaps the depth of any method (``best-offline@mono``); ``A+B+C`` is a cascade of
     methods (``mapfree.relocalize.cascade``).
     """
     s = str(name_or_path)

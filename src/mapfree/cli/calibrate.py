@@ -28,7 +28,7 @@ def register(subparsers) -> None:
     )
     p.add_argument("roots", type=Path, nargs="+", metavar="ROOT", help="dataset root(s) holding SPLIT/sNNNNN/")
     p.add_argument("--split", default="val", help="a split with ground-truth poses (default val)")
-    p.add_argument("--method", required=True, help="method name, cascade:A,B or YAML file")
+    p.add_argument("--method", required=True, help="method name, A+B (a cascade) or YAML file")
     p.add_argument("-o", "--output", type=Path, required=True, help="the calibration file to write (.json)")
     p.add_argument(
         "--journal",

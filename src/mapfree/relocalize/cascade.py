@@ -1,6 +1,6 @@
 """A cascade: methods tried in order, each only where the ones before it are not sure enough.
 
-``{kind: cascade, stages: [A, B, C], accept: 0.8}`` (a method YAML), or ``cascade:A,B,C`` on the command line
+``{kind: cascade, stages: [A, B, C], accept: 0.8}`` (a method YAML), or ``A+B+C`` on the command line
 (accept 0.8), runs A on a query; only when A's calibrated probability ``p_correct`` is below ``accept`` (or A has
 no estimate) does it run B, then C. It answers with the estimate of highest probability among the stages it ran
 (an estimate whenever any of them has one), its confidence that probability, and ``Estimate.stage`` naming the
@@ -17,9 +17,9 @@ from typing import Any
 from ..calibration import CALIBRATION_OPTION, Calibration, CalibrationError, calibration_for
 from ..estimate import Estimate
 from ..localizer import Localizer, ViewLike
-from ..methods import CASCADE, CASCADE_PREFIX, DEFAULT_ACCEPT, Method, check_cascade_options, get
+from ..methods import CASCADE, CASCADE_SEPARATOR, DEFAULT_ACCEPT, Method, check_cascade_options, get
 
-__all__ = ["CASCADE", "CASCADE_PREFIX", "STAGE_CALIBRATIONS", "build_cascade", "Cascade"]
+__all__ = ["CASCADE", "CASCADE_SEPARATOR", "STAGE_CALIBRATIONS", "build_cascade", "Cascade"]
 
 #: Key of a cascade's ``Method.options``: ``{stage name: calibration file}`` (``mapfree run --calibration``).
 STAGE_CALIBRATIONS = "stage_calibrations"
