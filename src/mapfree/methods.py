@@ -13,7 +13,7 @@ from __future__ import annotations
 import difflib
 import importlib
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
@@ -53,6 +53,11 @@ __all__ = [
     "LIFTING_SOLVERS",
     "weight_models",
     "all_weight_models",
+    "CASCADE",
+    "CASCADE_SEPARATOR",
+    "cascade_method",
+    "parse_cascade",
+    "check_cascade_options",
 ]
 
 #: Matchers whose presets exist; ``OFFLINE_MATCHERS`` run without downloading weights.
@@ -86,6 +91,7 @@ _LEARNED_THRESHOLD_PX = 2.0
 KINDS: dict[str, str] = {
     "matching": "mapfree.relocalize.pipeline:build_matching",
     "regression": "mapfree.rpr:build_from_method",
+    "cascade": "mapfree.relocalize.cascade:build_cascade",
 }
 _FACTORIES: dict[str, Callable[[Method], Any]] = {}  # resolved (or ``register_kind``-ed) factories
 _REGISTRY: dict[str, Method] = {}
@@ -168,6 +174,92 @@ class Method:
         if self.kind == "matching" and self.depth == "none" and self.solver == "essential":
             m = replace(self, solver_opts={"allow_unscaled": True, **self.solver_opts})
         return factory(m.kind)(m)
+
+
+# --------------------------------------------------------------------------- cascades
+
+
+#: The kind of a cascade of methods (``mapfree.relocalize.cascade``).
+CASCADE = "cascade"
+#: The string form joins the stages with it: ``A+B+C`` (unquoted in a shell; the characters of a plain name).
+CASCADE_SEPARATOR = "+"
+DEFAULT_ACCEPT = 0.8
+
+
+def check_cascade_options(options: dict[str, Any], where: str) -> None:
+    """Refuse a cascade's options that cannot run: ``stages`` not a list of >= 1 method names, ``accept`` not a
+    number in (0, 1], a stage that is no method.
+
+    Args:
+        options: ``{"stages": [...], "accept": 0.8}``.
+        where: The file or name they came from, for the message.
+
+    Raises:
+        ValueError: One line naming the problem.
+    """
+    stages = options.get("stages")
+    if not isinstance(stages, list) or not stages or not all(isinstance(s, str) and s.strip() for s in stages):
+        raise ValueError(f"{where}: a cascade needs stages: a list of method names (got {stages!r})")
+    accept = options.get("accept", DEFAULT_ACCEPT)
+    if isinstance(accept, bool) or not isinstance(accept, (int, float)) or not 0 < accept <= 1:
+        raise ValueError(f"{where}: a cascade's accept must be a probability in (0, 1], got {accept!r}")
+    for s in stages:
+        try:
+            stage = get(s)
+        except (KeyError, FileNotFoundError) as e:
+            raise ValueError(f"{where}: stage {s!r}: {e.args[0] if e.args else e}") from None
+        if stage.kind == CASCADE:
+            raise ValueError(f"{where}: stage {s!r} is itself a cascade (list its stages instead)")
+
+
+def cascade_method(
+    stages: Sequence[str], accept: float = DEFAULT_ACCEPT, name: str | None = None, where: str = ""
+) -> Method:
+    """A cascade as a ``Method`` (what ``get("A+B")`` and a ``kind: cascade`` YAML give).
+
+    Args:
+        stages: The stages' method names, in the order they are tried.
+        accept: Stop at the first stage whose ``p_correct`` is at least this.
+        name: The method's name (default ``A+B``).
+        where: Where the cascade was written, for error messages.
+
+    Returns:
+        The method.
+
+    Raises:
+        ValueError: Stages or accept that cannot run (``check_cascade_options``).
+    """
+    check_cascade_options(
+        {"stages": list(stages), "accept": accept}, where or name or CASCADE_SEPARATOR.join(map(str, stages))
+    )
+    names = [s.strip() for s in stages]
+    return Method(
+        name=name or CASCADE_SEPARATOR.join(names),
+        kind=CASCADE,
+        matcher="",
+        solver="",
+        depth="none",
+        options={"stages": names, "accept": float(accept)},
+        description=f"cascade of {', '.join(names)}: the next stage only where p_correct < {accept:g}",
+    )
+
+
+def parse_cascade(name: str) -> Method | None:
+    """``A+B+C`` -> the cascade of those methods (accept 0.8), or None for a name of another form (a path, a YAML
+    file, a name without ``+``).
+
+    Args:
+        name: What the user typed.
+
+    Returns:
+        The method, or None.
+
+    Raises:
+        ValueError: A stage that is no method, or an empty one (``A++B``).
+    """
+    if CASCADE_SEPARATOR not in name or name.endswith((".yaml", ".yml")) or os.sep in name:
+        return None
+    return cascade_method(name.split(CASCADE_SEPARATOR), where=f"cascade {name!r}")
 
 
 # --------------------------------------------------------------------------- kinds
@@ -276,6 +368,14 @@ def load_yaml(path: os.PathLike | str) -> Method:
     data = read_yaml(path)
     if not isinstance(data, dict):
         raise ValueError(f"{path}: a method config must be a mapping")
+    if data.get("kind") == CASCADE:
+        extra = sorted(set(data) - {"kind", "name", "stages", "accept", "description"})
+        if extra:
+            raise ValueError(f"{path}: unknown key(s) {', '.join(extra)} of a cascade (allowed: stages, accept, name)")
+        stages = data.get("stages")
+        if not isinstance(stages, list):
+            raise ValueError(f"{path}: a cascade needs stages: a list of method names (got {stages!r})")
+        return cascade_method(stages, data.get("accept", DEFAULT_ACCEPT), str(data.get("name", path.stem)), str(path))
     known = set(Method.__dataclass_fields__) | {"extends"}
     unknown = sorted(set(data) - known)
     if unknown:
@@ -430,9 +530,13 @@ def _load_plugins() -> None:
 def get(name_or_path: str | os.PathLike) -> Method:
     """A method by preset name, YAML config name, registered name, or path to a YAML file.
 
-    ``NAME@DEPTH`` swaps the depth of any method (``best-offline@mono``).
+    ``NAME@DEPTH`` swaps the depth of any method (``best-offline@mono``); ``A+B+C`` is a cascade of
+    methods (``mapfree.relocalize.cascade``).
     """
     s = str(name_or_path)
+    cascade = parse_cascade(s)  # before NAME@DEPTH and paths: its stages may hold either
+    if cascade is not None:
+        return cascade
     if s.endswith((".yaml", ".yml")) or os.sep in s:
         if not Path(s).is_file():
             raise FileNotFoundError(f"method config {s} not found")

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data.io import naming
-from .report import Report, _fmt
+from .report import NOT_PROBABILITIES, Report, _fmt, format_calibration
 
 __all__ = ["write_html", "frame_figure_path", "worst_frames"]
 
@@ -81,7 +81,7 @@ def write_html(
     source_note: str = "",
 ) -> Path:
     """Write the report page at ``path`` (parent folders created) and return it."""
-    from .plots import FIGURES
+    from .plots import figures_of
 
     n = len(report.estimated)
     parts = [
@@ -103,9 +103,17 @@ def write_html(
         parts += ["<h2>Per scene</h2>", _table(["scene", *[h for _, h in keys]], rows)]
     parts += [
         "<h2>Figures</h2><div class='plots'>",
-        *[_img(_fig_png(make(report)), caption) for _, caption, make in FIGURES],
+        *[_img(_fig_png(make(report)), caption) for _, caption, make in figures_of(report)],
         "</div>",
     ]
+    cal = report.calibration()
+    parts.append(
+        "<h2>Calibration</h2><p>"
+        + html.escape(format_calibration(cal, report.thresholds.vcre[0]) if cal else NOT_PROBABILITIES).replace(
+            "\n", "<br>"
+        )
+        + "</p>"
+    )
     idx = worst_frames(report, worst)
     if idx:
         parts.append(f"<h2>Worst {len(idx)} estimated frames (largest VCRE)</h2>")

@@ -22,7 +22,15 @@ from matplotlib.ticker import LogFormatter
 from .metrics import Thresholds, precision_ratio_curve
 from .report import Report
 
-__all__ = ["FIGURES", "save_plots", "precision_ratio_figure", "vcre_cdf_figure", "scene_scatter_figure"]
+__all__ = [
+    "FIGURES",
+    "figures_of",
+    "reliability_figure",
+    "save_plots",
+    "precision_ratio_figure",
+    "vcre_cdf_figure",
+    "scene_scatter_figure",
+]
 
 
 class _PlainLogFormatter(LogFormatter):
@@ -178,12 +186,71 @@ def scene_scatter_figure(report: Report) -> Figure:
     return fig
 
 
+def reliability_figure(report: Report) -> Figure:
+    """Reliability diagram: per probability bin, the fraction of frames right against the mean probability
+    (on the diagonal for perfectly calibrated probabilities), with each bin's frame count.
+
+    Raises:
+        ValueError: The confidences are not probabilities (``Report.calibration`` is None).
+    """
+    cal = report.calibration()
+    if cal is None:
+        raise ValueError("the confidences are not probabilities: no reliability diagram")
+    return reliability_diagram({"submission": cal}, f"VCRE < {report.thresholds.vcre[0]:g} px")
+
+
+def reliability_diagram(curves: dict, what: str) -> Figure:
+    """Reliability diagram of one or more sets of probabilities.
+
+    Args:
+        curves: ``{label: Reliability}``.
+        what: What the probabilities are of (axis label).
+
+    Returns:
+        The figure.
+    """
+    fig = _figure()
+    ax = fig.add_subplot()
+    ax.plot([0, 1], [0, 1], color="0.5", lw=1, ls=":", label="perfect calibration")
+    for label, cal in curves.items():
+        filled = cal.bin_count > 0
+        ax.plot(
+            cal.bin_p[filled],
+            cal.bin_right[filled],
+            "o-",
+            label=f"{label}: ECE {cal.ece:.3f}, Brier {cal.brier:.3f} ({cal.frames} frames)",
+        )
+        for x, y, c in zip(cal.bin_p[filled], cal.bin_right[filled], cal.bin_count[filled]):
+            ax.annotate(str(int(c)), (x, y), textcoords="offset points", xytext=(4, -10), fontsize=7)
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("predicted probability (bin mean)")
+    ax.set_ylabel(f"fraction of frames with {what}")
+    ax.set_title("Reliability diagram (numbers: frames per bin)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper left", fontsize=8)
+    return fig
+
+
 #: The evaluation figures: (file stem, caption, maker), for ``save_plots`` and the HTML report.
 FIGURES = (
     ("precision_ratio", "precision against ratio", precision_ratio_figure),
     ("vcre_cdf", "VCRE distribution", vcre_cdf_figure),
     ("scenes", "per-scene errors", scene_scatter_figure),
 )
+_RELIABILITY = ("reliability", "reliability diagram", reliability_figure)
+
+
+def figures_of(report: Report) -> tuple:
+    """The figures a report has: ``FIGURES``, and the reliability diagram when its confidences are probabilities.
+
+    Args:
+        report: The report.
+
+    Returns:
+        ``(file stem, caption, maker)`` tuples.
+    """
+    return (*FIGURES, _RELIABILITY) if report.calibration() is not None else FIGURES
 
 
 def save_plots(report: Report, outdir: os.PathLike | str, formats: Sequence[str] = ("png", "pdf")) -> list[Path]:
@@ -191,7 +258,7 @@ def save_plots(report: Report, outdir: os.PathLike | str, formats: Sequence[str]
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     paths = []
-    for name, _, make in FIGURES:
+    for name, _, make in figures_of(report):
         fig = make(report)
         for fmt in formats:
             p = outdir / f"{name}.{fmt}"

@@ -10,9 +10,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .metrics import Thresholds
+from .reliability import Reliability, is_probability, reliability
 from .submission import Problem
 
-__all__ = ["Report", "format_table", "METRIC_KEYS"]
+__all__ = ["Report", "format_table", "METRIC_KEYS", "NOT_PROBABILITIES"]
+
+#: What a report says instead of calibration figures when the confidences are not probabilities.
+NOT_PROBABILITIES = (
+    "the confidences are not probabilities (some outside [0, 1]): no calibration figures; submit p_correct "
+    "(mapfree run --confidence calibrated) to judge them as probabilities"
+)
 
 # The public evaluator's output keys, in its order.
 METRIC_KEYS = (
@@ -75,6 +82,18 @@ class Report:
     thresholds: Thresholds = field(default_factory=Thresholds)
     extra_failures: int = 0  # failures beyond the evaluated frames (compat="official": missing scenes)
 
+    def calibration(self) -> Reliability | None:
+        """How well the confidences work as the probability that VCRE is under the benchmark's first threshold
+        (90 px), on the frames with an estimate: ECE (10 bins), Brier score, precision at p >= 0.5, 0.8, 0.9.
+
+        Returns:
+            The figures, or None when the confidences are not probabilities (one outside [0, 1], or no estimate).
+        """
+        est = self.estimated
+        if not est.any() or not is_probability(self.confidence[est]):
+            return None
+        return reliability(self.confidence[est], self.vcre[est] < self.thresholds.vcre[0])
+
     @property
     def fatal(self) -> bool:
         """Whether a problem made the submission unscorable (the public evaluator would abort)."""
@@ -99,6 +118,12 @@ class Report:
                 {"scene": p.scene, "line": p.line, "reason": p.reason, "fatal": p.fatal} for p in self.problems
             ],
         }
+        cal = self.calibration()
+        out["calibration"] = (
+            {"probabilities": True, **cal.to_dict()}
+            if cal is not None
+            else {"probabilities": False, "note": NOT_PROBABILITIES}
+        )
         if frames:
             out["frames"] = [
                 {
@@ -192,6 +217,11 @@ def format_table(report: Report, per_scene: bool = False, width: int = 100, max_
         for s, m in report.per_scene.items():
             st.add_row(s, *[_fmt(k, m.get(k)) for k, _ in keys])
         console.print(st)
+    cal = report.calibration()
+    if cal is None:
+        console.print(f"calibration: {NOT_PROBABILITIES}", markup=False, highlight=False)
+    else:
+        console.print(format_calibration(cal, report.thresholds.vcre[0]), markup=False, highlight=False)
     if report.problems:
         console.print(f"{len(report.problems)} problem(s):")
         for p in report.problems[:max_problems]:
@@ -199,3 +229,23 @@ def format_table(report: Report, per_scene: bool = False, width: int = 100, max_
         if len(report.problems) > max_problems:
             console.print(f"  … {len(report.problems) - max_problems} more (see --json)")
     return buf.getvalue()
+
+
+def format_calibration(cal: Reliability, px: float) -> str:
+    """One paragraph of calibration figures (``mapfree evaluate``'s table, ``mapfree calibrate``).
+
+    Args:
+        cal: The figures.
+        px: The VCRE threshold the probabilities are judged against.
+
+    Returns:
+        Text lines: ECE and Brier, then the precision of the frames accepted at each level.
+    """
+    lines = [
+        f"calibration (confidence read as P(VCRE < {px:g} px), {cal.frames} estimated frames): "
+        f"ECE {cal.ece:.3f}, Brier {cal.brier:.3f}"
+    ]
+    for level, prec in cal.precision.items():
+        shown = "—" if prec is None else f"{100 * prec:.1f} %"
+        lines.append(f"  accepted at p >= {level:g}: {cal.accepted[level]} frames, precision {shown}")
+    return "\n".join(lines)

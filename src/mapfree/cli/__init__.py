@@ -84,6 +84,7 @@ COMMANDS = [
     "synth",
     "check",
     "evaluate",
+    "calibrate",
     "relocalize",
     "match",
     "run",

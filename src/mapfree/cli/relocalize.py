@@ -67,6 +67,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="weights of a regression method (e.g. --method rpr-3d3d --checkpoint 3d3d.ckpt)",
     )
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="calibration file of the method (`mapfree calibrate`): the answer gets p_correct, the probability "
+        "that the pose is within 90 px (default: the preset's shipped calibration, if any)",
+    )
     p.set_defaults(func=run)
 
 
@@ -226,6 +234,10 @@ def run(args: argparse.Namespace) -> int:
                     file=sys.stderr,
                 )
                 method = fallback
+        if args.calibration is not None:
+            from ..relocalize.calibrate import with_calibration
+
+            method = with_calibration(method, [args.calibration])
         for p in (args.reference, args.query):
             if not p.is_file():
                 raise InputError(f"{p}: image not found")
@@ -260,6 +272,11 @@ def run(args: argparse.Namespace) -> int:
             if (warning := default_warning(v)) is not None:
                 print(f"mapfree relocalize: warning: {warning}", file=sys.stderr)
     est = loc.relocalize(ref, query)
+    from ..calibration import calibration_for
+
+    calibration = calibration_for(method.name, method.options)
+    if calibration is not None and est.p_correct is None:
+        calibration.apply(est)
     out = {"method": method.name, "reference": str(args.reference), "query": str(args.query), **est.to_dict()}
     out["intrinsics"] = {"reference": ref.resolved.to_dict(), "query": query.resolved.to_dict()}
     from ..relocalize.run import estimate_scores

@@ -94,7 +94,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--scenes", help="comma-separated scene names (default: all)")
     p.add_argument(
         "--confidence",
-        help="extra score to use as the submission confidence (e.g. confidence_inliers, confidence_score)",
+        help="extra score to use as the submission confidence (e.g. confidence_inliers, confidence_score), or "
+        "'calibrated': the probability that the pose is right (p_correct; see --calibration)",
+    )
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="calibration file of the method (`mapfree calibrate`): each estimate gets p_correct; a cascade "
+        "takes one per stage (default: the preset's shipped calibration, if any)",
     )
     p.add_argument(
         "--checkpoint",
@@ -194,6 +204,10 @@ def run(args: argparse.Namespace) -> int:
             from ..relocalize.references import with_references
 
             method = with_references(method, args.references, args.reference_mode)
+        if args.calibration:
+            from ..relocalize.calibrate import with_calibration
+
+            method = with_calibration(method, args.calibration)
         run: Callable[..., RunResult | MultiRunResult] = run_multi if args.track == "multi" else run_split
         res = run(
             args.root,

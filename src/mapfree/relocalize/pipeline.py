@@ -6,6 +6,7 @@ every query, which is what makes a whole scene (or a service anchor) cheap.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Iterable, Iterator
 from typing import Any
@@ -14,6 +15,7 @@ import numpy as np
 
 from .. import depth as depth_mod
 from .. import matching, methods, solvers
+from ..calibration import CALIBRATION_OPTION, Calibrated, Calibration
 from ..depth.base import DepthSource, PairDepthSource
 from ..estimate import Estimate
 from ..geometry import Pose
@@ -76,19 +78,31 @@ class Relocalizer(Localizer[Anchor]):
         self.anchor: Anchor | None = None
 
     @classmethod
-    def from_method(cls, method: str | Method) -> Localizer[Any]:
+    def from_method(
+        cls, method: str | Method, calibration: str | os.PathLike | Calibration | None = None
+    ) -> Localizer[Any]:
         """Build a method (regression methods build their own kind of localizer).
 
         Args:
             method: A name, a YAML path or a ``Method``.
+            calibration: A calibration of the method (``mapfree calibrate``: a file or a ``Calibration``): every
+                estimate then carries ``p_correct``. Default: the file in the method's options
+                (``mapfree run --calibration``), else none (``mapfree.calibration.shipped`` names a preset's).
 
         Returns:
-            The method's localizer.
+            The method's localizer (wrapped in ``mapfree.calibration.Calibrated`` with a calibration).
+
+        Raises:
+            CalibrationError: A calibration file that cannot be used for this method.
         """
         keep_heap_warm()  # also for the methods that build their own kind of localizer
         m = method if isinstance(method, methods.Method) else methods.get(method)
+        if calibration is not None and not isinstance(calibration, Calibration):
+            calibration = Calibration.load(calibration, m.name)
+        elif calibration is None and m.options.get(CALIBRATION_OPTION):
+            calibration = Calibration.load(m.options[CALIBRATION_OPTION], m.name)
         localizer: Localizer[Any] = m.build()
-        return localizer
+        return localizer if calibration is None else Calibrated(localizer, calibration)
 
     # ------------------------------------------------------------------ stages
 
@@ -218,6 +232,8 @@ class Relocalizer(Localizer[Anchor]):
             except Exception as e:
                 est = Estimate.failure(error_reason(e))
         matches = matches if matches is not None else Matches.empty()
+        if est.ok and est.signals.learned_confidence is None and len(matches):
+            est.signals.learned_confidence = float(np.median(matches.scores))
         timings["total"] = sum(v for k, v in timings.items() if k in ("read", "match", "extract", "depth", "solve"))
         est.timings = {**est.timings, **timings}
         est.extras.setdefault("matches", matches)

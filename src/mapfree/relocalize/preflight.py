@@ -11,7 +11,10 @@ from typing import Any
 from ..data import Scene
 from ..solvers.confidence import CONFIDENCE_MODES
 
-__all__ = ["check_output", "check_confidence", "selection_of", "check_same_selection"]
+#: ``--confidence calibrated``: submit the calibrated probability ``p_correct`` (``mapfree.calibration``).
+CALIBRATED = "calibrated"
+
+__all__ = ["CALIBRATED", "check_output", "check_confidence", "selection_of", "check_same_selection"]
 
 
 def check_output(output: Path) -> None:
@@ -37,6 +40,15 @@ def check_confidence(confidence: str | None, m: Any) -> None:
     ones: an unknown name once fell back to the method's own confidence without a word."""
     if confidence is None:
         return
+    if confidence == CALIBRATED:
+        from ..calibration import calibration_for
+
+        if m.kind != "cascade" and calibration_for(m.name, m.options) is None:
+            raise ValueError(
+                f"--confidence calibrated: method {m.name!r} has no calibration: fit one with `mapfree calibrate "
+                f"DATA --method {m.name} -o {m.name}.calib.json` and pass --calibration {m.name}.calib.json"
+            )
+        return
 
     known = [f"confidence_{c}" for c in CONFIDENCE_MODES]
     if m.kind != "matching":
@@ -49,7 +61,7 @@ def check_confidence(confidence: str | None, m: Any) -> None:
 
         close = [k for k in known if k == f"confidence_{confidence}"] or difflib.get_close_matches(confidence, known, 1)
         hint = f"did you mean {close[0]!r}? " if close else ""
-        raise ValueError(f"unknown --confidence {confidence!r}: {hint}known: {', '.join(known)}")
+        raise ValueError(f"unknown --confidence {confidence!r}: {hint}known: {', '.join([*known, CALIBRATED])}")
 
 
 def selection_of(all_frames: bool, select: Callable[[Scene], list[str]] | None) -> str:

@@ -24,11 +24,12 @@ from typing import Any
 import numpy as np
 
 from ..benchmark import write_submission
+from ..calibration import CALIBRATION_OPTION, Calibration, calibration_for
 from ..data import REFERENCE_NAME, Dataset, Scene
 from ..data.io import depth_suffixes, naming
 from ..geometry import Pose
-from ..methods import Method, depth_free_problem, get
-from .preflight import check_confidence, check_output, check_same_selection, selection_of
+from ..methods import CASCADE, Method, depth_free_problem, get
+from .preflight import CALIBRATED, check_confidence, check_output, check_same_selection, selection_of
 from .references import check_scene_references
 from .scenes import (
     append_records,
@@ -165,8 +166,11 @@ def _rewrite_journal(jpath: Path, header: dict, recs: list[dict]) -> None:
 
 
 def _same_method(a: dict, b: dict) -> bool:
-    keys = ("kind", "matcher", "matcher_opts", "depth", "solver", "solver_opts", "options")
-    return all(a.get(k) == b.get(k) for k in keys)
+    """Whether two journal headers' methods give the same estimates (a calibration file only sets ``p_correct``,
+    recomputed from the journal's signals when the submission is written)."""
+    keys = ("kind", "matcher", "matcher_opts", "depth", "solver", "solver_opts")
+    options = [{k: v for k, v in (m.get("options") or {}).items() if k != CALIBRATION_OPTION} for m in (a, b)]
+    return all(a.get(k) == b.get(k) for k in keys) and options[0] == options[1]
 
 
 # --------------------------------------------------------------------------- work
@@ -217,7 +221,9 @@ def _init_worker(threads: int, stop: Any = None) -> None:
 # --------------------------------------------------------------------------- outputs
 
 
-def _write_outputs(output: Path, scenes: list[str], recs: list[dict], confidence: str | None) -> tuple[int, int]:
+def _write_outputs(
+    output: Path, scenes: list[str], recs: list[dict], confidence: str | None, calibration: Calibration | None = None
+) -> tuple[int, int]:
     by_scene: dict[str, list] = {s: [] for s in scenes}
     failures = []
     # Frame order, not journal order (which is the order workers finished in): the same ZIP wherever they ran.
@@ -225,7 +231,10 @@ def _write_outputs(output: Path, scenes: list[str], recs: list[dict], confidence
         if r["scene"] not in by_scene:
             continue
         if r["ok"]:
-            conf = r["scores"].get(confidence, r["confidence"]) if confidence else r["confidence"]
+            if confidence == CALIBRATED:  # from the signals: a calibration given on --resume applies to all
+                conf = calibration.p_correct(r["signals"], r["confidence"]) if calibration else r.get("p_correct", 0.0)
+            else:
+                conf = r["scores"].get(confidence, r["confidence"]) if confidence else r["confidence"]
             conf = float(conf) if np.isfinite(conf) and conf > 0 else 0.0
             by_scene[r["scene"]].append((r["frame"], Pose.from_qt(r["q"], r["t"]), conf))
         else:
@@ -376,7 +385,8 @@ def run_split(
     finally:
         bar.close()
     _, recs = read_journal(jpath)
-    estimated, failed = _write_outputs(output, [s.name for s in scene_list], recs, confidence)
+    calibration = calibration_for(m.name, m.options) if confidence == CALIBRATED and m.kind != CASCADE else None
+    estimated, failed = _write_outputs(output, [s.name for s in scene_list], recs, confidence, calibration)
     timing_sums: dict[str, float] = {}
     for r in recs:
         for k, v in r.get("timings", {}).items():

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..benchmark.html import frame_figure_path
+from ..calibration import calibration_for
 from ..data import Scene
 from ..data.io import naming
 from ..estimate import Estimate
@@ -60,7 +61,12 @@ def frame_record(scene: str, frame: str, est: Estimate, world_pose: Pose | None)
         "reason": est.reason,
         "timings": {k: round(float(v), 6) for k, v in est.timings.items()},
         "scores": estimate_scores(est),
+        "signals": est.signals.to_dict(),
     }
+    if est.p_correct is not None:
+        rec["p_correct"] = est.p_correct
+    if est.stage:
+        rec["stage"] = est.stage
     if world_pose is not None:
         q, t = world_pose.qt()
         rec["q"], rec["t"] = q.tolist(), t.tolist()
@@ -148,7 +154,10 @@ def scene_results(
         for name in frames:
             yield FrameResult(frame_record(scene.name, name, Estimate.failure(ref.error), None))
         return
+    calibration = calibration_for(method.name, method.options)
     for name, est in zip(frames, estimates(ref.localizer, scene, frames, batch_size)):
+        if calibration is not None and est.p_correct is None:  # a cascade's estimates come with their own
+            calibration.apply(est)
         # Relative pose (query w.r.t. reference) -> world-to-camera in the scene's frame.
         world = est.pose @ ref.ref_pose if est.pose is not None else None
         picture = None

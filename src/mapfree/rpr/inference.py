@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from ..data import read_image
-from ..estimate import Estimate
+from ..estimate import Estimate, Signals
 from ..geometry import Pose
 from ..localizer import Localizer
 from .config import RPRConfig, load_config, resolve_config
@@ -133,9 +133,9 @@ class RPRMethod(Localizer[Any]):
         if "log_sigma" in res:
             extras["sigma_rot_deg"] = float(np.degrees(np.exp(res["log_sigma"][i, 0])))
             extras["sigma_trans_m"] = float(np.exp(res["log_sigma"][i, 1]))
-        return Estimate(
-            Pose(res["R"][i], res["t"][i]), float(res["confidence"][i]), 0, "", {"regression": seconds}, extras
-        )
+        conf = float(res["confidence"][i])
+        signals = Signals(learned_confidence=conf)
+        return Estimate(Pose(res["R"][i], res["t"][i]), conf, 0, "", {"regression": seconds}, extras, signals)
 
     # The Localizer interface (mapfree.localizer): set_reference / localize / relocalize / localize_many.
     def set_reference(self, reference: Any) -> Any:

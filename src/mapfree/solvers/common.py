@@ -27,6 +27,7 @@ __all__ = [
     "backproject_keypoints",
     "kabsch",
     "rotation_is_valid",
+    "scale_ratio",
     "GuardedSolver",
 ]
 
@@ -204,6 +205,24 @@ def kabsch(P: np.ndarray, Q: np.ndarray, w: np.ndarray | None = None) -> tuple[n
     R = V @ D @ np.swapaxes(U, -1, -2)
     t = mq - np.einsum("...ij,...j->...i", R, mp)
     return R, t
+
+
+def scale_ratio(P: np.ndarray, Q: np.ndarray) -> float | None:
+    """How much larger the query's 3-D points are than the reference's: two independent metric scales of the same
+    rigid set of points (each image's own depth), 1 when they agree.
+
+    Args:
+        P: (N, 3) points from the reference's depth, metres.
+        Q: (N, 3) the same points from the query's depth, metres.
+
+    Returns:
+        RMS spread of ``Q`` about its centroid over that of ``P``; None with fewer than 3 points or no spread.
+    """
+    if len(P) < 3:
+        return None
+    sp = float(np.sqrt(np.mean(np.sum((P - P.mean(axis=0)) ** 2, axis=1))))
+    sq = float(np.sqrt(np.mean(np.sum((Q - Q.mean(axis=0)) ** 2, axis=1))))
+    return sq / sp if sp > 0 and sq > 0 else None
 
 
 def rotation_is_valid(R: np.ndarray, tol: float = 1e-6) -> bool:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..estimate import Estimate
+from ..estimate import Estimate, Signals
 from ..geometry import Intrinsics, Pose
 from ..options import option
 from .base import SolverOptions
@@ -25,6 +25,7 @@ from .common import (
     normalize_points,
     rotation_is_valid,
     sample_depth_at,
+    scale_ratio,
     valid_depth_map,
 )
 from .confidence import CONFIDENCE_MODES, choose, confidences
@@ -247,7 +248,9 @@ class EssentialSolver(GuardedSolver[EssentialOptions]):
         if not metric:
             values = confidences(n_pose, n_ransac / n)
             extras.update(values, scale=1.0)
-            return Estimate(Pose(R, t_hat), choose(opt.confidence, values), n_pose, "unscaled: no depth", extras=extras)
+            signals = Signals(n, n_pose, n_ransac / n, values["confidence_score"])
+            conf = choose(opt.confidence, values)
+            return Estimate(Pose(R, t_hat), conf, n_pose, "unscaled: no depth", extras=extras, signals=signals)
 
         with timer("scale"):
             p0, p1 = k0[pose_mask], k1[pose_mask]
@@ -281,4 +284,13 @@ class EssentialSolver(GuardedSolver[EssentialOptions]):
             scale_mad=float(np.median(np.abs(hyps[in_scale] - s))),
             depth_agreement=agree,
         )
-        return Estimate(Pose(R, t), choose(opt.confidence, values), vote.votes, extras=extras)
+        signals = Signals(
+            n_matches=n,
+            n_inliers=vote.votes,
+            inlier_ratio=n_ransac / n,
+            score=values["confidence_score"],
+            residual=float(np.median(err3d[in_scale])) if in_scale.any() else None,
+            depth_valid_fraction=n_valid / n_pose,
+            scale_ratio=scale_ratio(X0, X1),
+        )
+        return Estimate(Pose(R, t), choose(opt.confidence, values), vote.votes, extras=extras, signals=signals)

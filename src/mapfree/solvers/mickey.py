@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..estimate import Estimate
+from ..estimate import Estimate, Signals
 from ..geometry import Pose
 from ..matching.base import CandidateMatches
 from ..options import OptionError, option
@@ -260,4 +260,11 @@ class MickeySolver(GuardedSolver[MickeySolverOptions]):
             "inlier_ratio": hard / res.drawn,
             "metric": True,
         }
-        return Estimate(Pose(R, t), choose(o.confidence, values), hard, extras=extras)
+        signals = Signals(
+            n_matches=len(matches),
+            n_inliers=hard,
+            inlier_ratio=hard / res.drawn,
+            score=values["confidence_score"],
+            learned_confidence=float(c.scores.max()) if c.scores.numel() else None,
+        )
+        return Estimate(Pose(R, t), choose(o.confidence, values), hard, extras=extras, signals=signals)

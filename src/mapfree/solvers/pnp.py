@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..estimate import Estimate
+from ..estimate import Estimate, Signals
 from ..geometry import Intrinsics, Pose, project
 from ..options import option
 from .base import SolverOptions
@@ -148,4 +148,12 @@ class PnPSolver(GuardedSolver[PnPOptions]):
             "metric": True,
             **values,
         }
-        return Estimate(Pose(R, t), choose(opt.confidence, values), n_in, extras=extras)
+        signals = Signals(
+            n_matches=n,
+            n_inliers=n_in,
+            inlier_ratio=ratio,
+            score=values["confidence_score"],
+            residual=float(np.median(err)),
+            depth_valid_fraction=n_valid / n,
+        )
+        return Estimate(Pose(R, t), choose(opt.confidence, values), n_in, extras=extras, signals=signals)

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..estimate import Estimate
+from ..estimate import Estimate, Signals
 from ..geometry import Intrinsics, Pose, backproject_depth
 from ..options import option
 from .base import SolverOptions
@@ -24,6 +24,7 @@ from .common import (
     kabsch,
     rotation_is_valid,
     sample_depth_at,
+    scale_ratio,
     valid_depth_map,
 )
 from .confidence import CONFIDENCE_MODES, choose, confidences
@@ -186,4 +187,13 @@ class ProcrustesSolver(GuardedSolver[ProcrustesOptions]):
         extras.update(
             values, n_inliers=n_in, inlier_ratio=ratio, rmse=float(np.sqrt(np.mean(res**2))) if n_in else -1.0
         )
-        return Estimate(Pose(R, t), choose(opt.confidence, values), n_in, extras=extras)
+        signals = Signals(
+            n_matches=n,
+            n_inliers=n_in,
+            inlier_ratio=ratio,
+            score=values["confidence_score"],
+            residual=float(np.sqrt(np.mean(res**2))) if n_in else None,
+            depth_valid_fraction=n_valid / n,
+            scale_ratio=scale_ratio(P[mask], Q[mask]),
+        )
+        return Estimate(Pose(R, t), choose(opt.confidence, values), n_in, extras=extras, signals=signals)

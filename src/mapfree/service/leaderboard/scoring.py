@@ -70,14 +70,18 @@ def _problems(report: Report) -> list[str]:
 def redact(report_dict: dict, problems: list[str], split: str) -> dict:
     """What may be stored and shown. For ``test`` only the aggregate metrics, coarsened (``disclosure.py``),
     and submission-format problems: no per-scene or per-frame numbers, so that responses do not reveal the
-    private ground truth."""
+    private ground truth. The calibration figures of probabilities (ECE, Brier, reliability bins) are val-only
+    too: their bins and precision per threshold would hand back per-frame pass/fail."""
     raw = report_dict.get("metrics", {}) or {}
     metrics = _finite({**{k: raw.get(k) for k in METRIC_KEYS}, **{str(k): v for k, v in raw.items()}})
     per_scene = _finite(report_dict.get("per_scene") or {})
     if split == "test":  # no medians, rounded (the threat model: disclosure.py)
         metrics, notes = public_test_metrics(metrics)
         return {"metrics": metrics, "problems": notes + problems}
-    return {"metrics": metrics, "problems": problems, "per_scene": per_scene}
+    out = {"metrics": metrics, "problems": problems, "per_scene": per_scene}
+    if report_dict.get("calibration"):
+        out["calibration"] = _finite(report_dict["calibration"])
+    return out
 
 
 _TRUTH: dict[tuple, Any] = {}
