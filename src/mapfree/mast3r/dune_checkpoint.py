@@ -17,6 +17,7 @@ from typing import Any
 
 import torch
 
+from ..weights import MissingWeightsError
 from .checkpoint import load_strict, read_pth
 from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs, parse_constructor
 from .dune import IMAGENET_MEAN, IMAGENET_STD, DuneMast3rModel, DuneShape
@@ -162,20 +163,29 @@ def _published_encoder(
     name: str, decoder: Path, cfg: ModelConfig, explicit: str | os.PathLike | None
 ) -> tuple[dict[str, torch.Tensor], DuneShape]:
     wf = DUNE_ENCODERS.get(name)
-    if wf is None:
+    if explicit is not None:  # the user's file, whatever the decoder calls it
+        path = Path(explicit).expanduser()
+        if path.is_dir() and wf is not None:
+            path = path / wf.filename
+        if not path.is_file():
+            raise MissingWeightsError(f"DUNE encoder for {decoder.name}: {explicit} not found")
+    elif wf is None:
         raise ValueError(
             f"{decoder}: holds no encoder and names an unknown DUNE encoder dune_backbone_name={name!r} "
             f"(known: {', '.join(DUNE_ENCODERS)})"
         )
-    hit = wf.locate(explicit)
-    if hit is None:
-        raise wf.missing(why=f"{decoder.name} holds no encoder and names {name}", explicit=explicit)
-    enc, heads = read_dune_encoder(hit.path)
-    shape = DuneShape.from_state_dict(enc, heads, str(hit.path))
+    else:
+        hit = wf.locate()
+        if hit is None:
+            raise wf.missing(why=f"{decoder.name} holds no encoder and names {name}")
+        path = hit.path
+    enc, heads = read_dune_encoder(path)
+    shape = DuneShape.from_state_dict(enc, heads, str(path))
     if shape.dim != cfg.enc_embed_dim:
+        needs = f" (that decoder needs {wf.filename}, published at {wf.urls[0]})" if wf is not None else ""
         raise ValueError(
-            f"{hit.path}: a DUNE encoder of width {shape.dim} does not fit {decoder}, built for width "
-            f"{cfg.enc_embed_dim} (that decoder needs {wf.filename}, published at {wf.urls[0]})"
+            f"{path}: a DUNE encoder of width {shape.dim} does not fit {decoder}, built for width "
+            f"{cfg.enc_embed_dim}{needs}"
         )
     return enc, shape
 
