@@ -21,6 +21,7 @@ examples:
   mapfree match a.jpg b.jpg --matcher sift -o matches.npz --viz matches.png
   mapfree match a.jpg b.jpg --matcher xfeat --option top_k=2048
   mapfree match a.jpg b.jpg --matcher superglue --device cuda -o sg.npz
+  mapfree match a.jpg b.jpg --matcher dune-mast3r --size 518 -o dune.npz
 """
 
 
@@ -38,6 +39,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, help="write the matches to this .npz file")
     p.add_argument("--viz", type=Path, help="draw the matches into this .png (or .jpg) file")
     p.add_argument("--device", help="cpu, cuda, cuda:1 … (default: cuda when available); not for sift")
+    p.add_argument(
+        "--size",
+        type=int,
+        metavar="PIXELS",
+        help="long side of the network input, for the MASt3R family (mast3r, dust3r, dune-mast3r, "
+        "dune-mast3r-small: the option long_side; default: the published size, 512 or DUNE's 518)",
+    )
     p.add_argument(
         "--option",
         action="append",
@@ -62,6 +70,8 @@ def _options(args: argparse.Namespace) -> dict:
             raise ValueError(f"--option {item!r}: the value is not a YAML scalar") from None
     if args.device:
         opts["device"] = args.device
+    if args.size is not None:
+        opts["long_side"] = args.size
     return opts
 
 

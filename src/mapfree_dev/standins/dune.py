@@ -30,6 +30,7 @@ __all__ = [
     "save_decoder",
     "save_encoder",
     "write_published_standin",
+    "write_tiny_standin",
 ]
 
 BACKBONE = "dune_backbone."
@@ -135,4 +136,30 @@ def write_published_standin(folder: str | Path, kind: str, dtype: torch.dtype = 
     folder = Path(folder)
     dec = save_decoder(folder / DUNE_DECODERS[kind].filename, name, model_str, sd, with_encoder=False)
     enc = save_encoder(folder / DUNE_ENCODERS[name].filename, 448, enc_args, sd)
+    return dec, enc
+
+
+#: A tiny DUNE-MASt3R (the public-code fixture's ``dune-small-tiny``): for tests of the whole path.
+TINY_STR = (
+    "AsymmetricMASt3R(pos_embed='RoPE100', patch_embed_cls='PatchEmbedDust3R', img_size=(518, 518), "
+    "head_type='catmlp+dpt', output_mode='pts3d+desc24', depth_mode=('exp', -inf, inf), conf_mode=('exp', 1, inf), "
+    "enc_embed_dim=48, enc_depth=2, enc_num_heads=3, dec_embed_dim=32, dec_depth=10, dec_num_heads=2, "
+    "two_confs=True, desc_conf_mode=('exp', 0, inf))"
+)
+TINY_ENC_ARGS = {"arch": "DinoVisionTransformer", "embed_dim": 48, "depth": 2, "num_heads": 3, "mlp_ratio": 4}
+
+
+def write_tiny_standin(folder: str | Path, kind: str) -> tuple[Path, Path]:
+    """The files of ``kind`` under their published names in ``folder``, holding the tiny fill-rule model (the
+    decoder without the encoder, so the encoder file is found by name as a user's download is).
+
+    Returns:
+        (decoder file, encoder file).
+    """
+    cfg, shape = architecture(TINY_STR, 56, TINY_ENC_ARGS)
+    sd = filled_state_dict(cfg, shape)
+    name = DUNE_KINDS[kind]
+    folder = Path(folder)
+    dec = save_decoder(folder / DUNE_DECODERS[kind].filename, name, TINY_STR, sd, with_encoder=False)
+    enc = save_encoder(folder / DUNE_ENCODERS[name].filename, 56, TINY_ENC_ARGS, sd)
     return dec, enc
