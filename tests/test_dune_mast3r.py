@@ -185,6 +185,23 @@ def test_loader_at_518_matches_public_on_real_photos(fixture, realmini):
         assert list(prepare_image(PIL.Image.new("RGB", (w, h)), 518, patch=14, square_ok=True).true_shape) == hw, wh
 
 
+def test_views_of_different_shapes_pair_as_in_mast3r(fixture, tiny):
+    """A landscape reference with a portrait query (the public class fails there: its branch for views of
+    different shapes unpacks three values from two): each view encoded at its own size, each map at its own."""
+    spec, arrays = fixture
+    cfg, shape = _arch(spec, "dune-small-tiny")
+    with torch.device("meta"):
+        net = DuneMast3rModel(cfg, shape)
+    net = load_strict(net, tiny["dune-small-tiny"], "filled", "DUNE-MASt3R")
+    land, port = (torch.from_numpy(arrays[f"input.{k}"]) for k in INPUTS[:2])
+    with torch.no_grad():
+        e1, e2 = net.encode(land[:1]), net.encode(port[1:])
+        r1, r2 = net.predict(e1, e2)
+    assert e1.tokens.shape[1] == 7 * 9 and e2.tokens.shape[1] == 9 * 7
+    assert r1["pts3d"].shape == (1, 98, 126, 3) and r2["pts3d_in_other_view"].shape == (1, 126, 98, 3)
+    assert r2["desc"].shape == (1, 126, 98, 24) and all(torch.isfinite(v).all() for v in (*r1.values(), *r2.values()))
+
+
 # ----------------------------------------------------------------------------------------------- bad files
 
 
