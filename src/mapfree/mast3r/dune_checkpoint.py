@@ -5,8 +5,10 @@ str, "model": state_dict}``; the string is MASt3R's constructor call, parsed (ne
 14, as the public class does. The encoder comes from the same file when it holds ``dune_backbone.*`` keys, else
 from the DUNE encoder file the name stands for (``dune_vitbase14_448_paper.pth``, ``dune_vitsmall14_448.pth``),
 looked for in the weights folders: ``{"args": Namespace(image_size, enc_args), "model": {"encoder.K": …}}``, of
-which the keys holding ``encoder.`` are kept, that prefix dropped, as the public hub loader does. The ImageNet
-statistics, which the published files lack, are the constructor's constants.
+which the keys holding ``encoder.`` are kept, that prefix dropped, as the public hub loader does; its attention
+heads come from ``enc_args`` (``num_heads``, or ``arch``: ``vit_small`` 6, ``vit_base`` 12). An encoder inside the
+decoder file takes its heads from the string's ``enc_num_heads``. The ImageNet statistics, which the published
+files lack, are the constructor's constants.
 """
 
 from __future__ import annotations

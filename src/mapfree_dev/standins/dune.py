@@ -59,9 +59,8 @@ def architecture(model_str: str, image_size: int, enc_args: Mapping[str, Any]) -
     cfg = config_from_kwargs(cls, {**kwargs, "patch_size": 14})
     arch = enc_args.get("arch")
     if arch in ARCH_HEADS:
-        dim, depth, heads = {"vit_small": 384, "vit_base": 768, "vit_large": 1024}[arch], 12, ARCH_HEADS[arch]
-        if arch == "vit_large":
-            depth = 24
+        dim, depth = {"vit_small": (384, 12), "vit_base": (768, 12), "vit_large": (1024, 24)}[arch]
+        heads = ARCH_HEADS[arch]
     else:
         dim, depth, heads = int(enc_args["embed_dim"]), int(enc_args["depth"]), int(enc_args["num_heads"])
     mlp = int(dim * float(enc_args.get("mlp_ratio", 4)))
