@@ -94,3 +94,9 @@ def synth_val(tmp_path_factory) -> Path:
 def synth(synth_val) -> Path:
     """A small synthetic val split: two scenes of 10 queries, sensor depth (suffix ``sensor``); read-only."""
     return synth_val
+
+
+@pytest.fixture(scope="session")
+def dune_fixture() -> Path:
+    """Folder with dune_mast3r.json / dune_mast3r_outputs.npz: the public DUNE-MASt3R outputs on fill-rule weights."""
+    return _shared("fixtures/dune-mast3r", "dune_mast3r.json")

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 from .depth import HUB_MODELS, PAIR_MODELS
+from .mast3r.published import DUNE_KINDS
 from .matching import needs as matcher_needs
 from .method_names import BEST_OFFLINE, BEST_OFFLINE_REFERENCE_DEPTH
 from .yamlio import key_line, read_yaml
@@ -694,7 +695,8 @@ def _register_two_view_presets() -> None:
         "emat": "Ess.Mat scaled by both images' depth (a second, symmetric decoder pass for the query's depth)",
         "procrustes": "3D-3D Procrustes on both images' depth (a second, symmetric decoder pass)",
     }
-    for net in PAIR_MODELS[:2]:
+    for net in ("mast3r", "dust3r", *DUNE_KINDS):
+        doc = "docs/dune-mast3r.md" if net in DUNE_KINDS else "docs/mast3r.md"
         for solver in how:
             m = parse_name(preset_name(net, solver, net))
             assert m is not None
@@ -702,7 +704,7 @@ def _register_two_view_presets() -> None:
                 replace(
                     m,
                     description=f"{net} matches and {net} metric depth, {how[solver]}; needs "
-                    f"{matcher_needs(net)} (docs/mast3r.md)",
+                    f"{matcher_needs(net)} ({doc})",
                 )
             )
 

@@ -217,6 +217,11 @@ class Model(Protocol):
         """What it is for, in words (the start of every message about it)."""
         ...
 
+    @property
+    def licence(self) -> str:
+        """The weights' licence, named in messages ("" when none is stated)."""
+        ...
+
     def item(self) -> str:
         """The model itself in words, e.g. ``weights file 'x.pth'``, ``model 'org/name'``."""
         ...

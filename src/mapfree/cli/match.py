@@ -24,6 +24,7 @@ examples:
   mapfree match a.jpg b.jpg --matcher sift -o matches.npz --viz matches.png
   mapfree match a.jpg b.jpg --matcher xfeat --option top_k=2048
   mapfree match a.jpg b.jpg --matcher superglue --device cuda -o sg.npz
+  mapfree match a.jpg b.jpg --matcher dune-mast3r --size 518 -o dune.npz
 """
 
 
@@ -43,6 +44,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--K-ref", help="intrinsics of image0 for --viz's check: fx,fy,cx,cy (pixels); default: EXIF")
     p.add_argument("--K-query", help="intrinsics of image1 for --viz's check: fx,fy,cx,cy (pixels); default: EXIF")
     p.add_argument("--device", help="cpu, cuda, cuda:1 … (default: cuda when available); not for sift")
+    p.add_argument(
+        "--size",
+        type=int,
+        metavar="PIXELS",
+        help="long side of the network input, for the MASt3R family (mast3r, dust3r, dune-mast3r, "
+        "dune-mast3r-small: the option long_side; default: the published size, 512 or DUNE's 518)",
+    )
     p.add_argument(
         "--option",
         action="append",
@@ -67,6 +75,8 @@ def _options(args: argparse.Namespace) -> dict:
             raise ValueError(f"--option {item!r}: the value is not a YAML scalar") from None
     if args.device:
         opts["device"] = args.device
+    if args.size is not None:
+        opts["long_side"] = args.size
     return opts
 
 

@@ -92,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
                     {
                         "model": m.name,
                         "what": m.what,
+                        "licence": m.licence,
                         "used_by": u,
                         "status": s.status,
                         "path": str(s.found.path) if s.found else None,
@@ -134,8 +135,9 @@ def run(args: argparse.Namespace) -> int:
                 f"To get the {len(bad)} missing or broken (into {target}; for an offline machine, fetch them on "
                 f"one with internet and copy {target} over, or point $MAPFREE_WEIGHTS_DIR at the copy):"
             )
-            for cmd in dict.fromkeys(m.fetch_command() for m, _, s in states if s.found is None or s.problem):
-                print(f"  {cmd}")
+            fetch = {m.fetch_command(): m.licence for m, _, s in states if s.found is None or s.problem}
+            for cmd, licence in fetch.items():
+                print(f"  {cmd}" + (f"  # licence: {licence}" if licence else ""))
             if target == default_dir() and not target.is_dir():
                 print(f"(the commands create {target})")
     broken = any(s.problem for _, _, s in states)

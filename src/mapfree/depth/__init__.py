@@ -25,9 +25,10 @@ __all__ = [
 
 from .hub import HUB_MODELS  # noqa: E402  (torch and transformers load only with a network source)
 
-#: Networks whose depth of both images comes with the pair's matching: two-view pointmaps (``depth/mast3r.py``)
+#: Networks whose depth of both images comes with the pair's matching: two-view pointmaps (``depth/mast3r.py``:
+#: MASt3R, DUSt3R, DUNE-MASt3R with its ViT-B or ViT-S encoder)
 #: and MicKey's metric keypoints (``depth/mickey.py``).
-PAIR_MODELS = ("mast3r", "dust3r", "mickey")
+PAIR_MODELS = ("mast3r", "dust3r", "dune-mast3r", "dune-mast3r-small", "mickey")
 
 
 def names() -> list[str]:

@@ -49,11 +49,11 @@ class Mast3rDepth(PairDepthSource):
     """Depth of both images of a pair from MASt3R's (or DUSt3R's) own metric pointmaps.
 
     Args:
-        kind: ``mast3r`` or ``dust3r``.
+        kind: ``mast3r``, ``dust3r``, ``dune-mast3r`` or ``dune-mast3r-small``.
         weights: A checkpoint file or folder (default: the published file in the weights folders).
         device: The network's device (None: CUDA when available).
         min_conf: Depths of a lower confidence are 0.
-        long_side: The network's input size.
+        long_side: The network's input size (None: the published one, 512 or DUNE-MASt3R's 518).
         engine: The matcher's network (same checkpoint and input size), else the shared one.
     """
 
@@ -63,7 +63,7 @@ class Mast3rDepth(PairDepthSource):
         weights: str | None = None,
         device: str | None = None,
         min_conf: float = 0.0,
-        long_side: int = 512,
+        long_side: int | None = None,
         engine: PairEngine | None = None,
     ) -> None:
         self.name = kind

@@ -16,7 +16,7 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
@@ -25,8 +25,12 @@ from .config import ModelConfig, UnsupportedCheckpointError, config_from_kwargs,
 from .model import AsymmetricModel
 from .published import MAST3R_WEIGHTS
 
+M = TypeVar("M", bound=torch.nn.Module)
+
 __all__ = [
     "Published",
+    "read_pth",
+    "load_strict",
     "PUBLISHED",
     "find_checkpoint",
     "checkpoint_available",
@@ -127,20 +131,38 @@ def load_error_gist(e: Exception) -> str:
     return f"{type(e).__name__}: {' '.join(gist.split())[:200]}"
 
 
-def _load_pth(path: Path) -> tuple[Mapping[str, torch.Tensor], str]:
+def read_pth(path: Path, what: str = "MASt3R/DUSt3R") -> Any:
+    """``torch.load`` of a checkpoint file, weights only (tensors, containers, ``argparse.Namespace``).
+
+    Args:
+        path: The file.
+        what: The kind of checkpoint expected, named in errors.
+
+    Returns:
+        What the file holds.
+
+    Raises:
+        BrokenWeightsError: The file is cut short (an interrupted download).
+        ValueError: Not a readable checkpoint (or one that needs more than weights-only loading).
+    """
     why = file_problem(path)
     if why:  # cut short: said so, not torch's zip-reader internals
         raise BrokenWeightsError(f"{path} is refused: {why} (an interrupted download? fetch it again)")
     try:
         with torch.serialization.safe_globals([argparse.Namespace]):
-            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+            return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
         raise ValueError(
-            f"{path}: not a readable MASt3R/DUSt3R checkpoint ({load_error_gist(e)}); expected the "
-            f"authors' .pth file or a hub folder (config.json + model.safetensors)"
+            f"{path}: not a readable {what} checkpoint ({load_error_gist(e)}); expected the "
+            f"authors' .pth file" + (" or a hub folder (config.json + model.safetensors)" if "MASt3R/" in what else "")
         ) from None
+
+
+def _load_pth(path: Path) -> tuple[Mapping[str, torch.Tensor], str]:
+    ckpt = read_pth(path)
     if not isinstance(ckpt, dict) or not isinstance(ckpt.get("model"), dict) or "args" not in ckpt:
-        raise ValueError(f"{path}: not a MASt3R/DUSt3R checkpoint (expected the keys 'model' and 'args')")
+        hint = " (a DUNE-MASt3R file: use dune-mast3r)" if isinstance(ckpt, dict) and "mast3r_model_str" in ckpt else ""
+        raise ValueError(f"{path}: not a MASt3R/DUSt3R checkpoint (expected the keys 'model' and 'args'){hint}")
     args = ckpt["args"]
     expr = getattr(args, "model", None) if not isinstance(args, dict) else args.get("model")
     if not isinstance(expr, str):
@@ -214,11 +236,30 @@ def model_from_state_dict(
         sd.update({"dec_blocks2." + k[len("dec_blocks.") :]: v for k, v in first})
     with torch.device("meta"):
         net = AsymmetricModel(cfg)
+    return load_strict(net, sd, source, cfg.class_name)
+
+
+def load_strict(net: M, sd: Mapping[str, torch.Tensor], source: str, what: str) -> M:
+    """Load a state dict into a network built on the meta device, every key matched (the tensors are taken
+    as they are, not copied).
+
+    Args:
+        net: The network, built under ``torch.device("meta")``.
+        sd: The weights.
+        source: The file they came from, named in errors.
+        what: The architecture, named in errors.
+
+    Returns:
+        The network in eval mode, float32, on the CPU.
+
+    Raises:
+        ValueError: Missing or unexpected keys, or shapes that differ (one line, with examples).
+    """
     missing = sorted(set(net.state_dict()) - set(sd))
     unexpected = sorted(set(sd) - set(net.state_dict()))
     if missing or unexpected:
         raise ValueError(
-            f"{source}: state dict does not fit {cfg.class_name}: "
+            f"{source}: state dict does not fit {what}: "
             f"{len(missing)} missing (e.g. {missing[:3]}), "
             f"{len(unexpected)} unexpected (e.g. {unexpected[:3]})"
         )
@@ -226,7 +267,7 @@ def model_from_state_dict(
         net.load_state_dict(sd, strict=True, assign=True)
     except RuntimeError as e:
         why = str(e).splitlines()[-1].strip()
-        raise ValueError(f"{source}: state dict does not fit {cfg.class_name} ({why})") from None
+        raise ValueError(f"{source}: state dict does not fit {what} ({why})") from None
     return net.float().eval()
 
 

@@ -91,7 +91,8 @@ class _DPT(nn.Module):
         half = FEATURE_DIM // 2
         self.head = nn.Sequential(
             nn.Conv2d(FEATURE_DIM, half, 3, padding=1),
-            nn.Upsample(scale_factor=2, mode="bilinear", align_corners=True),
+            # x2 at patch 16; DUNE's patch-14 heads scale it by 14/16, so 8 * (H/14) rows come out H rows
+            nn.Upsample(scale_factor=2 * patch_size / 16, mode="bilinear", align_corners=True),
             nn.Conv2d(half, half, 3, padding=1),
             nn.ReLU(),
             nn.Conv2d(half, num_channels, 1),

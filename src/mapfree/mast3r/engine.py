@@ -1,4 +1,5 @@
-"""One network, shared by the ``mast3r``/``dust3r`` matcher and depth source, with one forward pass per pair.
+"""One network, shared by the ``mast3r``/``dust3r``/``dune-mast3r`` matcher and depth source, with one forward
+pass per pair.
 
 ``encode(image)`` runs the encoder once per image (the reference's output is kept by whoever holds its
 ``Features``, so a new query only encodes itself); ``pair(ref, query)`` decodes the pair once and keeps what the
@@ -22,10 +23,20 @@ import torch
 
 from ..runtime import resolve_device, steady_kernels
 from .checkpoint import find_checkpoint, load_model
-from .model import AsymmetricModel, Encoded
+from .dune_checkpoint import find_dune_checkpoint, load_dune_model
+from .model import Encoded, PairNetwork
 from .preprocess import Prepared, prepare_array
+from .published import DUNE_KINDS
 
-__all__ = ["EncodedImage", "PairOutput", "PairEngine", "shared_engine"]
+__all__ = [
+    "EncodedImage",
+    "PairOutput",
+    "PairEngine",
+    "shared_engine",
+    "find_network",
+    "load_network",
+    "PUBLISHED_SIZE",
+]
 
 
 @dataclass
@@ -100,7 +111,7 @@ class _IdentityCache:
 
 
 class PairEngine:
-    """A loaded MASt3R/DUSt3R network with its caches: one encoder pass per image, one decoder pass per pair.
+    """A loaded MASt3R/DUSt3R/DUNE-MASt3R network with its caches: one encoder pass per image, one decoder pass per pair.
 
     Thread-safe (the batched pipeline solves in a thread pool, the relocalizer reads the next query ahead):
     the lock guards the caches, not the network's passes. Get one with ``shared_engine``.
@@ -108,14 +119,15 @@ class PairEngine:
     Args:
         model: The network, on ``device``.
         device: Where it runs.
-        name: ``mast3r`` or ``dust3r``.
-        long_side: Long side of the network input, pixels (512 for the published models).
+        name: ``mast3r``, ``dust3r``, ``dune-mast3r`` or ``dune-mast3r-small``.
+        long_side: Long side of the network input, pixels (512 for the published MASt3R/DUSt3R, 518 for
+            DUNE-MASt3R); images are cropped to multiples of the network's patch.
         cache_pairs: Images and pairs kept in each cache.
     """
 
     def __init__(
         self,
-        model: AsymmetricModel,
+        model: PairNetwork,
         device: torch.device,
         name: str = "mast3r",
         long_side: int = 512,
@@ -127,6 +139,10 @@ class PairEngine:
         self._lock = threading.RLock()
         self.encodes = 0  # counters for tests and benchmarks
         self.forwards = 0
+
+    def _prepare(self, image: np.ndarray) -> Prepared:
+        """The public loader of this network: its size, its patch, squares kept or cropped to 4:3."""
+        return prepare_array(image, self.long_side, self.model.cfg.patch_size, self.model.square_ok)
 
     @property
     def has_descriptors(self) -> bool:
@@ -157,7 +173,7 @@ class PairEngine:
             cached: list[EncodedImage | None] = [self._images.get(im) for im in images]
         todo = [i for i, hit in enumerate(cached) if hit is None]
         fresh: dict[int, EncodedImage] = {}
-        preps = dict(zip(todo, _prepare_all([images[i] for i in todo], self.long_side)))
+        preps = dict(zip(todo, _prepare_all([images[i] for i in todo], self._prepare)))
         for group in _groups(todo, lambda i: preps[i].true_shape):
             with torch.inference_mode(), steady_kernels():  # outside the lock: others may use the cache meanwhile
                 enc = self.model.encode(torch.cat([preps[i].tensor for i in group]).to(self.device))
@@ -256,13 +272,13 @@ class PairEngine:
         return [o if o is not None else fresh[i] for i, o in enumerate(cached)]
 
 
-def _prepare_all(images: Sequence[np.ndarray], long_side: int) -> list[Prepared]:
-    """``prepare_array`` of each image; several at once in threads (PIL's resampling releases the GIL, and on a
-    GPU this work is on the path between two network passes)."""
+def _prepare_all(images: Sequence[np.ndarray], prepare: Callable[[np.ndarray], Prepared]) -> list[Prepared]:
+    """``prepare`` of each image; several at once in threads (PIL's resampling releases the GIL, and on a GPU
+    this work is on the path between two network passes)."""
     if len(images) <= 1:
-        return [prepare_array(im, long_side) for im in images]
+        return [prepare(im) for im in images]
     with ThreadPoolExecutor(min(4, len(images)), thread_name_prefix="mapfree-mast3r-prepare") as pool:
-        return list(pool.map(lambda im: prepare_array(im, long_side), images))
+        return list(pool.map(prepare, images))
 
 
 def _row(a: np.ndarray | None, j: int) -> np.ndarray | None:
@@ -281,19 +297,68 @@ _ENGINES: dict[tuple[str, str, str, int], PairEngine] = {}
 _ENGINES_LOCK = threading.Lock()
 
 
+#: Long side of the network input of each kind, pixels: the size its public recipe uses.
+PUBLISHED_SIZE = {"mast3r": 512, "dust3r": 512, **{k: 518 for k in DUNE_KINDS}}
+
+
+def find_network(kind: str, weights: str | Path | None = None) -> Path:
+    """The checkpoint of a network of the family by the weights rule (the DUNE decoder file for DUNE kinds).
+
+    Args:
+        kind: ``mast3r``, ``dust3r``, ``dune-mast3r`` or ``dune-mast3r-small``.
+        weights: A file (or hub folder) the user gave: then only there.
+
+    Returns:
+        The file or folder.
+
+    Raises:
+        MissingWeightsError: Not found.
+    """
+    return find_dune_checkpoint(kind, weights) if kind in DUNE_KINDS else find_checkpoint(kind, weights)
+
+
+def load_network(kind: str, path: Path, device: torch.device | str = "cpu") -> PairNetwork:
+    """Load a network of the family (a DUNE kind reads its decoder file and the encoder file it names).
+
+    Args:
+        kind: As ``find_network``.
+        path: The checkpoint.
+        device: Where to put it.
+
+    Returns:
+        The network in eval mode.
+
+    Raises:
+        ValueError: ``mast3r`` asked of a checkpoint without the descriptor head; see the loaders.
+    """
+    if kind in DUNE_KINDS:
+        return load_dune_model(path, device)
+    model = load_model(path, device)
+    if kind == "mast3r" and not model.cfg.has_descriptors:  # DUSt3R runs on either kind of checkpoint
+        raise ValueError(
+            f"{path}: a {model.cfg.class_name} checkpoint has no descriptor head; "
+            f"mast3r needs an AsymmetricMASt3R checkpoint"
+        )
+    return model
+
+
 def shared_engine(
-    kind: str, weights: str | Path | None = None, device: str | torch.device | None = None, long_side: int = 512
+    kind: str,
+    weights: str | Path | None = None,
+    device: str | torch.device | None = None,
+    long_side: int | None = None,
 ) -> PairEngine:
     """The one engine per (kind, checkpoint, device, input size): a method's matcher and depth source share it.
 
     The checkpoint is found first, so a missing file fails before any image is read.
 
     Args:
-        kind: ``mast3r`` or ``dust3r``.
-        weights: The checkpoint (a ``.pth`` file or a hub folder); found by the weights rule when None.
+        kind: ``mast3r``, ``dust3r``, ``dune-mast3r`` or ``dune-mast3r-small``.
+        weights: The checkpoint (a ``.pth`` file or a hub folder; DUNE: the decoder file); found by the weights
+            rule when None.
         device: Where to run; None and ``auto`` mean cuda when available.
-        long_side: Long side of the network input, pixels: 512 is the published models'; smaller sizes are
-            for quick checks only.
+        long_side: Long side of the network input, pixels; None: the published size (``PUBLISHED_SIZE``: 512,
+            DUNE-MASt3R 518). Other sizes are for quick checks only.
 
     Returns:
         The engine, loaded on first use.
@@ -302,16 +367,11 @@ def shared_engine(
         MissingWeightsError: No checkpoint found.
         ValueError: ``mast3r`` asked of a checkpoint without the descriptor head.
     """
-    path = find_checkpoint(kind, weights)
+    path = find_network(kind, weights)
     dev = resolve_device(device)  # as the matcher and depth source resolve theirs: None/"auto" -> cuda if any
-    key = (kind, str(path.resolve()), str(dev), int(long_side))
+    size = int(long_side) if long_side is not None else PUBLISHED_SIZE[kind]
+    key = (kind, str(path.resolve()), str(dev), size)
     with _ENGINES_LOCK:
         if key not in _ENGINES:
-            model = load_model(path, dev)
-            if kind == "mast3r" and not model.cfg.has_descriptors:  # DUSt3R runs on either kind of checkpoint
-                raise ValueError(
-                    f"{path}: a {model.cfg.class_name} checkpoint has no descriptor head; "
-                    f"mast3r needs an AsymmetricMASt3R checkpoint"
-                )
-            _ENGINES[key] = PairEngine(model, dev, kind, int(long_side))
+            _ENGINES[key] = PairEngine(load_network(kind, path, dev), dev, kind, size)
         return _ENGINES[key]

@@ -1,4 +1,4 @@
-"""The published MASt3R / DUSt3R checkpoints, as ``mapfree.weights`` models (no torch here: ``mapfree weights``
+"""The published MASt3R / DUSt3R / DUNE-MASt3R checkpoints, as ``mapfree.weights`` models (no torch here: ``mapfree weights``
 lists them without loading any network). ``mapfree.matching.published`` lists them with every matcher's weights."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..weights import Found, MissingWeightsError, find_in_dirs, missing_message, target_dir
+from ..weights import Found, MissingWeightsError, WeightFile, find_in_dirs, missing_message, target_dir
 
-__all__ = ["Mast3rWeights", "MAST3R_WEIGHTS"]
+__all__ = ["Mast3rWeights", "MAST3R_WEIGHTS", "DUNE_DECODERS", "DUNE_ENCODERS", "DUNE_KINDS"]
 
 
 @dataclass(frozen=True)
@@ -85,4 +85,46 @@ MAST3R_WEIGHTS = {
         f"{_NAVER}/DUSt3R/DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth",
         "dust3r",
     ),
+}
+
+_DUNE = "https://download.europe.naverlabs.com/dune"
+_DUNE_LICENCE = "NAVER LABS Europe DUNE licence and CC BY-NC-SA 4.0, non-commercial: mapfree does not ship it"
+#: DUNE-MASt3R's decoder files (MASt3R's ViT-B decoders and heads fine-tuned on a DUNE encoder), by matcher name.
+DUNE_DECODERS = {
+    "dune-mast3r": WeightFile(
+        "dunemast3r_cvpr25_vitbase.pth",
+        "dune-mast3r (decoder for the DUNE ViT-B/14 paper encoder)",
+        (f"{_DUNE}/dunemast3r_cvpr25_vitbase.pth",),
+        licence=_DUNE_LICENCE,
+        torch_hub=False,
+    ),
+    "dune-mast3r-small": WeightFile(
+        "dunemast3r_cvpr25_vitsmall.pth",
+        "dune-mast3r-small (decoder for the DUNE ViT-S/14 encoder)",
+        (f"{_DUNE}/dunemast3r_cvpr25_vitsmall.pth",),
+        licence=_DUNE_LICENCE,
+        torch_hub=False,
+    ),
+}
+#: The DUNE encoder files, by the ``dune_backbone_name`` a decoder file names (the public ``torch.hub`` entry).
+DUNE_ENCODERS = {
+    "dune_vitbase_14_448_paper_encoder": WeightFile(
+        "dune_vitbase14_448_paper.pth",
+        "DUNE ViT-B/14 paper encoder (for dune-mast3r)",
+        (f"{_DUNE}/dune_vitbase14_448_paper.pth",),
+        licence=_DUNE_LICENCE,
+        torch_hub=False,
+    ),
+    "dune_vitsmall_14_448_encoder": WeightFile(
+        "dune_vitsmall14_448.pth",
+        "DUNE ViT-S/14 encoder (for dune-mast3r-small)",
+        (f"{_DUNE}/dune_vitsmall14_448.pth",),
+        licence=_DUNE_LICENCE,
+        torch_hub=False,
+    ),
+}
+#: Matcher names of DUNE-MASt3R -> the encoder their published decoder file names.
+DUNE_KINDS = {
+    "dune-mast3r": "dune_vitbase_14_448_paper_encoder",
+    "dune-mast3r-small": "dune_vitsmall_14_448_encoder",
 }

@@ -151,6 +151,16 @@ _REGISTRY: dict[str, _Entry] = {
         "mast3r.Mast3rOptions",
         "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in a weights folder, non-commercial",
     ),
+    "dune-mast3r": _Entry(
+        _mast3r("dune-mast3r"),
+        "mast3r.Mast3rOptions",
+        "weights: dunemast3r_cvpr25_vitbase.pth + dune_vitbase14_448_paper.pth in a weights folder, non-commercial",
+    ),
+    "dune-mast3r-small": _Entry(
+        _mast3r("dune-mast3r-small"),
+        "mast3r.Mast3rOptions",
+        "weights: dunemast3r_cvpr25_vitsmall.pth + dune_vitsmall14_448.pth in a weights folder, non-commercial",
+    ),
     "mickey": _Entry(
         _mickey,
         "mickey.MickeyOptions",
@@ -304,6 +314,9 @@ def available() -> list[str]:
     from ..mast3r.checkpoint import checkpoint_available
 
     out += [k for k in ("mast3r", "dust3r") if checkpoint_available(k)]
+    from ..mast3r.dune_checkpoint import dune_checkpoint_available
+
+    out += [k for k in ("dune-mast3r", "dune-mast3r-small") if dune_checkpoint_available(k)]
     from ..mickey.checkpoint import files_available
 
     if files_available():

@@ -1,4 +1,5 @@
-"""``mast3r`` and ``dust3r`` matchers: dense two-view networks whose pair forward pass gives the matches.
+"""``mast3r``, ``dust3r`` and ``dune-mast3r`` matchers: dense two-view networks whose pair forward pass gives
+the matches (``dune-mast3r``: MASt3R's decoders on a DUNE ViT-B/14 encoder; ``dune-mast3r-small``: ViT-S/14).
 
 ``extract`` preprocesses and encodes one image (so a reference is encoded once per scene); ``match`` runs the
 decoders on the pair and takes reciprocal nearest neighbours from a grid every ``subsample`` pixels: of the
@@ -17,6 +18,7 @@ import numpy as np
 from ..geometry import focal_from_pointmap
 from ..mast3r.engine import EncodedImage, PairEngine, PairOutput, shared_engine
 from ..mast3r.preprocess import Prepared
+from ..mast3r.published import DUNE_KINDS
 from ..mast3r.reciprocal import reciprocal_matches
 from ..options import Options, option
 from .base import Features, FocalEstimator, Matcher, Matches
@@ -25,29 +27,34 @@ from .utils import checked_or_blank
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["Mast3rOptions", "Mast3rMatcher", "focal_at_original"]
+__all__ = ["Mast3rOptions", "Mast3rMatcher", "KINDS", "focal_at_original"]
+
+#: The networks of the family: MASt3R, DUSt3R and DUNE-MASt3R with either encoder.
+KINDS = ("mast3r", "dust3r", *DUNE_KINDS)
 
 
 @dataclass
 class Mast3rOptions(Options):
-    """Options of ``mast3r`` / ``dust3r``.
+    """Options of ``mast3r`` / ``dust3r`` / ``dune-mast3r`` / ``dune-mast3r-small``.
 
     Attributes:
-        kind: ``mast3r`` (descriptors) or ``dust3r`` (pointmaps).
-        weights: A ``.pth`` or hub folder; default: the published file in the weights folders.
+        kind: ``mast3r`` (descriptors), ``dust3r`` (pointmaps), ``dune-mast3r`` (descriptors, DUNE ViT-B
+            encoder) or ``dune-mast3r-small`` (DUNE ViT-S encoder).
+        weights: A ``.pth`` or hub folder (DUNE: the decoder file); default: the published file in the weights
+            folders.
         subsample: Grid step (network pixels) of the starting points, as the public visloc code.
         border_px: Matches this close to the network image's border are dropped.
         min_score: Keep matches whose confidence (>= 1 with the published models) is at least this.
-        long_side: Network input size (the published models': 512).
+        long_side: Network input size; None: the published size (MASt3R/DUSt3R 512, DUNE-MASt3R 518).
         device: ``cpu``, ``cuda``; None: CUDA when available.
     """
 
-    kind: str = option("mast3r", choices=("mast3r", "dust3r"))  # mast3r (descriptors) | dust3r (pointmaps)
+    kind: str = option("mast3r", choices=KINDS)  # mast3r | dune-mast3r[-small] (descriptors) | dust3r (pointmaps)
     weights: str | None = None  # a .pth or hub folder; default: the published file in the weights folders
     subsample: int = option(8, min=1)  # grid step (network pixels) of the starting points, as the public visloc
     border_px: int = option(3, min=0)  # matches this close to the network image's border are dropped
     min_score: float = option(0.0, min=0)  # keep matches whose confidence (>= 1 with the published modes) is >= this
-    long_side: int = option(512, min=16)  # network input size (the published models': 512)
+    long_side: int | None = option(None, min=14)  # network input size; None: published (512; DUNE-MASt3R 518)
     device: str | None = option(None, device=True)
 
 
@@ -86,8 +93,8 @@ class Mast3rMatcher(Matcher, FocalEstimator):
         self.options = o = Mast3rOptions.build(
             overrides, owner=f"matcher {overrides.get('kind', 'mast3r')!r}", base=options
         )
-        if o.kind not in ("mast3r", "dust3r"):
-            raise ValueError(f"unknown kind {o.kind!r}; choose mast3r or dust3r")
+        if o.kind not in KINDS:
+            raise ValueError(f"unknown kind {o.kind!r}; choose one of {', '.join(KINDS)}")
         self.name = o.kind
         self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, o.long_side)
         self.device: torch.device = self.engine.device
@@ -179,7 +186,7 @@ class Mast3rMatcher(Matcher, FocalEstimator):
         return out
 
     def _matches(self, e0: EncodedImage, e1: EncodedImage, out: PairOutput) -> Matches:
-        if self.options.kind == "mast3r":
+        if self.options.kind != "dust3r":
             if out.desc1 is None or out.desc2 is None or out.desc_conf1 is None or out.desc_conf2 is None:
                 raise ValueError("the MASt3R pass gave no descriptors (a DUSt3R checkpoint?)")
             # Unit descriptors: nearest by L2 = largest dot product, found by blocks of matrix products (the

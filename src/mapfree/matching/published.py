@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from ..mast3r.published import MAST3R_WEIGHTS, Mast3rWeights
+from ..mast3r.published import DUNE_DECODERS, DUNE_ENCODERS, DUNE_KINDS, MAST3R_WEIGHTS, Mast3rWeights
 from ..mickey.published import MICKEY_CHECKPOINTS, MICKEY_DINOV2, MICKEY_ZIP_URL
 from ..weights import HubModel, WeightFile
 
@@ -90,6 +90,7 @@ MATCHER_WEIGHTS: dict[str, tuple] = {
     "efficientloftr": (EFFICIENTLOFTR_MODEL,),
     "mast3r": (MAST3R_WEIGHTS["mast3r"],),
     "dust3r": (MAST3R_WEIGHTS["dust3r"],),
+    **{kind: (DUNE_DECODERS[kind], DUNE_ENCODERS[enc]) for kind, enc in DUNE_KINDS.items()},
     "mickey": (MICKEY_CHECKPOINTS["mickey"], MICKEY_DINOV2),
 }
 #: Weights an option makes a matcher use in place of its first model in ``MATCHER_WEIGHTS``, by (matcher, option,

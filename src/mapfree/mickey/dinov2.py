@@ -18,10 +18,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from ..mast3r.blocks import Mlp, SelfAttention, layer_norm
+from ..mast3r.blocks import layer_norm
+from ..mast3r.dino import DinoBlock, DinoPatchEmbed, resize_position_embedding
 
 __all__ = ["ViTShape", "DinoV2", "HEAD_DIM"]
 
@@ -68,43 +68,6 @@ class ViTShape:
         return cls(dim, depth, patch, grid, hidden)
 
 
-class LayerScale(nn.Module):
-    """Per-channel gain of a residual branch."""
-
-    def __init__(self, dim: int) -> None:
-        super().__init__()
-        self.gamma = nn.Parameter(torch.ones(dim))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.gamma
-
-
-class Block(nn.Module):
-    """x + ls1(attn(norm1 x)); x + ls2(mlp(norm2 x))."""
-
-    def __init__(self, shape: ViTShape) -> None:
-        super().__init__()
-        self.norm1 = layer_norm(shape.dim)
-        self.attn = SelfAttention(shape.dim, shape.heads, rope=None)
-        self.ls1 = LayerScale(shape.dim)
-        self.norm2 = layer_norm(shape.dim)
-        self.mlp = Mlp(shape.dim, shape.mlp_hidden)
-        self.ls2 = LayerScale(shape.dim)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = x + self.ls1(self.attn(self.norm1(x), None))
-        return x + self.ls2(self.mlp(self.norm2(x)))
-
-
-class _PatchEmbed(nn.Module):
-    def __init__(self, patch: int, dim: int) -> None:
-        super().__init__()
-        self.proj = nn.Conv2d(3, dim, patch, stride=patch)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.proj(x).flatten(2).transpose(1, 2)
-
-
 class DinoV2(nn.Module):
     """Parameter names are the DINOv2 file's, so it loads strictly."""
 
@@ -114,23 +77,13 @@ class DinoV2(nn.Module):
         self.cls_token = nn.Parameter(torch.zeros(1, 1, shape.dim))
         self.pos_embed = nn.Parameter(torch.zeros(1, shape.grid**2 + 1, shape.dim))
         self.mask_token = nn.Parameter(torch.zeros(1, shape.dim))  # pretraining only; kept for the keys
-        self.patch_embed = _PatchEmbed(shape.patch, shape.dim)
-        self.blocks = nn.ModuleList([Block(shape) for _ in range(shape.depth)])
+        self.patch_embed = DinoPatchEmbed(shape.patch, shape.dim)
+        self.blocks = nn.ModuleList([DinoBlock(shape.dim, shape.heads, shape.mlp_hidden) for _ in range(shape.depth)])
         self.norm = layer_norm(shape.dim)
 
     def position_embedding(self, rows: int, cols: int, dtype: torch.dtype) -> torch.Tensor:
         """(1, 1 + rows*cols, dim): the class token's entry and the patch grid resized to rows x cols."""
-        g = self.shape.grid
-        if rows == g and cols == g:
-            return self.pos_embed.to(dtype)
-        pos = self.pos_embed.float()
-        patches = pos[:, 1:].reshape(1, g, g, -1).permute(0, 3, 1, 2)
-        side = math.sqrt(g * g)  # as the public code computes it (a float)
-        out = F.interpolate(patches, scale_factor=((rows + 0.1) / side, (cols + 0.1) / side), mode="bicubic")
-        if tuple(out.shape[-2:]) != (rows, cols):  # pragma: no cover - the +0.1 guards against exactly this
-            raise RuntimeError(f"position embedding resized to {tuple(out.shape[-2:])}, not {(rows, cols)}")
-        out = out.permute(0, 2, 3, 1).reshape(1, rows * cols, -1)
-        return torch.cat((pos[:, :1], out), dim=1).to(dtype)
+        return resize_position_embedding(self.pos_embed, rows, cols, dtype)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W), H and W multiples of the patch -> normalised patch tokens (B, dim, H/p, W/p)."""
