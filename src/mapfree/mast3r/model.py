@@ -90,6 +90,11 @@ class AsymmetricModel(nn.Module):
         self.downstream_head1 = make_head(cfg)
         self.downstream_head2 = make_head(cfg)
 
+    @property
+    def has_descriptors(self) -> bool:
+        """Whether ``predict`` returns MASt3R's ``desc`` and ``desc_conf`` (the ``PairNetwork`` interface)."""
+        return self.cfg.has_descriptors
+
     # ------------------------------------------------------------------ stages
 
     def encode(self, img: torch.Tensor) -> Encoded:
