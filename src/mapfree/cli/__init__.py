@@ -86,6 +86,7 @@ COMMANDS = [
     "evaluate",
     "relocalize",
     "match",
+    "export",
     "run",
     "train",
     "serve",

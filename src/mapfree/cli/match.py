@@ -21,6 +21,7 @@ examples:
   mapfree match a.jpg b.jpg --matcher sift -o matches.npz --viz matches.png
   mapfree match a.jpg b.jpg --matcher xfeat --option top_k=2048
   mapfree match a.jpg b.jpg --matcher superglue --device cuda -o sg.npz
+  mapfree match a.jpg b.jpg --matcher mast3r --backend onnxruntime --onnx mast3r.onnx
 """
 
 
@@ -38,6 +39,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, help="write the matches to this .npz file")
     p.add_argument("--viz", type=Path, help="draw the matches into this .png (or .jpg) file")
     p.add_argument("--device", help="cpu, cuda, cuda:1 … (default: cuda when available); not for sift")
+    p.add_argument(
+        "--backend",
+        choices=("torch", "onnxruntime"),
+        help="how a MASt3R-family network runs: torch (default) or onnxruntime (graphs of `mapfree export`)",
+    )
+    p.add_argument(
+        "--onnx",
+        type=Path,
+        help="with --backend onnxruntime: the encoder graph (default: NAME.onnx in the weights folder)",
+    )
     p.add_argument(
         "--option",
         action="append",
@@ -62,6 +73,12 @@ def _options(args: argparse.Namespace) -> dict:
             raise ValueError(f"--option {item!r}: the value is not a YAML scalar") from None
     if args.device:
         opts["device"] = args.device
+    if args.backend:
+        opts["backend"] = args.backend
+    if args.onnx is not None:
+        if args.backend != "onnxruntime":
+            raise ValueError("--onnx names a graph for --backend onnxruntime; add it")
+        opts["onnx"] = str(args.onnx)
     return opts
 
 

@@ -22,10 +22,13 @@ import torch
 
 from ..runtime import resolve_device, steady_kernels
 from .checkpoint import find_checkpoint, load_model
-from .model import AsymmetricModel, Encoded
+from .model import Encoded, PairNetwork
 from .preprocess import Prepared, prepare_array
 
-__all__ = ["EncodedImage", "PairOutput", "PairEngine", "shared_engine"]
+__all__ = ["BACKENDS", "EncodedImage", "PairOutput", "PairEngine", "shared_engine"]
+
+#: How a network of the family runs: our PyTorch port, or the graphs of ``mapfree export`` in onnxruntime.
+BACKENDS = ("torch", "onnxruntime")
 
 
 @dataclass
@@ -106,7 +109,7 @@ class PairEngine:
     the lock guards the caches, not the network's passes. Get one with ``shared_engine``.
 
     Args:
-        model: The network, on ``device``.
+        model: The network, on ``device``: ``AsymmetricModel`` in PyTorch or ``OnnxPairNetwork`` in onnxruntime.
         device: Where it runs.
         name: ``mast3r`` or ``dust3r``.
         long_side: Long side of the network input, pixels (512 for the published models).
@@ -115,7 +118,7 @@ class PairEngine:
 
     def __init__(
         self,
-        model: AsymmetricModel,
+        model: PairNetwork,
         device: torch.device,
         name: str = "mast3r",
         long_side: int = 512,
@@ -277,16 +280,22 @@ def _groups(indices: Sequence[int], key: Callable[[int], Hashable]) -> list[list
     return list(groups.values())
 
 
-_ENGINES: dict[tuple[str, str, str, int], PairEngine] = {}
+_ENGINES: dict[tuple[str, str, str, int, str], PairEngine] = {}
 _ENGINES_LOCK = threading.Lock()
 
 
 def shared_engine(
-    kind: str, weights: str | Path | None = None, device: str | torch.device | None = None, long_side: int = 512
+    kind: str,
+    weights: str | Path | None = None,
+    device: str | torch.device | None = None,
+    long_side: int = 512,
+    backend: str = "torch",
+    onnx: str | Path | None = None,
 ) -> PairEngine:
-    """The one engine per (kind, checkpoint, device, input size): a method's matcher and depth source share it.
+    """The one engine per (kind, checkpoint or graph, device, input size, backend): a method's matcher and depth
+    source share it.
 
-    The checkpoint is found first, so a missing file fails before any image is read.
+    The checkpoint (or graph) is found first, so a missing file fails before any image is read.
 
     Args:
         kind: ``mast3r`` or ``dust3r``.
@@ -294,17 +303,27 @@ def shared_engine(
         device: Where to run; None and ``auto`` mean cuda when available.
         long_side: Long side of the network input, pixels: 512 is the published models'; smaller sizes are
             for quick checks only.
+        backend: ``torch`` (our PyTorch port) or ``onnxruntime`` (the graphs of ``mapfree export``).
+        onnx: With ``onnxruntime``: the encoder graph ``NAME.onnx`` (default: ``KIND.onnx`` in the weights
+            folders), its ``NAME.decoder.onnx`` beside it.
 
     Returns:
         The engine, loaded on first use.
 
     Raises:
-        MissingWeightsError: No checkpoint found.
-        ValueError: ``mast3r`` asked of a checkpoint without the descriptor head.
+        MissingWeightsError: No checkpoint (or graph) found.
+        ValueError: ``mast3r`` asked of a checkpoint without the descriptor head; an unknown backend; a graph
+            that cannot serve (``onnxgraph.GraphError``, one line).
     """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend {backend!r}: choose {' or '.join(BACKENDS)}")
+    if backend == "onnxruntime":
+        return _onnx_engine(kind, onnx, device, int(long_side))
+    if onnx is not None:
+        raise ValueError(f"onnx={onnx}: a graph is run by backend onnxruntime, not {backend}")
     path = find_checkpoint(kind, weights)
     dev = resolve_device(device)  # as the matcher and depth source resolve theirs: None/"auto" -> cuda if any
-    key = (kind, str(path.resolve()), str(dev), int(long_side))
+    key = (kind, str(path.resolve()), str(dev), int(long_side), backend)
     with _ENGINES_LOCK:
         if key not in _ENGINES:
             model = load_model(path, dev)
@@ -314,4 +333,18 @@ def shared_engine(
                     f"mast3r needs an AsymmetricMASt3R checkpoint"
                 )
             _ENGINES[key] = PairEngine(model, dev, kind, int(long_side))
+        return _ENGINES[key]
+
+
+def _onnx_engine(kind: str, onnx: str | Path | None, device: str | torch.device | None, long_side: int) -> PairEngine:
+    """The engine of an exported graph pair run by onnxruntime (outputs on the CPU, whatever its provider)."""
+    from .onnxgraph import OnnxPairNetwork, find_graph
+
+    path = find_graph(kind, onnx)
+    dev = resolve_device(device)
+    key = (kind, str(path.resolve()), str(dev), long_side, "onnxruntime")
+    with _ENGINES_LOCK:
+        if key not in _ENGINES:
+            net = OnnxPairNetwork(path, kind, long_side, dev)
+            _ENGINES[key] = PairEngine(net, torch.device("cpu"), kind, long_side)
         return _ENGINES[key]

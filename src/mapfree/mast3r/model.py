@@ -10,6 +10,7 @@ Encoding is separate from decoding so that a reference image is encoded once and
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 from torch import nn
@@ -19,7 +20,7 @@ from .config import ModelConfig
 from .heads import make_head
 from .rope import RoPE2D, patch_positions
 
-__all__ = ["AsymmetricModel", "Encoded"]
+__all__ = ["AsymmetricModel", "Encoded", "PairNetwork"]
 
 
 @dataclass
@@ -27,7 +28,7 @@ class Encoded:
     """Images after the encoder (one per batch row), kept to pair each with any other image.
 
     Attributes:
-        tokens: (B, N, enc_dim) encoder tokens, one per 16 x 16 patch.
+        tokens: (B, N, enc_dim) encoder tokens, one per patch (16 x 16; DUNE-MASt3R's 14 x 14).
         positions: (B, N, 2) (row, col) grid position of each patch.
         hw: (H, W) of the network input, pixels.
     """
@@ -35,6 +36,27 @@ class Encoded:
     tokens: torch.Tensor
     positions: torch.Tensor
     hw: tuple[int, int]
+
+
+class PairNetwork(Protocol):
+    """A network of the MASt3R family in two stages: what the pair engine runs (``AsymmetricModel`` for MASt3R
+    and DUSt3R, ``DuneMast3rModel`` for DUNE-MASt3R)."""
+
+    #: Whether the public loader of this network keeps square images square (else it crops them to 4:3).
+    square_ok: bool
+
+    @property
+    def cfg(self) -> ModelConfig:
+        """The decoder and heads' architecture (``patch_size``, ``has_descriptors``)."""
+        ...
+
+    def encode(self, img: torch.Tensor) -> Encoded:
+        """(B, 3, H, W) RGB in [-1, 1] -> the encoder's tokens."""
+        ...
+
+    def predict(self, e1: Encoded, e2: Encoded) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """Decoders and heads on two encoded views."""
+        ...
 
 
 class _PatchEmbed(nn.Module):
@@ -64,6 +86,9 @@ class AsymmetricModel(nn.Module):
         cfg: The architecture, read from a checkpoint.
     """
 
+    #: The public ``load_images(..., size=512)`` crops a square image to 4:3.
+    square_ok = False
+
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         self.cfg = cfg
@@ -89,11 +114,6 @@ class AsymmetricModel(nn.Module):
         self.dec_blocks2 = decoder()
         self.downstream_head1 = make_head(cfg)
         self.downstream_head2 = make_head(cfg)
-
-    @property
-    def has_descriptors(self) -> bool:
-        """Whether ``predict`` returns MASt3R's ``desc`` and ``desc_conf`` (the ``PairNetwork`` interface)."""
-        return self.cfg.has_descriptors
 
     # ------------------------------------------------------------------ stages
 

@@ -21,6 +21,7 @@ internals, so every member of the family exports the same way.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import tempfile
@@ -34,8 +35,8 @@ import torch
 from torch import nn
 
 from ..weights import MissingWeightsError, find_in_dirs, looked_in, target_dir
-from .backend import PairNetwork
-from .model import Encoded
+from .config import ModelConfig
+from .model import Encoded, PairNetwork
 
 if TYPE_CHECKING:
     import onnx
@@ -77,8 +78,10 @@ class GraphInfo:
         long_side: Long side of the network input, pixels (the ``--size`` of the export).
         input_hw: (H, W) of the network input, pixels.
         outputs: The decoder's output names, ``pred1.KEY`` / ``pred2.KEY``.
-        has_descriptors: Whether the decoder outputs MASt3R's descriptors.
-        precision: ``fp32`` or ``fp16`` (weights and arithmetic; inputs and outputs are float32 either way).
+        cfg: The decoder and heads' architecture (``PairNetwork.cfg``).
+        square_ok: ``PairNetwork.square_ok``: whether a square photo stays square when prepared.
+        precision: ``fp32`` (float16 is not offered: its 11 significant bits miss the port's 1e-4 tolerance and
+            MASt3R's exponential confidences pass its 65504 range).
         opset: The ONNX opset.
     """
 
@@ -87,7 +90,8 @@ class GraphInfo:
     long_side: int
     input_hw: tuple[int, int]
     outputs: tuple[str, ...]
-    has_descriptors: bool
+    cfg: ModelConfig
+    square_ok: bool
     precision: str
     opset: int
 
@@ -100,7 +104,8 @@ class GraphInfo:
             f"{_META}long_side": str(self.long_side),
             f"{_META}input_hw": f"{self.input_hw[0]}x{self.input_hw[1]}",
             f"{_META}outputs": json.dumps(list(self.outputs)),
-            f"{_META}has_descriptors": json.dumps(self.has_descriptors),
+            f"{_META}cfg": json.dumps(dataclasses.asdict(self.cfg)),
+            f"{_META}square_ok": json.dumps(self.square_ok),
             f"{_META}precision": self.precision,
             f"{_META}opset": str(self.opset),
         }
@@ -125,12 +130,20 @@ class GraphInfo:
                 long_side=int(meta[f"{_META}long_side"]),
                 input_hw=(h, w),
                 outputs=tuple(json.loads(meta[f"{_META}outputs"])),
-                has_descriptors=bool(json.loads(meta[f"{_META}has_descriptors"])),
+                cfg=ModelConfig(**{k: _tuples(v) for k, v in json.loads(meta[f"{_META}cfg"]).items()}),
+                square_ok=bool(json.loads(meta[f"{_META}square_ok"])),
                 precision=meta[f"{_META}precision"],
                 opset=int(meta[f"{_META}opset"]),
             )
-        except (KeyError, ValueError) as e:
-            raise GraphError(f"{path}: malformed mapfree metadata ({e}); export it again with `mapfree export`") from None
+        except (KeyError, TypeError, ValueError) as e:
+            raise GraphError(
+                f"{path}: malformed mapfree metadata ({e}); export it again with `mapfree export`"
+            ) from None
+
+
+def _tuples(v: Any) -> Any:
+    """JSON's lists back to the tuples of ``ModelConfig``."""
+    return tuple(_tuples(x) for x in v) if isinstance(v, list) else v
 
 
 @dataclass(frozen=True)
@@ -222,19 +235,12 @@ def _weight_bytes(model: onnx.ModelProto) -> int:
     return sum(len(t.raw_data) for t in model.graph.initializer)
 
 
-def _finish(
-    tmp: Path, path: Path, info: GraphInfo, fp16: bool, external_data: bool | None
-) -> tuple[list[Path], onnx.ModelProto]:
-    """Load the traced graph, convert it to fp16 if asked, add the metadata, save it (external data beside it when
-    large or asked) and check the saved file with ``onnx.checker``."""
+def _finish(tmp: Path, path: Path, info: GraphInfo, external_data: bool | None) -> list[Path]:
+    """Load the traced graph, add the metadata, save it (external data beside it when large or asked) and check
+    the saved file with ``onnx.checker``; returns the files written."""
     import onnx
 
     model = onnx.load(str(tmp))
-    if fp16:
-        from onnxruntime.transformers.float16 import convert_float_to_float16
-
-        # keep_io_types: callers feed and read float32 whatever the precision inside
-        model = convert_float_to_float16(model, keep_io_types=True, disable_shape_infer=True)
     del model.metadata_props[:]
     for k, v in info.metadata().items():
         model.metadata_props.add(key=k, value=v)
@@ -244,33 +250,37 @@ def _finish(
     for stale in (path, data):
         stale.unlink(missing_ok=True)
     if external:
-        onnx.save_model(model, str(path), save_as_external_data=True, all_tensors_to_one_file=True, location=data.name,
-                        size_threshold=0)
+        onnx.save_model(
+            model,
+            str(path),
+            save_as_external_data=True,
+            all_tensors_to_one_file=True,
+            location=data.name,
+            size_threshold=0,
+        )
     else:
         onnx.save_model(model, str(path))
     onnx.checker.check_model(str(path))  # by path: the checker reads external data and graphs past 2 GiB
-    return ([path, data] if external else [path]), model
+    return [path, data] if external else [path]
 
 
 def export_graphs(
-    net: nn.Module,
+    net: PairNetwork,
     kind: str,
     input_hw: tuple[int, int],
     path: os.PathLike | str,
     long_side: int | None = None,
-    fp16: bool = False,
     external_data: bool | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> ExportResult:
     """Export a network of the family as its encoder graph (``path``) and decoders-and-heads graph beside it.
 
     Args:
-        net: The network in PyTorch (any ``PairNetwork`` module), in eval mode, on the CPU.
+        net: The network in PyTorch (a ``PairNetwork`` that is a ``torch.nn.Module``), on the CPU.
         kind: Its matcher name, recorded in the graphs (``mast3r``, ``dust3r`` …).
         input_hw: (H, W) network input the graphs take, pixels (multiples of the patch size).
         path: The encoder's file, ``NAME.onnx``; the decoder goes to ``NAME.decoder.onnx``.
         long_side: The long side the input was prepared at (default: max of ``input_hw``).
-        fp16: Weights and arithmetic in float16 (inputs and outputs stay float32).
         external_data: Keep the weights in ``FILE.data`` beside each graph: None decides by size (past 2 GiB).
         progress: Called with a line before each step.
 
@@ -286,15 +296,18 @@ def export_graphs(
         long_side=int(long_side or max(h, w)),
         input_hw=(h, w),
         outputs=(),
-        has_descriptors=bool(_as_pair_network(net).has_descriptors),
-        precision="fp16" if fp16 else "fp32",
+        cfg=net.cfg,
+        square_ok=bool(net.square_ok),
+        precision="fp32",
         opset=OPSET,
     )
-    net = net.eval()
+    if not isinstance(net, nn.Module):
+        raise TypeError(f"{type(net).__name__} is not a PyTorch module; only those can be exported")
+    net.eval()
     image = torch.from_numpy(np.random.default_rng(0).uniform(-1, 1, (2, 3, h, w)).astype(np.float32))
     with torch.no_grad():
-        enc = _as_pair_network(net).encode(image)
-        r1, r2 = _as_pair_network(net).predict(enc, enc)
+        enc = net.encode(image)
+        r1, r2 = net.predict(enc, enc)
     keys1, keys2 = list(r1), list(r2)
     outputs = [f"pred1.{k}" for k in keys1] + [f"pred2.{k}" for k in keys2]
     dec_info = GraphInfo(**{**info.__dict__, "role": "decoder", "outputs": tuple(outputs)})
@@ -303,8 +316,8 @@ def export_graphs(
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=".mapfree-export-") as tmp, torch.no_grad():
         say(f"tracing the encoder ({h}x{w} input, opset {OPSET})")
         _to_onnx(_EncoderGraph(net), (image,), Path(tmp) / "encoder.onnx", ["image"], ["tokens", "positions"])
-        say(f"writing {path}" + (" in float16" if fp16 else ""))
-        files += _finish(Path(tmp) / "encoder.onnx", path, info, fp16, external_data)[0]
+        say(f"writing {path}")
+        files += _finish(Path(tmp) / "encoder.onnx", path, info, external_data)
         say("tracing the decoders and heads")
         _to_onnx(
             _DecoderGraph(net, (h, w), keys1, keys2),
@@ -314,13 +327,9 @@ def export_graphs(
             outputs,
         )
         dec = decoder_path(path)
-        say(f"writing {dec}" + (" in float16" if fp16 else ""))
-        files += _finish(Path(tmp) / "decoder.onnx", dec, dec_info, fp16, external_data)[0]
+        say(f"writing {dec}")
+        files += _finish(Path(tmp) / "decoder.onnx", dec, dec_info, external_data)
     return ExportResult(path, dec, tuple(files), info)
-
-
-def _as_pair_network(net: Any) -> PairNetwork:
-    return net  # the two stages are the interface; a module without them fails at the call, with its name
 
 
 def graph_file_name(kind: str) -> str:
@@ -345,7 +354,9 @@ def find_graph(kind: str, explicit: os.PathLike | str | None = None) -> Path:
         p = Path(explicit).expanduser()
         if not p.is_file():
             raise MissingWeightsError(
-                f"ONNX graph {p}: not found" + (" (a folder)" if p.is_dir() else "") + f"; {_HOW.format(kind=kind, path=p)}"
+                f"ONNX graph {p}: not found"
+                + (" (a folder)" if p.is_dir() else "")
+                + f"; {_HOW.format(kind=kind, path=p)}"
             )
         return p
     name = graph_file_name(kind)
@@ -374,6 +385,21 @@ def _session(path: Path, providers: list[str], threads: int | None) -> onnxrunti
     except Exception as e:  # noqa: BLE001 - onnxruntime raises its own exception types for unreadable files
         gist = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise GraphError(f"{path}: not a readable ONNX graph ({gist[:200]})") from None
+
+
+def _check(path: Path, info: GraphInfo, role: str, kind: str, long_side: int) -> None:
+    """Refuse a graph of another role, matcher or input size, in one line."""
+    if info.role != role:
+        raise GraphError(f"{path}: the {info.role} graph where the {role} should be (give the encoder, NAME.onnx)")
+    if info.kind != kind:
+        raise GraphError(
+            f"{path}: a graph of {info.kind}, not {kind} (export one with `mapfree export --matcher {kind}`)"
+        )
+    if info.long_side != long_side:
+        raise GraphError(
+            f"{path}: exported for {info.long_side}-pixel inputs, not {long_side} (export with --size {long_side}, "
+            f"or set the matcher's long_side to {info.long_side})"
+        )
 
 
 class OnnxPairNetwork:
@@ -408,27 +434,20 @@ class OnnxPairNetwork:
         threads = threads or torch.get_num_threads()
         self._enc = _session(self.path, providers, threads)
         self.info = GraphInfo.from_metadata(self._enc.get_modelmeta().custom_metadata_map, self.path)
+        _check(self.path, self.info, "encoder", kind, long_side)  # before the larger decoder is loaded
         dec = decoder_path(self.path)
         self._dec = _session(dec, providers, threads)
         self.decoder_info = GraphInfo.from_metadata(self._dec.get_modelmeta().custom_metadata_map, dec)
-        for p, i, role in ((self.path, self.info, "encoder"), (dec, self.decoder_info, "decoder")):
-            if i.role != role:
-                raise GraphError(f"{p}: the {i.role} graph where the {role} should be (give --onnx the encoder, NAME.onnx)")
-            if i.kind != kind:
-                raise GraphError(f"{p}: a graph of {i.kind}, not {kind} (export one with `mapfree export --matcher {kind}`)")
-            if i.long_side != long_side:
-                raise GraphError(
-                    f"{p}: exported for {i.long_side}-pixel inputs, not {long_side} (export with --size {long_side}, "
-                    f"or set the matcher's long_side to {i.long_side})"
-                )
+        _check(dec, self.decoder_info, "decoder", kind, long_side)
         if self.decoder_info.input_hw != self.info.input_hw:
             raise GraphError(f"{dec}: exported for {self.decoder_info.input_hw}, its encoder for {self.info.input_hw}")
         self.kind = kind
+        self.square_ok = self.info.square_ok  # whether the exported network's loader keeps square photos square
 
     @property
-    def has_descriptors(self) -> bool:
-        """Whether the decoder graph outputs descriptors."""
-        return self.decoder_info.has_descriptors
+    def cfg(self) -> ModelConfig:
+        """The exported network's decoder and heads' architecture (``has_descriptors``, ``patch_size``)."""
+        return self.info.cfg
 
     @property
     def input_hw(self) -> tuple[int, int]:

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..mast3r.engine import EncodedImage, PairEngine, PairOutput, shared_engine
+from ..mast3r.engine import BACKENDS, EncodedImage, PairEngine, PairOutput, shared_engine
 from ..mast3r.reciprocal import reciprocal_matches
 from ..options import Options, option
 from .base import Features, Matcher, Matches
@@ -38,6 +38,8 @@ class Mast3rOptions(Options):
         min_score: Keep matches whose confidence (>= 1 with the published models) is at least this.
         long_side: Network input size (the published models': 512).
         device: ``cpu``, ``cuda``; None: CUDA when available.
+        backend: ``torch`` (our PyTorch port) or ``onnxruntime`` (the graphs written by ``mapfree export``).
+        onnx: With ``onnxruntime``: the encoder graph ``NAME.onnx``; default ``KIND.onnx`` in the weights folders.
     """
 
     kind: str = option("mast3r", choices=("mast3r", "dust3r"))  # mast3r (descriptors) | dust3r (pointmaps)
@@ -47,6 +49,8 @@ class Mast3rOptions(Options):
     min_score: float = option(0.0, min=0)  # keep matches whose confidence (>= 1 with the published modes) is >= this
     long_side: int = option(512, min=16)  # network input size (the published models': 512)
     device: str | None = option(None, device=True)
+    backend: str = option("torch", choices=BACKENDS)  # torch | onnxruntime (graphs of `mapfree export`)
+    onnx: str | None = None  # with onnxruntime: the encoder graph NAME.onnx; default KIND.onnx in the weights folders
 
 
 class Mast3rMatcher(Matcher):
@@ -65,7 +69,7 @@ class Mast3rMatcher(Matcher):
         if o.kind not in ("mast3r", "dust3r"):
             raise ValueError(f"unknown kind {o.kind!r}; choose mast3r or dust3r")
         self.name = o.kind
-        self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, o.long_side)
+        self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, o.long_side, o.backend, o.onnx)
         self.device: torch.device = self.engine.device
 
     def extract(self, image: np.ndarray) -> Features:
