@@ -39,11 +39,11 @@ SCENES = ("s00001", "s00002", "s00003")  # the tests use s00000
 
 
 def pairs(root: Path, n: int) -> list[tuple[Path, Path]]:
-    """``n`` pairs (reference, seq1 frame) per scene, every 10th frame from frame 5 (never seen by the tests)."""
+    """``n`` pairs (reference, seq1 frame) per scene, every 5th frame from frame 5 (never seen by the tests)."""
     out = []
     for s in SCENES:
         d = root / "val" / s
-        out += [(d / "seq0" / "frame_00000.jpg", d / "seq1" / f"frame_{i:05d}.jpg") for i in range(5, 5 + 10 * n, 10)]
+        out += [(d / "seq0" / "frame_00000.jpg", d / "seq1" / f"frame_{i:05d}.jpg") for i in range(5, 5 + 5 * n, 5)]
     return out
 
 

@@ -27,7 +27,7 @@ from mapfree_dev.standins.mast3r import save_pth, synthetic_state_dict  # noqa: 
 
 LONG = 128  # the fixture's landscape input is 96 x 128: a 4:3 photo at long side 128 prepares to the same
 HW = (96, 128)
-PAIRS = (("seq0/frame_00000.jpg", "seq1/frame_00010.jpg"), ("seq0/frame_00000.jpg", "seq1/frame_00040.jpg"))
+PAIRS = (("seq0/frame_00000.jpg", "seq1/frame_00010.jpg"), ("seq0/frame_00000.jpg", "seq1/frame_00020.jpg"))
 
 
 @pytest.fixture(autouse=True)
@@ -202,8 +202,9 @@ def test_export_refuses_what_it_cannot_write(tmp_path, capsys):
     assert "--photo-size must look like 540x720" in capsys.readouterr().err
     missing = tmp_path / "nothing.pth"
     assert main(["export", "--matcher", "dust3r", "-o", str(tmp_path / "x.onnx"), "--weights", str(missing)]) == 1
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "nothing.pth" in err and not (tmp_path / "x.onnx").exists()
+    last = capsys.readouterr().err.strip().splitlines()[-1]  # after the progress lines
+    assert last.startswith("mapfree export: error: dust3r: checkpoint ") and "nothing.pth not found" in last
+    assert not (tmp_path / "x.onnx").exists()
 
 
 def test_input_shape_is_the_port_preprocessing():
@@ -233,3 +234,34 @@ def test_cli_exports_dust3r_with_external_data(spec, tmp_path, capsys):
     x = torch.from_numpy(spec[1]["input.landscape_96x128"])
     for g, o in zip(_predict(net, x), _predict(model, x)):
         assert set(g) == set(o) and all(_relative(g[k].numpy(), o[k].numpy()) < 1e-3 for k in g)
+
+
+def test_method_yaml_and_relocalization_api_run_the_graphs(mast3r, realmini, tmp_path, monkeypatch):
+    """A method whose matcher_opts name the backend (as a YAML for ``mapfree run`` does) through the relocalization
+    API's anchors: the reference prepared once, each query one encoder and one decoder pass in onnxruntime."""
+    from mapfree import methods
+    from mapfree.data import Dataset
+    from mapfree.mast3r.engine import shared_engine
+    from mapfree.service.anchors.localizers import Localizers, Photo
+
+    res = mast3r[2]
+    yaml = tmp_path / "mast3r-onnx.yaml"
+    yaml.write_text(
+        f"extends: mast3r_pnp_mast3r\nmatcher_opts:\n  long_side: {LONG}\n  backend: onnxruntime\n"
+        f"  onnx: {res.encoder}\n  device: cpu\n"
+    )
+    method = methods.load_yaml(yaml)
+    assert method.matcher_opts["backend"] == "onnxruntime"
+    monkeypatch.setitem(methods._REGISTRY, "mast3r-onnx-test", method)
+    engine = shared_engine("mast3r", device="cpu", long_side=LONG, backend="onnxruntime", onnx=res.encoder)
+    scene = Dataset(realmini).scene("val", "s00000")
+    photos = _photos(realmini, tmp_path)
+    K = scene.reference.intrinsics
+    ref = Photo(photos[PAIRS[0][0]], K)
+    locs = Localizers()
+    enc0, fwd0 = engine.encodes, engine.forwards
+    for _, query in PAIRS:
+        est = locs.localize_photos("a1", "mast3r-onnx-test", "v1", lambda: [ref], photos[query], K)
+        assert est.ok or est.reason
+        assert len(est.extras["matches"]) > 20
+    assert engine.encodes - enc0 == 1 + len(PAIRS) and engine.forwards - fwd0 == len(PAIRS)
