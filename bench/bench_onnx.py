@@ -118,9 +118,9 @@ def main() -> None:
     if not weights.is_file():
         print(f"writing fill-rule weights to {weights}", file=sys.stderr)
         if args.model == "vitl":
-            from mapfree_dev.standins.mast3r import write_published_standin
-
             import torch
+
+            from mapfree_dev.standins.mast3r import write_published_standin
 
             write_published_standin(folder, "mast3r", torch.float16)  # half the file; computed in float32
         else:
