@@ -224,10 +224,10 @@ def test_cli_exports_dust3r_with_external_data(spec, tmp_path, capsys):
     assert main([*argv, "--photo-size", "480x360", "--external-data"]) == 0
     line = capsys.readouterr().out
     assert "dust3r: wrote" in line and "opset 17" in line and "input 128x96" in line
-    data = [f.with_name(f.name + ".data") for f in (out, decoder_path(out))]
-    assert sum(d.stat().st_size for d in data) > 0.9 * sum(p.numel() * 4 for p in model.parameters())  # the weights
+    data = sum(f.with_name(f.name + ".data").stat().st_size for f in (out, decoder_path(out)))
+    assert data > 0.9 * sum(p.numel() * 4 for p in model.parameters())  # the weights are in the .data files
     for f in (out, decoder_path(out)):
-        assert f.stat().st_size < 2e6  # the graph alone
+        assert f.stat().st_size < 0.05 * data  # the graphs alone (the small constants stay inline)
         onnx.checker.check_model(str(f))
     net = OnnxPairNetwork(out, "dust3r", LONG)
     assert not net.cfg.has_descriptors
