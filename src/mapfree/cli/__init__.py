@@ -87,6 +87,7 @@ COMMANDS = [
     "calibrate",
     "relocalize",
     "match",
+    "export",
     "run",
     "train",
     "serve",

@@ -25,6 +25,7 @@ examples:
   mapfree match a.jpg b.jpg --matcher xfeat --option top_k=2048
   mapfree match a.jpg b.jpg --matcher superglue --device cuda -o sg.npz
   mapfree match a.jpg b.jpg --matcher dune-mast3r --size 518 -o dune.npz
+  mapfree match a.jpg b.jpg --matcher mast3r --backend onnxruntime --onnx mast3r.onnx
 """
 
 
@@ -52,6 +53,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "dune-mast3r-small: the option long_side; default: the published size, 512 or DUNE's 518)",
     )
     p.add_argument(
+        "--backend",
+        choices=("torch", "onnxruntime"),
+        help="how a MASt3R-family network runs: torch (default) or onnxruntime (graphs of `mapfree export`)",
+    )
+    p.add_argument(
+        "--onnx",
+        type=Path,
+        help="with --backend onnxruntime: the encoder graph (default: NAME.onnx in the weights folder)",
+    )
+    p.add_argument(
         "--option",
         action="append",
         default=[],
@@ -77,6 +88,12 @@ def _options(args: argparse.Namespace) -> dict:
         opts["device"] = args.device
     if args.size is not None:
         opts["long_side"] = args.size
+    if args.backend:
+        opts["backend"] = args.backend
+    if args.onnx is not None:
+        if args.backend != "onnxruntime":
+            raise ValueError("--onnx names a graph for --backend onnxruntime; add it")
+        opts["onnx"] = str(args.onnx)
     return opts
 
 

@@ -36,7 +36,11 @@ __all__ = [
     "find_network",
     "load_network",
     "PUBLISHED_SIZE",
+    "BACKENDS",
 ]
+
+#: How a network of the family runs: our PyTorch port, or the graphs of ``mapfree export`` in onnxruntime.
+BACKENDS = ("torch", "onnxruntime")
 
 
 @dataclass
@@ -117,7 +121,7 @@ class PairEngine:
     the lock guards the caches, not the network's passes. Get one with ``shared_engine``.
 
     Args:
-        model: The network, on ``device``.
+        model: The network, on ``device``: ``AsymmetricModel`` in PyTorch or ``OnnxPairNetwork`` in onnxruntime.
         device: Where it runs.
         name: ``mast3r``, ``dust3r``, ``dune-mast3r`` or ``dune-mast3r-small``.
         long_side: Long side of the network input, pixels (512 for the published MASt3R/DUSt3R, 518 for
@@ -293,7 +297,7 @@ def _groups(indices: Sequence[int], key: Callable[[int], Hashable]) -> list[list
     return list(groups.values())
 
 
-_ENGINES: dict[tuple[str, str, str, int], PairEngine] = {}
+_ENGINES: dict[tuple[str, str, str, int, str], PairEngine] = {}
 _ENGINES_LOCK = threading.Lock()
 
 
@@ -347,10 +351,13 @@ def shared_engine(
     weights: str | Path | None = None,
     device: str | torch.device | None = None,
     long_side: int | None = None,
+    backend: str = "torch",
+    onnx: str | Path | None = None,
 ) -> PairEngine:
-    """The one engine per (kind, checkpoint, device, input size): a method's matcher and depth source share it.
+    """The one engine per (kind, checkpoint or graph, device, input size, backend): a method's matcher and depth
+    source share it.
 
-    The checkpoint is found first, so a missing file fails before any image is read.
+    The checkpoint (or graph) is found first, so a missing file fails before any image is read.
 
     Args:
         kind: ``mast3r``, ``dust3r``, ``dune-mast3r`` or ``dune-mast3r-small``.
@@ -359,19 +366,43 @@ def shared_engine(
         device: Where to run; None and ``auto`` mean cuda when available.
         long_side: Long side of the network input, pixels; None: the published size (``PUBLISHED_SIZE``: 512,
             DUNE-MASt3R 518). Other sizes are for quick checks only.
+        backend: ``torch`` (our PyTorch port) or ``onnxruntime`` (the graphs of ``mapfree export``).
+        onnx: With ``onnxruntime``: the encoder graph ``NAME.onnx`` (default: ``KIND.onnx`` in the weights
+            folders), its ``NAME.decoder.onnx`` beside it.
 
     Returns:
         The engine, loaded on first use.
 
     Raises:
-        MissingWeightsError: No checkpoint found.
-        ValueError: ``mast3r`` asked of a checkpoint without the descriptor head.
+        MissingWeightsError: No checkpoint (or graph) found.
+        ValueError: ``mast3r`` asked of a checkpoint without the descriptor head; an unknown backend; a graph
+            that cannot serve (``onnxgraph.GraphError``, one line).
     """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend {backend!r}: choose {' or '.join(BACKENDS)}")
+    size = int(long_side) if long_side is not None else PUBLISHED_SIZE[kind]
+    if backend == "onnxruntime":
+        return _onnx_engine(kind, onnx, device, size)
+    if onnx is not None:
+        raise ValueError(f"onnx={onnx}: a graph is run by backend onnxruntime, not {backend}")
     path = find_network(kind, weights)
     dev = resolve_device(device)  # as the matcher and depth source resolve theirs: None/"auto" -> cuda if any
-    size = int(long_side) if long_side is not None else PUBLISHED_SIZE[kind]
-    key = (kind, str(path.resolve()), str(dev), size)
+    key = (kind, str(path.resolve()), str(dev), size, backend)
     with _ENGINES_LOCK:
         if key not in _ENGINES:
             _ENGINES[key] = PairEngine(load_network(kind, path, dev), dev, kind, size)
+        return _ENGINES[key]
+
+
+def _onnx_engine(kind: str, onnx: str | Path | None, device: str | torch.device | None, long_side: int) -> PairEngine:
+    """The engine of an exported graph pair run by onnxruntime (outputs on the CPU, whatever its provider)."""
+    from .onnxgraph import OnnxPairNetwork, find_graph
+
+    path = find_graph(kind, onnx)
+    dev = resolve_device(device)
+    key = (kind, str(path.resolve()), str(dev), long_side, "onnxruntime")
+    with _ENGINES_LOCK:
+        if key not in _ENGINES:
+            net = OnnxPairNetwork(path, kind, long_side, dev)
+            _ENGINES[key] = PairEngine(net, torch.device("cpu"), kind, long_side)
         return _ENGINES[key]

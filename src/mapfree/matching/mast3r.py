@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..geometry import focal_from_pointmap
-from ..mast3r.engine import EncodedImage, PairEngine, PairOutput, shared_engine
+from ..mast3r.engine import BACKENDS, EncodedImage, PairEngine, PairOutput, shared_engine
 from ..mast3r.preprocess import Prepared
 from ..mast3r.published import DUNE_KINDS
 from ..mast3r.reciprocal import reciprocal_matches
@@ -47,6 +47,8 @@ class Mast3rOptions(Options):
         min_score: Keep matches whose confidence (>= 1 with the published models) is at least this.
         long_side: Network input size; None: the published size (MASt3R/DUSt3R 512, DUNE-MASt3R 518).
         device: ``cpu``, ``cuda``; None: CUDA when available.
+        backend: ``torch`` (our PyTorch port) or ``onnxruntime`` (the graphs written by ``mapfree export``).
+        onnx: With ``onnxruntime``: the encoder graph ``NAME.onnx``; default ``KIND.onnx`` in the weights folders.
     """
 
     kind: str = option("mast3r", choices=KINDS)  # mast3r | dune-mast3r[-small] (descriptors) | dust3r (pointmaps)
@@ -56,6 +58,8 @@ class Mast3rOptions(Options):
     min_score: float = option(0.0, min=0)  # keep matches whose confidence (>= 1 with the published modes) is >= this
     long_side: int | None = option(None, min=14)  # network input size; None: published (512; DUNE-MASt3R 518)
     device: str | None = option(None, device=True)
+    backend: str = option("torch", choices=BACKENDS)  # torch | onnxruntime (graphs of `mapfree export`)
+    onnx: str | None = None  # with onnxruntime: the encoder graph NAME.onnx; default KIND.onnx in the weights folders
 
 
 def focal_at_original(pts: np.ndarray, prepared: Prepared) -> float | None:
@@ -96,7 +100,7 @@ class Mast3rMatcher(Matcher, FocalEstimator):
         if o.kind not in KINDS:
             raise ValueError(f"unknown kind {o.kind!r}; choose one of {', '.join(KINDS)}")
         self.name = o.kind
-        self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, o.long_side)
+        self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, o.long_side, o.backend, o.onnx)
         self.device: torch.device = self.engine.device
 
     def extract(self, image: np.ndarray) -> Features:
