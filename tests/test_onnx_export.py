@@ -195,7 +195,7 @@ def test_bad_graphs_are_one_line(mast3r, tmp_path, capsys):
 def test_export_refuses_what_it_cannot_write(tmp_path, capsys):
     assert main(["export", "--matcher", "sift", "-o", str(tmp_path / "x.onnx")]) == 1
     err = capsys.readouterr().err
-    assert err.strip() == "mapfree export: error: --matcher 'sift': not exportable (exportable: mast3r, dust3r)"
+    assert err.strip() == "mapfree export: error: --matcher 'sift': not exportable (exportable: mast3r, dust3r, dune-mast3r, dune-mast3r-small)"
     assert main(["export", "--matcher", "mast3r", "-o", str(tmp_path / "x.pth")]) == 1
     assert "the name must end in .onnx" in capsys.readouterr().err
     assert main(["export", "--matcher", "mast3r", "-o", str(tmp_path / "x.onnx"), "--photo-size", "big"]) == 1
@@ -265,3 +265,39 @@ def test_method_yaml_and_relocalization_api_run_the_graphs(mast3r, realmini, tmp
         assert est.ok or est.reason
         assert len(est.extras["matches"]) > 20
     assert engine.encodes - enc0 == 1 + len(PAIRS) and engine.forwards - fwd0 == len(PAIRS)
+
+
+def test_dune_mast3r_exports_and_runs_to_the_public_outputs(dune_fixture, tmp_path):
+    """DUNE-MASt3R (the tiny ViT-S of its fixture) through the same two graphs: its patch-14 DPT upsampling (a
+    non-integer resize) and interpolated position embedding export, and onnxruntime gives the port's outputs and the
+    public code's, and the same reciprocal matches."""
+    from mapfree.mast3r.dune import DuneMast3rModel
+    from mapfree.mast3r.reciprocal import reciprocal_matches
+    from mapfree_dev.standins.dune import architecture, filled_state_dict
+
+    spec = json.loads((dune_fixture / "dune_mast3r.json").read_text())
+    with np.load(dune_fixture / "dune_mast3r_outputs.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    m = spec["models"]["dune-small-tiny"]
+    args = m["dune_encoder"]["checkpoint_args"]
+    cfg, shape = architecture(m["mast3r_model_str"], args["image_size"], args["enc_args"])
+    model = DuneMast3rModel(cfg, shape)
+    model.load_state_dict(filled_state_dict(cfg, shape))
+    model.eval()
+    assert input_shape((126, 98), 126, 14, True) == (98, 126)  # the 518-style loader at patch 14
+    res = export_graphs(model, "dune-mast3r-small", (98, 126), tmp_path / "dune.onnx", long_side=126)
+    for f in res.files:
+        onnx.checker.check_model(str(f))
+    net = OnnxPairNetwork(res.encoder, "dune-mast3r-small", 126)
+    assert net.cfg.patch_size == 14 and net.square_ok is True
+    x = torch.from_numpy(arrays["input.landscape_98x126"])
+    got, ours = _predict(net, x), _predict(model, x)
+    for view, g, o in zip(("pred1", "pred2"), got, ours):
+        for key in g:
+            assert _relative(g[key].numpy(), o[key].numpy()) < 1e-3, f"{view}.{key} vs the PyTorch port"
+            public = arrays[f"dune-small-tiny.landscape_98x126.{view}.{key}"]
+            assert _relative(g[key][0].numpy(), public) < 1e-3, f"{view}.{key} vs the public code"
+    xy1, xy2 = reciprocal_matches(got[0]["desc"][0], got[1]["desc"][0], subsample=8)
+    want = arrays["dune-small-tiny.landscape_98x126.matches_s8"]
+    same = len({tuple(r) for r in np.concatenate([xy1, xy2], axis=1)} & {tuple(r) for r in want})
+    assert same >= 0.98 * len(want)

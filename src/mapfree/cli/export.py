@@ -9,7 +9,7 @@ from pathlib import Path
 from . import HelpFormatter
 
 DESCRIPTION = """\
-Write the network of a MASt3R-family matcher (mast3r, dust3r) as two ONNX graphs (opset 17, float32, dynamic
+Write the network of a MASt3R-family matcher (mast3r, dust3r, dune-mast3r, dune-mast3r-small) as two ONNX graphs (opset 17, float32, dynamic
 batch): OUTPUT holds the encoder and OUTPUT's NAME.decoder.onnx beside it the decoders and heads, so that a
 reference photo is encoded once and paired with every query. The input size is fixed: the network input of
 photos of --photo-size at --size (the matcher's long_side). A graph whose weights pass 2 GiB keeps them in
@@ -36,9 +36,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         epilog=EPILOG,
         formatter_class=HelpFormatter,
     )
-    p.add_argument("--matcher", required=True, help="mast3r or dust3r")
+    p.add_argument(
+        "--matcher", required=True, help="mast3r, dust3r, dune-mast3r (ViT-B encoder) or dune-mast3r-small (ViT-S)"
+    )
     p.add_argument("-o", "--output", type=Path, required=True, help="the encoder graph to write (NAME.onnx)")
-    p.add_argument("--size", type=int, default=512, help="network input long side, pixels (default: 512, published)")
+    p.add_argument(
+        "--size", type=int, help="network input long side, pixels (default: the published size, 512; DUNE-MASt3R 518)"
+    )
     p.add_argument(
         "--photo-size",
         default="540x720",
@@ -70,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         name = args.matcher.strip().lower().replace("_", "-")
         if name not in EXPORTABLE:
             raise ValueError(f"--matcher {args.matcher!r}: not exportable (exportable: {', '.join(EXPORTABLE)})")
-        if args.size < 16:
+        if args.size is not None and args.size < 16:
             raise ValueError(f"--size {args.size}: must be at least 16 pixels")
         photo = _photo_size(args.photo_size)
         import onnx  # noqa: F401 - the extra, before the model is loaded

@@ -78,6 +78,7 @@ def resize_position_embedding(pos_embed: torch.Tensor, rows: int, cols: int, dty
         (1, 1 + rows*cols, dim): as stored when the grid is g x g, else the class entry unchanged and the grid
             resized bicubically (computed in float32).
     """
+    rows, cols = int(rows), int(cols)  # python numbers even while tracing (an ONNX graph has a fixed input size)
     g = math.isqrt(int(pos_embed.shape[1]) - 1)
     if rows == g and cols == g:
         return pos_embed.to(dtype)
