@@ -195,7 +195,10 @@ def test_bad_graphs_are_one_line(mast3r, tmp_path, capsys):
 def test_export_refuses_what_it_cannot_write(tmp_path, capsys):
     assert main(["export", "--matcher", "sift", "-o", str(tmp_path / "x.onnx")]) == 1
     err = capsys.readouterr().err
-    assert err.strip() == "mapfree export: error: --matcher 'sift': not exportable (exportable: mast3r, dust3r, dune-mast3r, dune-mast3r-small)"
+    assert (
+        err.strip()
+        == "mapfree export: error: --matcher 'sift': not exportable (exportable: mast3r, dust3r, dune-mast3r, dune-mast3r-small)"
+    )
     assert main(["export", "--matcher", "mast3r", "-o", str(tmp_path / "x.pth")]) == 1
     assert "the name must end in .onnx" in capsys.readouterr().err
     assert main(["export", "--matcher", "mast3r", "-o", str(tmp_path / "x.onnx"), "--photo-size", "big"]) == 1
