@@ -31,6 +31,26 @@ def default_threads() -> int:
     return max(1, min(4, os.cpu_count() or 1))
 
 
+def set_method_threads(threads: int) -> None:
+    """The calling thread's method thread pools: ``threads`` for OpenCV, torch's intra-op pool, the BLAS
+    libraries and OpenMP (``0``: one per CPU, what a library call gets in a fresh process).
+
+    Set explicitly rather than inherited: an ``OMP_NUM_THREADS=1`` in the server's environment used to leave
+    NumPy's BLAS and torch single-threaded in the API while the same call on the library had every core (SIFT's
+    descriptor product ran 1.9x slower there). OpenMP's count is per thread, hence a call on each heavy thread."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    n = threads if threads > 0 else max(1, os.cpu_count() or 1)
+    cv2.setNumThreads(n)
+    threadpool_limits(n)  # BLAS (process-wide) and OpenMP (this thread)
+    try:
+        import torch
+    except ImportError:  # the service runs without torch (OpenCV methods only)
+        return
+    torch.set_num_threads(n)
+
+
 class HeavyPool:
     """``threads`` worker threads and room for ``queue`` more requests waiting (``capacity`` in all), shared fairly
     among accounts, with room reserved for an account not yet in:
@@ -42,13 +62,20 @@ class HeavyPool:
       last of them came have ended, and at least ``capacity / (k + 1)`` slots stay free for a newcomer
       (one account alone: half the room; two: a third each);
     * a free thread goes to the accounts waiting in turn, so one account's requests queue behind its own, not
-      in front of everyone else's."""
+      in front of everyone else's.
 
-    def __init__(self, threads: int, queue: int, per_account: int = 0):
+    Each thread sets its method thread pools to ``method_threads`` when it starts (``set_method_threads``)."""
+
+    def __init__(self, threads: int, queue: int, per_account: int = 0, method_threads: int = 0):
         self.threads = threads if threads > 0 else default_threads()
         self.capacity = self.threads + max(0, queue)
         self.per_account = per_account if per_account > 0 else self.capacity
-        self.executor = ThreadPoolExecutor(self.threads, thread_name_prefix="mapfree-heavy")
+        self.executor = ThreadPoolExecutor(
+            self.threads,
+            thread_name_prefix="mapfree-heavy",
+            initializer=set_method_threads,
+            initargs=(method_threads,),
+        )
         self._lock = threading.Lock()
         self.admitted = 0
         self._in: dict[Hashable, int] = {}  # requests admitted per account
