@@ -210,7 +210,7 @@ from mapfree.service.http.heavy import HeavyPool
 import argparse
 p = argparse.ArgumentParser(); register(p.add_subparsers())
 s = settings_from_args(p.parse_args(["serve", *sys.argv[1:]]))
-pool = HeavyPool(2, 0, method_threads=s.method_threads)
+pool = HeavyPool(s.heavy_threads, 0, method_threads=s.method_threads)
 
 def seen():
     import cv2, torch
@@ -227,11 +227,12 @@ print(json.dumps([pool.executor.submit(seen).result() for _ in range(2)] + [{"cp
 """
 
 
-@pytest.mark.parametrize("flag", [(), ("--method-threads", "3")])
-def test_the_heavy_threads_run_methods_with_the_configured_thread_counts(flag):
-    """A server started with ``OMP_NUM_THREADS=1`` in its environment used to run SIFT's descriptor product (NumPy's
-    BLAS) and torch single-threaded while the same call on the library had every core. Each heavy thread now sets
-    OpenCV, torch, the BLAS libraries and OpenMP to ``--method-threads`` (default: one per CPU) when it starts."""
+@pytest.mark.parametrize("flags", [("--heavy-threads", "1"), ("--heavy-threads", "2", "--method-threads", "3")])
+def test_the_heavy_threads_run_methods_with_the_configured_thread_counts(flags):
+    """A server started with ``OMP_NUM_THREADS=1`` in its environment used to run NumPy's BLAS and torch on one
+    thread and OpenCV on every core, whatever the library call it was compared with had. Each heavy thread now sets
+    OpenCV, torch, the BLAS libraries and OpenMP to ``--method-threads`` when it starts (default: the CPUs divided
+    among the heavy threads, so every CPU for a single heavy thread)."""
     import json
     import os
     import subprocess
@@ -239,11 +240,11 @@ def test_the_heavy_threads_run_methods_with_the_configured_thread_counts(flag):
 
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     out = subprocess.run(
-        [sys.executable, "-c", _THREADS_PROBE, *flag], env=env, capture_output=True, text=True, timeout=120
+        [sys.executable, "-c", _THREADS_PROBE, *flags], env=env, capture_output=True, text=True, timeout=120
     )
     assert out.returncode == 0, out.stderr[-2000:]
     *threads, cpus = json.loads(out.stdout.splitlines()[-1])
-    want = 3 if flag else cpus["cpus"]
+    want = 3 if "--method-threads" in flags else cpus["cpus"]
     for seen in threads:
         assert seen.pop("thread") == "mapfree-heavy"
         assert seen.pop("apis") == ["openblas", "openmp"], seen  # NumPy's and OpenCV's BLAS, torch's OpenMP

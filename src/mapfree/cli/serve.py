@@ -143,7 +143,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=0,
         help="threads of one localize / anchor computation (OpenCV, torch, BLAS), whatever OMP_NUM_THREADS "
-        "says (default 0: one per CPU)",
+        "says (default 0: the CPUs divided among the heavy threads, at least 1)",
     )
     g.add_argument(
         "--anchor-cache-mb",

@@ -97,7 +97,7 @@ class Settings:
         heavy_threads: Localize and anchor computations running at once per API process (0: min(4, CPUs)).
         heavy_queue: Heavy requests waiting for one of those threads; past that a 429 with ``Retry-After``.
         method_threads: Threads of one heavy computation (OpenCV, torch, BLAS, OpenMP), set on each heavy
-            thread whatever the environment says (0: one per CPU, as a library call gets).
+            thread whatever the environment says (0: the CPUs divided among the heavy threads, at least 1).
         anchor_cache_mb: Prepared anchors kept per API process (features and depth, no pixels), in MiB.
         method_pool_mb: Built relocalizers (their models) kept per API process, shared by equal
             configurations, in MiB.
