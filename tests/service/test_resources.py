@@ -210,6 +210,8 @@ from mapfree.service.http.heavy import HeavyPool
 import argparse
 p = argparse.ArgumentParser(); register(p.add_subparsers())
 s = settings_from_args(p.parse_args(["serve", *sys.argv[1:]]))
+if s.method_threads:  # torch loaded before the heavy threads start, else by the method after
+    import torch
 pool = HeavyPool(s.heavy_threads, 0, method_threads=s.method_threads)
 
 def seen():
@@ -232,7 +234,7 @@ def test_the_heavy_threads_run_methods_with_the_configured_thread_counts(flags):
     """A server started with ``OMP_NUM_THREADS=1`` in its environment used to run NumPy's BLAS and torch on one
     thread and OpenCV on every core, whatever the library call it was compared with had. Each heavy thread now sets
     OpenCV, torch, the BLAS libraries and OpenMP to ``--method-threads`` when it starts (default: the CPUs divided
-    among the heavy threads, so every CPU for a single heavy thread)."""
+    among the heavy threads, so every CPU for a single heavy thread), torch loaded before or after."""
     import json
     import os
     import subprocess

@@ -14,6 +14,7 @@ import contextvars
 import functools
 import math
 import os
+import sys
 import threading
 import time
 from collections import OrderedDict, deque
@@ -45,17 +46,19 @@ def set_method_threads(threads: int) -> None:
 
     Set explicitly rather than inherited: an ``OMP_NUM_THREADS=1`` in the server's environment used to leave
     NumPy's BLAS and torch single-threaded in the API and OpenCV on every core, whatever the library call it is
-    compared with had. OpenMP's count is per thread, hence a call on each heavy thread."""
+    compared with had. OpenMP's count is per thread, hence a call on each heavy thread. torch is not imported
+    for this (a server of OpenCV methods never loads it): the environment variables set here are what it and
+    its OpenMP read when a method loads them later."""
     import cv2
     from threadpoolctl import threadpool_limits
 
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(threads)
     cv2.setNumThreads(threads)
-    threadpool_limits(threads)  # BLAS (process-wide) and OpenMP (this thread)
-    try:
-        import torch
-    except ImportError:  # the service runs without torch (OpenCV methods only)
-        return
-    torch.set_num_threads(threads)
+    threadpool_limits(threads)  # BLAS (process-wide) and OpenMP (this thread), as loaded so far
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(threads)
 
 
 class HeavyPool:
