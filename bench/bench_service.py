@@ -18,7 +18,8 @@ Before / after phases (each against a server of this tree and one of ``--baselin
 ``flood``: `/login` latency while 45 localize calls run at once.
 
 Phases of this tree alone: ``overhead``: localize p50 / p95 against a cached anchor through the API and the same
-call on the library in the same run (the default method and a SIFT preset); ``pool``: API RSS while 100 distinct
+call on the library in the same run (the default method and a SIFT preset; with ``--baseline``, the baseline
+tree's API first, in the same run); ``pool``: API RSS while 100 distinct
 method names create anchors, with the default method pool and a small one (and, with ``--baseline``, the
 same names against the baseline tree).
 
@@ -606,14 +607,19 @@ def before_after(a, phases: set[str]) -> list[tuple[str, str, str, str]]:
     return rows
 
 
-def overhead_phase(srv: Serve, scene, methods: list[str], n: int) -> list[tuple[str, str, str, str]]:
+def overhead_phase(srv: Serve, scene, methods: list[str], n: int, tree: str = "") -> list[tuple[str, str, str, str]]:
     """Localize p50 / p95 against a cached anchor through the API (a client on loopback: upload, decode,
     localize, answer) and the same call on the library in this process (decode the same JPEG, localize
-    against the same prepared reference with the method the API runs), ``n`` calls each, one at a time."""
+    against the same prepared reference with the method the API runs), ``n`` calls each, one at a time. The
+    library runs with the thread counts (OpenCV, torch, BLAS, OpenMP) that the server's heavy threads set by
+    default; the note splits the method's own time into its stages, in the server and in the library."""
     import cv2
 
     from mapfree import methods as registry
     from mapfree.relocalize import Relocalizer, View
+    from mapfree.service.http.heavy import default_method_threads, default_threads, set_method_threads
+
+    set_method_threads(default_method_threads(default_threads()))
 
     ref, query = scene.reference, scene.frame("seq1/frame_00009.jpg")
     q_bytes = query.image_path.read_bytes()
@@ -636,11 +642,13 @@ def overhead_phase(srv: Serve, scene, methods: list[str], n: int) -> list[tuple[
                 rows.append((f"{name}: localize through the API", "-", "-", f"anchor refused: {r.text[:80]}"))
                 continue
             url = f"/anchors/{r.json()['id']}/localize"
-            api, own, lib = [], [], []
+            api, own, lib, stages = [], [], [], []
             for i in range(n + 3):  # API and library in turns (the same machine load); three to warm up
                 t0 = time.perf_counter()
                 d = c.post(url, data=q_form, files={"image": ("q.jpg", q_bytes, "image/jpeg")}).json()
                 t1 = time.perf_counter()
+                if "timings" not in d:
+                    raise SystemExit(f"{tree}{name}: localize answered {d}")
                 img = cv2.cvtColor(cv2.imdecode(np.frombuffer(q_bytes, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
                 est = loc.localize(View(img, query.intrinsics), prepared)
                 t2 = time.perf_counter()
@@ -648,15 +656,21 @@ def overhead_phase(srv: Serve, scene, methods: list[str], n: int) -> list[tuple[
                     api.append(t1 - t0)
                     own.append(d["timings"].get("total", 0.0))
                     lib.append(t2 - t1)
+                    stages.append((d["timings"], est.timings))
         over = (pct(api, 50) - pct(lib, 50)) / pct(lib, 50) * 100
         inner = (pct(api, 50) - pct(own, 50)) / pct(own, 50) * 100
+        split = ", ".join(
+            f"{k} {pct([a.get(k, 0.0) for a, _ in stages], 50):.0f} / {pct([b.get(k, 0.0) for _, b in stages], 50):.0f}"
+            for k in stages[0][1]
+            if k in ("match", "solve", "ransac", "total")
+        )
         rows.append(
             (
-                f"{name} ({m.name}): localize p50 / p95, ms",
+                f"{tree}{name} ({m.name}): localize p50 / p95, ms",
                 f"{pct(lib, 50):.0f} / {pct(lib, 95):.0f}",
                 f"{pct(api, 50):.0f} / {pct(api, 95):.0f}",
                 f"API - library: {over:+.1f} % of the library's p50; API - the method's own time in the "
-                f"server ({pct(own, 50):.0f} ms): {inner:+.1f} %; ok={est.ok}",
+                f"server ({pct(own, 50):.0f} ms): {inner:+.1f} %; stages p50 server / library, ms: {split}; ok={est.ok}",
             )
         )
     return rows
@@ -705,12 +719,16 @@ def own_phases(a, phases: set[str]) -> list[tuple[str, str, str, str]]:
     tmp, scene = bench_data("bench-service-own-")
     rows = []
     if "overhead" in phases:
-        srv = Serve(ROOT, tmp, tmp / "data", users=1)
-        try:
-            rows.append(("localize against a cached anchor, one at a time", "library", "API", ""))
-            rows += overhead_phase(srv, scene, a.overhead_methods.split(","), a.overhead_calls)
-        finally:
-            srv.stop()
+        rows.append(("localize against a cached anchor, one at a time", "library", "API", ""))
+        trees = [("", ROOT)]
+        if a.baseline:  # the same calls against the baseline tree's API first, in the same run
+            trees.insert(0, ("baseline: ", Path(a.baseline).resolve()))
+        for label, code_root in trees:
+            srv = Serve(code_root, tmp, tmp / "data", users=1)
+            try:
+                rows += overhead_phase(srv, scene, a.overhead_methods.split(","), a.overhead_calls, label)
+            finally:
+                srv.stop()
     if "pool" in phases:
         names = method_names(a.pool_names)
         runs = [(f"--method-pool-mb {mb}", ROOT, ("--method-pool-mb", mb)) for mb in a.pool_mb.split(",")]

@@ -201,3 +201,53 @@ def test_prepared_anchor_cache_keeps_a_newcomers_share_against_several_accounts(
         flood(lru, 200, start=100)
         assert (lru.get("newcomer's anchor") == "prepared") is kept, (size / mib, lru.owned("newcomer"))
         assert lru.total <= lru.max_bytes
+
+
+_THREADS_PROBE = """
+import json, os, sys, threading
+from mapfree.cli.serve import register, settings_from_args
+from mapfree.service.http.heavy import HeavyPool
+import argparse
+p = argparse.ArgumentParser(); register(p.add_subparsers())
+s = settings_from_args(p.parse_args(["serve", *sys.argv[1:]]))
+if s.method_threads:  # torch loaded before the heavy threads start, else by the method after
+    import torch
+pool = HeavyPool(s.heavy_threads, 0, method_threads=s.method_threads)
+
+def seen():
+    import cv2, torch
+    from threadpoolctl import threadpool_info
+    return {
+        "thread": threading.current_thread().name.split("_")[0],
+        "cv2": cv2.getNumThreads(),
+        "torch": torch.get_num_threads(),
+        "apis": sorted({i["internal_api"] for i in threadpool_info()}),
+        **{i["filepath"]: i["num_threads"] for i in threadpool_info()},
+    }
+
+print(json.dumps([pool.executor.submit(seen).result() for _ in range(2)] + [{"cpus": os.cpu_count()}]))
+"""
+
+
+@pytest.mark.parametrize("flags", [("--heavy-threads", "1"), ("--heavy-threads", "2", "--method-threads", "3")])
+def test_the_heavy_threads_run_methods_with_the_configured_thread_counts(flags):
+    """A server started with ``OMP_NUM_THREADS=1`` in its environment used to run NumPy's BLAS and torch on one
+    thread and OpenCV on every core, whatever the library call it was compared with had. Each heavy thread now sets
+    OpenCV, torch, the BLAS libraries and OpenMP to ``--method-threads`` when it starts (default: the CPUs divided
+    among the heavy threads, so every CPU for a single heavy thread), torch loaded before or after."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    out = subprocess.run(
+        [sys.executable, "-c", _THREADS_PROBE, *flags], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    *threads, cpus = json.loads(out.stdout.splitlines()[-1])
+    want = 3 if "--method-threads" in flags else cpus["cpus"]
+    for seen in threads:
+        assert seen.pop("thread") == "mapfree-heavy"
+        assert seen.pop("apis") == ["openblas", "openmp"], seen  # NumPy's and OpenCV's BLAS, torch's OpenMP
+        assert set(seen.values()) == {want}, seen

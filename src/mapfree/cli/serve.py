@@ -139,6 +139,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="such requests waiting for a thread; more get 429 with Retry-After (default 8)",
     )
     g.add_argument(
+        "--method-threads",
+        type=int,
+        default=0,
+        help="threads of one localize / anchor computation (OpenCV, torch, BLAS), whatever OMP_NUM_THREADS "
+        "says (default 0: the CPUs divided among the heavy threads, at least 1)",
+    )
+    g.add_argument(
         "--anchor-cache-mb",
         type=float,
         default=256.0,
@@ -230,6 +237,7 @@ def settings_from_args(a: argparse.Namespace):
         auth_failures_per_minute=a.auth_failures_per_minute,
         heavy_threads=a.heavy_threads,
         heavy_queue=a.heavy_queue,
+        method_threads=a.method_threads,
         anchor_cache_mb=a.anchor_cache_mb,
         method_pool_mb=a.method_pool_mb,
         body_timeout=a.body_timeout,

@@ -83,7 +83,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.read_sessions = session_factory(engine, read_only=True)  # GET and HEAD requests, credential checks
     app.state.health = HealthMonitor(engine)
     app.state.metrics = Metrics(engine)
-    app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue)
+    app.state.heavy = HeavyPool(settings.heavy_threads, settings.heavy_queue, method_threads=settings.method_threads)
     app.state.localizers = Localizers(
         per_method=default_threads(),
         cache_bytes=int(settings.anchor_cache_mb * (1 << 20)),

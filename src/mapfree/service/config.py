@@ -96,6 +96,8 @@ class Settings:
             besides the admins' own (empty: admins only).
         heavy_threads: Localize and anchor computations running at once per API process (0: min(4, CPUs)).
         heavy_queue: Heavy requests waiting for one of those threads; past that a 429 with ``Retry-After``.
+        method_threads: Threads of one heavy computation (OpenCV, torch, BLAS, OpenMP), set on each heavy
+            thread whatever the environment says (0: the CPUs divided among the heavy threads, at least 1).
         anchor_cache_mb: Prepared anchors kept per API process (features and depth, no pixels), in MiB.
         method_pool_mb: Built relocalizers (their models) kept per API process, shared by equal
             configurations, in MiB.
@@ -123,6 +125,7 @@ class Settings:
     operator_token: str = ""
     heavy_threads: int = 0
     heavy_queue: int = 8
+    method_threads: int = 0
     anchor_cache_mb: float = 256.0
     method_pool_mb: float = 1024.0
     body_timeout: float = 30.0

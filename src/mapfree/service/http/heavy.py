@@ -14,6 +14,7 @@ import contextvars
 import functools
 import math
 import os
+import sys
 import threading
 import time
 from collections import OrderedDict, deque
@@ -31,6 +32,35 @@ def default_threads() -> int:
     return max(1, min(4, os.cpu_count() or 1))
 
 
+def default_method_threads(heavy_threads: int) -> int:
+    """One heavy computation's threads when not configured: the CPUs shared among the heavy threads (at least
+    one each), so that heavy threads x method threads stay within the CPUs. More oversubscribes the cores: with
+    torch's two OpenMP threads per request on a busy 2-CPU machine, the default method took 2.0 s instead of
+    0.2 s (OpenMP threads wait for each other at every parallel region)."""
+    return max(1, (os.cpu_count() or 1) // max(1, heavy_threads))
+
+
+def set_method_threads(threads: int) -> None:
+    """The calling thread's method thread pools: ``threads`` (> 0) for OpenCV, torch's intra-op pool, the BLAS
+    libraries and OpenMP.
+
+    Set explicitly rather than inherited: an ``OMP_NUM_THREADS=1`` in the server's environment used to leave
+    NumPy's BLAS and torch single-threaded in the API and OpenCV on every core, whatever the library call it is
+    compared with had. OpenMP's count is per thread, hence a call on each heavy thread. torch is not imported
+    for this (a server of OpenCV methods never loads it): the environment variables set here are what it and
+    its OpenMP read when a method loads them later."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(threads)
+    cv2.setNumThreads(threads)
+    threadpool_limits(threads)  # BLAS (process-wide) and OpenMP (this thread), as loaded so far
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(threads)
+
+
 class HeavyPool:
     """``threads`` worker threads and room for ``queue`` more requests waiting (``capacity`` in all), shared fairly
     among accounts, with room reserved for an account not yet in:
@@ -42,13 +72,22 @@ class HeavyPool:
       last of them came have ended, and at least ``capacity / (k + 1)`` slots stay free for a newcomer
       (one account alone: half the room; two: a third each);
     * a free thread goes to the accounts waiting in turn, so one account's requests queue behind its own, not
-      in front of everyone else's."""
+      in front of everyone else's.
 
-    def __init__(self, threads: int, queue: int, per_account: int = 0):
+    Each thread sets its method thread pools to ``method_threads`` when it starts (``set_method_threads``; 0:
+    ``default_method_threads``)."""
+
+    def __init__(self, threads: int, queue: int, per_account: int = 0, method_threads: int = 0):
         self.threads = threads if threads > 0 else default_threads()
         self.capacity = self.threads + max(0, queue)
         self.per_account = per_account if per_account > 0 else self.capacity
-        self.executor = ThreadPoolExecutor(self.threads, thread_name_prefix="mapfree-heavy")
+        self.method_threads = method_threads if method_threads > 0 else default_method_threads(self.threads)
+        self.executor = ThreadPoolExecutor(
+            self.threads,
+            thread_name_prefix="mapfree-heavy",
+            initializer=set_method_threads,
+            initargs=(self.method_threads,),
+        )
         self._lock = threading.Lock()
         self.admitted = 0
         self._in: dict[Hashable, int] = {}  # requests admitted per account
