@@ -89,9 +89,9 @@ def exceeded(kind: str, errors: np.ndarray) -> str | None:
     tol = TOLERANCES[kind]
     worst, mean = float(np.max(errors)), float(np.mean(errors))
     if not worst < tol.max:
-        return f"largest error {worst:.2e} above the {tol.max:.0e} tolerance of {kind} ({tol.measure})"
+        return f"largest error {worst:.2e} above the {tol.max:.2g} tolerance of {kind} ({tol.measure})"
     if tol.mean is not None and not mean < tol.mean:
-        return f"mean error {mean:.2e} above the {tol.mean:.0e} tolerance of {kind} ({tol.measure})"
+        return f"mean error {mean:.2e} above the {tol.mean:.2g} tolerance of {kind} ({tol.measure})"
     return None
 
 

@@ -235,6 +235,12 @@ class LocalizeOut(_Out):
     intrinsics_source: str | None = Field(
         None, description="the query's intrinsics: given, exif (its EXIF focal length) or default (a 64° camera)"
     )
+    signals: dict[str, float] = Field(
+        default_factory=dict,
+        description="the method's per-frame evidence (matches, inliers, inlier ratio, residual, depth coverage, ...)",
+    )
+    p_correct: float | None = Field(None, description="calibrated probability that the pose is within 90 px VCRE")
+    stage: str | None = Field(None, description="a cascade's stage that answered")
 
 
 #: The error answers every JSON route may give, for ``openapi.json``.
