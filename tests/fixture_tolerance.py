@@ -50,7 +50,7 @@ TOLERANCES: dict[str, Tolerance] = {
     "mickey.solver.R": Tolerance(3e-6, None, "absolute"),  # 9.2e-7
     "mickey.solver.t": Tolerance(7e-6, None, "absolute"),  # 2.5e-6
     # Official RPR releases: the regressed pose, absolute.
-    "rpr.R": Tolerance(1.5e-6, None, "absolute"),  # 4.5e-7
+    "rpr.R": Tolerance(4e-6, None, "absolute"),  # 1.6e-6 (rotquat_trans, portable kernels; the slow configurations)
     "rpr.t": Tolerance(7e-7, None, "absolute"),  # 2.4e-7
 }
 
