@@ -23,18 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))  # mapfree_dev: in the checkout, not the wheel
-DEFAULT_ROOT = next(
-    (
-        p
-        for p in (
-            Path(__file__).resolve().parents[2] / "shared/data/realmini-dev",
-            Path("/work/shared/data/realmini-dev"),
-        )
-        if p.is_dir()
-    ),
-    None,
-)
+from benchpaths import DEFAULT_ROOT  # noqa: E402  (also puts src/ on the path)
 
 
 def run_preset(root: Path, preset: str, scenes: str, weights: Path, out: Path, threads: int) -> dict:
