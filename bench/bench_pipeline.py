@@ -387,7 +387,7 @@ def kornia_loop(root, split: str, all_frames: bool, max_pairs: int | None = None
 
     from mapfree import solvers
     from mapfree.matching.lightglue import _load_strict, _remap_glue_keys, shipped_file
-    from mapfree.matching.weights import load_checkpoint
+    from mapfree.weights import load_checkpoint
 
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     ext = KF.ALIKED("aliked-n16", max_num_keypoints=2048, detection_threshold=0.0)

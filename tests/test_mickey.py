@@ -15,7 +15,6 @@ import torch
 
 from fixture_tolerance import absolute, check, elementwise_relative, max_relative
 from mapfree import depth, matching, solvers
-from mapfree.matching.weights import BrokenWeightsError, MissingWeightsError
 from mapfree.mickey.checkpoint import (
     DINOV2_FILE,
     DINOV2_URL,
@@ -32,6 +31,7 @@ from mapfree.mickey.dinov2 import ViTShape
 from mapfree.mickey.preprocess import prepare_array, scale_intrinsics
 from mapfree.options import OptionError
 from mapfree.solvers.mickey import MickeySolverOptions, kabsch_torch, lift, probabilistic_procrustes
+from mapfree.weights import BrokenWeightsError, MissingWeightsError
 from mapfree_dev.standins.mickey import VIT_SIZES, published_layout, synthetic_state_dicts, write_standin
 
 PAIRS = {"01": 1, "02": 2}  # image0 = A (index 0) in both

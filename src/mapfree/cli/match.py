@@ -39,7 +39,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("image0", type=Path, help="first image (the reference)")
     p.add_argument("image1", type=Path, help="second image (the query)")
-    p.add_argument("--matcher", default="sift", help="matcher name (default: sift); see `mapfree run --list-methods`")
+    from ..matching import names
+
+    p.add_argument(
+        "--matcher",
+        default="sift",
+        help=f"matcher name (default: sift): {', '.join(names())}; see `mapfree run --list-methods` for what each "
+        "needs",
+    )
     p.add_argument("-o", "--output", type=Path, help="write the matches to this .npz file")
     p.add_argument("--viz", type=Path, help="draw the matches into this .png (or .jpg) file")
     p.add_argument("--K-ref", help="intrinsics of image0 for --viz's check: fx,fy,cx,cy (pixels); default: EXIF")

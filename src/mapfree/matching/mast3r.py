@@ -21,7 +21,7 @@ from ..mast3r.preprocess import Prepared
 from ..mast3r.published import DUNE_KINDS
 from ..mast3r.reciprocal import reciprocal_matches
 from ..options import Options, option
-from .base import Features, FocalEstimator, Matcher, Matches
+from .base import BatchedMatcher, Features, FocalEstimator, Matches
 from .utils import checked_or_blank
 
 if TYPE_CHECKING:
@@ -84,9 +84,12 @@ def focal_at_original(pts: np.ndarray, prepared: Prepared) -> float | None:
     return f / float(np.mean(prepared.scale()))
 
 
-class Mast3rMatcher(Matcher, FocalEstimator):
+class Mast3rMatcher(BatchedMatcher, FocalEstimator):
     """Dense matcher on MASt3R descriptors or DUSt3R pointmaps; keypoints in original-image pixels. Its network
     (``engine``) also serves the ``mast3r`` / ``dust3r`` depth source: one forward pass per pair.
+
+    ``extract_many`` runs the encoder once per input size; ``match_many`` runs ``batch_size`` pairs per pass through
+    the decoders and heads (default 8 on a GPU, 1 elsewhere), each pair getting the matches it gets alone.
 
     Args:
         options: ``Mast3rOptions``.
@@ -103,26 +106,17 @@ class Mast3rMatcher(Matcher, FocalEstimator):
         self.engine: PairEngine = shared_engine(o.kind, o.weights, o.device, o.long_side, o.backend, o.onnx)
         self.device: torch.device = self.engine.device
 
-    def extract(self, image: np.ndarray) -> Features:
-        """Features of one image; see ``Matcher.extract``.
+    @classmethod
+    def runs_offline(cls, kind: str = "mast3r", **args: object) -> bool:
+        if kind in DUNE_KINDS:
+            from ..mast3r.dune_checkpoint import dune_checkpoint_available
 
-        Args:
-            image: (H, W, 3) uint8 RGB.
+            return dune_checkpoint_available(kind)
+        from ..mast3r.checkpoint import checkpoint_available
 
-        Returns:
-            Keypoints in the image's own pixels and what ``match`` needs.
-        """
-        return self.extract_many([image])[0]
+        return checkpoint_available(kind)
 
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Features of several images, in order: one encoder pass per input size.
-
-        Args:
-            images: (H, W, 3) uint8 RGB images.
-
-        Returns:
-            One ``Features`` per image (a textureless image: none).
-        """
         checked = [checked_or_blank(im) for im in images]
         good = [i for i, (_, blank) in enumerate(checked) if blank is None]
         # the caller's arrays, not the checked copies: the depth source finds an encoding by the array's identity
@@ -153,29 +147,7 @@ class Mast3rMatcher(Matcher, FocalEstimator):
         e0, e1 = self.engine.encode_many(pair)
         return focal_at_original(self.engine.pair(e0, e1).pts1, e0.prepared)
 
-    def match(self, f0: Features, f1: Features) -> Matches:
-        """Correspondences of a pair; see ``Matcher.match``.
-
-        Args:
-            f0: Features of image 0 (the reference).
-            f1: Features of image 1 (the query).
-
-        Returns:
-            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
-        """
-        return self.match_many(f0, [f1], batch_size=1)[0]
-
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """``match(f0, f1)`` for each of ``f1s``: ``batch_size`` pairs per pass through the decoders and heads (default 8 on a GPU, 1 elsewhere); each pair gets the matches it gets alone.
-
-        Args:
-            f0: Features of the reference image.
-            f1s: Features of the query images.
-            batch_size: Pairs per network pass (None: the matcher's default).
-
-        Returns:
-            One ``Matches`` per query.
-        """
         e0 = f0.data.get("encoded")
         out: list[Matches] = [Matches.empty() for _ in f1s]
         if not isinstance(e0, EncodedImage):

@@ -17,7 +17,7 @@ import torch
 
 from ..mickey.engine import MickeyEngine, MickeyImage, MickeyNetworkOptions, engine_for
 from ..options import option
-from .base import CandidateMatches, Features, MatchCandidates, Matcher, Matches
+from .base import BatchedMatcher, CandidateMatches, Features, MatchCandidates, Matches
 from .utils import checked_or_blank
 
 __all__ = ["MickeyOptions", "MickeyMatcher", "mutual_best"]
@@ -50,9 +50,12 @@ def mutual_best(scores: torch.Tensor, min_score: float = 0.0) -> tuple[torch.Ten
     return i[order], j[order], s[order]
 
 
-class MickeyMatcher(Matcher):
+class MickeyMatcher(BatchedMatcher):
     """MicKey keypoints and matches; keypoints in original pixels. Its network also serves the ``mickey`` depth
     source and the matches carry the scored candidates the ``mickey`` solver draws from.
+
+    ``extract_many`` runs ``batch_size`` images per network pass and ``match_many`` scores the pairs in batches of
+    ``batch_size``; each pair gets the matches it gets alone.
 
     Args:
         options: ``MickeyOptions``.
@@ -66,58 +69,23 @@ class MickeyMatcher(Matcher):
         self.engine: MickeyEngine = engine_for(o)
         self.device: torch.device = self.engine.device
 
+    @classmethod
+    def runs_offline(cls, **args: object) -> bool:
+        from ..mickey.checkpoint import files_available
+
+        return files_available()
+
     @staticmethod
     def _features(out: MickeyImage) -> Features:
         return Features(out.xy_original().cpu().numpy(), out.original_size, {"mickey": out})
 
-    def extract(self, image: np.ndarray) -> Features:
-        """Features of one image; see ``Matcher.extract``.
-
-        Args:
-            image: (H, W, 3) uint8 RGB.
-
-        Returns:
-            Keypoints in the image's own pixels and what ``match`` needs.
-        """
-        return self.extract_many([image])[0]
-
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Features of several images, in order: ``batch_size`` per network pass.
-
-        Args:
-            images: (H, W, 3) uint8 RGB images.
-
-        Returns:
-            One ``Features`` per image (a textureless image: none).
-        """
         checked = [checked_or_blank(im) for im in images]
         todo = [img for img, blank in checked if blank is None]
         outs = iter(self.engine.extract(todo, self.options.batch_size)) if todo else iter(())
         return [blank if blank is not None else self._features(next(outs)) for _, blank in checked]
 
-    def match(self, f0: Features, f1: Features) -> Matches:
-        """Correspondences of a pair; see ``Matcher.match``.
-
-        Args:
-            f0: Features of image 0 (the reference).
-            f1: Features of image 1 (the query).
-
-        Returns:
-            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
-        """
-        return self.match_many(f0, [f1])[0]
-
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """``match(f0, f1)`` for each of ``f1s``: the pairs' score matrices in batches of ``batch_size``; each pair gets the matches it gets alone.
-
-        Args:
-            f0: Features of the reference image.
-            f1s: Features of the query images.
-            batch_size: Pairs per network pass (None: the matcher's default).
-
-        Returns:
-            One ``Matches`` per query.
-        """
         ref = f0.data.get("mickey")
         todo = [i for i, f in enumerate(f1s) if f.data.get("mickey") is not None]
         out: list[Matches] = [Matches.empty() for _ in f1s]

@@ -121,14 +121,6 @@ class SIFTMatcher(Matcher):
         self._sift = cv2.SIFT.create(nfeatures=self.options.max_features)
 
     def extract(self, image: np.ndarray) -> Features:
-        """Features of one image; see ``Matcher.extract``.
-
-        Args:
-            image: (H, W, 3) uint8 RGB.
-
-        Returns:
-            Keypoints in the image's own pixels and what ``match`` needs.
-        """
         image = check_image(image)
         small, scale = resize_for_matching(image, self.options.max_size)
         gray = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
@@ -146,15 +138,6 @@ class SIFTMatcher(Matcher):
         return Features(to_original(xy, scale), size, {"descriptors": desc, "sq_norms": (desc * desc).sum(1)})
 
     def match(self, f0: Features, f1: Features) -> Matches:
-        """Correspondences of a pair; see ``Matcher.match``.
-
-        Args:
-            f0: Features of image 0 (the reference).
-            f1: Features of image 1 (the query).
-
-        Returns:
-            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
-        """
         d0, d1 = f0.data["descriptors"], f1.data["descriptors"]
         if len(d0) < 2 or len(d1) < 2:
             return Matches.empty()

@@ -108,16 +108,12 @@ class SuperGlueMatcher(Matcher):
         )
         self.net = net.to(self.device)
 
+    @classmethod
+    def runs_offline(cls, weights_kind: str = "outdoor", **args: object) -> bool:
+        return superglue_available(weights_kind)
+
     @torch.inference_mode()
     def extract(self, image: np.ndarray) -> Features:
-        """Features of one image; see ``Matcher.extract``.
-
-        Args:
-            image: (H, W, 3) uint8 RGB.
-
-        Returns:
-            Keypoints in the image's own pixels and what ``match`` needs.
-        """
         image, blank = checked_or_blank(image)
         if blank is not None:
             return blank
@@ -138,15 +134,6 @@ class SuperGlueMatcher(Matcher):
 
     @torch.inference_mode()
     def match(self, f0: Features, f1: Features) -> Matches:
-        """Correspondences of a pair; see ``Matcher.match``.
-
-        Args:
-            f0: Features of image 0 (the reference).
-            f1: Features of image 1 (the query).
-
-        Returns:
-            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
-        """
         if len(f0) == 0 or len(f1) == 0:
             return Matches.empty()
         d0, d1 = f0.data, f1.data

