@@ -61,7 +61,7 @@ def peak_gpu_mib() -> float | None:
 
 def _timed_pairs(pairs: list, pose: Callable, warm: Callable[[], object]) -> tuple[dict, dict]:
     """Run ``pose(scene, query)`` over ``pairs`` after one untimed ``warm()``; (poses by frame, timing row)."""
-    from bench_pipeline import GpuUtilisation
+    from gpu_util import GpuUtilisation
 
     warm()
     _sync()

@@ -22,7 +22,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -45,6 +44,8 @@ if __name__ == "__main__":
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from gpu_util import GpuUtilisation  # noqa: E402
 
 DEFAULT_ROOT = next(
     (
@@ -251,42 +252,6 @@ def resized_split(root, split: str, size: tuple[int, int], dst: Path) -> Path:
         write_intrinsics(out / "intrinsics.txt", intr)
         write_poses(out / "poses.txt", table.names, [table.pose(i) for i in range(len(table.names))])
     return dst
-
-
-class GpuUtilisation:
-    """Mean GPU utilisation (%) over a ``with`` block, sampled by ``nvidia-smi`` every 100 ms; None without one."""
-
-    def __enter__(self) -> GpuUtilisation:
-        self.samples: list[float] = []
-        self._proc = None
-        try:
-            self._proc = subprocess.Popen(
-                ["nvidia-smi", "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits", "-lms", "100"],
-                stdout=subprocess.PIPE,
-                stderr=subprocess.DEVNULL,
-                text=True,
-            )
-        except (FileNotFoundError, PermissionError):
-            return self
-        self._thread = threading.Thread(target=self._read, daemon=True)
-        self._thread.start()
-        return self
-
-    def _read(self) -> None:
-        for line in self._proc.stdout:  # type: ignore[union-attr]
-            try:
-                self.samples.append(float(line.split(",")[0]))
-            except ValueError:
-                pass
-
-    def __exit__(self, *exc) -> None:
-        if self._proc is not None:
-            self._proc.terminate()
-            self._proc.wait()
-
-    @property
-    def mean(self) -> float | None:
-        return float(np.mean(self.samples)) if self.samples else None
 
 
 def _scenes_with_depth(root, split: str) -> list[str]:

@@ -30,7 +30,8 @@ from torch.utils.data import DataLoader
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from bench_pipeline import DEFAULT_ROOT, GpuUtilisation  # noqa: E402
+from bench_pipeline import DEFAULT_ROOT  # noqa: E402
+from gpu_util import GpuUtilisation  # noqa: E402
 from mapfree.data import Dataset  # noqa: E402
 from mapfree.rpr.config import load_config  # noqa: E402
 from mapfree.rpr.data import PairDataset, as_float_input, resized_image, resolve_size, val_pairs  # noqa: E402

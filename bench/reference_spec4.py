@@ -132,7 +132,11 @@ def main(argv: list[str] | None = None) -> int:
     sub, stats = run(args.root, args.split, args.all_frames)
     write_submission(args.output, sub)
     report = evaluate(args.output, args.root, args.split)
-    print(json.dumps({"metrics": report.metrics, **stats, "pairs_per_s": stats["pairs"] / stats["seconds"]}, indent=1))
+    print(
+        json.dumps(
+            {"metrics": report.metrics.to_dict(), **stats, "pairs_per_s": stats["pairs"] / stats["seconds"]}, indent=1
+        )
+    )
     return 0
 
 

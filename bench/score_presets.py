@@ -90,7 +90,7 @@ def score(sub: dict, root, split: str, every: int) -> dict:
             for s in Dataset(root).scenes(split)
         }
     # A scene without estimates is left out: its frames then count as failures, as they should.
-    return evaluate({k: v for k, v in sub.items() if v}, root, split, truth=_TRUTH[key]).metrics
+    return evaluate({k: v for k, v in sub.items() if v}, root, split, truth=_TRUTH[key]).metrics.to_dict()
 
 
 def table(rows: list[tuple[str, dict]]) -> str:

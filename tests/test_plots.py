@@ -120,7 +120,7 @@ def test_scene_scatter_tick_labels_never_overlap_and_empty_scenes_are_named(real
 
     import numpy as np
 
-    from mapfree.benchmark import evaluate
+    from mapfree.benchmark import Scores, evaluate
     from mapfree.benchmark.plots import scene_scatter_figure
     from mapfree.geometry import Pose
 
@@ -138,11 +138,13 @@ def test_scene_scatter_tick_labels_never_overlap_and_empty_scenes_are_named(real
         report = copy.copy(base)
         lo_r, lo_t = 10 ** rng.uniform(-1.5, 1), 10 ** rng.uniform(-2, 0)
         report.per_scene = {
-            f"s{i:05d}": {
-                "Average Median Rotation Error": lo_r * 10 ** rng.uniform(0, 2.6),
-                "Average Median Translation Error": lo_t * 10 ** rng.uniform(0, 2.6),
-                "Precision @ VCRE < 90px": 0.5,
-            }
+            f"s{i:05d}": Scores.from_dict(
+                {
+                    "Average Median Rotation Error": lo_r * 10 ** rng.uniform(0, 2.6),
+                    "Average Median Translation Error": lo_t * 10 ** rng.uniform(0, 2.6),
+                    "Precision @ VCRE < 90px": 0.5,
+                }
+            )
             for i in range(16)
         }
         fig = scene_scatter_figure(report)

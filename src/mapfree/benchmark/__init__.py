@@ -16,8 +16,10 @@ from pathlib import Path
 from .metrics import Thresholds, auc, precision_ratio_curve, rotation_error_deg, translation_error, vcre, virtual_points
 from .report import METRIC_KEYS, Report, format_table
 from .score import EvaluationError, aggregate, evaluate, score
-from .submission import Problem, SceneEstimates, SubmissionLimits, from_estimates, read_submission, write_submission
+from .scores import Acceptance, Scores
+from .submission import Problem, SceneEstimates, SubmissionLimits, from_estimates, read_submission
 from .truth import SceneTruth, load_scene_truth, load_truth
+from .writing import write_submission
 
 __all__ = [
     "evaluate",
@@ -25,6 +27,8 @@ __all__ = [
     "aggregate",
     "EvaluationError",
     "Report",
+    "Scores",
+    "Acceptance",
     "format_table",
     "METRIC_KEYS",
     "Thresholds",

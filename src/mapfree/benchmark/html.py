@@ -71,6 +71,30 @@ def _num(v: float, fmt: str) -> str:
     return format(v, fmt) if v is not None and math.isfinite(v) else "—"
 
 
+def _worst_section(report: Report, worst: int, figure: FigureSource | None, source_note: str) -> list[str]:
+    """The page's section of the ``worst`` estimated frames (largest VCRE), each with its figure when given."""
+    idx = worst_frames(report, worst)
+    if not idx:
+        return []
+    parts = [f"<h2>Worst {len(idx)} estimated frames (largest VCRE)</h2>"]
+    if source_note:
+        parts.append(f"<p class='muted'>{html.escape(source_note)}</p>")
+    for i in idx:
+        scene, frame = str(report.scene[i]), str(report.frame[i])
+        head = (
+            f"{scene} {frame}: VCRE {_num(report.vcre[i], '.0f')} px, "
+            f"{_num(report.trans_err[i], '.2f')} m, {_num(report.rot_err[i], '.1f')}°, "
+            f"confidence {_num(report.confidence[i], '.3g')}"
+        )
+        png = figure(scene, frame) if figure is not None else None
+        parts.append(
+            f"<div class='frame'><b>{html.escape(head)}</b><br>"
+            + (_img(png, f"{scene} {frame}") if png else "<span class='muted'>no figure</span>")
+            + "</div>"
+        )
+    return parts
+
+
 def write_html(
     report: Report,
     path: os.PathLike | str,
@@ -114,24 +138,7 @@ def write_html(
         )
         + "</p>"
     )
-    idx = worst_frames(report, worst)
-    if idx:
-        parts.append(f"<h2>Worst {len(idx)} estimated frames (largest VCRE)</h2>")
-        if source_note:
-            parts.append(f"<p class='muted'>{html.escape(source_note)}</p>")
-        for i in idx:
-            scene, frame = str(report.scene[i]), str(report.frame[i])
-            head = (
-                f"{scene} {frame}: VCRE {_num(report.vcre[i], '.0f')} px, "
-                f"{_num(report.trans_err[i], '.2f')} m, {_num(report.rot_err[i], '.1f')}°, "
-                f"confidence {_num(report.confidence[i], '.3g')}"
-            )
-            png = figure(scene, frame) if figure is not None else None
-            parts.append(
-                f"<div class='frame'><b>{html.escape(head)}</b><br>"
-                + (_img(png, f"{scene} {frame}") if png else "<span class='muted'>no figure</span>")
-                + "</div>"
-            )
+    parts += _worst_section(report, worst, figure, source_note)
     failed = int((~report.estimated).sum()) + report.extra_failures
     if failed:
         missing = sorted({str(s) for s in report.scene[~report.estimated]})

@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .metrics import Thresholds, precision_ratio_curve, rotation_error_deg, translation_error, vcre
+from .metrics import Thresholds, precision_ratio_curve
 from .report import Report
-from .score import aggregate, aggregate_scenes, scene_medians
+from .score import errors
+from .scores import aggregate, aggregate_scenes, scene_medians
 
 __all__ = ["localization_thresholds", "localization_report", "comparison_figures", "save_comparison"]
 
@@ -59,12 +60,7 @@ def localization_report(
     estimated = np.all(np.isfinite(q_est), axis=1) & np.all(np.isfinite(t_est), axis=1) & np.isfinite(conf)
     estimated &= np.linalg.norm(np.nan_to_num(q_est), axis=1) > 0
     th = thresholds or localization_thresholds(int(np.median(W)) if n else 640, int(np.median(H)) if n else 480)
-    te, re, ve = (np.full(n, np.nan) for _ in range(3))
-    i = np.flatnonzero(estimated)
-    if len(i):
-        te[i] = translation_error(q_gt[i], t_gt[i], q_est[i], t_est[i])
-        re[i] = rotation_error_deg(q_gt[i], q_est[i])
-        ve[i] = vcre(q_gt[i], t_gt[i], q_est[i], t_est[i], np.asarray(K, np.float32)[i], W[i], H[i])
+    te, re, ve = errors(q_gt, t_gt, q_est, t_est, np.asarray(K, np.float32), W, H, estimated)
     medians = np.stack([scene_medians(x, bounds, estimated) for x in (te, re, ve)], axis=1)
     metrics = aggregate(bounds, te, re, ve, conf, estimated, 0, th, medians)
     per_scene = dict(

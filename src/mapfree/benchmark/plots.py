@@ -19,7 +19,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import LogFormatter
 
-from .metrics import Thresholds, precision_ratio_curve
+from .metrics import precision_ratio_curve
 from .report import Report
 
 __all__ = [
@@ -136,11 +136,10 @@ def scene_scatter_figure(report: Report) -> Figure:
     """Per scene: median rotation vs median translation error, coloured by VCRE precision."""
     fig = _figure((5.8, 4.4))
     ax = fig.add_subplot()
-    key_p = f"Precision @ {Thresholds.vcre_name(report.thresholds.vcre[0])}"
     rows = [
-        (m["Average Median Rotation Error"], m["Average Median Translation Error"], m.get(key_p) or 0.0)
+        (m.median_rot, m.median_trans, (m.vcre[0].precision if m.vcre else None) or 0.0)
         for m in report.per_scene.values()
-        if m.get("Average Median Rotation Error") is not None
+        if m.median_rot is not None
     ]
     if rows:
         r, t, p = (np.array(c, dtype=float) for c in zip(*rows))
@@ -168,7 +167,7 @@ def scene_scatter_figure(report: Report) -> Figure:
     ax.axhline(tm, color="0.4", ls="--", lw=1)
     ax.set_xlabel("median rotation error (°)")
     ax.set_ylabel("median translation error (m)")
-    missing = [s for s, m in report.per_scene.items() if m.get("Average Median Rotation Error") is None]
+    missing = [s for s, m in report.per_scene.items() if m.median_rot is None]
     if missing:  # a scene without a single estimate has no point: say so instead of dropping it silently
         names = ", ".join(missing[:4]) + (f" and {len(missing) - 4} more" if len(missing) > 4 else "")
         ax.text(

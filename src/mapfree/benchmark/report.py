@@ -11,6 +11,7 @@ import numpy as np
 
 from .metrics import Thresholds
 from .reliability import Reliability, is_probability, reliability
+from .scores import METRIC_KEYS, Scores
 from .submission import Problem
 
 __all__ = ["Report", "format_table", "METRIC_KEYS", "NOT_PROBABILITIES"]
@@ -19,18 +20,6 @@ __all__ = ["Report", "format_table", "METRIC_KEYS", "NOT_PROBABILITIES"]
 NOT_PROBABILITIES = (
     "the confidences are not probabilities (some outside [0, 1]): no calibration figures; submit p_correct "
     "(mapfree run --confidence calibrated) to judge them as probabilities"
-)
-
-# The public evaluator's output keys, in its order.
-METRIC_KEYS = (
-    "Average Median Translation Error",
-    "Average Median Rotation Error",
-    "Average Median Reprojection Error",
-    "Precision @ Pose Error < (25.0cm, 5deg)",
-    "AUC @ Pose Error < (25.0cm, 5deg)",
-    "Precision @ VCRE < 90px",
-    "AUC @ VCRE < 90px",
-    "Estimates for % of frames",
 )
 
 
@@ -47,7 +36,7 @@ class Report:
     """Scores of one submission; per-frame arrays cover every evaluated frame (NaN where no estimate).
 
     Attributes:
-        metrics: The headline metrics by the public evaluator's names (``METRIC_KEYS``); None when undefined.
+        metrics: The headline metrics; as a mapping, by the public evaluator's names (``METRIC_KEYS``).
         per_scene: The same metrics for each scene.
         scene: (M,) scene of each evaluated frame.
         frame: (M,) frame name.
@@ -65,8 +54,8 @@ class Report:
         extra_failures: Failures beyond the evaluated frames (``compat="official"``: missing scenes).
     """
 
-    metrics: dict[str, float | None]
-    per_scene: dict[str, dict[str, float | None]]
+    metrics: Scores
+    per_scene: dict[str, Scores]
     scene: np.ndarray  # (M,) scene of each evaluated frame
     frame: np.ndarray  # (M,) frame name
     trans_err: np.ndarray  # (M,) metres

@@ -6,6 +6,10 @@ name. ``compat="official"`` reproduces them, so numbers compare with the public 
 scene adds *all* its ground-truth lines as failures, a negative confidence on a scored frame aborts,
 frames are matched by number. On valid, complete submissions both modes agree with the public
 evaluator to 1e-6.
+
+``score`` is three steps: ``gather`` lays every evaluated frame out as ``Columns`` (its truth beside its
+estimate), ``errors`` gives each estimated frame's three errors, and ``aggregate`` (``benchmark.scores``) turns
+them into ``Scores``, for the whole split and for each scene.
 """
 
 from __future__ import annotations
@@ -13,12 +17,14 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import BinaryIO
 
 import numpy as np
 
-from .metrics import Thresholds, auc, rotation_error_deg, segment_auc, translation_error, vcre
-from .report import METRIC_KEYS, Report
+from .metrics import Thresholds, rotation_error_deg, translation_error, vcre
+from .report import Report
+from .scores import aggregate, aggregate_scenes, scene_medians
 from .submission import (
     COMPAT_MODES,
     Problem,
@@ -29,7 +35,17 @@ from .submission import (
 )
 from .truth import SceneTruth, load_truth
 
-__all__ = ["evaluate", "score", "aggregate", "aggregate_scenes", "scene_medians", "EvaluationError"]
+__all__ = [
+    "evaluate",
+    "score",
+    "gather",
+    "errors",
+    "Columns",
+    "aggregate",
+    "aggregate_scenes",
+    "scene_medians",
+    "EvaluationError",
+]
 
 
 class EvaluationError(RuntimeError):
@@ -93,6 +109,160 @@ def _match(t: SceneTruth, sel: np.ndarray, est: SceneEstimates, compat: str) -> 
     return np.array([row_of.get(t.names[i], -1) for i in np.flatnonzero(sel).tolist()], dtype=np.int64)
 
 
+@dataclass
+class Columns:
+    """Every evaluated frame of every scene as columns, its ground truth beside its estimate (``gather``).
+
+    Frames are grouped by scene, scenes sorted; M frames, S scenes.
+
+    Attributes:
+        scenes: The S scenes.
+        bounds: (S + 1,) scene i is rows ``bounds[i]:bounds[i+1]``.
+        extra: (S,) failures of each scene beyond its frames (``compat="official"``: a missing scene's other lines).
+        scene: (M,) object, scene of each frame.
+        frame: The M frame names.
+        gt_q: (M, 4) true world-to-camera rotations, wxyz.
+        gt_t: (M, 3) true translations, metres.
+        K: (M, 4) float32 intrinsics fx, fy, cx, cy.
+        width: (M,) image widths, pixels.
+        height: (M,) image heights, pixels.
+        q: (M, 4) estimated rotations; NaN where no estimate.
+        t: (M, 3) estimated translations; NaN where no estimate.
+        confidence: (M,) confidences; NaN where no estimate.
+        line: (M,) line of each estimate in its file; 0 where none.
+    """
+
+    scenes: list[str]
+    bounds: np.ndarray
+    extra: np.ndarray
+    scene: np.ndarray
+    frame: list[str]
+    gt_q: np.ndarray
+    gt_t: np.ndarray
+    K: np.ndarray
+    width: np.ndarray
+    height: np.ndarray
+    q: np.ndarray
+    t: np.ndarray
+    confidence: np.ndarray
+    line: np.ndarray
+
+    @property
+    def estimated(self) -> np.ndarray:
+        """(M,) bool, the frames with an estimate."""
+        return np.isfinite(self.confidence)
+
+
+def _cat(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
+    return np.concatenate(parts) if parts else np.zeros(shape)
+
+
+def gather(
+    truth: Mapping[str, SceneTruth], estimates: Mapping[str, SceneEstimates], compat: str = "default"
+) -> tuple[Columns, list[Problem]]:
+    """The evaluated frames of every scene of ``truth`` as columns, each beside its estimate.
+
+    Args:
+        truth: Ground truth by scene.
+        estimates: Estimates by scene.
+        compat: ``default`` (queries matched by name) or ``official`` (every line matched by number).
+
+    Returns:
+        The columns, and a problem for each scene without estimates.
+    """
+    scenes = sorted(truth)
+    sels, rows_of, extra, problems = [], [], [], []
+    for scene in scenes:
+        t = truth[scene]
+        sel = np.ones(len(t.names), bool) if compat == "official" else t.is_query
+        m, e, more = int(sel.sum()), estimates.get(scene), 0
+        if e is None:
+            rows = np.full(m, -1, dtype=np.int64)
+            if compat == "official":  # the public evaluator counts every ground-truth line of a missing scene
+                more = t.n_keys - m
+            problems.append(Problem(scene, None, f"no estimates (pose_{scene}.txt missing): {m + more} failures"))
+        else:
+            rows = _match(t, sel, e, compat)
+        sels.append(sel)
+        rows_of.append(rows)
+        extra.append(more)
+    W = _cat([np.full(len(r), truth[s].width) for s, r in zip(scenes, rows_of)], (0,))
+    H = _cat([np.full(len(r), truth[s].height) for s, r in zip(scenes, rows_of)], (0,))
+    n = len(W)
+    cols = Columns(
+        scenes=scenes,
+        bounds=np.concatenate([[0], np.cumsum([len(r) for r in rows_of])]).astype(np.int64),
+        extra=np.array(extra, dtype=np.int64),
+        scene=_cat([np.full(len(r), s, dtype=object) for s, r in zip(scenes, rows_of)], (0,)).astype(object),
+        frame=[truth[s].names[i] for s, sel in zip(scenes, sels) for i in np.flatnonzero(sel).tolist()],
+        gt_q=_cat([truth[s].q[sel] for s, sel in zip(scenes, sels)], (0, 4)),
+        gt_t=_cat([truth[s].t[sel] for s, sel in zip(scenes, sels)], (0, 3)),
+        K=_cat([truth[s].K[sel] for s, sel in zip(scenes, sels)], (0, 4)).astype(np.float32),
+        width=W,
+        height=H,
+        q=np.full((n, 4), np.nan),
+        t=np.full((n, 3), np.nan),
+        confidence=np.full(n, np.nan),
+        line=np.zeros(n, dtype=np.int64),
+    )
+    for scene, rows, lo in zip(scenes, rows_of, cols.bounds.tolist()):
+        ok = rows >= 0
+        if ok.any():
+            e = estimates[scene]
+            idx = lo + np.flatnonzero(ok)
+            cols.q[idx], cols.t[idx] = e.q[rows[ok]], e.t[rows[ok]]
+            cols.confidence[idx], cols.line[idx] = e.confidence[rows[ok]], e.lines[rows[ok]]
+    return cols, problems
+
+
+def errors(
+    gt_q: np.ndarray,
+    gt_t: np.ndarray,
+    q: np.ndarray,
+    t: np.ndarray,
+    K: np.ndarray,
+    width: np.ndarray,
+    height: np.ndarray,
+    estimated: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The three errors of every estimated frame.
+
+    Args:
+        gt_q: (M, 4) true world-to-camera rotations, wxyz.
+        gt_t: (M, 3) true translations, metres.
+        q: (M, 4) estimated rotations.
+        t: (M, 3) estimated translations.
+        K: (M, 4) intrinsics fx, fy, cx, cy.
+        width: (M,) image widths, pixels.
+        height: (M,) image heights, pixels.
+        estimated: (M,) bool, the frames with an estimate.
+
+    Returns:
+        (M,) translation errors (metres), rotation errors (degrees) and VCRE (pixels); NaN where no estimate.
+    """
+    te, re, ve = (np.full(len(estimated), np.nan) for _ in range(3))
+    i = np.flatnonzero(estimated)
+    if len(i):
+        te[i] = translation_error(gt_q[i], gt_t[i], q[i], t[i])
+        re[i] = rotation_error_deg(gt_q[i], q[i])
+        ve[i] = vcre(gt_q[i], gt_t[i], q[i], t[i], K[i], width[i], height[i])
+    return te, re, ve
+
+
+def _official_abort(cols: Columns) -> None:
+    """Raise where the public evaluator aborts: a negative confidence on a scored frame, or no estimate."""
+    estimated = cols.estimated
+    neg = np.flatnonzero(estimated & (cols.confidence < 0))
+    if len(neg):
+        i = neg[0]
+        raise EvaluationError(
+            f"{cols.scene[i]}:{cols.line[i]}: negative confidence on a scored frame; the public evaluator aborts "
+            "the whole evaluation (compat='official')"
+        )
+    if not estimated.any():
+        raise EvaluationError("submission does not have any valid pose estimates")
+
+
 def score(
     truth: Mapping[str, SceneTruth],
     estimates: Mapping[str, SceneEstimates],
@@ -120,98 +290,36 @@ def score(
         EvaluationError: ``compat="official"`` and a scored frame has a negative confidence, or no frame
             has an estimate.
     """
-    scenes: list[np.ndarray] = []
-    frames: list[str] = []
-    q_parts: list[np.ndarray] = []
-    t_parts: list[np.ndarray] = []
-    K_parts: list[np.ndarray] = []
-    W_parts: list[np.ndarray] = []
-    H_parts: list[np.ndarray] = []
-    est_rows: list[np.ndarray] = []
-    est_of: list[str] = []
-    extra: dict[str, int] = {}
-    problems = list(problems or [])
-    for scene in sorted(truth):
-        t = truth[scene]
-        sel = np.ones(len(t.names), bool) if compat == "official" else t.is_query
-        m = int(sel.sum())
-        e = estimates.get(scene)
-        if e is None:
-            rows = np.full(m, -1, dtype=np.int64)
-            cost = m
-            if compat == "official":  # the public evaluator counts every ground-truth line of a missing scene
-                extra[scene] = t.n_keys - m
-                cost = t.n_keys
-            problems.append(Problem(scene, None, f"no estimates (pose_{scene}.txt missing): {cost} failures"))
-        else:
-            rows = _match(t, sel, e, compat)
-        scenes.append(np.full(m, scene, dtype=object))
-        frames.extend(t.names[i] for i in np.flatnonzero(sel).tolist())
-        q_parts.append(t.q[sel])
-        t_parts.append(t.t[sel])
-        K_parts.append(t.K[sel])
-        W_parts.append(np.full(m, t.width))
-        H_parts.append(np.full(m, t.height))
-        est_rows.append(rows)
-        est_of.append(scene)
-    cat = lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape)  # noqa: E731
-    scene_arr = cat(scenes, (0,)).astype(object)
-    gt_q, gt_t, K = cat(q_parts, (0, 4)), cat(t_parts, (0, 3)), cat(K_parts, (0, 4)).astype(np.float32)
-    W, H = cat(W_parts, (0,)), cat(H_parts, (0,))
-    n = len(scene_arr)
-    q_est, t_est, conf = np.full((n, 4), np.nan), np.full((n, 3), np.nan), np.full(n, np.nan)
-    lines = np.zeros(n, dtype=np.int64)
-    offset = 0
-    for scene, rows in zip(est_of, est_rows):
-        ok = rows >= 0
-        if ok.any():
-            e = estimates[scene]
-            idx = offset + np.flatnonzero(ok)
-            q_est[idx], t_est[idx] = e.q[rows[ok]], e.t[rows[ok]]
-            conf[idx], lines[idx] = e.confidence[rows[ok]], e.lines[rows[ok]]
-        offset += len(rows)
-    estimated = np.isfinite(conf)
+    cols, missing = gather(truth, estimates, compat)
+    problems = [*(problems or []), *missing]
+    estimated = cols.estimated
     unscored = _unscored_track_problem(estimates, int(estimated.sum()), track)
     if unscored is not None:
         problems.append(unscored)
     if compat == "official":
-        neg = np.flatnonzero(estimated & (conf < 0))
-        if len(neg):
-            i = neg[0]
-            raise EvaluationError(
-                f"{scene_arr[i]}:{lines[i]}: negative confidence on a scored frame; the public evaluator aborts "
-                "the whole evaluation (compat='official')"
-            )
-        if not estimated.any():
-            raise EvaluationError("submission does not have any valid pose estimates")
-    te, re, ve = (np.full(n, np.nan) for _ in range(3))
-    i = np.flatnonzero(estimated)
-    te[i] = translation_error(gt_q[i], gt_t[i], q_est[i], t_est[i])
-    re[i] = rotation_error_deg(gt_q[i], q_est[i])
-    ve[i] = vcre(gt_q[i], gt_t[i], q_est[i], t_est[i], K[i], W[i], H[i])
-    bounds = np.concatenate([[0], np.cumsum([len(r) for r in est_rows])]).astype(np.int64)
-    medians = np.stack([scene_medians(x, bounds, estimated) for x in (te, re, ve)], axis=1)  # (scenes, 3)
-    metrics = aggregate(bounds, te, re, ve, conf, estimated, sum(extra.values()), thresholds, medians)
-    extra_each = np.array([extra.get(s, 0) for s in est_of], dtype=np.int64)
-    scene_metrics = aggregate_scenes(bounds, te, re, ve, conf, estimated, extra_each, thresholds, medians)
-    per_scene = dict(zip(est_of, scene_metrics))
+        _official_abort(cols)
+    te, re, ve = errors(cols.gt_q, cols.gt_t, cols.q, cols.t, cols.K, cols.width, cols.height, estimated)
+    medians = np.stack([scene_medians(x, cols.bounds, estimated) for x in (te, re, ve)], axis=1)  # (scenes, 3)
+    extra = int(cols.extra.sum())
+    metrics = aggregate(cols.bounds, te, re, ve, cols.confidence, estimated, extra, thresholds, medians)
+    per_scene = aggregate_scenes(cols.bounds, te, re, ve, cols.confidence, estimated, cols.extra, thresholds, medians)
     return Report(
         metrics=metrics,
-        per_scene=per_scene,
-        scene=scene_arr.astype(str),
-        frame=np.array(frames, dtype=str),
+        per_scene=dict(zip(cols.scenes, per_scene)),
+        scene=cols.scene.astype(str),
+        frame=np.array(cols.frame, dtype=str),
         trans_err=te,
         rot_err=re,
         vcre=ve,
-        confidence=conf,
+        confidence=cols.confidence,
         estimated=estimated,
-        diagonal=np.hypot(W, H),
+        diagonal=np.hypot(cols.width, cols.height),
         problems=sorted(problems, key=lambda p: (p.scene or "", p.line or 0)),
         split=split,
         compat=compat,
         track=track,
         thresholds=thresholds,
-        extra_failures=sum(extra.values()),
+        extra_failures=extra,
     )
 
 
@@ -237,130 +345,3 @@ def _unscored_track_problem(estimates: Mapping[str, SceneEstimates], matched: in
         f"none of the submission's {len(names)} estimates is for a frame the {track}-frame "
         f"track scores, so every frame counts as a failure; {hint}",
     )
-
-
-def scene_medians(values: np.ndarray, bounds: np.ndarray, estimated: np.ndarray) -> np.ndarray:
-    """Median over the estimated frames of each scene, all scenes in one sort (same numbers as ``np.median``).
-
-    Args:
-        values: (M,) per-frame values, frames grouped by scene.
-        bounds: (S + 1,) scene i is ``bounds[i]:bounds[i+1]``.
-        estimated: (M,) bool, frames that count.
-
-    Returns:
-        (S,) medians; NaN for a scene without an estimated frame.
-    """
-    n = len(bounds) - 1
-    seg = np.repeat(np.arange(n), np.diff(bounds))[estimated]
-    v = values[estimated]
-    order = np.lexsort((v, seg))
-    v = v[order]
-    counts = np.bincount(seg, minlength=n)
-    starts = np.cumsum(counts) - counts
-    has = counts > 0
-    out = np.full(n, np.nan)
-    lo, hi = (starts + (counts - 1) // 2)[has], (starts + counts // 2)[has]
-    out[has] = (v[lo] + v[hi]) / 2
-    return out
-
-
-def _criteria(te: np.ndarray, re: np.ndarray, ve: np.ndarray, thresholds: Thresholds):
-    """(names, (k, N) accepted) for every pose threshold then every VCRE threshold."""
-    names = [Thresholds.pose_name(tm, rd) for tm, rd in thresholds.pose]
-    names += [Thresholds.vcre_name(px) for px in thresholds.vcre]
-    ok = [(te < tm) & (re < rd) for tm, rd in thresholds.pose] + [ve < px for px in thresholds.vcre]
-    return names, np.array(ok, dtype=bool).reshape(len(names), len(te))
-
-
-def _as_dict(medians, precision, areas, est_ratio, names, n_pose) -> dict[str, float | None]:
-    """Metric dict in the public evaluator's key order, then the extra thresholds; NaN -> None."""
-    val = lambda v: float(v) if v is not None and np.isfinite(v) else None  # noqa: E731
-    out = {key: val(m) for key, m in zip(METRIC_KEYS[:3], medians)}
-    for i in (0, n_pose):  # the headline pose and VCRE thresholds first
-        out[f"Precision @ {names[i]}"] = val(precision[i])
-        out[f"AUC @ {names[i]}"] = val(areas[i])
-    out["Estimates for % of frames"] = val(est_ratio)
-    for i in [j for j in range(len(names)) if j not in (0, n_pose)]:
-        out[f"Precision @ {names[i]}"] = val(precision[i])
-        out[f"AUC @ {names[i]}"] = val(areas[i])
-    return out
-
-
-def aggregate(
-    bounds: np.ndarray,
-    trans_err: np.ndarray,
-    rot_err: np.ndarray,
-    vcre_err: np.ndarray,
-    confidence: np.ndarray,
-    estimated: np.ndarray,
-    extra_failures: int = 0,
-    thresholds: Thresholds = Thresholds(),
-    medians: np.ndarray | None = None,
-) -> dict[str, float | None]:
-    """The benchmark's metrics over evaluated frames grouped by scene.
-
-    "Average Median" = median per scene over its estimated frames, mean over scenes with an estimate;
-    precision and AUC count every evaluated frame (plus ``extra_failures``) in the denominator.
-
-    Args:
-        bounds: (S + 1,) scene i is ``bounds[i]:bounds[i+1]``.
-        trans_err: (M,) translation errors, metres.
-        rot_err: (M,) rotation errors, degrees.
-        vcre_err: (M,) VCRE, pixels.
-        confidence: (M,) confidences.
-        estimated: (M,) bool, frames with an estimate.
-        extra_failures: Failures beyond the M frames.
-        thresholds: Thresholds of the precision and AUC metrics.
-        medians: (S, 3) per-scene medians of the three errors, when already computed.
-
-    Returns:
-        The metrics by the public evaluator's names (None where undefined).
-    """
-    est = np.flatnonzero(estimated)
-    failures = int(len(estimated) - len(est) + extra_failures)
-    total = len(est) + failures
-    if medians is None:
-        medians = np.stack([scene_medians(x, bounds, estimated) for x in (trans_err, rot_err, vcre_err)], axis=1)
-    mean_medians = [np.mean(c[np.isfinite(c)]) if np.isfinite(c).any() else np.nan for c in medians.T]
-    names, ok = _criteria(trans_err[est], rot_err[est], vcre_err[est], thresholds)
-    if total == 0:
-        return _as_dict(mean_medians, [np.nan] * len(names), [np.nan] * len(names), np.nan, names, len(thresholds.pose))
-    precision = ok.sum(axis=1) / total
-    areas = auc(confidence[est], ok, failures) if len(est) else np.zeros(len(names))
-    return _as_dict(mean_medians, precision, areas, len(est) / total, names, len(thresholds.pose))
-
-
-def aggregate_scenes(
-    bounds: np.ndarray,
-    trans_err: np.ndarray,
-    rot_err: np.ndarray,
-    vcre_err: np.ndarray,
-    confidence: np.ndarray,
-    estimated: np.ndarray,
-    extra_failures: np.ndarray,
-    thresholds: Thresholds,
-    medians: np.ndarray,
-) -> list[dict[str, float | None]]:
-    """``aggregate`` of every scene at once (same keys), vectorised over scenes.
-
-    The arguments are ``aggregate``'s, except ``extra_failures``: (S,) failures of each scene beyond its
-    frames, and ``medians``, required.
-
-    Returns:
-        One metrics dict per scene.
-    """
-    S = len(bounds) - 1
-    est = np.flatnonzero(estimated)
-    seg = np.repeat(np.arange(S), np.diff(bounds))[est]
-    n_est = np.bincount(seg, minlength=S)
-    failures = np.diff(bounds) - n_est + np.asarray(extra_failures)
-    total = n_est + failures
-    names, ok = _criteria(trans_err[est], rot_err[est], vcre_err[est], thresholds)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        tp = np.array([np.bincount(seg, weights=o, minlength=S) for o in ok]).reshape(len(names), S)
-        precision = np.where(total > 0, tp / total, np.nan)
-        ratio = np.where(total > 0, n_est / total, np.nan)
-    areas = segment_auc(seg, confidence[est], ok, failures)
-    areas[:, total == 0] = np.nan
-    n_pose = len(thresholds.pose)
-    return [_as_dict(medians[j], precision[:, j], areas[:, j], ratio[j], names, n_pose) for j in range(S)]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 from . import DefaultsHelpFormatter
@@ -24,7 +25,7 @@ EXPECTED = {
 }
 
 
-def expectation(args: argparse.Namespace, metrics: dict) -> list[str]:
+def expectation(args: argparse.Namespace, metrics: Mapping[str, float | None]) -> list[str]:
     """What the user should expect to see, and whether the run shows it: the lines the demo prints after its table,
     so a broken install (wrong weights, a broken OpenCV or torch) can be told from a working one."""
     lines = [
@@ -43,10 +44,11 @@ def expectation(args: argparse.Namespace, metrics: dict) -> list[str]:
     if changed:
         lines.append(f"This run changed {', '.join(changed)}: its numbers need not match these.")
         return lines
+    got = {k: float("nan") if (x := metrics.get(k)) is None else x for k in EXPECTED}
     off = [
-        f"{k} {metrics.get(k, float('nan')):.3f} (expected {v:.3f} ± {tol:.2f})"
+        f"{k} {got[k]:.3f} (expected {v:.3f} ± {tol:.2f})"
         for k, (v, tol) in EXPECTED.items()
-        if not abs(metrics.get(k, float("nan")) - v) <= tol + 1e-9
+        if not abs(got[k] - v) <= tol + 1e-9
     ]
     if off:
         lines.append(

@@ -258,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             report = evaluate(res.submission, args.root, args.split, track=args.track)
-            out["metrics"] = report.metrics
+            out["metrics"] = report.metrics.to_dict()
         except (EvaluationError, FormatError, FileNotFoundError, ValueError) as e:
             error = (
                 f"mapfree run: error: the submission {res.submission} was written but cannot be scored here: "

@@ -212,17 +212,14 @@ def _fmt(v) -> str:
 
 def _summary_values(r) -> list:
     """Estimates %, median t / R / VCRE, precision and AUC at VCRE < 10 %, precision at 5 %, at (5 cm, 5°)."""
-    from ..benchmark.metrics import Thresholds
-
-    m, th = r.metrics, r.thresholds
-    est = m.get("Estimates for % of frames")
+    m = r.metrics
     return [
-        None if est is None else 100 * est,
-        m["Average Median Translation Error"],
-        m["Average Median Rotation Error"],
-        m["Average Median Reprojection Error"],
-        m.get(f"Precision @ {Thresholds.vcre_name(th.vcre[0])}"),
-        m.get(f"AUC @ {Thresholds.vcre_name(th.vcre[0])}"),
-        m.get(f"Precision @ {Thresholds.vcre_name(th.vcre[1])}"),
-        m.get(f"Precision @ {Thresholds.pose_name(*th.pose[0])}"),
+        None if m.estimated is None else 100 * m.estimated,
+        m.median_trans,
+        m.median_rot,
+        m.median_vcre,
+        m.vcre[0].precision,
+        m.vcre[0].auc,
+        m.vcre[1].precision,
+        m.pose[0].precision,
     ]

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry import Intrinsics
 from .io import FormatError, check_depth_size, pixel_problem, read_depth, read_image, read_intrinsics, read_poses
 from .orientation import OrientationError, displayed_size, exif_orientation
 from .overlaps import read_overlaps
@@ -181,6 +182,17 @@ def check_scene(path: os.PathLike | str, split: str, deep: bool = False) -> Scen
     """
     path = Path(path)
     st = SceneStats()
+    intr = _check_tables(path, split, st)
+    _check_frames(path, intr, deep, st)
+    return st
+
+
+def _check_tables(path: Path, split: str, st: SceneStats) -> dict[str, Intrinsics]:
+    """The scene's text files and ``overlaps.npz``: readable, consistent, the reference frame where needed.
+
+    Returns:
+        The intrinsics by frame name (empty when ``intrinsics.txt`` is unreadable).
+    """
     try:
         intr = read_intrinsics(path / "intrinsics.txt")
     except FormatError as e:
@@ -226,8 +238,12 @@ def check_scene(path: os.PathLike | str, split: str, deep: bool = False) -> Scen
                 st.problems.append(Problem(str(path / "overlaps.npz"), "overlaps outside [0, 1]"))
         except FormatError as e:
             st.problems.append(_format_problem(e))
+    return intr
 
-    # Images: every listed frame present and readable, with the size its intrinsics give.
+
+def _check_frames(path: Path, intr: dict[str, Intrinsics], deep: bool, st: SceneStats) -> None:
+    """Every listed frame present and readable, with the size its intrinsics give; then what is on disk beside
+    the listed frames: unlisted images, and depth maps per suffix."""
     for name, K in intr.items():
         img = path / name
         if not img.is_file():
@@ -241,7 +257,6 @@ def check_scene(path: os.PathLike | str, split: str, deep: bool = False) -> Scen
         if (w, h) != (K.width, K.height):
             st.problems.append(Problem(str(img), f"image is {w}x{h} but intrinsics.txt says {K.width}x{K.height}"))
 
-    # What is on disk beside the listed frames: unlisted images, and depth maps per suffix.
     listed = set(intr)
     for seq in sorted(p for p in path.iterdir() if p.is_dir() and p.name.startswith("seq")):
         for entry in os.scandir(seq):
@@ -251,7 +266,6 @@ def check_scene(path: os.PathLike | str, split: str, deep: bool = False) -> Scen
                 _check_depth(Path(entry.path), intr.get(f"{seq.name}/{m['stem']}.jpg"), deep, st)
             elif entry.name.lower().endswith(_IMAGE_EXT) and f"{seq.name}/{entry.name}" not in listed:
                 st.unlisted_images += 1
-    return st
 
 
 def _measure(
@@ -343,33 +357,48 @@ def check_dataset(
     for split in wanted:
         rep = SplitReport(split, expected=None if subset else len(RELEASE[split]))
         report.splits.append(rep)
-        d = root / split
-        if not d.is_dir():
-            rep.problems.append(Problem(str(d), "split folder missing"))
-            continue
-        names = sorted(p.name for p in d.iterdir() if p.is_dir())
-        scenes = [n for n in names if _SCENE_RE.match(n)]
-        for n in names:
-            if n not in scenes and not n.startswith("."):
-                rep.problems.append(Problem(str(d / n), "not a scene folder name (sNNNNN)"))
-        if not subset:
-            release = {f"s{i:05d}" for i in RELEASE[split]}
-            missing = sorted(release.difference(scenes))
-            if missing:
-                shown = ", ".join(missing[:8]) + (f", … ({len(missing)} in all)" if len(missing) > 8 else "")
-                rep.problems.append(
-                    Problem(str(d), f"{len(missing)} of the release's {len(release)} scenes missing: {shown}")
-                )
-            for n in sorted(set(scenes) - release):
-                rep.problems.append(
-                    Problem(
-                        str(d / n),
-                        f"not a {split} scene of the release "
-                        f"(s{RELEASE[split].start:05d}–s{RELEASE[split].stop - 1:05d})",
-                    )
-                )
-        jobs += [(str(d / n), split, deep) for n in scenes]
+        jobs += _scene_jobs(root / split, rep, subset, deep)
+    _run(report, jobs, workers, progress)
+    return report
 
+
+def _scene_jobs(d: Path, rep: SplitReport, subset: bool, deep: bool) -> list[tuple[str, str, bool]]:
+    """The scenes of one split folder to check, with the problems of the folder itself recorded in ``rep``:
+    missing, a folder that is no scene, (not ``subset``) a scene of the release missing or one not in it."""
+    split = rep.split
+    if not d.is_dir():
+        rep.problems.append(Problem(str(d), "split folder missing"))
+        return []
+    names = sorted(p.name for p in d.iterdir() if p.is_dir())
+    scenes = [n for n in names if _SCENE_RE.match(n)]
+    for n in names:
+        if n not in scenes and not n.startswith("."):
+            rep.problems.append(Problem(str(d / n), "not a scene folder name (sNNNNN)"))
+    if not subset:
+        release = {f"s{i:05d}" for i in RELEASE[split]}
+        missing = sorted(release.difference(scenes))
+        if missing:
+            shown = ", ".join(missing[:8]) + (f", … ({len(missing)} in all)" if len(missing) > 8 else "")
+            rep.problems.append(
+                Problem(str(d), f"{len(missing)} of the release's {len(release)} scenes missing: {shown}")
+            )
+        for n in sorted(set(scenes) - release):
+            rep.problems.append(
+                Problem(
+                    str(d / n),
+                    f"not a {split} scene of the release (s{RELEASE[split].start:05d}–s{RELEASE[split].stop - 1:05d})",
+                )
+            )
+    return [(str(d / n), split, deep) for n in scenes]
+
+
+def _run(
+    report: CheckReport,
+    jobs: list[tuple[str, str, bool]],
+    workers: int,
+    progress: Callable[[Iterable[SceneStats], int], Iterable[SceneStats]] | None,
+) -> None:
+    """Check the scenes (in ``workers`` processes), adding each to its split's report."""
     if workers > 1 and len(jobs) > 1:
         pool = ProcessPoolExecutor(workers)
         results: Iterable[SceneStats] = pool.map(_check_one, jobs, chunksize=4)
@@ -384,4 +413,3 @@ def check_dataset(
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
-    return report

@@ -394,7 +394,7 @@ def build_place(
         return PlaceResult(place_dir.name, scene_dir.name, "skipped", "already built", 0.0, done)
     work = scene_dir.parent / ".build" / scene_dir.name
     shutil.rmtree(work, ignore_errors=True)
-    staged, images = work / "scene", work / "images"
+    staged = work / "scene"
     t0 = time.perf_counter()
     report: dict = {
         "place": str(place_dir),
@@ -403,43 +403,7 @@ def build_place(
         "options": _jsonable(asdict(options)),
     }
     try:
-        place = read_place(place_dir, options.fps, work / "video", options.device_axes)
-        src, intr, device, seq_of = _stage(place, images)
-        for n, p in src.items():  # depth maps beside the inputs travel with the images
-            for suffix in _depth_suffixes(p):
-                os.symlink(depth_path_for(p, suffix).resolve(), depth_path_for(images / n, suffix))
-        t_sfm = time.perf_counter()
-        model = reconstruct(images, sorted(src), intr, work / "colmap", options.sfm)
-        report["sfm_seconds"] = round(time.perf_counter() - t_sfm, 2)
-        report["scans"] = _check_registration(place, model, seq_of, options.min_registered)
-        assert model is not None  # _check_registration raised BuildError otherwise
-        report["registered"] = len(model.poses)
-        report["images"] = len(src)
-        report["points3D"] = len(model.points)
-        report["reprojection_error_px"] = model.reprojection_error
-        report["models"] = model.models
-        fit = _metric_scale(place, model, seq_of, device, images, options.allow_unscaled)
-        report["scale"] = _jsonable(asdict(fit))
-        if fit.outliers:  # misregistered images (the device track disagrees): dropped, then re-checked
-            for n in fit.outliers:
-                model.poses.pop(n)
-            report["scans"] = _check_registration(place, model, seq_of, options.min_registered, len(fit.outliers))
-            report["registered"] = len(model.poses)
-        staged.mkdir(parents=True)
-        report.update(
-            _write_scene(
-                staged,
-                place,
-                model,
-                fit,
-                src,
-                images,
-                device,
-                seq_of,
-                options,
-                private_gt / scene_dir.name if private_gt else None,
-            )
-        )
+        _build(place_dir, work, options, private_gt / scene_dir.name if private_gt else None, report)
         report["status"] = "ok"
     except (BuildError, FormatError, OSError, ValueError) as e:
         report.update(status="failed", reason=str(e))
@@ -447,6 +411,49 @@ def build_place(
         log.exception("place %s", place_dir)
         report.update(status="failed", reason=f"{type(e).__name__}: {e}")
     report["seconds"] = round(time.perf_counter() - t0, 2)
+    _publish(report, staged, scene_dir, work, options)
+    return PlaceResult(
+        place_dir.name, scene_dir.name, report["status"], report.get("reason", ""), report["seconds"], report
+    )
+
+
+def _build(place_dir: Path, work: Path, options: BuildOptions, private_gt: Path | None, report: dict) -> None:
+    """Reconstruct a place, fit its metric scale and write the scene into ``work/scene``, each step recorded in
+    ``report``; ``private_gt`` receives the poses a test scene hides.
+
+    Raises:
+        BuildError: Too few images registered, no metric scale, or another reason the place cannot be a scene.
+    """
+    staged, images = work / "scene", work / "images"
+    place = read_place(place_dir, options.fps, work / "video", options.device_axes)
+    src, intr, device, seq_of = _stage(place, images)
+    for n, p in src.items():  # depth maps beside the inputs travel with the images
+        for suffix in _depth_suffixes(p):
+            os.symlink(depth_path_for(p, suffix).resolve(), depth_path_for(images / n, suffix))
+    t_sfm = time.perf_counter()
+    model = reconstruct(images, sorted(src), intr, work / "colmap", options.sfm)
+    report["sfm_seconds"] = round(time.perf_counter() - t_sfm, 2)
+    report["scans"] = _check_registration(place, model, seq_of, options.min_registered)
+    assert model is not None  # _check_registration raised BuildError otherwise
+    report["registered"] = len(model.poses)
+    report["images"] = len(src)
+    report["points3D"] = len(model.points)
+    report["reprojection_error_px"] = model.reprojection_error
+    report["models"] = model.models
+    fit = _metric_scale(place, model, seq_of, device, images, options.allow_unscaled)
+    report["scale"] = _jsonable(asdict(fit))
+    if fit.outliers:  # misregistered images (the device track disagrees): dropped, then re-checked
+        for n in fit.outliers:
+            model.poses.pop(n)
+        report["scans"] = _check_registration(place, model, seq_of, options.min_registered, len(fit.outliers))
+        report["registered"] = len(model.poses)
+    staged.mkdir(parents=True)
+    report.update(_write_scene(staged, place, model, fit, src, images, device, seq_of, options, private_gt))
+
+
+def _publish(report: dict, staged: Path, scene_dir: Path, work: Path, options: BuildOptions) -> None:
+    """Put a built scene in place of ``scene_dir`` (with its report and plot), or keep a failed build's report in
+    the work folder."""
     if report["status"] == "ok":
         (staged / REPORT_FILE).write_text(json.dumps(report, indent=1))
         if options.report_plot:
@@ -461,9 +468,6 @@ def build_place(
         shutil.rmtree(staged, ignore_errors=True)
         work.mkdir(parents=True, exist_ok=True)
         (work / REPORT_FILE).write_text(json.dumps(report, indent=1))
-    return PlaceResult(
-        place_dir.name, scene_dir.name, report["status"], report.get("reason", ""), report["seconds"], report
-    )
 
 
 def _jsonable(x):

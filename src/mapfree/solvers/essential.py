@@ -34,6 +34,7 @@ from .scale import scale_vote
 __all__ = [
     "EssentialOptions",
     "EssentialSolver",
+    "relative_pose",
     "relative_pose_opencv",
     "relative_pose_poselib",
     "triangulated_depths",
@@ -207,6 +208,36 @@ def relative_pose_poselib(kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, 
     return R, t, ransac_mask, pose_mask
 
 
+def relative_pose(
+    kpts0: np.ndarray, kpts1: np.ndarray, K0: Intrinsics, K1: Intrinsics, opt: EssentialOptions
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The relative pose of two views from their matches, by the backend ``opt`` names, refined when it asks.
+
+    Args:
+        kpts0: (N, 2) pixel keypoints in the reference image.
+        kpts1: (N, 2) matching keypoints in the query image.
+        K0: Reference intrinsics.
+        K1: Query intrinsics.
+        opt: Backend, RANSAC threshold (pixels) and confidence, refinement.
+
+    Returns:
+        R (3, 3) and unit t (3,) taking reference-camera points to the query camera, the (N,) RANSAC inlier
+        mask and the (N,) mask of the inliers in front of both cameras.
+
+    Raises:
+        SolverError: No pose.
+    """
+    if opt.backend == "poselib":
+        R, t_hat, ransac_mask, pose_mask = relative_pose_poselib(kpts0, kpts1, K0, K1, opt)
+    else:
+        x0, x1 = normalize_points(kpts0, K0), normalize_points(kpts1, K1)
+        thr = opt.ransac_threshold_px / np.mean([K0.fx, K0.fy, K1.fx, K1.fy])
+        R, t_hat, ransac_mask, pose_mask = relative_pose_opencv(x0, x1, opt, float(thr))
+    if opt.refine:
+        R, t_hat = refine_relative_pose(kpts0[pose_mask], kpts1[pose_mask], K0, K1, R, t_hat, opt.ransac_threshold_px)
+    return R, t_hat, ransac_mask, pose_mask
+
+
 class EssentialSolver(GuardedSolver[EssentialOptions]):
     """Ess.Mat + D.Scale. ``solve`` never raises on bad input: it returns ``Estimate.failure(reason)``."""
 
@@ -223,16 +254,7 @@ class EssentialSolver(GuardedSolver[EssentialOptions]):
             raise SolverError(f"no valid depth for the {' and '.join(which)} image")
 
         with timer("ransac"):
-            if opt.backend == "poselib":
-                R, t_hat, ransac_mask, pose_mask = relative_pose_poselib(k0, k1, K_ref, K_query, opt)
-            else:
-                x0, x1 = normalize_points(k0, K_ref), normalize_points(k1, K_query)
-                thr = opt.ransac_threshold_px / np.mean([K_ref.fx, K_ref.fy, K_query.fx, K_query.fy])
-                R, t_hat, ransac_mask, pose_mask = relative_pose_opencv(x0, x1, opt, float(thr))
-            if opt.refine:
-                R, t_hat = refine_relative_pose(
-                    k0[pose_mask], k1[pose_mask], K_ref, K_query, R, t_hat, opt.ransac_threshold_px
-                )
+            R, t_hat, ransac_mask, pose_mask = relative_pose(k0, k1, K_ref, K_query, opt)
         if not rotation_is_valid(R) or not np.all(np.isfinite(t_hat)):
             raise SolverError("degenerate relative pose")
         n_ransac, n_pose = int(ransac_mask.sum()), int(pose_mask.sum())

@@ -151,7 +151,11 @@ def pack_report(report: Any) -> bytes:
     rest: dict[str, Any] = {}
     for f in dataclasses.fields(report):
         v = getattr(report, f.name)
-        if isinstance(v, np.ndarray):
+        if f.name == "metrics":  # the scores are stored by the public evaluator's names
+            rest[f.name] = v.to_dict()
+        elif f.name == "per_scene":
+            rest[f.name] = {s: m.to_dict() for s, m in v.items()}
+        elif isinstance(v, np.ndarray):
             arrays[f.name] = v.astype(str) if v.dtype == object else v
         elif _record(v):
             rest[f.name] = dataclasses.asdict(v)
@@ -174,7 +178,7 @@ def unpack_report(data: bytes) -> Any:
 
     import numpy as np
 
-    from ...benchmark import Problem, Report, Thresholds
+    from ...benchmark import Problem, Report, Scores, Thresholds
 
     with np.load(io.BytesIO(data), allow_pickle=False) as z:
         fields = {k: z[k] for k in z.files if k != "__json__"}
@@ -182,7 +186,8 @@ def unpack_report(data: bytes) -> Any:
     rest["problems"] = [Problem(**p) for p in rest.get("problems", [])]
     if "thresholds" in rest:
         rest["thresholds"] = Thresholds(**{k: _tuples(v) for k, v in rest["thresholds"].items()})
-    rest["metrics"] = {k: (float("nan") if v is None else v) for k, v in rest.get("metrics", {}).items()}
+    rest["metrics"] = Scores.from_dict(rest.get("metrics", {}))
+    rest["per_scene"] = {s: Scores.from_dict(m) for s, m in rest.get("per_scene", {}).items()}
     return Report(**fields, **rest)
 
 
