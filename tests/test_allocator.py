@@ -1,4 +1,5 @@
-"""The heap stays warm once a Relocalizer exists: per-pair buffers of matching size are not faulted in again."""
+"""The heap stays warm once a relocalizing process set it up (``mapfree`` does at start, pool and Ray workers when
+they start): per-pair buffers of matching size are not faulted in again."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ import sys
 
 import pytest
 
-# In a fresh process (the heap state of the test runner is whatever earlier tests left): build the SIFT method,
-# then a few rounds of what one SIFT extraction does to the heap (the first octave's 16 Gaussian and DoG levels
+# In a fresh process (the heap state of the test runner is whatever earlier tests left): set the process up as the
+# command line does at start (``keep_heap_warm``) and build the SIFT method, then a few rounds of what one SIFT extraction does to the heap (the first octave's 16 Gaussian and DoG levels
 # of a 540 x 360 image upsampled 2x, 3 MB each, alive together, then all freed), counting the minor page faults
 # of the last rounds.
 PROBE = """
@@ -19,6 +20,7 @@ import numpy as np
 from mapfree.relocalize import Relocalizer
 from mapfree.relocalize.allocator import keep_heap_warm
 if sys.argv[1] == "build":
+    keep_heap_warm()
     Relocalizer.from_method("sift_emat_sensor")
 def faults():
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
