@@ -54,3 +54,20 @@ def test_relocalizer_keeps_heap_warm():
     # Opting out restores glibc's defaults, where the same matrix is given back and faulted in every round.
     cold = _probe("build", MAPFREE_MALLOC_DEFAULTS="1")
     assert cold["warm"] is False and min(cold["faults"]) > 1000
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_the_command_line_sets_the_heap_up_and_a_relocalizer_leaves_it():
+    """The process-wide setting is made where a relocalizing process starts (``mapfree run`` here), not by building
+    a Relocalizer."""
+    code = (
+        "import json\n"
+        "from mapfree.relocalize import Relocalizer, allocator\n"
+        "Relocalizer.from_method('sift_emat_sensor')\n"
+        "built = allocator._done\n"
+        "from mapfree.cli import main\n"
+        "main(['run', '--list-methods'])\n"
+        "print(json.dumps({'built': built, 'cli': allocator._done}))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == {"built": None, "cli": True}

@@ -288,7 +288,7 @@ class Relocalizer(Localizer[Anchor]):
         yield from (self._finish(anchor, prep) for prep in ahead(self._prepare_query, queries, prefetch))
 
     def localize_batched(
-        self, queries: Iterable[ViewLike], anchor: Anchor | None = None, options: BatchOptions | None = None
+        self, queries: Iterable[ViewLike], *, anchor: Anchor | None = None, options: BatchOptions | None = None
     ) -> Iterator[Estimate]:
         """``localize`` over many queries, in order, through the batched pipeline (``batched.py``): decoding
         in background threads, features and matches in batches on the device, solvers in a thread pool.
