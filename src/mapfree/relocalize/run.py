@@ -3,6 +3,10 @@
 Every finished frame is appended at once to a JSON-lines journal beside the output
 (``submission.journal.jsonl``), so a killed run loses nothing: ``resume=True`` skips the frames already
 there. The submission ZIP and the failure log (``submission.failures.jsonl``) are rebuilt from the journal.
+
+``run_split`` in steps: check the inputs and the journal (``_plan``, ``_check_method``), start the journal
+(``_start_journal``; its records are ``journal.py``'s), compute the frames here, in a process pool or on Ray
+(``_dispatch``; ``distributed.py``), write the submission from the whole journal (``_result``).
 """
 
 from __future__ import annotations
