@@ -47,7 +47,9 @@ def test_batched_path_equals_one_pair_at_a_time(name, realmini, one_torch_thread
         anchor = loc.prepare(ref)
         one = [loc.localize(q, anchor) for q in queries]
         many = list(
-            loc.localize_batched(queries, anchor, BatchOptions(batch_size=3, decode_workers=2, solve_workers=2))
+            loc.localize_batched(
+                queries, anchor=anchor, options=BatchOptions(batch_size=3, decode_workers=2, solve_workers=2)
+            )
         )
         assert len(many) == len(queries)
         for a, b in zip(one, many):
@@ -63,7 +65,7 @@ def test_batched_path_isolates_bad_queries(realmini, tmp_path, one_torch_thread)
     bad.write_bytes(b"not a jpeg")
     loc = Relocalizer("xfeat", "files:sensor", "essential", matcher_opts={"device": "cpu"})
     items = [queries[0], (bad, ref.intrinsics.K), queries[1]]
-    out = list(loc.localize_batched(items, loc.prepare(ref), BatchOptions(batch_size=4)))
+    out = list(loc.localize_batched(items, anchor=loc.prepare(ref), options=BatchOptions(batch_size=4)))
     assert [e.ok for e in out] == [True, False, True] and "broken.jpg" in out[1].reason
 
 
@@ -152,7 +154,11 @@ def test_depth_files_are_read_by_the_decode_workers(realmini, monkeypatch, one_t
     ref, queries = _queries(realmini, "s00000", 3)
     anchor = loc.prepare(ref)
     readers.clear()
-    many = list(loc.localize_batched(queries, anchor, BatchOptions(batch_size=2, decode_workers=2, solve_workers=1)))
+    many = list(
+        loc.localize_batched(
+            queries, anchor=anchor, options=BatchOptions(batch_size=2, decode_workers=2, solve_workers=1)
+        )
+    )
     assert len(readers) == len(queries) and all(r.startswith("mapfree-decode") for r in readers)
     for a, b in zip([loc.localize(q, anchor) for q in queries], many):
         _same(a, b, exact=True)

@@ -25,7 +25,7 @@ from mapfree.cli import main
 from mapfree.estimate import Estimate, Signals
 from mapfree.geometry import Pose
 from mapfree.methods import get
-from mapfree.relocalize import Relocalizer, read_journal
+from mapfree.relocalize import build_localizer, read_journal
 from mapfree.relocalize.cascade import Cascade
 from mapfree.solvers import EssentialSolver, PnPSolver, ProcrustesSolver
 from test_solvers import K_QRY, K_REF, synthetic_pair
@@ -271,7 +271,7 @@ def test_api_gives_p_correct(calibrated, synth40):
     from mapfree.data import Dataset
 
     scene = Dataset(synth40).scene("val", "s00000")
-    loc = Relocalizer.from_method("sift_pnp_sensor", calibration=calibrated["sift_pnp_sensor"])
+    loc = build_localizer("sift_pnp_sensor", calibration=calibrated["sift_pnp_sensor"])
     assert isinstance(loc, Calibrated)
     est = loc.relocalize(scene.reference, scene.queries[0])
     assert est.ok and 0 <= est.p_correct <= 1 and "p_pose" in est.extras

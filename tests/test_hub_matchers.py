@@ -340,7 +340,11 @@ def test_batched_path_equals_one_pair_at_a_time(name, folder, weights_dir, realm
     anchor = loc.prepare(scene.reference)
     queries = scene.queries[3:5]
     one = [loc.localize(q, anchor) for q in queries]
-    many = list(loc.localize_batched(queries, anchor, BatchOptions(batch_size=2, decode_workers=1, solve_workers=1)))
+    many = list(
+        loc.localize_batched(
+            queries, anchor=anchor, options=BatchOptions(batch_size=2, decode_workers=1, solve_workers=1)
+        )
+    )
     for a, b in zip(one, many, strict=True):
         assert a.ok == b.ok and a.reason == b.reason and a.inliers == b.inliers
         if a.ok:

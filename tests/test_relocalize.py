@@ -254,3 +254,24 @@ def test_figure_of_a_method_without_matches_has_no_matches_panel(synth):
     k = np.array([[10.0, 10.0], [50.0, 60.0]])
     matched = estimate_figure(*args, Estimate(rel, 1.0, extras={"matches": Matches(k, k + 1, np.ones(2))}), rel)
     assert matched.shape[:2] == (2 * h + 6, 2 * w)
+
+
+def test_from_method_always_gives_a_relocalizer_and_build_localizer_any_method():
+    """``Relocalizer.from_method`` returns what it says (a matching method's ``Relocalizer``) and refuses the methods
+    whose localizer is something else, naming ``build_localizer``, which builds those."""
+    import dataclasses
+
+    from mapfree.calibration import CALIBRATION_OPTION
+    from mapfree.methods import get
+    from mapfree.relocalize import build_localizer
+
+    assert type(Relocalizer.from_method("sift_pnp_sensor")) is Relocalizer
+    assert type(build_localizer("sift_pnp_sensor")) is Relocalizer
+    calibrated = dataclasses.replace(get("sift_pnp_sensor"), options={CALIBRATION_OPTION: "x.calib.json"})
+    for method, what in (
+        ("rpr-3d3d", "a regression method"),
+        ("sift_pnp_sensor+sift_emat_sensor", "a cascade method"),
+        (calibrated, "calibrated"),
+    ):
+        with pytest.raises(ValueError, match=f"is {what}: .*build_localizer"):
+            Relocalizer.from_method(method)

@@ -77,6 +77,34 @@ def test_run_writes_valid_submission_and_failure_log(tiny, tmp_path):
     assert again.computed == 0 and again.skipped == 5 and again.estimated == res.estimated
 
 
+def test_journal_records_give_back_the_lines_written(tiny, tmp_path):
+    """The journal's records (``Journal.read``) are its lines: written again they are the same bytes, their poses
+    are the submission's and their failures the failure log's; a line of an older journal reads with defaults."""
+    from mapfree.relocalize.journal import FrameRecord, Journal, rewrite_journal
+
+    out = tmp_path / "sub.zip"
+    run_split(tiny, "val", METHOD, out, progress=False)
+    path = out.with_name("sub.journal.jsonl")
+    journal = Journal.read(path)
+    header, lines = read_journal(path)
+    assert journal.header is not None and journal.header.to_json() == header and journal.torn == 0
+    assert [r.to_json() for r in journal.frames] == lines and len(lines) == 5
+    copy = tmp_path / "copy.jsonl"
+    rewrite_journal(copy, journal.header, journal.frames)
+    assert copy.read_bytes() == path.read_bytes()
+    submitted = {(scene, row[0]): row[1:] for scene, rows in _read_zip(out).items() for row in rows}
+    ok = [r for r in journal.frames if r.ok]
+    assert ok and all(r.signals.n_matches for r in ok)
+    for r in ok:
+        row = submitted[(f"pose_{r.scene}.txt", r.frame)]
+        assert np.allclose([float(v) for v in row[:7]], [*r.q, *r.t], atol=1e-6)
+        assert float(row[7]) == pytest.approx(r.score(None), rel=1e-5)
+    failures = [json.loads(x) for x in out.with_name("sub.failures.jsonl").read_text().splitlines()]
+    assert failures == [{"scene": r.scene, "frame": r.frame, "reason": r.reason} for r in journal.frames if not r.ok]
+    old = FrameRecord.from_json({"kind": "frame", "scene": "s00000", "frame": "seq1/frame_00000.jpg", "ok": False})
+    assert (old.reason, old.q, old.p_correct, old.to_json()["signals"]) == ("", None, None, {})
+
+
 @pytest.mark.slow
 def test_resume_after_kill_loses_and_recomputes_nothing(tiny, tmp_path):
     out = tmp_path / "killed" / "sub.zip"

@@ -432,7 +432,7 @@ class Calibrated(Localizer[Any]):
     """A localizer whose estimates carry ``p_correct`` (and ``extras["p_pose"]``) from a calibration.
 
     Args:
-        localizer: The method's localizer (``Method.build()``, ``Relocalizer.from_method``).
+        localizer: The method's localizer (``Method.build()``, ``mapfree.relocalize.build_localizer``).
         calibration: The method's calibration.
     """
 
@@ -454,9 +454,10 @@ class Calibrated(Localizer[Any]):
         return (self.calibration.apply(e) for e in self.localizer.localize_many(queries, anchor, prefetch=prefetch))
 
     def localize_batched(
-        self, queries: Iterable[ViewLike], anchor: Any | None = None, options: BatchOptions | None = None
+        self, queries: Iterable[ViewLike], *, anchor: Any | None = None, options: BatchOptions | None = None
     ) -> Iterable[Estimate]:
-        return (self.calibration.apply(e) for e in self.localizer.localize_batched(queries, anchor, options))
+        batched = self.localizer.localize_batched(queries, anchor=anchor, options=options)
+        return (self.calibration.apply(e) for e in batched)
 
     def default_batch_size(self) -> int:
         return self.localizer.default_batch_size()

@@ -197,7 +197,7 @@ class Localizer(QueryLocalizer, Generic[AnchorT]):
         return _each(partial(self.localize, anchor=anchor), queries)
 
     def localize_batched(
-        self, queries: Iterable[ViewLike], anchor: AnchorT | None = None, options: BatchOptions | None = None
+        self, queries: Iterable[ViewLike], *, anchor: AnchorT | None = None, options: BatchOptions | None = None
     ) -> Iterable[Estimate]:
         """``localize_many`` unless the localizer has a batched device path.
 

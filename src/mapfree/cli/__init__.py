@@ -97,6 +97,9 @@ COMMANDS = [
     "build",
     "weights",
 ]
+#: Commands that relocalize images in this process: glibc's heap is kept warm for their per-pair buffers
+#: (``mapfree.relocalize.allocator``), a process-wide setting made once, here where the process starts.
+RELOCALIZING = frozenset({"run", "relocalize", "calibrate", "demo", "scannet", "sevenscenes", "serve"})
 #: Set (to anything but 0) to have a command that cannot be loaded print the full traceback under its one line.
 DEBUG_ENV = "MAPFREE_DEBUG"
 
@@ -157,6 +160,10 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
+    if args.command in RELOCALIZING:
+        from ..relocalize.allocator import keep_heap_warm
+
+        keep_heap_warm()
     try:
         code = int(args.func(args) or EXIT_OK)
         sys.stdout.flush()  # a closed pipe shows here, not as a traceback when the interpreter exits

@@ -6,12 +6,16 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ..method_names import BEST_OFFLINE
 
 if TYPE_CHECKING:
+    from ..estimate import Estimate
     from ..geometry import Pose
+    from ..localizer import Localizer
+    from ..methods import Method
+    from ..relocalize import View
 
 DESCRIPTION = """\
 Estimate the metric 6-DoF pose of QUERY relative to REF (X_query = R X_ref + t) and print it as JSON
@@ -196,11 +200,8 @@ def _check_depth_suffix(method, args) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from ..data import FormatError, check_depth_size, read_depth
-    from ..methods import get
-    from ..relocalize import Relocalizer, default_warning, photo_views
+    from ..data import FormatError
+    from ..relocalize import default_warning
     from . import EXIT_NOTHING, fail, output_file_problem
 
     try:  # a malformed --K-* flag first: before any file or data problem
@@ -211,58 +212,8 @@ def run(args: argparse.Namespace) -> int:
     if problem:
         return fail("relocalize", problem)
     try:
-        if args.checkpoint is not None:
-            from .run import _with_checkpoint
-
-            method = _with_checkpoint(args.method, args.checkpoint)
-        else:
-            method = get(args.method)
-        if args.depth:
-            method = method.with_depth(args.depth)
-        from ..methods import depth_free_problem, query_depth_fallback
-
-        _check_depth_suffix(method, args)
-        problem = depth_free_problem(method)
-        if problem and (args.depth_ref is None or (method.solver == "procrustes" and args.depth_query is None)):
-            raise InputError(f"{problem}; or pass the maps with --depth-ref/--depth-query")
-        if not _query_has_depth(method, args):
-            fallback = query_depth_fallback(method)
-            if fallback is not method:
-                print(
-                    f"mapfree relocalize: {args.query} has no depth map ({method.depth}): {method.name} runs with "
-                    f"PnP instead (reference depth only)",
-                    file=sys.stderr,
-                )
-                method = fallback
-        if args.calibration is not None:
-            from ..relocalize.calibrate import with_calibration
-
-            method = with_calibration(method, [args.calibration])
-        for p in (args.reference, args.query):
-            if not p.is_file():
-                raise InputError(f"{p}: image not found")
-        given = [
-            _given_intrinsics(args, image, flag, what)
-            for image, flag, what in ((args.reference, k_flags[0], "--K-ref"), (args.query, k_flags[1], "--K-query"))
-        ]
-        depths = [read_depth(p) if p else None for p in (args.depth_ref, args.depth_query)]
-        gt = _gt_pose(args)
-        loc = Relocalizer.from_method(method)
-        if args.depth_ref is None or args.depth_query is None:
-            from ..relocalize.run import check_depth_source
-
-            check_depth_source(loc)  # a depth network that cannot be loaded: one clear error, not a "no estimate"
-        views = photo_views(
-            args.reference,
-            args.query,
-            (given[0], given[1]),
-            (depths[0], depths[1]),
-            loc.matcher if isinstance(loc, Relocalizer) else None,  # its focal estimate, when it has one
-            ("--K-ref", "--K-query"),
-        )
-        for v, dpath, depth in zip(views, (args.depth_ref, args.depth_query), depths):
-            if depth is not None and v.frame is not None:
-                check_depth_size(dpath, depth.shape, v.frame.intrinsics.width, v.frame.intrinsics.height)
+        method = _method(args)
+        loc, views, gt = _inputs(args, method, k_flags)
     except (InputError, FormatError, FileNotFoundError, KeyError, ValueError) as e:
         return fail("relocalize", e)
 
@@ -277,10 +228,92 @@ def run(args: argparse.Namespace) -> int:
     calibration = calibration_for(method.name, method.options)
     if calibration is not None and est.p_correct is None:
         calibration.apply(est)
-    out = {"method": method.name, "reference": str(args.reference), "query": str(args.query), **est.to_dict()}
-    out["intrinsics"] = {"reference": ref.resolved.to_dict(), "query": query.resolved.to_dict()}
+    print(json.dumps(_answer(args, method, est, views, gt), indent=2, allow_nan=False))
+    if est.pose is None:
+        print(f"mapfree relocalize: no estimate: {est.reason}", file=sys.stderr)
+        return EXIT_NOTHING
+    return 0
+
+
+def _method(args: argparse.Namespace) -> Method:
+    """The method the flags name (``--method``, ``--checkpoint``, ``--depth``, ``--calibration``), refused when it
+    cannot run on this pair's depth, or its PnP twin for a query without the depth map its solver needs."""
+    from ..methods import depth_free_problem, get, query_depth_fallback
+
+    if args.checkpoint is not None:
+        from .run import _with_checkpoint
+
+        method = _with_checkpoint(args.method, args.checkpoint)
+    else:
+        method = get(args.method)
+    if args.depth:
+        method = method.with_depth(args.depth)
+    _check_depth_suffix(method, args)
+    problem = depth_free_problem(method)
+    if problem and (args.depth_ref is None or (method.solver == "procrustes" and args.depth_query is None)):
+        raise InputError(f"{problem}; or pass the maps with --depth-ref/--depth-query")
+    if not _query_has_depth(method, args):
+        fallback = query_depth_fallback(method)
+        if fallback is not method:
+            print(
+                f"mapfree relocalize: {args.query} has no depth map ({method.depth}): {method.name} runs with "
+                f"PnP instead (reference depth only)",
+                file=sys.stderr,
+            )
+            method = fallback
+    if args.calibration is not None:
+        from ..relocalize.calibrate import with_calibration
+
+        method = with_calibration(method, [args.calibration])
+    return method
+
+
+def _inputs(
+    args: argparse.Namespace, method: Method, k_flags: tuple[list[float] | None, list[float] | None]
+) -> tuple[Localizer[Any], tuple[View, View], Pose | None]:
+    """The built method, the two images as views (intrinsics and depth maps resolved) and the ground truth."""
+    from ..data import check_depth_size, read_depth
+    from ..relocalize import Relocalizer, build_localizer, photo_views
+
+    for p in (args.reference, args.query):
+        if not p.is_file():
+            raise InputError(f"{p}: image not found")
+    given = [
+        _given_intrinsics(args, image, flag, what)
+        for image, flag, what in ((args.reference, k_flags[0], "--K-ref"), (args.query, k_flags[1], "--K-query"))
+    ]
+    depths = [read_depth(p) if p else None for p in (args.depth_ref, args.depth_query)]
+    gt = _gt_pose(args)
+    loc = build_localizer(method)
+    if args.depth_ref is None or args.depth_query is None:
+        from ..relocalize.run import check_depth_source
+
+        check_depth_source(loc)  # a depth network that cannot be loaded: one clear error, not a "no estimate"
+    views = photo_views(
+        args.reference,
+        args.query,
+        (given[0], given[1]),
+        (depths[0], depths[1]),
+        loc.matcher if isinstance(loc, Relocalizer) else None,  # its focal estimate, when it has one
+        ("--K-ref", "--K-query"),
+    )
+    for v, dpath, depth in zip(views, (args.depth_ref, args.depth_query), depths):
+        if depth is not None and v.frame is not None:
+            check_depth_size(dpath, depth.shape, v.frame.intrinsics.width, v.frame.intrinsics.height)
+    return loc, views, gt
+
+
+def _answer(
+    args: argparse.Namespace, method: Method, est: Estimate, views: tuple[View, View], gt: Pose | None
+) -> dict[str, Any]:
+    """The JSON printed: the estimate, the intrinsics used, the scores, the error against ``gt``, the figure."""
+    import numpy as np
+
     from ..relocalize.run import estimate_scores
 
+    ref, query = views
+    out = {"method": method.name, "reference": str(args.reference), "query": str(args.query), **est.to_dict()}
+    out["intrinsics"] = {"reference": ref.resolved.to_dict(), "query": query.resolved.to_dict()}
     out["scores"] = estimate_scores(est)
     if est.extras.get("same_viewpoint"):  # the query was taken from the reference's viewpoint: identity pose
         out["same_viewpoint"] = True
@@ -301,8 +334,4 @@ def run(args: argparse.Namespace) -> int:
             ref.image, query.image, ref.intrinsics, query.intrinsics, est, gt, threshold_px=thr, title=method.name
         )
         out["viz"] = str(save_png(args.viz, fig))
-    print(json.dumps(out, indent=2, allow_nan=False))
-    if est.pose is None:
-        print(f"mapfree relocalize: no estimate: {est.reason}", file=sys.stderr)
-        return EXIT_NOTHING
-    return 0
+    return out

@@ -7,10 +7,11 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from ..relocalize import RunResult
+    from ..relocalize.multiframe import MultiRunResult
 
 DESCRIPTION = """\
 Relocalize every query the benchmark scores (every 5th; --all-frames for all) of every scene of a split
@@ -161,110 +162,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..data import FormatError
-    from ..methods import list_methods
     from . import EXIT_ERROR, EXIT_NOTHING, fail
 
     if args.list_methods:
-        from ..methods import requirements
-
-        names = list_methods()
-        width = max(map(len, names))
-        print("\n".join(f"{n:<{width}}  {requirements(n)}" for n in names))
-        return 0
+        return _list_methods()
     if args.root is None and args.ray not in (None, "local") and Path(args.ray).is_dir():
         args.root, args.ray = Path(args.ray), "local"  # `run --ray ROOT …`: the folder is ROOT, not an address
-    problem = None
-    if args.root is None or not args.method:
-        problem = "ROOT and --method are required (or --list-methods)"
-    elif args.workers < 1:
-        problem = "--workers must be >= 1"
-    elif args.batch is not None and args.batch < 0:
-        problem = "--batch must be >= 0"
-    elif args.track == "multi" and args.all_frames:
-        problem = (
-            "--all-frames cannot be combined with --track multi (the multi-frame track runs the 9-frame "
-            "bursts of the scored queries)"
-        )
-    elif args.viz is not None and args.viz.exists() and not args.viz.is_dir():
-        problem = f"--viz {args.viz}: not a folder (it names a file)"
-    elif args.scenes is not None and not [s for s in args.scenes.split(",") if s.strip()]:
-        problem = f"--scenes {args.scenes!r}: no scene name (give e.g. --scenes s00000,s00001)"
+    problem = _usage_problem(args)
     if problem:
         return fail("run", problem)
-    from ..relocalize import run_split
     from ..relocalize.distributed import ClusterError
-    from ..relocalize.multiframe import MultiRunResult, frames_path, run_multi
+    from ..relocalize.multiframe import MultiRunResult
 
     try:
-        ray_options = _ray_options(args)
-        method = args.method
-        if getattr(args, "checkpoint", None) is not None:
-            method = _with_checkpoint(method, args.checkpoint)
-        if args.references != 1 or args.reference_mode != "retrieval":
-            from ..relocalize.references import with_references
-
-            method = with_references(method, args.references, args.reference_mode)
-        if args.calibration:
-            from ..relocalize.calibrate import with_calibration
-
-            method = with_calibration(method, args.calibration)
-        run: Callable[..., RunResult | MultiRunResult] = run_multi if args.track == "multi" else run_split
-        res = run(
-            args.root,
-            args.split,
-            method,
-            args.output,
-            workers=args.workers,
-            all_frames=args.all_frames,
-            resume=args.resume,
-            overwrite=args.overwrite,
-            confidence=args.confidence,
-            progress=not args.no_progress,
-            scenes=[s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None,
-            batch_size=args.batch,
-            viz_dir=args.viz,
-            ray_address=args.ray,
-            ray_options=ray_options,
-        )
+        res = _run(args)
     except (ClusterError, FileExistsError, FileNotFoundError, FormatError, KeyError, ValueError) as e:
         return fail("run", e)
     except KeyboardInterrupt:
-        from ..relocalize import journal_path, read_journal
-
-        jpath = journal_path(frames_path(args.output) if args.track == "multi" else args.output)
-        print(
-            f"mapfree run: interrupted; the {len(read_journal(jpath)[1])} finished frames are kept in {jpath}: "
-            f"run the same command with --resume to continue",
-            file=sys.stderr,
-        )
-        return 130
-    out = res.to_dict()
+        return _interrupted(args)
     frames = res.frames if isinstance(res, MultiRunResult) else res  # multi-frame: the per-frame run behind it
-    if frames.stale_scenes:
-        print(
-            f"mapfree run: the data of {', '.join(frames.stale_scenes)} changed since the journal was written: "
-            f"computed again",
-            file=sys.stderr,
-        )
-    if frames.torn_lines:
-        print(
-            f"mapfree run: {frames.journal}: {frames.torn_lines} line(s) cut mid-write (a kill or a full disk) "
-            f"dropped; their frames were computed again",
-            file=sys.stderr,
-        )
-    report, error = None, None
-    if args.evaluate:
-        from ..benchmark import EvaluationError, evaluate
-
-        try:
-            report = evaluate(res.submission, args.root, args.split, track=args.track)
-            out["metrics"] = report.metrics.to_dict()
-        except (EvaluationError, FormatError, FileNotFoundError, ValueError) as e:
-            error = (
-                f"mapfree run: error: the submission {res.submission} was written but cannot be scored here: "
-                f"{e}; score it with `mapfree evaluate {res.submission} --dataset {args.root} --split "
-                f"{args.split} --gt-root GT` when you hold the ground truth"
-            )
+    _print_warnings(frames)
+    out = res.to_dict()
+    report, error = _evaluate(res, args, out) if args.evaluate else (None, None)
     if args.json:
         print(json.dumps(out, indent=2, allow_nan=False))
     else:
@@ -281,6 +200,125 @@ def run(args: argparse.Namespace) -> int:
         print(f"mapfree run: {why} (reasons in {res.failures})", file=sys.stderr)
         return EXIT_NOTHING
     return 0
+
+
+def _list_methods() -> int:
+    """``--list-methods``: each name with what it needs."""
+    from ..methods import list_methods, requirements
+
+    names = list_methods()
+    width = max(map(len, names))
+    print("\n".join(f"{n:<{width}}  {requirements(n)}" for n in names))
+    return 0
+
+
+def _usage_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with the command line before anything is read, or None."""
+    if args.root is None or not args.method:
+        return "ROOT and --method are required (or --list-methods)"
+    if args.workers < 1:
+        return "--workers must be >= 1"
+    if args.batch is not None and args.batch < 0:
+        return "--batch must be >= 0"
+    if args.track == "multi" and args.all_frames:
+        return (
+            "--all-frames cannot be combined with --track multi (the multi-frame track runs the 9-frame "
+            "bursts of the scored queries)"
+        )
+    if args.viz is not None and args.viz.exists() and not args.viz.is_dir():
+        return f"--viz {args.viz}: not a folder (it names a file)"
+    if args.scenes is not None and not [s for s in args.scenes.split(",") if s.strip()]:
+        return f"--scenes {args.scenes!r}: no scene name (give e.g. --scenes s00000,s00001)"
+    return None
+
+
+def _method(args: argparse.Namespace) -> Any:
+    """The method the flags name: ``--method`` with ``--checkpoint``, ``--references`` and ``--calibration``."""
+    method = args.method
+    if getattr(args, "checkpoint", None) is not None:
+        method = _with_checkpoint(method, args.checkpoint)
+    if args.references != 1 or args.reference_mode != "retrieval":
+        from ..relocalize.references import with_references
+
+        method = with_references(method, args.references, args.reference_mode)
+    if args.calibration:
+        from ..relocalize.calibrate import with_calibration
+
+        method = with_calibration(method, args.calibration)
+    return method
+
+
+def _run(args: argparse.Namespace) -> RunResult | MultiRunResult:
+    """The run the flags ask for: ``run_split``, or ``run_multi`` for ``--track multi``."""
+    from ..relocalize import run_split
+    from ..relocalize.multiframe import run_multi
+
+    ray_options = _ray_options(args)
+    run: Callable[..., RunResult | MultiRunResult] = run_multi if args.track == "multi" else run_split
+    return run(
+        args.root,
+        args.split,
+        _method(args),
+        args.output,
+        workers=args.workers,
+        all_frames=args.all_frames,
+        resume=args.resume,
+        overwrite=args.overwrite,
+        confidence=args.confidence,
+        progress=not args.no_progress,
+        scenes=[s.strip() for s in args.scenes.split(",") if s.strip()] if args.scenes else None,
+        batch_size=args.batch,
+        viz_dir=args.viz,
+        ray_address=args.ray,
+        ray_options=ray_options,
+    )
+
+
+def _interrupted(args: argparse.Namespace) -> int:
+    """Ctrl-C: say how many frames the journal keeps for ``--resume``."""
+    from ..relocalize.journal import journal_path, read_journal
+    from ..relocalize.multiframe import frames_path
+
+    jpath = journal_path(frames_path(args.output) if args.track == "multi" else args.output)
+    print(
+        f"mapfree run: interrupted; the {len(read_journal(jpath)[1])} finished frames are kept in {jpath}: "
+        f"run the same command with --resume to continue",
+        file=sys.stderr,
+    )
+    return 130
+
+
+def _print_warnings(frames: RunResult) -> None:
+    """Stale scenes computed again, torn journal lines dropped: one line each on stderr."""
+    if frames.stale_scenes:
+        print(
+            f"mapfree run: the data of {', '.join(frames.stale_scenes)} changed since the journal was written: "
+            f"computed again",
+            file=sys.stderr,
+        )
+    if frames.torn_lines:
+        print(
+            f"mapfree run: {frames.journal}: {frames.torn_lines} line(s) cut mid-write (a kill or a full disk) "
+            f"dropped; their frames were computed again",
+            file=sys.stderr,
+        )
+
+
+def _evaluate(res: RunResult | MultiRunResult, args: argparse.Namespace, out: dict[str, Any]) -> tuple[Any, str | None]:
+    """``--evaluate``: the report (its metrics added to ``out``), or the line saying why it cannot be scored."""
+    from ..benchmark import EvaluationError, evaluate
+    from ..data import FormatError
+
+    try:
+        report = evaluate(res.submission, args.root, args.split, track=args.track)
+    except (EvaluationError, FormatError, FileNotFoundError, ValueError) as e:
+        return None, (
+            f"mapfree run: error: the submission {res.submission} was written but cannot be scored here: "
+            f"{e}; score it with `mapfree evaluate {res.submission} --dataset {args.root} --split "
+            f"{args.split} --gt-root GT` when you hold the ground truth"
+        )
+    out["metrics"] = report.metrics.to_dict()
+    return report, None
 
 
 def _print_summary(res, frames, args: argparse.Namespace) -> None:

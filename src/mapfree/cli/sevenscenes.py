@@ -104,7 +104,7 @@ def evaluate_sevenscenes(
 
     from ..benchmark.localization import localization_report
     from ..data.sevenscenes import COLOR_CAMERA, SevenScenes
-    from ..relocalize import Relocalizer
+    from ..relocalize import build_localizer
     from ..relocalize.references import localize_with_references
 
     ds = SevenScenes(root, tuple(intrinsics) if intrinsics is not None else COLOR_CAMERA)
@@ -119,7 +119,7 @@ def evaluate_sevenscenes(
                 f"{mapping_stride}, so K > {len(mapping)} uses {len(mapping)}; lower the stride for more",
                 file=sys.stderr,
             )
-    loc = Relocalizer.from_method(method)
+    loc = build_localizer(method)
     reports = {}
     for k in ks:
         cols: dict[str, list] = {c: [] for c in ("scene", "frame", "qg", "tg", "qe", "te", "conf", "K", "W", "H")}

@@ -5,12 +5,13 @@ it (``mapfree.relocalize.views``).
 """
 
 from ..localizer import Localizer, QueryLocalizer
-from .pipeline import MIN_PARALLAX_PX, Relocalizer, build_matching
+from .pipeline import MIN_PARALLAX_PX, Relocalizer, build_localizer, build_matching
 from .run import RunResult, failures_path, frames_to_run, journal_path, read_journal, run_split
 from .views import Anchor, View, ViewLike, as_view, default_warning, photo_view, photo_views
 
 __all__ = [
     "Relocalizer",
+    "build_localizer",
     "Localizer",
     "QueryLocalizer",
     "Anchor",

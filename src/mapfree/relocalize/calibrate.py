@@ -1,6 +1,6 @@
 """``mapfree calibrate``: a method's estimates of every frame with ground truth, turned into a ``Calibration``.
 
-The estimates come from a run's journal (``read_journal``: each frame's signals and world pose), either one the
+The estimates come from a run's journal (``journal.Journal``: each frame's signals and world pose), either one the
 user already has or one this module writes by running the method on every query of the split.
 """
 
@@ -20,7 +20,8 @@ from ..data import Dataset
 from ..estimate import Signals
 from ..methods import Method, get
 from .cascade import CASCADE, STAGE_CALIBRATIONS
-from .run import read_journal, run_split
+from .journal import Journal
+from .run import run_split
 
 __all__ = ["JournalFrames", "journal_frames", "calibration_frames", "calibrate", "with_calibration"]
 
@@ -66,37 +67,27 @@ def journal_frames(journal: os.PathLike | str, root: os.PathLike | str, split: s
     Raises:
         CalibrationError: No journal, or no frame of it has ground truth.
     """
-    header, recs = read_journal(journal)
-    if header is None:
+    read = Journal.read(journal)
+    if read.header is None:
         raise CalibrationError(f"{journal} is no run journal (no header line)")
     scenes = {s.name: s for s in Dataset(root).scenes(split)}
     rows: list[tuple[Any, ...]] = []
     failed = 0
-    for r in recs:
-        scene = scenes.get(r["scene"])
+    for r in read.frames:
+        scene = scenes.get(r.scene)
         if scene is None:
             continue
-        ref, frame = scene.reference, scene.frame(r["frame"])
+        ref, frame = scene.reference, scene.frame(r.frame)
         if frame.pose is None or ref.pose is None:
             continue
-        if not r["ok"]:
+        if not r.ok:
             failed += 1
             continue
         q, t = frame.pose.qt()
         K = frame.intrinsics
-        sig = Signals.from_dict(r.get("signals", {}))
+        p_correct = np.nan if r.p_correct is None else r.p_correct
         rows.append(
-            (
-                sig,
-                r["confidence"],
-                q,
-                t,
-                r["q"],
-                r["t"],
-                [K.fx, K.fy, K.cx, K.cy, K.width, K.height],
-                r.get("stage", ""),
-                r.get("p_correct", np.nan),
-            )
+            (r.signals, r.confidence, q, t, r.q, r.t, [K.fx, K.fy, K.cx, K.cy, K.width, K.height], r.stage, p_correct)
         )
     if not rows and not failed:
         raise CalibrationError(
@@ -107,7 +98,7 @@ def journal_frames(journal: os.PathLike | str, root: os.PathLike | str, split: s
     arr = lambda i, w: np.array([r[i] for r in rows], dtype=np.float64).reshape(n, w)  # noqa: E731
     q_gt, t_gt, q_est, t_est, k = arr(2, 4), arr(3, 3), arr(4, 4), arr(5, 3), arr(6, 6)
     return JournalFrames(
-        method=str(header["method"].get("name", "")),
+        method=str(read.header.method.get("name", "")),
         signals=[r[0] for r in rows],
         confidence=np.array([r[1] for r in rows], dtype=np.float64),
         vcre=vcre(q_gt, t_gt, q_est, t_est, k[:, :4].astype(np.float32), k[:, 4], k[:, 5]),

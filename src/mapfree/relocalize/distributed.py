@@ -21,28 +21,38 @@ between frames), so where it ran does not change the submission.
 
 from __future__ import annotations
 
-import logging
 import math
-import os
-import socket
 import time
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from .cluster import (
+    ClusterError,
+    alive_nodes,
+    check_nodes,
+    check_root,
+    connect,
+    describe_nodes,
+    end_actors,
+    node_name,
+    one_line,
+    ray_module,
+    task_slots,
+    unreadable,
+)
+from .journal import append_records
 from .scenes import (
     FrameResult,
     SceneReference,
-    append_records,
     built_localizer,
     check_depth_source,
     open_scene,
     save_figure,
     scene_results,
-    set_threads,
+    set_up_worker,
     sigint_ignored,
 )
 
@@ -51,15 +61,9 @@ if TYPE_CHECKING:
 
 __all__ = ["RayOptions", "ClusterError", "connect", "check_root", "task_slots", "plan_chunks", "run_on_ray"]
 
-LOCAL = "local"  # the address that starts a Ray instance on this machine
 _TICK_S = 0.5  # the driver's loop: how long it waits for a result before looking after its workers
 _REGROW_S = 2.0  # how often it looks for room for more workers
 _START_GRACE_S = 60.0  # how long the first work waits for workers the cluster has no room for yet
-
-
-class ClusterError(RuntimeError):
-    """The Ray cluster cannot run the work (unreachable, no room for a worker, every worker lost); the message
-    says what to do, and the frames journaled so far are kept for ``--resume``."""
 
 
 @dataclass(frozen=True)
@@ -86,232 +90,27 @@ class RayOptions:
             raise ValueError(f"chunk_frames must be >= 1, got {self.chunk_frames}")
 
 
-# --------------------------------------------------------------------------- the cluster
-
-
-def _ray() -> Any:
-    try:
-        import ray
-    except ImportError:
-        raise ClusterError("--ray needs Ray on this machine and every node: pip install 'mapfree[cluster]'") from None
-    return ray
-
-
-def connect(address: str) -> bool:
-    """Join the Ray cluster at ``address`` (``auto``, ``HOST:PORT``, ``ray://HOST:PORT``), or start a Ray
-    instance on this machine for ``local``. True when this call connected (so the caller disconnects), False
-    when this process was connected already."""
-    if address == LOCAL:
-        # A local instance talks only to itself: keep it on the loopback address (Ray reads this at import).
-        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-    ray = _ray()
-    if ray.is_initialized():
-        return False
-    if address not in (LOCAL, "auto"):
-        _check_reachable(address)
-    quiet = {"log_to_driver": False, "configure_logging": False, "logging_level": logging.WARNING}
-    if address == LOCAL:
-        try:
-            ray.init(address="local", include_dashboard=False, object_store_memory=256 * 1024 * 1024, **quiet)
-        except (ConnectionError, RuntimeError, ValueError) as e:
-            raise ClusterError(f"cannot start a local Ray instance: {_one_line(e)}") from None
-        return True
-    # Ray's core prints each refused attempt on stderr (for about 20 s) before giving up with "Failed to
-    # connect": what it printed tells a cluster that refused this driver's token from one that is not there.
-    with _stderr_kept() as said:
-        try:
-            ray.init(address=address, **quiet)
-        except ray.exceptions.AuthenticationError:  # RAY_AUTH_MODE=token here, but no token
-            raise ClusterError(token_refused(address, "this machine has no token")) from None
-        except (ConnectionError, RuntimeError, ValueError) as e:
-            if any(mark in said() for mark in _AUTH_REFUSED):
-                raise ClusterError(token_refused(address, _token_state())) from None
-            raise ClusterError(f"cannot reach the Ray cluster at {address}: {_one_line(e)}") from None
-    return True
-
-
-#: What Ray's core prints when the cluster refuses a driver's token (or the lack of one).
-_AUTH_REFUSED = ("InvalidAuthToken", "Unauthenticated")
-
-
-def token_refused(address: str, why: str) -> str:
-    """The one line for a cluster that refused this driver for want of its token (``why``: what is here)."""
-    return (
-        f"the Ray cluster at {address} refused this driver: it uses token authentication and {why}: run with "
-        f"RAY_AUTH_MODE=token and the cluster's token (`ray get-auth-token` on the head prints it) in "
-        f"RAY_AUTH_TOKEN or ~/.ray/auth_token"
-    )
-
-
-def _token_state() -> str:
-    """What this driver sent, in words, for ``token_refused``."""
-    if os.environ.get("RAY_AUTH_MODE", "").lower() != "token":
-        return "RAY_AUTH_MODE is not 'token' here, so no token was sent"
-    return "the token here is not the cluster's"
-
-
-@contextmanager
-def _stderr_kept() -> Iterator[Callable[[], str]]:
-    """Route file descriptor 2 (where Ray's C++ core writes) to a temporary file within the block; yields what
-    it holds so far. After a block that raised, the text is dropped (the caller words the error); otherwise
-    it is written to stderr as it would have been."""
-    import sys
-    import tempfile
-
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-
-        def said() -> str:
-            tmp.seek(0)
-            return tmp.read().decode(errors="replace")
-
-        try:
-            yield said
-        finally:
-            sys.stderr.flush()
-            os.dup2(saved, 2)
-            os.close(saved)
-        sys.stderr.write(said())
-
-
-def _one_line(e: BaseException, limit: int = 300) -> str:
-    """A Ray error's text on one line (its messages span several), cut at ``limit`` characters."""
-    text = " ".join(str(e).split())
-    return text if len(text) <= limit else text[: limit - 1] + "…"
-
-
-def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
-    """Refuse at once a ``[ray://]HOST:PORT`` nothing answers at (Ray itself would keep retrying for minutes)."""
-    host, _, port = address.removeprefix("ray://").rpartition(":")
-    if not host or not port.isdigit():
-        raise ClusterError(f"--ray {address}: expected 'auto', HOST:PORT or ray://HOST:PORT")
-    try:
-        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
-    except OSError as e:
-        raise ClusterError(
-            f"cannot reach the Ray cluster at {address}: {e.strerror or e} (is `ray start --head` "
-            f"running there, and the port open?)"
-        ) from None
-
-
-def _alive_nodes(ray: Any) -> list[dict]:
-    return [n for n in ray.nodes() if n.get("Alive")]
-
-
-def task_slots(nodes: Sequence[dict], cpus: float, gpus: float) -> int:
-    """How many workers of ``cpus`` CPUs and ``gpus`` GPUs the ``nodes`` (``ray.nodes()`` entries) hold."""
-    total = 0
-    for n in nodes:
-        res = n.get("Resources", {})
-        fit = [math.floor(res.get("CPU", 0.0) / cpus + 1e-9)]
-        if gpus > 0:
-            fit.append(math.floor(res.get("GPU", 0.0) / gpus + 1e-9))
-        total += max(0, min(fit))
-    return total
-
-
-def _describe(nodes: Sequence[dict]) -> str:
-    return (
-        "; ".join(
-            f"{n.get('NodeManagerAddress', '?')}: {n['Resources'].get('CPU', 0):g} CPU, "
-            f"{n['Resources'].get('GPU', 0):g} GPU"
-            for n in nodes
-        )
-        or "none alive"
-    )
-
-
-def _node_name() -> str:
-    """This worker's node, for messages: its address, host name and Ray node id."""
-    import ray
-
-    node_id = ray.get_runtime_context().get_node_id()
-    return f"{ray.util.get_node_ip_address()} ({socket.gethostname()}, node {node_id[:8]})"
-
-
-# --------------------------------------------------------------------------- checks on every node
-
-
-def check_root(root: str, split: str, scene_dirs: Sequence[str]) -> str | None:
-    """Why this machine cannot read a run's data under ``root`` (the split folder, each scene's folder and its
-    ``intrinsics.txt``), or None when it can."""
-    try:
-        os.listdir(os.path.join(root, split))
-        for d in scene_dirs:
-            os.listdir(d)
-            with open(os.path.join(d, "intrinsics.txt"), "rb") as f:
-                f.read(1)
-    except OSError as e:
-        return f"{e.strerror or type(e).__name__}: {e.filename}"
-    return None
-
-
-def _node_check(root: str, split: str, scene_dirs: Sequence[str]) -> tuple[str, str | None]:
-    return _node_name(), check_root(root, split, scene_dirs)
-
-
-def _check_nodes(ray: Any, nodes: Sequence[dict], root: str, split: str, scene_dirs: Sequence[str]) -> None:
-    """Run ``check_root`` on every node (a task pinned there): the first node that cannot read the data fails
-    the run with one line naming it and the path."""
-    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
-
-    check = ray.remote(num_cpus=0, max_retries=0)(_node_check)
-    refs = [
-        check.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote(
-            root, split, list(scene_dirs)
-        )
-        for n in nodes
-    ]
-    try:
-        answers = ray.get(refs, timeout=300)
-    except ray.exceptions.GetTimeoutError:
-        raise ClusterError("a node of the Ray cluster did not answer the data check within 5 minutes") from None
-    for node, problem in answers:
-        if problem:
-            raise _unreadable(node, root, problem)
-
-
-def end_actors(ray: Any, actors: Sequence[Any], wait_s: float = 10.0) -> None:
-    """Kill the run's workers and wait (up to ``wait_s``) until the cluster reports each one gone, so that no
-    worker process outlives the run (``ray.kill`` only asks; a driver that left at once left busy workers
-    behind)."""
-    for actor in actors:
-        ray.kill(actor, no_restart=True)
-    # a call to a killed actor fails (ActorDiedError) once the cluster has its process dead
-    probes = [actor.__ray_ready__.remote() for actor in actors]
-    if probes:
-        ray.wait(probes, num_returns=len(probes), timeout=wait_s)
-
-
-def _unreadable(node: str, root: str, problem: str) -> FileNotFoundError:
-    return FileNotFoundError(
-        f"node {node} cannot read the dataset root {root} ({problem}): every node needs the "
-        f"dataset at the same path (shared storage)"
-    )
-
-
 # --------------------------------------------------------------------------- the worker
 
 
 class FrameWorker:
     """A Ray actor (``ray.remote`` applied when a run starts): the method built once, the reference of the
-    scene it works on kept from one chunk to the next."""
+    scene it works on kept from one chunk to the next. ``threads``: its share of the cores, set by ``setup``."""
 
     def __init__(self, method: Method, threads: int) -> None:
-        set_threads(threads)
-        self.method = method
+        self.method, self.threads = method, threads
         self.reference: SceneReference | None = None
 
     def setup(self, root: str, split: str, scene_dirs: Sequence[str]) -> dict[str, str]:
-        """Check the data is readable here (a node that joined after the start was not checked), build the method
-        (its weights must be on this node) and say where this worker runs."""
+        """Set up this worker's process (``set_up_worker``), check the data is readable here (a node that joined
+        after the start was not checked), build the method (its weights must be on this node) and say where this
+        worker runs."""
         import ray
 
         from .. import __version__
 
-        node = _node_name()
+        set_up_worker(self.threads)
+        node = node_name()
         problem = check_root(root, split, scene_dirs)
         if problem:
             return {"node": node, "unreadable": problem}
@@ -412,7 +211,7 @@ def run_on_ray(
 ) -> ClusterRun:
     """Compute ``todo`` (``[(absolute scene folder, frame names)]``) on the Ray cluster at ``address``, appending
     each frame's record to ``journal`` as it arrives (see the module docstring). ``method``: a ``Method``."""
-    ray = _ray()
+    ray = ray_module()
     started = connect(address)
     try:
         return _Driver(ray, method, todo, journal, bar, address, options, root, split, batch_size, viz_dir).run()
@@ -465,7 +264,7 @@ class _Driver:
 
     def _grow(self, nodes: Sequence[dict] | None = None) -> None:
         """Start workers while the cluster has room and the queue has chunks for them."""
-        nodes = _alive_nodes(self.ray) if nodes is None else nodes
+        nodes = alive_nodes(self.ray) if nodes is None else nodes
         room = task_slots(nodes, *self.resources) - len(self.slots)
         want = len(self.queue) - sum(s.setup is not None or s.stream is None for s in self.slots)
         for _ in range(max(0, min(room, want))):
@@ -473,20 +272,20 @@ class _Driver:
 
     def run(self) -> ClusterRun:
         ray = self.ray
-        self.nodes = nodes = _alive_nodes(ray)
+        self.nodes = nodes = alive_nodes(ray)
         self.resources = self._resources(nodes)
         slots = task_slots(nodes, *self.resources)
         if slots == 0:
             raise ValueError(
                 f"no node of the Ray cluster has room for a worker of {self.resources[0]:g} CPU(s) and "
                 f"{self.resources[1]:g} GPU(s) (--cpus-per-task, --gpus-per-task); its nodes: "
-                f"{_describe(nodes)}"
+                f"{describe_nodes(nodes)}"
             )
         self.queue = _Queue(self.todo, plan_chunks(self.todo, slots, self.options.chunk_frames))
         self.worker_cls = ray.remote(FrameWorker)
         try:
             self._grow(nodes)  # the workers start (and load the method) while every node checks the data
-            _check_nodes(ray, nodes, self.root, self.split, self.scene_dirs)
+            check_nodes(ray, nodes, self.root, self.split, self.scene_dirs)
             self._wait_for_setups()
             self._loop()
         finally:
@@ -504,7 +303,7 @@ class _Driver:
             self._drop(slot)
             self.start_failures += 1
             if not self.seen_nodes and self.start_failures >= 2 * max(1, task_slots(self.nodes, *self.resources)):
-                why = _one_line(e)
+                why = one_line(e)
                 raise ClusterError(
                     f"the Ray cluster ended all {self.start_failures} workers started so far before "
                     f"any ran ({why}); see its logs (the driver's included)"
@@ -514,7 +313,7 @@ class _Driver:
             last = str(e).strip().splitlines()[-1]  # a task error's text ends with the exception
             raise ClusterError(f"a worker could not start: {last} (is mapfree installed on every node?)") from None
         if "unreadable" in answer:
-            raise _unreadable(answer["node"], self.root, answer["unreadable"])
+            raise unreadable(answer["node"], self.root, answer["unreadable"])
         if "error" in answer:
             raise FileNotFoundError(f"node {answer['node']} cannot run method {self.method.name!r}: {answer['error']}")
         from .. import __version__
@@ -604,13 +403,12 @@ class _Driver:
     def _journal(self, slot: _Slot, result: FrameResult) -> None:
         """Append a frame's record to the journal (never twice), write its figure, advance the bar."""
         rec = result.record
-        key = (rec["scene"], rec["frame"])
-        if rec["frame"] in slot.frames:
-            slot.frames.remove(rec["frame"])
-        if key in self.journaled:
+        if rec.frame in slot.frames:
+            slot.frames.remove(rec.frame)
+        if rec.key in self.journaled:
             return
         append_records(self.journal, [rec])
-        self.journaled.add(key)
+        self.journaled.add(rec.key)
         save_figure(self.viz_dir, result)
         self.bar.update(1)
 
@@ -639,7 +437,7 @@ class _Driver:
             elif now - lost_since > self.options.lost_wait_s:
                 raise ClusterError(
                     f"every worker was lost and the cluster has had no room for a new one for "
-                    f"{self.options.lost_wait_s:.0f} s (nodes: {_describe(_alive_nodes(ray))}); the "
+                    f"{self.options.lost_wait_s:.0f} s (nodes: {describe_nodes(alive_nodes(ray))}); the "
                     f"finished frames are journaled: run again with --resume"
                 )
             self._show()

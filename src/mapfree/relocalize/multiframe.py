@@ -34,7 +34,9 @@ from ..data import Dataset, DevicePoses, Scene, load_device_poses, scene_bursts
 from ..data.io import naming
 from ..estimate import Estimate
 from ..geometry import Pose
-from .run import RunResult, _pick_scenes, failures_path, read_journal, run_split
+from .journal import Failure, FrameRecord, Journal, failures_path, write_failures
+from .preflight import pick_scenes
+from .run import RunResult, run_split
 
 __all__ = ["FusionOptions", "Hypothesis", "hypotheses", "fuse", "frames_path", "MultiRunResult", "run_multi"]
 
@@ -167,16 +169,58 @@ class MultiRunResult:
         return d
 
 
-def _frame_estimates(recs: Sequence[dict], confidence: str | None) -> dict[str, dict[str, tuple[Pose, float]]]:
+def _frame_estimates(recs: Sequence[FrameRecord], confidence: str | None) -> dict[str, dict[str, tuple[Pose, float]]]:
     """{scene: {frame: (world-to-camera pose, confidence)}} of the journal's successful frames."""
     out: dict[str, dict[str, tuple[Pose, float]]] = {}
     for r in recs:
-        if not r["ok"]:
-            continue
-        conf = r["scores"].get(confidence, r["confidence"]) if confidence else r["confidence"]
-        conf = float(conf) if np.isfinite(conf) and conf > 0 else 0.0
-        out.setdefault(r["scene"], {})[r["frame"]] = (Pose.from_qt(r["q"], r["t"]), conf)
+        if r.ok:
+            out.setdefault(r.scene, {})[r.frame] = (r.world_pose(), r.score(confidence))
     return out
+
+
+#: Each scene's bursts (``[(scored query, burst frames)]``) and the device poses that carry them to the query.
+_Plan = dict[str, tuple[list[tuple[str, list[str]]], DevicePoses]]
+
+
+def _burst_plan(root: os.PathLike | str, split: str, scenes: Sequence[str] | None, derive: bool) -> _Plan:
+    """The bursts of the split's (or the named) scenes, with their device poses (``derive``: from ground truth
+    where a scene has none)."""
+    scene_list = Dataset(root).scenes(split)
+    if scenes:
+        scene_list = pick_scenes(scene_list, scenes, split)  # an unknown name is refused, not ignored
+    plan: _Plan = {}
+    for s in scene_list:
+        bursts = scene_bursts(s)
+        plan[s.name] = (
+            bursts,
+            load_device_poses(s, derive=derive) if bursts else DevicePoses({}, False, "no bursts"),
+        )
+    return plan
+
+
+def _fuse_split(
+    plan: _Plan, estimates: Mapping[str, Mapping[str, tuple[Pose, float]]], options: FusionOptions
+) -> tuple[dict[str, list], list[Failure], list[dict[str, Any]]]:
+    """Each burst fused into its scored query: the submission's entries by scene, the failures, the fusion log."""
+    by_scene: dict[str, list] = {name: [] for name in plan}
+    failures, log = [], []
+    for name, (bursts, device) in plan.items():
+        for query, burst in bursts:
+            fused = fuse(hypotheses(query, burst, estimates.get(name, {}), device), len(burst), options)
+            entry = {
+                "scene": name,
+                "frame": query,
+                "ok": fused.ok,
+                "confidence": fused.confidence,
+                "reason": fused.reason,
+                **{k: v for k, v in fused.extras.items()},
+            }
+            log.append(entry)
+            if fused.ok:
+                by_scene[name].append((query, fused.pose, fused.confidence))
+            else:
+                failures.append(Failure(name, query, fused.reason))
+    return by_scene, failures, log
 
 
 def run_multi(
@@ -203,16 +247,7 @@ def run_multi(
             "all_frames does not apply to the multi-frame track (it runs the bursts of the scored queries)"
         )
     output = Path(output)
-    scene_list = Dataset(root).scenes(split)
-    if scenes:
-        scene_list = _pick_scenes(scene_list, scenes, split)  # an unknown name is refused, not ignored
-    plan: dict[str, tuple[list, DevicePoses]] = {}
-    for s in scene_list:
-        bursts = scene_bursts(s)
-        plan[s.name] = (
-            bursts,
-            load_device_poses(s, derive=derive_device_poses) if bursts else DevicePoses({}, False, "no bursts"),
-        )
+    plan = _burst_plan(root, split, scenes, derive_device_poses)
 
     def select(scene: Scene) -> list[str]:
         return [n for _, burst in plan[scene.name][0] for n in burst if n in scene.intrinsics]
@@ -227,30 +262,10 @@ def run_multi(
         select=select,
         **run_kwargs,
     )
-    _, recs = read_journal(frames.journal)
-    est = _frame_estimates(recs, confidence)
-    by_scene: dict[str, list] = {name: [] for name in plan}
-    failures, log = [], []
-    for name, (bursts, device) in plan.items():
-        for query, burst in bursts:
-            fused = fuse(hypotheses(query, burst, est.get(name, {}), device), len(burst), options)
-            entry = {
-                "scene": name,
-                "frame": query,
-                "ok": fused.ok,
-                "confidence": fused.confidence,
-                "reason": fused.reason,
-                **{k: v for k, v in fused.extras.items()},
-            }
-            log.append(entry)
-            if fused.ok:
-                by_scene[name].append((query, fused.pose, fused.confidence))
-            else:
-                failures.append({"scene": name, "frame": query, "reason": fused.reason})
-
+    est = _frame_estimates(Journal.read(frames.journal).frames, confidence)
+    by_scene, failures, log = _fuse_split(plan, est, options)
     write_submission(output, by_scene)
-    with naming(failures_path(output)):
-        failures_path(output).write_text("".join(json.dumps(f) + "\n" for f in failures))
+    write_failures(output, failures)
     with naming(fusion_path(output)):
         fusion_path(output).write_text("".join(json.dumps(e, allow_nan=False) + "\n" for e in log))
     derived = sorted(n for n, (_, d) in plan.items() if d.derived)

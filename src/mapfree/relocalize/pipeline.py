@@ -24,11 +24,20 @@ from ..matching.base import Features, Matcher, Matches
 from ..methods import Method
 from ..solvers.base import DepthNeed, Solver
 from ..solvers.confidence import choose, confidences
-from .allocator import keep_heap_warm
 from .batched import BatchOptions, default_batch_size, localize_batched
 from .views import Anchor, PreparedQuery, View, ViewLike, ahead, as_view, error_reason, fit_depth, view_depth
 
-__all__ = ["View", "Anchor", "Localizer", "Relocalizer", "as_view", "ViewLike", "MIN_PARALLAX_PX", "build_matching"]
+__all__ = [
+    "View",
+    "Anchor",
+    "Localizer",
+    "Relocalizer",
+    "as_view",
+    "ViewLike",
+    "MIN_PARALLAX_PX",
+    "build_localizer",
+    "build_matching",
+]
 
 #: Median keypoint displacement (px) below which the query is seen from the reference's viewpoint (identity pose).
 MIN_PARALLAX_PX = 0.5
@@ -70,7 +79,6 @@ class Relocalizer(Localizer[Anchor]):
             depth = depth_mod.create(depth, **({"engine": engine} if same else {}))
         if isinstance(solver, str):
             solver = solvers.create(solver, **(solver_opts or {}))
-        keep_heap_warm()  # per-pair buffers stay in the heap instead of faulting in again (allocator.py)
         self.matcher: Matcher = matcher
         self.depth_source: DepthSource = depth
         self.solver: Solver = solver
@@ -78,31 +86,30 @@ class Relocalizer(Localizer[Anchor]):
         self.anchor: Anchor | None = None
 
     @classmethod
-    def from_method(
-        cls, method: str | Method, calibration: str | os.PathLike | Calibration | None = None
-    ) -> Localizer[Any]:
-        """Build a method (regression methods build their own kind of localizer).
+    def from_method(cls, method: str | Method) -> Relocalizer:
+        """The localizer of a ``matching`` method (``build_localizer`` builds any kind, and a calibrated one).
 
         Args:
-            method: A name, a YAML path or a ``Method``.
-            calibration: A calibration of the method (``mapfree calibrate``: a file or a ``Calibration``): every
-                estimate then carries ``p_correct``. Default: the file in the method's options
-                (``mapfree run --calibration``), else none (``mapfree.calibration.shipped`` names a preset's).
+            method: A name, a YAML path or a ``Method`` of kind ``matching``.
 
         Returns:
-            The method's localizer (wrapped in ``mapfree.calibration.Calibrated`` with a calibration).
+            Its ``Relocalizer``.
 
         Raises:
-            CalibrationError: A calibration file that cannot be used for this method.
+            ValueError: A method of another kind, or one that carries a calibration file (``mapfree run
+                --calibration``): ``build_localizer`` returns those.
         """
-        keep_heap_warm()  # also for the methods that build their own kind of localizer
         m = method if isinstance(method, methods.Method) else methods.get(method)
-        if calibration is not None and not isinstance(calibration, Calibration):
-            calibration = Calibration.load(calibration, m.name)
-        elif calibration is None and m.options.get(CALIBRATION_OPTION):
-            calibration = Calibration.load(m.options[CALIBRATION_OPTION], m.name)
-        localizer: Localizer[Any] = m.build()
-        return localizer if calibration is None else Calibrated(localizer, calibration)
+        if m.kind != "matching" or m.options.get(CALIBRATION_OPTION):
+            what = f"a {m.kind} method" if m.kind != "matching" else "calibrated"
+            raise ValueError(
+                f"method {m.name!r} is {what}: its localizer is no Relocalizer; build it with "
+                f"mapfree.relocalize.build_localizer({m.name!r})"
+            )
+        localizer = m.build()
+        if not isinstance(localizer, Relocalizer):  # a ``register_kind`` of its own for matching methods
+            raise ValueError(f"method {m.name!r} builds a {type(localizer).__name__}, not a Relocalizer")
+        return localizer
 
     # ------------------------------------------------------------------ stages
 
@@ -281,7 +288,7 @@ class Relocalizer(Localizer[Anchor]):
         yield from (self._finish(anchor, prep) for prep in ahead(self._prepare_query, queries, prefetch))
 
     def localize_batched(
-        self, queries: Iterable[ViewLike], anchor: Anchor | None = None, options: BatchOptions | None = None
+        self, queries: Iterable[ViewLike], *, anchor: Anchor | None = None, options: BatchOptions | None = None
     ) -> Iterator[Estimate]:
         """``localize`` over many queries, in order, through the batched pipeline (``batched.py``): decoding
         in background threads, features and matches in batches on the device, solvers in a thread pool.
@@ -351,6 +358,31 @@ def _same_viewpoint(flow: np.ndarray, mode: str) -> Estimate:
     n = int(np.count_nonzero(flow <= 2 * MIN_PARALLAX_PX))
     values = confidences(n, n / len(flow))
     return Estimate(Pose.identity(), choose(mode, values), n, extras={**values, "same_viewpoint": True})
+
+
+def build_localizer(method: str | Method, calibration: str | os.PathLike | Calibration | None = None) -> Localizer[Any]:
+    """Any method's localizer: a ``Relocalizer`` for a matching method, a regression network's or a cascade's for
+    those kinds, wrapped in ``mapfree.calibration.Calibrated`` with a calibration.
+
+    Args:
+        method: A name, a YAML path or a ``Method``.
+        calibration: A calibration of the method (``mapfree calibrate``: a file or a ``Calibration``): every
+            estimate then carries ``p_correct``. Default: the file in the method's options
+            (``mapfree run --calibration``), else none (``mapfree.calibration.shipped`` names a preset's).
+
+    Returns:
+        The method's localizer.
+
+    Raises:
+        CalibrationError: A calibration file that cannot be used for this method.
+    """
+    m = method if isinstance(method, methods.Method) else methods.get(method)
+    if calibration is not None and not isinstance(calibration, Calibration):
+        calibration = Calibration.load(calibration, m.name)
+    elif calibration is None and m.options.get(CALIBRATION_OPTION):
+        calibration = Calibration.load(m.options[CALIBRATION_OPTION], m.name)
+    localizer: Localizer[Any] = m.build()
+    return localizer if calibration is None else Calibrated(localizer, calibration)
 
 
 def build_matching(method: Method) -> Relocalizer:

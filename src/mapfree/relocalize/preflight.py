@@ -1,20 +1,23 @@
-"""What ``run_split`` checks before any work: the output path, the submission confidence, and that a resumed
-journal was written for the same frames; each refusal is one ``ValueError`` line naming the flag or path."""
+"""What ``run_split`` checks before any work: the output path, the submission confidence, the scenes named and
+the depth maps a method reads; each refusal is one ``ValueError`` line naming the flag or path (a resumed journal's
+checks are ``journal.check_resumable``)."""
 
 from __future__ import annotations
 
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from ..data import Scene
+from ..data import REFERENCE_NAME, Scene
+from ..data.io import depth_suffixes
+from ..methods import Method
 from ..solvers.confidence import CONFIDENCE_MODES
 
 #: ``--confidence calibrated``: submit the calibrated probability ``p_correct`` (``mapfree.calibration``).
 CALIBRATED = "calibrated"
 
-__all__ = ["CALIBRATED", "check_output", "check_confidence", "selection_of", "check_same_selection"]
+__all__ = ["CALIBRATED", "check_output", "check_confidence", "selection_of", "pick_scenes", "check_depth_files"]
 
 
 def check_output(output: Path) -> None:
@@ -71,20 +74,37 @@ def selection_of(all_frames: bool, select: Callable[[Scene], list[str]] | None) 
     return "all" if all_frames else "scored"
 
 
-_SELECTION_WORDS = {"all": "every query (--all-frames)", "scored": "the scored queries (no --all-frames)"}
+def pick_scenes(scene_list: list[Scene], names: Sequence[str], split: str) -> list[Scene]:
+    """The scenes named, in split order; a name the split does not hold is refused (with the nearest ones)."""
+    import difflib
 
-
-def check_same_selection(jpath: Path, header: dict, selection: str) -> None:
-    """A resumed run must relocalize the frames the journal's run did: resuming a run of every query without
-    --all-frames (or the other way round) would write a mix of both sets."""
-    had = header.get("frames")
-    if had is None:  # a journal written before the selection was recorded: its all_frames flag says it
-        if selection not in _SELECTION_WORDS:
-            return
-        had = "all" if header.get("all_frames") else "scored"
-    if had != selection:
-        was, now = (_SELECTION_WORDS.get(x, x) for x in (had, selection))
+    have = [s.name for s in scene_list]
+    unknown = [n for n in dict.fromkeys(names) if n not in have]
+    if unknown:
+        hints = []
+        for n in unknown:
+            close = difflib.get_close_matches(n, have, n=2, cutoff=0.6)
+            hints.append(f"{n} (did you mean {' or '.join(close)}?)" if close else n)
         raise ValueError(
-            f"{jpath} holds a run of {was}, this one asks for {now}: resuming would mix the two; "
-            f"run it as it was, or use --overwrite or another output path"
+            f"the {split} split has no scene {', '.join(hints)}; it holds {len(have)} scene(s)"
+            + (f": {', '.join(have[:8])}{' …' if len(have) > 8 else ''}" if have else "")
         )
+    wanted = set(names)
+    return [s for s in scene_list if s.name in wanted]
+
+
+def check_depth_files(m: Method, scene_list: list[Scene], split: str) -> None:
+    """A ``files:SUFFIX`` method whose depth maps exist at no scene's reference is a typo in the suffix (or the
+    wrong split), not a run of failures: refuse it before any work, naming the suffixes that do exist."""
+    if m.kind != "matching" or not m.depth.startswith("files:") or not scene_list:
+        return
+    suffix = m.depth.split(":", 1)[1]
+    refs = [s.frames[REFERENCE_NAME] for s in scene_list if REFERENCE_NAME in s.frames]
+    if not refs or any(f.has_depth(suffix) for f in refs):
+        return
+    found = sorted({s for f in refs for s in depth_suffixes(f.image_path)})
+    raise ValueError(
+        f"method {m.name!r} reads depth maps *.{suffix}.png, but no reference image of the {split} "
+        f"split has one (e.g. {refs[0].depth_path(suffix)}); depth suffixes there: "
+        f"{', '.join(found) or 'none'} (pick one with NAME@SUFFIX or the method's last part)"
+    )

@@ -27,7 +27,7 @@ from ..methods import Method, get
 from ..retrieval import retrieve
 from ..solvers.essential import EssentialSolver
 from ..solvers.triangulation import triangulate_pose
-from .pipeline import Relocalizer
+from .pipeline import Relocalizer, build_localizer
 from .views import View, ViewLike, ahead, as_view
 
 log = logging.getLogger(__name__)
@@ -248,7 +248,7 @@ class ReferencedLocalizer(QueryLocalizer):
         """``localizer`` (a built localizer, or a method name, path or ``Method``) bound to ``k`` references
         chosen among ``mapping`` (Frames with poses, or views with ``poses``); ``options``: ``ReferenceOptions``
         fields, e.g. ``mode="triangulation"`` (the depth-free baseline) or ``top``."""
-        loc = localizer if isinstance(localizer, Localizer) else Relocalizer.from_method(localizer)
+        loc = localizer if isinstance(localizer, Localizer) else build_localizer(localizer)
         return cls(loc, ReferenceSet.build(mapping, poses, k=k, **options))
 
     def localize(self, query: ViewLike) -> Estimate:
@@ -420,7 +420,7 @@ def relocalize_pairs(
 
     An Ess.Mat method without depth (``*_emat_none``) returns its up-to-scale pose (``Method.build``): the
     angular scores of a pair benchmark do not need the scale."""
-    loc = Relocalizer.from_method(method)
+    loc = build_localizer(method)
     it: Iterable = pairs
     if progress:
         from tqdm import tqdm

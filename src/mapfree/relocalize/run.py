@@ -3,13 +3,14 @@
 Every finished frame is appended at once to a JSON-lines journal beside the output
 (``submission.journal.jsonl``), so a killed run loses nothing: ``resume=True`` skips the frames already
 there. The submission ZIP and the failure log (``submission.failures.jsonl``) are rebuilt from the journal.
+
+``run_split`` in steps: check the inputs and the journal (``_plan``, ``_check_method``), start the journal
+(``_start_journal``; its records are ``journal.py``'s), compute the frames here, in a process pool or on Ray
+(``_dispatch``; ``distributed.py``), write the submission from the whole journal (``_result``).
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import logging
 import multiprocessing as mp
 import os
 import signal
@@ -17,34 +18,44 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ..benchmark import write_submission
-from ..calibration import CALIBRATION_OPTION, Calibration, calibration_for
-from ..data import REFERENCE_NAME, Dataset, Scene
-from ..data.io import depth_suffixes, naming
-from ..geometry import Pose
+from ..calibration import Calibration, calibration_for
+from ..data import Dataset, Scene
 from ..methods import CASCADE, Method, depth_free_problem, get
-from .preflight import CALIBRATED, check_confidence, check_output, check_same_selection, selection_of
+from .journal import (
+    Failure,
+    FrameRecord,
+    Journal,
+    JournalHeader,
+    append_records,
+    check_resumable,
+    drop_stale,
+    estimate_scores,
+    failures_path,
+    journal_path,
+    positive,
+    read_journal,
+    rewrite_journal,
+    scene_fingerprint,
+    write_failures,
+    write_header,
+)
+from .preflight import CALIBRATED, check_confidence, check_depth_files, check_output, pick_scenes, selection_of
 from .references import check_scene_references
 from .scenes import (
-    append_records,
     check_available,
     check_depth_source,
-    estimate_scores,
     open_scene,
     save_figure,
     scene_results,
-    set_threads,
+    set_up_worker,
     sigint_ignored,
     write_frame_figure,
 )
-
-log = logging.getLogger(__name__)
 
 __all__ = [
     "RunResult",
@@ -60,21 +71,8 @@ __all__ = [
     "write_frame_figure",
 ]
 
-JOURNAL_VERSION = 1
-
 # Set in pool workers: the parent's request to stop after the frame in flight (Ctrl-C, an error elsewhere).
 _STOP: Any = None
-
-
-def journal_path(output: os.PathLike | str) -> Path:
-    """``out/submission.zip`` -> ``out/submission.journal.jsonl``."""
-    p = Path(output)
-    return p.with_name(f"{p.stem}.journal.jsonl")
-
-
-def failures_path(output: os.PathLike | str) -> Path:
-    p = Path(output)
-    return p.with_name(f"{p.stem}.failures.jsonl")
 
 
 @dataclass
@@ -99,80 +97,6 @@ class RunResult:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in self.__dict__.items()}
 
 
-# --------------------------------------------------------------------------- journal
-
-
-def read_journal(path: os.PathLike | str) -> tuple[dict | None, list[dict]]:
-    """(header, frame records) of a journal; a torn line (killed mid-write, a full disk) is left out
-    (a resumed run counts them in ``RunResult.torn_lines``)."""
-    header, recs, _ = _read_journal(Path(path))
-    return header, recs
-
-
-def _read_journal(path: Path) -> tuple[dict | None, list[dict], int]:
-    """(header, frame records, lines that are not a whole record) of a journal."""
-    if not path.is_file():
-        return None, [], 0
-    header, recs, torn = None, [], 0
-    for line in path.read_text(errors="replace").splitlines():
-        try:
-            r = json.loads(line)
-        except json.JSONDecodeError:
-            torn += bool(line.strip())
-            continue
-        if not isinstance(r, dict):
-            torn += 1
-        elif r.get("kind") == "header":
-            header = header or r
-        elif r.get("kind") == "frame":
-            recs.append(r)
-    return header, recs, torn
-
-
-def scene_fingerprint(scene_dir: os.PathLike | str) -> str:
-    """What a scene's data looked like: a hash of its text files' bytes and of every other file's name, size and
-    modification time (images and depth maps are not read). A resumed run recomputes a scene whose print changed."""
-    h = hashlib.sha1()
-    root = Path(scene_dir)
-    for p in sorted(root.rglob("*")):
-        if not p.is_file():
-            continue
-        rel = p.relative_to(root).as_posix()
-        if p.suffix == ".txt":
-            h.update(f"{rel}\0".encode() + p.read_bytes() + b"\0")
-        else:
-            st = p.stat()
-            h.update(f"{rel}\0{st.st_size}\0{st.st_mtime_ns}\0".encode())
-    return h.hexdigest()
-
-
-def _drop_stale(header: dict | None, recs: list[dict], fingerprints: dict[str, str]) -> tuple[list[dict], list[str]]:
-    """Journal records of scenes whose data is unchanged since they were computed, and the names of those that
-    changed (or have no recorded print: a journal of an older version), whose records are dropped (the run's
-    ``stale_scenes``: the CLI says so)."""
-    known = (header or {}).get("data", {})
-    stale = sorted(
-        {r["scene"] for r in recs if r["scene"] in fingerprints and known.get(r["scene"]) != fingerprints[r["scene"]]}
-    )
-    return [r for r in recs if r["scene"] not in stale], stale
-
-
-def _rewrite_journal(jpath: Path, header: dict, recs: list[dict]) -> None:
-    """Replace the journal by ``header`` + ``recs`` (atomically: a kill meanwhile leaves the old one)."""
-    tmp = jpath.with_name(jpath.name + ".tmp")
-    with naming(jpath):
-        tmp.write_text("".join(json.dumps(r, allow_nan=False) + "\n" for r in [header, *recs]))
-    os.replace(tmp, jpath)
-
-
-def _same_method(a: dict, b: dict) -> bool:
-    """Whether two journal headers' methods give the same estimates (a calibration file only sets ``p_correct``,
-    recomputed from the journal's signals when the submission is written)."""
-    keys = ("kind", "matcher", "matcher_opts", "depth", "solver", "solver_opts")
-    options = [{k: v for k, v in (m.get("options") or {}).items() if k != CALIBRATION_OPTION} for m in (a, b)]
-    return all(a.get(k) == b.get(k) for k in keys) and options[0] == options[1]
-
-
 # --------------------------------------------------------------------------- work
 
 
@@ -187,7 +111,7 @@ def _run_scene(
     scene_path: str,
     frames: list[str],
     journal: str,
-    on_frame: Callable[[dict], None] | None = None,
+    on_frame: Callable[[FrameRecord], None] | None = None,
     batch_size: int | None = None,
     viz_dir: str | None = None,
 ) -> int:
@@ -211,39 +135,206 @@ def _stopping() -> bool:
 
 
 def _init_worker(threads: int, stop: Any = None) -> None:
-    """Pool worker set-up: ``threads`` per library, and Ctrl-C left to the parent, which sets ``stop``."""
+    """Pool worker set-up (``set_up_worker``: ``threads`` per library, the heap kept warm), and Ctrl-C left to the
+    parent, which sets ``stop``."""
     global _STOP
     _STOP = stop
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    set_threads(threads)
+    set_up_worker(threads)
 
 
-# --------------------------------------------------------------------------- outputs
+# --------------------------------------------------------------------------- validate
+
+
+@dataclass
+class _Plan:
+    """A run once its inputs are checked: the journal it keeps, the scenes and the frames still to compute."""
+
+    method: Method
+    output: Path
+    journal_path: Path
+    journal: Journal  # as read; its frames are those kept (none for a fresh run)
+    header: JournalHeader  # the header this run writes
+    fresh: bool  # the journal is started again
+    scenes: list[Scene]
+    stale: list[str]
+    todo: list[tuple[Scene, list[str]]]
+
+    @property
+    def total(self) -> int:
+        """Frames to compute."""
+        return sum(len(f) for _, f in self.todo)
+
+    @property
+    def skipped(self) -> int:
+        """Frames kept from the journal."""
+        return len(self.journal.done())
+
+
+def _plan(
+    root: os.PathLike | str,
+    split: str,
+    m: Method,
+    output: Path,
+    *,
+    all_frames: bool,
+    resume: bool,
+    overwrite: bool,
+    confidence: str | None,
+    scenes: Sequence[str] | None,
+    select: Callable[[Scene], list[str]] | None,
+) -> _Plan:
+    """Check the output, the confidence and the journal beside the output; then the scenes and the frames to run
+    (the journal's kept, its stale scenes' dropped)."""
+    check_output(output)
+    check_confidence(confidence, m)
+    jpath = journal_path(output)
+    journal = Journal.read(jpath)
+    selection = selection_of(all_frames, select)
+    fresh = check_resumable(jpath, journal, m.to_dict(), selection, resume, overwrite)
+    if fresh:
+        journal.frames = []
+    scene_list = Dataset(root).scenes(split)
+    if not scene_list:
+        raise ValueError(f"the {split} split holds no scenes: {Path(root) / split} has no sNNNNN folder")
+    if scenes:
+        scene_list = pick_scenes(scene_list, scenes, split)
+    fingerprints = {s.name: scene_fingerprint(s.path) for s in scene_list}
+    stale = [] if fresh else drop_stale(journal, fingerprints)
+    done = journal.done()
+    todo: list[tuple[Scene, list[str]]] = []
+    for s in scene_list:
+        wanted_frames = select(s) if select is not None else frames_to_run(s, all_frames)
+        names = [f for f in wanted_frames if (s.name, f) not in done]
+        if names:
+            todo.append((s, names))
+    if fresh or journal.header is None:
+        header = JournalHeader(m.to_dict(), str(root), split, all_frames, selection, fingerprints)
+    else:
+        header = replace(journal.header, data={**journal.header.data, **fingerprints})
+    return _Plan(m, output, jpath, journal, header, fresh, scene_list, stale, todo)
+
+
+def _check_method(plan: _Plan, split: str, build_here: bool, keep: bool) -> None:
+    """Refuse a method that cannot run on these scenes (no depth to work from, depth files that are not there,
+    references it cannot bind); with ``build_here``, build it and check its networks load (``keep``: this
+    process computes the frames itself)."""
+    m = plan.method
+    problem = depth_free_problem(m)
+    if problem:  # a split's frames come without depth maps of their own: nothing could succeed
+        raise ValueError(problem)
+    check_depth_files(m, plan.scenes, split)
+    check_scene_references(plan.scenes, m)
+    if plan.todo and build_here:
+        check_available(m, keep=keep)
+
+
+# --------------------------------------------------------------------------- journal
+
+
+def _start_journal(plan: _Plan) -> None:
+    """Write the journal's header (a fresh run), or rewrite the journal with the records read back whole (a
+    torn last line goes with the rewrite). Only once the inputs were checked: bad data refused before leaves an
+    existing journal (--overwrite too) as it was."""
+    if plan.fresh or plan.journal.header is None:
+        write_header(plan.journal_path, plan.header)
+    else:
+        rewrite_journal(plan.journal_path, plan.header, plan.journal.frames)
+
+
+# --------------------------------------------------------------------------- dispatch
+
+
+def _dispatch(
+    plan: _Plan,
+    bar: Any,
+    *,
+    workers: int,
+    batch_size: int | None,
+    viz_dir: str | None,
+    ray: tuple[str, Any, os.PathLike | str, str] | None,
+) -> dict[str, Any]:
+    """Compute the plan's frames: on a Ray cluster (``ray``: address, ``RayOptions``, root, split), in a pool of
+    ``workers`` processes, or here, one scene after the other. Returns what the cluster did (``{}`` locally)."""
+    m, todo, jpath = plan.method, plan.todo, plan.journal_path
+    if ray is not None and todo:
+        from .distributed import RayOptions, run_on_ray
+
+        address, options, root, split = ray
+        work = [(os.path.abspath(s.path), names) for s, names in todo]  # workers do not share our cwd
+        run = run_on_ray(
+            m, work, jpath, bar, address, options or RayOptions(), os.path.abspath(root), split, batch_size, viz_dir
+        )
+        return run.to_dict()
+    if workers <= 1 or len(todo) <= 1:
+        for s, names in todo:
+            _run_scene(m, str(s.path), names, str(jpath), lambda r: bar.update(1), batch_size, viz_dir)
+    else:
+        _run_parallel(m, todo, jpath, workers, bar, batch_size, viz_dir)
+    return {}
+
+
+# --------------------------------------------------------------------------- write
+
+
+def _submitted(r: FrameRecord, confidence: str | None, calibration: Calibration | None) -> float:
+    """A frame's submission confidence: ``calibrated`` from its signals (a calibration given on --resume applies
+    to all), else the score ``confidence`` names, else the method's own."""
+    if confidence != CALIBRATED:
+        return r.score(confidence)
+    if calibration is not None:
+        return positive(calibration.p_correct(r.signals, r.confidence))
+    return positive(r.p_correct if r.p_correct is not None else 0.0)
 
 
 def _write_outputs(
-    output: Path, scenes: list[str], recs: list[dict], confidence: str | None, calibration: Calibration | None = None
+    output: Path,
+    scenes: list[str],
+    recs: list[FrameRecord],
+    confidence: str | None,
+    calibration: Calibration | None = None,
 ) -> tuple[int, int]:
+    """Write the submission ZIP and its failure log from the journal's records; (estimated, failed) frames."""
     by_scene: dict[str, list] = {s: [] for s in scenes}
     failures = []
     # Frame order, not journal order (which is the order workers finished in): the same ZIP wherever they ran.
-    for r in sorted(recs, key=lambda r: (r["scene"], r["frame"])):
-        if r["scene"] not in by_scene:
+    for r in sorted(recs, key=lambda r: r.key):
+        if r.scene not in by_scene:
             continue
-        if r["ok"]:
-            if confidence == CALIBRATED:  # from the signals: a calibration given on --resume applies to all
-                conf = calibration.p_correct(r["signals"], r["confidence"]) if calibration else r.get("p_correct", 0.0)
-            else:
-                conf = r["scores"].get(confidence, r["confidence"]) if confidence else r["confidence"]
-            conf = float(conf) if np.isfinite(conf) and conf > 0 else 0.0
-            by_scene[r["scene"]].append((r["frame"], Pose.from_qt(r["q"], r["t"]), conf))
+        if r.ok:
+            by_scene[r.scene].append((r.frame, r.world_pose(), _submitted(r, confidence, calibration)))
         else:
-            failures.append({"scene": r["scene"], "frame": r["frame"], "reason": r["reason"]})
+            failures.append(Failure(r.scene, r.frame, r.reason))
     write_submission(output, by_scene)
-    fp = failures_path(output)
-    with naming(fp):
-        fp.write_text("".join(json.dumps(f) + "\n" for f in failures))
+    write_failures(output, failures)
     return sum(len(v) for v in by_scene.values()), len(failures)
+
+
+def _result(plan: _Plan, confidence: str | None, cluster: dict[str, Any], seconds: float) -> RunResult:
+    """Write the outputs from the whole journal (this run's frames and the kept ones) and say what was done."""
+    m = plan.method
+    recs = Journal.read(plan.journal_path).frames
+    calibration = calibration_for(m.name, m.options) if confidence == CALIBRATED and m.kind != CASCADE else None
+    estimated, failed = _write_outputs(plan.output, [s.name for s in plan.scenes], recs, confidence, calibration)
+    timing_sums: dict[str, float] = {}
+    for r in recs:
+        for k, v in r.timings.items():
+            timing_sums[k] = timing_sums.get(k, 0.0) + v
+    return RunResult(
+        plan.output,
+        plan.journal_path,
+        failures_path(plan.output),
+        computed=plan.total,
+        skipped=plan.skipped,
+        estimated=estimated,
+        failed=failed,
+        seconds=seconds,
+        scenes=len(plan.scenes),
+        timings=timing_sums,
+        stale_scenes=plan.stale,
+        torn_lines=0 if plan.fresh else plan.journal.torn,
+        cluster=cluster,
+    )
 
 
 def run_split(
@@ -281,167 +372,29 @@ def run_split(
     """
     t_start = time.perf_counter()
     m = method if isinstance(method, Method) else get(method)
-    output = Path(output)
-    check_output(output)
-    check_confidence(confidence, m)
-    jpath = journal_path(output)
-    header, recs, torn = _read_journal(jpath)
-    if recs and not resume and not overwrite:
-        raise FileExistsError(
-            f"{jpath} already holds {len(recs)} results: run again with --resume to continue "
-            f"that run or --overwrite to start again (in Python: resume=True, overwrite=True)"
-        )
-    selection = selection_of(all_frames, select)
-    if resume and header is not None and not overwrite:
-        if not _same_method(header["method"], m.to_dict()):
-            raise ValueError(
-                f"{jpath} was written by method {header['method'].get('name')!r}, not {m.name!r}: "
-                f"use another output path or --overwrite"
-            )
-        check_same_selection(jpath, header, selection)
-    fresh = overwrite or not resume or header is None
-    if fresh:
-        recs = []
-
-    ds = Dataset(root)
-    scene_list = ds.scenes(split)
-    if not scene_list:
-        raise ValueError(f"the {split} split holds no scenes: {Path(root) / split} has no sNNNNN folder")
-    if scenes:
-        scene_list = _pick_scenes(scene_list, scenes, split)
-    fingerprints = {s.name: scene_fingerprint(s.path) for s in scene_list}
-    stale: list[str] = []
-    if not fresh:
-        recs, stale = _drop_stale(header, recs, fingerprints)
-    done = {(r["scene"], r["frame"]) for r in recs}
-    todo: list[tuple[Scene, list[str]]] = []
-    for s in scene_list:
-        wanted_frames = select(s) if select is not None else frames_to_run(s, all_frames)
-        names = [f for f in wanted_frames if (s.name, f) not in done]
-        if names:
-            todo.append((s, names))
-
-    problem = depth_free_problem(m)
-    if problem:  # a split's frames come without depth maps of their own: nothing could succeed
-        raise ValueError(problem)
-    _check_depth_files(m, scene_list, split)
-    check_scene_references(scene_list, m)
-    if todo and ray_address is None:  # on a cluster, every worker checks the method on its own node
-        check_available(m, keep=workers <= 1 or len(todo) <= 1)
-    # The journal is (re)started only now: bad data refused above leaves an existing one (--overwrite too) as it was.
-    if fresh or header is None:
-        with naming(jpath):
-            jpath.write_text(
-                json.dumps(
-                    {
-                        "kind": "header",
-                        "version": JOURNAL_VERSION,
-                        "method": m.to_dict(),
-                        "root": str(root),
-                        "split": split,
-                        "all_frames": all_frames,
-                        "frames": selection,
-                        "data": fingerprints,
-                    }
-                )
-                + "\n"
-            )
-    else:  # the records read back whole: a torn last line goes with the rewrite
-        _rewrite_journal(jpath, {**header, "data": {**header.get("data", {}), **fingerprints}}, recs)
-    total = sum(len(f) for _, f in todo)
-    bar = _progress(total, len(done), progress, m.name)
+    plan = _plan(
+        root,
+        split,
+        m,
+        Path(output),
+        all_frames=all_frames,
+        resume=resume,
+        overwrite=overwrite,
+        confidence=confidence,
+        scenes=scenes,
+        select=select,
+    )
+    # on a cluster, every worker checks the method on its own node
+    _check_method(plan, split, build_here=ray_address is None, keep=workers <= 1 or len(plan.todo) <= 1)
+    _start_journal(plan)
+    bar = _progress(plan.total, plan.skipped, progress, m.name)
+    ray = None if ray_address is None else (ray_address, ray_options, root, split)
     viz = str(viz_dir) if viz_dir is not None else None
-    cluster: dict[str, Any] = {}
     try:
-        if ray_address is not None and todo:
-            from .distributed import RayOptions, run_on_ray
-
-            work = [(os.path.abspath(s.path), names) for s, names in todo]  # workers do not share our cwd
-            cluster = run_on_ray(
-                m,
-                work,
-                jpath,
-                bar,
-                ray_address,
-                ray_options or RayOptions(),
-                os.path.abspath(root),
-                split,
-                batch_size,
-                viz,
-            ).to_dict()
-        elif workers <= 1 or len(todo) <= 1:
-            for s, names in todo:
-                _run_scene(
-                    m,
-                    str(s.path),
-                    names,
-                    str(jpath),
-                    on_frame=lambda r: bar.update(1),
-                    batch_size=batch_size,
-                    viz_dir=viz,
-                )
-        else:
-            _run_parallel(m, todo, jpath, workers, bar, batch_size, viz)
+        cluster = _dispatch(plan, bar, workers=workers, batch_size=batch_size, viz_dir=viz, ray=ray)
     finally:
         bar.close()
-    _, recs = read_journal(jpath)
-    calibration = calibration_for(m.name, m.options) if confidence == CALIBRATED and m.kind != CASCADE else None
-    estimated, failed = _write_outputs(output, [s.name for s in scene_list], recs, confidence, calibration)
-    timing_sums: dict[str, float] = {}
-    for r in recs:
-        for k, v in r.get("timings", {}).items():
-            timing_sums[k] = timing_sums.get(k, 0.0) + v
-    return RunResult(
-        output,
-        jpath,
-        failures_path(output),
-        computed=total,
-        skipped=len(done),
-        estimated=estimated,
-        failed=failed,
-        seconds=time.perf_counter() - t_start,
-        scenes=len(scene_list),
-        timings=timing_sums,
-        stale_scenes=stale,
-        torn_lines=0 if fresh else torn,
-        cluster=cluster,
-    )
-
-
-def _pick_scenes(scene_list: list[Scene], names: Sequence[str], split: str) -> list[Scene]:
-    """The scenes named, in split order; a name the split does not hold is refused (with the nearest ones)."""
-    import difflib
-
-    have = [s.name for s in scene_list]
-    unknown = [n for n in dict.fromkeys(names) if n not in have]
-    if unknown:
-        hints = []
-        for n in unknown:
-            close = difflib.get_close_matches(n, have, n=2, cutoff=0.6)
-            hints.append(f"{n} (did you mean {' or '.join(close)}?)" if close else n)
-        raise ValueError(
-            f"the {split} split has no scene {', '.join(hints)}; it holds {len(have)} scene(s)"
-            + (f": {', '.join(have[:8])}{' …' if len(have) > 8 else ''}" if have else "")
-        )
-    wanted = set(names)
-    return [s for s in scene_list if s.name in wanted]
-
-
-def _check_depth_files(m: Method, scene_list: list[Scene], split: str) -> None:
-    """A ``files:SUFFIX`` method whose depth maps exist at no scene's reference is a typo in the suffix (or the
-    wrong split), not a run of failures: refuse it before any work, naming the suffixes that do exist."""
-    if m.kind != "matching" or not m.depth.startswith("files:") or not scene_list:
-        return
-    suffix = m.depth.split(":", 1)[1]
-    refs = [s.frames[REFERENCE_NAME] for s in scene_list if REFERENCE_NAME in s.frames]
-    if not refs or any(f.has_depth(suffix) for f in refs):
-        return
-    found = sorted({s for f in refs for s in depth_suffixes(f.image_path)})
-    raise ValueError(
-        f"method {m.name!r} reads depth maps *.{suffix}.png, but no reference image of the {split} "
-        f"split has one (e.g. {refs[0].depth_path(suffix)}); depth suffixes there: "
-        f"{', '.join(found) or 'none'} (pick one with NAME@SUFFIX or the method's last part)"
-    )
+    return _result(plan, confidence, cluster, time.perf_counter() - t_start)
 
 
 def _run_parallel(

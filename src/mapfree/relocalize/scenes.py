@@ -23,65 +23,18 @@ import numpy as np
 from ..benchmark.html import frame_figure_path
 from ..calibration import calibration_for
 from ..data import Scene
-from ..data.io import naming
 from ..estimate import Estimate
 from ..geometry import Pose
 from ..localizer import Localizer, QueryLocalizer
 from ..methods import Method
 from ..viz import FIGURE_MAX_SIDE, FIGURE_QUALITY, estimate_figure, jpeg_bytes
 from ..viz import save_figure as save_jpeg
+from .allocator import keep_heap_warm
 from .batched import BatchOptions
+from .journal import FrameRecord
 from .references import bind_scene_references, reference_spec
 
 log = logging.getLogger(__name__)
-
-
-# --------------------------------------------------------------------------- records
-
-
-def estimate_scores(est: Estimate) -> dict[str, float]:
-    """The finite scalar numbers of ``est.extras`` (alternative confidences, ratios) for the journal."""
-    out: dict[str, float] = {}
-    for k, v in est.extras.items():
-        if isinstance(v, (bool, np.bool_)):
-            continue
-        if isinstance(v, (int, float, np.integer, np.floating)) and np.isfinite(v):
-            out[k] = float(v)
-    return out
-
-
-def frame_record(scene: str, frame: str, est: Estimate, world_pose: Pose | None) -> dict[str, Any]:
-    rec: dict[str, Any] = {
-        "kind": "frame",
-        "scene": scene,
-        "frame": frame,
-        "ok": world_pose is not None,
-        "confidence": est.confidence,
-        "inliers": int(est.inliers),
-        "reason": est.reason,
-        "timings": {k: round(float(v), 6) for k, v in est.timings.items()},
-        "scores": estimate_scores(est),
-        "signals": est.signals.to_dict(),
-    }
-    if est.p_correct is not None:
-        rec["p_correct"] = est.p_correct
-    if est.stage:
-        rec["stage"] = est.stage
-    if world_pose is not None:
-        q, t = world_pose.qt()
-        rec["q"], rec["t"] = q.tolist(), t.tolist()
-    return rec
-
-
-def append_records(path: Path, records: Sequence[dict]) -> None:
-    """Append whole lines with one ``write`` on an O_APPEND descriptor (safe across worker processes)."""
-    data = "".join(json.dumps(r, allow_nan=False) + "\n" for r in records).encode()
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-    try:
-        with naming(path):
-            os.write(fd, data)
-    finally:
-        os.close(fd)
 
 
 # --------------------------------------------------------------------------- the method bound to a scene
@@ -107,7 +60,7 @@ def built_localizer(method: Method) -> Localizer[Any]:
 class FrameResult:
     """One computed frame as a worker hands it over: its journal record and, with ``--viz``, its figure (JPEG)."""
 
-    record: dict[str, Any]
+    record: FrameRecord
     figure: bytes | None = None
 
 
@@ -152,7 +105,7 @@ def scene_results(
     scene = ref.scene
     if ref.localizer is None:
         for name in frames:
-            yield FrameResult(frame_record(scene.name, name, Estimate.failure(ref.error), None))
+            yield FrameResult(FrameRecord.of(scene.name, name, Estimate.failure(ref.error), None))
         return
     calibration = calibration_for(method.name, method.options)
     for name, est in zip(frames, estimates(ref.localizer, scene, frames, batch_size)):
@@ -164,19 +117,19 @@ def scene_results(
         if figures:
             fig = frame_figure(scene, name, est, world, method, ref.ref_image)
             picture = None if fig is None else jpeg_bytes(fig, FIGURE_MAX_SIDE, FIGURE_QUALITY)
-        yield FrameResult(frame_record(scene.name, name, est, world), picture)
+        yield FrameResult(FrameRecord.of(scene.name, name, est, world), picture)
 
 
 def save_figure(viz_dir: os.PathLike | str | None, result: FrameResult) -> None:
     """Write a frame's figure where ``--viz`` puts it (``frame_figure_path``); a failed write is logged only."""
     if viz_dir is None or result.figure is None:
         return
-    path = frame_figure_path(viz_dir, result.record["scene"], result.record["frame"])
+    path = frame_figure_path(viz_dir, result.record.scene, result.record.frame)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(result.figure)
     except OSError as e:  # a figure is a by-product: the frame's result is journaled already
-        log.warning("no figure for %s %s: %s", result.record["scene"], result.record["frame"], e)
+        log.warning("no figure for %s %s: %s", result.record.scene, result.record.frame, e)
 
 
 def frame_figure(
@@ -266,6 +219,13 @@ def set_threads(threads: int) -> None:
 
 
 # --------------------------------------------------------------------------- process set-up
+
+
+def set_up_worker(threads: int) -> None:
+    """What a worker process sets once when it starts, before any frame: its share of the cores
+    (``set_threads``) and glibc's heap kept warm between frames (``allocator.keep_heap_warm``)."""
+    set_threads(threads)
+    keep_heap_warm()
 
 
 @contextmanager

@@ -195,10 +195,12 @@ class Localizers:
 
     @staticmethod
     def _build(method: Method) -> Localizer:
-        from ...relocalize import Relocalizer
+        from ...relocalize import build_localizer
+        from ...relocalize.allocator import keep_heap_warm
 
+        keep_heap_warm()  # this process relocalizes: per-pair buffers stay in its heap (once per process)
         try:
-            return Relocalizer.from_method(method)
+            return build_localizer(method)
         except Exception as e:
             raise _unavailable(method.name, e) from e
 
