@@ -1,6 +1,7 @@
 """What the app holds for its requests (``create_app`` keeps it on ``app.state``), read in this one place and
-handed to routes as FastAPI dependencies: the settings and the database's session factories. The resources'
-own long-lived parts are theirs to hand out: the heavy pool (``http.heavy.Heavy``), the prepared methods
+handed to routes as FastAPI dependencies: the settings, the database's session factories and the limit on failed
+token checks (helpers that are given only the request, such as the page frame, read them through the functions
+here). The resources' own long-lived parts are theirs to hand out: the heavy pool (``http.heavy.Heavy``), the prepared methods
 (``anchors.localizers.LocalizersDep``), the metrics and the health monitor (``operations.router``)."""
 
 from __future__ import annotations
