@@ -1,34 +1,30 @@
-"""The FastAPI application: ``create_app(settings)``. Every request error is a 4xx JSON (API) or HTML page
-(browser) naming the problem; unexpected errors are logged and answered with a generic 500."""
+"""The FastAPI application: ``create_app(settings)``: the database (created, upgraded, repaired), what the app
+holds for its requests, the middlewares, the error handlers (``handlers``) and each resource's routers."""
 
 from __future__ import annotations
 
 import json
 import logging
 import os
-import time
 from pathlib import Path
 
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
+from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
-from starlette.concurrency import run_in_threadpool
-from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.types import Scope
+from sqlalchemy.engine import Engine
+from starlette.routing import BaseRoute
 
 from .. import __version__
 from .anchors.localizers import Localizers, register_methods_dir
 from .config import Settings, parse_daily_limit
-from .database.models import RETRY_AFTER_S, init_db, make_engine, session_factory, unavailable
-from .http.errors import error_response, wants_html
+from .database.models import init_db, make_engine, session_factory
+from .handlers import install_error_handlers
+from .http.access import AccessLog
 from .http.gc_freeze import freeze_long_lived
-from .http.guard import AuthThrottle, CredentialGate, client_address, request_id
+from .http.guard import AuthThrottle, CredentialGate
 from .http.head_as_get import HeadAsGet
 from .http.heavy import HeavyPool, default_threads
 from .http.timeouts import BodyTimeout, HeadSizeLimit
-from .inputs import UploadError
-from .leaderboard.own import Withdrawn
 from .leaderboard.storage import drop_interrupted_uploads
 from .operations.health import HealthMonitor
 from .operations.metrics import Metrics
@@ -36,49 +32,24 @@ from .process import die_with_parent, parent_from_env
 from .schemas import ERRORS, for_clients
 
 log = logging.getLogger("mapfree.http")
-CSP = "default-src 'self'; img-src 'self' data:; style-src 'self'; script-src 'self'; frame-ancestors 'none'"
 
 
-def _validation_message(exc: RequestValidationError) -> str:
-    parts = []
-    for e in exc.errors():
-        loc = ".".join(str(x) for x in e.get("loc", ()) if x not in ("body", "query", "path"))
-        parts.append(f"{loc or 'request'}: {e.get('msg', 'invalid')}")
-    return "; ".join(parts) or "invalid request"
-
-
-def allowed_methods(routes: list, scope: Scope) -> list[str]:
-    """The methods of every route of ``routes`` whose path matches ``scope``'s (Starlette's 405 names only the
-    first route's: ``GET`` where ``DELETE`` is allowed too)."""
-    from starlette.routing import Match, Route
-
-    methods: set[str] = set()
-    for route in routes:
-        if isinstance(route, Route) and route.methods and route.matches(scope)[0] != Match.NONE:
-            methods |= route.methods
-    if "GET" in methods:  # HEAD is answered as GET (``HeadAsGet``)
-        methods.add("HEAD")
-    return sorted(methods)
-
-
-def create_app(settings: Settings) -> FastAPI:
-    """The app of ``mapfree.service.create_app`` (documented there): database, state, middlewares, routes."""
-    engine = make_engine(settings.db_url)
+def open_repaired(db_url: str) -> Engine:
+    """The database's engine, its schema created or upgraded to this code's, and the uploads cut off when a
+    server was killed removed (their quota and test evaluations refunded)."""
+    engine = make_engine(db_url)
     init_db(engine)
-    with session_factory(engine).begin() as db:  # uploads cut off when a server was killed: refund them now
+    with session_factory(engine).begin() as db:
         if n := drop_interrupted_uploads(db):
             log.warning(
                 "interrupted uploads removed; their quota and test evaluations refunded", extra={"submissions": n}
             )
-    # /docs and /redoc with their assets served from /docs-assets (fastapi-offline): no CDN, so they work offline
-    app = FastAPIOffline(
-        title="mapfree service",
-        version=__version__,
-        static_url="/docs-assets",
-        max_body_size=settings.limits.max_request_bytes,
-        responses=ERRORS,
-        description="Map-free benchmark evaluation server and metric relocalization API.",
-    )
+    return engine
+
+
+def hold(app: FastAPI, settings: Settings, engine: Engine) -> None:
+    """What the app holds for its requests (read by the dependencies of ``state``, ``http.heavy``,
+    ``anchors.localizers`` and ``operations.router``): settings, database, monitors, pools, prepared methods."""
     app.state.settings, app.state.engine, app.state.sessions = settings, engine, session_factory(engine)
     app.state.read_sessions = session_factory(engine, read_only=True)  # GET and HEAD requests, credential checks
     app.state.health = HealthMonitor(engine)
@@ -90,113 +61,47 @@ def create_app(settings: Settings) -> FastAPI:
         max_side=settings.limits.work_max_side,
         pool_bytes=int(settings.method_pool_mb * (1 << 20)),
     )
-    if settings.methods_dir is not None:
-        register_methods_dir(settings.methods_dir)
+    app.state.auth_throttle = AuthThrottle(settings.auth_failures_per_minute)
 
-    @app.exception_handler(UploadError)
-    async def _upload_error(request: Request, exc: UploadError):
-        return error_response(request, exc.status, exc.message)
 
-    @app.exception_handler(Withdrawn)
-    async def _withdrawn(request: Request, exc: Withdrawn):
-        if wants_html(request):
-            from .pages import withdrawn_page
-
-            return await run_in_threadpool(withdrawn_page, request, exc)
-        return error_response(request, exc.status_code, str(exc.detail))
-
-    @app.exception_handler(StarletteHTTPException)
-    async def _http_error(request: Request, exc: StarletteHTTPException):
-        msg = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
-        headers = getattr(exc, "headers", None)
-        if exc.status_code == 413 and "too large" in msg.lower():
-            msg = f"request body larger than {settings.limits.max_request_bytes} bytes"
-        if exc.status_code == 405:  # every method of the path, not only the first route's
-            allowed = allowed_methods(every_route, request.scope)
-            headers = {**(headers or {}), "Allow": ", ".join(allowed)}
-            msg = f"method {request.method} not allowed here; allowed: {', '.join(allowed)}"
-        return error_response(request, exc.status_code, msg, headers)
-
-    @app.exception_handler(RequestValidationError)
-    async def _validation(request: Request, exc: RequestValidationError):
-        return error_response(request, 422, _validation_message(exc))
-
-    def _database_down(request: Request, exc: Exception):
-        log.warning("database unavailable", extra={"path": request.url.path, "error": str(exc).splitlines()[0][:300]})
-        return error_response(
-            request,
-            503,
-            f"the database is unavailable or busy; try again in {RETRY_AFTER_S} s",
-            {"Retry-After": str(RETRY_AFTER_S)},
-        )
-
-    @app.exception_handler(Exception)
-    async def _crash(request: Request, exc: Exception):  # only reached when the middleware below did not answer
-        if unavailable(exc):
-            return _database_down(request, exc)
-        log.error("unhandled error", exc_info=exc, extra={"path": request.url.path})
-        return error_response(request, 500, "internal server error")
-
-    throttle = app.state.auth_throttle = AuthThrottle(settings.auth_failures_per_minute)
-    app.add_middleware(CredentialGate)  # inside the access log below: its 401s are logged and counted
-
-    @app.middleware("http")
-    async def _access_log(request: Request, call_next):
-        """Every request gets an id (``X-Request-ID``) and one JSON access-log line, unexpected 500s included;
-        failed token checks are counted per client address (``guard.AuthThrottle``)."""
-        t0 = time.perf_counter()
-        rid = request.state.request_id = request_id(request)
-        try:
-            response = await call_next(request)
-        except Exception as exc:
-            if unavailable(exc):
-                response = _database_down(request, exc)
-            else:
-                log.error(
-                    "unhandled error",
-                    exc_info=exc,
-                    extra={"request_id": rid, "method": request.method, "path": request.url.path},
-                )
-                response = error_response(request, 500, f"internal server error (request id {rid})")
-        client = client_address(request)
-        if response.status_code == 401 and throttle.credentialed(request):
-            throttle.failed(client)
-        route = request.scope.get("route")
-        seconds = time.perf_counter() - t0
-        method = "HEAD" if getattr(request.state, "head", False) else request.method
-        app.state.metrics.observe(method, getattr(route, "path", "unmatched"), response.status_code, seconds)
-        response.headers["X-Request-ID"] = rid
-        response.headers.setdefault("X-Content-Type-Options", "nosniff")
-        response.headers.setdefault("Referrer-Policy", "same-origin")
-        if not request.url.path.startswith(("/docs", "/redoc")):
-            response.headers.setdefault("Content-Security-Policy", CSP)
-        log.info(
-            "request",
-            extra={
-                "method": method,
-                "route": getattr(route, "path", "?"),
-                "status": response.status_code,
-                "ms": round(seconds * 1000, 2),
-                "request_id": rid,
-                "client": client,
-                "user_id": getattr(request.state, "user_id", None),
-            },
-        )
-        return response
-
-    app.add_middleware(BodyTimeout, seconds=settings.body_timeout, total_seconds=settings.body_total_timeout)
-
-    from . import pages
+def include_routers(app: FastAPI) -> list[BaseRoute]:
+    """Every resource's JSON routes, then its web pages, and the static files -> every route (the app's own and
+    every router's), for a 405's ``Allow``."""
+    from .accounts import pages as account_pages
     from .accounts import router as accounts
+    from .anchors import pages as anchor_pages
     from .anchors import router as anchors
+    from .leaderboard import pages as leaderboard_pages
     from .leaderboard import router as leaderboard
     from .operations import router as operations
 
-    every_route = list(app.router.routes)  # the app's own and every router's, for a 405's Allow
-    for r in (operations, accounts, leaderboard, anchors, pages):
+    every_route = list(app.router.routes)
+    for r in (operations, accounts, leaderboard, anchors, account_pages, leaderboard_pages, anchor_pages):
         app.include_router(r.router)
         every_route += r.router.routes
     app.mount("/static", StaticFiles(directory=str(Path(__file__).parent / "static")), name="static")
+    return every_route
+
+
+def create_app(settings: Settings) -> FastAPI:
+    """The app of ``mapfree.service.create_app`` (documented there): database, state, middlewares, routes."""
+    engine = open_repaired(settings.db_url)
+    # /docs and /redoc with their assets served from /docs-assets (fastapi-offline): no CDN, so they work offline
+    app = FastAPIOffline(
+        title="mapfree service",
+        version=__version__,
+        static_url="/docs-assets",
+        max_body_size=settings.limits.max_request_bytes,
+        responses=ERRORS,
+        description="Map-free benchmark evaluation server and metric relocalization API.",
+    )
+    hold(app, settings, engine)
+    if settings.methods_dir is not None:
+        register_methods_dir(settings.methods_dir)
+    app.add_middleware(CredentialGate)  # inside the access log: its 401s are logged and counted
+    app.add_middleware(AccessLog, throttle=app.state.auth_throttle, observe=app.state.metrics.observe)
+    app.add_middleware(BodyTimeout, seconds=settings.body_timeout, total_seconds=settings.body_total_timeout)
+    install_error_handlers(app, settings.limits.max_request_bytes, include_routers(app))
     app.add_middleware(HeadAsGet)
     app.add_middleware(HeadSizeLimit)
     schema = app.openapi

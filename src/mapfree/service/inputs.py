@@ -6,7 +6,7 @@ from __future__ import annotations
 import unicodedata
 from typing import BinaryIO
 
-from fastapi import UploadFile
+from fastapi import HTTPException, UploadFile
 
 
 def read_upload(f: UploadFile | None, limit: int, what: str) -> bytes | None:
@@ -31,6 +31,13 @@ class UploadError(Exception):
     def __init__(self, status: int, message: str):
         super().__init__(message)
         self.status, self.message = status, message
+
+
+def problem(exc: UploadError | HTTPException) -> tuple[int, str]:
+    """A refused form's status and message, to show above the form when it comes back."""
+    if isinstance(exc, UploadError):
+        return exc.status, exc.message
+    return exc.status_code, str(exc.detail)
 
 
 def check_name(name: str | None, max_chars: int, what: str = "name") -> str:

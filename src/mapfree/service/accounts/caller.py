@@ -14,6 +14,7 @@ from fastapi import HTTPException, Path, Request
 from sqlalchemy.orm import Session
 
 from ..database.models import User, WebSession
+from ..state import sessions_of, settings_of, throttle_of
 from . import tokens as auth
 
 #: The largest row id the database holds (a 32-bit integer on PostgreSQL): a larger one in a path is a 422,
@@ -55,8 +56,7 @@ async def db_session(request: Request) -> AsyncIterator[Session]:
     """The request's database session (a FastAPI dependency: closed when the response is sent); read-only for
     GET and HEAD, so that on SQLite a write transaction is begun only where a write follows. Async, so that its
     closing (the rollback that ends a transaction still open) needs no thread of the shared pool."""
-    factory = request.app.state.read_sessions if request.method in READ_METHODS else request.app.state.sessions
-    with factory() as db:
+    with sessions_of(request, read_only=request.method in READ_METHODS)() as db:
         yield db
 
 
@@ -72,7 +72,7 @@ def token_user(request: Request, db: Session, header: str) -> User:
         auth.check_token(db, token.strip()) if scheme.lower() == "bearer" else (None, "invalid or revoked API token")
     )
     if user is None:
-        request.app.state.auth_throttle.refuse(request)
+        throttle_of(request).refuse(request)
         raise HTTPException(401, why, headers={"WWW-Authenticate": "Bearer"})
     return user
 
@@ -80,7 +80,7 @@ def token_user(request: Request, db: Session, header: str) -> User:
 def check_credentials(request: Request) -> int:
     """The account id of a request's credentials, from its headers alone (``guard.CredentialGate``): a bearer
     token, else the browser session cookie; 401 (or 429) when there are none or they are bad. Reads only."""
-    with request.app.state.read_sessions() as db:
+    with sessions_of(request, read_only=True)() as db:
         header = request.headers.get("authorization")
         if header is not None:
             return token_user(request, db, header).id
@@ -109,6 +109,14 @@ def identify(request: Request, db: Session) -> Caller:
     return Caller(None)
 
 
+def signed_in(request: Request, db: Session) -> User:
+    """The account of a web page's caller; a 401 pointing to the sign-in page otherwise."""
+    user = identify(request, db).user
+    if user is None:
+        raise HTTPException(401, "sign in first (/login)")
+    return user
+
+
 def require_user(request: Request, db: Session) -> SignedIn:
     """A signed-in caller (token or session), for reading what needs an account; a 401 otherwise."""
     caller = identify(request, db)
@@ -131,11 +139,11 @@ def require_writer(request: Request, db: Session, form_csrf: str | None = None) 
 
 def require_operator(request: Request) -> None:
     """Monitoring endpoints: the operator token (``Settings.operator_token``) or an admin's token or session."""
-    expected = request.app.state.settings.operator_token
+    expected = settings_of(request).operator_token
     scheme, _, given = request.headers.get("authorization", "").partition(" ")
     if expected and scheme.lower() == "bearer" and auth.same_secret(given.strip(), expected):
         return
-    with request.app.state.sessions() as db:
+    with sessions_of(request)() as db:
         caller = identify(request, db)
     if caller.user is None:
         raise HTTPException(

@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session
 from ..database.models import Anchor, ApiToken, Submission, WebSession, now
 from ..inputs import check_name
 from ..schemas import MeOut, NewTokenOut, RevokedTokenOut, SessionEndedOut, SessionOut, TokenOut
+from ..state import SettingsDep
 from . import tokens as auth
 from .caller import SESSION_COOKIE, Caller, RowId, db_session, require_user, require_writer
 from .quota import stored_bytes, test_quota
@@ -177,15 +178,15 @@ def delete_user(db: Session, user, dry_run: bool = False) -> dict[str, int]:
 
 
 @router.get("/api/me", tags=["accounts"], response_model=MeOut)
-def me(request: Request, db: Session = Depends(db_session)):
+def me(request: Request, settings: SettingsDep, db: Session = Depends(db_session)):
     caller = require_user(request, db)
     u = caller.user
-    quota = test_quota(db, request.app.state.settings, u)
+    quota = test_quota(db, settings, u)
     return {
         "name": u.name,
         "admin": u.is_admin,
         "test_evaluations_left_today": quota.left,
         "test_daily_limit": quota.shown_limit,
         "storage_used_bytes": stored_bytes(db, u.id),
-        "storage_quota_bytes": request.app.state.settings.storage_quota_bytes,
+        "storage_quota_bytes": settings.storage_quota_bytes,
     }

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import io
 import math
+from dataclasses import asdict, astuple, dataclass
 
 import cv2
 import numpy as np
 
 from ...data.orientation import orient_pixels
+from ...geometry import Intrinsics
 from ..config import Limits
 from ..inputs import UploadError
 from .exif import photo_orientation
@@ -78,11 +80,28 @@ def _image_size(data: bytes, what: str, formats: tuple[str, ...] = ("JPEG", "PNG
         raise UploadError(413, f"{what}: image too large (decompression bomb)") from None
 
 
-def parse_intrinsics(values: dict, width: int, height: int, what: str = "intrinsics") -> dict:
-    """fx, fy, cx, cy (pixels of the uploaded image) -> a checked dict with the image's width and height."""
+@dataclass(frozen=True)
+class IntrinsicsForm:
+    """A request's four intrinsics fields as sent, in pixels of the uploaded image's stored grid: numbers (the
+    API's form fields), text (a web page's), or None (left out). They become an ``Intrinsics`` once the photo's
+    size is known (``parse_intrinsics``); all four left out, the photo's EXIF or the default camera is taken
+    (``photos.read_upload``)."""
+
+    fx: str | float | None = None
+    fy: str | float | None = None
+    cx: str | float | None = None
+    cy: str | float | None = None
+
+    def empty(self) -> bool:
+        """Whether all four were left out (None, or empty text)."""
+        return all(v is None or str(v).strip() == "" for v in astuple(self))
+
+
+def parse_intrinsics(values: IntrinsicsForm, width: int, height: int, what: str = "intrinsics") -> Intrinsics:
+    """fx, fy, cx, cy as sent (pixels of the uploaded image) -> checked ``Intrinsics`` of a ``width`` x ``height``
+    image; each problem an ``UploadError`` naming ``what`` and the field."""
     out = {}
-    for k in ("fx", "fy", "cx", "cy"):
-        v = values.get(k)
+    for k, v in asdict(values).items():
         if v is None:
             raise UploadError(422, f"{what}: {k} must be a number, got None")
         try:
@@ -104,8 +123,7 @@ def parse_intrinsics(values: dict, width: int, height: int, what: str = "intrins
         raise UploadError(
             422, f"{what}: principal point ({out['cx']:g}, {out['cy']:g}) must lie inside the {width}x{height} image"
         )
-    out.update(width=int(width), height=int(height))
-    return out
+    return Intrinsics(out["fx"], out["fy"], out["cx"], out["cy"], int(width), int(height))
 
 
 #: How far a photo of an anchor may be from the anchor's first camera (metres): one place, not a city.

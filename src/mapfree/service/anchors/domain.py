@@ -5,18 +5,18 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from fastapi import HTTPException, Request, UploadFile
+from fastapi import HTTPException, UploadFile
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from ...estimate import Estimate
 from ...geometry import Pose
 from ..accounts.quota import check_quota
-from ..config import Limits
+from ..config import Limits, Settings
 from ..database.models import Anchor, AnchorPhoto, RetiredPhotoIndex, User, new_id, now
 from ..inputs import UploadError, check_name, read_upload
-from .decode import parse_pose
-from .localizers import check_method, check_runnable, default_method
+from .decode import IntrinsicsForm, parse_pose
+from .localizers import Localizers, check_method, check_runnable, default_method
 from .photos import Photo, Upload, decode_stored
 from .photos import read_upload as read_photo_upload
 
@@ -99,10 +99,7 @@ def photo_upload(
     lim: Limits,
     what: str,
     image: UploadFile | None,
-    fx: str | float | None,
-    fy: str | float | None,
-    cx: str | float | None,
-    cy: str | float | None,
+    intrinsics: IntrinsicsForm,
     depth: UploadFile | None,
     pose: str | None,
 ) -> Upload:
@@ -112,10 +109,8 @@ def photo_upload(
         lim: The server's limits (file sizes, pixels, the working size).
         what: How errors name the photo (``photo_name``; "" for a lone photo).
         image: The photo file (JPEG or PNG); turned upright by its EXIF orientation.
-        fx: Focal length along x of the uploaded image, in pixels.
-        fy: Focal length along y, in pixels.
-        cx: Principal point x, in pixels.
-        cy: Principal point y, in pixels.
+        intrinsics: Its ``fx fy cx cy`` as sent, pixels of the uploaded image (all left out: its EXIF focal
+            length, else the default camera).
         depth: Optional depth map: a single-channel uint16 PNG in millimetres, of the photo's size.
         pose: ``"qw qx qy qz tx ty tz"``, world-to-camera from the anchor's frame (metres); None for the
             anchor's first photo, whose camera is that frame.
@@ -135,7 +130,7 @@ def photo_upload(
         up = read_photo_upload(
             img_bytes,
             lim,
-            {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
+            intrinsics,
             read_upload(depth, lim.max_image_bytes, "depth"),
             store=True,
         )
@@ -240,7 +235,9 @@ def extra_photos(
     names = [photo_name(first + i, f) for i, f in enumerate(images)]
     fx, fy, cx, cy = (v or [""] * n for v in (fx, fy, cx, cy))  # none given: each photo's EXIF, else the default
     ups = [
-        photo_upload(lim, names[i], f, fx[i], fy[i], cx[i], cy[i], depths[i] if depths else None, poses[i])
+        photo_upload(
+            lim, names[i], f, IntrinsicsForm(fx[i], fy[i], cx[i], cy[i]), depths[i] if depths else None, poses[i]
+        )
         for i, f in enumerate(images)
     ]
     return ups, names
@@ -251,7 +248,7 @@ def _photo_rows_of(aid: str, ups: list[Upload], first_seq: int) -> list[AnchorPh
         AnchorPhoto(
             anchor_id=aid,
             seq=first_seq + i,
-            intrinsics=u.intrinsics,
+            intrinsics=u.stored_intrinsics,
             pose=u.pose,
             image=u.image,
             depth=u.depth,
@@ -277,7 +274,8 @@ def check_photo_count(lim: Limits, n: int) -> None:
 
 
 def make_anchor(
-    request: Request,
+    settings: Settings,
+    localizers: Localizers,
     db: Session,
     user: User,
     name: str,
@@ -290,7 +288,8 @@ def make_anchor(
     localize is refused now, not at its first query). Shared by ``POST /anchors`` and the relocalize page.
 
     Args:
-        request: The request (the app's settings and relocalizers).
+        settings: The deployment's settings (limits, quota, default method).
+        localizers: The app's prepared methods (``localizers.LocalizersDep``).
         db: The request's database session; committed.
         user: The owner.
         name: The anchor's name (checked; may be empty).
@@ -306,7 +305,6 @@ def make_anchor(
         UploadError: Past the photo limit or the owner's storage quota (413), an unknown method (422), or a
             method that cannot run on these photos here (``MethodUnavailable``, 422).
     """
-    settings = request.app.state.settings
     lim = settings.limits
     check_photo_count(lim, len(ups))
     name = check_name(name, lim.max_name_chars)
@@ -318,12 +316,12 @@ def make_anchor(
     aid = new_id()
     rows = _photo_rows_of(aid, ups[1:], 1)
     # 422 when it cannot run; what it prepares counts against the owner's share of the cache
-    request.app.state.localizers.check(aid, m, [u.photo for u in ups], anchor_version(rows), user.id)
+    localizers.check(aid, m, [u.photo for u in ups], anchor_version(rows), user.id)
     try:  # counted again, locked, in the transaction that stores them: another upload may have come meanwhile
         check_quota(db, settings, user.id, nbytes, "this anchor's photos")
     except UploadError:
         db.rollback()
-        request.app.state.localizers.forget(aid)
+        localizers.forget(aid)
         raise
     first = ups[0]
     a = Anchor(
@@ -331,7 +329,7 @@ def make_anchor(
         user_id=user.id,
         name=name,
         method=m,
-        intrinsics=first.intrinsics,
+        intrinsics=first.stored_intrinsics,
         image=first.image,
         depth=first.depth,
         private=bool(private),
@@ -414,15 +412,13 @@ def retire_photo_index(db: Session, aid: str, k: int) -> None:
 
 
 def add_photo(
-    request: Request,
+    settings: Settings,
+    localizers: Localizers,
     db: Session,
     user: User,
     aid: str,
     image: UploadFile | None,
-    fx: str | float | None,
-    fy: str | float | None,
-    cx: str | float | None,
-    cy: str | float | None,
+    intrinsics: IntrinsicsForm,
     depth: UploadFile | None,
     pose: str,
 ) -> tuple[Anchor, list[AnchorPhoto]]:
@@ -431,15 +427,13 @@ def add_photo(
     the anchor afresh. Shared by the API and the anchor's page.
 
     Args:
-        request: The request (the app's settings and relocalizers).
+        settings: The deployment's settings (limits, quota).
+        localizers: The app's prepared methods (``localizers.LocalizersDep``).
         db: The request's database session; committed.
         user: The caller's account: the anchor's owner or an admin.
         aid: The anchor's id.
         image: The photo file (JPEG or PNG).
-        fx: Focal length along x of the uploaded image, in pixels.
-        fy: Focal length along y, in pixels.
-        cx: Principal point x, in pixels.
-        cy: Principal point y, in pixels.
+        intrinsics: Its ``fx fy cx cy`` as sent, pixels of the uploaded image (``photo_upload``).
         depth: Optional depth map: a single-channel uint16 PNG in millimetres.
         pose: ``"qw qx qy qz tx ty tz"``, world-to-camera from the anchor's frame (metres).
 
@@ -451,7 +445,7 @@ def add_photo(
         UploadError: A photo ``photo_upload`` refuses, an anchor at its photo limit or its owner's storage
             quota (413), or a photo without the depth map the anchor's method needs (422).
     """
-    lim = request.app.state.settings.limits
+    lim = settings.limits
 
     def checks(lock: bool) -> tuple[Anchor, int, str]:
         a = find_anchor(db, aid, lock=lock)
@@ -467,22 +461,22 @@ def add_photo(
     method = a.method
     # Decode (up to 16 MB) outside any transaction: on SQLite every transaction holds the database's write lock.
     db.commit()
-    up = photo_upload(lim, what, image, fx, fy, cx, cy, depth, pose)
+    up = photo_upload(lim, what, image, intrinsics, depth, pose)
     _runnable(method, [up], [what])
     a, seq, what = checks(lock=True)  # again, locked: the anchor may have changed (or gone) while decoding
-    check_quota(db, request.app.state.settings, a.user_id, up.nbytes, "this photo")
+    check_quota(db, settings, a.user_id, up.nbytes, "this photo")
     db.add_all(_photo_rows_of(a.id, [up], seq))
     db.commit()
-    request.app.state.localizers.forget(a.id)  # older versions of this anchor are of no further use here
+    localizers.forget(a.id)  # older versions of this anchor are of no further use here
     return a, photo_rows(db, a.id)
 
 
-def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) -> tuple[Anchor, list[AnchorPhoto]]:
+def remove_photo(localizers: Localizers, db: Session, user: User, aid: str, k: int) -> tuple[Anchor, list[AnchorPhoto]]:
     """Delete a photo of an anchor with its stored bytes; every API process then prepares the anchor afresh from
     the photos left. Its index is never given again.
 
     Args:
-        request: The request (the app's relocalizers).
+        localizers: The app's prepared methods (``localizers.LocalizersDep``).
         db: The request's database session; committed.
         user: The caller's account: the anchor's owner or an admin.
         aid: The anchor's id.
@@ -513,7 +507,7 @@ def remove_photo(request: Request, db: Session, user: User, aid: str, k: int) ->
     db.delete(row)
     retire_photo_index(db, a.id, k)
     db.commit()
-    request.app.state.localizers.forget(a.id)
+    localizers.forget(a.id)
     return a, photo_rows(db, a.id)
 
 
@@ -536,7 +530,12 @@ def stored_photo(a: Anchor, rows: list[AnchorPhoto], k: int, lim: Limits) -> Pho
 
 
 def localize_anchor(
-    request: Request, a: Anchor, rows: list[AnchorPhoto], query: Photo, owner: int | None = None
+    localizers: Localizers,
+    lim: Limits,
+    a: Anchor,
+    rows: list[AnchorPhoto],
+    query: Photo,
+    owner: int | None = None,
 ) -> Estimate:
     """Localize a query photo against an anchor with the anchor's method: its metric pose in the anchor's frame.
 
@@ -544,7 +543,8 @@ def localize_anchor(
     prepares counts against ``owner``'s share of the cache. With several photos the most similar one answers.
 
     Args:
-        request: The request (the app's settings and relocalizers).
+        localizers: The app's prepared methods (``localizers.LocalizersDep``).
+        lim: The server's limits (the working size, the decode limits).
         a: The anchor.
         rows: Its further photos (``photo_rows``), as they are now.
         query: The query photo at the working size (``photos.read_upload``), with its intrinsics and optional
@@ -559,9 +559,8 @@ def localize_anchor(
     Raises:
         MethodUnavailable: The anchor's method cannot run here (weights missing, depth it needs absent).
     """
-    lim = request.app.state.settings.limits
     indices = photo_indices(rows)
-    est = request.app.state.localizers.localize_photos(
+    est = localizers.localize_photos(
         a.id,
         a.method,
         anchor_version(rows),

@@ -8,10 +8,11 @@ import re
 from collections.abc import Callable, Hashable, Iterable
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import cv2
 import numpy as np
+from fastapi import Depends, Request
 
 from ...estimate import Estimate
 from ...geometry import Intrinsics
@@ -297,6 +298,14 @@ class Localizers:
             return est
         finally:
             self._give(chosen, loc)
+
+
+async def _localizers(request: Request) -> Localizers:  # async: resolving it takes no thread of the shared pool
+    return request.app.state.localizers
+
+
+#: A route's ``localizers: LocalizersDep``: the app's prepared methods (``create_app`` holds them).
+LocalizersDep = Annotated[Localizers, Depends(_localizers)]
 
 
 def estimate_json(est: Estimate, method: str) -> dict:

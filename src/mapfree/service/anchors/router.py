@@ -12,6 +12,8 @@ from ..database.models import AnchorPhoto
 from ..http.heavy import heavy
 from ..inputs import read_upload
 from ..schemas import AnchorOut, LocalizeOut
+from ..state import SettingsDep
+from .decode import IntrinsicsForm
 from .domain import (
     add_photo,
     anchor_json,
@@ -28,7 +30,7 @@ from .domain import (
     remove_photo,
 )
 from .exif import clean_photo
-from .localizers import estimate_json
+from .localizers import LocalizersDep, estimate_json
 from .photos import read_upload as read_photo_upload
 
 router = APIRouter(tags=["relocalization"])
@@ -44,6 +46,8 @@ _INTRINSICS = (
 @heavy
 def create_anchor(
     request: Request,
+    settings: SettingsDep,
+    localizers: LocalizersDep,
     image: UploadFile = File(..., description="reference photo (JPEG/PNG)"),
     fx: float | None = Form(None, description=_INTRINSICS),
     fy: float | None = Form(None),
@@ -74,14 +78,16 @@ def create_anchor(
     with its own intrinsics, optional depth and pose in the anchor's frame). Errors name the photo: photo 0 is
     ``image``, photo 1 the first ``photo_image``, and so on. The photos count against the storage quota."""
     caller = require_writer(request, db, csrf_token)
-    lim = request.app.state.settings.limits
+    lim = settings.limits
     n_extra = sum(1 for f in photo_image if f.filename or f.size)
     check_photo_count(lim, 1 + n_extra)  # before decoding any
     several = n_extra > 0  # one photo: messages as before, without "photo 0"
     name0 = photo_name(0, image) if several else ""
-    first = photo_upload(lim, name0, image, fx, fy, cx, cy, depth, None)
+    first = photo_upload(lim, name0, image, IntrinsicsForm(fx, fy, cx, cy), depth, None)
     extra, names = extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
-    a, rows = make_anchor(request, db, caller.user, name, method, [first, *extra], [name0, *names], private)
+    a, rows = make_anchor(
+        settings, localizers, db, caller.user, name, method, [first, *extra], [name0, *names], private
+    )
     return anchor_json(a, rows)
 
 
@@ -97,6 +103,8 @@ def get_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
 def add_anchor_photo(
     aid: str,
     request: Request,
+    settings: SettingsDep,
+    localizers: LocalizersDep,
     image: UploadFile = File(..., description="photo (JPEG/PNG)"),
     fx: float | None = Form(None, description=_INTRINSICS),
     fy: float | None = Form(None),
@@ -112,16 +120,19 @@ def add_anchor_photo(
     one the anchor ever had (a deleted photo's index is never given again) and counts against the owner's
     storage quota."""
     caller = require_writer(request, db, csrf_token)
-    return anchor_json(*add_photo(request, db, caller.user, aid, image, fx, fy, cx, cy, depth, pose))
+    intrinsics = IntrinsicsForm(fx, fy, cx, cy)
+    return anchor_json(*add_photo(settings, localizers, db, caller.user, aid, image, intrinsics, depth, pose))
 
 
 @router.delete("/anchors/{aid}/photos/{k}", response_model=AnchorOut)
-def delete_anchor_photo(aid: str, k: RowId, request: Request, db: Session = Depends(db_session)):
+def delete_anchor_photo(
+    aid: str, k: RowId, request: Request, localizers: LocalizersDep, db: Session = Depends(db_session)
+):
     """Delete photo ``k`` of one of your anchors (its owner, or an admin) -> the anchor. Indices stay as they
     are (deleting photo 1 of 0, 1, 2 leaves 0, 2); the next localize uses the photos left; the bytes no longer
     count against the storage quota. Photo 0, the anchor's frame, cannot be deleted (409): delete the anchor."""
     caller = require_writer(request, db)
-    return anchor_json(*remove_photo(request, db, caller.user, aid, k))
+    return anchor_json(*remove_photo(localizers, db, caller.user, aid, k))
 
 
 @router.get(
@@ -148,13 +159,13 @@ def anchor_photo_image(aid: str, k: RowId, request: Request, db: Session = Depen
 
 
 @router.delete("/anchors/{aid}", status_code=204, tags=["relocalization"], response_class=Response)
-def delete_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
+def delete_anchor(aid: str, request: Request, localizers: LocalizersDep, db: Session = Depends(db_session)):
     caller = require_writer(request, db)
     a = find_anchor(db, aid)
     own_anchor(a, caller.user, "delete it")
     db.delete(a)
     db.commit()
-    request.app.state.localizers.forget(aid)
+    localizers.forget(aid)
     return Response(status_code=204)
 
 
@@ -163,6 +174,8 @@ def delete_anchor(aid: str, request: Request, db: Session = Depends(db_session))
 def localize(
     aid: str,
     request: Request,
+    settings: SettingsDep,
+    localizers: LocalizersDep,
     image: UploadFile = File(..., description="query photo (JPEG/PNG)"),
     fx: float | None = Form(None, description=_INTRINSICS),
     fy: float | None = Form(None),
@@ -180,14 +193,14 @@ def localize(
     a = find_anchor(db, aid)
     rows = photo_rows(db, a.id)
     db.commit()  # release the read transaction before the long computation
-    lim = request.app.state.settings.limits
+    lim = settings.limits
     q = read_photo_upload(
         read_upload(image, lim.max_image_bytes, "image") or b"",
         lim,
-        {"fx": fx, "fy": fy, "cx": cx, "cy": cy},
+        IntrinsicsForm(fx, fy, cx, cy),
         read_upload(depth, lim.max_image_bytes, "depth"),
     ).photo
-    out = estimate_json(localize_anchor(request, a, rows, q, caller.user.id), a.method)
+    out = estimate_json(localize_anchor(localizers, lim, a, rows, q, caller.user.id), a.method)
     out["anchor"] = a.id
     out["intrinsics_source"] = q.intrinsics_source
     return out

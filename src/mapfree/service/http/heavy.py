@@ -20,9 +20,9 @@ import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Hashable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import HTTPException, Request
+from fastapi import Depends, HTTPException, Request
 
 from .guard import client_address
 
@@ -190,14 +190,27 @@ class HeavyPool:
         self.executor.shutdown(wait=False, cancel_futures=True)
 
 
+def pool_of(request: Request) -> HeavyPool:
+    """The app's heavy pool (``create_app`` holds it)."""
+    return request.app.state.heavy
+
+
+async def _heavy_pool(request: Request) -> HeavyPool:  # async: resolving it takes no thread of the shared pool
+    return pool_of(request)
+
+
+#: A route's ``pool: Heavy``: the app's ``HeavyPool``, for a route that sends only part of its work there.
+Heavy = Annotated[HeavyPool, Depends(_heavy_pool)]
+
+
 def heavy(fn: Callable[..., Any]) -> Callable[..., Any]:
     """Decorator of a plain ``def`` endpoint with a ``request`` parameter: FastAPI sees the same parameters, but
-    the body runs on the app's ``HeavyPool`` (``app.state.heavy``) instead of the shared thread pool."""
+    the body runs on the app's ``HeavyPool`` (``pool_of``) instead of the shared thread pool."""
 
     @functools.wraps(fn)
     async def endpoint(*args: Any, **kwargs: Any) -> Any:
         request: Request = kwargs["request"]
         account = getattr(request.state, "account", None) or client_address(request)  # CredentialGate's
-        return await request.app.state.heavy.run(fn, *args, account=account, **kwargs)
+        return await pool_of(request).run(fn, *args, account=account, **kwargs)
 
     return endpoint

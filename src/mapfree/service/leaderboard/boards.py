@@ -19,6 +19,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from ..accounts.caller import identify
+from ..config import Settings
 from ..database.models import MethodInfo, Result, Submission, User
 from ..inputs import UploadError
 from .disclosure import TEST_RANK_BY
@@ -452,17 +453,17 @@ def compare(a: dict, b: dict) -> dict:
     return result
 
 
-def check_split(request: Request, split: str) -> None:
+def check_split(settings: Settings, split: str) -> None:
     """Refuse a board of a split this server does not take submissions for.
 
     Args:
-        request: The request (the app's settings).
+        settings: The deployment's settings (its ``splits``).
         split: The split named in the path.
 
     Raises:
         HTTPException: 404 for any split not in ``Settings.splits``.
     """
-    if split not in request.app.state.settings.splits:
+    if split not in settings.splits:
         raise HTTPException(404, f"no leaderboard for split {split!r}")
 
 

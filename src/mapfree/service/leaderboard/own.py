@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import time
 
-from fastapi import HTTPException, Request
+from fastapi import HTTPException
 from fastapi.responses import Response, StreamingResponse
 from sqlalchemy import delete
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from ..database.models import MethodInfo, Plot, Result, Submission, SubmissionFile, User, now
 from .storage import is_stored, stream_zip
@@ -75,12 +75,12 @@ def withdraw(db: Session, sub: Submission) -> None:
     db.commit()
 
 
-def zip_response(request: Request, db: Session, sub: Submission) -> Response:
+def zip_response(sessions: sessionmaker[Session], db: Session, sub: Submission) -> Response:
     """The stored ZIP of a submission as a download, streamed chunk by chunk, each read in a short transaction of
     its own (``storage.stream_zip``).
 
     Args:
-        request: The request (the app's database sessions).
+        sessions: The app's session factory (``state.SessionsDep``): each chunk is read in a session of its own.
         db: The request's database session; committed.
         sub: The submission (``own_submission``).
 
@@ -95,7 +95,7 @@ def zip_response(request: Request, db: Session, sub: Submission) -> Response:
     db.commit()
     name = f"mapfree-{sub.split}-{sub.id}.zip"
     return StreamingResponse(
-        stream_zip(request.app.state.sessions, sub.id),
+        stream_zip(sessions, sub.id),
         media_type="application/zip",
         headers={
             "Content-Disposition": f'attachment; filename="{name}"',

@@ -17,8 +17,10 @@ from starlette.concurrency import run_in_threadpool
 from ..accounts.caller import db_session, identify, require_user, require_writer
 from ..database.models import MethodInfo, Submission
 from ..http.guard import client_address
+from ..http.heavy import Heavy
 from ..inputs import spooled_upload
 from ..schemas import BoardOut, CompareOut, MethodMetaOut, SubmissionOut
+from ..state import SessionsDep, SettingsDep
 from .boards import (
     MAX_PER_PAGE,
     PER_PAGE,
@@ -51,6 +53,7 @@ log = logging.getLogger("mapfree.leaderboard")
 )
 def create_submission(
     request: Request,
+    settings: SettingsDep,
     file: UploadFile = File(..., description="submission ZIP"),
     split: str = Form(..., description="val or test"),
     name: str = Form(""),
@@ -67,7 +70,6 @@ def create_submission(
     422 naming it, before anything is stored). It is stored and queued before this answers 202; poll
     ``api_url``."""
     caller = require_writer(request, db, csrf_token)
-    settings = request.app.state.settings
     meta = parse_meta(description, paper_url, code_url, runtime_ms, extra_data)
     sub = accept(db, settings, caller.user, split, name, public, spooled_upload(file, "submission"))
     if not meta.empty():
@@ -124,13 +126,13 @@ def set_visibility(sid: str, body: Visibility, request: Request, db: Session = D
     response_class=Response,
     responses={200: {"content": {"image/png": {}}, "description": "the figure"}},
 )
-async def plot_png(sid: str, name: str, request: Request, db: Session = Depends(db_session)):
+async def plot_png(sid: str, name: str, request: Request, pool: Heavy, db: Session = Depends(db_session)):
     sub = await run_in_threadpool(_visible_submission, request, db, sid)
     png = await run_in_threadpool(stored_plot, db, sub, name)
     if png is None and needs_drawing(sub, name):  # a first view: drawn on the heavy threads (429 past their
         # room), never on the shared pool, where 60 first renders stalled another user's /api/me for 22 s
         account = getattr(request.state, "user_id", None) or client_address(request)
-        png = await request.app.state.heavy.run(render_plot, db, sub, name, account=account)
+        png = await pool.run(render_plot, db, sub, name, account=account)
     if png is None:
         raise HTTPException(404, "no such plot")
     return Response(png, media_type="image/png", headers={"Cache-Control": "private, max-age=3600"})
@@ -151,10 +153,10 @@ def withdraw_submission(sid: str, request: Request, db: Session = Depends(db_ses
     response_class=Response,
     responses={200: {"content": {"application/zip": {}}, "description": "the ZIP as uploaded"}},
 )
-def download_zip(sid: str, request: Request, db: Session = Depends(db_session)):
+def download_zip(sid: str, request: Request, sessions: SessionsDep, db: Session = Depends(db_session)):
     """The ZIP you uploaded (owner or admin only; 409 once withdrawn, 410 once past the retention time)."""
     caller = require_user(request, db)
-    return zip_response(request, db, own_submission(db, caller.user, sid))
+    return zip_response(sessions, db, own_submission(db, caller.user, sid))
 
 
 class MethodBody(BaseModel):
@@ -185,19 +187,20 @@ def describe_method(sid: str, body: MethodBody, request: Request, db: Session = 
 )
 def leaderboard_csv(
     split: str,
-    request: Request,
+    settings: SettingsDep,
+    sessions: SessionsDep,
     sort: str = Query("vcre_auc"),
     view: str = Query("all"),
     scene: str | None = Query(None),
     db: Session = Depends(db_session),
 ):
     """The whole leaderboard as a CSV file (same parameters as the JSON board, no paging), streamed."""
-    check_split(request, split)
+    check_split(settings, split)
     ranked = ranking(db, split, sort, view, scene)
     db.commit()
     fname = f"mapfree-{split}{'-' + scene if scene else ''}-{view}-{sort}.csv"
     return StreamingResponse(
-        stream_csv(request.app.state.sessions, split, ranked, scene),  # a plain iterator: run in the thread pool
+        stream_csv(sessions, split, ranked, scene),  # a plain iterator: run in the thread pool
         media_type="text/csv; charset=utf-8",
         headers={"Content-Disposition": f'attachment; filename="{re.sub("[^A-Za-z0-9_.-]", "", fname)}"'},
     )
@@ -208,7 +211,7 @@ def leaderboard_csv(
 )
 def leaderboard(
     split: str,
-    request: Request,
+    settings: SettingsDep,
     sort: str = Query("vcre_auc"),
     view: str = Query("all"),
     scene: str | None = Query(None),
@@ -222,7 +225,7 @@ def leaderboard(
     ``scene``: one scene's scores (val only). Paged: ``page`` (from 1) of ``per_page`` rows (at most
     200); ``total`` and ``pages`` say how many there are. Published results on the real Map-free data come
     apart, under ``reference``."""
-    check_split(request, split)
+    check_split(settings, split)
     b = board(db, split, sort, view, scene, page, per_page)
     out = {
         "split": split,

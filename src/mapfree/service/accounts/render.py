@@ -1,6 +1,6 @@
 """Server-rendered HTML: the Jinja2 templates (``service/templates``) with their filters, a page with the
-navigation of whoever is calling, and the error page. The web pages (``pages.py``, the access page) and the
-error responses (``errors.py``) render through here."""
+navigation of whoever is calling (so it lives with the accounts), and the error page. Every resource's web pages
+(its ``pages`` module) and the error responses (``http.errors``) render through here."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 from sqlalchemy.orm import Session
 
-from ..accounts.caller import identify
+from ..state import sessions_of, settings_of
+from .caller import identify
 
 templates = Jinja2Templates(directory=str(Path(__file__).parents[1] / "templates"))
 
@@ -43,7 +44,7 @@ def page(request: Request, name: str, db: Session, status: int = 200, **ctx: Any
     return templates.TemplateResponse(
         request,
         name,
-        {"user": caller.user, "csrf": caller.csrf, "splits": request.app.state.settings.splits, **ctx},
+        {"user": caller.user, "csrf": caller.csrf, "splits": settings_of(request).splits, **ctx},
         status_code=status,
     )
 
@@ -52,7 +53,7 @@ def error_page(request: Request, status: int, message: str, headers: dict | None
     """The HTML error page, with the navigation of whoever is signed in (never "sign in" to a signed-in user)."""
     user, csrf = None, ""
     try:
-        with request.app.state.sessions() as db:
+        with sessions_of(request)() as db:
             caller = identify(request, db)
             user, csrf = caller.user, caller.csrf
     except Exception:  # a bad token, or the database is down: an anonymous header is still a useful page
@@ -60,7 +61,7 @@ def error_page(request: Request, status: int, message: str, headers: dict | None
     return templates.TemplateResponse(
         request,
         "error.html",
-        {"status": status, "message": message, "user": user, "csrf": csrf, "splits": request.app.state.settings.splits},
+        {"status": status, "message": message, "user": user, "csrf": csrf, "splits": settings_of(request).splits},
         status_code=status,
         headers=headers,
     )
