@@ -137,6 +137,8 @@ class Model:
         arrays = [*m.impute, *m.mean, *m.scale, *m.coef, m.intercept, *m.iso_x, *m.iso_y]
         if not all(math.isfinite(float(v)) for v in arrays) or min(m.scale) <= 0:
             raise ValueError("non-finite or non-positive values")
+        if any(b < a for a, b in zip(m.iso_x, m.iso_x[1:])) or not all(0 <= v <= 1 for v in m.iso_y):
+            raise ValueError("isotonic knots not increasing, or probabilities outside [0, 1]")
         return m
 
 
@@ -249,16 +251,54 @@ class Calibration:
         """
         path = Path(path)
         try:
-            d = json.loads(path.read_text())
+            text = path.read_bytes()
         except FileNotFoundError:
             raise CalibrationError(f"calibration {path} not found") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        except OSError as e:
             raise CalibrationError(f"calibration {path} is not readable JSON ({e})") from None
+        return cls.from_json(text, str(path), method)
+
+    @classmethod
+    def from_json(cls, text: str | bytes, where: str, method: str | None = None) -> Calibration:
+        """Read a calibration file's content, with the same checks as ``load`` (an upload to the service).
+
+        Args:
+            text: The JSON text.
+            where: What the messages call it (the file's name).
+            method: The method it must have been fitted for (None: any).
+
+        Returns:
+            The calibration.
+
+        Raises:
+            CalibrationError: Corrupt, another format or version, or fitted for another method.
+        """
+        try:
+            d = json.loads(text)
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+            raise CalibrationError(f"calibration {where} is not readable JSON ({e})") from None
+        return cls.from_dict(d, where, method)
+
+    @classmethod
+    def from_dict(cls, d: Any, where: str, method: str | None = None) -> Calibration:
+        """A calibration from a file's parsed JSON (``to_dict``), with the same checks as ``load``.
+
+        Args:
+            d: The parsed JSON.
+            where: What the messages call it (the file's name).
+            method: The method it must have been fitted for (None: any).
+
+        Returns:
+            The calibration.
+
+        Raises:
+            CalibrationError: Corrupt, another format or version, or fitted for another method.
+        """
         if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise CalibrationError(f"calibration {path} is not a mapfree calibration file (no format {FORMAT!r})")
+            raise CalibrationError(f"calibration {where} is not a mapfree calibration file (no format {FORMAT!r})")
         if d.get("version") != FORMAT_VERSION:
             raise CalibrationError(
-                f"calibration {path} has format version {d.get('version')!r}, this mapfree reads version "
+                f"calibration {where} has format version {d.get('version')!r}, this mapfree reads version "
                 f"{FORMAT_VERSION}: fit it again with `mapfree calibrate`"
             )
         try:
@@ -268,12 +308,12 @@ class Calibration:
                 raise ValueError(f"unknown signal(s) {', '.join(unknown)}")
             models = {t: Model.from_dict(d["models"][t], len(names)) for t in TARGETS}
             cal = cls(str(d["method"]), names, int(d["frames"]), models, dict(d.get("figures", {})), str(d["data"]))
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
             what = f"missing {e}" if isinstance(e, KeyError) else str(e)
-            raise CalibrationError(f"calibration {path} is corrupt: {what}") from None
+            raise CalibrationError(f"calibration {where} is corrupt: {what}") from None
         if method is not None and cal.method != method:
             raise CalibrationError(
-                f"calibration {path} was fitted for method {cal.method!r}, not {method!r}: "
+                f"calibration {where} was fitted for method {cal.method!r}, not {method!r}: "
                 f"fit one for {method!r} with `mapfree calibrate DATA --method {method}`"
             )
         return cal
