@@ -36,6 +36,7 @@ __all__ = [
     "Model",
     "Calibration",
     "features",
+    "centred_knots",
     "fit",
     "shipped",
     "calibration_for",
@@ -335,15 +336,36 @@ def _fit_model(X: np.ndarray, y: np.ndarray) -> Model:
     lr = LogisticRegression(C=1.0, max_iter=1000).fit(Z, y)
     z = Z @ lr.coef_[0] + lr.intercept_[0]
     iso = IsotonicRegression(y_min=0.0, y_max=1.0, increasing=True, out_of_bounds="clip").fit(z, y)
+    knots_x, knots_y = centred_knots(iso.X_thresholds_, iso.y_thresholds_)
     return Model(
         impute.tolist(),
         mean.tolist(),
         scale.tolist(),
         lr.coef_[0].tolist(),
         float(lr.intercept_[0]),
-        [float(v) for v in iso.X_thresholds_],
-        [float(v) for v in iso.y_thresholds_],
+        [float(v) for v in knots_x],
+        [float(v) for v in knots_y],
     )
+
+
+def centred_knots(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centred isotonic regression: one knot per constant block of an isotonic fit, at the block's centre, so that
+    the map interpolates between blocks instead of holding each one flat.
+
+    A flat block gives every frame in it the same probability, and the benchmark's AUC ranks by the probability:
+    ties there lose the ranking the logistic score had (a cascade ranks by nothing else). Between block centres
+    the map rises strictly, so frames keep the logistic score's order; each block's level is unchanged.
+
+    Args:
+        x: (K,) the isotonic fit's increasing thresholds (``X_thresholds_``).
+        y: (K,) its non-decreasing values there (``y_thresholds_``).
+
+    Returns:
+        (B,) strictly increasing knot positions and (B,) their values, one per block.
+    """
+    starts = np.flatnonzero(np.r_[True, np.diff(y) != 0])
+    ends = np.r_[starts[1:] - 1, len(y) - 1]
+    return (x[starts] + x[ends]) / 2.0, y[starts]
 
 
 def _held_out(X: np.ndarray, y: np.ndarray) -> np.ndarray:
