@@ -261,19 +261,8 @@ class Calibration:
 
     @classmethod
     def from_json(cls, text: str | bytes, where: str, method: str | None = None) -> Calibration:
-        """Read a calibration file's content, with the same checks as ``load`` (an upload to the service).
-
-        Args:
-            text: The JSON text.
-            where: What the messages call it (the file's name).
-            method: The method it must have been fitted for (None: any).
-
-        Returns:
-            The calibration.
-
-        Raises:
-            CalibrationError: Corrupt, another format or version, or fitted for another method.
-        """
+        """``from_dict`` of a file's JSON text (an upload to the service); ``CalibrationError`` also when it is no
+        readable JSON."""
         try:
             d = json.loads(text)
         except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:

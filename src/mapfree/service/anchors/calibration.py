@@ -37,11 +37,15 @@ def calibrated_methods(method: str) -> list[str]:
         method: The anchor's (registered) method name.
 
     Returns:
-        Registered method names, in order.
+        Registered method names, in order; ``[method]`` for a name the registry no longer knows (an operator's
+        config removed since the anchor was made).
     """
-    m = methods.get(method)
-    if m.kind == methods.CASCADE:
-        return [methods.get(s).name for s in m.options["stages"]]
+    try:
+        m = methods.get(method)
+        if m.kind == methods.CASCADE:
+            return [methods.get(s).name for s in m.options["stages"]]
+    except (KeyError, ValueError, FileNotFoundError, OSError):
+        return [method]
     return [m.name]
 
 
