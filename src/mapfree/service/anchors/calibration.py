@@ -15,6 +15,7 @@ from pathlib import PurePath
 from typing import Any
 
 from fastapi import UploadFile
+from sqlalchemy.orm import Session
 
 from ... import methods
 from ...calibration import Calibrated, Calibration, CalibrationError, calibration_for, shipped
@@ -175,3 +176,21 @@ def accepted(est: Estimate, accept: float | None) -> bool | None:
     if accept is None:
         return None
     return bool(est.ok and est.p_correct is not None and est.p_correct >= accept)
+
+
+def set_calibration(db: Session, a: Anchor, files: list[UploadFile], accept: float | None) -> None:
+    """Give an anchor its calibrations and accept threshold, replacing both: the uploaded files
+    (``read_calibrations``), or none for its method's shipped ones. Every API process reads them from the database
+    at each localize, so nothing cached needs forgetting.
+
+    Args:
+        db: The request's database session; committed.
+        a: The anchor (the caller may change it: its owner or an admin).
+        files: ``.calib.json`` uploads: one for the anchor's method, or one per stage of a cascade.
+        accept: The threshold on ``p_correct`` answers are ``accepted`` at; None: none.
+
+    Raises:
+        UploadError: A file or threshold that cannot be used (413, 422); nothing is changed.
+    """
+    a.calibration, a.accept = read_calibrations(files, a.method), check_accept(accept)
+    db.commit()

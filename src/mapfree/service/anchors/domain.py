@@ -15,7 +15,7 @@ from ..accounts.quota import check_quota
 from ..config import Limits
 from ..database.models import Anchor, AnchorPhoto, RetiredPhotoIndex, User, new_id, now
 from ..inputs import UploadError, check_name, read_upload
-from .calibration import calibration_json, check_accept, read_calibrations, uploaded
+from .calibration import calibration_json, uploaded
 from .decode import parse_pose
 from .localizers import check_method, check_runnable, default_method
 from .photos import Photo, Upload, decode_stored
@@ -287,36 +287,6 @@ def anchor_method(configured: str, method: str) -> str:
         UploadError: An unknown method (422).
     """
     return check_method(method) if method.strip() else default_method(configured)
-
-
-def set_calibration(
-    db: Session, user: User, aid: str, files: list[UploadFile], accept: float | None
-) -> tuple[Anchor, list[AnchorPhoto]]:
-    """Give one of your anchors its calibrations and accept threshold (both replaced): the uploaded files
-    (``calibration.read_calibrations``), or none for its method's shipped ones. Every API process reads them from
-    the database at each localize, so nothing cached needs forgetting.
-
-    Args:
-        db: The request's database session; committed.
-        user: The caller's account: the anchor's owner or an admin.
-        aid: The anchor's id.
-        files: ``.calib.json`` uploads: one for the anchor's method, or one per stage of a cascade.
-        accept: The threshold on ``p_correct`` answers are ``accepted`` at; None: none.
-
-    Returns:
-        The anchor and its further photo rows.
-
-    Raises:
-        HTTPException: No such anchor (404), or not the caller's (403).
-        UploadError: A file or threshold that cannot be used (413, 422).
-    """
-    a = find_anchor(db, aid)
-    own_anchor(a, user, "change its calibration")
-    stored, accept = read_calibrations(files, a.method), check_accept(accept)
-    a = find_anchor(db, aid, lock=True)
-    a.calibration, a.accept = stored, accept
-    db.commit()
-    return a, photo_rows(db, a.id)
 
 
 def make_anchor(

@@ -12,7 +12,7 @@ from ..database.models import AnchorPhoto
 from ..http.heavy import heavy
 from ..inputs import read_upload
 from ..schemas import AnchorOut, LocalizeOut
-from .calibration import accepted, check_accept, read_calibrations
+from .calibration import accepted, check_accept, read_calibrations, set_calibration
 from .domain import (
     add_photo,
     anchor_json,
@@ -28,7 +28,6 @@ from .domain import (
     photo_rows,
     photo_upload,
     remove_photo,
-    set_calibration,
 )
 from .exif import clean_photo
 from .localizers import estimate_json
@@ -123,7 +122,10 @@ def put_anchor_calibration(
     422 naming it. The next localize answers with ``p_correct`` from them (``calibration`` says uploaded or
     shipped) and, with ``accept``, ``accepted``."""
     caller = require_writer(request, db, csrf_token)
-    return anchor_json(*set_calibration(db, caller.user, aid, calibration, accept))
+    a = find_anchor(db, aid)
+    own_anchor(a, caller.user, "change its calibration")
+    set_calibration(db, a, calibration, accept)
+    return anchor_json(a, photo_rows(db, a.id))
 
 
 @router.post("/anchors/{aid}/photos", status_code=201, response_model=AnchorOut)
