@@ -18,6 +18,7 @@ from mapfree.calibration import (
     Calibrated,
     Calibration,
     CalibrationError,
+    centred_knots,
     features,
     fit,
 )
@@ -110,6 +111,17 @@ def test_fit_learns_a_calibrated_monotone_probability(tmp_path):
     assert back.probabilities(est) == pytest.approx(cal.probabilities(est))
     assert cal.apply(est).p_correct == pytest.approx(cal.probabilities(est)["p_correct"])
     assert cal.apply(Estimate.failure("none")).p_correct is None
+
+
+def test_centred_isotonic_keeps_the_scores_order():
+    """The isotonic map's flat blocks become one knot each at their centre: levels kept, ties between frames of
+    different scores broken (the benchmark's AUC ranks by the probability), still monotone."""
+    x, y = centred_knots(np.array([0.0, 1.0, 2.0, 3.0, 5.0, 6.0]), np.array([0.0, 0.0, 0.5, 0.5, 0.5, 1.0]))
+    assert x.tolist() == [0.5, 3.5, 6.0] and y.tolist() == [0.0, 0.5, 1.0]
+    signals, conf, vcre, te, re, _ = _synthetic_frames(400)
+    cal = fit("m", signals, conf, vcre, te, re)
+    ps = [cal.p_correct(Signals(500, int(500 * r), r, scale_ratio=1.0), 500 * r) for r in np.linspace(0.3, 0.7, 41)]
+    assert all(b >= a for a, b in zip(ps, ps[1:])) and len(set(ps)) > 30  # a flat map would give a few levels
 
 
 def test_probability_bins_against_truth():

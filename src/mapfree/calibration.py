@@ -36,6 +36,7 @@ __all__ = [
     "Model",
     "Calibration",
     "features",
+    "centred_knots",
     "fit",
     "shipped",
     "calibration_for",
@@ -137,6 +138,8 @@ class Model:
         arrays = [*m.impute, *m.mean, *m.scale, *m.coef, m.intercept, *m.iso_x, *m.iso_y]
         if not all(math.isfinite(float(v)) for v in arrays) or min(m.scale) <= 0:
             raise ValueError("non-finite or non-positive values")
+        if any(b < a for a, b in zip(m.iso_x, m.iso_x[1:])) or not all(0 <= v <= 1 for v in m.iso_y):
+            raise ValueError("isotonic knots not increasing, or probabilities outside [0, 1]")
         return m
 
 
@@ -249,16 +252,43 @@ class Calibration:
         """
         path = Path(path)
         try:
-            d = json.loads(path.read_text())
+            text = path.read_bytes()
         except FileNotFoundError:
             raise CalibrationError(f"calibration {path} not found") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        except OSError as e:
             raise CalibrationError(f"calibration {path} is not readable JSON ({e})") from None
+        return cls.from_json(text, str(path), method)
+
+    @classmethod
+    def from_json(cls, text: str | bytes, where: str, method: str | None = None) -> Calibration:
+        """``from_dict`` of a file's JSON text (an upload to the service); ``CalibrationError`` also when it is no
+        readable JSON."""
+        try:
+            d = json.loads(text)
+        except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+            raise CalibrationError(f"calibration {where} is not readable JSON ({e})") from None
+        return cls.from_dict(d, where, method)
+
+    @classmethod
+    def from_dict(cls, d: Any, where: str, method: str | None = None) -> Calibration:
+        """A calibration from a file's parsed JSON (``to_dict``), with the same checks as ``load``.
+
+        Args:
+            d: The parsed JSON.
+            where: What the messages call it (the file's name).
+            method: The method it must have been fitted for (None: any).
+
+        Returns:
+            The calibration.
+
+        Raises:
+            CalibrationError: Corrupt, another format or version, or fitted for another method.
+        """
         if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise CalibrationError(f"calibration {path} is not a mapfree calibration file (no format {FORMAT!r})")
+            raise CalibrationError(f"calibration {where} is not a mapfree calibration file (no format {FORMAT!r})")
         if d.get("version") != FORMAT_VERSION:
             raise CalibrationError(
-                f"calibration {path} has format version {d.get('version')!r}, this mapfree reads version "
+                f"calibration {where} has format version {d.get('version')!r}, this mapfree reads version "
                 f"{FORMAT_VERSION}: fit it again with `mapfree calibrate`"
             )
         try:
@@ -268,12 +298,12 @@ class Calibration:
                 raise ValueError(f"unknown signal(s) {', '.join(unknown)}")
             models = {t: Model.from_dict(d["models"][t], len(names)) for t in TARGETS}
             cal = cls(str(d["method"]), names, int(d["frames"]), models, dict(d.get("figures", {})), str(d["data"]))
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
             what = f"missing {e}" if isinstance(e, KeyError) else str(e)
-            raise CalibrationError(f"calibration {path} is corrupt: {what}") from None
+            raise CalibrationError(f"calibration {where} is corrupt: {what}") from None
         if method is not None and cal.method != method:
             raise CalibrationError(
-                f"calibration {path} was fitted for method {cal.method!r}, not {method!r}: "
+                f"calibration {where} was fitted for method {cal.method!r}, not {method!r}: "
                 f"fit one for {method!r} with `mapfree calibrate DATA --method {method}`"
             )
         return cal
@@ -295,15 +325,36 @@ def _fit_model(X: np.ndarray, y: np.ndarray) -> Model:
     lr = LogisticRegression(C=1.0, max_iter=1000).fit(Z, y)
     z = Z @ lr.coef_[0] + lr.intercept_[0]
     iso = IsotonicRegression(y_min=0.0, y_max=1.0, increasing=True, out_of_bounds="clip").fit(z, y)
+    knots_x, knots_y = centred_knots(iso.X_thresholds_, iso.y_thresholds_)
     return Model(
         impute.tolist(),
         mean.tolist(),
         scale.tolist(),
         lr.coef_[0].tolist(),
         float(lr.intercept_[0]),
-        [float(v) for v in iso.X_thresholds_],
-        [float(v) for v in iso.y_thresholds_],
+        [float(v) for v in knots_x],
+        [float(v) for v in knots_y],
     )
+
+
+def centred_knots(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centred isotonic regression: one knot per constant block of an isotonic fit, at the block's centre, so that
+    the map interpolates between blocks instead of holding each one flat.
+
+    A flat block gives every frame in it the same probability, and the benchmark's AUC ranks by the probability:
+    ties there lose the ranking the logistic score had (a cascade ranks by nothing else). Between block centres
+    the map rises strictly, so frames keep the logistic score's order; each block's level is unchanged.
+
+    Args:
+        x: (K,) the isotonic fit's increasing thresholds (``X_thresholds_``).
+        y: (K,) its non-decreasing values there (``y_thresholds_``).
+
+    Returns:
+        (B,) strictly increasing knot positions and (B,) their values, one per block.
+    """
+    starts = np.flatnonzero(np.r_[True, np.diff(y) != 0])
+    ends = np.r_[starts[1:] - 1, len(y) - 1]
+    return (x[starts] + x[ends]) / 2.0, y[starts]
 
 
 def _held_out(X: np.ndarray, y: np.ndarray) -> np.ndarray:

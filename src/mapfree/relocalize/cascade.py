@@ -11,7 +11,7 @@ the one shipped with the preset (``mapfree.calibration.shipped``).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from ..calibration import CALIBRATION_OPTION, Calibration, CalibrationError, calibration_for
@@ -41,6 +41,23 @@ class Cascade(Localizer[tuple]):
         self.names, self.stages, self.calibrations = list(names), list(stages), list(calibrations)
         self.accept = float(accept)
         self._anchors: tuple | None = None
+
+    def with_calibrations(self, calibrations: Mapping[str, Calibration]) -> Cascade:
+        """The same stages (shared, not rebuilt) with some stages' calibrations replaced: what the relocalization
+        service does for an anchor given its own calibrations.
+
+        Args:
+            calibrations: ``{method name: calibration}``; a stage not named keeps its own.
+
+        Returns:
+            A cascade with the same accept threshold and no current reference.
+        """
+        cals = [calibrations.get(get(n).name, c) for n, c in zip(self.names, self.calibrations)]
+        return Cascade(self.names, self.stages, cals, self.accept)
+
+    def stage_methods(self) -> list[str]:
+        """The stages' registered method names (what a calibration names), in order."""
+        return [get(n).name for n in self.names]
 
     def set_reference(self, reference: Any) -> tuple:
         self._anchors = tuple(s.set_reference(reference) for s in self.stages)

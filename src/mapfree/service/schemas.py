@@ -203,6 +203,16 @@ class AnchorPhotoOut(_Out):
     pose: list[float] = Field(description="world-to-camera from the anchor's frame: qw qx qy qz tx ty tz")
 
 
+class AnchorCalibrationOut(_Out):
+    method: str = Field(description="the method (a cascade: one of its stages) this calibration is for")
+    source: Literal["uploaded", "shipped", "none"] = Field(
+        description="uploaded with the anchor, shipped with the method, or none: answers carry no p_correct"
+    )
+    name: str | None = Field(None, description="the calibration file's name")
+    frames: int | None = Field(None, description="frames it was fitted on")
+    ece: float | None = Field(None, description="its held-out expected calibration error of p_correct")
+
+
 class AnchorOut(_Out):
     id: str
     name: str
@@ -214,6 +224,10 @@ class AnchorOut(_Out):
     photos: list[AnchorPhotoOut]
     created_at: float
     url: str
+    calibrations: list[AnchorCalibrationOut] = Field(
+        default_factory=list, description="what turns the anchor's estimates into p_correct, per method it runs"
+    )
+    accept: float | None = Field(None, description="answers say accepted when p_correct is at least this")
 
 
 class LocalizeOut(_Out):
@@ -241,6 +255,13 @@ class LocalizeOut(_Out):
     )
     p_correct: float | None = Field(None, description="calibrated probability that the pose is within 90 px VCRE")
     stage: str | None = Field(None, description="a cascade's stage that answered")
+    calibration: Literal["uploaded", "shipped"] | None = Field(
+        None,
+        description="where p_correct's calibration came from: uploaded with the anchor, or the method's shipped one",
+    )
+    accepted: bool | None = Field(
+        None, description="p_correct is at least the anchor's accept threshold (only for anchors with one)"
+    )
 
 
 #: The error answers every JSON route may give, for ``openapi.json``.

@@ -15,6 +15,7 @@ from ..accounts.quota import check_quota
 from ..config import Limits, Settings
 from ..database.models import Anchor, AnchorPhoto, RetiredPhotoIndex, User, new_id, now
 from ..inputs import UploadError, check_name, read_upload
+from .calibration import calibration_json, uploaded
 from .decode import IntrinsicsForm, parse_pose
 from .localizers import Localizers, check_method, check_runnable, default_method
 from .photos import Photo, Upload, decode_stored
@@ -75,7 +76,8 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
 
     Returns:
         ``id``, ``name``, ``method``, ``intrinsics``, ``private``, ``has_depth``, ``num_photos``, ``photos``
-        (``index``, ``intrinsics``, ``intrinsics_source``, ``has_depth``, ``pose`` each), ``created_at`` (UNIX seconds) and ``url``.
+        (``index``, ``intrinsics``, ``intrinsics_source``, ``has_depth``, ``pose`` each), ``created_at`` (UNIX seconds),
+        ``url``, ``calibrations`` and ``accept`` (``calibration.calibration_json``).
     """
     photos = [
         _photo_json(0, a.intrinsics, a.depth is not None, IDENTITY),
@@ -92,6 +94,7 @@ def anchor_json(a: Anchor, rows: list[AnchorPhoto]) -> dict:
         "photos": photos,
         "created_at": a.created_at,
         "url": f"/anchors/{a.id}",
+        **calibration_json(a),
     }
 
 
@@ -273,6 +276,16 @@ def check_photo_count(lim: Limits, n: int) -> None:
         raise UploadError(413, f"an anchor holds at most {lim.max_anchor_photos} photos; got {n}")
 
 
+def anchor_method(configured: str, method: str) -> str:
+    """The method a new anchor gets: ``method`` as a client may send it (``localizers.check_method``), or when
+    empty the server's default (``configured``, else the registry's).
+
+    Raises:
+        UploadError: An unknown method (422).
+    """
+    return check_method(method) if method.strip() else default_method(configured)
+
+
 def make_anchor(
     settings: Settings,
     localizers: Localizers,
@@ -283,6 +296,8 @@ def make_anchor(
     ups: list[Upload],
     names: list[str],
     private: bool = False,
+    calibration: list[dict] | None = None,
+    accept: float | None = None,
 ) -> tuple[Anchor, list[AnchorPhoto]]:
     """Store a new anchor of ``user``, after its method has prepared it here (so that an anchor that could never
     localize is refused now, not at its first query). Shared by ``POST /anchors`` and the relocalize page.
@@ -297,6 +312,9 @@ def make_anchor(
         ups: The checked photos (``photo_upload``); ``ups[0]``'s camera is the anchor's frame.
         names: How errors name each photo ("" for a lone photo).
         private: Serve its photos to its owner and admins only (anyone signed in may still localize).
+        calibration: Its uploaded calibrations (``calibration.read_calibrations``, for ``anchor_method``'s
+            method); None: the method's shipped ones.
+        accept: Its threshold on ``p_correct`` (``calibration.check_accept``); None: none.
 
     Returns:
         The stored anchor and its further photo rows.
@@ -308,7 +326,7 @@ def make_anchor(
     lim = settings.limits
     check_photo_count(lim, len(ups))
     name = check_name(name, lim.max_name_chars)
-    m = check_method(method) if method.strip() else default_method(settings.default_method)
+    m = anchor_method(settings.default_method, method)
     _runnable(m, ups, names)
     nbytes = sum(u.nbytes for u in ups)
     check_quota(db, settings, user.id, nbytes, "this anchor's photos")  # refused before the costly preparation
@@ -333,6 +351,8 @@ def make_anchor(
         image=first.image,
         depth=first.depth,
         private=bool(private),
+        calibration=calibration,
+        accept=accept,
         created_at=now(),
     )
     db.add(a)
@@ -569,6 +589,7 @@ def localize_anchor(
         query.intrinsics,
         query.depth,
         owner,
+        uploaded(a),
     )
     if est.extras.get("photo") is not None:  # the position among the photos prepared -> its index
         est.extras["photo"] = indices[est.extras["photo"]]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Callable, Hashable, Iterable
+from collections.abc import Callable, Hashable, Iterable, Mapping
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
@@ -14,10 +14,12 @@ import cv2
 import numpy as np
 from fastapi import Depends, Request
 
+from ...calibration import Calibration
 from ...estimate import Estimate
 from ...geometry import Intrinsics
 from ...matching.base import Matches
 from ..inputs import UploadError
+from .calibration import calibrate, source_of
 from .methodpool import MethodPool
 from .photos import Photo
 from .prepared import ByteLRU, PreparedAnchor, localize_prepared, prepare_anchor
@@ -273,12 +275,15 @@ class Localizers:
         query_K: Intrinsics,
         query_depth: np.ndarray | None = None,
         owner: Hashable = None,
+        calibrations: Mapping[str, Calibration] | None = None,
     ) -> Estimate:
         """World-to-camera pose of the query in the anchor's frame. ``photos`` is called (decoding the stored
         images) only when this process has not prepared this version of the anchor yet; what it prepares counts
         against ``owner``'s share of the cache (the account asking: ``prepared.ByteLRU``). With several photos
         ``est.extras`` names the retrieved one (``photo``, ``retrieval_similarity``). Keypoints in
-        ``extras["matches"]`` are in the working-size pixels (``fit``)."""
+        ``extras["matches"]`` are in the working-size pixels (``fit``). The estimate carries ``p_correct`` from the
+        anchor's ``calibrations`` (by method name), else the method's shipped one (``calibration.calibrate``), and
+        ``extras["calibration"]`` says which."""
         chosen = effective_method(method, query_depth is not None)
         loc = self._take(chosen)
         try:
@@ -289,12 +294,14 @@ class Localizers:
                 self.anchors.put(key, prepared, prepared.nbytes, owner)
             q = self.fit(Photo(query_image, query_K, query_depth))
             try:
-                est = localize_prepared(loc, prepared, q)
+                cals = calibrations or {}
+                est = localize_prepared(calibrate(loc, chosen.name, cals), prepared, q)
             except MethodUnavailable:
                 raise
             except Exception as e:  # a method that fails outright on this input (not a "no pose")
                 raise _unavailable(chosen.name, e) from e
             est.extras["method"] = chosen.name
+            est.extras["calibration"] = source_of(est, chosen.name, cals)
             return est
         finally:
             self._give(chosen, loc)
@@ -317,6 +324,8 @@ def estimate_json(est: Estimate, method: str) -> dict:
         d["photo"] = int(est.extras["photo"])
     if "retrieval_similarity" in est.extras:
         d["retrieval_similarity"] = float(est.extras["retrieval_similarity"])
+    if est.extras.get("calibration"):
+        d["calibration"] = est.extras["calibration"]
     return d
 
 

@@ -13,10 +13,12 @@ from ..http.heavy import heavy
 from ..inputs import read_upload
 from ..schemas import AnchorOut, LocalizeOut
 from ..state import SettingsDep
+from .calibration import accepted, check_accept, read_calibrations, set_calibration
 from .decode import IntrinsicsForm
 from .domain import (
     add_photo,
     anchor_json,
+    anchor_method,
     check_photo_count,
     extra_photos,
     find_anchor,
@@ -34,6 +36,13 @@ from .localizers import LocalizersDep, estimate_json
 from .photos import read_upload as read_photo_upload
 
 router = APIRouter(tags=["relocalization"])
+
+#: How the optional calibration fields are read.
+_CALIBRATION = (
+    "optional .calib.json files (mapfree calibrate) for the anchor's method, or one per stage of a cascade (repeat); "
+    "none: the method's shipped calibration, if it has one"
+)
+_ACCEPT = "optional threshold on p_correct: localize answers then say accepted (true when p_correct >= accept)"
 
 #: How the optional intrinsics fields are read.
 _INTRINSICS = (
@@ -71,6 +80,8 @@ def create_anchor(
     private: bool = Form(
         False, description="its photos are served to you (and admins) only; others may still localize against it"
     ),
+    calibration: list[UploadFile] = File([], description=_CALIBRATION),
+    accept: float | None = Form(None, description=_ACCEPT),
     db: Session = Depends(db_session),
 ):
     """Register a place (user A) that anyone signed in can localize against: its first photo (``image``, whose
@@ -79,6 +90,8 @@ def create_anchor(
     ``image``, photo 1 the first ``photo_image``, and so on. The photos count against the storage quota."""
     caller = require_writer(request, db, csrf_token)
     lim = settings.limits
+    calibrations = read_calibrations(calibration, anchor_method(settings.default_method, method))
+    accept = check_accept(accept)
     n_extra = sum(1 for f in photo_image if f.filename or f.size)
     check_photo_count(lim, 1 + n_extra)  # before decoding any
     several = n_extra > 0  # one photo: messages as before, without "photo 0"
@@ -86,7 +99,17 @@ def create_anchor(
     first = photo_upload(lim, name0, image, IntrinsicsForm(fx, fy, cx, cy), depth, None)
     extra, names = extra_photos(lim, photo_image, photo_fx, photo_fy, photo_cx, photo_cy, photo_pose, photo_depth, 1)
     a, rows = make_anchor(
-        settings, localizers, db, caller.user, name, method, [first, *extra], [name0, *names], private
+        settings,
+        localizers,
+        db,
+        caller.user,
+        name,
+        method,
+        [first, *extra],
+        [name0, *names],
+        private,
+        calibrations,
+        accept,
     )
     return anchor_json(a, rows)
 
@@ -95,6 +118,27 @@ def create_anchor(
 def get_anchor(aid: str, request: Request, db: Session = Depends(db_session)):
     require_user(request, db)
     a = find_anchor(db, aid)
+    return anchor_json(a, photo_rows(db, a.id))
+
+
+@router.put("/anchors/{aid}/calibration", response_model=AnchorOut)
+def put_anchor_calibration(
+    aid: str,
+    request: Request,
+    calibration: list[UploadFile] = File([], description=_CALIBRATION),
+    accept: float | None = Form(None, description=_ACCEPT),
+    csrf_token: str | None = Form(None),
+    db: Session = Depends(db_session),
+):
+    """Give one of your anchors (its owner, or an admin) its calibrations and accept threshold, replacing both:
+    ``.calib.json`` files fitted by ``mapfree calibrate`` for the anchor's method (a cascade: one per stage), or
+    none to use the method's shipped calibration. A file for another method, of an older format or corrupt is a
+    422 naming it. The next localize answers with ``p_correct`` from them (``calibration`` says uploaded or
+    shipped) and, with ``accept``, ``accepted``."""
+    caller = require_writer(request, db, csrf_token)
+    a = find_anchor(db, aid)
+    own_anchor(a, caller.user, "change its calibration")
+    set_calibration(db, a, calibration, accept)
     return anchor_json(a, photo_rows(db, a.id))
 
 
@@ -186,7 +230,8 @@ def localize(
     db: Session = Depends(db_session),
 ):
     """Metric pose of the query camera in the anchor's frame, the camera of its first photo
-    (``X_query = R X_anchor + t``), with confidence and timings. With several photos the most similar one
+    (``X_query = R X_anchor + t``), with confidence, timings and ``p_correct`` where the anchor's method has a
+    calibration (``calibration`` says whose; ``accepted`` with the anchor's threshold). With several photos the most similar one
     (DenseVLAD) answers: ``photo`` says which (its index), ``retrieval_similarity`` how similar. ``ok: false``
     with a ``reason`` when the method finds no pose."""
     caller = require_writer(request, db, csrf_token)
@@ -200,7 +245,10 @@ def localize(
         IntrinsicsForm(fx, fy, cx, cy),
         read_upload(depth, lim.max_image_bytes, "depth"),
     ).photo
-    out = estimate_json(localize_anchor(localizers, lim, a, rows, q, caller.user.id), a.method)
+    est = localize_anchor(localizers, lim, a, rows, q, caller.user.id)
+    out = estimate_json(est, a.method)
+    if a.accept is not None:
+        out["accepted"] = accepted(est, a.accept)
     out["anchor"] = a.id
     out["intrinsics_source"] = q.intrinsics_source
     return out

@@ -181,6 +181,11 @@ class Anchor(Base):
     created_at: Mapped[float] = mapped_column(Float, default=now)
     #: Only the owner (and admins) see it, its photos and localize against it (schema 0003).
     private: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    #: Uploaded calibrations, ``[{"name": file name, "file": calibration JSON}]``; None: the method's shipped ones
+    #: (``anchors.calibration``; schema 0005).
+    calibration: Mapped[list | None] = mapped_column(JSON, nullable=True)
+    #: Answers say ``accepted`` when ``p_correct`` is at least this (None: no threshold; schema 0005).
+    accept: Mapped[float | None] = mapped_column(Float, nullable=True)
 
 
 class AnchorPhoto(Base):
