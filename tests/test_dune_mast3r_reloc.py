@@ -211,7 +211,7 @@ def test_cli_missing_encoder_and_weights_listing(weights, tmp_path, realmini):
     assert r.returncode == 1 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
     assert "dune_vitbase14_448_paper.pth" in lines[0] and "download.europe.naverlabs.com/dune/" in lines[0]
     r = mapfree_process("weights", "dune-mast3r", "dune-mast3r-small", env=env)
-    for net, files in FILES.items():
+    for files in FILES.values():
         for f in files:
             assert f"https://download.europe.naverlabs.com/dune/{f}" in r.stdout or f in r.stdout
     assert (

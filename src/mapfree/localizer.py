@@ -120,7 +120,7 @@ class QueryLocalizer(ABC):
         """
         return 0
 
-    def check_available(self) -> None:
+    def check_available(self) -> None:  # noqa: B027 - an optional hook, a no-op unless overridden
         """Raise now, with one clear message, what would make every query fail (a depth network that is neither
         on this machine nor downloadable); nothing to check by default."""
 

@@ -105,7 +105,7 @@ def valid_depth_map(depth: np.ndarray | None) -> bool:
 def _to_depth_pixels(uv: np.ndarray, K: Intrinsics, shape: tuple[int, int]) -> np.ndarray:
     """Map image pixels to depth-map pixels when the map is not at the image size (half-pixel rule)."""
     H, W = shape
-    if (W, H) == (K.width, K.height) or K.width <= 0 or K.height <= 0:
+    if (K.width, K.height) == (W, H) or K.width <= 0 or K.height <= 0:
         return uv
     sx, sy = W / K.width, H / K.height
     return np.stack([sx * (uv[:, 0] + 0.5) - 0.5, sy * (uv[:, 1] + 0.5) - 0.5], axis=1)
