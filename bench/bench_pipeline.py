@@ -97,7 +97,7 @@ def library_loop(name: str, pairs: list, root, split: str, loc=None, warmup: int
         loc.set_reference(s.reference)
         for est in loc.localize_many(qs, prefetch=0):
             poses.append(est.pose)
-            matches.append(est.extras.get("matches"))
+            matches.append(est.matches)
             n += 1
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     return {

@@ -122,7 +122,7 @@ def test_epipolar_inliers_and_vcre_on_exact_geometry():
 def test_viz_writes_png(tmp_path, scene, sift_sensor):
     q = scene.frame(EASY_QUERY)
     est = sift_sensor.relocalize(scene.reference, q)
-    m = est.extras["matches"]
+    m = est.matches
     fig = relocalization_figure(
         scene.reference.image(),
         q.image(),
