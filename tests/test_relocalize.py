@@ -252,5 +252,5 @@ def test_figure_of_a_method_without_matches_has_no_matches_panel(synth):
     from mapfree.matching.base import Matches
 
     k = np.array([[10.0, 10.0], [50.0, 60.0]])
-    matched = estimate_figure(*args, Estimate(rel, 1.0, extras={"matches": Matches(k, k + 1, np.ones(2))}), rel)
+    matched = estimate_figure(*args, Estimate(rel, 1.0, matches=Matches(k, k + 1, np.ones(2))), rel)
     assert matched.shape[:2] == (2 * h + 6, 2 * w)
