@@ -17,6 +17,7 @@ with ``--threads`` threads for OpenCV and torch (default 1).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -97,7 +98,7 @@ def library_loop(name: str, pairs: list, root, split: str, loc=None, warmup: int
         loc.set_reference(s.reference)
         for est in loc.localize_many(qs, prefetch=0):
             poses.append(est.pose)
-            matches.append(est.extras.get("matches"))
+            matches.append(est.matches)
             n += 1
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     return {
@@ -137,10 +138,9 @@ def shared_floor(pairs: list, matches: list, depth_suffix: str = "sensor") -> di
             if m is not None and len(m) >= opt.min_matches:
                 K0, K1 = r.intrinsics, q.intrinsics
                 thr = opt.ransac_threshold_px / np.mean([K0.fx, K0.fy, K1.fx, K1.fy])
-                try:
+                # ours failed the same way on a SolverError or cv2.error: the RANSAC ran all the same
+                with contextlib.suppress(SolverError, cv2.error):
                     relative_pose_opencv(normalize_points(m.kpts0, K0), normalize_points(m.kpts1, K1), opt, float(thr))
-                except (SolverError, cv2.error):  # ours failed the same way: the RANSAC ran all the same
-                    pass
             n += 1
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     return {"preset": "shared work only (floor)", "pairs": n, "seconds": wall, "cpu_s": cpu, "pairs_per_s": n / wall}

@@ -32,6 +32,7 @@ same names against the baseline tree).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import os
 import signal
@@ -226,10 +227,8 @@ def upload_memory(url: str, api_pid: int, tokens: list[str], payload: bytes, ses
     def sample() -> None:
         while not done.is_set():
             for p in pids:
-                try:
+                with contextlib.suppress(OSError, StopIteration):
                     peak[p] = max(peak[p], rss_mb(p))
-                except (OSError, StopIteration):
-                    pass
             done.wait(0.02)
 
     def upload(token: str):
@@ -299,7 +298,7 @@ class Serve:
             for i in range(users)
         ]
         self.url = f"http://127.0.0.1:{free_port()}"
-        self.log = open(self.tmp / "serve.log", "w")
+        self.log = open(self.tmp / "serve.log", "w")  # noqa: SIM115 - the server writes it for as long as it runs
         self.proc = subprocess.Popen(
             [
                 sys.executable,
@@ -854,7 +853,7 @@ def main() -> int:
     big = big_submission([f"s{460 + i:05d}" for i in range(3)]) if phases & {"uploads", "memory"} else b""
     port = free_port()
     operator = "mf_bench-" + os.urandom(8).hex()  # reads /health/detail (worker count)
-    log = open(tmp / "serve.log", "w")
+    log = open(tmp / "serve.log", "w")  # noqa: SIM115 - the server writes it for as long as it runs
     proc = subprocess.Popen(
         [
             sys.executable,

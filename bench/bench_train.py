@@ -200,8 +200,8 @@ def _fill_cache(pairs, size, cache_dir: str) -> float:
     t0 = time.perf_counter()
     scenes: dict = {}
     ds = PairDataset(pairs, size, scenes=scenes)
-    for p in {(p.scene, n) for p in pairs for n in (p.name0, p.name1)}:
-        resized_image(ds.scene(p[0]).frame(p[1]), size, cache_dir=cache_dir)
+    for scene, name in {(p.scene, n) for p in pairs for n in (p.name0, p.name1)}:
+        resized_image(ds.scene(scene).frame(name), size, cache_dir=cache_dir)
     return time.perf_counter() - t0
 
 

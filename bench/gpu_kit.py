@@ -384,7 +384,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         kit.relative_to(REPO)
     except ValueError:
-        raise SystemExit(f"--out {kit} is outside the repository {REPO}: a device call only carries paths in it")
+        raise SystemExit(
+            f"--out {kit} is outside the repository {REPO}: a device call only carries paths in it"
+        ) from None
     if not args.plan:
         if args.data is None or not (args.data / "val").is_dir():
             raise SystemExit(f"--data {args.data}: not a Map-free root with a val split")

@@ -81,8 +81,8 @@ def _first_and_again(
     run(warm)
     first, again = [], []
     for q in queries:
-        first.append(_timed(lambda: run(q.copy())))
-        again.append(_timed(lambda: run(q.copy())))
+        first.append(_timed(lambda q=q: run(q.copy())))
+        again.append(_timed(lambda q=q: run(q.copy())))
     return {
         "network": label,
         "first_ms": statistics.median(first),
@@ -103,7 +103,9 @@ def never_seen_matchers(
         f0 = m.extract(ref)
         mirrored = np.ascontiguousarray(ref[:, ::-1])  # the warm-up: another image
         rows.append(
-            _first_and_again((labels or {}).get(name, name), lambda q: m.match(f0, m.extract(q)), mirrored, queries)
+            _first_and_again(
+                (labels or {}).get(name, name), lambda q, m=m, f0=f0: m.match(f0, m.extract(q)), mirrored, queries
+            )
         )
     return rows
 

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import threading
 
@@ -30,10 +31,8 @@ class GpuUtilisation:
 
     def _read(self) -> None:
         for line in self._proc.stdout:  # type: ignore[union-attr]
-            try:
+            with contextlib.suppress(ValueError):
                 self.samples.append(float(line.split(",")[0]))
-            except ValueError:
-                pass
 
     def __exit__(self, *exc) -> None:
         if self._proc is not None:

@@ -12,6 +12,8 @@ import pytest
 
 pytest.importorskip("pycolmap")
 
+import contextlib
+
 from mapfree.cli import main as cli_main
 from mapfree.data import Dataset, read_overlaps, read_poses
 from mapfree.data.synth import SynthOptions
@@ -311,14 +313,10 @@ def test_ray_cluster_address(built, scans, tmp_path, monkeypatch):
     finally:
         ray.shutdown()
         os.killpg(head.pid, signal.SIGTERM)  # the head and the processes it started, nothing else
-        try:
+        with contextlib.suppress(subprocess.TimeoutExpired):
             head.wait(5)
-        except subprocess.TimeoutExpired:
-            pass
-        try:
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(head.pid, signal.SIGKILL)  # stragglers of the same process group
-        except ProcessLookupError:
-            pass
         head.wait(10)
         shutil.rmtree(temp, ignore_errors=True)
     assert [r.status for r in results] == ["ok"], results[0].reason

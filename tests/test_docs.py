@@ -9,6 +9,7 @@ page reads top to bottom like a session. A block that must not run is preceded b
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -123,10 +124,9 @@ def run_page(blocks_: list[Block], page: str, cwd: Path, timeout: float, replace
         out = ""
         proc.returncode = -1
     finally:
-        try:  # whatever a block left running (the serving tutorial's server and its workers) ends with the page
+        # whatever a block left running (the serving tutorial's server and its workers) ends with the page
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGTERM)
-        except ProcessLookupError:
-            pass
         if proc.poll() is None:
             proc.kill()
             proc.communicate()

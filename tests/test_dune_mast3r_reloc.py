@@ -54,7 +54,7 @@ def _one_thread(one_torch_thread):
 def _check_estimate(est: Estimate, width: int, height: int) -> None:
     assert isinstance(est, Estimate)
     assert est.ok or est.reason  # a pose, or a clean "no estimate" that says why
-    m = est.extras["matches"]
+    m = est.matches
     assert len(m) > 0
     for k in (m.kpts0, m.kpts1):  # original pixels of these 540x360 photos, not the network's 140x84
         assert np.all(k >= -0.5) and np.all(k[:, 0] <= width - 0.5) and np.all(k[:, 1] <= height - 0.5)
@@ -211,7 +211,7 @@ def test_cli_missing_encoder_and_weights_listing(weights, tmp_path, realmini):
     assert r.returncode == 1 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
     assert "dune_vitbase14_448_paper.pth" in lines[0] and "download.europe.naverlabs.com/dune/" in lines[0]
     r = mapfree_process("weights", "dune-mast3r", "dune-mast3r-small", env=env)
-    for net, files in FILES.items():
+    for files in FILES.values():
         for f in files:
             assert f"https://download.europe.naverlabs.com/dune/{f}" in r.stdout or f in r.stdout
     assert (

@@ -172,7 +172,7 @@ def test_relocalize_two_turned_phone_photos_from_their_exif(tmp_path, realmini, 
     captured = capsys.readouterr()
     out = json.loads(captured.out)
     assert "warning" not in captured.err
-    for side, (key, o) in {"reference": ("seq0/frame_00000.jpg", 6), "query": ("seq1/frame_00010.jpg", 8)}.items():
+    for side, (key, _o) in {"reference": ("seq0/frame_00000.jpg", 6), "query": ("seq1/frame_00010.jpg", 8)}.items():
         got = out["intrinsics"][side]
         assert got["source"] == "exif" and (got["width"], got["height"]) == (540, 360)
         assert got["fx"] == pytest.approx(intr[key].fx, rel=2e-3)

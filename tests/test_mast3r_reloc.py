@@ -54,7 +54,7 @@ def _one_thread(one_torch_thread):
 def _check_estimate(est: Estimate, width: int, height: int) -> None:
     assert isinstance(est, Estimate)
     assert est.ok or est.reason  # a pose, or a clean "no estimate" that says why
-    m = est.extras["matches"]
+    m = est.matches
     for k in (m.kpts0, m.kpts1):  # original pixels of these 540x360 photos, not the network's 160x96
         assert np.all(k >= -0.5) and np.all(k[:, 0] <= width - 0.5) and np.all(k[:, 1] <= height - 0.5)
     if len(m):

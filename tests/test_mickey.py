@@ -257,9 +257,7 @@ def test_solver_batched_pairs_each_recover_their_pose():
     rng = np.random.default_rng(7)
     n = 300
     Ss, X0s, X1s, truths = [], [], [], []
-    for b, (axis, angle, t) in enumerate(
-        ((1, 0.2, (0.3, -0.1, 0.5)), (0, -0.4, (-1.0, 0.2, 0.0)), (2, 0.05, (0.0, 0.0, 2.0)))
-    ):
+    for axis, angle, t in ((1, 0.2, (0.3, -0.1, 0.5)), (0, -0.4, (-1.0, 0.2, 0.0)), (2, 0.05, (0.0, 0.0, 2.0))):
         R = _rotation(axis, angle)
         X0 = rng.uniform([-4, -4, 2], [4, 4, 10], (n, 3))
         perm = rng.permutation(n)  # keypoint i of image 0 is keypoint perm[i] of image 1

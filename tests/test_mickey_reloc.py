@@ -65,7 +65,7 @@ def solve_always(monkeypatch):
 
 def _check_estimate(est: Estimate) -> None:
     assert est.ok or est.reason  # a pose, or a clean "no estimate" that says why
-    m = est.extras["matches"]
+    m = est.matches
     assert len(m) > 0
     for k in (m.kpts0, m.kpts1):  # original pixels of these 540x360 photos (the network's are 540x720)
         assert np.all(k >= -0.5) and np.all(k[:, 0] <= 539.5) and np.all(k[:, 1] <= 359.5)

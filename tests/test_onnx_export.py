@@ -266,7 +266,7 @@ def test_method_yaml_and_relocalization_api_run_the_graphs(mast3r, realmini, tmp
     for _, query in PAIRS:
         est = locs.localize_photos("a1", "mast3r-onnx-test", "v1", lambda: [ref], photos[query], K)
         assert est.ok or est.reason
-        assert len(est.extras["matches"]) > 20
+        assert est.matches is not None and len(est.matches) > 20
     assert engine.encodes - enc0 == 1 + len(PAIRS) and engine.forwards - fwd0 == len(PAIRS)
 
 

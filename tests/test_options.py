@@ -85,3 +85,24 @@ def test_devices_are_checked_before_anything_is_loaded(synth, tmp_path, capfd):
     cfg.write_text("extends: xfeat_pnp_sensor\nmatcher_opts: {device: cuda}\n")
     assert main(["run", str(synth), "--method", str(cfg), "-o", str(tmp_path / "s.zip"), "--no-progress"]) == 1
     assert "option matcher_opts.device='cuda' for matcher 'xfeat': CUDA is not available" in _one_line(capfd)[1]
+
+
+def test_literal_mode_fields_are_checked_as_strings_among_their_choices():
+    """A mode typed ``Literal[...]`` (a solver's backend, confidence, depth sampling) reads as a string with
+    choices: the same words as a ``str`` field with the same choices."""
+    from mapfree.options import OptionError
+    from mapfree.solvers.pnp import PnPOptions
+    from mapfree.solvers.procrustes import ProcrustesOptions
+
+    assert PnPOptions.build({"backend": "poselib", "confidence": "score"}).backend == "poselib"
+    for values, expected in (
+        ({"backend": 3}, "option backend=3: expected a string"),
+        ({"backend": "x"}, "option backend='x': expected one of opencv, poselib"),
+        ({"depth_sampling": None}, "option depth_sampling=None: expected a string, not null"),
+        ({"confidence": "zz"}, "option confidence='zz': expected one of inliers, score"),
+    ):
+        with pytest.raises(OptionError) as e:
+            PnPOptions.build(values)
+        assert str(e.value) == expected
+    with pytest.raises(OptionError, match="option icp_method=1: expected a string$"):
+        ProcrustesOptions.build({"icp_method": 1})

@@ -134,7 +134,7 @@ def test_scene_scatter_tick_labels_never_overlap_and_empty_scenes_are_named(real
         ]
     base = evaluate(gt, realmini, "val")
     rng = np.random.default_rng(0)
-    for trial in range(12):
+    for _trial in range(12):
         report = copy.copy(base)
         lo_r, lo_t = 10 ** rng.uniform(-1.5, 1), 10 ** rng.uniform(-2, 0)
         report.per_scene = {

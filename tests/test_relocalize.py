@@ -122,7 +122,7 @@ def test_epipolar_inliers_and_vcre_on_exact_geometry():
 def test_viz_writes_png(tmp_path, scene, sift_sensor):
     q = scene.frame(EASY_QUERY)
     est = sift_sensor.relocalize(scene.reference, q)
-    m = est.extras["matches"]
+    m = est.matches
     fig = relocalization_figure(
         scene.reference.image(),
         q.image(),
@@ -252,7 +252,7 @@ def test_figure_of_a_method_without_matches_has_no_matches_panel(synth):
     from mapfree.matching.base import Matches
 
     k = np.array([[10.0, 10.0], [50.0, 60.0]])
-    matched = estimate_figure(*args, Estimate(rel, 1.0, extras={"matches": Matches(k, k + 1, np.ones(2))}), rel)
+    matched = estimate_figure(*args, Estimate(rel, 1.0, matches=Matches(k, k + 1, np.ones(2))), rel)
     assert matched.shape[:2] == (2 * h + 6, 2 * w)
 
 

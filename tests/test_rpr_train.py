@@ -115,7 +115,7 @@ def test_pair_items_have_resized_intrinsics_and_relative_pose(tiny_root):
     dm.setup("fit")
     pair = dm.train_pairs(0)[0]
     item = PairDataset([pair], dm.size)[0]
-    assert item["img0"].shape == (3, 48, 64) and 0 <= item["img0"].min() and item["img0"].max() <= 1
+    assert item["img0"].shape == (3, 48, 64) and item["img0"].min() >= 0 and item["img0"].max() <= 1
     scene = Dataset(tiny_root).scene("train", Path(pair.scene).name)
     f0, f1 = scene.frame(pair.name0), scene.frame(pair.name1)
     np.testing.assert_allclose(item["K0"].numpy(), f0.intrinsics.resized(64, 48).K, rtol=1e-6)
@@ -246,7 +246,8 @@ def test_cli_train_two_steps(tiny_root, tmp_path):
     )
     assert rc == 0
     assert (out / "checkpoints" / "last.ckpt").is_file()
-    rows = list(csv.DictReader(open(out / "logs" / "metrics.csv")))
+    with open(out / "logs" / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
     assert any(r.get("train/loss") for r in rows) and any(r.get("val/vcre_prec") for r in rows)
     assert any((out / "tensorboard").glob("events.*"))
     assert (out / "curves.png").stat().st_size > 1000

@@ -4,12 +4,27 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, fields
+from typing import Protocol
 
 import numpy as np
 
 from .geometry import Pose, rotation_angle_deg
 
-__all__ = ["Estimate", "Signals"]
+__all__ = ["Estimate", "Signals", "PixelMatches"]
+
+
+class PixelMatches(Protocol):
+    """Corresponding pixels of the reference and the query, as a matcher found them (``mapfree.matching.Matches``).
+
+    Attributes:
+        kpts0: (N, 2) pixels in the reference.
+        kpts1: (N, 2) pixels in the query.
+    """
+
+    kpts0: np.ndarray
+    kpts1: np.ndarray
+
+    def __len__(self) -> int: ...
 
 
 @dataclass
@@ -82,11 +97,16 @@ class Estimate:
         inliers: Correspondences the solver kept (0 for methods without any).
         reason: Why there is no estimate; empty when there is one.
         timings: Seconds per stage, by stage name.
-        extras: Method-specific details (for example ``method``, the matches drawn by ``--viz``).
+        extras: Method-specific details (for example ``method``, alternative confidences, ``num_matches``); its
+            finite numbers are journaled.
         signals: The per-frame evidence a calibration reads (``Signals``).
         p_correct: Calibrated probability that the pose is within 90 px of reprojection error (VCRE), in [0, 1],
             or None without a calibration (``mapfree.calibration``).
         stage: Which stage of a cascade answered (its method name); empty otherwise.
+        matches: The correspondences the pose was solved from (drawn by ``--viz``), in the pixels of the views
+            the method was given; None for methods without any (regression) or a failure before matching.
+        photo: Which of an anchor's photos answered (its position among them), or None for a one-reference
+            localizer.
     """
 
     pose: Pose | None
@@ -98,6 +118,8 @@ class Estimate:
     signals: Signals = field(default_factory=Signals)
     p_correct: float | None = None
     stage: str = ""
+    matches: PixelMatches | None = None
+    photo: int | None = None
 
     def __post_init__(self) -> None:
         if self.pose is not None and not self.pose.is_finite():
@@ -135,7 +157,7 @@ class Estimate:
         return self.pose is not None
 
     def to_dict(self) -> dict:
-        """JSON-ready form of the record, ``extras`` left out.
+        """JSON-ready form of the record, ``extras``, ``matches`` and ``photo`` left out.
 
         Returns:
             ``ok``, ``confidence``, ``inliers``, ``reason``, ``timings``, ``signals``, ``p_correct`` and ``stage``

@@ -6,8 +6,8 @@ and ``localize_batched`` looping over it unless the localizer has faster forms. 
 (``mapfree.rpr.RPRMethod``) alike) adds the reference: ``set_reference``, ``prepare`` (a reusable anchor),
 ``localize(query, anchor)`` and ``relocalize(ref, query)``.
 
-A query or a reference is whatever the localizer reads: a ``mapfree.relocalize.View``, a dataset ``Frame`` or
-``(image | path, intrinsics[, depth])`` (``mapfree.relocalize.as_view``). This module sits on the ground floor so
+A query or a reference is whatever the localizer reads (``ViewLike``): a ``View``, a dataset ``Frame`` or
+``(image | path, intrinsics[, depth])`` (``mapfree.data.view.as_view``). This module sits on the ground floor so
 that every method kind can derive from it.
 """
 
@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from functools import partial
 from typing import Any, Generic, TypeVar, cast
 
+from .data.view import ViewLike
 from .estimate import Estimate
 
 log = logging.getLogger(__name__)
@@ -27,8 +28,6 @@ log = logging.getLogger(__name__)
 __all__ = ["QueryLocalizer", "Localizer", "BatchOptions", "error_reason"]
 
 AnchorT = TypeVar("AnchorT")
-#: A query or reference image as localizers take it (``mapfree.relocalize.ViewLike``).
-ViewLike = Any
 
 
 @dataclass
@@ -120,7 +119,7 @@ class QueryLocalizer(ABC):
         """
         return 0
 
-    def check_available(self) -> None:
+    def check_available(self) -> None:  # noqa: B027 - an optional hook, a no-op unless overridden
         """Raise now, with one clear message, what would make every query fail (a depth network that is neither
         on this machine nor downloadable); nothing to check by default."""
 

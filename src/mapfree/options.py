@@ -139,7 +139,15 @@ def check_device(value: Any, name: str = "--device") -> None:
         raise OptionError(f"{name} {value}: {why}", "device", value, why)
 
 
+def _literal_base(tp: Any) -> Any:
+    """``str`` for a ``Literal`` of strings (its values are the field's ``choices``), else ``tp``."""
+    if typing.get_origin(tp) is typing.Literal and all(isinstance(a, str) for a in typing.get_args(tp)):
+        return str
+    return tp
+
+
 def _type_name(tp: Any) -> str:
+    tp = _literal_base(tp)
     return {int: "an integer", float: "a number", bool: "true or false", str: "a string"}.get(
         tp, getattr(tp, "__name__", str(tp))
     )
@@ -154,6 +162,7 @@ def _split_optional(tp: Any) -> tuple[tuple, bool]:
 
 
 def _type_ok(value: Any, tp: Any) -> bool:
+    tp = _literal_base(tp)
     if tp is bool:
         return isinstance(value, bool)
     if tp is int:

@@ -454,7 +454,7 @@ def estimate_figure(
         query_img: (H', W', 3) uint8 RGB query.
         K_ref: Intrinsics of the reference.
         K_query: Intrinsics of the query.
-        estimate: The method's estimate; its ``extras["matches"]`` are drawn when present (a regression
+        estimate: The method's estimate; its ``matches`` are drawn when present (a regression
             method's estimate has none: no empty matches panel).
         gt_pose: True pose, when known.
         threshold_px: Green matches are within this distance of the pose's epipolar lines, pixels.
@@ -463,7 +463,7 @@ def estimate_figure(
     Returns:
         uint8 RGB image.
     """
-    m = estimate.extras.get("matches")
+    m = estimate.matches
     k0, k1 = (m.kpts0, m.kpts1) if m is not None else (None, None)
     return relocalization_figure(
         ref_img,

@@ -333,7 +333,7 @@ def start_server(
         "2",
         *extra,
     ]
-    logf = open(log_path, "w")
+    logf = open(log_path, "w")  # noqa: SIM115 - the server writes it for as long as it runs
     proc = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, env=env, start_new_session=True)
     url = f"http://127.0.0.1:{port}"
     deadline = time.time() + 90

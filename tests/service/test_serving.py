@@ -3,6 +3,7 @@ the service before its fix. Loopback only, every wait bounded."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -81,10 +82,8 @@ def test_localize_flood_does_not_stall_sign_in_or_the_leaderboard(split_data, re
 def _children(pid: int) -> set[int]:
     out: set[int] = set()
     for task in Path(f"/proc/{pid}/task").glob("*"):
-        try:
+        with contextlib.suppress(OSError):
             out |= {int(x) for x in (task / "children").read_text().split()}
-        except OSError:
-            pass
     return out
 
 
@@ -128,10 +127,8 @@ def test_api_processes_and_workers_die_with_a_killed_server(split_data, tmp_path
         finally:
             stop_server(again.proc)
     finally:
-        try:
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(srv.proc.pid, signal.SIGKILL)  # whatever the old code left running
-        except ProcessLookupError:
-            pass
 
 
 def test_half_sent_requests_are_closed(split_data, tmp_path):
@@ -295,10 +292,8 @@ def test_one_address_cannot_take_every_connection(split_data, tmp_path):
             with socket.create_connection((host, port), timeout=5) as s:
                 s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n")
                 s.settimeout(5)
-                try:
+                with contextlib.suppress(ConnectionResetError):
                     assert s.recv(100) == b""
-                except ConnectionResetError:
-                    pass
         other = socket.create_connection((host, port), timeout=5, source_address=("127.0.0.2", 0))
         with other:  # another address is served (uvicorn would answer 503 past --limit-concurrency 8)
             other.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
@@ -402,10 +397,8 @@ def test_workers_end_with_a_serve_stopped_while_it_starts(tmp_path):
             if _session_members(proc.pid):
                 left.append((sig.name, round(delay, 2), _session_members(proc.pid)))
         finally:
-            try:
+            with contextlib.suppress(ProcessLookupError):
                 os.killpg(proc.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
     assert not left, f"processes left after serve stopped while starting (signal, seconds, pids): {left}"
 
 

@@ -4,6 +4,7 @@ its long-lived objects."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -42,7 +43,7 @@ def test_workers_ignore_the_working_directory_and_health_drops_dead_workers(spli
     marker = tmp_path / "imported-from-cwd.txt"
     (hostile / "concurrent.py").write_text(FAKE_CONCURRENT.format(marker=str(marker)))
     port, db = free_port(), f"sqlite:///{tmp_path / 'iso.db'}"
-    log = open(tmp_path / "serve.log", "w")
+    log = open(tmp_path / "serve.log", "w")  # noqa: SIM115 - the server writes it for as long as it runs
     # -P: the API process itself must not pick the file up either (what the console script `mapfree` does)
     proc = subprocess.Popen(
         [
@@ -70,10 +71,8 @@ def test_workers_ignore_the_working_directory_and_health_drops_dead_workers(spli
         deadline, h = time.time() + 60, {}
         while time.time() < deadline and not h.get("workers"):
             assert proc.poll() is None, (tmp_path / "serve.log").read_text()[-2000:]
-            try:
+            with contextlib.suppress(httpx.HTTPError):
                 h = health_detail(url)
-            except httpx.HTTPError:
-                pass
             time.sleep(0.2)
         assert h.get("workers") and h["status"] == "ok", (h, (tmp_path / "serve.log").read_text()[-2000:])
         time.sleep(1.0)  # a worker that imported the file would have written the marker by now

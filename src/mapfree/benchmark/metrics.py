@@ -196,7 +196,7 @@ def vcre(
     P = _POINTS
     Ph = np.vstack([P.T, np.ones(len(P))])
     a, b = P[:, 0] / P[:, 2], P[:, 1] / P[:, 2]
-    one_size = bool(np.all(W == W[0]) and np.all(H == H[0]))  # scalar bounds clip much faster
+    one_size = bool(np.all(W[0] == W) and np.all(H[0] == H))  # scalar bounds clip much faster
     # Buffers reused chunk after chunk: every pass stays in cache and nothing is allocated per chunk. A stacked
     # matmul, not one big GEMM: BLAS threads spinning on a busy machine cost more than they save.
     m = min(chunk, n)

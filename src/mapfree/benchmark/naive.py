@@ -119,7 +119,7 @@ def _vcre(q_est, c_est, q_gt, c_gt, K, W, H):
 def _rot_err(q_est, q_gt):
     a, b = q_gt / np.linalg.norm(q_gt), q_est / np.linalg.norm(q_est)
     s = np.linalg.norm(_qmult(a, _qinv(b))[1:])
-    return float(np.arcsin(min(s, 1.0)) * 360.0 / np.pi)
+    return float(np.arcsin(min(float(s), 1.0)) * 360.0 / np.pi)
 
 
 def _auc(confidences, accepted, failures):
@@ -189,7 +189,7 @@ def evaluate_naive(
         medians = [float(np.median([r[j] for r in rows])) for rows in results.values()]
         metrics[f"Average Median {key} Error"] = float(np.mean(medians)) if medians else None
     conf = [r[3] for r in all_rows]
-    for k, (tm, rd) in enumerate(thresholds):
+    for tm, rd in thresholds:
         ok = [r[0] < tm and r[1] < rd for r in all_rows]
         metrics[f"Precision @ Pose Error < ({tm * 100}cm, {rd:g}deg)"] = sum(ok) / total
         metrics[f"AUC @ Pose Error < ({tm * 100}cm, {rd:g}deg)"] = _auc(conf, ok, failures)

@@ -37,6 +37,8 @@ class _PlainLogFormatter(LogFormatter):
     """Log-axis labels as plain numbers (0.3, 20); matplotlib picks which minor ticks to label from the span:
     all of them under half a decade, a subset under two, none beyond, so a narrow axis is never left bare."""
 
+    _sublabels: set[float] | None  # matplotlib's own, set by LogFormatter.set_locs
+
     def _num_to_string(self, x, vmin, vmax):
         return f"{x:g}"
 
@@ -44,6 +46,8 @@ class _PlainLogFormatter(LogFormatter):
         # Over more than a decade matplotlib labels 2, 3, 4 and 6 of each: 0.3 and 0.4 then overlap on a
         # figure-sized axis. 2 and 5 keep every decade labelled without touching.
         super().set_locs(locs)
+        if self.axis is None:  # matplotlib sets the axis before it asks for labels
+            return
         lo, hi = sorted(self.axis.get_view_interval())
         if self._sublabels is not None and len(self._sublabels) > 3 and lo > 0 and np.log10(hi / lo) > 1:
             self._sublabels = {1, 2, 5}

@@ -376,7 +376,7 @@ def read_submission(
         if isinstance(source, (bytes, bytearray)):
             f = io.BytesIO(source)
         elif isinstance(source, (str, os.PathLike)):
-            f = open(source, "rb")
+            f = open(source, "rb")  # noqa: SIM115 - closed below, with the caller's own file left open
         else:
             f = source
     except OSError as e:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
 
 from . import HelpFormatter
@@ -122,10 +123,8 @@ def _checked_figure(views: tuple, m) -> tuple:
             for k, v in ((m.kpts0, v0), (m.kpts1, v1))
         )
         thr = 3.0 / np.mean([v0.intrinsics.mean_focal, v1.intrinsics.mean_focal])
-        try:
+        with contextlib.suppress(SolverError):
             passed = relative_pose_opencv(x0, x1, EssentialOptions(), thr)[3]
-        except SolverError:
-            pass
     sources = f"intrinsics {v0.intrinsics_source}/{v1.intrinsics_source}"
     label = f"{len(m)} matches, {int(passed.sum())} pass the essential-matrix check ({sources})"
     return draw_matches(

@@ -56,7 +56,7 @@ class DepthSource(ABC):
         """
         return [self.depth(frame) for frame in frames]
 
-    def check_available(self) -> None:
+    def check_available(self) -> None:  # noqa: B027 - an optional hook, a no-op unless overridden
         """Raise now, with a clear message, when the source could not produce depth (a network that is neither
         on this machine nor downloadable); nothing to check for most sources."""
 

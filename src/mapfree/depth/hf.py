@@ -132,7 +132,7 @@ class HFDepth(NetworkDepthSource):
         src = self._source()
         local = src is not None and Path(src).is_dir()
 
-        def load(source: str, local_only: bool):
+        def load(source: str, local_only: bool) -> tuple[Any, Any]:
             proc = AutoImageProcessor.from_pretrained(source, local_files_only=local_only)
             net = AutoModelForDepthEstimation.from_pretrained(source, local_files_only=local_only, dtype=dtype)
             return proc, net

@@ -192,7 +192,7 @@ def _check(cfg: ModelConfig) -> None:
     if not cfg.pos_embed.startswith("RoPE"):
         raise UnsupportedCheckpointError(f"unsupported argument pos_embed={cfg.pos_embed!r} (only RoPE<base>)")
     try:
-        cfg.rope_base
+        _ = cfg.rope_base  # a property that parses pos_embed
     except ValueError:
         raise UnsupportedCheckpointError(f"unsupported argument pos_embed={cfg.pos_embed!r}") from None
     want = "catmlp+dpt" if cfg.has_descriptors else "dpt"

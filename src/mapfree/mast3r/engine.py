@@ -254,18 +254,13 @@ class PairEngine:
             }
             desc = {k: r.get("desc") for k, r in (("desc1", r1), ("desc2", r2))}
             for j, i in enumerate(group):
-
-                def d(key: str) -> Any:
-                    t = desc[key]
-                    return None if t is None else t[j] if on_device else t[j].float().cpu().numpy()
-
                 fresh[i] = PairOutput(
                     host["pts1"][j],
                     host["conf1"][j],
                     host["pts2"][j],
                     host["conf2"][j],
-                    d("desc1"),
-                    d("desc2"),
+                    _desc_row(desc["desc1"], j, on_device),
+                    _desc_row(desc["desc2"], j, on_device),
                     _row(host.get("desc_conf1"), j),
                     _row(host.get("desc_conf2"), j),
                 )
@@ -287,6 +282,11 @@ def _prepare_all(images: Sequence[np.ndarray], prepare: Callable[[np.ndarray], P
 
 def _row(a: np.ndarray | None, j: int) -> np.ndarray | None:
     return None if a is None else a[j]
+
+
+def _desc_row(t: Any, j: int, on_device: bool) -> Any:
+    """Row ``j`` of a batch of descriptors: the tensor itself on the device, else a float32 array on the host."""
+    return None if t is None else t[j] if on_device else t[j].float().cpu().numpy()
 
 
 def _groups(indices: Sequence[int], key: Callable[[int], Hashable]) -> list[list[int]]:

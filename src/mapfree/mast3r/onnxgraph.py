@@ -210,7 +210,9 @@ def _expm1_symbolic(g: Any, x: Any) -> Any:
     return g.op("Where", g.op("Equal", u, one), x, ratio)
 
 
-def _to_onnx(module: nn.Module, args: tuple[torch.Tensor, ...], path: Path, inputs: list[str], outputs: list[str]):
+def _to_onnx(
+    module: nn.Module, args: tuple[torch.Tensor, ...], path: Path, inputs: list[str], outputs: list[str]
+) -> None:
     """Trace ``module`` into an ONNX file (TorchScript exporter, constants folded, the batch dimension dynamic)."""
     import warnings
 

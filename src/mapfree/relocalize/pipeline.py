@@ -225,7 +225,7 @@ class Relocalizer(Localizer[Anchor]):
             match_s: Seconds spent matching it.
 
         Returns:
-            The estimate, with the timings of every stage and ``extras["matches"]``.
+            The estimate, with the timings of every stage and its ``matches``.
         """
         timings = dict(prep.timings)
         est = Estimate.failure(prep.error or "")
@@ -243,7 +243,8 @@ class Relocalizer(Localizer[Anchor]):
             est.signals.learned_confidence = float(np.median(matches.scores))
         timings["total"] = sum(v for k, v in timings.items() if k in ("read", "match", "extract", "depth", "solve"))
         est.timings = {**est.timings, **timings}
-        est.extras.setdefault("matches", matches)
+        if est.matches is None:
+            est.matches = matches
         est.extras.setdefault("num_matches", len(matches))
         return est
 

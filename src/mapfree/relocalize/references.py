@@ -14,7 +14,7 @@ import logging
 import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 
@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "MODES",
+    "ReferenceMode",
     "ReferenceOptions",
     "ReferenceSet",
     "ReferencedLocalizer",
@@ -44,7 +45,10 @@ __all__ = [
     "reference_spec",
 ]
 
-MODES = ("retrieval", "triangulation")
+#: How K references answer a query: the most similar one's pose (``retrieval``) or the poses against several of
+#: them triangulated (``triangulation``, depth-free).
+ReferenceMode = Literal["retrieval", "triangulation"]
+MODES: tuple[ReferenceMode, ...] = get_args(ReferenceMode)
 
 
 @dataclass
@@ -52,7 +56,7 @@ class ReferenceOptions:
     """How references are chosen and used. ``top``: references tried per query (the most confident wins)."""
 
     k: int = 1
-    mode: str = "retrieval"
+    mode: ReferenceMode = "retrieval"
     top: int = 1
     descriptor: str = "densevlad"
     descriptor_opts: dict = field(default_factory=dict)
@@ -270,7 +274,7 @@ def mapping_frames(scene: Scene, seq: str = "seq0") -> list[Frame]:
     return [f for n, f in scene.frames.items() if n.startswith(f"{seq}/") and f.pose is not None]
 
 
-def scene_references(scene: Scene, k: int, mode: str = "retrieval", **options: Any) -> ReferenceSet:
+def scene_references(scene: Scene, k: int, mode: ReferenceMode = "retrieval", **options: Any) -> ReferenceSet:
     """``ReferenceSet`` of a Map-free scene's ``seq0`` frames; K is capped by the frames there are."""
     frames = mapping_frames(scene)
     if not frames:
@@ -295,7 +299,7 @@ class ReferenceSpec:
     """
 
     k: int = 1
-    mode: str = "retrieval"
+    mode: ReferenceMode = "retrieval"
     top: int = 1
 
 
@@ -314,7 +318,7 @@ def reference_spec(method: Method) -> ReferenceSpec | None:
     return ReferenceSpec(int(spec.get("k", 1)), spec.get("mode", "retrieval"), int(spec.get("top", 1)))
 
 
-def with_references(method: str | Method, k: int, mode: str = "retrieval", top: int = 1) -> Method:
+def with_references(method: str | Method, k: int, mode: ReferenceMode = "retrieval", top: int = 1) -> Method:
     """The method run against K references per scene; K = 1 leaves it unchanged.
 
     Stored in ``options`` so that a run's journal header records it and ``--resume`` checks it.
@@ -396,7 +400,7 @@ def localize_with_references(
     mapping: Sequence[ViewLike],
     queries: Sequence[ViewLike],
     k: int,
-    mode: str = "retrieval",
+    mode: ReferenceMode = "retrieval",
     top: int = 1,
     progress: bool = False,
     localizer: Localizer[Any] | None = None,

@@ -150,8 +150,15 @@ def frame_figure(
         ref_pose = ref.pose if ref.pose is not None else Pose.identity()
         rel = world @ ref_pose.inverse() if world is not None else None
         gt = query.pose @ ref_pose.inverse() if query.pose is not None and ref.pose is not None else None
-        extras = {} if reference_spec(method) is not None else est.extras
-        shown = Estimate(rel, est.confidence, est.inliers, est.reason, extras=extras)
+        other = reference_spec(method) is not None  # matched with another reference than the scene's
+        shown = Estimate(
+            rel,
+            est.confidence,
+            est.inliers,
+            est.reason,
+            extras={} if other else est.extras,
+            matches=None if other else est.matches,
+        )
         thr = float(method.solver_opts.get("ransac_threshold_px", 3.0))  # the inlier colours of the figure
         return estimate_figure(
             (ref_image or ref.image)(),

@@ -1,9 +1,10 @@
 """What one photo is on its way through a method, and the per-query state the one-pair and the batched paths share.
 
 ``View`` is one image ready for relocalization (a dataset frame or an upload alike); ``as_view`` makes one from a
-``Frame`` or ``(image | path, intrinsics[, depth])``, ``photo_view`` / ``photo_views`` from a photo file whose
-intrinsics may be unknown (given, else EXIF, else the method's estimate, else the default camera). ``Anchor`` is a prepared reference, ``PreparedQuery`` a query
-after its reference-independent stage. ``fit_depth`` and ``view_depth`` bring a depth map to a view's pixels.
+``Frame`` or ``(image | path, intrinsics[, depth])`` (both from ``mapfree.data.view``, re-exported here),
+``photo_view`` / ``photo_views`` from a photo file whose intrinsics may be unknown (given, else EXIF, else the
+method's estimate, else the default camera). ``Anchor`` is a prepared reference, ``PreparedQuery`` a query after its
+reference-independent stage. ``fit_depth`` and ``view_depth`` bring a depth map to a view's pixels.
 """
 
 from __future__ import annotations
@@ -20,18 +21,18 @@ from typing import Any, TypeVar
 import cv2
 import numpy as np
 
-from ..data import Frame, read_image
+from ..data import read_image
 from ..data.intrinsics import (
-    ResolvedIntrinsics,
     check_principal_point,
     default_fov_deg,
     default_intrinsics,
     exif_focal,
 )
 from ..data.io import same_aspect
-from ..data.orientation import displayed_size, exif_orientation, fit_intrinsics, orient_pixels
+from ..data.orientation import displayed_size, exif_orientation, orient_pixels
+from ..data.view import View, ViewLike, as_intrinsics, as_view, upright_view
 from ..depth.base import DepthSource, FileDepthSource, NetworkDepthSource, PairDepthSource
-from ..geometry import Intrinsics, Pose
+from ..geometry import Intrinsics
 from ..localizer import error_reason
 from ..matching.base import Features, FocalEstimator, Matcher
 
@@ -51,107 +52,6 @@ __all__ = [
 ]
 
 
-@dataclass
-class View:
-    """One image ready for relocalization.
-
-    Attributes:
-        image: (H, W, 3) uint8 RGB, upright.
-        intrinsics: Of the upright pixels.
-        depth: (H, W) metric depth (metres, 0 = invalid) handed over with the image, or None.
-        frame: The dataset frame it was read from (its depth files are found through it), or None.
-        name: For messages and journals.
-        orientation: The EXIF orientation by which the frame's stored files (its intrinsics, depth maps) were
-            turned upright (1: none).
-        pose: World-to-camera pose when known (a mapping image that serves as a reference among K), else None.
-        intrinsics_source: Where the intrinsics came from: ``given``, ``exif``, ``estimated`` or ``default``.
-        intrinsics_detail: What they were found from, for people (``FocalLengthIn35mmFilm 26 mm``).
-    """
-
-    image: np.ndarray
-    intrinsics: Intrinsics
-    depth: np.ndarray | None = None
-    frame: Frame | None = None
-    name: str = ""
-    orientation: int = 1
-    pose: Pose | None = None
-    intrinsics_source: str = "given"
-    intrinsics_detail: str = ""
-
-    @property
-    def resolved(self) -> ResolvedIntrinsics:
-        """The intrinsics with where they came from (``to_dict()`` is what the CLI and the service report)."""
-        return ResolvedIntrinsics(self.intrinsics, self.intrinsics_source, self.intrinsics_detail)
-
-
-#: What ``as_view`` accepts: a ``View``, a ``Frame`` or ``(image | path, Intrinsics | K | (fx, fy, cx, cy)[, depth])``.
-ViewLike = View | Frame | tuple
-
-
-def _read_image_any(image: Any) -> tuple[np.ndarray, Path | None]:
-    if isinstance(image, (str, os.PathLike)):
-        return read_image(image), Path(image)
-    arr = np.asarray(image)
-    if arr.ndim == 2:
-        arr = np.repeat(arr[..., None], 3, axis=2)
-    return arr, None
-
-
-def _as_intrinsics(K: Any, image: np.ndarray) -> Intrinsics:
-    if isinstance(K, Intrinsics):
-        return K
-    K = np.asarray(K, dtype=np.float64)
-    h, w = image.shape[:2]
-    if K.shape == (3, 3):
-        return Intrinsics.from_K(K, w, h)
-    if K.shape == (4,):
-        fx, fy, cx, cy = map(float, K)
-        return Intrinsics(fx, fy, cx, cy, w, h)
-    raise ValueError(f"intrinsics must be an Intrinsics, a 3x3 K or (fx, fy, cx, cy), got shape {K.shape}")
-
-
-def as_view(x: ViewLike) -> View:
-    """A ``View`` of a frame or an image with its intrinsics.
-
-    Args:
-        x: A ``View`` (returned as is), a ``Frame``, or ``(image, intrinsics[, depth])`` with the image an
-            (H, W, 3) uint8 RGB array or a path, the intrinsics an ``Intrinsics``, a 3x3 K or ``(fx, fy, cx, cy)``
-            in pixels, and the depth an (H, W) map in metres. A path's EXIF orientation turns the pixels upright,
-            and the intrinsics and depth given for its stored grid with them.
-
-    Returns:
-        The view.
-
-    Raises:
-        TypeError: ``x`` is none of these.
-        ValueError: Intrinsics of another shape.
-    """
-    if isinstance(x, View):
-        return x
-    if isinstance(x, Frame):
-        image = x.image()
-        K, _, turned = _upright(image, x.intrinsics, x.image_path, None)
-        return View(image, K, None, x, x.name, turned)
-    if isinstance(x, tuple) and len(x) in (2, 3):
-        image, path = _read_image_any(x[0])
-        depth = None if len(x) == 2 or x[2] is None else np.asarray(x[2], dtype=np.float32)
-        return _view(image, path, _as_intrinsics(x[1], image), depth)
-    raise TypeError(f"expected a Frame, a View or (image, intrinsics[, depth]); got {type(x).__name__}")
-
-
-def _view(
-    image: np.ndarray,
-    path: Path | None,
-    K0: Intrinsics,
-    depth: np.ndarray | None,
-    source: str = "given",
-    detail: str = "",
-) -> View:
-    K, depth, turned = _upright(image, K0, path, depth)
-    frame = Frame(path.name, path, K0) if path is not None else None  # its files keep the stored grid's K
-    return View(image, K, depth, frame, path.name if path is not None else "", turned, None, source, detail)
-
-
 def _centred(f: float, width: int, height: int) -> Intrinsics:
     return Intrinsics(f, f, (width - 1) / 2, (height - 1) / 2, width, height)
 
@@ -162,7 +62,7 @@ def _resolve(
     """``(K of the stored grid or of the upright photo, source, detail)`` of one photo, in the documented order."""
     h, w = image.shape[:2]
     if given is not None:
-        K = _as_intrinsics(given, image)
+        K = as_intrinsics(given, image)
         check_principal_point(K.cx, K.cy, K.width, K.height, what)
         return K, "given", ""
     sw, sh = displayed_size(w, h, exif_orientation(path))  # the stored grid: a quarter turn is its own inverse
@@ -228,7 +128,7 @@ def _photo_view(
 ) -> View:
     K0, source, detail = _resolve(image, path, intrinsics, matcher, other, what)
     d = None if depth is None else np.asarray(depth, dtype=np.float32)
-    return _view(image, path, K0, d, source, detail)
+    return upright_view(image, path, K0, d, source, detail)
 
 
 def photo_views(
@@ -268,21 +168,6 @@ def default_warning(view: View) -> str | None:
         f"{view.name}: no intrinsics given, no focal length in its EXIF and none estimated by the method: the default "
         f"camera, {view.intrinsics_detail}; the metric scale of the pose rests on it"
     )
-
-
-def _upright(
-    image: np.ndarray, K: Intrinsics, path: Path | None, depth: np.ndarray | None
-) -> tuple[Intrinsics, np.ndarray | None, int]:
-    """Intrinsics and depth for the upright pixels of an image file: given for its stored grid (a tagged phone
-    photo), they are turned with it. Returns them and the orientation applied to them (1: none)."""
-    o = exif_orientation(path) if path is not None else 1
-    if o == 1:
-        return K, depth, 1
-    h, w = image.shape[:2]
-    K2 = fit_intrinsics(K, w, h, o, str(path))
-    if K2 is K:
-        return K, depth, 1
-    return K2, (orient_pixels(depth, o) if depth is not None else None), o
 
 
 def fit_depth(depth: np.ndarray | None, K: Intrinsics, owned: bool = False) -> np.ndarray | None:

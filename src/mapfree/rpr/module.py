@@ -134,11 +134,12 @@ class RPRModule(pl.LightningModule):
         tc = self.cfg.train
         params = [p for p in self.parameters() if p.requires_grad]
         # On a GPU, one fused kernel for the whole update instead of several per parameter tensor.
-        fused = {"fused": True} if params and params[0].is_cuda else {}
+        # None is torch's default (its own choice, never fused on the CPU).
+        fused: bool | None = True if params and params[0].is_cuda else None
         opt = (
-            torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay, eps=tc.adam_eps, **fused)
+            torch.optim.AdamW(params, lr=tc.lr, weight_decay=tc.weight_decay, eps=tc.adam_eps, fused=fused)
             if tc.weight_decay
-            else torch.optim.Adam(params, lr=tc.lr, eps=tc.adam_eps, **fused)
+            else torch.optim.Adam(params, lr=tc.lr, eps=tc.adam_eps, fused=fused)
         )
         if tc.scheduler == "none":
             return opt

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Literal, TypeVar, get_args
 
 import cv2
 import numpy as np
@@ -17,6 +17,9 @@ from .base import Solver, SolverOptions
 
 __all__ = [
     "DEPTH_SAMPLING",
+    "DepthSampling",
+    "BACKENDS",
+    "Backend",
     "MAX_DEPTH",
     "SolverError",
     "Timer",
@@ -33,7 +36,12 @@ __all__ = [
 
 OptionsT = TypeVar("OptionsT", bound=SolverOptions)
 
-DEPTH_SAMPLING = ("nearest", "floor", "bilinear")
+#: How a depth map is read at a keypoint: the nearest pixel, the truncated pixel (the public code's) or bilinear.
+DepthSampling = Literal["nearest", "floor", "bilinear"]
+DEPTH_SAMPLING: tuple[DepthSampling, ...] = get_args(DepthSampling)
+#: Whose RANSAC a solver runs: OpenCV's (the paper's) or PoseLib's.
+Backend = Literal["opencv", "poselib"]
+BACKENDS: tuple[Backend, ...] = get_args(Backend)
 MAX_DEPTH = 1e4  # metres; larger values are "at infinity" and treated as invalid (no sensor or network gives them)
 
 
@@ -105,13 +113,13 @@ def valid_depth_map(depth: np.ndarray | None) -> bool:
 def _to_depth_pixels(uv: np.ndarray, K: Intrinsics, shape: tuple[int, int]) -> np.ndarray:
     """Map image pixels to depth-map pixels when the map is not at the image size (half-pixel rule)."""
     H, W = shape
-    if (W, H) == (K.width, K.height) or K.width <= 0 or K.height <= 0:
+    if (K.width, K.height) == (W, H) or K.width <= 0 or K.height <= 0:
         return uv
     sx, sy = W / K.width, H / K.height
     return np.stack([sx * (uv[:, 0] + 0.5) - 0.5, sy * (uv[:, 1] + 0.5) - 0.5], axis=1)
 
 
-def sample_depth_at(depth: np.ndarray, uv: np.ndarray, K: Intrinsics, mode: str = "nearest") -> np.ndarray:
+def sample_depth_at(depth: np.ndarray, uv: np.ndarray, K: Intrinsics, mode: DepthSampling = "nearest") -> np.ndarray:
     """Depth at image pixels; 0 where invalid (outside, non-finite, <= 0, >= ``MAX_DEPTH``).
 
     A map at another size than the image is read through the half-pixel rule.
@@ -160,7 +168,7 @@ def sample_depth_at(depth: np.ndarray, uv: np.ndarray, K: Intrinsics, mode: str 
     return out
 
 
-def backproject_keypoints(uv: np.ndarray, depth: np.ndarray, K: Intrinsics, mode: str) -> np.ndarray:
+def backproject_keypoints(uv: np.ndarray, depth: np.ndarray, K: Intrinsics, mode: DepthSampling) -> np.ndarray:
     """Camera-frame 3D points of keypoints with their depths.
 
     Args:

@@ -18,10 +18,13 @@ can be scored with either.
 from __future__ import annotations
 
 import math
+from typing import Literal, get_args
 
-__all__ = ["CONFIDENCE_MODES", "combined_score", "confidences", "choose"]
+__all__ = ["ConfidenceMode", "CONFIDENCE_MODES", "combined_score", "confidences", "choose"]
 
-CONFIDENCE_MODES = ("inliers", "score")
+#: Which confidence a solver reports: ``inliers`` (the paper's) or ``score`` (``combined_score``).
+ConfidenceMode = Literal["inliers", "score"]
+CONFIDENCE_MODES: tuple[ConfidenceMode, ...] = get_args(ConfidenceMode)
 
 
 def combined_score(inliers: int, *ratios: float) -> float:

@@ -17,7 +17,10 @@ from ..geometry import Intrinsics, Pose
 from ..options import option
 from .base import SolverOptions
 from .common import (
+    BACKENDS,
     DEPTH_SAMPLING,
+    Backend,
+    DepthSampling,
     GuardedSolver,
     SolverError,
     Timer,
@@ -28,7 +31,7 @@ from .common import (
     scale_ratio,
     valid_depth_map,
 )
-from .confidence import CONFIDENCE_MODES, choose, confidences
+from .confidence import CONFIDENCE_MODES, ConfidenceMode, choose, confidences
 from .scale import scale_vote
 
 __all__ = [
@@ -40,8 +43,6 @@ __all__ = [
     "triangulated_depths",
 ]
 
-BACKENDS = ("opencv", "poselib")
-
 
 @dataclass
 class EssentialOptions(SolverOptions):
@@ -52,10 +53,10 @@ class EssentialOptions(SolverOptions):
     max_iters: int = option(1000, min=1)  # OpenCV's default for findEssentialMat, as in the public code
     distance_threshold: float = option(50.0, min=0, min_open=True)  # recoverPose drops farther points (baselines)
     scale_threshold: float = option(0.1, min=0, min_open=True)  # metres, scale-vote inlier radius
-    depth_sampling: str = option("nearest", choices=DEPTH_SAMPLING)  # "nearest" | "floor" (public code) | "bilinear"
+    depth_sampling: DepthSampling = option("nearest", choices=DEPTH_SAMPLING)  # "floor": the public code's
     min_matches: int = option(5, min=5)
-    backend: str = option("opencv", choices=BACKENDS)  # "opencv" (cv2 USAC_MAGSAC, the paper's) | "poselib"
-    confidence: str = option("inliers", choices=CONFIDENCE_MODES)  # "inliers" (paper) | "score" (confidence.py)
+    backend: Backend = option("opencv", choices=BACKENDS)  # "opencv" (cv2 USAC_MAGSAC, the paper's) | "poselib"
+    confidence: ConfidenceMode = option("inliers", choices=CONFIDENCE_MODES)  # "score": confidence.py
     allow_unscaled: bool = False  # without depth, return the unit-length translation instead of failing
     refine: bool = False  # polish (R, t̂) on the pose inliers (poselib, Sampson error, Cauchy loss); not in the paper
 

@@ -7,7 +7,7 @@ local PCA of the target) slides along surfaces and converges to the surface alig
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal, get_args
 
 import numpy as np
 
@@ -16,9 +16,11 @@ from .common import kabsch
 if TYPE_CHECKING:  # SciPy's spatial module loads only when ICP runs (a third of a second of every CLI start)
     from scipy.spatial import cKDTree
 
-__all__ = ["ICP_METHODS", "icp", "estimate_normals"]
+__all__ = ["ICP_METHODS", "IcpMethod", "icp", "estimate_normals"]
 
-ICP_METHODS = ("point_to_point", "point_to_plane")
+#: How ICP measures a point's distance: to its neighbour (the public code's) or to the neighbour's tangent plane.
+IcpMethod = Literal["point_to_point", "point_to_plane"]
+ICP_METHODS: tuple[IcpMethod, ...] = get_args(IcpMethod)
 
 
 def estimate_normals(X: np.ndarray, tree: cKDTree, k: int = 10) -> np.ndarray:

@@ -26,7 +26,7 @@ from ..matching.base import CandidateMatches
 from ..options import OptionError, option
 from .base import SolverOptions
 from .common import GuardedSolver, SolverError, Timer, rotation_is_valid
-from .confidence import CONFIDENCE_MODES, choose
+from .confidence import CONFIDENCE_MODES, ConfidenceMode, choose
 
 if TYPE_CHECKING:
     import torch
@@ -53,7 +53,7 @@ class MickeySolverOptions(SolverOptions):
     inlier_threshold: float = option(0.15, min=0, min_open=True)  # TH_INLIER, metres
     soft_threshold: float = option(0.3, min=0, min_open=True)  # TH_SOFT_INLIER, metres
     # "inliers": the public soft inlier count; "score": times the fraction of the draw it fits
-    confidence: str = option("inliers", choices=CONFIDENCE_MODES)
+    confidence: ConfidenceMode = option("inliers", choices=CONFIDENCE_MODES)
     seed: int = 0
 
     def __post_init__(self) -> None:

@@ -12,7 +12,10 @@ from ..geometry import Intrinsics, Pose, project
 from ..options import option
 from .base import SolverOptions
 from .common import (
+    BACKENDS,
     DEPTH_SAMPLING,
+    Backend,
+    DepthSampling,
     GuardedSolver,
     SolverError,
     Timer,
@@ -21,11 +24,9 @@ from .common import (
     sample_depth_at,
     valid_depth_map,
 )
-from .confidence import CONFIDENCE_MODES, choose, confidences
+from .confidence import CONFIDENCE_MODES, ConfidenceMode, choose, confidences
 
 __all__ = ["PnPOptions", "PnPSolver"]
-
-BACKENDS = ("opencv", "poselib")
 
 
 @dataclass
@@ -37,10 +38,10 @@ class PnPOptions(SolverOptions):
     ransac_confidence: float = option(0.9999, min=0, max=1, min_open=True, max_open=True)
     min_refine_inliers: int = option(6, min=4)  # iterative refinement on the inliers when at least this many
     max_translation: float = option(1000.0, min=0, min_open=True)  # metres; larger solutions are degenerate
-    depth_sampling: str = option("nearest", choices=DEPTH_SAMPLING)
+    depth_sampling: DepthSampling = option("nearest", choices=DEPTH_SAMPLING)
     min_matches: int = option(5, min=4)
-    backend: str = option("opencv", choices=BACKENDS)  # "opencv" (solvePnPRansac + P3P, the paper's) | "poselib"
-    confidence: str = option("inliers", choices=CONFIDENCE_MODES)
+    backend: Backend = option("opencv", choices=BACKENDS)  # "opencv" (solvePnPRansac + P3P, the paper's) | "poselib"
+    confidence: ConfidenceMode = option("inliers", choices=CONFIDENCE_MODES)
 
 
 def _pnp_opencv(

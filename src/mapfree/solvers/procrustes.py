@@ -17,6 +17,7 @@ from .base import SolverOptions
 from .common import (
     DEPTH_SAMPLING,
     MAX_DEPTH,
+    DepthSampling,
     GuardedSolver,
     SolverError,
     Timer,
@@ -27,8 +28,8 @@ from .common import (
     scale_ratio,
     valid_depth_map,
 )
-from .confidence import CONFIDENCE_MODES, choose, confidences
-from .icp import ICP_METHODS, icp
+from .confidence import CONFIDENCE_MODES, ConfidenceMode, choose, confidences
+from .icp import ICP_METHODS, IcpMethod, icp
 
 __all__ = ["ProcrustesOptions", "ProcrustesSolver", "ransac_rigid"]
 
@@ -45,10 +46,10 @@ class ProcrustesOptions(SolverOptions):
     icp: bool = False
     icp_max_iterations: int = option(30, min=1)
     icp_max_points: int = option(20_000, min=3)  # per cloud, regular subsampling of the back-projected depth maps
-    icp_method: str = option("point_to_point", choices=ICP_METHODS)  # the public code's | "point_to_plane"
-    depth_sampling: str = option("nearest", choices=DEPTH_SAMPLING)
+    icp_method: IcpMethod = option("point_to_point", choices=ICP_METHODS)  # the public code's | "point_to_plane"
+    depth_sampling: DepthSampling = option("nearest", choices=DEPTH_SAMPLING)
     min_matches: int = option(5, min=3)
-    confidence: str = option("inliers", choices=CONFIDENCE_MODES)
+    confidence: ConfidenceMode = option("inliers", choices=CONFIDENCE_MODES)
     seed: int = 0
 
 

@@ -8,9 +8,11 @@ Cameras walk 1–10 m from the object; the props and walls stay farther out so t
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from .textures import GROUNDS, PHOTOS, SURFACES, TextureAtlas
 
@@ -55,7 +57,17 @@ class _Builder:
         self.atlas = atlas
         self.rows: list[tuple] = []
 
-    def quad(self, origin, e1, e2, normal, texture: str, repeats=(1.0, 1.0), tint=(1.0, 1.0, 1.0), two_sided=False):
+    def quad(
+        self,
+        origin: ArrayLike,
+        e1: ArrayLike,
+        e2: ArrayLike,
+        normal: ArrayLike,
+        texture: str,
+        repeats: ArrayLike = (1.0, 1.0),
+        tint: ArrayLike = (1.0, 1.0, 1.0),
+        two_sided: bool = False,
+    ) -> None:
         n = np.asarray(normal, float)
         self.rows.append(
             (
@@ -70,7 +82,16 @@ class _Builder:
             )
         )
 
-    def facade(self, center, normal, width: float, height: float, texture: str, repeats=(1.0, 1.0), tint=(1, 1, 1)):
+    def facade(
+        self,
+        center: ArrayLike,
+        normal: ArrayLike,
+        width: float,
+        height: float,
+        texture: str,
+        repeats: ArrayLike = (1.0, 1.0),
+        tint: ArrayLike = (1, 1, 1),
+    ) -> None:
         """An upright rectangle whose bottom edge is centred at ``center``; its image is upright seen from ``normal``."""
         n = np.asarray(normal, float)
         right = np.cross(-n, UP)
@@ -80,15 +101,15 @@ class _Builder:
 
     def box(
         self,
-        center_xy,
+        center_xy: Sequence[float] | np.ndarray,
         base_z: float,
-        size,
+        size: Sequence[float],
         yaw: float,
-        side_textures,
+        side_textures: Sequence[str],
         top_texture: str,
-        tint=(1, 1, 1),
-        side_repeats=None,
-    ):
+        tint: ArrayLike = (1, 1, 1),
+        side_repeats: Sequence[ArrayLike] | None = None,
+    ) -> None:
         """A yawed box (no bottom face): four photo-covered sides and a top."""
         sx, sy, sz = size
         c, s = np.cos(yaw), np.sin(yaw)
@@ -101,7 +122,9 @@ class _Builder:
         corner = ctr + UP * sz - ax * sx / 2 - ay * sy / 2
         self.quad(corner, ax * sx, ay * sy, UP, top_texture, (max(sx / 1.5, 1), max(sy / 1.5, 1)), tint)
 
-    def build(self, target, object_radius: float, half_size: float, object_quads: int, facing=()) -> World:
+    def build(
+        self, target: ArrayLike, object_radius: float, half_size: float, object_quads: int, facing: Sequence[float] = ()
+    ) -> World:
         cols = list(zip(*self.rows))
         return World(
             np.stack(cols[0]),

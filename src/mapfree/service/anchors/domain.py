@@ -573,7 +573,7 @@ def localize_anchor(
 
     Returns:
         The estimate: world-to-camera pose of the query in the anchor's frame (metres), confidence, timings;
-        no pose, with a reason, when the method finds none. ``extras["photo"]`` is the answering photo's index,
+        no pose, with a reason, when the method finds none. ``est.photo`` is the answering photo's index,
         ``extras["method"]`` the method that ran.
 
     Raises:
@@ -591,6 +591,6 @@ def localize_anchor(
         owner,
         uploaded(a),
     )
-    if est.extras.get("photo") is not None:  # the position among the photos prepared -> its index
-        est.extras["photo"] = indices[est.extras["photo"]]
+    if est.photo is not None:  # the position among the photos prepared -> its index
+        est.photo = indices[est.photo]
     return est

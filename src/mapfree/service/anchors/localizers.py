@@ -280,9 +280,9 @@ class Localizers:
         """World-to-camera pose of the query in the anchor's frame. ``photos`` is called (decoding the stored
         images) only when this process has not prepared this version of the anchor yet; what it prepares counts
         against ``owner``'s share of the cache (the account asking: ``prepared.ByteLRU``). With several photos
-        ``est.extras`` names the retrieved one (``photo``, ``retrieval_similarity``). Keypoints in
-        ``extras["matches"]`` are in the working-size pixels (``fit``). The estimate carries ``p_correct`` from the
-        anchor's ``calibrations`` (by method name), else the method's shipped one (``calibration.calibrate``), and
+        ``est.photo`` is the retrieved one (``est.extras``: ``retrieval_similarity``). Keypoints in ``est.matches``
+        are in the working-size pixels (``fit``). The estimate carries ``p_correct`` from the anchor's
+        ``calibrations`` (by method name), else the method's shipped one (``calibration.calibrate``), and
         ``extras["calibration"]`` says which."""
         chosen = effective_method(method, query_depth is not None)
         loc = self._take(chosen)
@@ -320,8 +320,8 @@ def estimate_json(est: Estimate, method: str) -> dict:
     d["method"] = est.extras.get("method", method)
     d["num_matches"] = int(est.extras.get("num_matches", 0) or 0)
     d["scale_free"] = bool(est.extras.get("scale_free", False))
-    if est.extras.get("photo") is not None:  # which photo of the anchor answered (0: its first)
-        d["photo"] = int(est.extras["photo"])
+    if est.photo is not None:  # which photo of the anchor answered (0: its first)
+        d["photo"] = int(est.photo)
     if "retrieval_similarity" in est.extras:
         d["retrieval_similarity"] = float(est.extras["retrieval_similarity"])
     if est.extras.get("calibration"):
@@ -340,9 +340,7 @@ def figure_png(
     """Matches on top and the virtual grid rendered into the query at the estimated pose below, as PNG bytes."""
     from ... import viz
 
-    m = est.extras.get("matches")
-    if not isinstance(m, Matches):  # a method without correspondences (RPR) or a failure before matching
-        m = Matches.empty()
+    m = est.matches if est.matches is not None else Matches.empty()  # none: RPR, or a failure before matching
     k0, k1 = m.kpts0, m.kpts1
     fig = viz.relocalization_figure(
         ref_image, query_image, ref_K, query_K, k0, k1, est.pose, title=title, reason=est.reason

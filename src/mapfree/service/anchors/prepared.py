@@ -116,7 +116,7 @@ def prepare_anchor(loc: Any, photos: Sequence[Any]) -> PreparedAnchor:
 
 def localize_prepared(loc: Any, prepared: PreparedAnchor, query: Any) -> Estimate:
     """World-to-camera pose of the ``query`` view in the anchor's frame: against its only photo, or against the
-    most similar one (DenseVLAD) of several; ``extras["photo"]`` is that photo's position."""
+    most similar one (DenseVLAD) of several; ``Estimate.photo`` is that photo's position."""
     from ...relocalize import View
     from ...retrieval import retrieve
 
@@ -134,7 +134,7 @@ def localize_prepared(loc: Any, prepared: PreparedAnchor, query: Any) -> Estimat
         est.extras.update(reference=photo.name, retrieval_similarity=sim)
         if est.pose is not None:
             est.pose = est.pose @ photo.pose
-    est.extras["photo"] = i
+    est.photo = i
     return est
 
 
