@@ -102,7 +102,6 @@ def dune_fixture() -> Path:
     return _shared("fixtures/dune-mast3r", "dune_mast3r.json")
 
 
-
 # `make test` runs the suite on two pytest-xdist workers. Each test file stays on one worker, so its module fixtures
 # (an ONNX export, a network built once) are made once; the service tests share one worker (their servers are
 # session fixtures) and so do the files that start Ray clusters.
