@@ -24,9 +24,13 @@ setup: $(VENV)/.installed
 demo: setup-learned
 	$(VENV)/bin/mapfree demo --out demo-out
 
-# The whole suite (CI runs it): about 7 minutes on a 2-core machine shared with other work.
+# The whole suite (CI runs it) on two workers: a test file stays on one worker (tests/conftest.py groups them;
+# the service tests and the Ray clusters each keep to one); then the tests that time answers, alone.
+# `pytest tests/x.py` still runs in one process.
+TEST_WORKERS ?= 2
 test: setup
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(TEST_WORKERS) -m "not serial"
+	$(PY) -m pytest -m serial
 
 # The inner loop, about 2 minutes there: every test but those marked slow (whole tutorials, training, worker
 # processes killed and resumed, full-size networks) and the service's (a server and its workers per backend, a

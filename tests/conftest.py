@@ -100,3 +100,26 @@ def synth(synth_val) -> Path:
 def dune_fixture() -> Path:
     """Folder with dune_mast3r.json / dune_mast3r_outputs.npz: the public DUNE-MASt3R outputs on fill-rule weights."""
     return _shared("fixtures/dune-mast3r", "dune_mast3r.json")
+
+
+# `make test` runs the suite on two pytest-xdist workers. Each test file stays on one worker, so its module fixtures
+# (an ONNX export, a network built once) are made once; the service tests share one worker (their servers are
+# session fixtures) and so do the files that start Ray clusters.
+_GROUPS = {"tests/test_build.py": "ray", "tests/test_run_ray.py": "ray"}
+
+
+def worker_group(nodeid: str) -> str:
+    """The worker group of a test: ``service``, ``ray`` or its file."""
+    path = nodeid.split("::", 1)[0]
+    return "service" if path.startswith("tests/service/") else _GROUPS.get(path, path)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ByGroup(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return worker_group(nodeid)
+
+    return ByGroup(config, log)

@@ -21,6 +21,9 @@ from .conftest import create_users
 
 CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
 EXAMPLES = 4
+# Seconds for loading openapi.json and for each call: schemathesis' 10 s default is passed on a loaded CI machine
+# (a localize runs a method; the schema of the whole app is built on the first request).
+TIMEOUT = 120
 
 
 @pytest.fixture(scope="module")
@@ -42,20 +45,26 @@ def _operations():
 
     with tempfile.TemporaryDirectory() as d:
         app = create_app(Settings(db_url=f"sqlite:///{d}/schema.db"))
-        loaded = schemathesis.openapi.from_asgi("/openapi.json", app)
+        loaded = schemathesis.openapi.from_asgi("/openapi.json", app, timeout=TIMEOUT)
         app.state.engine.dispose()
     ops = [r.ok() for r in loaded.get_all_operations()]
     return [pytest.param(op.method.upper() + " " + op.path, id=f"{op.method.upper()} {op.path}") for op in ops]
 
 
+@pytest.fixture(scope="module")
+def schema(app_and_token):
+    """The app's ``openapi.json`` as schemathesis reads it, loaded once for the module."""
+    return schemathesis.openapi.from_asgi("/openapi.json", app_and_token[0], timeout=TIMEOUT)
+
+
 @pytest.mark.parametrize("route", _operations())
-def test_every_route_answers_as_declared(route, app_and_token):
+def test_every_route_answers_as_declared(route, app_and_token, schema):
     """Each route: a few generated requests, sent as an account and anonymously."""
     from hypothesis import given
 
-    app, token = app_and_token
+    _, token = app_and_token
     method, path = route.split(" ", 1)
-    operation = schemathesis.openapi.from_asgi("/openapi.json", app)[path][method]
+    operation = schema[path][method]
 
     @given(case=operation.as_strategy())
     @settings(
@@ -63,7 +72,7 @@ def test_every_route_answers_as_declared(route, app_and_token):
     )
     def fuzz(case):
         for headers in ({"Authorization": f"Bearer {token}"}, {}):
-            case.call_and_validate(headers=headers, checks=CHECKS)
+            case.call_and_validate(headers=headers, checks=CHECKS, timeout=TIMEOUT)
 
     fuzz()
 
@@ -108,14 +117,14 @@ def test_calls_chained_by_the_declared_links_answer_as_declared(split_data, real
     }
     seen: dict[str, int] = {}
 
-    class Chains(schemathesis.openapi.from_asgi("/openapi.json", app).as_state_machine()):  # type: ignore[misc]
+    class Chains(schemathesis.openapi.from_asgi("/openapi.json", app, timeout=TIMEOUT).as_state_machine()):  # type: ignore[misc]
         def before_call(self, case):
             body = real.get((case.method.upper(), case.operation.path))
             if body is not None:
                 case.body = dict(body)
 
         def get_call_kwargs(self, case):
-            return {"headers": {"Authorization": f"Bearer {token}"}}
+            return {"headers": {"Authorization": f"Bearer {token}"}, "timeout": TIMEOUT}
 
         def validate_response(self, response, case, **kwargs):
             key = f"{case.method.upper()} {case.operation.path} {response.status_code}"

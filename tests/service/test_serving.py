@@ -24,6 +24,7 @@ def _form(K) -> dict:
     return {"fx": repr(K.fx), "fy": repr(K.fy), "cx": repr(K.cx), "cy": repr(K.cy)}
 
 
+@pytest.mark.serial  # measures answer times: `make test` runs it after the parallel part, on an idle machine
 def test_localize_flood_does_not_stall_sign_in_or_the_leaderboard(split_data, realmini_dir, tmp_path):
     """45 concurrent localize calls (large photos, three accounts) used to take every thread of the shared pool:
     sign-in and the leaderboard waited seconds. Now they run on the heavy pool, the overflow gets 429 +
