@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 from mapfree import methods
 from mapfree.calibration import Calibration, shipped
 from mapfree.data import Dataset
-from mapfree.relocalize import Relocalizer
+from mapfree.relocalize import build_localizer
 from mapfree.relocalize.cascade import STAGE_CALIBRATIONS
 
 DATA = Path(__file__).parent / "data"
@@ -88,7 +88,7 @@ def test_uploaded_calibration_gives_the_python_apis_p_correct(make_app, scene):
     assert r.json()["accept"] == 0.5
     ben = app.auth("ben")  # anyone signed in localizes with the anchor's calibration
     est = app.client.post(url + "/localize", headers=ben, **localize).json()
-    api = Relocalizer.from_method(SIFT, calibration=SIFT_CAL).relocalize(ref, query)
+    api = build_localizer(SIFT, calibration=SIFT_CAL).relocalize(ref, query)
     assert est["ok"] and api.ok and est["calibration"] == "uploaded"
     assert est["signals"] == pytest.approx(api.signals.to_dict()) and est["confidence"] == pytest.approx(api.confidence)
     assert est["p_correct"] == pytest.approx(api.p_correct, abs=1e-9)
@@ -185,7 +185,7 @@ def test_shipped_calibration_by_default_and_per_stage_in_a_cascade(make_app, sce
     est = app.client.post(
         f"/anchors/{r.json()['id']}/localize", headers=ann, files=_photo(query, False), data=_form(query.intrinsics)
     ).json()
-    api = Relocalizer.from_method("best-offline-pnp", calibration=shipped("best-offline-pnp")).relocalize(ref, query)
+    api = build_localizer("best-offline-pnp", calibration=shipped("best-offline-pnp")).relocalize(ref, query)
     assert est["ok"] and est["calibration"] == "shipped" and "accepted" not in est
     assert est["p_correct"] == pytest.approx(api.p_correct, abs=1e-9)
     assert est["p_correct"] == pytest.approx(cal.p_correct(est["signals"], est["confidence"]), abs=1e-12)
@@ -209,12 +209,8 @@ def test_shipped_calibration_by_default_and_per_stage_in_a_cascade(make_app, sce
     assert [k for k in est["timings"] if k.startswith("stage:")] == [f"stage:{proc}"]
     cascade = methods.get(form["method"])
     files_option = {STAGE_CALIBRATIONS: {proc: str(mine)}}
-    expected = Relocalizer.from_method(replace(cascade, options={**cascade.options, **files_option})).relocalize(
-        ref, hard
-    )
+    expected = build_localizer(replace(cascade, options={**cascade.options, **files_option})).relocalize(ref, hard)
     assert expected.stage == proc and est["p_correct"] == pytest.approx(expected.p_correct, abs=1e-9)
-    alone = {
-        f: Relocalizer.from_method(proc, calibration=f).relocalize(ref, hard).p_correct for f in (mine, shipped(proc))
-    }
+    alone = {f: build_localizer(proc, calibration=f).relocalize(ref, hard).p_correct for f in (mine, shipped(proc))}
     assert est["p_correct"] == pytest.approx(alone[mine], abs=1e-9)
     assert alone[shipped(proc)] < 0.8 <= alone[mine] < 0.9 and est["accepted"] is False
