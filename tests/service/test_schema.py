@@ -109,6 +109,7 @@ def test_calls_chained_by_the_declared_links_answer_as_declared(split_data, real
         ("POST", "/anchors"): {**photo(ref, True), "method": "sift_pnp_sensor"},
         ("POST", "/anchors/{aid}/photos"): {**photo(query, True), "pose": "1 0 0 0 0 0 0.1"},
         ("POST", "/anchors/{aid}/localize"): photo(query, False),
+        ("POST", "/api/tokens"): {"expires_in_days": "7", "label": "chain"},
         ("POST", "/api/submissions"): {
             "file": make_submission(split_data.root / "val"),
             "split": "val",
